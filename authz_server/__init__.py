@@ -1,0 +1,1 @@
+"""cryptoros-authz: the authorization registry and RS256 access-token issuer."""

@@ -1,0 +1,1 @@
+"""cryptoros-certs: certificate provisioning (CA, CSR, signing, encrypted keys, CRL)."""

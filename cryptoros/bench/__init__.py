@@ -1,0 +1,22 @@
+"""``cryptoros bench``: benchmarks that print figures side by side in one run.
+
+Speed is measured here, never asserted in timed tests. Each benchmark is its own
+module, imported only when run.
+"""
+
+from __future__ import annotations
+
+import click
+
+from cryptoros.cli import LazyGroup
+
+BENCHMARKS: dict[str, str] = {
+    "authz": "cryptoros.bench.authz:authz",
+    "ros1": "cryptoros.bench.ros1:ros1",
+    "sim": "cryptoros.bench.sim:sim",
+}
+
+
+@click.group(cls=LazyGroup, subcommands=BENCHMARKS)
+def bench() -> None:
+    """Benchmarks: token issuing, ROS 1 transport, simulator scale."""

@@ -1,0 +1,98 @@
+"""Helpers shared by the test suite: system parts, free ports, processes.
+
+A test that needs a real system part (openssl, PostgreSQL, ROS 1, stunnel...) calls
+:func:`require`. Where the part is missing the test is skipped with the reason; with
+``CI=true`` in the environment it fails instead, so CI can never go green by
+skipping what it was meant to check.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+VENV_BIN = Path(sys.executable).parent
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def missing(reason: str) -> None:
+    """Skip (locally) or fail (under CI=true) because a system part is missing."""
+    if IN_CI:
+        pytest.fail(f"CI=true and a required system part is missing: {reason}")
+    pytest.skip(reason)
+
+
+def require(*binaries: str) -> dict[str, str]:
+    """Return absolute paths of the named executables, or skip/fail if one is missing."""
+    found = {}
+    for name in binaries:
+        path = shutil.which(name)
+        if path is None:
+            missing(f"'{name}' is not installed (scripts/install-system-parts installs it as root)")
+        found[name] = path
+    return found
+
+
+def script(name: str) -> str:
+    """Path of one of this package's console scripts in the running venv."""
+    path = VENV_BIN / name
+    if not path.exists():
+        pytest.fail(f"console script {name} is not installed in {VENV_BIN}: run 'pip install -e .'")
+    return str(path)
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def wait_for_port(host: str, port: int, timeout: float = 10.0, proc: subprocess.Popen | None = None) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            out = proc.stdout.read() if proc.stdout else ""
+            raise AssertionError(f"process exited with {proc.returncode} before listening: {out}")
+        with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.5):
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"nothing listened on {host}:{port} within {timeout}s")
+
+
+def run(args: Sequence[str], *, timeout: float = 60, check: bool = False, **kw) -> subprocess.CompletedProcess:
+    """Run a command with a bounded wait, capturing text output."""
+    result = subprocess.run(list(args), capture_output=True, text=True, timeout=timeout, **kw)
+    if check and result.returncode != 0:
+        raise AssertionError(f"{args} exited {result.returncode}\nstdout:\n{result.stdout}\nstderr:\n{result.stderr}")
+    return result
+
+
+def stop(proc: subprocess.Popen, timeout: float = 5.0) -> None:
+    """SIGTERM then SIGKILL: every process a test starts is stopped in a finally."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=timeout)
+
+
+@contextlib.contextmanager
+def running(args: Sequence[str], **kw) -> Iterator[subprocess.Popen]:
+    proc = subprocess.Popen(list(args), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+    try:
+        yield proc
+    finally:
+        stop(proc)
