@@ -1,0 +1,68 @@
+"""Throwaway PKI fixtures, loaded by tests/conftest.py as a pytest plugin.
+
+``pki`` is a fresh CA per test (ec-p256, unencrypted keys: tests only), ``other_pki``
+an unrelated second CA for "certificate of another CA" tests::
+
+    def test_x(pki, other_pki):
+        mng = pki.issue("mng1")                       # manager, SANs IP:127.0.0.1 + DNS:localhost
+        icp = pki.issue("icp1", kind="interceptor", sans=("IP:127.0.0.2",))
+        crl = pki.revoke("mng1")                      # revoked and crl.pem rewritten
+        bad = other_pki.issue("mng1")                 # same name, wrong CA
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+
+from certs.pki import PKI, Issued
+
+
+class TestPKIFactory:
+    """A throwaway CA for tests. Keys it issues are not encrypted."""
+
+    __test__ = False  # not a test class
+
+    def __init__(self, directory: Path, *, trust_domain: str = "cryptoros.local") -> None:
+        self.pki: PKI = PKI.init(directory, trust_domain=trust_domain, unsafe_no_passphrase=True)
+        self.directory: Path = self.pki.directory
+        self.ca_cert: Path = self.pki.ca_cert_path
+        self.crl: Path = self.pki.crl_path
+        self.trust_domain: str = trust_domain
+
+    def issue(
+        self,
+        name: str,
+        kind: str = "manager",
+        sans: Sequence[str] = ("IP:127.0.0.1", "DNS:localhost"),
+        key_type: str = "ec-p256",
+        *,
+        days: int = 365,
+        force: bool = False,
+    ) -> Issued:
+        return self.pki.issue(
+            name, kind=kind, sans=sans, key_type=key_type, days=days, unsafe_no_passphrase=True, force=force
+        )
+
+    def revoke(self, name: str, reason: str = "unspecified") -> Path:
+        """Revoke ``name`` (or a serial) and rewrite the CRL; returns the CRL path."""
+        self.pki.revoke(name, reason=reason)
+        return self.pki.write_crl()
+
+
+# The brief names the class TestPKI; keep that name importable too.
+TestPKI = TestPKIFactory
+
+
+@pytest.fixture
+def pki(tmp_path: Path) -> TestPKIFactory:
+    """A fresh throwaway CA in tmp_path/"pki" (ec-p256, unencrypted keys)."""
+    return TestPKIFactory(tmp_path / "pki")
+
+
+@pytest.fixture
+def other_pki(tmp_path: Path) -> TestPKIFactory:
+    """A second CA, unrelated to ``pki``, in tmp_path/"other-pki"."""
+    return TestPKIFactory(tmp_path / "other-pki", trust_domain="other.local")
