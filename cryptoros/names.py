@@ -1,0 +1,53 @@
+"""Validation of ROS graph names, node names and data type names.
+
+The registry stores global names only (``/chatter``, ``/robot1/scan``): a relative or
+private name means something different on every node, so it has no place in a grant.
+A node name may be the explicit wildcard ``*`` ("any node of this manager"); nothing
+else is a wildcard.
+"""
+
+from __future__ import annotations
+
+import re
+
+from cryptoros.errors import RegistryError
+
+_SEGMENT = r"[A-Za-z][A-Za-z0-9_]*"
+_GLOBAL_NAME = re.compile(rf"^(/{_SEGMENT})+$")
+_ROS1_TYPE = re.compile(rf"^{_SEGMENT}/{_SEGMENT}$")
+_ROS2_TYPE = re.compile(rf"^{_SEGMENT}/(msg|srv|action)/{_SEGMENT}$")
+
+NODE_WILDCARD = "*"
+MAX_NAME_LENGTH = 256
+
+
+def validate_graph_name(name: str, what: str = "topic or service name") -> str:
+    """Return ``name`` if it is a valid global ROS name, else raise RegistryError."""
+    if not isinstance(name, str) or len(name) > MAX_NAME_LENGTH or not _GLOBAL_NAME.match(name):
+        raise RegistryError(
+            f"invalid {what} {name!r}: expected a global ROS name such as /chatter or /robot1/scan"
+        )
+    return name
+
+
+def validate_node_name(name: str) -> str:
+    """A global node name such as ``/talker``, or the explicit wildcard ``*``."""
+    if name == NODE_WILDCARD:
+        return name
+    return validate_graph_name(name, "node name")
+
+
+def validate_type(type_name: str) -> str:
+    """``pkg/Name`` (ROS 1) or ``pkg/msg/Name``, ``pkg/srv/Name`` (ROS 2)."""
+    if (
+        not isinstance(type_name, str)
+        or len(type_name) > MAX_NAME_LENGTH
+        or not (_ROS1_TYPE.match(type_name) or _ROS2_TYPE.match(type_name))
+    ):
+        raise RegistryError(
+            f"invalid data type {type_name!r}: expected pkg/Name (ROS 1) or pkg/msg/Name (ROS 2)"
+        )
+    return type_name
+
+
+__all__ = ["NODE_WILDCARD", "validate_graph_name", "validate_node_name", "validate_type"]

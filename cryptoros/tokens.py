@@ -1,0 +1,333 @@
+"""Access-token claims, signing and verification.
+
+The token is an RS256 JWT (RFC 7519) shaped as an OAuth 2 access token (RFC 9068):
+
+    header  {"alg": "RS256", "typ": "at+jwt", "kid": <signing key id>}
+    claims  {"iss", "aud", "sub": <manager>, "iat", "nbf", "exp", "jti",
+             "cnf": {"x5t#S256": <thumbprint of the manager's TLS certificate>},
+             "grants": {<node>: {<action>: [[<topic or service>, <type>], ...]}}}
+
+:func:`verify_access_token` is the only caller of ``jwt.decode`` in cryptoros. It never
+takes the algorithm from the token, requires every claim, checks audience, issuer,
+time (with the clock passed in), the key by ``kid``, the binding of the token to the
+TLS certificate the peer presented (RFC 8705), and revocations. Every refusal is a
+:class:`~cryptoros.errors.TokenError` whose ``reason`` names what failed, for logs
+and metrics; a peer is only ever told an opaque denial.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import time
+import uuid
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import jwt
+from cryptography.hazmat.primitives.asymmetric import rsa
+from jwt.algorithms import RSAAlgorithm
+
+from cryptoros.errors import TokenError
+from cryptoros.names import NODE_WILDCARD, validate_graph_name, validate_node_name, validate_type
+from cryptoros.tls import cert_thumbprint_s256
+
+ALGORITHM = "RS256"
+TOKEN_TYPE = "at+jwt"
+ACTIONS = ("publish", "subscribe", "serve", "call")
+REQUIRED_CLAIMS = ("iss", "aud", "sub", "iat", "nbf", "exp", "jti", "cnf", "grants")
+MAX_TOKEN_BYTES = 64 * 1024
+
+
+@dataclass(frozen=True, kw_only=True, order=True)
+class Grant:
+    """One registry row: ``node`` may ``action`` the topic or service ``name`` of ``type``."""
+
+    node: str
+    action: str
+    name: str
+    type: str
+
+    def __post_init__(self) -> None:
+        if self.action not in ACTIONS:
+            raise ValueError(f"unknown action {self.action!r}; expected one of {', '.join(ACTIONS)}")
+        validate_node_name(self.node)
+        validate_graph_name(self.name)
+        validate_type(self.type)
+
+
+class Grants:
+    """An immutable set of grants, as carried in a token."""
+
+    __slots__ = ("_grants", "_index")
+
+    def __init__(self, grants: Iterable[Grant] = ()) -> None:
+        self._grants = frozenset(grants)
+        self._index = frozenset((g.node, g.action, g.name, g.type) for g in self._grants)
+
+    def __iter__(self) -> Iterator[Grant]:
+        return iter(sorted(self._grants))
+
+    def __len__(self) -> int:
+        return len(self._grants)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Grants) and other._grants == self._grants
+
+    def __hash__(self) -> int:
+        return hash(self._grants)
+
+    def __repr__(self) -> str:
+        return f"Grants({sorted(self._grants)!r})"
+
+    def allows(self, action: str, node: str, name: str, type: str) -> bool:
+        """Exact match on action, name and type; the node matches itself or ``*``."""
+        return (node, action, name, type) in self._index or (NODE_WILDCARD, action, name, type) in self._index
+
+    def for_node(self, node: str) -> Grants:
+        return Grants(g for g in self._grants if g.node in (node, NODE_WILDCARD))
+
+    def to_claim(self) -> dict[str, dict[str, list[list[str]]]]:
+        claim: dict[str, dict[str, list[list[str]]]] = {}
+        for g in sorted(self._grants):
+            claim.setdefault(g.node, {}).setdefault(g.action, []).append([g.name, g.type])
+        return claim
+
+    @classmethod
+    def from_claim(cls, claim: Any) -> Grants:
+        """Parse the ``grants`` claim strictly; anything unexpected is ``malformed``."""
+        if not isinstance(claim, Mapping):
+            raise TokenError("malformed", "grants claim is not an object")
+        grants = []
+        try:
+            for node, actions in claim.items():
+                if not isinstance(actions, Mapping):
+                    raise TokenError("malformed", f"grants for {node!r} are not an object")
+                for action, rows in actions.items():
+                    if not isinstance(rows, list):
+                        raise TokenError("malformed", f"grants {node!r}/{action!r} are not a list")
+                    for row in rows:
+                        if not (isinstance(row, list) and len(row) == 2 and all(isinstance(x, str) for x in row)):
+                            raise TokenError("malformed", f"grant row {row!r} is not [name, type]")
+                        grants.append(Grant(node=node, action=action, name=row[0], type=row[1]))
+        except TokenError:
+            raise
+        except Exception as exc:  # invalid names, types or actions
+            raise TokenError("malformed", f"invalid grant: {exc}") from exc
+        return cls(grants)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Revocations:
+    """What the authorization server's revocation feed says right now."""
+
+    revoked_jtis: frozenset[str] = frozenset()
+    disabled_subjects: frozenset[str] = frozenset()
+
+
+@dataclass(frozen=True, kw_only=True)
+class AccessToken:
+    """A verified token: only :func:`verify_access_token` makes these."""
+
+    subject: str
+    jti: str
+    issued_at: int
+    expires_at: int
+    grants: Grants
+    thumbprint: str
+    claims: Mapping[str, Any] = field(repr=False)
+
+
+def build_claims(
+    *,
+    issuer: str,
+    audience: str,
+    subject: str,
+    grants: Grants,
+    cert_der: bytes,
+    now: int,
+    lifetime: int,
+    jti: str | None = None,
+) -> dict[str, Any]:
+    """The claims of a new access token bound to the certificate ``cert_der``."""
+    if lifetime <= 0:
+        raise ValueError("token lifetime must be positive")
+    now = int(now)
+    return {
+        "iss": issuer,
+        "aud": audience,
+        "sub": subject,
+        "iat": now,
+        "nbf": now,
+        "exp": now + int(lifetime),
+        "jti": jti or uuid.uuid4().hex,
+        "cnf": {"x5t#S256": cert_thumbprint_s256(cert_der)},
+        "grants": grants.to_claim(),
+    }
+
+
+def sign_token(claims: Mapping[str, Any], private_key: rsa.RSAPrivateKey, kid: str) -> str:
+    """Sign claims as an RS256 JWT with ``kid`` and ``typ: at+jwt`` in the header."""
+    if not isinstance(private_key, rsa.RSAPrivateKey):
+        raise TypeError("RS256 tokens need an RSA private key")
+    return jwt.encode(dict(claims), private_key, algorithm=ALGORITHM, headers={"kid": kid, "typ": TOKEN_TYPE})
+
+
+def public_jwk(public_key: rsa.RSAPublicKey, kid: str) -> dict[str, str]:
+    """The public key as a JWK for the JWKS endpoint."""
+    jwk = RSAAlgorithm.to_jwk(public_key, as_dict=True)
+    jwk.update({"kid": kid, "use": "sig", "alg": ALGORITHM})
+    return jwk
+
+
+class KeySet:
+    """Verification keys by ``kid``, as published in the JWKS. Immutable; swap on refresh."""
+
+    __slots__ = ("_keys",)
+
+    def __init__(self, keys: Mapping[str, rsa.RSAPublicKey]) -> None:
+        self._keys = dict(keys)
+
+    @classmethod
+    def from_jwks(cls, jwks: Mapping[str, Any]) -> KeySet:
+        keys = {}
+        for jwk in jwks.get("keys", []) if isinstance(jwks, Mapping) else []:
+            if not isinstance(jwk, Mapping) or jwk.get("kty") != "RSA" or jwk.get("alg", ALGORITHM) != ALGORITHM:
+                continue  # only RSA signing keys for RS256 are ever accepted
+            kid = jwk.get("kid")
+            if not isinstance(kid, str) or not kid:
+                continue
+            key = RSAAlgorithm.from_jwk(json.dumps(dict(jwk)))
+            if isinstance(key, rsa.RSAPublicKey):
+                keys[kid] = key
+        return cls(keys)
+
+    def get(self, kid: str) -> rsa.RSAPublicKey:
+        try:
+            return self._keys[kid]
+        except (KeyError, TypeError):
+            raise TokenError("unknown_kid", f"no verification key with kid {kid!r}") from None
+
+    def kids(self) -> list[str]:
+        return sorted(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+
+_PYJWT_REASONS: tuple[tuple[type[Exception], str], ...] = (
+    (jwt.InvalidSignatureError, "bad_signature"),
+    (jwt.InvalidAudienceError, "bad_audience"),
+    (jwt.InvalidIssuerError, "bad_issuer"),
+    (jwt.MissingRequiredClaimError, "missing_claim"),
+    (jwt.InvalidAlgorithmError, "bad_algorithm"),
+    (jwt.ExpiredSignatureError, "expired"),
+    (jwt.ImmatureSignatureError, "not_yet_valid"),
+    (jwt.DecodeError, "malformed"),
+    (jwt.InvalidTokenError, "malformed"),
+)
+
+
+def verify_access_token(
+    token: str,
+    *,
+    keys: KeySet,
+    issuer: str,
+    audience: str,
+    peer_cert_der: bytes | None,
+    now: float | None = None,
+    leeway: float = 5.0,
+    revocations: Revocations | None = None,
+) -> AccessToken:
+    """Verify ``token`` completely or raise :class:`TokenError`.
+
+    ``peer_cert_der`` is the certificate the peer presented on this TLS connection:
+    the token must be bound to it. ``now`` defaults to the wall clock; pass the
+    simulator's clock or a test's fixed time explicitly.
+    """
+    if not isinstance(token, str) or not token or len(token) > MAX_TOKEN_BYTES:
+        raise TokenError("malformed", "token missing, not text, or oversized")
+    try:
+        header = jwt.get_unverified_header(token)
+    except jwt.InvalidTokenError as exc:
+        raise TokenError("malformed", f"unreadable header: {exc}") from exc
+    if header.get("alg") != ALGORITHM:
+        raise TokenError("bad_algorithm", f"alg {header.get('alg')!r} refused; only {ALGORITHM}")
+    public_key = keys.get(header.get("kid"))
+    try:
+        claims = jwt.decode(
+            token,
+            key=public_key,
+            algorithms=[ALGORITHM],
+            audience=audience,
+            issuer=issuer,
+            options={
+                "require": list(REQUIRED_CLAIMS),
+                "verify_signature": True,
+                "verify_aud": True,
+                "verify_iss": True,
+                # Time is checked below against the clock passed in.
+                "verify_exp": False,
+                "verify_nbf": False,
+                "verify_iat": False,
+            },
+        )
+    except Exception as exc:
+        for exc_type, reason in _PYJWT_REASONS:
+            if isinstance(exc, exc_type):
+                raise TokenError(reason, str(exc)) from exc
+        raise TokenError("malformed", str(exc)) from exc
+
+    subject, jti = claims["sub"], claims["jti"]
+    times = {k: claims[k] for k in ("iat", "nbf", "exp")}
+    if not (isinstance(subject, str) and subject and isinstance(jti, str) and jti):
+        raise TokenError("malformed", "sub and jti must be non-empty strings")
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in times.values()):
+        raise TokenError("malformed", "iat, nbf and exp must be integers")
+    current = time.time() if now is None else now
+    if current >= times["exp"] + leeway:
+        raise TokenError("expired", f"expired at {times['exp']}, now {int(current)}")
+    if current + leeway < times["nbf"]:
+        raise TokenError("not_yet_valid", f"not valid before {times['nbf']}, now {int(current)}")
+
+    cnf = claims["cnf"]
+    bound = cnf.get("x5t#S256") if isinstance(cnf, Mapping) else None
+    if not isinstance(bound, str):
+        raise TokenError("malformed", "cnf claim has no x5t#S256")
+    if not peer_cert_der:
+        raise TokenError("no_peer_certificate", "no TLS certificate to check the token binding against")
+    presented = cert_thumbprint_s256(peer_cert_der)
+    if not hmac.compare_digest(bound.encode(), presented.encode()):
+        raise TokenError("cnf_mismatch", "token is bound to another certificate")
+
+    if revocations is not None:
+        if jti in revocations.revoked_jtis:
+            raise TokenError("revoked", f"token {jti} was revoked")
+        if subject in revocations.disabled_subjects:
+            raise TokenError("subject_disabled", f"manager {subject} is disabled")
+
+    return AccessToken(
+        subject=subject,
+        jti=jti,
+        issued_at=times["iat"],
+        expires_at=times["exp"],
+        grants=Grants.from_claim(claims["grants"]),
+        thumbprint=presented,
+        claims=claims,
+    )
+
+
+__all__ = [
+    "ACTIONS",
+    "ALGORITHM",
+    "AccessToken",
+    "Grant",
+    "Grants",
+    "KeySet",
+    "Revocations",
+    "build_claims",
+    "public_jwk",
+    "sign_token",
+    "verify_access_token",
+]
