@@ -1,0 +1,439 @@
+"""TCPROS, sans-IO: connection headers, message frames and service framing.
+
+In the manner of h11: :meth:`TCPROSConnection.receive_data` only buffers (``b""``
+means the peer closed), :meth:`TCPROSConnection.next_event` parses and returns an
+event or :data:`NEED_DATA`, :meth:`TCPROSConnection.send` turns an event into bytes.
+No socket anywhere, so the node, the interceptor, the attack toolkit and the tests
+share one parser.
+
+Wire format (ROS 1):
+
+* connection header: ``u32 LE total``, then fields ``u32 LE len`` + ``key=value``;
+* topic messages and service requests: ``u32 LE len`` + body;
+* service responses: ``u8 ok`` + ``u32 LE len`` + body (on ``ok=0`` the body is the
+  error text).
+
+Every declared length is checked against the limits given to the constructor before
+a byte of its payload is buffered. Peer garbage raises :class:`RemoteProtocolError`
+(and the connection stays errored); misuse of the API raises
+:class:`LocalProtocolError`.
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Final
+
+from cryptoros.errors import LocalProtocolError, RemoteProtocolError
+
+__all__ = [
+    "NEED_DATA",
+    "FrameKind",
+    "ConnectionHeader",
+    "Message",
+    "ServiceResponse",
+    "ConnectionClosed",
+    "TCPROSConnection",
+    "encode_header",
+    "decode_header",
+    "encode_frame",
+    "encode_service_response",
+    "check_subscriber_header",
+    "check_publisher_header",
+    "check_service_client_header",
+    "check_service_server_header",
+    "DEFAULT_MAX_HEADER_SIZE",
+    "DEFAULT_MAX_FRAME_SIZE",
+]
+
+DEFAULT_MAX_HEADER_SIZE: Final = 1 << 20  # 1 MiB: message_definition of big types fits
+DEFAULT_MAX_FRAME_SIZE: Final = 256 << 20  # 256 MiB: large point clouds fit
+
+_U32 = struct.Struct("<I")
+_OK_U32 = struct.Struct("<BI")
+
+
+class _NeedData:
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return "NEED_DATA"
+
+
+NEED_DATA: Final = _NeedData()
+
+
+class FrameKind(enum.Enum):
+    """What follows the peer's connection header."""
+
+    MESSAGE = "message"  # u32 len + body (topic data, service requests)
+    SERVICE_RESPONSE = "service_response"  # u8 ok + u32 len + body
+
+
+# ---------------------------------------------------------------- events
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class ConnectionHeader:
+    """A TCPROS connection header: ordered ``(key, value)`` fields."""
+
+    fields: tuple[tuple[str, str], ...]
+
+    def __post_init__(self) -> None:
+        if isinstance(self.fields, Mapping):
+            object.__setattr__(self, "fields", tuple(self.fields.items()))
+        else:
+            object.__setattr__(self, "fields", tuple((k, v) for k, v in self.fields))
+        for key, value in self.fields:
+            if not isinstance(key, str) or not isinstance(value, str):
+                raise LocalProtocolError("header keys and values must be str")
+            if not key or "=" in key:
+                raise LocalProtocolError(f"invalid header key {key!r}")
+
+    @classmethod
+    def of(cls, mapping: Mapping[str, str] | None = None, /, **kw: str) -> ConnectionHeader:
+        items = dict(mapping or {})
+        items.update(kw)
+        return cls(fields=tuple(items.items()))
+
+    def as_dict(self) -> dict[str, str]:
+        """Fields as a dict; a repeated key keeps its last value (as roscpp and rospy do)."""
+        return dict(self.fields)
+
+    def get(self, key: str, default: str | None = None) -> str | None:
+        for k, v in reversed(self.fields):
+            if k == key:
+                return v
+        return default
+
+    def __getitem__(self, key: str) -> str:
+        value = self.get(key)
+        if value is None:
+            raise KeyError(key)
+        return value
+
+    def __contains__(self, key: object) -> bool:
+        return any(k == key for k, _ in self.fields)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Message:
+    """One frame: a serialized message or service request (no length prefix)."""
+
+    data: bytes
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.data, (bytes, bytearray, memoryview)):
+            raise LocalProtocolError("Message.data must be bytes")
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class ServiceResponse:
+    """A service response: ``ok`` and the serialized response (or error text)."""
+
+    ok: bool
+    data: bytes
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.ok, bool):
+            raise LocalProtocolError("ServiceResponse.ok must be bool")
+        if not isinstance(self.data, (bytes, bytearray, memoryview)):
+            raise LocalProtocolError("ServiceResponse.data must be bytes")
+
+    @property
+    def error(self) -> str:
+        return "" if self.ok else bytes(self.data).decode("utf-8", "replace")
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class ConnectionClosed:
+    """The peer closed the connection cleanly (between frames)."""
+
+
+Event = ConnectionHeader | Message | ServiceResponse | ConnectionClosed
+
+
+# ---------------------------------------------------------------- pure helpers
+
+
+def encode_header(fields: ConnectionHeader | Mapping[str, str] | Iterable[tuple[str, str]]) -> bytes:
+    """Encode a connection header (with its u32 total length)."""
+    if not isinstance(fields, ConnectionHeader):
+        fields = ConnectionHeader(fields=fields)  # type: ignore[arg-type]
+    parts = []
+    for key, value in fields.fields:
+        item = f"{key}={value}".encode()
+        parts.append(_U32.pack(len(item)))
+        parts.append(item)
+    body = b"".join(parts)
+    return _U32.pack(len(body)) + body
+
+
+def decode_header(body: bytes | bytearray | memoryview) -> ConnectionHeader:
+    """Decode a header body (without its u32 total length). Strict: every field must
+    fit, hold ``=`` with a non-empty key, and be UTF-8."""
+    view = memoryview(body)
+    n = len(view)
+    pos = 0
+    fields: list[tuple[str, str]] = []
+    while pos < n:
+        if n - pos < 4:
+            raise RemoteProtocolError("truncated header field length")
+        (size,) = _U32.unpack_from(view, pos)
+        pos += 4
+        if size > n - pos:
+            raise RemoteProtocolError(f"header field length {size} exceeds the header ({n - pos} left)")
+        raw = bytes(view[pos : pos + size])
+        pos += size
+        eq = raw.find(b"=")
+        if eq < 0:
+            raise RemoteProtocolError(f"header field without '=': {raw[:40]!r}")
+        if eq == 0:
+            raise RemoteProtocolError("header field with an empty key")
+        try:
+            key = raw[:eq].decode("utf-8")
+            value = raw[eq + 1 :].decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise RemoteProtocolError(f"header field is not UTF-8: {raw[:40]!r}") from err
+        fields.append((key, value))
+    return ConnectionHeader(fields=tuple(fields))
+
+
+def encode_frame(data: bytes | bytearray | memoryview) -> bytes:
+    """``u32 len`` + data."""
+    return _U32.pack(len(data)) + bytes(data)
+
+
+def encode_service_response(ok: bool, data: bytes | bytearray | memoryview) -> bytes:
+    """``u8 ok`` + ``u32 len`` + data."""
+    return _OK_U32.pack(1 if ok else 0, len(data)) + bytes(data)
+
+
+def _require(header: ConnectionHeader, keys: Iterable[str], what: str) -> dict[str, str]:
+    d = header.as_dict()
+    missing = [k for k in keys if not d.get(k)]
+    if missing:
+        raise RemoteProtocolError(f"{what} header lacks {', '.join(missing)}")
+    return d
+
+
+def check_subscriber_header(header: ConnectionHeader) -> dict[str, str]:
+    """A subscriber's header, as a publisher receives it: needs ``topic``, ``type``
+    (``*`` allowed), ``md5sum`` and ``callerid``."""
+    d = _require(header, ("callerid", "topic", "md5sum", "type"), "subscriber")
+    if not d["topic"].startswith("/"):
+        raise RemoteProtocolError(f"topic is not a global name: {d['topic']!r}")
+    return d
+
+
+def check_publisher_header(header: ConnectionHeader) -> dict[str, str]:
+    """A publisher's reply header: ``error`` becomes a RemoteProtocolError; else
+    ``type`` and ``md5sum`` are required."""
+    d = header.as_dict()
+    if "error" in d:
+        raise RemoteProtocolError(f"publisher refused the connection: {d['error']}")
+    return _require(header, ("md5sum", "type"), "publisher")
+
+
+def check_service_client_header(header: ConnectionHeader) -> dict[str, str]:
+    """A service client's header, as the server receives it."""
+    d = _require(header, ("callerid", "service", "md5sum"), "service client")
+    if not d["service"].startswith("/"):
+        raise RemoteProtocolError(f"service is not a global name: {d['service']!r}")
+    return d
+
+
+def check_service_server_header(header: ConnectionHeader) -> dict[str, str]:
+    """A service server's reply header."""
+    d = header.as_dict()
+    if "error" in d:
+        raise RemoteProtocolError(f"service refused the connection: {d['error']}")
+    return _require(header, ("md5sum",), "service server")
+
+
+# ---------------------------------------------------------------- the connection
+
+
+class _State(enum.Enum):
+    HEADER = "header"
+    FRAMES = "frames"
+    CLOSED = "closed"
+    ERROR = "error"
+
+
+class TCPROSConnection:
+    """One side of a TCPROS connection.
+
+    ``frame_kind`` says how the peer frames what follows its header: plain
+    :attr:`FrameKind.MESSAGE` frames (a subscriber receiving topic data, a service
+    server receiving requests) or :attr:`FrameKind.SERVICE_RESPONSE` (a service
+    client). It can be set after the header arrived (:meth:`set_frame_kind`), for a
+    port shared by topics and services demultiplexed on the header.
+    """
+
+    __slots__ = (
+        "max_header_size",
+        "max_frame_size",
+        "frame_kind",
+        "_buf",
+        "_state",
+        "_eof",
+        "their_header",
+    )
+
+    def __init__(
+        self,
+        *,
+        frame_kind: FrameKind = FrameKind.MESSAGE,
+        max_header_size: int = DEFAULT_MAX_HEADER_SIZE,
+        max_frame_size: int = DEFAULT_MAX_FRAME_SIZE,
+        expect_header: bool = True,
+    ) -> None:
+        if max_header_size < 4 or max_frame_size < 0:
+            raise LocalProtocolError("limits must be positive")
+        self.max_header_size = max_header_size
+        self.max_frame_size = max_frame_size
+        self.frame_kind = frame_kind
+        self._buf = bytearray()
+        self._state = _State.HEADER if expect_header else _State.FRAMES
+        self._eof = False
+        self.their_header: ConnectionHeader | None = None
+
+    # -- input
+    def receive_data(self, data: bytes | bytearray | memoryview) -> None:
+        """Buffer bytes from the peer; ``b""`` means the peer closed."""
+        if self._eof:
+            if data:
+                raise LocalProtocolError("receive_data after EOF")
+            return
+        if data:
+            self._buf += data
+        else:
+            self._eof = True
+
+    @property
+    def trailing_data(self) -> tuple[bytes, bool]:
+        """Bytes buffered but not parsed yet, and whether EOF was seen (for handing
+        the raw stream over to a byte pump after the header check)."""
+        return bytes(self._buf), self._eof
+
+    def set_frame_kind(self, kind: FrameKind) -> None:
+        self.frame_kind = kind
+
+    def next_event(self) -> Event | _NeedData:
+        """The next event, or :data:`NEED_DATA`. Raises RemoteProtocolError on garbage."""
+        state = self._state
+        if state is _State.ERROR:
+            raise RemoteProtocolError("connection already failed")
+        if state is _State.CLOSED:
+            return ConnectionClosed()
+        try:
+            if state is _State.HEADER:
+                event = self._next_header()
+            else:
+                event = self._next_frame()
+        except RemoteProtocolError:
+            self._state = _State.ERROR
+            raise
+        if event is NEED_DATA and self._eof:
+            if self._buf or self._state is _State.HEADER:
+                where = "header" if self._state is _State.HEADER else "frame"
+                self._state = _State.ERROR
+                raise RemoteProtocolError(f"connection closed in the middle of a {where}")
+            self._state = _State.CLOSED
+            return ConnectionClosed()
+        return event
+
+    def _next_header(self) -> Event | _NeedData:
+        buf = self._buf
+        if len(buf) < 4:
+            return NEED_DATA
+        (size,) = _U32.unpack_from(buf, 0)
+        if size > self.max_header_size:
+            raise RemoteProtocolError(f"declared header length {size} exceeds the limit {self.max_header_size}")
+        if len(buf) < 4 + size:
+            return NEED_DATA
+        header = decode_header(memoryview(buf)[4 : 4 + size])
+        del buf[: 4 + size]
+        self.their_header = header
+        self._state = _State.FRAMES
+        return header
+
+    def _next_frame(self) -> Event | _NeedData:
+        buf = self._buf
+        if self.frame_kind is FrameKind.MESSAGE:
+            if len(buf) < 4:
+                return NEED_DATA
+            (size,) = _U32.unpack_from(buf, 0)
+            if size > self.max_frame_size:
+                raise RemoteProtocolError(f"declared frame length {size} exceeds the limit {self.max_frame_size}")
+            end = 4 + size
+            if len(buf) < end:
+                return NEED_DATA
+            data = bytes(buf[4:end])
+            del buf[:end]
+            return Message(data=data)
+        if len(buf) < 5:
+            return NEED_DATA
+        ok, size = _OK_U32.unpack_from(buf, 0)
+        if ok > 1:
+            raise RemoteProtocolError(f"service response ok byte is {ok}, not 0 or 1")
+        if size > self.max_frame_size:
+            raise RemoteProtocolError(f"declared response length {size} exceeds the limit {self.max_frame_size}")
+        end = 5 + size
+        if len(buf) < end:
+            return NEED_DATA
+        data = bytes(buf[5:end])
+        del buf[:end]
+        return ServiceResponse(ok=bool(ok), data=data)
+
+    def messages(self) -> list[bytes]:
+        """Fast path for a data stream after the header: every complete message
+        frame buffered now, as bytes (``[]`` if none). Raises like :meth:`next_event`;
+        EOF is reported by :meth:`next_event`, not here."""
+        if self._state is not _State.FRAMES or self.frame_kind is not FrameKind.MESSAGE:
+            if self._state is _State.ERROR:
+                raise RemoteProtocolError("connection already failed")
+            return []
+        buf = self._buf
+        n = len(buf)
+        pos = 0
+        out = []
+        limit = self.max_frame_size
+        unpack = _U32.unpack_from
+        while n - pos >= 4:
+            (size,) = unpack(buf, pos)
+            if size > limit:
+                self._state = _State.ERROR
+                raise RemoteProtocolError(f"declared frame length {size} exceeds the limit {limit}")
+            end = pos + 4 + size
+            if end > n:
+                break
+            out.append(bytes(buf[pos + 4 : end]))
+            pos = end
+        if pos:
+            del buf[:pos]
+        return out
+
+    def pending_frame_size(self) -> int | None:
+        """Declared size of the partial message frame at the head of the buffer
+        (lets an I/O layer size its receive buffer), or None."""
+        if self._state is _State.FRAMES and self.frame_kind is FrameKind.MESSAGE and len(self._buf) >= 4:
+            return _U32.unpack_from(self._buf, 0)[0]
+        return None
+
+    # -- output
+    def send(self, event: Event) -> bytes:
+        """Bytes for an event of ours (our header, a frame, a service response)."""
+        if isinstance(event, Message):
+            return encode_frame(event.data)
+        if isinstance(event, ConnectionHeader):
+            return encode_header(event)
+        if isinstance(event, ServiceResponse):
+            return encode_service_response(event.ok, event.data)
+        if isinstance(event, ConnectionClosed):
+            return b""
+        raise LocalProtocolError(f"cannot send {event!r}")
