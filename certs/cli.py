@@ -82,6 +82,7 @@ def _prompt(label: str, *, confirm: bool) -> bytes:
         click.echo(f"{label}: ", err=True, nl=False)
         text = sys.stdin.readline() if sys.stdin is not None else ""
         if not text:
+            click.echo("", err=True)  # end the prompt line: the error gets a line of its own
             raise BadInput(
                 f"no passphrase: use --passphrase-file, set ${ENV_PASSPHRASE}/${ENV_CA_PASSPHRASE}, or run interactively"
             )
