@@ -1,0 +1,188 @@
+"""The certs.pki library API and the pki / other_pki fixtures other tests rely on."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import hashlib
+import ipaddress
+import json
+import socket
+import ssl
+import stat
+import threading
+from pathlib import Path
+
+import pytest
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from cryptography.x509 import verification
+
+from certs.pki import (
+    KEY_TYPES,
+    KINDS,
+    PKI,
+    cert_fingerprint_sha256,
+    load_certificate,
+    load_private_key,
+    manager_identity_uri,
+    request,
+)
+from cryptoros.errors import CryptorosError, PKIError
+
+
+def test_constants_and_identity_uri():
+    assert KEY_TYPES == ("ec-p256", "rsa2048", "rsa3072")
+    assert KINDS == ("manager", "interceptor", "server", "master")
+    assert manager_identity_uri("robots.example", "mng1") == "spiffe://robots.example/manager/mng1"
+    assert issubclass(PKIError, CryptorosError)
+
+
+def test_fixture_issue_and_fingerprint(pki):
+    out = pki.issue("mng1")
+    assert out.name == "mng1" and out.key_path is not None
+    cert = load_certificate(out.cert_path)
+    der = cert.public_bytes(serialization.Encoding.DER)
+    assert out.fingerprint_sha256 == hashlib.sha256(der).hexdigest() == cert_fingerprint_sha256(out.cert_path)
+    assert out.serial == cert.serial_number
+    san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert san.get_values_for_type(x509.IPAddress) == [ipaddress.ip_address("127.0.0.1")]
+    assert san.get_values_for_type(x509.DNSName) == ["localhost"]
+    assert stat.S_IMODE(out.key_path.stat().st_mode) == 0o600
+    load_private_key(out.key_path, None)  # the fixture's keys are not encrypted
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        out.name = "other"  # type: ignore[misc]
+
+
+def test_fixture_revoke_rewrites_crl(pki):
+    a, b = pki.issue("a"), pki.issue("b")
+    crl_path = pki.revoke("a")
+    assert crl_path == pki.crl
+    crl = x509.load_pem_x509_crl(crl_path.read_bytes())
+    assert crl.get_revoked_certificate_by_serial_number(a.serial) is not None
+    assert crl.get_revoked_certificate_by_serial_number(b.serial) is None
+    status = {r.name: r.status for r in pki.pki.list()}
+    assert status == {"a": "revoked", "b": "valid"}
+    with pytest.raises(PKIError, match="revoked"):
+        pki.pki.verify(a.cert_path)
+    pki.pki.verify(b.cert_path)
+
+
+def test_other_pki_is_unrelated(pki, other_pki):
+    mine, theirs = pki.issue("mng1"), other_pki.issue("mng1")
+    with pytest.raises(PKIError, match="not issued by this CA"):
+        pki.pki.verify(theirs.cert_path)
+    other_pki.pki.verify(theirs.cert_path)
+    assert mine.fingerprint_sha256 != theirs.fingerprint_sha256
+    assert pki.ca_cert.read_bytes() != other_pki.ca_cert.read_bytes()
+
+
+def test_encrypted_ca_and_keys(tmp_path: Path):
+    PKI.init(tmp_path / "p", passphrase=b"ca-pass", trust_domain="t.example")
+    with pytest.raises(PKIError, match="passphrase"):
+        PKI.init(tmp_path / "q")  # neither a passphrase nor unsafe_no_passphrase
+    with pytest.raises(PKIError, match="exists"):
+        PKI.init(tmp_path / "p", unsafe_no_passphrase=True)
+    with pytest.raises(PKIError, match="wrong passphrase"):
+        PKI.open(tmp_path / "p", passphrase=b"nope").issue("x", unsafe_no_passphrase=True)
+    with pytest.raises(PKIError, match="passphrase is required"):
+        PKI.open(tmp_path / "p").issue("x", unsafe_no_passphrase=True)
+    assert not (tmp_path / "p" / "issued" / "x.crt").exists()
+    ca = PKI.open(tmp_path / "p", passphrase=b"ca-pass")
+    assert ca.trust_domain == "t.example"
+    out = ca.issue("x", kind="server", key_type="rsa2048", passphrase=b"leaf")
+    assert isinstance(load_private_key(out.key_path, b"leaf").key_size, int)
+    with pytest.raises(PKIError):
+        load_private_key(out.key_path, b"bad")
+    with pytest.raises(PKIError):
+        load_private_key(out.key_path, None)
+    index = json.loads((tmp_path / "p" / "index.json").read_text())
+    rec = index["certificates"][0]
+    assert set(rec) >= {"serial", "name", "kind", "fingerprint", "not_after", "status", "revoked_at", "reason"}
+    assert rec["kind"] == "server" and rec["fingerprint"] == out.fingerprint_sha256
+
+
+def test_request_and_sign_csr_api(pki, tmp_path: Path):
+    key_path, csr_path = request("rob1", tmp_path / "robot", passphrase=b"pw", sans=("IP:127.0.0.5",))
+    out = pki.pki.sign_csr(csr_path, kind="interceptor")
+    assert out.key_path is None and out.name == "rob1"
+    cert = load_certificate(out.cert_path)
+    assert cert.public_key() == load_private_key(key_path, b"pw").public_key()
+    revoked_serial = pki.pki.revoke(out.serial)  # by int serial
+    assert revoked_serial == out.serial
+    with pytest.raises(PKIError, match="already revoked"):
+        pki.pki.revoke("rob1")
+    with pytest.raises(PKIError, match="no certificate"):
+        pki.pki.revoke("nobody")
+
+
+def test_days_are_capped_by_the_ca(tmp_path: Path):
+    ca = PKI.init(tmp_path / "p", days=10, unsafe_no_passphrase=True)
+    out = ca.issue("long", days=365, unsafe_no_passphrase=True)
+    assert load_certificate(out.cert_path).not_valid_after_utc <= ca.ca_cert.not_valid_after_utc
+
+
+def test_strict_webpki_verifier_accepts_client_and_server_certs(pki):
+    """cryptography's RFC 5280 / CABF verifier (stricter than OpenSSL) accepts our certs."""
+    out = pki.issue("icp1", kind="interceptor", sans=("IP:127.0.0.2",))
+    store = verification.Store([load_certificate(pki.ca_cert)])
+    leaf = load_certificate(out.cert_path)
+    builder = verification.PolicyBuilder().store(store).time(dt.datetime.now(dt.timezone.utc))
+    client = builder.build_client_verifier().verify(leaf, [])
+    assert x509.UniformResourceIdentifier("spiffe://cryptoros.local/interceptor/icp1") in client.subjects
+    builder.build_server_verifier(verification.IPAddress(ipaddress.ip_address("127.0.0.2"))).verify(leaf, [])
+
+
+def test_mutual_tls_handshake_on_loopback(pki, other_pki):
+    """Python's ssl (OpenSSL) completes mutual TLS with our certs, and refuses a foreign CA."""
+    server_id = pki.issue("icp1", kind="interceptor", sans=("IP:127.0.0.1",))
+    client_id = pki.issue("mng1", kind="manager")
+    stranger = other_pki.issue("mng1", kind="manager")
+
+    def server_ctx() -> ssl.SSLContext:
+        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+        ctx.load_cert_chain(server_id.cert_path, server_id.key_path)
+        ctx.load_verify_locations(pki.ca_cert)
+        ctx.verify_mode = ssl.CERT_REQUIRED
+        return ctx
+
+    def client_ctx(identity) -> ssl.SSLContext:
+        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+        ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+        ctx.load_verify_locations(pki.ca_cert)
+        ctx.load_cert_chain(identity.cert_path, identity.key_path)
+        return ctx
+
+    def handshake(identity) -> tuple[bool, object]:
+        result: dict = {}
+        with socket.create_server(("127.0.0.1", 0)) as listener:
+            listener.settimeout(5)
+            port = listener.getsockname()[1]
+
+            def serve() -> None:
+                try:
+                    conn, _ = listener.accept()
+                    conn.settimeout(5)
+                    with server_ctx().wrap_socket(conn, server_side=True) as tls:
+                        result["peer"] = tls.getpeercert()
+                        tls.sendall(b"ok")
+                except (ssl.SSLError, OSError) as err:
+                    result["error"] = err
+
+            t = threading.Thread(target=serve, daemon=True)
+            t.start()
+            try:
+                with socket.create_connection(("127.0.0.1", port), timeout=5) as raw:
+                    with client_ctx(identity).wrap_socket(raw, server_hostname="127.0.0.1") as tls:
+                        tls.recv(2)
+            except (ssl.SSLError, OSError):
+                pass
+            t.join(timeout=5)
+        return "peer" in result, result.get("peer") or result.get("error")
+
+    accepted, peer = handshake(client_id)
+    assert accepted, peer
+    assert ("URI", "spiffe://cryptoros.local/manager/mng1") in peer["subjectAltName"]
+    accepted, err = handshake(stranger)
+    assert not accepted, err
