@@ -1,0 +1,400 @@
+"""The token issuer daemon: an aiohttp application behind mutual TLS.
+
+Endpoints (all behind the same mutual TLS; a client without a certificate from the
+CA never gets past the handshake):
+
+- ``POST /token``: OAuth 2 client credentials grant (RFC 6749 section 4.4), the
+  client authenticated by its TLS certificate (RFC 8705). The certificate's SHA-256
+  fingerprint names the manager; the answer is an RS256 JWT bound to that certificate
+  (``cnf.x5t#S256``) carrying the manager's grants.
+- ``GET /.well-known/jwks.json``: the active key and every retired key a still-valid
+  token may have been signed with.
+- ``GET /revocations``: revoked token ids (unexpired) and disabled managers, with a
+  monotonic serial and an ``ETag`` so polls are cheap.
+- ``GET /healthz`` and ``GET /metrics`` (Prometheus text format).
+
+Database calls run in a small thread pool, never on the event loop; manager grants,
+the JWKS and the feed are cached for ``cache_seconds`` (one lookup in flight per
+key). Audit rows are written by group commit: each request waits until its row is
+stored, and all rows that arrive meanwhile share one transaction.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import hashlib
+import json
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from aiohttp import web
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+from authz_server import keys as keymod
+from authz_server.config import ServeConfig
+from authz_server.registry import AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
+from cryptoros.errors import ConfigError, CryptorosError, TokenError
+from cryptoros.tls import cert_fingerprint_sha256, peer_cert_der
+from cryptoros.tokens import Grant, Grants, build_claims, public_jwk, sign_token
+
+log = logging.getLogger("cryptoros.authz")
+T = TypeVar("T")
+
+MAX_BODY = 16 * 1024
+
+
+class _Cache:
+    """Values by key for ``ttl`` seconds, with one computation in flight per key."""
+
+    def __init__(self, ttl: float) -> None:
+        self.ttl = ttl
+        self._values: dict[Any, tuple[float, Any]] = {}
+        self._inflight: dict[Any, asyncio.Future] = {}
+
+    async def get(self, key: Any, compute: Callable[[], Awaitable[T]]) -> T:
+        now = time.monotonic()
+        hit = self._values.get(key)
+        if hit is not None and hit[0] > now:
+            return hit[1]
+        pending = self._inflight.get(key)
+        if pending is not None:
+            return await asyncio.shield(pending)
+        fut: asyncio.Future = asyncio.get_running_loop().create_future()
+        self._inflight[key] = fut
+        try:
+            value = await compute()
+        except BaseException as exc:
+            fut.set_exception(exc)
+            fut.exception()  # mark retrieved: waiters re-raise it, nobody else must
+            raise
+        else:
+            fut.set_result(value)
+            if self.ttl > 0:
+                self._values[key] = (time.monotonic() + self.ttl, value)
+                if len(self._values) > 10_000:
+                    self._values.clear()
+            return value
+        finally:
+            del self._inflight[key]
+
+    def clear(self) -> None:
+        self._values.clear()
+
+
+class _AuditWriter:
+    """Group commit of audit rows: ``await write(entry)`` returns once it is stored."""
+
+    def __init__(self, service: AuthzService) -> None:
+        self.service = service
+        self._pending: list[tuple[AuditEntry, asyncio.Future]] = []
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task | None = None
+        self._closing = False
+
+    def start(self) -> None:
+        self._task = asyncio.create_task(self._run(), name="audit-writer")
+
+    async def write(self, entry: AuditEntry) -> None:
+        if self._closing:
+            raise ConfigError("shutting down")
+        fut = asyncio.get_running_loop().create_future()
+        self._pending.append((entry, fut))
+        self._wake.set()
+        await fut
+
+    async def _run(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            batch, self._pending = self._pending, []
+            if not batch:
+                if self._closing:
+                    return
+                continue
+            try:
+                await self.service.db(self.service.registry.record, [e for e, _ in batch])
+            except Exception as exc:  # the DB is down: every waiter fails closed
+                log.error("audit write failed for %d rows: %s", len(batch), exc)
+                for _e, fut in batch:
+                    if not fut.done():
+                        fut.set_exception(exc)
+            else:
+                for _e, fut in batch:
+                    if not fut.done():
+                        fut.set_result(None)
+            if self._closing and not self._pending:
+                return
+
+    async def close(self) -> None:
+        self._closing = True
+        self._wake.set()
+        if self._task is not None:
+            await self._task
+
+
+@dataclass
+class _Signer:
+    kid: str
+    private_key: Any
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.issued = Counter("cryptoros_authz_tokens_issued", "Access tokens issued", registry=self.registry)
+        self.denied = Counter("cryptoros_authz_token_denials", "Token requests refused, by reason",
+                              ["reason"], registry=self.registry)
+        self.latency = Histogram(
+            "cryptoros_authz_request_duration_seconds", "Request handling time by endpoint", ["endpoint"],
+            buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5),
+            registry=self.registry,
+        )
+        self.revocation_serial = Gauge("cryptoros_authz_revocation_serial", "Serial of the revocation feed",
+                                       registry=self.registry)
+        self.signing_key_age = Gauge("cryptoros_authz_signing_key_created_timestamp_seconds",
+                                     "Creation time of the active signing key", registry=self.registry)
+
+
+class _Denied(Exception):
+    def __init__(self, status: int, error: str, reason: str, manager: str | None = None) -> None:
+        super().__init__(reason)
+        self.status, self.error, self.reason, self.manager = status, error, reason, manager
+
+
+class AuthzService:
+    """State of one daemon: registry, signing key, caches, metrics."""
+
+    def __init__(self, cfg: ServeConfig, registry: Registry) -> None:
+        self.cfg = cfg
+        self.registry = registry
+        self.executor = ThreadPoolExecutor(max_workers=cfg.db_threads, thread_name_prefix="authz-db")
+        self.metrics = Metrics()
+        self._managers = _Cache(cfg.cache_seconds)
+        self._shared = _Cache(cfg.cache_seconds)
+        self._signer: _Signer | None = None
+        self.audit = _AuditWriter(self)
+
+    async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """Run a blocking registry call in the DB thread pool."""
+        call = functools.partial(fn, *args, **kwargs)
+        return await asyncio.get_running_loop().run_in_executor(self.executor, call)
+
+    # ------------------------------------------------------------------ lifecycle
+    async def start(self) -> None:
+        active = await self.db(self.registry.active_key)
+        if active is None:
+            kid = await self.db(self.registry.rotate_key, self.cfg.keys)
+            log.info("no signing key in the registry: created %s", kid)
+            active = await self.db(self.registry.active_key)
+            assert active is not None
+        self._signer = await self._load_signer(active.kid, active.private_pem, active.encrypted)
+        self.audit.start()
+
+    async def close(self) -> None:
+        await self.audit.close()
+        self.executor.shutdown(wait=True)
+
+    async def _load_signer(self, kid: str, pem: bytes, encrypted: bool) -> _Signer:
+        key = await self.db(keymod.load_private, pem, encrypted, self.cfg.keys, kid)
+        return _Signer(kid, key)
+
+    async def signer(self) -> _Signer:
+        """The active signing key, following rotations made by the admin CLI."""
+        async def fetch():
+            return await self.db(self.registry.active_key)
+
+        active = await self._shared.get("active_key", fetch)
+        assert self._signer is not None
+        if active is not None and active.kid != self._signer.kid:
+            try:
+                self._signer = await self._load_signer(active.kid, active.private_pem, active.encrypted)
+                log.info("signing key rotated: now signing with %s", active.kid)
+            except ConfigError as exc:
+                log.error("cannot load the new signing key %s, still signing with %s: %s",
+                          active.kid, self._signer.kid, exc)
+        return self._signer
+
+    # ------------------------------------------------------------------ cached reads
+    async def manager_for(self, fingerprint: str) -> tuple[ManagerInfo | None, Grants]:
+        async def fetch():
+            info = await self.db(self.registry.lookup_fingerprint, fingerprint)
+            grants = Grants(Grant(node=g.node, action=g.action, name=g.name, type=g.type)
+                            for g in (info.grants if info else ()))
+            return info, grants
+
+        return await self._managers.get(fingerprint, fetch)
+
+    async def jwks(self) -> dict:
+        async def fetch():
+            rows = await self.db(self.registry.published_keys, now=time.time(),
+                                 max_lifetime=self.cfg.token_lifetime + 60)
+            return {"keys": [public_jwk(keymod.load_public(r.public_pem), r.kid) for r in rows]}
+
+        return await self._shared.get("jwks", fetch)
+
+    async def feed(self) -> RevocationFeed:
+        async def fetch():
+            return await self.db(self.registry.revocation_feed, now=time.time())
+
+        feed = await self._shared.get("feed", fetch)
+        self.metrics.revocation_serial.set(feed.serial)
+        return feed
+
+    # ------------------------------------------------------------------ token issuing
+    async def issue(self, request: web.Request) -> web.Response:
+        remote = request.remote
+        der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)
+        fp = cert_fingerprint_sha256(der)
+        manager: str | None = None
+        try:
+            form = await _read_form(request)
+            grant_type = form.get("grant_type")
+            if grant_type is None:
+                raise _Denied(400, "invalid_request", "grant_type missing")
+            if grant_type != "client_credentials":
+                raise _Denied(400, "unsupported_grant_type", f"grant_type {grant_type[:40]!r}")
+            info, grants = await self.manager_for(fp)
+            if info is None:
+                raise _Denied(401, "invalid_client", "unknown_certificate")
+            manager = info.name
+            client_id = form.get("client_id")
+            if client_id is not None and client_id != info.name:
+                raise _Denied(401, "invalid_client", f"client_id {client_id[:64]!r} does not match the certificate",
+                              manager)
+            if not info.enabled:
+                raise _Denied(403, "access_denied", "manager_disabled", manager)
+            signer = await self.signer()
+            claims = build_claims(issuer=self.cfg.issuer, audience=self.cfg.audience, subject=info.name,
+                                  grants=grants, cert_der=der, now=int(time.time()),
+                                  lifetime=self.cfg.token_lifetime, jti=new_jti())
+            token = sign_token(claims, signer.private_key, signer.kid)
+            await self.audit.write(AuditEntry("issued", info.name, fp, remote, "", claims["jti"], signer.kid,
+                                              claims["exp"]))
+        except _Denied as d:
+            self.metrics.denied.labels(d.reason.split(" ")[0]).inc()
+            log.warning("token denied: manager=%s fingerprint=%s remote=%s reason=%s",
+                        d.manager or "-", fp[:16], remote, d.reason)
+            try:
+                await self.audit.write(AuditEntry("denied", d.manager, fp, remote, d.reason))
+            except Exception:
+                return _oauth_error(503, "temporarily_unavailable")
+            return _oauth_error(d.status, d.error)
+        self.metrics.issued.inc()
+        return web.json_response(
+            {"access_token": token, "token_type": "Bearer", "expires_in": self.cfg.token_lifetime},
+            headers={"Cache-Control": "no-store", "Pragma": "no-cache"},
+        )
+
+
+async def _read_form(request: web.Request) -> dict[str, str]:
+    if request.content_length is not None and request.content_length > MAX_BODY:
+        raise _Denied(400, "invalid_request", "body too large")
+    ctype = request.content_type
+    if ctype not in ("application/x-www-form-urlencoded", ""):
+        raise _Denied(400, "invalid_request", f"content type {ctype[:60]!r}")
+    try:
+        post = await request.post()
+    except Exception as exc:  # bad encoding, oversized...
+        raise _Denied(400, "invalid_request", f"unreadable body: {type(exc).__name__}") from None
+    form: dict[str, str] = {}
+    for key in post:
+        values = post.getall(key)
+        if len(values) != 1 or not isinstance(values[0], str):
+            raise _Denied(400, "invalid_request", f"parameter {key[:30]!r} repeated or not text")
+        form[key] = values[0]
+    return form
+
+
+def _oauth_error(status: int, error: str) -> web.Response:
+    return web.json_response({"error": error}, status=status,
+                             headers={"Cache-Control": "no-store", "Pragma": "no-cache"})
+
+
+def make_app(service: AuthzService) -> web.Application:
+    metrics = service.metrics
+
+    @web.middleware
+    async def guard(request: web.Request, handler):
+        started = time.perf_counter()
+        endpoint = request.match_info.route.resource.canonical if request.match_info.route.resource else "other"
+        try:
+            # Belt and braces: the TLS context already requires a verified certificate.
+            ssl_object = request.transport.get_extra_info("ssl_object") if request.transport else None
+            peer_cert_der(ssl_object)
+            return await handler(request)
+        except TokenError:
+            return _oauth_error(401, "invalid_client")
+        except web.HTTPException:
+            raise
+        except CryptorosError as exc:
+            log.error("%s %s failed: %s", request.method, request.path, exc)
+            return _oauth_error(503, "temporarily_unavailable")
+        except Exception:
+            log.exception("%s %s failed", request.method, request.path)
+            return _oauth_error(500, "server_error")
+        finally:
+            metrics.latency.labels(endpoint).observe(time.perf_counter() - started)
+
+    async def token(request: web.Request) -> web.Response:
+        return await service.issue(request)
+
+    async def jwks(request: web.Request) -> web.Response:
+        body = json.dumps(await service.jwks(), sort_keys=True).encode()
+        return _etagged(request, body, "public, max-age=5")
+
+    async def revocations(request: web.Request) -> web.Response:
+        feed = await service.feed()
+        stable = {"serial": feed.serial, "revoked_jtis": list(feed.revoked_jtis),
+                  "disabled_managers": list(feed.disabled_managers)}
+        etag = _etag(json.dumps(stable, sort_keys=True).encode())
+        if etag in _if_none_match(request):
+            return web.Response(status=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
+        stable["generated_at"] = int(time.time())
+        return web.json_response(stable, headers={"ETag": etag, "Cache-Control": "no-cache"})
+
+    async def healthz(request: web.Request) -> web.Response:
+        async def ping():
+            await service.db(service.registry.ping)
+            return True
+
+        try:
+            await service._shared.get("ping", ping)
+        except Exception as exc:
+            log.error("health check: database unreachable: %s", exc)
+            return web.json_response({"status": "unavailable", "database": "unreachable"}, status=503)
+        signer = service._signer
+        return web.json_response({"status": "ok", "database": "ok", "kid": signer.kid if signer else None})
+
+    async def prometheus(request: web.Request) -> web.Response:
+        return web.Response(body=generate_latest(metrics.registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+    app = web.Application(middlewares=[guard], client_max_size=MAX_BODY)
+    app.router.add_post("/token", token)
+    app.router.add_get("/.well-known/jwks.json", jwks)
+    app.router.add_get("/revocations", revocations)
+    app.router.add_get("/healthz", healthz)
+    app.router.add_get("/metrics", prometheus)
+    return app
+
+
+def _etag(body: bytes) -> str:
+    return '"' + hashlib.sha256(body).hexdigest()[:32] + '"'
+
+
+def _if_none_match(request: web.Request) -> set[str]:
+    raw = request.headers.get("If-None-Match", "")
+    return {part.strip() for part in raw.split(",") if part.strip()}
+
+
+def _etagged(request: web.Request, body: bytes, cache_control: str) -> web.Response:
+    etag = _etag(body)
+    if etag in _if_none_match(request):
+        return web.Response(status=304, headers={"ETag": etag, "Cache-Control": cache_control})
+    return web.Response(body=body, content_type="application/json",
+                        headers={"ETag": etag, "Cache-Control": cache_control})

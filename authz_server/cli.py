@@ -1,0 +1,435 @@
+"""``cryptoros-authz``: admin verbs over the registry, and ``serve`` for the daemon.
+
+Every verb takes the registry URL from ``--db`` or ``CRYPTOROS_AUTHZ_DB`` (default
+``sqlite:///./cryptoros-authz.db``). Bad input (unknown manager, invalid ROS name or
+type, malformed policy, missing file) prints one line ``cryptoros-authz: error: ...``
+on stderr, exits with status 2 and changes nothing. A daemon that cannot start (port
+taken, database unreachable) exits with status 1 and one line, never a traceback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import click
+import yaml
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+
+from authz_server import keys as keymod
+from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
+from authz_server.registry import ACTIONS, Registry, validate_manager_name
+from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
+from cryptoros.tls import cert_fingerprint_sha256
+
+PROG = "cryptoros-authz"
+DB_ENV = "CRYPTOROS_AUTHZ_DB"
+
+
+class _Group(click.Group):
+    """Turns our errors into one line on stderr: exit 2 for bad input, 1 otherwise."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except click.UsageError as exc:
+            hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+            click.echo(f"{PROG}: error: {' '.join(exc.format_message().split())}{hint}", err=True)
+            ctx.exit(2)
+        except (RegistryError, ConfigError, PKIError) as exc:
+            click.echo(f"{PROG}: error: {exc}", err=True)
+            ctx.exit(2)
+        except CryptorosError as exc:
+            click.echo(f"{PROG}: error: {exc}", err=True)
+            ctx.exit(1)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--db", "db_url", envvar=DB_ENV, default=DEFAULT_DB_URL, show_default=True,
+              help=f"Registry database URL (SQLAlchemy; or ${DB_ENV}).")
+@click.version_option(package_name="cryptoros")
+@click.pass_context
+def main(ctx: click.Context, db_url: str) -> None:
+    """cryptoros-authz: the authorization registry and access-token issuer."""
+    ctx.obj = {"db": db_url}
+
+
+def _registry(ctx: click.Context, *, create: bool = False) -> Registry:
+    engine = open_registry(ctx.obj["db"], create=create)
+    ctx.call_on_close(engine.dispose)
+    return Registry(engine)
+
+
+def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
+    try:
+        data = Path(cert_file).read_bytes()
+    except OSError as exc:
+        raise RegistryError(f"cannot read certificate {cert_file}: {exc.strerror}") from exc
+    try:
+        cert = x509.load_pem_x509_certificate(data) if b"-----BEGIN" in data else x509.load_der_x509_certificate(data)
+    except ValueError as exc:
+        raise RegistryError(f"{cert_file} is not an X.509 certificate (PEM or DER)") from exc
+    if name is not None:
+        try:
+            uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value \
+                .get_values_for_type(x509.UniformResourceIdentifier)
+        except x509.ExtensionNotFound:
+            uris = []
+        managers = [u.rsplit("/", 1)[1] for u in uris if u.startswith("spiffe://") and "/manager/" in u]
+        if managers and name not in managers:
+            raise RegistryError(f"{cert_file} identifies manager {managers[0]!r}, not {name!r}")
+    return cert_fingerprint_sha256(cert.public_bytes(serialization.Encoding.DER))
+
+
+def _cert_or_fp(name: str, cert: str | None, fingerprint: str | None) -> str | None:
+    if cert and fingerprint:
+        raise RegistryError("give either --cert or --fingerprint, not both")
+    if cert:
+        return _fingerprint_of(cert, name)
+    return fingerprint
+
+
+# ---------------------------------------------------------------------- db
+@main.group()
+def db() -> None:
+    """Schema migrations of the registry database."""
+
+
+@db.command("upgrade")
+@click.pass_context
+def db_upgrade(ctx: click.Context) -> None:
+    """Create the registry or migrate it to the newest schema."""
+    reg = _registry(ctx.find_root(), create=True)
+    click.echo(f"registry at schema revision {current_revision(reg.engine)} (head {head_revision()})")
+
+
+@db.command("current")
+@click.pass_context
+def db_current(ctx: click.Context) -> None:
+    """Print the schema revision of the registry database (no migration)."""
+    engine = make_engine(ctx.find_root().obj["db"])
+    try:
+        click.echo(f"{current_revision(engine) or 'empty'} (head {head_revision()})")
+    finally:
+        engine.dispose()
+
+
+# ---------------------------------------------------------------------- managers
+@main.command("add-manager")
+@click.argument("name")
+@click.option("--cert", "cert", type=str, help="The manager's client certificate (PEM or DER).")
+@click.option("--fingerprint", help="SHA-256 fingerprint of the certificate instead of --cert.")
+@click.option("--disabled", is_flag=True, help="Create it disabled.")
+@click.pass_context
+def add_manager(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None, disabled: bool) -> None:
+    """Add manager NAME bound to its client certificate."""
+    validate_manager_name(name)
+    fp = _cert_or_fp(name, cert, fingerprint)
+    if fp is None:
+        raise RegistryError("add-manager needs --cert FILE (or --fingerprint HEX)")
+    info = _registry(ctx, create=True).add_manager(name, fp, enabled=not disabled)
+    click.echo(f"added manager {info.name} (certificate sha256 {info.fingerprint}){' disabled' if disabled else ''}")
+
+
+@main.command("set-cert")
+@click.argument("name")
+@click.option("--cert", "cert", type=str, help="The manager's new certificate.")
+@click.option("--fingerprint", help="SHA-256 fingerprint instead of --cert.")
+@click.pass_context
+def set_cert(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None) -> None:
+    """Bind manager NAME to a renewed certificate (tokens bound to the old one are revoked)."""
+    validate_manager_name(name)
+    fp = _cert_or_fp(name, cert, fingerprint)
+    if fp is None:
+        raise RegistryError("set-cert needs --cert FILE (or --fingerprint HEX)")
+    revoked = _registry(ctx).set_cert(name, fp)
+    click.echo(f"manager {name} now bound to certificate sha256 {fp.replace(':', '').lower()}; "
+               f"{revoked} outstanding token(s) revoked")
+
+
+@main.command("list-managers")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@click.pass_context
+def list_managers(ctx: click.Context, as_json: bool) -> None:
+    """List managers, their certificates and how many grants they hold."""
+    ms = _registry(ctx).list_managers()
+    if as_json:
+        click.echo(json.dumps([{"name": m.name, "fingerprint_sha256": m.fingerprint, "enabled": m.enabled,
+                                "grants": len(m.grants)} for m in ms], indent=2))
+        return
+    click.echo(f"{'NAME':20} {'ENABLED':8} {'GRANTS':>6}  CERTIFICATE SHA-256")
+    for m in ms:
+        click.echo(f"{m.name:20} {'yes' if m.enabled else 'no':8} {len(m.grants):>6}  {m.fingerprint or '-'}")
+
+
+@main.command("show-manager")
+@click.argument("name")
+@click.pass_context
+def show_manager(ctx: click.Context, name: str) -> None:
+    """Show one manager and all of its grants."""
+    m = _registry(ctx).get_manager(name)
+    click.echo(f"manager {m.name}: {'enabled' if m.enabled else 'DISABLED'}, certificate sha256 {m.fingerprint or '-'}")
+    for g in m.grants:
+        click.echo(f"  {g.action:9} {g.node:24} {g.name:32} {g.type}")
+
+
+def _set_enabled(ctx: click.Context, name: str, enabled: bool) -> None:
+    changed = _registry(ctx).set_enabled(name, enabled)
+    state = "enabled" if enabled else "disabled"
+    click.echo(f"manager {name} {state}" if changed else f"manager {name} was already {state}")
+
+
+@main.command("disable-manager")
+@click.argument("name")
+@click.pass_context
+def disable_manager(ctx: click.Context, name: str) -> None:
+    """Disable NAME: no new tokens, and its live tokens appear in the revocation feed."""
+    _set_enabled(ctx, name, False)
+
+
+@main.command("enable-manager")
+@click.argument("name")
+@click.pass_context
+def enable_manager(ctx: click.Context, name: str) -> None:
+    """Enable NAME again."""
+    _set_enabled(ctx, name, True)
+
+
+@main.command("remove-manager")
+@click.argument("name")
+@click.pass_context
+def remove_manager(ctx: click.Context, name: str) -> None:
+    """Delete NAME and its grants; its live tokens are revoked."""
+    _registry(ctx).remove_manager(name)
+    click.echo(f"removed manager {name}")
+
+
+# ---------------------------------------------------------------------- grants
+@main.command("grant")
+@click.argument("manager")
+@click.argument("action", type=click.Choice(ACTIONS))
+@click.argument("node")
+@click.argument("name")
+@click.argument("type_", metavar="TYPE")
+@click.pass_context
+def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, type_: str) -> None:
+    """Let MANAGER's NODE ACTION (publish|subscribe|serve|call) topic or service NAME of TYPE.
+
+    Example: cryptoros-authz grant alice publish /talker /chatter std_msgs/String
+    """
+    added = _registry(ctx).grant(manager, action, node, name, type_)
+    click.echo(f"{'granted' if added else 'already granted'}: {manager} {node} {action} {name} {type_}")
+
+
+@main.command("revoke")
+@click.argument("manager")
+@click.argument("action", type=click.Choice(ACTIONS))
+@click.argument("node")
+@click.argument("name")
+@click.argument("type_", metavar="[TYPE]", required=False)
+@click.pass_context
+def revoke(ctx: click.Context, manager: str, action: str, node: str, name: str, type_: str | None) -> None:
+    """Take a grant away (every type when TYPE is omitted); live tokens of MANAGER are revoked."""
+    n = _registry(ctx).revoke(manager, action, node, name, type_)
+    click.echo(f"revoked {n} grant(s): {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
+
+
+@main.command("export")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, writable=True), help="File (default stdout).")
+@click.pass_context
+def export(ctx: click.Context, output: str | None) -> None:
+    """Write the whole policy (managers, certificates, grants) as YAML."""
+    text = yaml.safe_dump(_registry(ctx).export_policy(), sort_keys=False)
+    if output:
+        Path(output).write_text(text)
+    else:
+        click.echo(text, nl=False)
+
+
+@main.command("import")
+@click.argument("file", type=str)
+@click.option("--merge", is_flag=True, help="Only add managers and grants; remove nothing.")
+@click.pass_context
+def import_(ctx: click.Context, file: str, merge: bool) -> None:
+    """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction."""
+    try:
+        text = sys.stdin.read() if file == "-" else Path(file).read_text()
+    except OSError as exc:
+        raise RegistryError(f"cannot read policy file {file}: {exc.strerror}") from exc
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise RegistryError(f"policy file {file} is not valid YAML: {str(exc).splitlines()[0]}") from exc
+    stats = _registry(ctx, create=True).import_policy(doc, merge=merge)
+    click.echo("imported: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items()))
+
+
+# ---------------------------------------------------------------------- keys and tokens
+_passphrase_options = [
+    click.option("--key-passphrase-file", type=str,
+                 help=f"File whose first line encrypts the signing keys (or ${keymod.PASSPHRASE_ENV})."),
+    click.option("--unsafe-no-passphrase", is_flag=True, help="Store signing keys unencrypted."),
+]
+
+
+def _with_passphrase(fn):
+    for opt in reversed(_passphrase_options):
+        fn = opt(fn)
+    return fn
+
+
+@main.command("rotate-key")
+@_with_passphrase
+@click.option("--bits", type=click.Choice(["2048", "3072"]), default="2048", show_default=True)
+@click.pass_context
+def rotate_key(ctx: click.Context, key_passphrase_file: str | None, unsafe_no_passphrase: bool, bits: str) -> None:
+    """Create a new RS256 signing key; the old one stays in the JWKS until its tokens expire."""
+    prot = keymod.protection(key_passphrase_file, unsafe_no_passphrase=unsafe_no_passphrase)
+    kid = _registry(ctx, create=True).rotate_key(prot, int(bits))
+    click.echo(f"new signing key {kid}")
+
+
+@main.command("list-keys")
+@click.pass_context
+def list_keys(ctx: click.Context) -> None:
+    """List signing keys: active, retired."""
+    for k in _registry(ctx).list_keys():
+        state = "active" if k.active else f"retired {k.retired_at:%Y-%m-%d %H:%M:%S}" if k.retired_at else "inactive"
+        click.echo(f"{k.kid}  created {k.created_at:%Y-%m-%d %H:%M:%S}  {state}")
+
+
+@main.command("revoke-token")
+@click.argument("jti")
+@click.option("--reason", default="revoked by operator", show_default=True)
+@click.option("--expires-at", type=int, help="Expiry (unix time) of a token missing from the audit log.")
+@click.pass_context
+def revoke_token(ctx: click.Context, jti: str, reason: str, expires_at: int | None) -> None:
+    """Revoke one access token by its jti; interceptors see it on their next feed poll."""
+    added = _registry(ctx).revoke_token(jti, reason=reason, expires_at=expires_at)
+    click.echo(f"token {jti} {'revoked' if added else 'was already revoked'}")
+
+
+@main.command("audit")
+@click.option("--limit", type=click.IntRange(1, 100000), default=50, show_default=True)
+@click.option("--manager", help="Only rows of this manager.")
+@click.option("--event", type=click.Choice(["issued", "denied"]))
+@click.option("--json", "as_json", is_flag=True, help="One JSON object per line.")
+@click.pass_context
+def audit(ctx: click.Context, limit: int, manager: str | None, event: str | None, as_json: bool) -> None:
+    """Show the audit log of issued and refused tokens, oldest first."""
+    for e in _registry(ctx).audit(limit=limit, manager=manager, event=event):
+        if as_json:
+            click.echo(json.dumps({"at": e.at.isoformat(), "event": e.event, "manager": e.manager,
+                                   "fingerprint_sha256": e.cert_fingerprint, "remote": e.remote,
+                                   "reason": e.reason, "jti": e.jti, "kid": e.kid, "expires_at": e.expires_at}))
+        else:
+            detail = f"jti={e.jti} kid={e.kid}" if e.event == "issued" else f"reason={e.reason}"
+            click.echo(f"{e.at:%Y-%m-%d %H:%M:%S} {e.event:6} manager={e.manager or '-'} "
+                       f"remote={e.remote or '-'} cert={(e.cert_fingerprint or '-')[:16]} {detail}")
+
+
+@main.command("verify-token")
+@click.option("--jwks", "jwks_file", required=True, help="JWKS JSON file (as served at /.well-known/jwks.json).")
+@click.option("--cert", "cert_file", required=True, help="Certificate the token must be bound to.")
+@click.option("--token-file", required=True, help="File holding the token, or the token endpoint's JSON answer.")
+@click.option("--issuer", default="cryptoros-authz", show_default=True)
+@click.option("--audience", default="cryptoros", show_default=True)
+@click.option("--revocations", "feed_file", help="Revocation feed JSON (GET /revocations) to check too.")
+def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, audience: str,
+                 feed_file: str | None) -> None:
+    """Verify an access token offline, as an interceptor does; print its claims."""
+    from cryptoros.tokens import KeySet, Revocations, verify_access_token
+
+    try:
+        jwks = json.loads(Path(jwks_file).read_text())
+        raw = Path(token_file).read_text().strip()
+        feed = json.loads(Path(feed_file).read_text()) if feed_file else None
+        cert_data = Path(cert_file).read_bytes()
+    except (OSError, ValueError) as exc:
+        raise RegistryError(f"cannot read input: {exc}") from exc
+    if raw.startswith("{"):
+        try:
+            raw = json.loads(raw)["access_token"]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise RegistryError(f"{token_file} is JSON without an access_token") from exc
+    try:
+        cert = x509.load_pem_x509_certificate(cert_data)
+    except ValueError as exc:
+        raise RegistryError(f"{cert_file} is not a PEM certificate") from exc
+    revocations = None
+    if feed is not None:
+        revocations = Revocations(revoked_jtis=frozenset(feed.get("revoked_jtis", [])),
+                                  disabled_subjects=frozenset(feed.get("disabled_managers", [])))
+    try:
+        tok = verify_access_token(raw, keys=KeySet.from_jwks(jwks), issuer=issuer, audience=audience,
+                                  peer_cert_der=cert.public_bytes(serialization.Encoding.DER),
+                                  revocations=revocations)
+    except TokenError as exc:
+        click.echo(f"{PROG}: token refused: {exc}", err=True)
+        sys.exit(1)
+    click.echo(json.dumps(dict(tok.claims), indent=2, sort_keys=True))
+    click.echo(f"token valid: subject {tok.subject}, jti {tok.jti}, expires in "
+               f"{tok.expires_at - int(time.time())} s, {len(tok.grants)} grant(s)")
+
+
+# ---------------------------------------------------------------------- daemon
+@main.command("serve")
+@click.option("--config", "config_file", help="TOML file with any of the settings below (unknown keys are errors).")
+@click.option("--host", help="Listen address.  [default: 127.0.0.1]")
+@click.option("--port", type=int, help="Listen port.  [default: 8443]")
+@click.option("--ca", help="CA certificate clients must chain to.")
+@click.option("--cert", help="The server's certificate.")
+@click.option("--key", help="The server's private key.")
+@click.option("--tls-key-passphrase-file", help="File whose first line decrypts --key.")
+@click.option("--crl", help="CRL of the CA: revoked client certificates fail the handshake.")
+@click.option("--issuer", help="Token issuer (iss).  [default: cryptoros-authz]")
+@click.option("--audience", help="Token audience (aud).  [default: cryptoros]")
+@click.option("--token-lifetime", type=int, help="Token lifetime in seconds.  [default: 300]")
+@_with_passphrase
+@click.option("--log-level", type=click.Choice(["debug", "info", "warning", "error"]), default="info",
+              show_default=True)
+@click.pass_context
+def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) -> None:
+    """Run the HTTPS token issuer (mutual TLS) until SIGTERM."""
+    from authz_server.config import build_config, load_toml
+    from authz_server.server import serve as run_server
+
+    values: dict = load_toml(config_file) if config_file else {}
+    root_db = ctx.find_root().obj["db"]
+    root_src = ctx.find_root().get_parameter_source("db_url")
+    if root_src != click.core.ParameterSource.DEFAULT or "db" not in values:
+        values["db"] = root_db
+    mapping = {
+        "host": "host", "port": "port", "ca": "ca", "cert": "cert", "key": "key",
+        "tls_key_passphrase_file": "key_passphrase_file", "crl": "crl", "issuer": "issuer",
+        "audience": "audience", "token_lifetime": "token_lifetime",
+        "key_passphrase_file": "signing_key_passphrase_file",
+    }
+    for flag, key in mapping.items():
+        if flags.get(flag) is not None:
+            values[key] = flags[flag]
+    if flags.get("unsafe_no_passphrase"):
+        values["unsafe_no_passphrase"] = True
+    cfg = build_config(values)
+    logging.basicConfig(level=log_level.upper(), stream=sys.stderr,
+                        format=f"%(asctime)s {PROG}[%(process)d] %(levelname)s %(message)s")
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    try:
+        import uvloop  # type: ignore[import-not-found]
+
+        runner = uvloop.run
+    except ImportError:  # pragma: no cover
+        runner = asyncio.run
+    try:
+        runner(run_server(cfg))
+    except KeyboardInterrupt:  # pragma: no cover - SIGINT before the handler is installed
+        pass
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

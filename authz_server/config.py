@@ -1,0 +1,130 @@
+"""The daemon's configuration: one frozen dataclass, validated when it is built.
+
+Sources, lowest precedence first: built-in defaults, a TOML file (``serve --config``,
+unknown keys are an error), environment variables, command-line flags. The CLI merges
+them into a plain dict and calls :func:`build_config`, so every source goes through
+the same checks.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from authz_server.db import DEFAULT_DB_URL
+from authz_server.keys import KeyProtection, protection
+from cryptoros.errors import ConfigError
+from cryptoros.tls import TLSConfig
+
+DEFAULT_ISSUER = "cryptoros-authz"
+DEFAULT_AUDIENCE = "cryptoros"
+DEFAULT_LIFETIME = 300
+MIN_LIFETIME, MAX_LIFETIME = 10, 24 * 3600
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServeConfig:
+    db_url: str
+    tls: TLSConfig
+    keys: KeyProtection
+    host: str = "127.0.0.1"
+    port: int = 8443
+    issuer: str = DEFAULT_ISSUER
+    audience: str = DEFAULT_AUDIENCE
+    token_lifetime: int = DEFAULT_LIFETIME
+    #: how long manager grants, JWKS and the revocation feed are cached in memory
+    cache_seconds: float = 1.0
+    db_threads: int = 4
+    #: grace period for open connections on SIGTERM
+    shutdown_grace: float = 5.0
+
+    def __post_init__(self) -> None:
+        try:
+            ipaddress.ip_address(self.host)
+        except ValueError:
+            if not self.host or len(self.host) > 253:
+                raise ConfigError(f"invalid listen host {self.host!r}") from None
+        if not (isinstance(self.port, int) and 0 <= self.port <= 65535):
+            raise ConfigError(f"invalid port {self.port!r}: expected 0..65535")
+        if not (isinstance(self.token_lifetime, int) and MIN_LIFETIME <= self.token_lifetime <= MAX_LIFETIME):
+            raise ConfigError(
+                f"invalid token lifetime {self.token_lifetime!r}: expected {MIN_LIFETIME}..{MAX_LIFETIME} seconds"
+            )
+        for label in ("issuer", "audience"):
+            value = getattr(self, label)
+            if not isinstance(value, str) or not value or len(value) > 256:
+                raise ConfigError(f"invalid {label} {value!r}")
+        if not (0 <= self.cache_seconds <= 10):
+            raise ConfigError(f"invalid cache_seconds {self.cache_seconds!r}: expected 0..10")
+        if not (1 <= self.db_threads <= 64):
+            raise ConfigError(f"invalid db_threads {self.db_threads!r}: expected 1..64")
+
+
+#: keys accepted in the TOML file and by build_config (the CLI flags map onto them)
+CONFIG_KEYS = {
+    "db": str,
+    "host": str,
+    "port": int,
+    "ca": str,
+    "cert": str,
+    "key": str,
+    "key_passphrase_file": str,  # the TLS key's passphrase
+    "crl": str,
+    "issuer": str,
+    "audience": str,
+    "token_lifetime": int,
+    "signing_key_passphrase_file": str,
+    "unsafe_no_passphrase": bool,
+    "cache_seconds": float,
+    "db_threads": int,
+    "shutdown_grace": float,
+}
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from exc
+    unknown = set(data) - set(CONFIG_KEYS)
+    if unknown:
+        raise ConfigError(f"config file {path}: unknown key(s) {', '.join(sorted(unknown))}")
+    for key, value in data.items():
+        want = CONFIG_KEYS[key]
+        ok = isinstance(value, want) and not (want is int and isinstance(value, bool))
+        if want is float and isinstance(value, int) and not isinstance(value, bool):
+            ok = True
+        if not ok:
+            raise ConfigError(f"config file {path}: {key} must be {want.__name__}, got {value!r}")
+    return data
+
+
+def build_config(values: dict[str, Any]) -> ServeConfig:
+    """Build and validate the daemon config from merged settings."""
+    missing = [k for k in ("ca", "cert", "key") if not values.get(k)]
+    if missing:
+        raise ConfigError(f"serve needs TLS material: missing {', '.join('--' + k for k in missing)}")
+    tls_pass = None
+    if values.get("key_passphrase_file"):
+        try:
+            tls_pass = Path(values["key_passphrase_file"]).read_bytes().splitlines()[0]
+        except (OSError, IndexError) as exc:
+            raise ConfigError(f"cannot read the TLS key passphrase file {values['key_passphrase_file']}") from exc
+    tls = TLSConfig(
+        ca_file=Path(values["ca"]),
+        cert_file=Path(values["cert"]),
+        key_file=Path(values["key"]),
+        key_passphrase=tls_pass,
+        crl_file=Path(values["crl"]) if values.get("crl") else None,
+    )
+    keys = protection(values.get("signing_key_passphrase_file"),
+                      unsafe_no_passphrase=bool(values.get("unsafe_no_passphrase")))
+    kwargs = {f.name: values[f.name] for f in fields(ServeConfig)
+              if f.name in values and values[f.name] is not None and f.name not in ("tls", "keys", "db_url")}
+    return ServeConfig(db_url=values.get("db") or DEFAULT_DB_URL, tls=tls, keys=keys, **kwargs)

@@ -1,0 +1,144 @@
+"""Database engine, schema migrations and sessions for the registry.
+
+Any SQLAlchemy URL works; SQLite is the embedded default (WAL mode, foreign keys on,
+a busy timeout so the daemon and the admin CLI can share the file) and PostgreSQL is
+the multi-replica choice (``postgresql+psycopg://``).
+
+The schema is Alembic's: :func:`open_registry` upgrades an empty or older database to
+the newest revision, and refuses a database that is not a registry or that is newer
+than this code.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import Engine, create_engine, event, inspect
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError, NoSuchModuleError, OperationalError, SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
+from cryptoros.errors import ConfigError
+
+DEFAULT_DB_URL = "sqlite:///./cryptoros-authz.db"
+MIGRATIONS = "authz_server:migrations"
+
+
+def _alembic_config(url: str) -> Config:
+    cfg = Config()
+    cfg.set_main_option("script_location", MIGRATIONS)
+    cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
+    return cfg
+
+
+def head_revision() -> str:
+    head = ScriptDirectory.from_config(_alembic_config("sqlite://")).get_current_head()
+    assert head is not None
+    return head
+
+
+def _sqlite_path(url: str) -> Path | None:
+    u = make_url(url)
+    if u.get_backend_name() != "sqlite" or not u.database or u.database == ":memory:":
+        return None
+    return Path(u.database)
+
+
+def make_engine(url: str, *, create: bool = False, pool_size: int = 8) -> Engine:
+    """An engine for ``url``. A missing SQLite file is an error unless ``create``."""
+    try:
+        parsed = make_url(url)
+    except ArgumentError as exc:
+        raise ConfigError(f"invalid database URL {url!r}: {exc}") from exc
+    path = _sqlite_path(url)
+    if path is not None:
+        if not path.parent.is_dir():
+            raise ConfigError(f"database directory does not exist: {path.parent}")
+        if not create and not path.exists():
+            raise ConfigError(
+                f"database not found: {path} (create it with 'cryptoros-authz db upgrade')"
+            )
+    kwargs: dict = {}
+    if parsed.get_backend_name() == "sqlite":
+        kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
+    else:
+        kwargs.update(pool_size=pool_size, max_overflow=pool_size, pool_pre_ping=True)
+    try:
+        engine = create_engine(url, **kwargs)
+    except (ArgumentError, NoSuchModuleError, ImportError) as exc:
+        raise ConfigError(f"cannot use database URL {parsed.render_as_string(hide_password=True)}: {exc}") from exc
+    if parsed.get_backend_name() == "sqlite":
+        event.listen(engine, "connect", _sqlite_pragmas)
+    return engine
+
+
+def _sqlite_pragmas(dbapi_conn, _record) -> None:
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")
+    cur.execute("PRAGMA foreign_keys=ON")
+    cur.execute("PRAGMA synchronous=NORMAL")
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.close()
+
+
+def current_revision(engine: Engine) -> str | None:
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def upgrade(engine: Engine, revision: str = "head") -> str:
+    """Run the Alembic migrations up to ``revision`` on ``engine``; return the result."""
+    cfg = _alembic_config(engine.url.render_as_string(hide_password=False))
+    with engine.begin() as conn:
+        cfg.attributes["connection"] = conn
+        command.upgrade(cfg, revision)
+    rev = current_revision(engine)
+    assert rev is not None
+    return rev
+
+
+def open_registry(url: str, *, create: bool = False) -> Engine:
+    """Open the registry at ``url``: connect, check it is ours, migrate to head.
+
+    Raises :class:`ConfigError` with a one-line reason on every failure.
+    """
+    engine = make_engine(url, create=create)
+    shown = engine.url.render_as_string(hide_password=True)
+    try:
+        with engine.connect() as conn:
+            tables = set(inspect(conn).get_table_names())
+            rev = MigrationContext.configure(conn).get_current_revision()
+    except OperationalError as exc:
+        engine.dispose()
+        raise ConfigError(f"cannot connect to the database {shown}: {_first_line(exc)}") from exc
+    except SQLAlchemyError as exc:
+        engine.dispose()
+        raise ConfigError(f"database error on {shown}: {_first_line(exc)}") from exc
+    if rev is None and tables - {"alembic_version"}:
+        engine.dispose()
+        raise ConfigError(f"{shown} holds tables but is not a cryptoros-authz registry")
+    script = ScriptDirectory.from_config(_alembic_config(shown))
+    if rev is not None and script.get_revision(rev) is None:  # pragma: no cover - needs a newer build
+        engine.dispose()
+        raise ConfigError(f"{shown} is at schema revision {rev}, newer than this cryptoros-authz")
+    if rev != script.get_current_head():
+        try:
+            upgrade(engine)
+        except SQLAlchemyError as exc:
+            engine.dispose()
+            raise ConfigError(f"cannot migrate {shown}: {_first_line(exc)}") from exc
+    return engine
+
+
+def _first_line(exc: BaseException) -> str:
+    orig = getattr(exc, "orig", None)
+    text = str(orig if orig is not None else exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def session_factory(engine: Engine) -> sessionmaker[Session]:
+    return sessionmaker(engine, expire_on_commit=False)

@@ -1,0 +1,171 @@
+"""The registry's tables (SQLAlchemy 2 typed ORM).
+
+Following the CryptoROS paper's ERD: one ``manager`` (the paper's *user*) owns many
+``publisher``, ``subscriber``, ``service`` and ``service_client`` rows, each a
+``(node name, topic or service, data type)`` triple. Beside the policy the registry
+keeps what the token issuer needs: RSA signing keys by ``kid``, revoked token ids, an
+audit log of issued and refused tokens, and a revocation serial that bumps whenever
+the revocation feed changes.
+
+The schema is owned by the Alembic migrations in ``authz_server/migrations``; these
+classes must match them (a test compares the two).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from sqlalchemy import (
+    Boolean,
+    DateTime,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+NAME_LEN = 256
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class Manager(Base):
+    """A robot team manager: the identity a client certificate is bound to."""
+
+    __tablename__ = "manager"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(128), unique=True, nullable=False)
+    #: lowercase hex SHA-256 of the DER client certificate
+    cert_fingerprint: Mapped[str | None] = mapped_column(String(64), unique=True, nullable=True)
+    enabled: Mapped[bool] = mapped_column(Boolean, nullable=False, default=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False)
+
+    publishers: Mapped[list[Publisher]] = relationship(
+        back_populates="manager", cascade="all, delete-orphan", order_by="Publisher.id"
+    )
+    subscribers: Mapped[list[Subscriber]] = relationship(
+        back_populates="manager", cascade="all, delete-orphan", order_by="Subscriber.id"
+    )
+    services: Mapped[list[Service]] = relationship(
+        back_populates="manager", cascade="all, delete-orphan", order_by="Service.id"
+    )
+    service_clients: Mapped[list[ServiceClient]] = relationship(
+        back_populates="manager", cascade="all, delete-orphan", order_by="ServiceClient.id"
+    )
+
+
+class Publisher(Base):
+    __tablename__ = "publisher"
+    __table_args__ = (UniqueConstraint("manager_id", "name", "topic", "data_type", name="uq_publisher"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)  # node name
+    topic: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    manager: Mapped[Manager] = relationship(back_populates="publishers")
+
+
+class Subscriber(Base):
+    __tablename__ = "subscriber"
+    __table_args__ = (UniqueConstraint("manager_id", "name", "topic", "data_type", name="uq_subscriber"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    topic: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    manager: Mapped[Manager] = relationship(back_populates="subscribers")
+
+
+class Service(Base):
+    __tablename__ = "service"
+    __table_args__ = (UniqueConstraint("manager_id", "name", "service", "data_type", name="uq_service"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    service: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    manager: Mapped[Manager] = relationship(back_populates="services")
+
+
+class ServiceClient(Base):
+    __tablename__ = "service_client"
+    __table_args__ = (UniqueConstraint("manager_id", "name", "service", "data_type", name="uq_service_client"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    service: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    manager: Mapped[Manager] = relationship(back_populates="service_clients")
+
+
+#: action -> (ORM class, name of the topic/service column, relationship on Manager)
+GRANT_TABLES: dict[str, tuple[type, str, str]] = {
+    "publish": (Publisher, "topic", "publishers"),
+    "subscribe": (Subscriber, "topic", "subscribers"),
+    "serve": (Service, "service", "services"),
+    "call": (ServiceClient, "service", "service_clients"),
+}
+
+
+class RevokedToken(Base):
+    __tablename__ = "revoked_token"
+
+    jti: Mapped[str] = mapped_column(String(64), primary_key=True)
+    #: when the token expires anyway; the feed stops listing it after that
+    expires_at: Mapped[int] = mapped_column(Integer, nullable=False, index=True)
+    revoked_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False)
+    reason: Mapped[str] = mapped_column(String(256), nullable=False, default="")
+
+
+class AuditLog(Base):
+    """One row per token issued or refused."""
+
+    __tablename__ = "audit_log"
+    __table_args__ = (Index("ix_audit_log_kid_expires", "kid", "expires_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False, index=True)
+    event: Mapped[str] = mapped_column(String(16), nullable=False)  # "issued" | "denied"
+    manager: Mapped[str | None] = mapped_column(String(128), nullable=True, index=True)
+    cert_fingerprint: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    remote: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    reason: Mapped[str] = mapped_column(String(256), nullable=False, default="")
+    jti: Mapped[str | None] = mapped_column(String(64), nullable=True, index=True)
+    kid: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    expires_at: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
+class SigningKey(Base):
+    """An RSA key the issuer signs with. Exactly one is ``active``; retired keys stay
+    published in the JWKS while a token they signed may still be valid."""
+
+    __tablename__ = "signing_key"
+
+    kid: Mapped[str] = mapped_column(String(64), primary_key=True)
+    algorithm: Mapped[str] = mapped_column(String(16), nullable=False, default="RS256")
+    private_pem: Mapped[bytes] = mapped_column(LargeBinary, nullable=False)
+    public_pem: Mapped[str] = mapped_column(Text, nullable=False)
+    encrypted: Mapped[bool] = mapped_column(Boolean, nullable=False)
+    active: Mapped[bool] = mapped_column(Boolean, nullable=False, default=False)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False)
+    retired_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+
+
+class RegistryState(Base):
+    """Small named counters (``revocation_serial``)."""
+
+    __tablename__ = "registry_state"
+
+    key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    value: Mapped[int] = mapped_column(Integer, nullable=False, default=0)

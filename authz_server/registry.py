@@ -1,0 +1,575 @@
+"""Operations over the registry: the one place that reads and writes its tables.
+
+Both the admin CLI and the daemon go through :class:`Registry`. Every method runs in
+its own transaction and validates all of its input before it writes anything, so a
+refused operation changes nothing. Refusals raise :class:`RegistryError` with a
+one-line reason.
+
+Rights only ever shrink safely: whenever an operation takes rights away from a
+manager (revoke a grant, disable it, change its certificate, remove it, an import
+that does any of these), every token issued to it that has not expired yet is
+revoked too, so the revocation feed cuts it off within one poll instead of at token
+expiry.
+"""
+
+from __future__ import annotations
+
+import re
+import secrets
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+from sqlalchemy import Engine, delete, func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, selectinload
+
+from authz_server import keys as keymod
+from authz_server.db import session_factory
+from authz_server.models import (
+    GRANT_TABLES,
+    AuditLog,
+    Manager,
+    RegistryState,
+    RevokedToken,
+    SigningKey,
+)
+from cryptoros.errors import RegistryError
+from cryptoros.names import validate_graph_name, validate_node_name, validate_type
+
+ACTIONS = ("publish", "subscribe", "serve", "call")
+_MANAGER_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,127}$")
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+POLICY_VERSION = 1
+REVOCATION_SERIAL = "revocation_serial"
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def validate_manager_name(name: str) -> str:
+    if not isinstance(name, str) or not _MANAGER_NAME.match(name):
+        raise RegistryError(
+            f"invalid manager name {name!r}: letters, digits, '_', '.', '-', starting with a letter"
+        )
+    return name
+
+
+def normalize_fingerprint(fp: str) -> str:
+    """Lowercase hex SHA-256; ``AA:BB:...`` (openssl's form) is accepted too."""
+    norm = fp.strip().replace(":", "").lower() if isinstance(fp, str) else ""
+    if not _HEX64.match(norm):
+        raise RegistryError(f"invalid certificate fingerprint {fp!r}: expected 64 hex digits (SHA-256)")
+    return norm
+
+
+def validate_action(action: str) -> str:
+    if action not in ACTIONS:
+        raise RegistryError(f"invalid action {action!r}: expected one of {', '.join(ACTIONS)}")
+    return action
+
+
+@dataclass(frozen=True, order=True)
+class GrantRow:
+    """One validated grant: ``node`` may ``action`` on ``name`` with data type ``type``."""
+
+    action: str
+    node: str
+    name: str
+    type: str
+
+    @classmethod
+    def checked(cls, action: str, node: str, name: str, type_: str) -> GrantRow:
+        what = "topic" if action in ("publish", "subscribe") else "service name"
+        return cls(
+            validate_action(action),
+            validate_node_name(node),
+            validate_graph_name(name, what),
+            validate_type(type_),
+        )
+
+
+@dataclass(frozen=True)
+class ManagerInfo:
+    name: str
+    fingerprint: str | None
+    enabled: bool
+    created_at: datetime
+    grants: tuple[GrantRow, ...] = field(default=())
+
+
+@dataclass(frozen=True)
+class ActiveKey:
+    kid: str
+    private_pem: bytes
+    encrypted: bool
+
+
+@dataclass(frozen=True)
+class PublicKeyRow:
+    kid: str
+    public_pem: str
+    active: bool
+    created_at: datetime
+    retired_at: datetime | None
+
+
+@dataclass(frozen=True)
+class RevocationFeed:
+    serial: int
+    revoked_jtis: tuple[str, ...]
+    disabled_managers: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class AuditEntry:
+    """An audit row to write: a token issued, or a request refused with a reason."""
+
+    event: str  # "issued" | "denied"
+    manager: str | None
+    cert_fingerprint: str | None
+    remote: str | None
+    reason: str = ""
+    jti: str | None = None
+    kid: str | None = None
+    expires_at: int | None = None
+    at: datetime = field(default_factory=_now)
+
+
+def _grants_of(m: Manager) -> tuple[GrantRow, ...]:
+    rows = []
+    for action, (_cls, column, rel) in GRANT_TABLES.items():
+        for g in getattr(m, rel):
+            rows.append(GrantRow(action, g.name, getattr(g, column), g.data_type))
+    return tuple(sorted(rows))
+
+
+def _info(m: Manager, with_grants: bool = True) -> ManagerInfo:
+    return ManagerInfo(m.name, m.cert_fingerprint, m.enabled, m.created_at, _grants_of(m) if with_grants else ())
+
+
+class Registry:
+    """The registry on one database engine."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self._session = session_factory(engine)
+
+    # ------------------------------------------------------------------ helpers
+    def _manager(self, s: Session, name: str, *, load_grants: bool = False) -> Manager:
+        validate_manager_name(name)
+        q = select(Manager).where(Manager.name == name)
+        if load_grants:
+            q = q.options(*(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values()))
+        m = s.scalars(q).one_or_none()
+        if m is None:
+            raise RegistryError(f"unknown manager {name!r}")
+        return m
+
+    def _bump_serial(self, s: Session) -> None:
+        row = s.get(RegistryState, REVOCATION_SERIAL, with_for_update=True)
+        if row is None:
+            s.add(RegistryState(key=REVOCATION_SERIAL, value=1))
+        else:
+            row.value = row.value + 1
+
+    def _revoke_outstanding(self, s: Session, manager: str, reason: str) -> int:
+        """Revoke every unexpired token issued to ``manager``; return how many."""
+        now = int(time.time())
+        rows = s.execute(
+            select(AuditLog.jti, AuditLog.expires_at).where(
+                AuditLog.event == "issued", AuditLog.manager == manager, AuditLog.expires_at > now
+            )
+        ).all()
+        if not rows:
+            return 0
+        have = set(s.scalars(select(RevokedToken.jti).where(RevokedToken.jti.in_([r.jti for r in rows]))))
+        added = 0
+        for jti, exp in rows:
+            if jti and jti not in have:
+                s.add(RevokedToken(jti=jti, expires_at=exp, revoked_at=_now(), reason=reason))
+                have.add(jti)
+                added += 1
+        if added:
+            self._bump_serial(s)
+        return added
+
+    # ------------------------------------------------------------------ managers
+    def add_manager(self, name: str, fingerprint: str | None, *, enabled: bool = True) -> ManagerInfo:
+        validate_manager_name(name)
+        fp = normalize_fingerprint(fingerprint) if fingerprint is not None else None
+        with self._session.begin() as s:
+            if s.scalars(select(Manager.id).where(Manager.name == name)).first() is not None:
+                raise RegistryError(f"manager {name!r} already exists")
+            if fp is not None:
+                self._check_fp_free(s, fp, name)
+            m = Manager(name=name, cert_fingerprint=fp, enabled=enabled, created_at=_now())
+            s.add(m)
+            if not enabled:
+                self._bump_serial(s)
+            s.flush()
+            return _info(m, with_grants=False)
+
+    def _check_fp_free(self, s: Session, fp: str, name: str) -> None:
+        owner = s.scalars(select(Manager.name).where(Manager.cert_fingerprint == fp)).first()
+        if owner is not None and owner != name:
+            raise RegistryError(f"certificate {fp[:16]}... is already bound to manager {owner!r}")
+
+    def set_cert(self, name: str, fingerprint: str) -> int:
+        """Bind ``name`` to a new certificate; tokens bound to the old one are revoked."""
+        fp = normalize_fingerprint(fingerprint)
+        with self._session.begin() as s:
+            m = self._manager(s, name)
+            self._check_fp_free(s, fp, name)
+            if m.cert_fingerprint == fp:
+                return 0
+            m.cert_fingerprint = fp
+            return self._revoke_outstanding(s, name, "certificate replaced")
+
+    def set_enabled(self, name: str, enabled: bool) -> bool:
+        """Enable or disable; return whether anything changed."""
+        with self._session.begin() as s:
+            m = self._manager(s, name)
+            if m.enabled == enabled:
+                return False
+            m.enabled = enabled
+            self._bump_serial(s)
+            if not enabled:
+                self._revoke_outstanding(s, name, "manager disabled")
+            return True
+
+    def remove_manager(self, name: str) -> None:
+        with self._session.begin() as s:
+            m = self._manager(s, name)
+            self._revoke_outstanding(s, name, "manager removed")
+            s.delete(m)
+
+    def list_managers(self) -> list[ManagerInfo]:
+        with self._session() as s:
+            ms = s.scalars(
+                select(Manager)
+                .options(*(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values()))
+                .order_by(Manager.name)
+            ).all()
+            return [_info(m) for m in ms]
+
+    def get_manager(self, name: str) -> ManagerInfo:
+        with self._session() as s:
+            return _info(self._manager(s, name, load_grants=True))
+
+    def lookup_fingerprint(self, fingerprint: str) -> ManagerInfo | None:
+        """The manager bound to a certificate fingerprint, with its grants (daemon path)."""
+        with self._session() as s:
+            m = s.scalars(
+                select(Manager)
+                .where(Manager.cert_fingerprint == fingerprint)
+                .options(*(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values()))
+            ).one_or_none()
+            return None if m is None else _info(m)
+
+    # ------------------------------------------------------------------ grants
+    def grant(self, manager: str, action: str, node: str, name: str, type_: str) -> bool:
+        """Add a grant; return False if it was already there."""
+        g = GrantRow.checked(action, node, name, type_)
+        with self._session.begin() as s:
+            m = self._manager(s, manager)
+            return self._add_grant(s, m, g)
+
+    def _add_grant(self, s: Session, m: Manager, g: GrantRow) -> bool:
+        cls, column, _rel = GRANT_TABLES[g.action]
+        exists = s.scalars(
+            select(cls.id).where(
+                cls.manager_id == m.id, cls.name == g.node, getattr(cls, column) == g.name, cls.data_type == g.type
+            )
+        ).first()
+        if exists is not None:
+            return False
+        s.add(cls(manager_id=m.id, name=g.node, data_type=g.type, **{column: g.name}))
+        return True
+
+    def revoke(self, manager: str, action: str, node: str, name: str, type_: str | None = None) -> int:
+        """Remove matching grants (any type when ``type_`` is None); revoke live tokens.
+
+        Removing nothing is an error: the operator named a grant that does not exist.
+        """
+        validate_action(action)
+        validate_node_name(node)
+        validate_graph_name(name, "topic" if action in ("publish", "subscribe") else "service name")
+        if type_ is not None:
+            validate_type(type_)
+        cls, column, _rel = GRANT_TABLES[action]
+        with self._session.begin() as s:
+            m = self._manager(s, manager)
+            q = delete(cls).where(cls.manager_id == m.id, cls.name == node, getattr(cls, column) == name)
+            if type_ is not None:
+                q = q.where(cls.data_type == type_)
+            removed = s.execute(q).rowcount
+            if not removed:
+                raise RegistryError(f"manager {manager!r} has no {action} grant for {node} on {name}"
+                                    + (f" with type {type_}" if type_ else ""))
+            self._revoke_outstanding(s, manager, f"{action} grant revoked")
+            return removed
+
+    # ------------------------------------------------------------------ policy as YAML
+    def export_policy(self) -> dict:
+        managers = []
+        for m in self.list_managers():
+            grants: dict[str, list[dict]] = {a: [] for a in ACTIONS}
+            for g in m.grants:
+                key = "topic" if g.action in ("publish", "subscribe") else "service"
+                grants[g.action].append({"node": g.node, key: g.name, "type": g.type})
+            managers.append(
+                {
+                    "name": m.name,
+                    "fingerprint_sha256": m.fingerprint,
+                    "enabled": m.enabled,
+                    "grants": {a: v for a, v in grants.items() if v},
+                }
+            )
+        return {"version": POLICY_VERSION, "managers": managers}
+
+    def import_policy(self, policy: object, *, merge: bool = False) -> dict[str, int]:
+        """Make the registry's policy equal to ``policy`` (or only add, with ``merge``).
+
+        The whole document is validated before anything is written; the change is one
+        transaction. Returns counts of what changed.
+        """
+        wanted = parse_policy(policy)
+        stats = {"managers_added": 0, "managers_removed": 0, "managers_changed": 0,
+                 "grants_added": 0, "grants_removed": 0, "tokens_revoked": 0}
+        fps = [w.fingerprint for w in wanted.values() if w.fingerprint]
+        if len(fps) != len(set(fps)):
+            raise RegistryError("policy binds one certificate fingerprint to two managers")
+        try:
+            with self._session.begin() as s:
+                existing = {
+                    m.name: m
+                    for m in s.scalars(
+                        select(Manager).options(
+                            *(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values())
+                        )
+                    )
+                }
+                orig_fp = {name: m.cert_fingerprint for name, m in existing.items()}
+                target_fp = {
+                    name: (w.fingerprint if (w.fingerprint is not None or not merge or name not in existing)
+                           else orig_fp[name])
+                    for name, w in wanted.items()
+                }
+                if merge:
+                    for name, fp in orig_fp.items():
+                        if name not in wanted and fp is not None and fp in target_fp.values():
+                            raise RegistryError(f"policy binds the certificate of manager {name!r} to another manager")
+                else:
+                    for name, m in existing.items():
+                        if name not in wanted:
+                            stats["tokens_revoked"] += self._revoke_outstanding(s, name, "manager removed by import")
+                            s.delete(m)
+                            stats["managers_removed"] += 1
+                # Free changing fingerprints first so swapping certificates between managers works.
+                for name, m in existing.items():
+                    if name in wanted and target_fp[name] != orig_fp[name]:
+                        m.cert_fingerprint = None
+                s.flush()
+                for name, w in wanted.items():
+                    m = existing.get(name)
+                    have: set[GrantRow] = set()
+                    if m is None:
+                        m = Manager(name=name, cert_fingerprint=w.fingerprint, enabled=w.enabled, created_at=_now())
+                        s.add(m)
+                        s.flush()
+                        stats["managers_added"] += 1
+                        if not w.enabled:
+                            self._bump_serial(s)
+                    else:
+                        have = set(_grants_of(m))
+                        changed = shrink = False
+                        m.cert_fingerprint = target_fp[name]
+                        if target_fp[name] != orig_fp[name]:
+                            changed = shrink = True
+                        if m.enabled != w.enabled:
+                            m.enabled = w.enabled
+                            self._bump_serial(s)
+                            changed = True
+                            shrink = shrink or not w.enabled
+                        if not merge:
+                            for g in sorted(have - w.grants):
+                                cls, column, _rel = GRANT_TABLES[g.action]
+                                s.execute(delete(cls).where(
+                                    cls.manager_id == m.id, cls.name == g.node,
+                                    getattr(cls, column) == g.name, cls.data_type == g.type))
+                                stats["grants_removed"] += 1
+                                shrink = True
+                        if shrink:
+                            stats["tokens_revoked"] += self._revoke_outstanding(s, name, "policy import")
+                        if changed:
+                            stats["managers_changed"] += 1
+                    for g in sorted(w.grants - have):
+                        self._add_grant(s, m, g)
+                        stats["grants_added"] += 1
+        except IntegrityError as exc:  # pragma: no cover - guarded by the checks above
+            raise RegistryError(f"policy conflicts with the registry: {exc.orig}") from exc
+        return stats
+
+    # ------------------------------------------------------------------ signing keys
+    def rotate_key(self, prot: keymod.KeyProtection, bits: int = keymod.RSA_BITS) -> str:
+        """Create a new active signing key; the previous one is retired (still published)."""
+        new = keymod.generate(prot, bits)
+        with self._session.begin() as s:
+            s.execute(update(SigningKey).where(SigningKey.active.is_(True)).values(active=False, retired_at=_now()))
+            s.add(SigningKey(kid=new.kid, algorithm="RS256", private_pem=new.private_pem,
+                             public_pem=new.public_pem, encrypted=new.encrypted, active=True,
+                             created_at=_now()))
+        return new.kid
+
+    def active_key(self) -> ActiveKey | None:
+        with self._session() as s:
+            k = s.scalars(select(SigningKey).where(SigningKey.active.is_(True))
+                          .order_by(SigningKey.created_at.desc())).first()
+            return None if k is None else ActiveKey(k.kid, k.private_pem, k.encrypted)
+
+    def list_keys(self) -> list[PublicKeyRow]:
+        with self._session() as s:
+            return [PublicKeyRow(k.kid, k.public_pem, k.active, k.created_at, k.retired_at)
+                    for k in s.scalars(select(SigningKey).order_by(SigningKey.created_at))]
+
+    def published_keys(self, *, now: float, max_lifetime: int) -> list[PublicKeyRow]:
+        """Keys the JWKS must list: the active one, and every retired key that signed a
+        token still unexpired (per the audit log) or was retired less than
+        ``max_lifetime`` seconds ago (covers a token signed just before the rotation)."""
+        now_i = int(now)
+        with self._session() as s:
+            live_kids = set(s.scalars(
+                select(AuditLog.kid).where(AuditLog.event == "issued", AuditLog.expires_at > now_i).distinct()
+            ))
+            out = []
+            for k in s.scalars(select(SigningKey).order_by(SigningKey.created_at.desc())):
+                retired = k.retired_at
+                if retired is not None and retired.tzinfo is None:
+                    retired = retired.replace(tzinfo=UTC)
+                recent = retired is not None and retired.timestamp() > now - max_lifetime
+                if k.active or k.kid in live_kids or recent:
+                    out.append(PublicKeyRow(k.kid, k.public_pem, k.active, k.created_at, k.retired_at))
+            return out
+
+    # ------------------------------------------------------------------ revocation
+    def revoke_token(self, jti: str, *, reason: str = "revoked by operator", expires_at: int | None = None) -> bool:
+        """Revoke a token id. Its expiry comes from the audit log (or ``expires_at``)."""
+        if not isinstance(jti, str) or not re.match(r"^[A-Za-z0-9_-]{8,64}$", jti):
+            raise RegistryError(f"invalid token id {jti!r}")
+        with self._session.begin() as s:
+            exp = s.scalars(select(AuditLog.expires_at).where(AuditLog.jti == jti, AuditLog.event == "issued")).first()
+            if exp is None:
+                if expires_at is None:
+                    raise RegistryError(f"unknown token id {jti!r} (not in the audit log; give --expires-at to revoke it anyway)")
+                exp = expires_at
+            if s.get(RevokedToken, jti) is not None:
+                return False
+            s.add(RevokedToken(jti=jti, expires_at=exp, revoked_at=_now(), reason=reason[:256]))
+            self._bump_serial(s)
+            return True
+
+    def revocation_feed(self, *, now: float) -> RevocationFeed:
+        with self._session() as s:
+            serial = s.scalar(select(RegistryState.value).where(RegistryState.key == REVOCATION_SERIAL)) or 0
+            jtis = tuple(s.scalars(select(RevokedToken.jti).where(RevokedToken.expires_at > int(now))
+                                   .order_by(RevokedToken.jti)))
+            disabled = tuple(s.scalars(select(Manager.name).where(Manager.enabled.is_(False)).order_by(Manager.name)))
+            return RevocationFeed(serial, jtis, disabled)
+
+    # ------------------------------------------------------------------ audit
+    def record(self, entries: Iterable[AuditEntry]) -> None:
+        rows = [
+            AuditLog(at=e.at, event=e.event, manager=e.manager, cert_fingerprint=e.cert_fingerprint,
+                     remote=e.remote, reason=e.reason[:256], jti=e.jti, kid=e.kid, expires_at=e.expires_at)
+            for e in entries
+        ]
+        if rows:
+            with self._session.begin() as s:
+                s.add_all(rows)
+
+    def audit(self, *, limit: int = 50, manager: str | None = None, event: str | None = None) -> list[AuditEntry]:
+        with self._session() as s:
+            q = select(AuditLog).order_by(AuditLog.id.desc()).limit(limit)
+            if manager is not None:
+                q = q.where(AuditLog.manager == manager)
+            if event is not None:
+                q = q.where(AuditLog.event == event)
+            rows = list(s.scalars(q))
+        rows.reverse()
+        return [AuditEntry(r.event, r.manager, r.cert_fingerprint, r.remote, r.reason, r.jti, r.kid, r.expires_at,
+                           r.at if r.at.tzinfo else r.at.replace(tzinfo=UTC)) for r in rows]
+
+    def ping(self) -> None:
+        with self._session() as s:
+            s.scalar(select(func.count()).select_from(RegistryState))
+
+
+def new_jti() -> str:
+    return secrets.token_urlsafe(16)
+
+
+# ---------------------------------------------------------------------- policy parsing
+@dataclass(frozen=True)
+class WantedManager:
+    name: str
+    fingerprint: str | None
+    enabled: bool
+    grants: frozenset[GrantRow]
+
+
+_MANAGER_KEYS = {"name", "fingerprint_sha256", "enabled", "grants"}
+
+
+def parse_policy(doc: object) -> dict[str, WantedManager]:
+    """Validate a policy document (from YAML) completely; raise RegistryError on any fault."""
+    if not isinstance(doc, Mapping):
+        raise RegistryError("policy must be a mapping with 'version' and 'managers'")
+    unknown = set(doc) - {"version", "managers"}
+    if unknown:
+        raise RegistryError(f"policy: unknown key(s) {', '.join(sorted(map(str, unknown)))}")
+    if doc.get("version") != POLICY_VERSION:
+        raise RegistryError(f"policy: version must be {POLICY_VERSION}, got {doc.get('version')!r}")
+    managers = doc.get("managers") or []
+    if not isinstance(managers, list):
+        raise RegistryError("policy: 'managers' must be a list")
+    out: dict[str, WantedManager] = {}
+    for i, m in enumerate(managers):
+        where = f"policy: managers[{i}]"
+        if not isinstance(m, Mapping):
+            raise RegistryError(f"{where} must be a mapping")
+        unknown = set(m) - _MANAGER_KEYS
+        if unknown:
+            raise RegistryError(f"{where}: unknown key(s) {', '.join(sorted(map(str, unknown)))}")
+        try:
+            name = validate_manager_name(m.get("name"))
+            fp = m.get("fingerprint_sha256")
+            fp = normalize_fingerprint(fp) if fp is not None else None
+            enabled = m.get("enabled", True)
+            if not isinstance(enabled, bool):
+                raise RegistryError(f"'enabled' must be true or false, got {enabled!r}")
+            grants = _parse_grants(m.get("grants") or {})
+        except RegistryError as exc:
+            raise RegistryError(f"{where}: {exc}") from None
+        if name in out:
+            raise RegistryError(f"{where}: manager {name!r} listed twice")
+        out[name] = WantedManager(name, fp, enabled, grants)
+    return out
+
+
+def _parse_grants(grants: object) -> frozenset[GrantRow]:
+    if not isinstance(grants, Mapping):
+        raise RegistryError("'grants' must be a mapping of action to a list")
+    rows = set()
+    for action, items in grants.items():
+        validate_action(action)
+        key = "topic" if action in ("publish", "subscribe") else "service"
+        if not isinstance(items, list):
+            raise RegistryError(f"grants.{action} must be a list")
+        for j, item in enumerate(items):
+            if not isinstance(item, Mapping) or set(item) != {"node", key, "type"}:
+                raise RegistryError(f"grants.{action}[{j}] must have exactly the keys node, {key}, type")
+            rows.add(GrantRow.checked(action, item["node"], item[key], item["type"]))
+    return frozenset(rows)

@@ -1,0 +1,70 @@
+"""Running the daemon: open the registry, listen with mutual TLS, stop on SIGTERM.
+
+Start-up failures (database missing or unreachable, TLS or key files missing, wrong
+passphrase, port taken) raise :class:`ConfigError` or :class:`StartupError` with a
+one-line reason; the CLI prints it and exits non-zero. SIGTERM and SIGINT stop
+listening, give open connections ``shutdown_grace`` seconds, flush the audit log
+and exit 0.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import signal
+
+from aiohttp import web
+
+from authz_server.app import AuthzService, make_app
+from authz_server.config import ServeConfig
+from authz_server.db import open_registry
+from authz_server.registry import Registry
+from cryptoros.errors import CryptorosError
+from cryptoros.tls import server_context
+
+log = logging.getLogger("cryptoros.authz")
+
+
+class StartupError(CryptorosError):
+    """The daemon could not start (port taken...)."""
+
+
+async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
+                stop: asyncio.Event | None = None) -> None:
+    ssl_ctx = server_context(cfg.tls)  # ConfigError on bad TLS material
+    engine = open_registry(cfg.db_url, create=False)
+    registry = Registry(engine)
+    service = AuthzService(cfg, registry)
+    runner: web.AppRunner | None = None
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    try:
+        await service.start()
+        runner = web.AppRunner(make_app(service), access_log=None, handle_signals=False,
+                               shutdown_timeout=cfg.shutdown_grace)
+        await runner.setup()
+        site = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=ssl_ctx, backlog=1024,
+                           reuse_address=True)
+        try:
+            await site.start()
+        except OSError as exc:
+            why = "address already in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
+            raise StartupError(f"cannot listen on {cfg.host}:{cfg.port}: {why}") from exc
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        assert service._signer is not None
+        log.info("serving on https://%s:%d (issuer %s, audience %s, token lifetime %ds, signing key %s)",
+                 cfg.host, cfg.port, cfg.issuer, cfg.audience, cfg.token_lifetime, service._signer.kid)
+        if ready is not None:
+            ready.set()
+        await stop.wait()
+        log.info("shutting down")
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+        if runner is not None:
+            await runner.cleanup()
+        await service.close()
+        engine.dispose()
+    log.info("stopped")
