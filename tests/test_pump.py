@@ -1,0 +1,145 @@
+"""The byte pump over real sockets: TLS on one side, plain TCP on the other."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import os
+
+import pytest
+
+from cryptoros.tls import TLSConfig, client_context, server_context
+from interceptor.pump import HIGH_WATER, splice
+
+
+@pytest.fixture(params=["asyncio", "uvloop"])
+def run_loop(request):
+    """Run each test on the stdlib loop and on uvloop (the interceptor's default)."""
+    if request.param == "uvloop":
+        import uvloop
+
+        return uvloop.run
+    return asyncio.run
+
+
+class HeaderThenSplice(asyncio.Protocol):
+    """Reads one line (standing in for a checked connection header), then pumps."""
+
+    def __init__(self, upstream_port: int, spliced: list) -> None:
+        self.upstream_port = upstream_port
+        self.spliced = spliced
+        self.buffer = b""
+
+    def connection_made(self, transport):
+        self.transport = transport
+
+    def data_received(self, data):
+        self.buffer += data
+        if b"\n" in self.buffer:
+            self.transport.pause_reading()
+            header, _, rest = self.buffer.partition(b"\n")
+            asyncio.ensure_future(self._open(rest))
+
+    async def _open(self, rest: bytes) -> None:
+        loop = asyncio.get_running_loop()
+        up, _ = await loop.create_connection(asyncio.Protocol, "127.0.0.1", self.upstream_port)
+        done = splice(self.transport, up, left_pending=rest)
+        self.transport.resume_reading()
+        self.spliced.append((self.transport, up, done))
+
+
+async def echo_server() -> asyncio.Server:
+    async def handle(reader, writer):
+        while data := await reader.read(1 << 16):
+            writer.write(data)
+            await writer.drain()
+        writer.close()
+
+    return await asyncio.start_server(handle, "127.0.0.1", 0)
+
+
+@pytest.fixture
+def tls_pair(pki):
+    server = pki.issue("relay", kind="interceptor")
+    client = pki.issue("robot1")
+    cfg = lambda i: TLSConfig(ca_file=pki.ca_cert, cert_file=i.cert_path, key_file=i.key_path)  # noqa: E731
+    return server_context(cfg(server)), client_context(cfg(client))
+
+
+def test_tls_to_tcp_relay_is_byte_exact(tls_pair, run_loop):
+    run_loop(tls_to_tcp_relay_is_byte_exact(*tls_pair))
+
+
+async def tls_to_tcp_relay_is_byte_exact(server_ctx, client_ctx):
+    echo = await echo_server()
+    spliced: list = []
+    loop = asyncio.get_running_loop()
+    relay = await loop.create_server(
+        lambda: HeaderThenSplice(echo.sockets[0].getsockname()[1], spliced), "127.0.0.1", 0, ssl=server_ctx
+    )
+    port = relay.sockets[0].getsockname()[1]
+    reader, writer = await asyncio.open_connection("127.0.0.1", port, ssl=client_ctx, server_hostname="localhost")
+    payload = os.urandom(8 * 1024 * 1024)
+    writer.write(b"header\n" + payload[:1000])  # bytes after the header ride in the same write
+
+    async def send_rest():
+        for i in range(1000, len(payload), 1 << 20):
+            writer.write(payload[i : i + (1 << 20)])
+            await writer.drain()
+
+    sender = asyncio.create_task(send_rest())
+    received = await asyncio.wait_for(reader.readexactly(len(payload)), timeout=60)
+    await sender
+    assert hashlib.sha256(received).digest() == hashlib.sha256(payload).digest()
+    writer.close()
+    await asyncio.wait_for(spliced[0][2], timeout=10)  # both sides closed when the client left
+    relay.close()
+    echo.close()
+
+
+def test_slow_reader_pauses_the_source(tls_pair, run_loop):
+    """A consumer that does not read makes the relay stop reading, not buffer forever."""
+    run_loop(slow_reader_pauses_the_source(*tls_pair))
+
+
+async def slow_reader_pauses_the_source(server_ctx, client_ctx):
+    loop = asyncio.get_running_loop()
+    sink_connected = asyncio.Event()
+    sink_transports = []
+
+    class Sink(asyncio.Protocol):
+        def connection_made(self, transport):
+            # Never reads: the kernel buffers fill, then ours. (uvloop ignores a
+            # pause_reading() made inside connection_made, so pause on the next tick.)
+            asyncio.get_running_loop().call_soon(transport.pause_reading)
+            sink_transports.append(transport)
+            sink_connected.set()
+
+    sink = await loop.create_server(Sink, "127.0.0.1", 0)
+    spliced: list = []
+    relay = await loop.create_server(
+        lambda: HeaderThenSplice(sink.sockets[0].getsockname()[1], spliced), "127.0.0.1", 0, ssl=server_ctx
+    )
+    reader, writer = await asyncio.open_connection(
+        "127.0.0.1", relay.sockets[0].getsockname()[1], ssl=client_ctx, server_hostname="localhost"
+    )
+    writer.write(b"header\n")
+    await asyncio.wait_for(sink_connected.wait(), timeout=10)
+    chunk = b"x" * (1 << 20)
+    sent = 0
+    # Offer 64 MiB; the client's own drain() blocks once the relay stops reading.
+    try:
+        for _ in range(64):
+            writer.write(chunk)
+            await asyncio.wait_for(writer.drain(), timeout=2)
+            sent += len(chunk)
+    except asyncio.TimeoutError:
+        pass
+    upstream = spliced[0][1]
+    assert sent < 64 * len(chunk), "the relay kept reading although nobody consumed"
+    assert upstream.get_write_buffer_size() <= HIGH_WATER + (1 << 20)
+    writer.transport.abort()
+    for t in sink_transports:
+        t.close()
+    relay.close()
+    sink.close()
