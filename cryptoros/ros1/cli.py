@@ -1,0 +1,40 @@
+"""``cryptoros master``: run the embedded ROS 1 master."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+
+import click
+
+
+@click.command()
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to bind (loopback by default).")
+@click.option("--port", "-p", default=11311, show_default=True, type=click.IntRange(0, 65535), help="XML-RPC port.")
+@click.option("-v", "--verbose", is_flag=True, help="Log registrations and callbacks.")
+def master(host: str, port: int, verbose: bool) -> None:
+    """Run an embedded ROS 1 master (master and parameter-server APIs)."""
+    from cryptoros.ros1.master import Master
+    from cryptoros.ros1.node import install_uvloop
+
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(name)s %(message)s")
+    install_uvloop()
+
+    async def main() -> None:
+        m = Master(host, port)
+        await m.start()
+        click.echo(f"ROS_MASTER_URI={m.uri}", err=True)
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError):
+                loop.add_signal_handler(sig, stop.set)
+        waiters = [asyncio.ensure_future(stop.wait()), asyncio.ensure_future(m.shutdown_requested.wait())]
+        await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        for w in waiters:
+            w.cancel()
+        await m.close()
+
+    asyncio.run(main())
