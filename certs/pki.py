@@ -376,7 +376,13 @@ class _FileSet:
                         os.link(tmp, final)  # atomic, and refuses to clobber
                     except FileExistsError as err:
                         raise PKIError(f"{final} exists: use --force to overwrite") from err
-                    os.unlink(tmp)
+                    except OSError:
+                        # no hard links on this file system: check, then rename
+                        if final.exists() or final.is_symlink():
+                            raise PKIError(f"{final} exists: use --force to overwrite") from None
+                        os.replace(tmp, final)
+                    else:
+                        os.unlink(tmp)
                 created.append(final)
         except BaseException:
             if not self.force:
