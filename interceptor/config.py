@@ -1,0 +1,286 @@
+"""The interceptor's configuration: a TOML file loaded into frozen dataclasses.
+
+Everything is validated at start-up, in the spirit of ghostunnel: unknown keys,
+missing files, an interceptor with no CA, certificate, key or token source, and
+plaintext toward a non-loopback address without an explicit ``unsafe_*`` setting are
+all start-up errors with one clear line (:class:`~cryptoros.errors.ConfigError`).
+
+Example::
+
+    manager = "robot1"              # the manager whose token this interceptor holds
+    roles = ["node"]                # "node", "master", or both
+
+    [tls]
+    ca = "pki/ca.crt"
+    cert = "pki/issued/robot1.crt"
+    key = "pki/private/robot1.key"
+    key_passphrase_file = "robot1.pass"   # or env CRYPTOROS_KEY_PASSPHRASE, or none
+    crl = "pki/crl.pem"
+    pin_tls12 = false
+
+    [authz]
+    url = "https://127.0.0.1:8443"
+    issuer = "cryptoros-authz"
+    audience = "cryptoros"
+
+    [listen]
+    public = "127.0.0.2:11400"        # mutual-TLS endpoint for other interceptors
+    local_master = "127.0.0.1:11311"  # node role: ROS_MASTER_URI of this host's nodes
+    metrics = "127.0.0.1:9102"        # optional Prometheus endpoint
+
+    [master]
+    interceptor = "127.0.0.4:11400"   # node role: the master's interceptor
+    manager = "master"                # the manager that runs the master's interceptor
+    upstream = "http://127.0.0.1:11311"  # master role: rosmaster or `cryptoros master`
+
+    [limits]
+    max_connections_per_peer = 64
+    max_new_connections_per_second = 50.0
+
+Relative paths are relative to the configuration file's directory.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import tomllib
+import urllib.parse
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from cryptoros.errors import ConfigError
+from cryptoros.tls import TLSConfig
+
+PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
+ROLES = ("node", "master")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Endpoint:
+    host: str
+    port: int
+
+    @classmethod
+    def parse(cls, text: Any, where: str) -> Endpoint:
+        if not isinstance(text, str) or text.count(":") != 1:
+            raise ConfigError(f"{where}: expected host:port, got {text!r}")
+        host, _, port_text = text.partition(":")
+        try:
+            port = int(port_text)
+        except ValueError:
+            raise ConfigError(f"{where}: port {port_text!r} is not a number") from None
+        if not host or not 0 < port < 65536:
+            raise ConfigError(f"{where}: expected host:port with a port in 1..65535, got {text!r}")
+        return cls(host=host, port=port)
+
+    @property
+    def is_loopback(self) -> bool:
+        return _is_loopback(self.host)
+
+    def __str__(self) -> str:
+        return f"{self.host}:{self.port}"
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True, kw_only=True)
+class AuthzSettings:
+    url: str
+    issuer: str = "cryptoros-authz"
+    audience: str = "cryptoros"
+    refresh_margin: float = 60.0
+    revocation_poll_interval: float = 1.0
+    request_timeout: float = 5.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class MasterSettings:
+    interceptor: Endpoint | None = None
+    manager: str = "master"
+    upstream: str | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Limits:
+    max_connections_per_peer: int = 64
+    max_new_connections_per_second: float = 50.0
+    max_xmlrpc_body: int = 1 << 20
+    max_header_size: int = 1 << 20
+    handshake_timeout: float = 10.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class InterceptorConfig:
+    manager: str
+    roles: tuple[str, ...]
+    tls: TLSConfig
+    authz: AuthzSettings
+    public: Endpoint
+    local_master: Endpoint | None
+    metrics: Endpoint | None
+    master: MasterSettings
+    limits: Limits = field(default_factory=Limits)
+    unsafe_plaintext_upstream: bool = False
+
+
+_SECTIONS = {
+    "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream"},
+    "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
+    "authz": {f.name for f in fields(AuthzSettings)},
+    "listen": {"public", "local_master", "metrics"},
+    "master": {"interceptor", "manager", "upstream"},
+    "limits": {f.name for f in fields(Limits)},
+}
+
+
+def _check_keys(table: Any, section: str) -> dict[str, Any]:
+    where = f"[{section}]" if section else "top level"
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table")
+    unknown = sorted(set(table) - _SECTIONS[section])
+    if unknown:
+        raise ConfigError(f"unknown key {unknown[0]!r} in {where}; allowed: {', '.join(sorted(_SECTIONS[section]))}")
+    return table
+
+
+def _typed(value: Any, kind: type, where: str) -> Any:
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ConfigError(f"{where} must be {kind.__name__}, got {value!r}")
+    if kind in (int, float) and value <= 0:
+        raise ConfigError(f"{where} must be positive, got {value!r}")
+    return value
+
+
+def _path(base: Path, value: Any, where: str) -> Path:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{where} must be a file path")
+    path = Path(value)
+    return path if path.is_absolute() else base / path
+
+
+def load(path: str | os.PathLike[str]) -> InterceptorConfig:
+    """Load and validate a configuration file; every problem is one ConfigError line."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"configuration file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read configuration file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    return parse(raw, base=path.parent)
+
+
+def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
+    top = _check_keys(raw, "")
+    manager = top.get("manager")
+    if not isinstance(manager, str) or not manager:
+        raise ConfigError("manager is required: the name of the manager whose token this interceptor holds")
+    roles = top.get("roles", ["node"])
+    if not isinstance(roles, list) or not roles or any(r not in ROLES for r in roles) or len(set(roles)) != len(roles):
+        raise ConfigError(f"roles must be a non-empty list of {', '.join(ROLES)}, got {roles!r}")
+
+    if "tls" not in top:
+        raise ConfigError("[tls] is required: the interceptor will not start without a CA, certificate and key")
+    tls_raw = _check_keys(top["tls"], "tls")
+    for required in ("ca", "cert", "key"):
+        if required not in tls_raw:
+            raise ConfigError(f"[tls] {required} is required")
+    passphrase = None
+    if "key_passphrase_file" in tls_raw:
+        pass_path = _path(base, tls_raw["key_passphrase_file"], "[tls] key_passphrase_file")
+        try:
+            passphrase = pass_path.read_bytes().rstrip(b"\r\n")
+        except OSError as exc:
+            raise ConfigError(f"[tls] key_passphrase_file: cannot read {pass_path}: {exc.strerror}") from None
+    elif os.environ.get(PASSPHRASE_ENV):
+        passphrase = os.environ[PASSPHRASE_ENV].encode()
+    tls = TLSConfig(
+        ca_file=_path(base, tls_raw["ca"], "[tls] ca"),
+        cert_file=_path(base, tls_raw["cert"], "[tls] cert"),
+        key_file=_path(base, tls_raw["key"], "[tls] key"),
+        key_passphrase=passphrase,
+        crl_file=_path(base, tls_raw["crl"], "[tls] crl") if "crl" in tls_raw else None,
+        pin_tls12=bool(_typed(tls_raw.get("pin_tls12", False), bool, "[tls] pin_tls12")),
+    )
+
+    if "authz" not in top:
+        raise ConfigError("[authz] is required: the interceptor will not start without a token source")
+    authz_raw = _check_keys(top["authz"], "authz")
+    url = authz_raw.get("url")
+    parsed = urllib.parse.urlsplit(url) if isinstance(url, str) else None
+    if parsed is None or parsed.scheme != "https" or not parsed.hostname:
+        raise ConfigError(f"[authz] url must be an https:// URL, got {url!r}")
+    authz = AuthzSettings(
+        url=url.rstrip("/"),
+        **{
+            k: _typed(authz_raw[k], str if k in ("issuer", "audience") else float, f"[authz] {k}")
+            for k in authz_raw
+            if k != "url"
+        },
+    )
+
+    listen = _check_keys(top.get("listen", {}), "listen")
+    if "public" not in listen:
+        raise ConfigError("[listen] public is required: the mutual-TLS endpoint other interceptors connect to")
+    public = Endpoint.parse(listen["public"], "[listen] public")
+    local_master = Endpoint.parse(listen["local_master"], "[listen] local_master") if "local_master" in listen else None
+    metrics = Endpoint.parse(listen["metrics"], "[listen] metrics") if "metrics" in listen else None
+    if local_master is not None and not local_master.is_loopback:
+        raise ConfigError("[listen] local_master must be a loopback address: local nodes are trusted only there")
+    if metrics is not None and not metrics.is_loopback:
+        raise ConfigError("[listen] metrics must be a loopback address")
+
+    master_raw = _check_keys(top.get("master", {}), "master")
+    master = MasterSettings(
+        interceptor=Endpoint.parse(master_raw["interceptor"], "[master] interceptor") if "interceptor" in master_raw else None,
+        manager=_typed(master_raw.get("manager", "master"), str, "[master] manager"),
+        upstream=master_raw.get("upstream"),
+    )
+    unsafe_plaintext = bool(_typed(top.get("unsafe_plaintext_upstream", False), bool, "unsafe_plaintext_upstream"))
+    if "node" in roles:
+        if local_master is None:
+            raise ConfigError("the node role needs [listen] local_master (the ROS_MASTER_URI of local nodes)")
+        if master.interceptor is None and "master" not in roles:
+            raise ConfigError("the node role needs [master] interceptor (the master's interceptor host:port)")
+    if "master" in roles:
+        upstream = urllib.parse.urlsplit(master.upstream) if isinstance(master.upstream, str) else None
+        if upstream is None or upstream.scheme != "http" or not upstream.hostname or upstream.port is None:
+            raise ConfigError(f"the master role needs [master] upstream = http://host:port, got {master.upstream!r}")
+        if not _is_loopback(upstream.hostname) and not unsafe_plaintext:
+            raise ConfigError(
+                f"[master] upstream {master.upstream} is plaintext toward a non-loopback address; "
+                "set unsafe_plaintext_upstream = true to allow it"
+            )
+
+    limits_raw = _check_keys(top.get("limits", {}), "limits")
+    limit_types = {f.name: (float if f.type in ("float", float) else int) for f in fields(Limits)}
+    limits = Limits(**{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()})
+
+    return InterceptorConfig(
+        manager=manager,
+        roles=tuple(roles),
+        tls=tls,
+        authz=authz,
+        public=public,
+        local_master=local_master,
+        metrics=metrics,
+        master=master,
+        limits=limits,
+        unsafe_plaintext_upstream=unsafe_plaintext,
+    )
+
+
+__all__ = ["AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings", "load", "parse"]

@@ -1,0 +1,127 @@
+"""Interceptor configuration: valid files load; every mistake is one ConfigError line."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+
+from cryptoros.errors import ConfigError
+from interceptor.config import load
+
+
+@pytest.fixture
+def material(pki, tmp_path):
+    issued = pki.issue("robot1", kind="interceptor", sans=("IP:127.0.0.2",))
+    return {"ca": pki.ca_cert, "cert": issued.cert_path, "key": issued.key_path, "crl": pki.crl}
+
+
+def write(tmp_path, text: str):
+    path = tmp_path / "interceptor.toml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def good(material, **replace) -> str:
+    text = f"""
+        manager = "robot1"
+        roles = ["node"]
+        [tls]
+        ca = "{material['ca']}"
+        cert = "{material['cert']}"
+        key = "{material['key']}"
+        crl = "{material['crl']}"
+        [authz]
+        url = "https://127.0.0.1:8443"
+        [listen]
+        public = "127.0.0.2:11400"
+        local_master = "127.0.0.1:11311"
+        [master]
+        interceptor = "127.0.0.4:11400"
+        [limits]
+        max_connections_per_peer = 8
+        """
+    for old, new in replace.items():
+        text = text.replace(old, new)
+    return text
+
+
+def test_valid_file_loads_frozen(material, tmp_path):
+    cfg = load(write(tmp_path, good(material)))
+    assert cfg.manager == "robot1" and cfg.roles == ("node",)
+    assert cfg.public.host == "127.0.0.2" and cfg.public.port == 11400
+    assert cfg.master.interceptor.port == 11400
+    assert cfg.limits.max_connections_per_peer == 8
+    assert cfg.tls.crl_file == material["crl"]
+    with pytest.raises(AttributeError):
+        cfg.manager = "intruder"  # type: ignore[misc]
+
+
+def test_relative_paths_are_relative_to_the_file(material, tmp_path):
+    text = good(material).replace(str(material["ca"]), "pki/ca.crt")
+    cfg = load(write(tmp_path, text))
+    assert cfg.tls.ca_file == tmp_path / "pki" / "ca.crt"
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        ({'roles = ["node"]': 'roles = ["node"]\ncolour = "red"'}, "unknown key 'colour' in top level"),
+        ({'crl = "': 'cipher = "RC4"\ncrl = "'}, "unknown key 'cipher' in \\[tls\\]"),
+        ({"max_connections_per_peer = 8": "max_conections_per_peer = 8"}, "unknown key 'max_conections_per_peer'"),
+        ({"max_connections_per_peer = 8": "max_connections_per_peer = -1"}, "must be positive"),
+        ({"max_connections_per_peer = 8": 'max_connections_per_peer = "many"'}, "must be int"),
+        ({'manager = "robot1"': ""}, "manager is required"),
+        ({'roles = ["node"]': 'roles = ["robot"]'}, "roles must be"),
+        ({"https://127.0.0.1:8443": "http://127.0.0.1:8443"}, "must be an https:// URL"),
+        ({'public = "127.0.0.2:11400"': 'public = "127.0.0.2"'}, "expected host:port"),
+        ({'local_master = "127.0.0.1:11311"': 'local_master = "10.1.2.3:11311"'}, "must be a loopback address"),
+        ({'interceptor = "127.0.0.4:11400"': ""}, "needs \\[master\\] interceptor"),
+        ({"manager = \"robot1\"": "manager = \"robot1\"\nroles2 = 1"}, "unknown key 'roles2'"),
+    ],
+)
+def test_mistakes_are_one_line_config_errors(material, tmp_path, edit, message):
+    with pytest.raises(ConfigError, match=message) as info:
+        load(write(tmp_path, good(material, **edit)))
+    assert "\n" not in str(info.value)
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load(tmp_path / "nope.toml")
+    with pytest.raises(ConfigError, match="invalid TOML"):
+        load(write(tmp_path, "manager = \n"))
+
+
+def test_refuses_to_start_without_tls_material_or_token_source(material, tmp_path):
+    no_tls = "\n".join(l for l in good(material).splitlines() if not l.strip().startswith(("ca", "cert", "key", "crl", "[tls]")))
+    with pytest.raises(ConfigError, match="\\[tls\\] is required"):
+        load(write(tmp_path, no_tls))
+    with pytest.raises(ConfigError, match="\\[tls\\] key is required"):
+        load(write(tmp_path, good(material, **{f'key = "{material["key"]}"': ""})))
+    with pytest.raises(ConfigError, match="not found"):
+        load(write(tmp_path, good(material, **{str(material["cert"]): "/nonexistent/robot1.crt"})))
+    no_authz = good(material).replace("[authz]\n", "").replace('url = "https://127.0.0.1:8443"', "")
+    with pytest.raises(ConfigError, match="\\[authz\\] is required"):
+        load(write(tmp_path, no_authz))
+
+
+def test_plaintext_upstream_off_loopback_needs_an_unsafe_setting(material, tmp_path):
+    master = good(material, **{'roles = ["node"]': 'roles = ["master"]'}).replace(
+        'interceptor = "127.0.0.4:11400"', 'upstream = "http://192.0.2.10:11311"'
+    )
+    with pytest.raises(ConfigError, match="unsafe_plaintext_upstream"):
+        load(write(tmp_path, master))
+    allowed = master.replace('manager = "robot1"', 'manager = "robot1"\nunsafe_plaintext_upstream = true')
+    assert load(write(tmp_path, allowed)).unsafe_plaintext_upstream is True
+    local = master.replace("192.0.2.10", "127.0.0.1")
+    assert load(write(tmp_path, local)).master.upstream == "http://127.0.0.1:11311"
+
+
+def test_passphrase_file_is_read(material, tmp_path, pki):
+    encrypted = pki.pki.issue("robot2", passphrase=b"s3cret passphrase")
+    (tmp_path / "pass").write_text("s3cret passphrase\n")
+    text = good(material).replace(str(material["cert"]), str(encrypted.cert_path)).replace(
+        f'key = "{material["key"]}"', f'key = "{encrypted.key_path}"\nkey_passphrase_file = "pass"'
+    )
+    assert load(write(tmp_path, text)).tls.key_passphrase == b"s3cret passphrase"
