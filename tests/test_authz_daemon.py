@@ -1,0 +1,228 @@
+"""cryptoros-authz serve as a real subprocess, over real HTTPS with client certificates.
+
+One daemon per module on a free loopback port, a throwaway CA, a SQLite registry
+built with the admin CLI. Covers the token endpoint (RFC 6749 4.4 + RFC 8705), JWKS,
+the revocation feed, health, metrics, audit rows, key rotation, 200 concurrent token
+requests and graceful shutdown.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import time
+
+import aiohttp
+import pytest
+
+from cryptoros.tokens import KeySet, Revocations, verify_access_token
+from tests.test_authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
+
+ISS, AUD = "cryptoros-authz", "cryptoros"
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    team = build_team(tmp_path_factory.mktemp("authz-daemon"))
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
+    try:
+        d.start()
+        d.team = team
+        yield d
+    finally:
+        d.stop()
+
+
+def claims_of(token: str) -> dict:
+    payload = token.split(".")[1]
+    return json.loads(base64.urlsafe_b64decode(payload + "=" * (-len(payload) % 4)))
+
+
+def header_of(token: str) -> dict:
+    h = token.split(".")[0]
+    return json.loads(base64.urlsafe_b64decode(h + "=" * (-len(h) % 4)))
+
+
+def test_token_is_rs256_jwt_bound_to_the_client_certificate_with_grants(daemon):
+    status, body = daemon.token("alice")
+    assert status == 200, body
+    assert body["token_type"] == "Bearer" and body["expires_in"] == 300
+    assert daemon.last_headers["Cache-Control"] == "no-store"
+    token = body["access_token"]
+    hdr = header_of(token)
+    assert hdr["alg"] == "RS256" and hdr["typ"] == "at+jwt" and hdr["kid"]
+    jwks = daemon.get_json("/.well-known/jwks.json")
+    assert hdr["kid"] in [k["kid"] for k in jwks["keys"]]
+    alice_der = read_pem_der(daemon.cert_of("alice")[0])
+    tok = verify_access_token(token, keys=KeySet.from_jwks(jwks), issuer=ISS, audience=AUD, peer_cert_der=alice_der)
+    c = tok.claims
+    assert c["sub"] == "alice" and c["iss"] == ISS and c["aud"] == AUD
+    assert c["nbf"] == c["iat"] and c["exp"] - c["iat"] == 300 and abs(c["iat"] - time.time()) < 30
+    assert len(c["jti"]) >= 16
+    assert c["grants"] == {
+        "/talker": {"publish": [["/chatter", "std_msgs/String"]]},
+        "/listener": {"subscribe": [["/chatter", "std_msgs/String"]]},
+        "/adder": {"serve": [["/add_two_ints", "rospy_tutorials/AddTwoInts"]]},
+    }
+    assert tok.grants.allows("publish", "/talker", "/chatter", "std_msgs/String")
+    assert not tok.grants.allows("publish", "/listener", "/chatter", "std_msgs/String")
+    # the issue is in the audit log, with the jti and kid
+    rows = [json.loads(line) for line in ok(daemon.cli("audit", "--json", "--manager", "alice")).splitlines()]
+    assert any(r["event"] == "issued" and r["jti"] == c["jti"] and r["kid"] == hdr["kid"] for r in rows)
+
+
+def test_each_token_has_a_fresh_jti(daemon):
+    jtis = {claims_of(daemon.token("bob")[1]["access_token"])["jti"] for _ in range(3)}
+    assert len(jtis) == 3
+
+
+def test_wildcard_node_grant_is_carried_explicitly(daemon):
+    status, body = daemon.token("carol")
+    assert status == 200
+    assert claims_of(body["access_token"])["grants"] == {"*": {"subscribe": [["/scan", "sensor_msgs/msg/LaserScan"]]}}
+
+
+def test_unregistered_certificate_gets_invalid_client_and_an_audit_row(daemon):
+    status, body = daemon.token("stranger")
+    assert (status, body) == (401, {"error": "invalid_client"})
+    rows = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--event", "denied")).splitlines()]
+    assert any(r["reason"] == "unknown_certificate" and r["manager"] is None for r in rows), rows
+    assert "token denied" in daemon.log() and "reason=unknown_certificate" in daemon.log()
+
+
+@pytest.mark.parametrize(
+    "body, status, error",
+    [
+        ("", 400, "invalid_request"),
+        ("grant_type=password&username=a&password=b", 400, "unsupported_grant_type"),
+        ("grant_type=authorization_code&code=x", 400, "unsupported_grant_type"),
+        ("grant_type=client_credentials&grant_type=client_credentials", 400, "invalid_request"),
+        ("grant_type=client_credentials&client_id=bob", 401, "invalid_client"),
+    ],
+)
+def test_bad_token_requests_get_opaque_oauth_errors(daemon, body, status, error):
+    got_status, got = daemon.token("alice", body=body)
+    assert (got_status, got) == (status, {"error": error})
+
+
+def test_client_id_matching_the_certificate_is_accepted(daemon):
+    status, body = daemon.token("alice", body="grant_type=client_credentials&client_id=alice&scope=ignored")
+    assert status == 200 and claims_of(body["access_token"])["sub"] == "alice"
+
+
+def test_get_on_token_endpoint_is_not_allowed(daemon):
+    cert, key = daemon.cert_of("alice")
+    status, _ = daemon.request("GET", "/token", cert=cert, key=key)
+    assert status == 405
+
+
+def test_healthz_and_prometheus_metrics(daemon):
+    health = daemon.get_json("/healthz")
+    assert health["status"] == "ok" and health["database"] == "ok" and health["kid"]
+    daemon.token("alice")
+    daemon.token("stranger")
+    cert, key = daemon.cert_of("probe")
+    status, raw = daemon.request("GET", "/metrics", cert=cert, key=key)
+    text = raw.decode()
+    assert status == 200 and daemon.last_headers["Content-Type"].startswith("text/plain")
+    issued = [float(line.split()[-1]) for line in text.splitlines()
+              if line.startswith("cryptoros_authz_tokens_issued_total ")]
+    assert issued and issued[0] >= 1
+    assert 'cryptoros_authz_token_denials_total{reason="unknown_certificate"}' in text
+    assert 'cryptoros_authz_request_duration_seconds_bucket{endpoint="/token",le=' in text
+
+
+def test_revocation_feed_lists_revoked_jti_and_supports_etag(daemon):
+    _, body = daemon.token("bob")
+    jti = claims_of(body["access_token"])["jti"]
+    feed = daemon.get_json("/revocations")
+    assert set(feed) == {"serial", "revoked_jtis", "disabled_managers", "generated_at"}
+    assert jti not in feed["revoked_jtis"]
+    cert, key = daemon.cert_of("probe")
+    status, _ = daemon.request("GET", "/revocations", cert=cert, key=key)
+    etag = daemon.last_headers["ETag"]
+    status, raw = daemon.request("GET", "/revocations", cert=cert, key=key, headers={"If-None-Match": etag})
+    assert status == 304 and raw == b""
+    ok(daemon.cli("revoke-token", jti, "--reason", "stolen laptop"))
+    deadline = time.monotonic() + 5
+    while True:
+        status, raw = daemon.request("GET", "/revocations", cert=cert, key=key, headers={"If-None-Match": etag})
+        if status == 200:
+            break
+        assert time.monotonic() < deadline, "feed did not change within 5 s"
+        time.sleep(0.2)
+    new = json.loads(raw)
+    assert jti in new["revoked_jtis"] and new["serial"] > feed["serial"]
+    assert daemon.last_headers["ETag"] != etag
+
+
+def test_two_hundred_concurrent_token_requests_all_succeed_and_verify(daemon):
+    jwks = daemon.get_json("/.well-known/jwks.json")
+    keys = KeySet.from_jwks(jwks)
+    cert, key = daemon.cert_of("alice")
+    der = read_pem_der(cert)
+    ctx = daemon.context(cert, key)
+
+    async def fetch_all():
+        connector = aiohttp.TCPConnector(ssl=ctx, limit=0, force_close=True)
+        timeout = aiohttp.ClientTimeout(total=60)
+        async with aiohttp.ClientSession(connector=connector, timeout=timeout) as session:
+            async def one():
+                async with session.post(f"{daemon.base}/token", data={"grant_type": "client_credentials"}) as r:
+                    return r.status, await r.json()
+
+            return await asyncio.gather(*(one() for _ in range(200)), return_exceptions=True)
+
+    results = asyncio.run(fetch_all())
+    errors = [r for r in results if isinstance(r, BaseException) or r[0] != 200]
+    assert not errors, errors[:3]
+    jtis = set()
+    for _status, body in results:
+        tok = verify_access_token(body["access_token"], keys=keys, issuer=ISS, audience=AUD, peer_cert_der=der)
+        jtis.add(tok.jti)
+    assert len(jtis) == 200
+    issued = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--limit", "100000", "--event",
+                                                    "issued")).splitlines()]
+    assert jtis <= {r["jti"] for r in issued}
+
+
+def test_key_rotation_keeps_old_key_published_and_signs_with_the_new(daemon):
+    _, body = daemon.token("alice")
+    old_token = body["access_token"]
+    old_kid = header_of(old_token)["kid"]
+    out = ok(authz("rotate-key", "--key-passphrase-file", str(daemon.workdir / "signing.pass"), db=daemon.db))
+    new_kid = out.split()[-1]
+    assert new_kid != old_kid
+    deadline = time.monotonic() + 5
+    while header_of(daemon.token("alice")[1]["access_token"])["kid"] != new_kid:
+        assert time.monotonic() < deadline, "daemon did not pick up the rotated key"
+        time.sleep(0.2)
+    jwks = daemon.get_json("/.well-known/jwks.json")
+    kids = {k["kid"] for k in jwks["keys"]}
+    assert {old_kid, new_kid} <= kids
+    der = read_pem_der(daemon.cert_of("alice")[0])
+    keys = KeySet.from_jwks(jwks)
+    verify_access_token(old_token, keys=keys, issuer=ISS, audience=AUD, peer_cert_der=der)
+    new_token = daemon.token("alice")[1]["access_token"]
+    verify_access_token(new_token, keys=keys, issuer=ISS, audience=AUD, peer_cert_der=der)
+
+
+def test_disabled_manager_is_refused_and_listed_in_the_feed(daemon):
+    _, body = daemon.token("carol")
+    live = body["access_token"]
+    ok(daemon.cli("disable-manager", "carol"))
+    deadline = time.monotonic() + 5
+    while True:
+        status, body = daemon.token("carol")
+        if status != 200:
+            break
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert (status, body) == (403, {"error": "access_denied"})
+    feed = daemon.get_json("/revocations")
+    assert "carol" in feed["disabled_managers"]
+    assert claims_of(live)["jti"] in feed["revoked_jtis"]
+    rows = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--manager", "carol")).splitlines()]
+    assert rows[-1]["event"] == "denied" and rows[-1]["reason"] == "manager_disabled"
+    ok(daemon.cli("enable-manager", "carol"))

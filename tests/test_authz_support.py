@@ -1,0 +1,191 @@
+"""Helpers for the cryptoros-authz tests (no tests here).
+
+:class:`AuthzDaemon` runs ``cryptoros-authz serve`` as a real subprocess on a free
+loopback port with a throwaway PKI, and talks to it over real HTTPS with client
+certificates (``http.client`` + our own TLS client context).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import http.client
+import json
+import os
+import ssl
+import subprocess
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cryptoros.tls import TLSConfig, client_context
+from tests.pki_fixtures import TestPKIFactory
+from tests.support import free_port, run, script, stop, wait_for_port
+
+PASSPHRASE = "test-signing-passphrase"
+
+
+def authz(*args: str, db: str, timeout: float = 60, input: str | None = None) -> subprocess.CompletedProcess:
+    """Run the admin CLI as a subprocess against ``db``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
+    return run([script("cryptoros-authz"), "--db", db, *args], timeout=timeout, env=env, input=input)
+
+
+def ok(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 0, f"exit {result.returncode}\nstdout:{result.stdout}\nstderr:{result.stderr}"
+    return result.stdout
+
+
+def read_pem_der(path: Path) -> bytes:
+    return ssl.PEM_cert_to_DER_cert(Path(path).read_text())
+
+
+@dataclass
+class AuthzDaemon:
+    pki: TestPKIFactory
+    db: str
+    workdir: Path
+    port: int = 0
+    extra: Sequence[str] = ()
+    proc: subprocess.Popen | None = None
+    log_path: Path | None = None
+    _ctx: dict = field(default_factory=dict)
+
+    @property
+    def base(self) -> str:
+        return f"https://127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 20.0) -> None:
+        self.port = self.port or free_port()
+        server = self.pki.issue("authz", kind="server", force=True)
+        pass_file = self.workdir / "signing.pass"
+        pass_file.write_text(PASSPHRASE + "\n")
+        self.log_path = self.workdir / f"authz-{self.port}.log"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
+        args = [script("cryptoros-authz"), "--db", self.db, "serve", "--port", str(self.port),
+                "--ca", str(self.pki.ca_cert), "--cert", str(server.cert_path), "--key", str(server.key_path),
+                "--crl", str(self.pki.crl), "--key-passphrase-file", str(pass_file), *self.extra]
+        self.proc = subprocess.Popen(args, stdout=self.log_path.open("w"), stderr=subprocess.STDOUT, env=env)
+        wait_for_port("127.0.0.1", self.port, timeout=timeout, proc=self.proc)
+        deadline = time.monotonic() + timeout
+        probe = self.pki.issue("probe", force=True)
+        while True:
+            try:
+                status, _ = self.request("GET", "/healthz", cert=probe.cert_path, key=probe.key_path)
+                if status == 200:
+                    return
+            except (OSError, ssl.SSLError):
+                pass
+            if time.monotonic() > deadline or self.proc.poll() is not None:
+                raise AssertionError(f"authz daemon not healthy: {self.log()}")
+            time.sleep(0.1)
+
+    def stop(self) -> int | None:
+        if self.proc is not None:
+            stop(self.proc, timeout=10)
+            return self.proc.returncode
+        return None
+
+    def log(self) -> str:
+        return self.log_path.read_text() if self.log_path and self.log_path.exists() else ""
+
+    def context(self, cert: Path, key: Path, *, ca: Path | None = None, tls12: bool = False) -> ssl.SSLContext:
+        k = (str(cert), str(key), str(ca), tls12)
+        if k not in self._ctx:
+            self._ctx[k] = client_context(TLSConfig(ca_file=Path(ca or self.pki.ca_cert), cert_file=Path(cert),
+                                                    key_file=Path(key), pin_tls12=tls12))
+        return self._ctx[k]
+
+    def request(self, method: str, path: str, *, cert: Path, key: Path, body: str | None = None,
+                headers: dict | None = None, ca: Path | None = None) -> tuple[int, bytes]:
+        conn = http.client.HTTPSConnection("127.0.0.1", self.port, context=self.context(cert, key, ca=ca),
+                                           timeout=10)
+        try:
+            hdrs = dict(headers or {})
+            if body is not None:
+                hdrs.setdefault("Content-Type", "application/x-www-form-urlencoded")
+            conn.request(method, path, body=body, headers=hdrs)
+            resp = conn.getresponse()
+            self.last_headers = dict(resp.getheaders())
+            return resp.status, resp.read()
+        finally:
+            conn.close()
+
+    def token(self, name: str, body: str = "grant_type=client_credentials") -> tuple[int, dict]:
+        cert, key = self.cert_of(name)
+        status, raw = self.request("POST", "/token", cert=cert, key=key, body=body)
+        return status, json.loads(raw)
+
+    def get_json(self, path: str, name: str = "probe") -> dict:
+        cert, key = self.cert_of(name)
+        status, raw = self.request("GET", path, cert=cert, key=key)
+        assert status == 200, (status, raw)
+        return json.loads(raw)
+
+    def cert_of(self, name: str) -> tuple[Path, Path]:
+        return self.pki.pki.cert_path_for(name), self.pki.pki.key_path_for(name)
+
+    def cli(self, *args: str) -> subprocess.CompletedProcess:
+        return authz(*args, db=self.db)
+
+
+@contextlib.contextmanager
+def running_daemon(pki: TestPKIFactory, db: str, workdir: Path, extra: Sequence[str] = ()) -> Iterator[AuthzDaemon]:
+    d = AuthzDaemon(pki=pki, db=db, workdir=workdir, extra=tuple(extra))
+    try:
+        d.start()
+        yield d
+    finally:
+        d.stop()
+
+
+TEAM_POLICY = """\
+version: 1
+managers:
+- name: alice
+  fingerprint_sha256: {alice}
+  grants:
+    publish:
+    - {{node: /talker, topic: /chatter, type: std_msgs/String}}
+    subscribe:
+    - {{node: /listener, topic: /chatter, type: std_msgs/String}}
+    serve:
+    - {{node: /adder, service: /add_two_ints, type: rospy_tutorials/AddTwoInts}}
+- name: bob
+  fingerprint_sha256: {bob}
+  grants:
+    call:
+    - {{node: /client, service: /add_two_ints, type: rospy_tutorials/AddTwoInts}}
+- name: carol
+  fingerprint_sha256: {carol}
+  grants:
+    subscribe:
+    - {{node: '*', topic: /scan, type: sensor_msgs/msg/LaserScan}}
+- name: mallory
+  fingerprint_sha256: {mallory}
+"""
+
+
+@dataclass
+class Team:
+    pki: TestPKIFactory
+    other_pki: TestPKIFactory
+    db: str
+    workdir: Path
+
+
+def build_team(workdir: Path, db: str | None = None) -> Team:
+    """A CA with managers alice, bob, carol, mallory (registered; mallory's certificate
+    is then revoked in the CRL), a valid but unregistered 'stranger', an unrelated CA
+    issuing another 'alice', and a registry holding their policy."""
+    pki = TestPKIFactory(workdir / "pki")
+    other = TestPKIFactory(workdir / "other-pki", trust_domain="other.local")
+    fps = {n: pki.issue(n).fingerprint_sha256 for n in ("alice", "bob", "carol", "mallory")}
+    pki.issue("stranger")
+    other.issue("alice")
+    pki.revoke("mallory")
+    db = db or f"sqlite:///{workdir / 'registry.db'}"
+    policy = workdir / "policy.yaml"
+    policy.write_text(TEAM_POLICY.format(**fps))
+    ok(authz("import", str(policy), db=db))
+    return Team(pki, other, db, workdir)
