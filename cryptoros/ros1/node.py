@@ -606,6 +606,7 @@ class _Incoming(asyncio.Protocol):
                 self.header = tcpros.check_publisher_header(ev)
                 if self.header["md5sum"] not in ("*", self.sub.md5sum) and self.sub.md5sum != "*":
                     raise RemoteProtocolError(f"publisher md5sum {self.header['md5sum']} != {self.sub.md5sum}")
+                self.sub.connection_headers.append(self.header)
                 if not self.ready.done():
                     self.ready.set_result(None)
             frames = conn.messages()
@@ -657,6 +658,7 @@ class Subscriber:
         self._links: dict[str, _Incoming] = {}
         self._connecting: dict[str, asyncio.Task] = {}
         self._closed = False
+        self.connection_headers: list[dict[str, str]] = []  # every publisher header accepted
         self.received = 0
         self.errors = 0
 
