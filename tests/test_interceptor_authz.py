@@ -1,0 +1,145 @@
+"""The interceptor's token life against a real cryptoros-authz daemon (subprocess, mTLS).
+
+Own token fetched and refreshed; peer tokens verified with the daemon's JWKS; open
+streams cut off within 5 s of a disabled manager or a revoked token; with the daemon
+down a still-valid cached token keeps working and an expired one is refused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ssl
+import time
+
+import pytest
+
+from cryptoros.errors import TokenError
+from cryptoros.tls import TLSConfig, client_context
+from interceptor.authz_client import AuthzClient, AuthzUnavailable, PeerVerifier, TokenKeeper
+from interceptor.config import AuthzSettings
+from tests.test_authz_support import build_team, running_daemon
+
+
+@pytest.fixture
+def team(tmp_path):
+    return build_team(tmp_path)
+
+
+def client_for(daemon, name: str, *, pki=None) -> AuthzClient:
+    pki = pki or daemon.pki
+    issued_cert, issued_key = pki.pki.cert_path_for(name), pki.pki.key_path_for(name)
+    ctx = client_context(TLSConfig(ca_file=daemon.pki.ca_cert, cert_file=issued_cert, key_file=issued_key))
+    return AuthzClient(AuthzSettings(url=daemon.base, request_timeout=5.0), ctx)
+
+
+def der_of(pki, name: str) -> bytes:
+    return ssl.PEM_cert_to_DER_cert(pki.pki.cert_path_for(name).read_text())
+
+
+def verifier_for(daemon, name: str = "bob", poll: float = 0.3) -> tuple[AuthzClient, PeerVerifier]:
+    client = client_for(daemon, name)
+    return client, PeerVerifier(client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=poll)
+
+
+async def test_own_token_fetched_and_verified_by_a_peer(team, tmp_path):
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        alice = client_for(daemon, "alice")
+        keeper = TokenKeeper(alice, refresh_margin=60)
+        await keeper.refresh()
+        bob_client, verifier = verifier_for(daemon)
+        poller = asyncio.create_task(verifier.run())
+        try:
+            await asyncio.wait_for(verifier.ready.wait(), timeout=10)
+            access = verifier.verify(keeper.current(), der_of(team.pki, "alice"))
+            assert access.subject == "alice"
+            assert access.grants.allows("publish", "/talker", "/chatter", "std_msgs/String")
+            with pytest.raises(TokenError) as info:
+                verifier.verify(keeper.current(), der_of(team.pki, "bob"))  # replayed from another cert
+            assert info.value.reason == "cnf_mismatch"
+        finally:
+            poller.cancel()
+            await alice.close()
+            await bob_client.close()
+
+
+async def test_unregistered_and_foreign_clients_get_no_token(team, tmp_path):
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        stranger = client_for(daemon, "stranger")
+        with pytest.raises(AuthzUnavailable, match="HTTP 401"):
+            await stranger.fetch_token()
+        await stranger.close()
+        foreign = client_for(daemon, "alice", pki=team.other_pki)  # certificate of another CA
+        with pytest.raises(AuthzUnavailable, match="SSL|Connection|Server"):
+            await foreign.fetch_token()
+        await foreign.close()
+
+
+@pytest.mark.parametrize("how", ["disable-manager", "revoke-token"])
+async def test_open_stream_cut_off_within_5s(team, tmp_path, how):
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        alice = client_for(daemon, "alice")
+        keeper = TokenKeeper(alice, refresh_margin=60)
+        await keeper.refresh()
+        bob_client, verifier = verifier_for(daemon, poll=0.5)
+        poller = asyncio.create_task(verifier.run())
+        try:
+            await asyncio.wait_for(verifier.ready.wait(), timeout=10)
+            access = verifier.verify(keeper.current(), der_of(team.pki, "alice"))
+            cut = asyncio.get_running_loop().create_future()
+            verifier.watch(access, lambda reason: cut.done() or cut.set_result((reason, time.monotonic())))
+            started = time.monotonic()
+            target = "alice" if how == "disable-manager" else access.jti
+            result = await asyncio.to_thread(daemon.cli, how, target)
+            assert result.returncode == 0, result.stderr
+            reason, at = await asyncio.wait_for(cut, timeout=5)
+            assert at - started < 5.0
+            # Disabling a manager also revokes its live tokens: either reason cuts it off.
+            assert reason in (("subject_disabled", "revoked") if how == "disable-manager" else ("revoked",))
+            with pytest.raises(TokenError):  # and a new stream with that token is refused
+                verifier.verify(keeper.current(), der_of(team.pki, "alice"))
+            assert verifier.open_streams == 0
+        finally:
+            poller.cancel()
+            await alice.close()
+            await bob_client.close()
+
+
+async def test_daemon_down_cached_token_works_until_it_expires(team, tmp_path):
+    with running_daemon(team.pki, team.db, tmp_path, extra=("--token-lifetime", "10")) as daemon:
+        alice = client_for(daemon, "alice")
+        skew = [0.0]  # the keeper's clock, advanced by the test instead of sleeping
+        keeper = TokenKeeper(alice, refresh_margin=1, clock=lambda: time.time() + skew[0])
+        await keeper.refresh()
+        bob_client, verifier = verifier_for(daemon)
+        await verifier._refresh_jwks()
+        token = keeper.current()
+        daemon.stop()
+        # Server down: the cached token is still handed out and still verifies.
+        assert keeper.current() == token
+        assert verifier.verify(token, der_of(team.pki, "alice")).subject == "alice"
+        with pytest.raises(AuthzUnavailable):
+            await keeper.refresh()
+        assert keeper.current() == token
+        skew[0] = 10 - TokenKeeper.MIN_REMAINING + 0.5
+        with pytest.raises(TokenError) as info:
+            keeper.current()  # nothing new is allowed without a valid token
+        assert info.value.reason == "no_token"
+        await alice.close()
+        await bob_client.close()
+
+
+async def test_keeper_refreshes_before_expiry(team, tmp_path):
+    with running_daemon(team.pki, team.db, tmp_path, extra=("--token-lifetime", "10")) as daemon:
+        alice = client_for(daemon, "alice")
+        keeper = TokenKeeper(alice, refresh_margin=8)  # refresh 2 s after each fetch
+        runner = asyncio.create_task(keeper.run())
+        try:
+            await asyncio.wait_for(keeper.refreshed.wait(), timeout=10)
+            first = keeper.current()
+            keeper.refreshed.clear()
+            await asyncio.wait_for(keeper.refreshed.wait(), timeout=5)
+            second = keeper.current()
+            assert second != first
+        finally:
+            runner.cancel()
+            await alice.close()
