@@ -57,10 +57,15 @@ class Preamble:
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class PreambleReply:
-    """The accepting interceptor's answer. ``error`` is opaque by design."""
+    """The accepting interceptor's answer. ``error`` is opaque by design.
+
+    On success the accepting side sends its own access token too, so each end checks
+    the other's grants against the ROS connection headers (mutual, as in CryptoROS).
+    """
 
     ok: bool
     error: str = ""
+    token: str = ""
 
 
 class _NeedData:
@@ -80,7 +85,7 @@ def encode(event: Preamble | PreambleReply) -> bytes:
     if isinstance(event, Preamble):
         kind, body = KIND_PREAMBLE, {"token": event.token, "purpose": event.purpose, "target": event.target}
     elif isinstance(event, PreambleReply):
-        kind, body = KIND_REPLY, {"ok": event.ok, "error": event.error}
+        kind, body = KIND_REPLY, {"ok": event.ok, "error": event.error, "token": event.token}
     else:
         raise LocalProtocolError(f"cannot encode {type(event).__name__}")
     data = json.dumps(body, separators=(",", ":")).encode("utf-8")
@@ -157,9 +162,14 @@ class PreambleReader:
                 if set(fields) != {"token", "purpose", "target"}:
                     raise RemoteProtocolError(f"preamble fields {sorted(fields)} are not token, purpose, target")
                 return Preamble(token=fields["token"], purpose=fields["purpose"], target=fields["target"])
-            if set(fields) != {"ok", "error"} or not isinstance(fields["ok"], bool) or not isinstance(fields["error"], str):
+            if (
+                set(fields) != {"ok", "error", "token"}
+                or not isinstance(fields["ok"], bool)
+                or not isinstance(fields["error"], str)
+                or not isinstance(fields["token"], str)
+            ):
                 raise RemoteProtocolError("malformed preamble reply")
-            return PreambleReply(ok=fields["ok"], error=fields["error"])
+            return PreambleReply(ok=fields["ok"], error=fields["error"], token=fields["token"])
         except LocalProtocolError as exc:  # the peer's values failed validation
             raise RemoteProtocolError(str(exc)) from exc
 

@@ -17,7 +17,7 @@ preambles = st.builds(
     purpose=st.sampled_from(sorted(PURPOSES)),
     target=st.text(max_size=512),
 )
-replies = st.builds(PreambleReply, ok=st.booleans(), error=st.text(max_size=100))
+replies = st.builds(PreambleReply, ok=st.booleans(), error=st.text(max_size=100), token=st.text(max_size=2000))
 
 
 def read_all(expect, chunks):
