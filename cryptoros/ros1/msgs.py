@@ -30,6 +30,7 @@ __all__ = [
     "ros1_name",
     "store_name",
     "msg_class",
+    "warm",
     "UnknownTypeError",
     "ServiceType",
     "service_type",
@@ -126,6 +127,12 @@ def _check(typename: str, store: Typestore) -> str:
     if name not in store.fielddefs:
         raise UnknownTypeError(f"unknown message type {ros1_name(name)!r}")
     return name
+
+
+def warm(typename: str, store: Typestore | None = None) -> None:
+    """Generate the (de)serializer code of a type now, not on its first message."""
+    st = _store(store)
+    st.get_msgdef(_check(typename, st))
 
 
 def msg_class(typename: str, store: Typestore | None = None) -> type:

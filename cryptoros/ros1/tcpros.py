@@ -404,16 +404,17 @@ class TCPROSConnection:
         out = []
         limit = self.max_frame_size
         unpack = _U32.unpack_from
-        while n - pos >= 4:
-            (size,) = unpack(buf, pos)
-            if size > limit:
-                self._state = _State.ERROR
-                raise RemoteProtocolError(f"declared frame length {size} exceeds the limit {limit}")
-            end = pos + 4 + size
-            if end > n:
-                break
-            out.append(bytes(buf[pos + 4 : end]))
-            pos = end
+        with memoryview(buf) as view:
+            while n - pos >= 4:
+                (size,) = unpack(buf, pos)
+                if size > limit:
+                    self._state = _State.ERROR
+                    raise RemoteProtocolError(f"declared frame length {size} exceeds the limit {limit}")
+                end = pos + 4 + size
+                if end > n:
+                    break
+                out.append(bytes(view[pos + 4 : end]))
+                pos = end
         if pos:
             del buf[:pos]
         return out
