@@ -254,7 +254,7 @@ async def test_rospy_and_ros_tools_against_our_master(our_master, ros_home) -> N
     async with process(SYS_PY, str(NODES / "listener.py"), "/via_ours", "50", env=env) as listener:
         seen: list[str] = []
         await read_until(listener, "READY", 20, seen)
-        async with process(SYS_PY, str(NODES / "talker.py"), "/via_ours", "50", env=env) as talker:
+        async with process(SYS_PY, str(NODES / "talker.py"), "/via_ours", "50", "1", "30", env=env) as talker:
             await read_until(listener, "DONE 50", 30, seen)
             await read_until(talker, "SENT 50", 10, [])
             got = [line.split()[2] for line in seen if line.startswith("GOT")]

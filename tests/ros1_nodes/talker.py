@@ -1,5 +1,6 @@
 #!/usr/bin/python3
-"""rospy talker: publishes COUNT std_msgs/String 'msg I' on TOPIC once connected."""
+"""rospy talker: publishes COUNT std_msgs/String 'msg I' on TOPIC once SUBS subscribers
+are connected, then stays LINGER seconds (args: TOPIC COUNT [SUBS [LINGER]])."""
 import sys
 
 import rospy
@@ -16,4 +17,4 @@ rospy.sleep(0.2)
 for i in range(count):
     pub.publish(String(data=f"msg {i}"))
 print("SENT", count, flush=True)
-rospy.sleep(1.0)
+rospy.sleep(float(sys.argv[4]) if len(sys.argv) > 4 else 1.0)
