@@ -85,6 +85,18 @@ class Grants:
         """Exact match on action, name and type; the node matches itself or ``*``."""
         return (node, action, name, type) in self._index or (NODE_WILDCARD, action, name, type) in self._index
 
+    def types_for(self, action: str, node: str, name: str) -> frozenset[str]:
+        """The types ``node`` may ``action`` the topic or service ``name`` with."""
+        return frozenset(
+            g.type
+            for g in self._grants
+            if g.action == action and g.name == name and g.node in (node, NODE_WILDCARD)
+        )
+
+    def names_node(self, node: str) -> bool:
+        """Whether any grant names ``node`` (or is a wildcard): the node is this manager's."""
+        return any(g.node in (node, NODE_WILDCARD) for g in self._grants)
+
     def for_node(self, node: str) -> Grants:
         return Grants(g for g in self._grants if g.node in (node, NODE_WILDCARD))
 

@@ -1,0 +1,148 @@
+"""The policy decision, request by request: what is allowed, and why the rest is not."""
+
+from __future__ import annotations
+
+import pytest
+
+from cryptoros.errors import PolicyDenied
+from cryptoros.policy import (
+    check_master_call,
+    check_node_call,
+    check_publisher_header,
+    check_service_client_header,
+    check_service_server_header,
+    check_subscriber_header,
+)
+from cryptoros.tokens import Grant, Grants
+
+STRING = "std_msgs/String"
+MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"
+ALICE = Grants(
+    [
+        Grant(node="/talker", action="publish", name="/chatter", type=STRING),
+        Grant(node="/listener", action="subscribe", name="/chatter", type=STRING),
+        Grant(node="/adder", action="serve", name="/add_two_ints", type="rospy_tutorials/AddTwoInts"),
+        Grant(node="/client", action="call", name="/add_two_ints", type="rospy_tutorials/AddTwoInts"),
+    ]
+)
+OWNERS = {"/talker": "alice", "/victim": "bob"}
+
+
+def master(method, *params, manager="alice", grants=ALICE, infrastructure=True):
+    return check_master_call(
+        method, params, manager=manager, grants=grants, owner_of=OWNERS.get, infrastructure=infrastructure
+    )
+
+
+def denied(fn, *args, **kw) -> str:
+    with pytest.raises(PolicyDenied) as info:
+        fn(*args, **kw)
+    return info.value.reason
+
+
+API = "cryptoros://127.0.0.2:11400/x/1"
+
+
+def test_granted_registrations_pass():
+    master("registerPublisher", "/talker", "/chatter", STRING, API)
+    master("registerSubscriber", "/listener", "/chatter", STRING, API)
+    master("registerService", "/adder", "/add_two_ints", "rosrpc://x", API)
+    master("unregisterPublisher", "/talker", "/chatter", API)
+
+
+@pytest.mark.parametrize(
+    ("method", "params", "reason"),
+    [
+        ("registerPublisher", ("/talker", "/cmd_vel", "geometry_msgs/Twist", API), "not_granted"),
+        ("registerPublisher", ("/talker", "/chatter", "std_msgs/Int32", API), "not_granted"),
+        ("registerPublisher", ("/listener", "/chatter", STRING, API), "not_granted"),
+        ("registerSubscriber", ("/talker", "/chatter", STRING, API), "not_granted"),
+        ("registerService", ("/talker", "/add_two_ints", "rosrpc://x", API), "not_granted"),
+        ("registerPublisher", ("/victim", "/chatter", STRING, API), "name_taken"),
+        ("unregisterPublisher", ("/victim", "/chatter", API), "name_taken"),
+        ("unregisterSubscriber", ("/stranger", "/chatter", API), "not_granted"),
+        ("shutdown", ("/evil", "bye"), "shutdown_dropped"),
+        ("setParam", ("/talker", "/use_sim_time", True), "param_write_denied"),
+        ("deleteParam", ("/talker", "/robot_description"), "param_write_denied"),
+        ("launchMissiles", ("/talker",), "method_not_allowed"),
+        ("registerPublisher", (), "malformed"),
+        ("registerPublisher", ("not a name", "/chatter", STRING, API), "malformed"),
+        ("registerPublisher", ("/talker", 42, STRING, API), "malformed"),
+    ],
+)
+def test_master_calls_denied_with_reason(method, params, reason):
+    assert denied(master, method, *params) == reason
+
+
+def test_read_only_and_own_params_pass():
+    for method in ("getSystemState", "lookupNode", "getTopicTypes", "getParam", "getUri"):
+        master(method, "/anyone", "/x")
+    master("setParam", "/talker", "/talker/rate", 10)
+
+
+def test_rosout_and_logger_services_are_infrastructure():
+    master("registerPublisher", "/talker", "/rosout", "rosgraph_msgs/Log", API)
+    master("registerService", "/talker", "/talker/get_loggers", "rosrpc://x", API)
+    assert denied(master, "registerService", "/talker", "/listener/get_loggers", "rosrpc://x", API) == "not_granted"
+    assert denied(master, "registerPublisher", "/nobody", "/rosout", "rosgraph_msgs/Log", API) == "not_granted"
+    assert (
+        denied(master, "registerPublisher", "/talker", "/rosout", "rosgraph_msgs/Log", API, infrastructure=False)
+        == "not_granted"
+    )
+
+
+def node(method, *params, peer_is_master=False, grants=ALICE):
+    return check_node_call(
+        method, params, grants=grants, peer_is_master=peer_is_master, topic_types={"/chatter": STRING}
+    )
+
+
+def test_node_calls():
+    node("requestTopic", "/listener", "/chatter", [["TCPROS"]])
+    node("getBusInfo", "/anyone")
+    node("publisherUpdate", "/master", "/chatter", [], peer_is_master=True)
+    assert denied(node, "publisherUpdate", "/evil", "/chatter", []) == "not_from_master"
+    assert denied(node, "paramUpdate", "/evil", "/p", 1) == "not_from_master"
+    assert denied(node, "shutdown", "/master", "bye", peer_is_master=True) == "shutdown_dropped"
+    assert denied(node, "requestTopic", "/talker", "/chatter", [["TCPROS"]]) == "not_granted"
+    assert denied(node, "requestTopic", "/listener", "/secret", [["TCPROS"]]) == "unknown_topic"
+    assert denied(node, "system.listMethods") == "method_not_allowed"
+
+
+def sub_header(**kw):
+    h = {"callerid": "/listener", "topic": "/chatter", "type": STRING, "md5sum": MD5}
+    h.update(kw)
+    return h
+
+
+def test_subscriber_header_checks():
+    check_subscriber_header(sub_header(), grants=ALICE, published_type=STRING, published_md5=MD5)
+    cases = {
+        "type_mismatch": sub_header(type="std_msgs/Int32"),
+        "md5_mismatch": sub_header(md5sum="0" * 32),
+        "not_granted": sub_header(callerid="/talker"),
+        "malformed": sub_header(topic=""),
+    }
+    for reason, header in cases.items():
+        assert denied(check_subscriber_header, header, grants=ALICE, published_type=STRING, published_md5=MD5) == reason
+    assert denied(check_subscriber_header, sub_header(type="*"), grants=ALICE, published_type=STRING,
+                  published_md5=MD5) == "type_mismatch"
+    assert denied(check_subscriber_header, sub_header(), grants=ALICE, published_type=None,
+                  published_md5=None) == "unknown_topic"
+
+
+def test_publisher_and_service_headers():
+    check_publisher_header({"callerid": "/talker", "type": STRING, "md5sum": MD5}, grants=ALICE, topic="/chatter")
+    assert denied(check_publisher_header, {"callerid": "/listener", "type": STRING}, grants=ALICE,
+                  topic="/chatter") == "not_granted"
+    types = check_service_client_header({"callerid": "/client", "service": "/add_two_ints", "md5sum": "*"},
+                                        grants=ALICE)
+    assert types == {"rospy_tutorials/AddTwoInts"}
+    assert denied(check_service_client_header, {"callerid": "/talker", "service": "/add_two_ints", "md5sum": "x"},
+                  grants=ALICE) == "not_granted"
+    check_service_server_header({"callerid": "/adder", "type": "rospy_tutorials/AddTwoInts"},
+                                service="/add_two_ints", server_grants=ALICE, client_types=types)
+    assert denied(check_service_server_header, {"callerid": "/adder", "type": "std_srvs/Empty"},
+                  service="/add_two_ints", server_grants=ALICE, client_types=types) == "type_mismatch"
+    assert denied(check_service_server_header, {"callerid": "/talker", "type": "rospy_tutorials/AddTwoInts"},
+                  service="/add_two_ints", server_grants=ALICE, client_types=types) == "not_granted"
