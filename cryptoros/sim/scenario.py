@@ -81,9 +81,15 @@ def _centre_cell(world: World) -> tuple[int, int]:
 
 
 class Mission:
-    def __init__(self, cfg: SimConfig) -> None:
+    def __init__(self, cfg: SimConfig, *, world: World | None = None, starts: list[tuple[int, int]] | None = None) -> None:
+        """``world`` and ``starts`` (one cell per robot) override the generated ones."""
         self.cfg = cfg
-        self.world = load_map_server(cfg.map_yaml, n_bases=cfg.bases) if cfg.map_yaml else generate(cfg.seed, cfg.width, cfg.height, resolution=cfg.resolution, n_bases=cfg.bases)
+        if world is not None:
+            self.world = world
+        elif cfg.map_yaml:
+            self.world = load_map_server(cfg.map_yaml, n_bases=cfg.bases)
+        else:
+            self.world = generate(cfg.seed, cfg.width, cfg.height, resolution=cfg.resolution, n_bases=cfg.bases)
         w = self.world
         self.engine = Engine()
         master = np.random.default_rng(cfg.seed)
@@ -110,11 +116,12 @@ class Mission:
         for i, n in enumerate(names):
             b = i % len(w.bases)
             per_base[b] = per_base.get(b, 0) + 1
-        starts: dict[int, list] = {b: _start_cells(w, k, b) for b, k in per_base.items()}
+        fixed = starts
+        starts_by_base: dict[int, list] = {b: _start_cells(w, k, b) for b, k in per_base.items()}
         self.robots: dict[str, Robot] = {}
         for i, n in enumerate(names):
             b = i % len(w.bases)
-            cell = starts[b].pop(0)
+            cell = starts_by_base[b].pop(0) if fixed is None else fixed[i]
             host = SimHost(n, self.engine, self.channel, w, self.lidar, self.observed, cell, range_m=cfg.range_m)
             robot = Robot(n, host, rngs[n], start=cell, shape=w.shape, bases=w.bases, config=rcfg, security=managers[n], idle=i >= cfg.robots - cfg.idle)
             host.robot = robot
