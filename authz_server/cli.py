@@ -17,9 +17,6 @@ import time
 from pathlib import Path
 
 import click
-import yaml
-from cryptography import x509
-from cryptography.hazmat.primitives import serialization
 
 from authz_server import keys as keymod
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
@@ -66,6 +63,9 @@ def _registry(ctx: click.Context, *, create: bool = False) -> Registry:
 
 
 def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
     try:
         data = Path(cert_file).read_bytes()
     except OSError as exc:
@@ -244,6 +244,8 @@ def revoke(ctx: click.Context, manager: str, action: str, node: str, name: str, 
 @click.pass_context
 def export(ctx: click.Context, output: str | None) -> None:
     """Write the whole policy (managers, certificates, grants) as YAML."""
+    import yaml
+
     text = yaml.safe_dump(_registry(ctx).export_policy(), sort_keys=False)
     if output:
         Path(output).write_text(text)
@@ -257,6 +259,8 @@ def export(ctx: click.Context, output: str | None) -> None:
 @click.pass_context
 def import_(ctx: click.Context, file: str, merge: bool) -> None:
     """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction."""
+    import yaml
+
     try:
         text = sys.stdin.read() if file == "-" else Path(file).read_text()
     except OSError as exc:
@@ -343,6 +347,9 @@ def audit(ctx: click.Context, limit: int, manager: str | None, event: str | None
 def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, audience: str,
                  feed_file: str | None) -> None:
     """Verify an access token offline, as an interceptor does; print its claims."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
     from cryptoros.tokens import KeySet, Revocations, verify_access_token
 
     try:
