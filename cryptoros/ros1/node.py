@@ -312,13 +312,18 @@ class _Outgoing(asyncio.Protocol):
             self.flush()
             self.transport.write(frame)
             return
+        if not self.scheduled:
+            # the first frame of a loop iteration goes out at once (latency); the rest
+            # of a burst is coalesced into one write at the end of the iteration
+            self.scheduled = True
+            asyncio.get_running_loop().call_soon(self.flush)
+            self.transport.write(frame)
+            return
         self.pending.append(frame)
         self.pending_size += len(frame)
         if self.pending_size >= 262144:
             self.flush()
-        elif not self.scheduled:
             self.scheduled = True
-            asyncio.get_running_loop().call_soon(self.flush)
 
     def write_large(self, head: bytes, data: bytes | bytearray | memoryview) -> None:
         """A large frame: written as header and payload, with no concatenation copy."""
