@@ -1,0 +1,202 @@
+"""cryptoros-authz as an operator uses it: the CLI and the daemon as subprocesses.
+
+Bad input gets one line on stderr, exit status 2, and changes nothing; the daemon
+refuses to start with one clear line (no traceback) when the database or a key file
+is missing or the port is taken, and stops cleanly on SIGTERM. The registry also
+drives a daemon on a real PostgreSQL server.
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from cryptoros.tokens import KeySet, verify_access_token
+from tests.support import free_port, script
+from tests.test_authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
+
+pytest_plugins = ["tests.postgres_fixture"]
+
+
+@pytest.fixture(scope="module")
+def team(tmp_path_factory):
+    return build_team(tmp_path_factory.mktemp("authz-cli"))
+
+
+def cli(*args: str, db: str) -> subprocess.CompletedProcess:
+    """The same CLI in-process (click's runner: real registry, real files), where a
+    subprocess per call would cost a second each; exit status and stderr as a subprocess."""
+    from click.testing import CliRunner
+
+    from authz_server.cli import main
+
+    res = CliRunner().invoke(main, ["--db", db, *args], env={"CRYPTOROS_AUTHZ_DB": None,
+                                                             "CRYPTOROS_AUTHZ_KEY_PASSPHRASE": None})
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        raise res.exception
+    return subprocess.CompletedProcess(args, res.exit_code, res.stdout, res.stderr)
+
+
+def one_line_error(r: subprocess.CompletedProcess, status: int = 2) -> str:
+    assert r.returncode == status, (r.returncode, r.stdout, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cryptoros-authz: error: "), r.stderr
+    assert "Traceback" not in r.stderr
+    return lines[0]
+
+
+def test_bad_admin_input_is_one_line_exit_2_and_changes_nothing(team, tmp_path):
+    db = team.db
+    before = ok(authz("export", db=db))
+    bad_policy = tmp_path / "bad.yaml"
+    bad_policy.write_text("version: 1\nmanagers:\n- name: zed\n  grants:\n    publish:\n"
+                          "    - {node: /a, topic: /fine, type: std_msgs/String}\n"
+                          "    - {node: /a, topic: relative, type: std_msgs/String}\n")
+    not_yaml = tmp_path / "broken.yaml"
+    not_yaml.write_text("version: 1\nmanagers: [\n")
+    cases = {
+        ("grant", "nobody", "publish", "/talker", "/chatter", "std_msgs/String"): "unknown manager 'nobody'",
+        ("grant", "alice", "publish", "/talker", "chatter", "std_msgs/String"): "invalid topic 'chatter'",
+        ("grant", "alice", "publish", "/talker", "/chat-ter", "std_msgs/String"): "invalid topic",
+        ("grant", "alice", "subscribe", "/talker", "/chatter", "std_msgs"): "invalid data type 'std_msgs'",
+        ("grant", "alice", "fly", "/talker", "/chatter", "std_msgs/String"): "'fly' is not one of",
+        ("grant", "alice", "publish"): "Missing argument",
+        ("revoke", "alice", "publish", "/talker", "/nothing"): "has no publish grant",
+        ("disable-manager", "nobody"): "unknown manager",
+        ("add-manager", "alice", "--cert", str(team.pki.pki.cert_path_for("bob"))): "identifies manager 'bob'",
+        ("add-manager", "zed", "--cert", "/nonexistent.crt"): "cannot read certificate",
+        ("add-manager", "zed", "--fingerprint", "abc"): "invalid certificate fingerprint",
+        ("add-manager", "zed"): "needs --cert",
+        ("import", str(bad_policy)): "invalid topic 'relative'",
+        ("import", str(not_yaml)): "not valid YAML",
+        ("revoke-token", "unknownjti123"): "unknown token id",
+        ("rotate-key",): "signing keys need a passphrase",
+    }
+    as_subprocess = {("grant", "nobody", "publish", "/talker", "/chatter", "std_msgs/String"),
+                     ("grant", "alice", "publish", "/talker", "chatter", "std_msgs/String"),
+                     ("grant", "alice", "subscribe", "/talker", "/chatter", "std_msgs"),
+                     ("import", str(bad_policy))}
+    for args, message in cases.items():
+        line = one_line_error((authz if args in as_subprocess else cli)(*args, db=db))
+        assert message in line, (args, line)
+    assert ok(authz("export", db=db)) == before
+
+
+def test_missing_database_is_an_error_and_is_not_created(tmp_path):
+    db_file = tmp_path / "nope.db"
+    line = one_line_error(authz("list-managers", db=f"sqlite:///{db_file}"))
+    assert "database not found" in line and not db_file.exists()
+    line = one_line_error(authz("list-managers", db=f"sqlite:///{tmp_path}/no/such/dir/r.db"))
+    assert "directory does not exist" in line
+    line = one_line_error(authz("list-managers", db="nosuchdialect://x"))
+    assert "database URL" in line
+
+
+def test_operator_workflow_with_export_import_between_registries(team, tmp_path):
+    db = f"sqlite:///{tmp_path / 'ops.db'}"
+    alice = team.pki.pki.cert_path_for("alice")
+    assert "added manager alice" in ok(authz("add-manager", "alice", "--cert", str(alice), db=db))
+    ok(cli("grant", "alice", "publish", "/talker", "/chatter", "std_msgs/String", db=db))
+    ok(cli("grant", "alice", "call", "/client", "/add_two_ints", "rospy_tutorials/AddTwoInts", db=db))
+    assert "alice" in ok(cli("list-managers", db=db))
+    shown = ok(cli("show-manager", "alice", db=db))
+    assert "/chatter" in shown and "/add_two_ints" in shown
+    policy = tmp_path / "policy.yaml"
+    ok(cli("export", "-o", str(policy), db=db))
+    copy = f"sqlite:///{tmp_path / 'copy.db'}"
+    assert "managers added 1" in ok(cli("import", str(policy), db=copy))
+    assert ok(cli("export", db=copy)) == policy.read_text()
+    ok(cli("revoke", "alice", "call", "/client", "/add_two_ints", db=db))
+    assert "/add_two_ints" not in ok(cli("show-manager", "alice", db=db))
+    # renewal: a new certificate for alice replaces the old binding
+    renewed = team.pki.issue("alice-renewed")
+    r = cli("set-cert", "alice", "--cert", str(renewed.cert_path), db=db)
+    assert r.returncode == 2 and "identifies manager 'alice-renewed'" in r.stderr
+    ok(cli("set-cert", "alice", "--fingerprint", renewed.fingerprint_sha256, db=db))
+    assert renewed.fingerprint_sha256 in ok(cli("list-managers", "--json", db=db))
+    ok(cli("remove-manager", "alice", db=db))
+    assert "alice" not in ok(authz("list-managers", db=db))
+
+
+def _serve(team, *extra: str, db: str | None = None, timeout: float = 20) -> subprocess.CompletedProcess:
+    server = team.pki.issue("authz", kind="server", force=True)
+    (team.workdir / "signing.pass").write_text("test-signing-passphrase\n")
+    args = [script("cryptoros-authz"), "--db", db or team.db, "serve", "--ca", str(team.pki.ca_cert),
+            "--cert", str(server.cert_path), "--key", str(server.key_path),
+            "--key-passphrase-file", str(team.workdir / "signing.pass"), *extra]
+    return subprocess.run(args, capture_output=True, text=True, timeout=timeout)
+
+
+def test_serve_start_up_errors_are_one_line(team, tmp_path):
+    line = one_line_error(_serve(team, "--port", str(free_port()), db=f"sqlite:///{tmp_path / 'missing.db'}"))
+    assert "database not found" in line
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--crl", str(tmp_path / "no.crl")))
+    assert "not found" in line and "no.crl" in line
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--ca", str(tmp_path / "no-ca.crt")))
+    assert "no-ca.crt" in line
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--token-lifetime", "0"))
+    assert "token lifetime" in line
+    cfg = tmp_path / "authz.toml"
+    cfg.write_text('port = 1\nbogus = "x"\n')
+    line = one_line_error(_serve(team, "--config", str(cfg)))
+    assert "unknown key(s) bogus" in line
+    line = one_line_error(_serve(team, "--port", str(free_port()),
+                                 db="postgresql+psycopg://postgres@127.0.0.1:1/none"))
+    assert "cannot connect to the database" in line
+
+
+def test_serve_refuses_a_wrong_signing_key_passphrase(team, tmp_path):
+    pw = tmp_path / "wrong.pass"
+    pw.write_text("not-the-passphrase\n")
+    right = tmp_path / "right.pass"
+    right.write_text("test-signing-passphrase\n")
+    ok(cli("rotate-key", "--key-passphrase-file", str(right), db=team.db))
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--key-passphrase-file", str(pw)))
+    assert "cannot decrypt signing key" in line
+
+
+def test_serve_on_a_taken_port_is_one_line_exit_1(team):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        line = one_line_error(_serve(team, "--port", str(port)), status=1)
+    assert "address already in use" in line
+
+
+def test_sigterm_stops_the_daemon_cleanly(team):
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
+    try:
+        d.start()
+        assert d.token("alice")[0] == 200
+        d.proc.send_signal(signal.SIGTERM)
+        assert d.proc.wait(timeout=10) == 0
+    finally:
+        d.stop()
+    log = d.log()
+    assert "shutting down" in log and "stopped" in log and "Traceback" not in log
+
+
+def test_daemon_on_postgresql(team, postgres_url):
+    policy = team.workdir / "policy.yaml"
+    ok(authz("import", str(policy), db=postgres_url))
+    assert "alice" in ok(authz("list-managers", db=postgres_url))
+    d = AuthzDaemon(pki=team.pki, db=postgres_url, workdir=team.workdir)
+    try:
+        d.start()
+        status, body = d.token("alice")
+        assert status == 200
+        jwks = d.get_json("/.well-known/jwks.json")
+        tok = verify_access_token(body["access_token"], keys=KeySet.from_jwks(jwks), issuer="cryptoros-authz",
+                                  audience="cryptoros", peer_cert_der=read_pem_der(d.cert_of("alice")[0]))
+        assert tok.subject == "alice"
+        assert d.token("stranger")[0] == 401
+    finally:
+        d.stop()
+    audit = ok(authz("audit", db=postgres_url))
+    assert "issued manager=alice" in audit and "reason=unknown_certificate" in audit
