@@ -1,0 +1,95 @@
+"""``cryptoros-interceptor --config FILE``: run one host's interceptor.
+
+SIGHUP reloads certificates, CRL and policy without dropping open streams (a
+failed reload keeps the old state); SIGTERM and SIGINT stop accepting, let open
+streams drain for a grace period and exit 0. Configuration mistakes are one line on
+stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import sys
+
+import click
+
+from cryptoros.errors import ConfigError, CryptorosError
+from cryptoros.tls import client_context, server_context
+from interceptor.config import load
+
+log = logging.getLogger("cryptoros.interceptor")
+
+
+def _fail(message: str, code: int = 2) -> None:
+    click.echo(f"cryptoros-interceptor: error: {message}", err=True)
+    sys.exit(code)
+
+
+async def _run(config_path: str, grace: float) -> None:
+    from interceptor.ros1 import Interceptor
+
+    cfg = load(config_path)
+    interceptor = Interceptor(cfg)
+    try:
+        await interceptor.start()
+    except OSError as exc:
+        await interceptor.stop(grace=0)
+        raise ConfigError(f"cannot listen: {exc.strerror or exc}") from None
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    loop.add_signal_handler(signal.SIGTERM, stop.set)
+    loop.add_signal_handler(signal.SIGINT, stop.set)
+
+    async def reload() -> None:
+        try:
+            await interceptor.reload(load(config_path))
+            interceptor.metrics.reloads.labels("ok").inc()
+        except (CryptorosError, OSError) as exc:
+            interceptor.metrics.reloads.labels("failed").inc()
+            log.error("reload failed, keeping the old state: %s", exc)
+
+    loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(reload()))
+    print(f"cryptoros-interceptor: ready (manager {cfg.manager}, public {cfg.public})", flush=True)
+    await stop.wait()
+    log.info("stopping: draining open streams for up to %.0f s", grace)
+    await interceptor.stop(grace=grace)
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--config", "config_path", required=True, help="TOML configuration file (see interceptor/config.py).")
+@click.option("--check", is_flag=True, help="Validate the configuration and TLS material, then exit.")
+@click.option("--grace", default=5.0, show_default=True, help="Seconds open streams get to finish on SIGTERM.")
+@click.option(
+    "--log-level", default="info", show_default=True, type=click.Choice(["debug", "info", "warning", "error"])
+)
+@click.option("--no-uvloop", is_flag=True, help="Use the standard asyncio event loop.")
+def main(config_path: str, check: bool, grace: float, log_level: str, no_uvloop: bool) -> None:
+    """Run the cryptoros interceptor: a drop-in mutual-TLS/JWT proxy for unmodified ROS nodes."""
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        cfg = load(config_path)
+        server_context(cfg.tls)
+        client_context(cfg.tls)
+    except CryptorosError as exc:
+        _fail(str(exc))
+    if check:
+        click.echo(f"configuration ok: manager {cfg.manager}, roles {', '.join(cfg.roles)}, public {cfg.public}")
+        return
+    runner = asyncio.run
+    if not no_uvloop:
+        try:
+            import uvloop
+
+            runner = uvloop.run
+        except ImportError:  # pragma: no cover - uvloop is a dependency
+            pass
+    try:
+        runner(_run(config_path, grace))
+    except CryptorosError as exc:
+        _fail(str(exc), code=1)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

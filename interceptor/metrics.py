@@ -1,0 +1,50 @@
+"""Prometheus metrics of one interceptor (its own registry, served on ``/metrics``)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.connections = Counter(
+            "cryptoros_interceptor_connections_total",
+            "Streams opened, by purpose and direction (in: from a peer, out: to a peer)",
+            ["purpose", "direction"],
+            registry=self.registry,
+        )
+        self.open_streams = Gauge(
+            "cryptoros_interceptor_open_streams", "Streams open now", ["purpose"], registry=self.registry
+        )
+        self.bytes = Counter(
+            "cryptoros_interceptor_bytes_total",
+            "Bytes relayed after the header checks (tx: toward the peer interceptor)",
+            ["direction"],
+            registry=self.registry,
+        )
+        self.allowed = Counter(
+            "cryptoros_interceptor_allowed_total", "Requests and streams allowed", ["kind"], registry=self.registry
+        )
+        self.denied = Counter(
+            "cryptoros_interceptor_denied_total",
+            "Requests and streams denied, by reason",
+            ["kind", "reason"],
+            registry=self.registry,
+        )
+        self.cutoffs = Counter(
+            "cryptoros_interceptor_revocation_cutoffs_total",
+            "Open streams closed because their token or manager was revoked",
+            registry=self.registry,
+        )
+        self.token_expires = Gauge(
+            "cryptoros_interceptor_token_expiry_seconds",
+            "Unix time at which this interceptor's own access token expires",
+            registry=self.registry,
+        )
+        self.reloads = Counter(
+            "cryptoros_interceptor_reloads_total", "SIGHUP reloads, by result", ["result"], registry=self.registry
+        )
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

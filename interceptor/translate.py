@@ -1,0 +1,189 @@
+"""URI translation between a host's local ROS endpoints and the interceptor network.
+
+No ROS process ever sees another host's real address. Between interceptors every
+endpoint is named *canonically*::
+
+    cryptoros://<owner interceptor host>:<port>/x/<id>   an exported node XML-RPC API
+    cryptoros://<owner interceptor host>:<port>/t/<id>   an exported TCPROS server
+    cryptoros://master                                   the master (whoever's it is)
+
+- A local endpoint (on loopback) handed outward is *exported*: given a stable id in
+  the owner's export table, the only table a peer can reach through (a peer names an
+  id, never an address, so it cannot make us connect anywhere else).
+- A canonical name handed to a local process becomes a *relay*: a listener on
+  127.0.0.1 that tunnels to the owner over mutual TLS. One relay per canonical
+  target, for the life of the interceptor, so the master sees stable URIs and
+  ``unregister*`` still matches. A canonical name owned by this interceptor maps
+  straight back to the local endpoint (two nodes on one host talk directly).
+
+The translator is state plus pure mapping; opening relay listeners is the
+``open_relay`` callback's job (the asyncio edge).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from cryptoros.errors import PolicyDenied
+
+SCHEME = "cryptoros"
+MASTER = "cryptoros://master"
+KIND_XMLRPC = "x"
+KIND_TCPROS = "t"
+_KIND_SCHEME = {KIND_XMLRPC: "http", KIND_TCPROS: "rosrpc"}
+_SCHEME_KIND = {"http": KIND_XMLRPC, "rosrpc": KIND_TCPROS}
+_CANONICAL = re.compile(r"^cryptoros://([^/:]+):(\d{1,5})/([xt])/(\d{1,12})$")
+_ROS_URI = re.compile(r"^(http|rosrpc)://([^/:]+):(\d{1,5})(/.*)?$")
+
+
+@dataclass(frozen=True, slots=True)
+class Canonical:
+    host: str
+    port: int
+    kind: str
+    id: str
+
+    def __str__(self) -> str:
+        return f"{SCHEME}://{self.host}:{self.port}/{self.kind}/{self.id}"
+
+    @classmethod
+    def parse(cls, text: str) -> Canonical | None:
+        m = _CANONICAL.match(text) if isinstance(text, str) else None
+        if m is None:
+            return None
+        port = int(m.group(2))
+        if not 0 < port < 65536:
+            return None
+        return cls(host=m.group(1), port=port, kind=m.group(3), id=m.group(4))
+
+
+@dataclass(frozen=True, slots=True)
+class LocalEndpoint:
+    kind: str
+    host: str
+    port: int
+    uri: str  # exactly as the local process wrote it
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _parse_ros_uri(uri: str) -> tuple[str, str, int]:
+    m = _ROS_URI.match(uri) if isinstance(uri, str) else None
+    if m is None or not 0 < int(m.group(3)) < 65536:
+        raise PolicyDenied("bad_uri", f"not a ROS URI: {uri!r:.80}")
+    return _SCHEME_KIND[m.group(1)], m.group(2), int(m.group(3))
+
+
+class Translator:
+    """Export table, relay table and the mappings between them."""
+
+    def __init__(
+        self,
+        *,
+        public_host: str,
+        public_port: int,
+        local_master_uri: str | None,
+        open_relay: Callable[[Canonical], tuple[str, int]],
+    ) -> None:
+        self.public_host = public_host
+        self.public_port = public_port
+        self.local_master_uri = local_master_uri
+        self._open_relay = open_relay
+        self._exports: dict[str, LocalEndpoint] = {}
+        self._export_ids: dict[tuple[str, str, int], str] = {}
+        self._relays: dict[Canonical, tuple[str, int]] = {}
+        self._relay_targets: dict[tuple[str, int], Canonical] = {}
+        self._master_uris: set[str] = set()
+
+    # ------------------------------------------------------------ tables
+    def add_master_uri(self, uri: str) -> None:
+        """A URI that means "the master" on this host (upstream, or the local proxy)."""
+        self._master_uris.add(uri.rstrip("/"))
+
+    def export(self, kind: str, host: str, port: int, uri: str) -> Canonical:
+        """Give a local endpoint a stable id; only loopback endpoints are exported."""
+        if not is_loopback(host):
+            raise PolicyDenied("foreign_uri", f"local endpoint {host}:{port} is not on loopback")
+        key = (kind, host, port)
+        ident = self._export_ids.get(key)
+        if ident is None:
+            ident = str(len(self._exports) + 1)
+            self._export_ids[key] = ident
+            self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=port, uri=uri)
+        return Canonical(host=self.public_host, port=self.public_port, kind=kind, id=ident)
+
+    def resolve(self, kind: str, ident: str) -> LocalEndpoint:
+        """The local endpoint behind one of our ids; unknown ids are refused."""
+        endpoint = self._exports.get(ident)
+        if endpoint is None or endpoint.kind != kind:
+            raise PolicyDenied("unknown_target", f"no exported {kind} endpoint {ident!r:.20}")
+        return endpoint
+
+    def relay_for(self, target: Canonical) -> tuple[str, int]:
+        relay = self._relays.get(target)
+        if relay is None:
+            relay = self._open_relay(target)
+            self._relays[target] = relay
+            self._relay_targets[relay] = target
+        return relay
+
+    def relay_target(self, host: str, port: int) -> Canonical | None:
+        return self._relay_targets.get((host, port))
+
+    def owns(self, target: Canonical) -> bool:
+        return (target.host, target.port) == (self.public_host, self.public_port)
+
+    # ------------------------------------------------------------ URIs
+    def to_canonical(self, uri: str) -> str:
+        """A URI written by a local process -> its canonical name."""
+        if isinstance(uri, str) and uri.rstrip("/") in self._master_uris:
+            return MASTER
+        kind, host, port = _parse_ros_uri(uri)
+        target = self._relay_targets.get((host, port))
+        if target is not None:
+            return str(target)
+        return str(self.export(kind, host, port, uri))
+
+    def to_local(self, text: str) -> str:
+        """A canonical name -> a URI a local process can call."""
+        if text == MASTER:
+            if self.local_master_uri is None:
+                raise PolicyDenied("no_master", "this interceptor has no local master URI")
+            return self.local_master_uri
+        target = Canonical.parse(text)
+        if target is None:
+            raise PolicyDenied("bad_uri", f"not a canonical cryptoros name: {text!r:.80}")
+        if self.owns(target):
+            return self.resolve(target.kind, target.id).uri
+        host, port = self.relay_for(target)
+        return f"{_KIND_SCHEME[target.kind]}://{host}:{port}" + ("/" if target.kind == KIND_XMLRPC else "")
+
+    def tcpros_to_canonical(self, host: str, port: int) -> tuple[str, int]:
+        """A ``['TCPROS', host, port]`` reply of a local node -> (canonical, public port)."""
+        target = self._relay_targets.get((host, port))
+        if target is None:
+            target = self.export(KIND_TCPROS, host, port, f"rosrpc://{host}:{port}")
+        return str(target), target.port
+
+    def tcpros_to_local(self, host: str, port: int) -> tuple[str, int]:
+        """A canonical TCPROS reply from a peer -> (host, port) a local node connects to."""
+        target = Canonical.parse(host)
+        if target is None or target.kind != KIND_TCPROS:
+            raise PolicyDenied("bad_uri", f"TCPROS reply host is not a canonical name: {host!r:.80}")
+        if self.owns(target):
+            endpoint = self.resolve(KIND_TCPROS, target.id)
+            return endpoint.host, endpoint.port
+        return self.relay_for(target)
+
+
+__all__ = ["Canonical", "KIND_TCPROS", "KIND_XMLRPC", "MASTER", "Translator", "is_loopback"]
