@@ -23,6 +23,7 @@ from tests.test_authz_support import AuthzDaemon, authz, ok
 
 SYS_PY = "/usr/bin/python3"
 NODES = Path(__file__).parent / "ros1_nodes"
+NODE = str(Path(__file__).parent / "interceptor_nodes" / "node.py")
 STRING = "std_msgs/String"
 STRING_MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"
 
@@ -38,6 +39,9 @@ managers:
   grants:
     publish:
     - {{node: /rospy_talker, topic: /chatter, type: std_msgs/String}}
+    - {{node: /roscpp_talker, topic: /chatter, type: std_msgs/String}}
+    - {{node: /talker_a, topic: /chatter, type: std_msgs/String}}
+    - {{node: /talker_a, topic: /secret, type: std_msgs/String}}
     serve:
     - {{node: /rospy_server, service: /rospy_loggers, type: roscpp/GetLoggers}}
 - name: robot_b

@@ -1,53 +1,143 @@
-"""The interceptor with real, unmodified ROS 1 nodes (Debian rospy, rostopic, rosnode).
+"""The interceptor with real, unmodified ROS 1 nodes (Debian rospy, roscpp, rostopic, rosnode).
 
-Three hosts on loopback (master 127.0.0.4, robot A 127.0.0.2, robot B 127.0.0.3), a
-real rosmaster behind the master's interceptor, a real cryptoros-authz daemon.
+Hosts on loopback: the master's interceptor on 127.0.0.4 in front of a real rosmaster,
+robot A on 127.0.0.2, robot B on 127.0.0.3, robot C (a manager with no grants) on
+127.0.0.5, and a real cryptoros-authz daemon. Nodes only get ROS_MASTER_URI pointing at
+their host's interceptor; their code is unchanged.
 """
 
 from __future__ import annotations
 
+import queue
 import subprocess
+import threading
 import time
+import xmlrpc.client
 
 import pytest
 
-from tests.interceptor_harness import NODES, SYS_PY, robot_network
-from tests.support import running
+from tests.interceptor_harness import NODE, NODES, SYS_PY, robot_network
+from tests.support import require, running
+from tests.test_ros1_interop import roscpp_talker  # noqa: F401  (compiled roscpp talker fixture)
 
 pytestmark = [pytest.mark.ros1]
 
 
-def wait_line(proc: subprocess.Popen, needle: str, timeout: float) -> list[str]:
-    """Read a process's output until a line contains ``needle`` (bounded)."""
-    import selectors
+def read_lines(proc: subprocess.Popen, until: str | None, timeout: float) -> list[str]:
+    """A process's output lines until one contains ``until`` (None: until timeout or EOF).
 
+    A thread drains stdout into a queue (a select() on a buffered pipe would miss lines
+    already sitting in Python's buffer)."""
+    lines = getattr(proc, "_line_queue", None)
+    if lines is None:
+        lines = proc._line_queue = queue.Queue()
+
+        def pump() -> None:
+            for line in proc.stdout:
+                lines.put(line)
+            lines.put(None)
+
+        threading.Thread(target=pump, daemon=True).start()
     seen: list[str] = []
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if not sel.select(timeout=max(0.0, deadline - time.monotonic())):
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            line = lines.get(timeout=left)
+        except queue.Empty:
             break
-        line = proc.stdout.readline()
-        if not line:
+        if line is None:
+            lines.put(None)  # keep the end marker for later calls
             break
         seen.append(line)
-        if needle in line:
+        if until is not None and until in line:
             return seen
-    raise AssertionError(f"no {needle!r} within {timeout}s; output:\n{''.join(seen)}")
+    if until is not None:
+        raise AssertionError(f"no {until!r} within {timeout}s; output:\n{''.join(seen)}")
+    return seen
+
+
+def got(lines: list[str]) -> list[str]:
+    return [line.split(" ", 1)[1].strip() for line in lines if line.startswith("GOT ")]
+
+
+def master_state(network) -> list:
+    """getSystemState straight from the real rosmaster (what it really holds)."""
+    return xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
+
+
+def nodes_in_state(state) -> set[str]:
+    return {node for section in state for _name, nodes in section for node in nodes}
 
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("net")) as net:
+    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b", "robot_c")) as net:
         yield net
 
 
-def test_talker_on_a_reaches_listener_on_b(network):
+def start_sub(network, host, node, topic="/chatter", seconds=30):
+    return running([SYS_PY, NODE, "sub", node, topic, str(seconds)], env=network.ros_env(host))
+
+
+def start_pub(network, host, node, count, hz=0, linger=2, topic="/chatter"):
+    return running([SYS_PY, NODE, "pub", node, topic, str(count), str(hz), str(linger)], env=network.ros_env(host))
+
+
+# ------------------------------------------------------------------ works
+
+
+def test_rospy_talker_on_a_reaches_rospy_listener_on_b(network):
     with running([SYS_PY, str(NODES / "listener.py"), "/chatter", "10"], env=network.ros_env("robot_b")) as listener:
-        wait_line(listener, "READY", 20)
+        read_lines(listener, "READY", 20)
         with running([SYS_PY, str(NODES / "talker.py"), "/chatter", "10"], env=network.ros_env("robot_a")) as talker:
-            lines = wait_line(listener, "DONE", 40)
-            wait_line(talker, "SENT 10", 10)
-    got = [l.split()[1] + " " + l.split()[2] for l in lines if l.startswith("GOT")]
-    assert got == [f"msg {i}" for i in range(10)], "".join(lines) + network.hosts["robot_a"].logs()[-3000:]
+            lines = read_lines(listener, "DONE", 40)
+            read_lines(talker, "SENT 10", 10)
+    received = [line.split()[1:4] for line in lines if line.startswith("GOT")]
+    assert [f"{a} {b}" for a, b, _ in received] == [f"msg {i}" for i in range(10)]
+    assert {md5 for *_, md5 in received} == {"992ce8a1687cec8c8bd883ec73ca41d1"}
+
+
+def test_roscpp_talker_through_interceptors(network, roscpp_talker):  # noqa: F811
+    with start_sub(network, "robot_b", "/listener_cpp") as listener:
+        read_lines(listener, "READY", 20)
+        with running([roscpp_talker, "/chatter", "50"], env=network.ros_env("robot_a")) as talker:
+            read_lines(talker, "SENT 50", 40)
+            lines = read_lines(listener, "GOT msg 49", 20)
+    assert got(lines) == [f"msg {i}" for i in range(50)]
+
+
+def test_rostopic_echo_list_and_rosnode_list_through_interceptors(network):
+    rostopic, rosnode = require("rostopic", "rosnode").values()
+    env_b = network.ros_env("robot_b")
+    with start_pub(network, "robot_a", "/talker_a", 400, hz=20, linger=1):
+        echo = subprocess.run([rostopic, "echo", "-n", "3", "/chatter"], env=env_b, capture_output=True,
+                              text=True, timeout=40)
+        assert echo.returncode == 0, echo.stderr
+        assert echo.stdout.count("data: \"secret-") == 3
+        topics = subprocess.run([rostopic, "list"], env=env_b, capture_output=True, text=True, timeout=20)
+        assert "/chatter" in topics.stdout.split()
+        nodes = subprocess.run([rosnode, "list"], env=env_b, capture_output=True, text=True, timeout=20)
+        assert "/talker_a" in nodes.stdout.split()
+
+
+def test_rospy_service_call_across_hosts(network):
+    services = str(NODES / "services.py")
+    with running([SYS_PY, services, "serve"], env=network.ros_env("robot_a")) as server:
+        read_lines(server, "READY", 20)
+        with running([SYS_PY, services, "call", "/rospy_loggers"], env=network.ros_env("robot_b")) as client:
+            lines = read_lines(client, "LOGGERS", 30)
+    assert "rospy.server=debug,x=warn" in lines[-1]
+
+
+def test_nodes_shut_down_cleanly_and_the_master_is_empty_after(network):
+    with start_sub(network, "robot_b", "/listener_b", seconds=4) as sub:
+        read_lines(sub, "READY", 20)
+        with start_pub(network, "robot_a", "/talker_a", 5, hz=10, linger=0.5) as pub:
+            assert pub.wait(timeout=30) == 0
+        lines = read_lines(sub, "END", 30)
+        assert sub.wait(timeout=10) == 0
+    assert got(lines) == [f"secret-{i}" for i in range(5)]
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and {"/talker_a", "/listener_b"} & nodes_in_state(master_state(network)):
+        time.sleep(0.1)
+    assert not {"/talker_a", "/listener_b"} & nodes_in_state(master_state(network))
