@@ -138,6 +138,62 @@ class _AuditWriter:
             await self._task
 
 
+class CRLWatcher:
+    """Serials revoked by the CA's CRL, re-read when the file changes.
+
+    The TLS context loads the CRL once, at start; this re-reads it (at most once per
+    ``interval``) so a certificate revoked while the daemon runs is refused by the
+    application within seconds. A CRL that does not parse or is not signed by the CA
+    is ignored with an error in the log, keeping the last good one.
+    """
+
+    def __init__(self, crl_path, ca_path, interval: float = 1.0) -> None:
+        from cryptography import x509
+
+        self.path, self.interval = crl_path, interval
+        self._ca = x509.load_pem_x509_certificate(open(ca_path, "rb").read())
+        self._stamp: tuple[int, int] | None = None
+        self._bad: tuple[int, int] | None = None
+        self._checked = 0.0
+        self.revoked: frozenset[int] = frozenset()
+        self.refresh()
+
+    def refresh(self) -> None:
+        import os
+
+        from cryptography import x509
+
+        now = time.monotonic()
+        if now - self._checked < self.interval and self._stamp is not None:
+            return
+        self._checked = now
+        try:
+            st = os.stat(self.path)
+            stamp = (st.st_mtime_ns, st.st_size)
+            if stamp in (self._stamp, self._bad):
+                return
+            with open(self.path, "rb") as fh:
+                data = fh.read()
+            crl = x509.load_pem_x509_crl(data) if b"-----BEGIN" in data else x509.load_der_x509_crl(data)
+            if crl.issuer != self._ca.subject or not crl.is_signature_valid(self._ca.public_key()):
+                raise ValueError("not issued by the CA")
+        except (OSError, ValueError) as exc:
+            log.error("cannot reload the CRL %s, keeping the previous one: %s", self.path, exc)
+            self._bad = locals().get("stamp")
+            return
+        self._stamp = stamp
+        revoked = frozenset(r.serial_number for r in crl)
+        if revoked != self.revoked:
+            log.info("CRL %s: %d revoked certificate(s)", self.path, len(revoked))
+        self.revoked = revoked
+
+    def is_revoked(self, der: bytes) -> bool:
+        from cryptography import x509
+
+        self.refresh()
+        return bool(self.revoked) and x509.load_der_x509_certificate(der).serial_number in self.revoked
+
+
 @dataclass
 class _Signer:
     kid: str
@@ -179,6 +235,7 @@ class AuthzService:
         self._shared = _Cache(cfg.cache_seconds)
         self._signer: _Signer | None = None
         self.audit = _AuditWriter(self)
+        self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run a blocking registry call in the DB thread pool."""
@@ -259,6 +316,8 @@ class AuthzService:
                 raise _Denied(400, "invalid_request", "grant_type missing")
             if grant_type != "client_credentials":
                 raise _Denied(400, "unsupported_grant_type", f"grant_type {grant_type[:40]!r}")
+            if self.crl is not None and self.crl.is_revoked(der):
+                raise _Denied(401, "invalid_client", "certificate_revoked")
             info, grants = await self.manager_for(fp)
             if info is None:
                 raise _Denied(401, "invalid_client", "unknown_certificate")
@@ -326,7 +385,10 @@ def make_app(service: AuthzService) -> web.Application:
         try:
             # Belt and braces: the TLS context already requires a verified certificate.
             ssl_object = request.transport.get_extra_info("ssl_object") if request.transport else None
-            peer_cert_der(ssl_object)
+            der = peer_cert_der(ssl_object)
+            if service.crl is not None and request.path != "/token" and service.crl.is_revoked(der):
+                log.warning("refused %s %s: client certificate revoked since start-up", request.method, request.path)
+                return _oauth_error(401, "invalid_client")
             return await handler(request)
         except TokenError:
             return _oauth_error(401, "invalid_client")

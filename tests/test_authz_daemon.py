@@ -226,3 +226,24 @@ def test_disabled_manager_is_refused_and_listed_in_the_feed(daemon):
     rows = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--manager", "carol")).splitlines()]
     assert rows[-1]["event"] == "denied" and rows[-1]["reason"] == "manager_disabled"
     ok(daemon.cli("enable-manager", "carol"))
+
+
+def test_certificate_revoked_while_running_is_refused_within_seconds(daemon):
+    # a manager registered and working...
+    daemon.team.pki.issue("dave")
+    ok(daemon.cli("add-manager", "dave", "--cert", str(daemon.cert_of("dave")[0])))
+    deadline = time.monotonic() + 5
+    while daemon.token("dave")[0] != 200:
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    # ...whose certificate the CA revokes: the daemon re-reads the CRL, no restart
+    daemon.team.pki.revoke("dave")
+    deadline = time.monotonic() + 5
+    while (got := daemon.token("dave")) != (401, {"error": "invalid_client"}):
+        assert got[0] == 200 and time.monotonic() < deadline, got
+        time.sleep(0.2)
+    rows = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--event", "denied")).splitlines()]
+    assert any(r["reason"] == "certificate_revoked" for r in rows)
+    cert, key = daemon.cert_of("dave")
+    assert daemon.request("GET", "/revocations", cert=cert, key=key)[0] == 401
+    assert daemon.token("alice")[0] == 200
