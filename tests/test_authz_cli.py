@@ -200,3 +200,47 @@ def test_daemon_on_postgresql(team, postgres_url):
         d.stop()
     audit = ok(authz("audit", db=postgres_url))
     assert "issued manager=alice" in audit and "reason=unknown_certificate" in audit
+
+
+def test_serve_from_a_toml_config_with_short_tokens_and_env_passphrase(team, tmp_path):
+    import json
+    import os
+
+    server = team.pki.issue("authz", kind="server", force=True)
+    port = free_port()
+    cfg = tmp_path / "authz.toml"
+    cfg.write_text(
+        f'db = "{team.db}"\nport = {port}\nca = "{team.pki.ca_cert}"\ncert = "{server.cert_path}"\n'
+        f'key = "{server.key_path}"\ncrl = "{team.pki.crl}"\nissuer = "https://authz.robots.example"\n'
+        'audience = "fleet-7"\ntoken_lifetime = 60\ncache_seconds = 0.5\n'
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
+    env["CRYPTOROS_AUTHZ_KEY_PASSPHRASE"] = "test-signing-passphrase"
+    log = (tmp_path / "serve.log").open("w")
+    proc = subprocess.Popen([script("cryptoros-authz"), "serve", "--config", str(cfg)], env=env,
+                            stdout=log, stderr=subprocess.STDOUT)
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=tmp_path, port=port)
+    try:
+        from tests.support import wait_for_port
+
+        wait_for_port("127.0.0.1", port, timeout=20, proc=proc)
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                status, body = d.token("alice")
+                break
+            except OSError:
+                assert time.monotonic() < deadline and proc.poll() is None, (tmp_path / "serve.log").read_text()
+                time.sleep(0.1)
+        assert status == 200
+        jwks = d.get_json("/.well-known/jwks.json", name="alice")
+        tok = verify_access_token(body["access_token"], keys=KeySet.from_jwks(jwks),
+                                  issuer="https://authz.robots.example", audience="fleet-7",
+                                  peer_cert_der=read_pem_der(d.cert_of("alice")[0]))
+        assert tok.expires_at - tok.issued_at == 60 and body["expires_in"] == 60
+        assert json.loads(json.dumps(tok.claims))["aud"] == "fleet-7"
+    finally:
+        from tests.support import stop
+
+        stop(proc)
+    assert proc.returncode == 0
