@@ -16,7 +16,7 @@ import time
 import aiohttp
 import pytest
 
-from cryptoros.tokens import KeySet, Revocations, verify_access_token
+from cryptoros.tokens import KeySet, verify_access_token
 from tests.test_authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
