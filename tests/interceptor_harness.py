@@ -203,3 +203,82 @@ def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[s
 
 def interceptor_toml_example() -> str:  # pragma: no cover - documentation aid
     return textwrap.dedent(interceptor_config.__doc__ or "")
+
+
+# ------------------------------------------------------------------ a rogue peer
+# What a compromised robot (or a stranger on the network) can do by hand: open TLS to
+# an interceptor's public port with some certificate, send some preamble, then speak
+# XML-RPC or TCPROS over the stream.
+
+def rogue_tls(host: str, port: int, *, ca: Path, cert: Path | None, key: Path | None, timeout: float = 10):
+    import socket
+    import ssl
+
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    ctx.check_hostname = False
+    ctx.load_verify_locations(cafile=str(ca))
+    if cert is not None:
+        ctx.load_cert_chain(str(cert), str(key))
+    raw = socket.create_connection((host, port), timeout=timeout)
+    try:
+        return ctx.wrap_socket(raw, server_hostname=host)
+    except BaseException:
+        raw.close()
+        raise
+
+
+def rogue_preamble(sock, token: str, purpose: str, target: str = ""):
+    """Send a preamble; return the PreambleReply, or None if the peer just closed."""
+    from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
+
+    sock.sendall(encode(Preamble(token=token, purpose=purpose, target=target)))
+    reader = PreambleReader(PreambleReply)
+    while True:
+        data = sock.recv(65536)
+        reader.receive_data(data)
+        event = reader.next_event()
+        if isinstance(event, PreambleReply):
+            return event
+        if not data:
+            return None
+
+
+def rogue_xmlrpc(sock, method: str, *params):
+    from cryptoros.ros1.xmlrpc import NEED_DATA, Request, Role, XmlRpcConnection
+
+    conn = XmlRpcConnection(Role.CLIENT)
+    sock.sendall(conn.send(Request(method=method, params=params)))
+    while (event := conn.next_event()) is NEED_DATA:
+        conn.receive_data(sock.recv(65536))
+    return event
+
+
+def rogue_tcpros(sock, fields: dict[str, str]) -> dict[str, str]:
+    from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, encode_header
+
+    sock.sendall(encode_header(fields))
+    conn = TCPROSConnection()
+    while True:
+        event = conn.next_event()
+        if isinstance(event, ConnectionHeader):
+            return event.as_dict()
+        data = sock.recv(65536)
+        conn.receive_data(data)
+        if not data:
+            return {}
+
+
+def signing_key(network: Network):
+    """The daemon's real signing key (to forge tokens an attacker could not: expired...)."""
+    from authz_server.db import open_registry
+    from authz_server.keys import load_private, protection
+    from authz_server.registry import Registry
+
+    engine = open_registry(network.daemon.db)
+    try:
+        active = Registry(engine).active_key()
+    finally:
+        engine.dispose()
+    key = load_private(active.private_pem, active.encrypted, protection(str(network.workdir / "signing.pass")),
+                       active.kid)
+    return key, active.kid

@@ -1,0 +1,276 @@
+"""What the interceptors refuse, each with the node that should keep running still running.
+
+Real rosmaster, real rospy nodes, real interceptors and authz daemon (see
+tests/interceptor_harness.py). A "rogue" is a process speaking to an interceptor's
+public port by hand with some certificate and some token: a compromised robot or a
+stranger on the network.
+"""
+
+from __future__ import annotations
+
+import ssl
+import time
+import xmlrpc.client
+
+import pytest
+
+from cryptoros.ros1.xmlrpc import Response
+from cryptoros.tls import cert_thumbprint_s256
+from cryptoros.tokens import Grants, build_claims, sign_token
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    robot_network,
+    rogue_preamble,
+    rogue_tcpros,
+    rogue_tls,
+    rogue_xmlrpc,
+    signing_key,
+)
+from tests.support import running
+from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b", "robot_c")) as net:
+        yield net
+
+
+def cert(network, name):
+    return network.pki.pki.cert_path_for(name), network.pki.pki.key_path_for(name)
+
+
+def token_of(network, name) -> str:
+    status, body = network.daemon.token(name)
+    assert status == 200, body
+    return body["access_token"]
+
+
+def public(network, host):
+    h = network.hosts[host]
+    return h.address, h.public_port
+
+
+def rogue(network, host, as_name, *, pki=None):
+    c, k = (pki or network.pki).pki.cert_path_for(as_name), (pki or network.pki).pki.key_path_for(as_name)
+    return rogue_tls(*public(network, host), ca=network.pki.ca_cert, cert=c, key=k)
+
+
+def denials(network, host) -> str:
+    return "\n".join(line for line in network.hosts[host].logs().splitlines() if "DENY" in line)
+
+
+def talker(network, count=100000, hz=20, node="/talker_a", topic="/chatter"):
+    return running([SYS_PY, NODE, "pub", node, topic, str(count), str(hz), "30"], env=network.ros_env("robot_a"))
+
+
+def wait_registered(network, node, timeout=20):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if node in nodes_in_state(master_state(network)):
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"{node} never registered")
+
+
+def test_manager_without_grant_cannot_register_its_publisher(network):
+    with running([SYS_PY, NODE, "pub", "/talker_c", "/chatter", "100000", "20", "30"], env=network.ros_env("robot_c")) as pub:
+        read_lines(pub, "READY", 20)
+        with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "30"], env=network.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            time.sleep(3)
+            assert got(read_lines(sub, None, 0.5)) == []
+        publishers = dict(master_state(network)[0])
+        assert "/talker_c" not in publishers.get("/chatter", [])
+        assert pub.poll() is None, "the refused node should keep running"
+    assert "not_granted" in denials(network, "robot_c")
+
+
+def test_subscriber_without_grant_receives_nothing(network):
+    with talker(network, topic="/secret") as pub:
+        read_lines(pub, "READY", 20)
+        with running([SYS_PY, NODE, "sub", "/listener_b", "/secret", "30"], env=network.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            time.sleep(3)
+            assert got(read_lines(sub, None, 0.5)) == []
+            assert sub.poll() is None
+        assert pub.poll() is None
+    assert "may not subscribe /secret" in denials(network, "robot_b")
+
+
+def test_header_with_wrong_type_or_md5_is_refused_by_the_publishers_interceptor(network):
+    """A compromised robot B (valid certificate and token) skips its own interceptor's
+    checks and speaks to robot A's interceptor by hand."""
+    token = token_of(network, "robot_b")
+    with talker(network) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        with rogue(network, "master", "robot_b") as s:
+            assert rogue_preamble(s, token, "master").ok
+            reply = rogue_xmlrpc(s, "lookupNode", "/rogue", "/talker_a")
+        code, _, node_api = reply.value
+        assert code == 1 and node_api.startswith("cryptoros://127.0.0.2:")
+        x_id = node_api.rsplit("/", 1)[1]
+        with rogue(network, "robot_a", "robot_b") as s:
+            assert rogue_preamble(s, token, "node", x_id).ok
+            reply = rogue_xmlrpc(s, "requestTopic", "/listener_b", "/chatter", [["TCPROS"]])
+        code, _, (_, t_host, _) = reply.value
+        assert code == 1
+        t_id = t_host.rsplit("/", 1)[1]
+        base = {"callerid": "/listener_b", "topic": "/chatter", "type": "std_msgs/String",
+                "md5sum": "992ce8a1687cec8c8bd883ec73ca41d1", "tcp_nodelay": "1"}
+        for bad in ({"type": "std_msgs/Int32"}, {"md5sum": "0" * 32}, {"topic": "/secret"}):
+            with rogue(network, "robot_a", "robot_b") as s:
+                assert rogue_preamble(s, token, "topic", t_id).ok
+                answer = rogue_tcpros(s, {**base, **bad})
+            assert "error" in answer and "md5sum" not in answer, (bad, answer)
+        with rogue(network, "robot_a", "robot_b") as s:  # the genuine header works
+            assert rogue_preamble(s, token, "topic", t_id).ok
+            answer = rogue_tcpros(s, base)
+            assert answer.get("md5sum") == base["md5sum"] and answer.get("callerid") == "/talker_a"
+        assert pub.poll() is None
+    log = denials(network, "robot_a")
+    assert "type_mismatch" in log or "published as" in log
+    assert "md5sum" in log
+
+
+def test_shutdown_is_dropped_for_the_master_and_for_nodes(network):
+    token = token_of(network, "robot_b")
+    with talker(network) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        # to the master, through the master's interceptor
+        with rogue(network, "master", "robot_b") as s:
+            assert rogue_preamble(s, token, "master").ok
+            reply = rogue_xmlrpc(s, "shutdown", "/evil", "bye")
+        assert isinstance(reply, Response) and reply.value[0] == -1
+        # to the master, from a local process through its host's interceptor
+        local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+        assert local_master.shutdown("/evil", "bye")[0] == -1
+        # to a node, through the relay a local process on B is handed
+        code, _, relay = local_master.lookupNode("/evil", "/talker_a")
+        assert code == 1 and relay.startswith("http://127.0.0.1:")
+        assert xmlrpc.client.ServerProxy(relay).shutdown("/evil", "bye")[0] == -1
+        # ... and by hand, straight to A's interceptor with B's valid token
+        node_api = rogue_lookup(network, token, "/talker_a")
+        with rogue(network, "robot_a", "robot_b") as s:
+            assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
+            assert rogue_xmlrpc(s, "shutdown", "/master", "bye").value[0] == -1
+            s.close()
+        time.sleep(1)
+        assert pub.poll() is None, "the talker was shut down"
+        assert "/talker_a" in nodes_in_state(master_state(network))
+    assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getPid("/t")[0] == 1  # rosmaster alive
+    assert denials(network, "robot_a").count("shutdown_dropped") >= 1
+
+
+def rogue_lookup(network, token, node):
+    with rogue(network, "master", "robot_b") as s:
+        assert rogue_preamble(s, token, "master").ok
+        return rogue_xmlrpc(s, "lookupNode", "/rogue", node).value[2]
+
+
+def test_publisher_update_accepted_only_from_the_masters_interceptor(network):
+    token = token_of(network, "robot_b")
+    with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "30"], env=network.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+        wait_registered(network, "/listener_b")
+        node_api = rogue_lookup(network, token, "/listener_b")
+        with rogue(network, "robot_b", "robot_a") as s:  # robot A is not the master
+            assert rogue_preamble(s, token_of(network, "robot_a"), "node", node_api.rsplit("/", 1)[1]).ok
+            reply = rogue_xmlrpc(s, "publisherUpdate", "/master", "/chatter", ["cryptoros://127.0.0.2:1/x/1"])
+        assert reply.value[0] == -1
+    assert "not_from_master" in denials(network, "robot_b")
+
+
+def test_existing_node_name_from_another_manager_is_refused(network):
+    with talker(network) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        # robot B's wildcard subscribe grant would let any of its nodes subscribe, but
+        # /talker_a belongs to robot A: registering that name again is a hijack.
+        with running([SYS_PY, NODE, "sub", "/talker_a", "/chatter", "10"], env=network.ros_env("robot_b")) as hijack:
+            read_lines(hijack, "READY", 20)
+            time.sleep(2)
+        assert pub.poll() is None, "the hijack shut the real talker down"
+    assert "name_taken" in network.hosts["master"].logs()
+
+
+def refused_at_handshake(host, port, ca, cert, key) -> bool:
+    """True when the TLS handshake fails. Under TLS 1.3 the server's verdict on the
+    client certificate arrives after the client's own handshake completed: as an alert
+    on the first read, or as the connection closing with nothing sent."""
+    try:
+        with rogue_tls(host, port, ca=ca, cert=cert, key=key) as s:
+            s.settimeout(10)
+            from cryptoros.tunnel import Preamble, encode
+
+            s.sendall(encode(Preamble(token="x", purpose="node", target="1")))
+            return s.recv(1) == b""
+    except (ssl.SSLError, ConnectionError):
+        return True
+
+
+def test_tls_without_certificate_other_ca_or_revoked_fails_the_handshake(network, tmp_path):
+    import signal
+
+    from tests.pki_fixtures import TestPKIFactory
+
+    host, port = public(network, "robot_a")
+    ca = network.pki.ca_cert
+    assert refused_at_handshake(host, port, ca, None, None)
+    other = TestPKIFactory(tmp_path / "other")
+    foreign = other.issue("robot_b", kind="interceptor", sans=("IP:127.0.0.3",))
+    assert refused_at_handshake(host, port, ca, foreign.cert_path, foreign.key_path)
+    revoked = network.pki.issue("revoked_robot", kind="interceptor", sans=("IP:127.0.0.9",))
+    # Before revocation the same certificate gets through the handshake (and is then
+    # refused for having no valid token, which is another test).
+    with rogue_tls(host, port, ca=ca, cert=revoked.cert_path, key=revoked.key_path) as s:
+        assert rogue_preamble(s, "x", "node", "1").ok is False
+    network.pki.revoke("revoked_robot")
+    # The interceptor reads the CRL at start and on SIGHUP: reload, then try again.
+    network.hosts["robot_a"].proc.send_signal(signal.SIGHUP)
+    deadline = time.monotonic() + 10
+    while "reloaded" not in network.hosts["robot_a"].logs() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert refused_at_handshake(host, port, ca, revoked.cert_path, revoked.key_path)
+    assert network.hosts["robot_a"].proc.poll() is None
+
+
+def test_valid_certificate_with_bad_tokens_is_refused(network):
+    key, kid = signing_key(network)
+    now = int(time.time())
+    b_cert = cert(network, "robot_b")[0]
+    b_der = ssl.PEM_cert_to_DER_cert(b_cert.read_text())
+
+    def claims(**kw):
+        c = build_claims(issuer="cryptoros-authz", audience="cryptoros", subject="robot_b", grants=Grants(),
+                         cert_der=b_der, now=now, lifetime=300)
+        c.update(kw)
+        return c
+
+    from cryptography.hazmat.primitives.asymmetric import rsa
+
+    forged = sign_token(claims(), rsa.generate_private_key(public_exponent=65537, key_size=2048), kid)
+    expired = sign_token(claims(iat=now - 900, nbf=now - 900, exp=now - 600), key, kid)
+    other_cert = token_of(network, "robot_c")  # genuine, but bound to robot C's certificate
+    assert claims()["cnf"]["x5t#S256"] == cert_thumbprint_s256(b_der)
+    for token in ("", "not.a.token", forged, expired, other_cert):
+        with rogue(network, "robot_a", "robot_b") as s:
+            if token:
+                reply = rogue_preamble(s, token, "node", "1")
+            else:  # no token at all: garbage instead of a preamble
+                s.sendall(b"GET / HTTP/1.1\r\n\r\n")
+                reply = None
+                try:
+                    data = s.recv(100)
+                    reply = data or None
+                except (ssl.SSLError, ConnectionError):
+                    pass
+            assert reply is None or getattr(reply, "ok", False) is False, (token[:20], reply)
+    log = denials(network, "robot_a")
+    for reason in ("bad_signature", "expired", "cnf_mismatch"):
+        assert reason in log
