@@ -138,6 +138,8 @@ def test_serve_start_up_errors_are_one_line(team, tmp_path):
     assert "not found" in line and "no.crl" in line
     line = one_line_error(_serve(team, "--port", str(free_port()), "--ca", str(tmp_path / "no-ca.crt")))
     assert "no-ca.crt" in line
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--key", str(tmp_path / "no.key")))
+    assert "TLS key file not found" in line
     line = one_line_error(_serve(team, "--port", str(free_port()), "--token-lifetime", "0"))
     assert "token lifetime" in line
     cfg = tmp_path / "authz.toml"
