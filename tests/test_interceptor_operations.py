@@ -1,0 +1,201 @@
+"""Interceptor operations with real ROS 1: revocation cut-off, confidentiality on the
+wire, hostile bytes on every port, SIGHUP and SIGTERM, metrics."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import socket
+import struct
+import subprocess
+import time
+import urllib.request
+
+import pytest
+
+from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls
+from tests.support import require, running
+from tests.test_interceptor_denials import token_of
+from tests.test_interceptor_ros1 import got, read_lines
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    with robot_network(tmp_path_factory.mktemp("net")) as net:
+        yield net
+
+
+def metrics(network, host) -> str:
+    url = f"http://127.0.0.1:{network.hosts[host].metrics_port}/metrics"
+    return urllib.request.urlopen(url, timeout=5).read().decode()
+
+
+def flow_works(network, node_pub="/talker_a", node_sub="/listener_b", count=5) -> list[str]:
+    """A talker on A and a listener on B exchange ``count`` messages (fresh processes)."""
+    with running([SYS_PY, NODE, "sub", node_sub, "/chatter", "20"], env=network.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+        with running([SYS_PY, NODE, "pub", node_pub, "/chatter", str(count), "20", "1"], env=network.ros_env("robot_a")):
+            return got(read_lines(sub, f"GOT secret-{count - 1}", 30))
+
+
+# ------------------------------------------------------------------ confidentiality
+
+
+class Capture:
+    """tcpdump on lo writing a pcap; stopped with SIGINT so it flushes."""
+
+    def __init__(self, path, bpf: str) -> None:
+        tcpdump = require("tcpdump")["tcpdump"]
+        self.path = path
+        self.proc = subprocess.Popen([tcpdump, "-i", "lo", "-U", "-s", "0", "-w", str(path), bpf],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        line = self.proc.stderr.readline()  # "listening on lo, ..."
+        if "listening" not in line:
+            self.proc.kill()
+            pytest.fail(f"tcpdump did not start: {line}")
+
+    def stop(self) -> bytes:
+        time.sleep(0.5)
+        self.proc.send_signal(signal.SIGINT)
+        self.proc.wait(timeout=10)
+        return self.path.read_bytes()
+
+
+def test_capture_between_interceptors_holds_no_published_string(network, tmp_path):
+    # Without interceptors (straight to rosmaster), the strings are on the wire.
+    plain = Capture(tmp_path / "plain.pcap", "tcp")
+    with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "20"], env=network.ros_env(None)) as sub:
+        read_lines(sub, "READY", 20)
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "20", "50", "1"], env=network.ros_env(None)):
+            read_lines(sub, "GOT secret-19", 30)
+    plain_bytes = plain.stop()
+    assert b"secret-7" in plain_bytes
+
+    # With interceptors: capture only what travels between hosts (127.0.0.2-5).
+    hosts = " or ".join(f"host {h.address}" for h in network.hosts.values())
+    secure = Capture(tmp_path / "secure.pcap", f"tcp and ({hosts})")
+    assert flow_works(network, count=20) == [f"secret-{i}" for i in range(20)]
+    secure_bytes = secure.stop()
+    assert len(secure_bytes) > 5000, "the capture saw no traffic between the interceptors"
+    assert b"secret-" not in secure_bytes
+    assert b"/chatter" not in secure_bytes and b"std_msgs/String" not in secure_bytes
+
+
+# ------------------------------------------------------------------ hostile bytes
+
+
+def send_garbage(host: str, port: int, payload: bytes) -> None:
+    try:
+        with socket.create_connection((host, port), timeout=5) as s:
+            s.sendall(payload)
+            s.settimeout(2)
+            with_timeout_read(s)
+    except OSError:
+        pass
+
+
+def with_timeout_read(s) -> None:
+    try:
+        while s.recv(65536):
+            pass
+    except OSError:
+        pass
+
+
+def test_hostile_bytes_on_every_port_leave_it_serving(network):
+    rng = random.Random(7)
+    a = network.hosts["robot_a"]
+    b = network.hosts["robot_b"]
+    # Make robot B hold relays toward robot A (so relay ports exist), then find them.
+    assert flow_works(network) == [f"secret-{i}" for i in range(5)]
+    relays = [int(line.split("relay 127.0.0.1:")[1].split()[0]) for line in b.logs().splitlines() if "relay 127.0.0.1:" in line]
+    assert relays
+    tcpros_header = lambda fields: struct.pack("<I", len(fields)) + fields  # noqa: E731
+    payloads = [
+        os.urandom(4096),
+        bytes(rng.getrandbits(8) for _ in range(100)),
+        b"\x16\x03\x01\x00",  # truncated TLS record
+        struct.pack("<I", 0xFFFFFFF0) + b"x" * 100,  # oversized declared header
+        tcpros_header(b"\x05\x00\x00\x00topic"),  # field without '='
+        b"POST / HTTP/1.1\r\nContent-Length: 999999999999\r\n\r\n",
+        b"POST / HTTP/1.1\r\nContent-Length: 60\r\n\r\n<?xml version='1.0'?><!DOCTYPE x [<!ENTITY a 'b'>]><x/>",
+        b"GET /metrics HTTP/1.1\r\n" + b"X: " + b"a" * 70000 + b"\r\n\r\n",
+    ]
+    ports = [(a.address, a.public_port), ("127.0.0.1", a.local_master_port), ("127.0.0.1", a.metrics_port),
+             *(("127.0.0.1", p) for p in relays[:4])]
+    for host, port in ports:
+        for payload in payloads:
+            send_garbage(host, port, payload)
+    # TLS with a valid certificate, then garbage in place of the preamble and stream.
+    token = token_of(network, "robot_b")
+    cert, key = network.pki.pki.cert_path_for("robot_b"), network.pki.pki.key_path_for("robot_b")
+    for payload in payloads:
+        try:
+            with rogue_tls(a.address, a.public_port, ca=network.pki.ca_cert, cert=cert, key=key) as s:
+                s.sendall(payload)
+                with_timeout_read(s)
+        except OSError:
+            pass
+    for purpose, target in (("topic", "2"), ("node", "1"), ("master", "")):  # valid token, then garbage
+        try:
+            with rogue_tls(a.address, a.public_port, ca=network.pki.ca_cert, cert=cert, key=key) as s:
+                rogue_preamble(s, token, purpose, target)
+                s.sendall(struct.pack("<I", 0x7FFFFFFF) + os.urandom(64))
+                with_timeout_read(s)
+        except OSError:
+            pass
+    for host in network.hosts.values():
+        assert host.proc is None or host.proc.poll() is None, f"{host.name} died:\n{host.logs()[-2000:]}"
+    assert flow_works(network, node_pub="/talker_a", node_sub="/listener_b") == [f"secret-{i}" for i in range(5)]
+
+
+# ------------------------------------------------------------------ metrics, reload, revocation, stop
+
+
+def test_metrics_count_connections_bytes_allows_and_denials(network):
+    flow_works(network)
+    text = metrics(network, "robot_a")
+    for needle in (
+        'cryptoros_interceptor_connections_total{direction="in",purpose="topic"}',
+        'cryptoros_interceptor_bytes_total{direction="tx"}',
+        'cryptoros_interceptor_allowed_total{kind="topic"}',
+        "cryptoros_interceptor_token_expiry_seconds",
+    ):
+        assert needle in text, needle
+    with urllib.request.urlopen(f"http://127.0.0.1:{network.hosts['robot_a'].metrics_port}/healthz", timeout=5) as r:
+        assert r.status == 200
+
+
+def test_sighup_reload_keeps_open_streams_and_disabled_manager_is_cut_off_within_5s(network):
+    with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "60"], env=network.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "50", "30"], env=network.ros_env("robot_a")):
+            read_lines(sub, "GOT secret-20", 30)
+            for name in ("robot_a", "robot_b", "master"):
+                network.hosts[name].proc.send_signal(signal.SIGHUP)
+            before = len(got(read_lines(sub, None, 2.0)))
+            assert before >= 50, "the stream stalled across SIGHUP"
+            assert "reloaded" in network.hosts["robot_a"].logs()
+            # Disable robot B: its open stream must stop within 5 s.
+            result = network.cli("disable-manager", "robot_b")
+            assert result.returncode == 0, result.stderr
+            disabled_at = time.monotonic()
+            read_lines(sub, None, 5.0)  # whatever still arrives in the next 5 s
+            after = got(read_lines(sub, None, 3.0))
+            assert after == [], f"robot B still receives {len(after)} messages 5 s after being disabled"
+            assert time.monotonic() - disabled_at >= 5
+    text = metrics(network, "robot_a")
+    assert "cryptoros_interceptor_revocation_cutoffs_total 0.0" not in text
+    network.cli("enable-manager", "robot_b")
+
+
+def test_sigterm_stops_the_interceptor_cleanly(network):
+    host = network.hosts["robot_c"]
+    network.start("robot_c")
+    host.proc.send_signal(signal.SIGTERM)
+    assert host.proc.wait(timeout=15) == 0
+    with pytest.raises(OSError):
+        socket.create_connection((host.address, host.public_port), timeout=1).close()
