@@ -273,9 +273,13 @@ def test_key_rotation_keeps_retired_keys_published_while_their_tokens_live(reg):
     assert reg.active_key().kid == k2 and k1 != k2
     now = time.time()
     assert {k.kid for k in reg.published_keys(now=now, max_lifetime=360)} == {k1, k2}
+    # no grace period: k1 stays only because the audit log says a token it signed is live
+    assert {k.kid for k in reg.published_keys(now=now, max_lifetime=0)} == {k1, k2}
     # long after the last token signed by k1 expired and the grace period ended
     assert {k.kid for k in reg.published_keys(now=now + 3600, max_lifetime=360)} == {k2}
     assert [k.active for k in reg.list_keys()] == [False, True]
+    k3 = reg.rotate_key(UNSAFE)  # k2 never signed anything: dropped at once without grace
+    assert {k.kid for k in reg.published_keys(now=time.time(), max_lifetime=0)} == {k1, k3}
 
 
 def test_encrypted_signing_key_needs_its_passphrase(reg):
