@@ -91,7 +91,7 @@ def send_garbage(host: str, port: int, payload: bytes) -> None:
     try:
         with socket.create_connection((host, port), timeout=5) as s:
             s.sendall(payload)
-            s.settimeout(2)
+            s.settimeout(1)
             with_timeout_read(s)
     except OSError:
         pass
@@ -126,27 +126,28 @@ def test_hostile_bytes_on_every_port_leave_it_serving(network):
     ]
     ports = [(a.address, a.public_port), ("127.0.0.1", a.local_master_port), ("127.0.0.1", a.metrics_port),
              *(("127.0.0.1", p) for p in relays[:4])]
-    for host, port in ports:
-        for payload in payloads:
-            send_garbage(host, port, payload)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=16) as pool:  # all at once: a small flood too
+        list(pool.map(lambda job: send_garbage(*job), [(h, p, pl) for h, p in ports for pl in payloads]))
     # TLS with a valid certificate, then garbage in place of the preamble and stream.
     token = token_of(network, "robot_b")
     cert, key = network.pki.pki.cert_path_for("robot_b"), network.pki.pki.key_path_for("robot_b")
-    for payload in payloads:
+    def over_tls(payload: bytes, preamble: tuple[str, str] | None) -> None:
         try:
             with rogue_tls(a.address, a.public_port, ca=network.pki.ca_cert, cert=cert, key=key) as s:
+                if preamble is not None:  # a valid token first, then garbage as the stream
+                    rogue_preamble(s, token, *preamble)
                 s.sendall(payload)
+                s.settimeout(1)
                 with_timeout_read(s)
         except OSError:
             pass
-    for purpose, target in (("topic", "2"), ("node", "1"), ("master", "")):  # valid token, then garbage
-        try:
-            with rogue_tls(a.address, a.public_port, ca=network.pki.ca_cert, cert=cert, key=key) as s:
-                rogue_preamble(s, token, purpose, target)
-                s.sendall(struct.pack("<I", 0x7FFFFFFF) + os.urandom(64))
-                with_timeout_read(s)
-        except OSError:
-            pass
+
+    jobs = [(pl, None) for pl in payloads]
+    jobs += [(struct.pack("<I", 0x7FFFFFFF) + os.urandom(64), p) for p in (("topic", "2"), ("node", "1"), ("master", ""))]
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        list(pool.map(lambda job: over_tls(*job), jobs))
     for host in network.hosts.values():
         assert host.proc is None or host.proc.poll() is None, f"{host.name} died:\n{host.logs()[-2000:]}"
     assert flow_works(network, node_pub="/talker_a", node_sub="/listener_b") == [f"secret-{i}" for i in range(5)]
