@@ -12,6 +12,7 @@ from cryptoros.cli import LazyGroup
 
 BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",
+    "interceptor": "cryptoros.bench.interceptor:interceptor",
     "ros1": "cryptoros.bench.ros1:ros1",
     "sim": "cryptoros.bench.sim:sim",
 }

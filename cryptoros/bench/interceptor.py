@@ -1,0 +1,1005 @@
+"""``cryptoros bench interceptor``: plain ROS 1, our interceptors and stunnel4, side by side.
+
+One run builds a robot network on loopback (:mod:`cryptoros.bench.network`: PKI,
+registry, ``cryptoros-authz`` daemon, Debian ``rosmaster``, interceptors for hosts
+M 127.0.0.4, A 127.0.0.2, B 127.0.0.3) and measures, for real rospy nodes (Debian's
+``/usr/bin/python3``) and for our node client (:mod:`cryptoros.ros1.node`, uvloop):
+
+``plain``        talker and listener straight to rosmaster; TCPROS straight from the
+                 listener to the talker's port.
+``interceptor``  talker on host A (``ROS_MASTER_URI`` = A's interceptor), listener on
+                 host B: every XML-RPC call and the TCPROS stream go listener -> B's
+                 relay -> mutual TLS + token preamble -> A's interceptor (header
+                 checked against both tokens) -> talker. Discovery is ROS's own.
+``stunnel``      the generic alternative as a fixed chain: talker's fixed TCPROS port
+                 <- ``stunnel4`` server on 127.0.0.2 (TLS 1.3, mutual certificates from
+                 the same CA) <- ``stunnel4`` client on 127.0.0.1 <- listener. ROS's
+                 discovery cannot be pointed through stunnel (dynamic ports), so the
+                 listener's TCPROS connect is redirected to the client's accept port
+                 (``BENCH_VIA``); XML-RPC stays plain. Only the data path is tunnelled.
+
+Rows: one-way latency at 1 kHz (p50/p99; the sender stamps CLOCK_MONOTONIC into a
+std_msgs/String), small std_msgs/String throughput (sender unthrottled), MB/s for
+sensor_msgs/Image of 80 KB and 1 MB, TCPROS connection set-up time (connect to the
+publisher's header reply: TLS handshake + token check on the interceptor and stunnel
+rows) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), and the
+paper's own experiment (section IV: N std_msgs/String at 10 Hz, the listener timed
+from launch to exit as with ``time``, with and without interceptors).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import queue
+import shutil
+import signal
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import click
+
+from cryptoros.bench.network import HOSTS, Network, NetworkError, bench_network, free_port, stop, wait_port
+
+SYS_PY = "/usr/bin/python3"
+NODES = Path(__file__).parent / "ros1_nodes"
+TRANSPORTS = ("plain", "interceptor", "stunnel")
+IMPLS = ("rospy", "ours")
+PAPER = {100: (10.534, 10.711), 250: (25.588, 25.713), 500: (50.628, 50.747)}
+PAPER_SETUP_BYTES = (2478, 14478)
+PAPER_SLOTS = 24
+#: robot_a/robot_b carry the throughput rows and the set-up probes (tokens with only
+#: the grants those need); robot_c/robot_d run the paper's experiment.
+BENCH_HOSTS = {**HOSTS, "robot_c": "127.0.0.5", "robot_d": "127.0.0.6"}
+
+POLICY_HEAD = """\
+version: 1
+managers:
+- name: master
+  fingerprint_sha256: {{master}}
+- name: robot_a
+  fingerprint_sha256: {{robot_a}}
+  grants:
+    publish:
+    - {{{{node: '*', topic: /bench_str, type: std_msgs/String}}}}
+    - {{{{node: '*', topic: /bench_img, type: sensor_msgs/Image}}}}
+    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
+- name: robot_b
+  fingerprint_sha256: {{robot_b}}
+  grants:
+    publish:
+    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
+    subscribe:
+    - {{{{node: '*', topic: /bench_str, type: std_msgs/String}}}}
+    - {{{{node: '*', topic: /bench_img, type: sensor_msgs/Image}}}}
+- name: robot_c
+  fingerprint_sha256: {{robot_c}}
+  grants:
+    publish:
+    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
+{paper}
+- name: robot_d
+  fingerprint_sha256: {{robot_d}}
+  grants:
+    publish:
+    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
+    subscribe:
+{paper}
+"""
+
+
+def _policy() -> str:
+    pub = "\n".join(f"    - {{{{node: '*', topic: /paper_{i}, type: std_msgs/String}}}}" for i in range(PAPER_SLOTS))
+    return POLICY_HEAD.format(paper=pub)
+
+
+# ============================================================ our node client's worker
+
+
+def _our_worker() -> None:
+    """Entry point of our talker/listener processes; the same protocol as
+    ``ros1_nodes/rospy_worker.py`` (argv: ROLE), plus ROLE ``idle``: advertise
+    /bench_str, print ``URI <xmlrpc uri> <tcpros port>`` and wait for ``quit``."""
+    from cryptoros.ros1 import msgs
+    from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
+
+    role = sys.argv[1]
+    install_uvloop()
+    tune_malloc()
+    via = os.environ.get("BENCH_VIA")
+    if via:
+        via_host, via_port = via.rsplit(":", 1)
+        original = Node.call_api
+
+        async def call_api(self, uri, method, *params):  # the stunnel chain: TCPROS to the tunnel
+            reply = await original(self, uri, method, *params)
+            if method == "requestTopic" and isinstance(reply, list) and len(reply) == 3:
+                reply = [reply[0], via_host, int(via_port)]
+            return reply
+
+        Node.call_api = call_api  # type: ignore[method-assign]
+
+    def out(line: str) -> None:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
+
+    async def lines():
+        loop = asyncio.get_running_loop()
+        while True:
+            line = await loop.run_in_executor(None, sys.stdin.readline)
+            if not line or line.split()[:1] == ["quit"]:
+                return
+            if line.split():
+                yield line.split()
+
+    async def listen() -> None:
+        st: dict = {"mode": None, "n": 0, "want": 0, "t0": 0, "t1": 0, "bytes": 0, "lat": []}
+        done = asyncio.Event()
+        clock = time.monotonic_ns
+
+        def on_msg(m, mode: str) -> None:
+            now = clock()
+            if st["mode"] != mode:
+                return
+            if mode == "latency":
+                st["lat"].append(now - int(m.data))
+            elif mode == "image":
+                st["bytes"] += len(m.data)
+            if st["n"] == 0:
+                st["t0"] = now
+            st["t1"] = now
+            st["n"] += 1
+            if st["n"] >= st["want"]:
+                done.set()
+
+        async with Node("/bench_listener_ours") as node:
+            await node.subscribe("/bench_str", "std_msgs/String",
+                                 lambda m: on_msg(m, "latency" if st["mode"] == "latency" else "small"))
+            await node.subscribe("/bench_img", "sensor_msgs/Image", lambda m: on_msg(m, "image"))
+            out("SUBSCRIBED")
+            async for parts in lines():
+                mode, n = parts[0], int(parts[1])
+                done.clear()
+                st.update(mode=mode, n=0, want=n, t0=0, t1=0, bytes=0, lat=[])
+                out("ARMED")
+                last, deadline = -1, time.monotonic() + 120
+                while time.monotonic() < deadline:
+                    with contextlib.suppress(asyncio.TimeoutError):
+                        await asyncio.wait_for(done.wait(), 3.0)
+                    if done.is_set() or st["n"] == last:
+                        break
+                    last = st["n"]
+                st["mode"] = None
+                out("RESULT " + json.dumps({k: st[k] for k in ("n", "t0", "t1", "bytes", "lat")}))
+
+    async def talk() -> None:
+        port = int(os.environ.get("BENCH_TCPROS_PORT", "0"))
+        async with Node("/bench_talker_ours", tcpros_port=port) as node:
+            pub_str = await node.advertise("/bench_str", "std_msgs/String")
+            pub_img = await node.advertise("/bench_img", "sensor_msgs/Image")
+            try:
+                await pub_str.wait_for_subscribers(1, 60)
+                await pub_img.wait_for_subscribers(1, 60)
+            except asyncio.TimeoutError:
+                out("TIMEOUT no subscriber")
+                return
+            await asyncio.sleep(0.3)
+            out("READY")
+            String = msgs.msg_class("std_msgs/String")
+            async for parts in lines():
+                mode, n, size = parts[0], int(parts[1]), int(parts[2])
+                if mode == "latency":
+                    nxt = time.monotonic()
+                    for _ in range(n):
+                        pub_str.publish(String(data=str(time.monotonic_ns())))
+                        nxt += 0.001
+                        d = nxt - time.monotonic()
+                        if d > 0:
+                            await asyncio.sleep(d)
+                elif mode == "small":
+                    for i in range(n):
+                        pub_str.publish(String(data="hello world %d" % i))
+                        if i & 255 == 255:
+                            await asyncio.sleep(0)
+                            await pub_str.wait_writable()
+                else:
+                    import numpy as np
+
+                    Image = msgs.msg_class("sensor_msgs/Image")
+                    Header = msgs.msg_class("std_msgs/Header")
+                    Time = msgs.typestore().types["builtin_interfaces/msg/Time"]
+                    payload = np.zeros(size, dtype=np.uint8)
+                    for _ in range(n):
+                        pub_img.publish(Image(
+                            header=Header(seq=0, stamp=Time(sec=0, nanosec=0), frame_id=""),
+                            height=1, width=size, encoding="mono8", is_bigendian=0, step=size, data=payload,
+                        ))
+                        await asyncio.sleep(0)
+                        await pub_img.wait_writable()
+                out("SENT")
+
+    async def idle() -> None:
+        async with Node("/bench_idle", tcpros_port=int(os.environ.get("BENCH_TCPROS_PORT", "0"))) as node:
+            await node.advertise("/bench_str", "std_msgs/String")
+            out(f"URI {node.uri} {node.tcpros_port}")
+            async for _ in lines():
+                pass
+
+    asyncio.run({"listen": listen, "talk": talk, "idle": idle}[role]())
+
+
+# ============================================================ processes
+
+
+class Proc:
+    """A subprocess whose stdout lines arrive through a thread (bounded waits)."""
+
+    def __init__(self, name: str, args: list[str], env: dict[str, str], log: Path) -> None:
+        self.name = name
+        self.log = log
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.seen: list[str] = []
+        self.proc = subprocess.Popen(args, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=log.open("w"), text=True, bufsize=1)
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put(line.rstrip("\n"))
+        self.lines.put(None)
+
+    def send(self, line: str) -> None:
+        assert self.proc.stdin is not None
+        with contextlib.suppress(BrokenPipeError, OSError):
+            self.proc.stdin.write(line + "\n")
+            self.proc.stdin.flush()
+
+    def expect(self, prefix: str, timeout: float) -> str:
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                line = self.lines.get(timeout=max(0.0, remaining))
+            except queue.Empty:
+                break
+            if line is None:
+                break
+            self.seen.append(line)
+            if line.startswith(prefix):
+                return line
+        tail = self.log.read_text()[-1500:] if self.log.exists() else ""
+        raise NetworkError(f"{self.name}: no {prefix!r} within {timeout:.0f} s; output {self.seen[-5:]}; log:\n{tail}")
+
+    def close(self, timeout: float = 5.0) -> None:
+        """``quit`` (a clean unregistration), then SIGTERM/SIGKILL: bounded."""
+        self.send("quit")
+        with contextlib.suppress(OSError):
+            self.proc.stdin.close()  # type: ignore[union-attr]
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            stop(self.proc)
+
+
+def _worker_cmd(impl: str, role: str) -> list[str]:
+    if impl == "rospy":
+        return [SYS_PY, str(NODES / "rospy_worker.py"), role]
+    return [sys.executable, "-c", "from cryptoros.bench.interceptor import _our_worker; _our_worker()", role]
+
+
+# ============================================================ stunnel
+
+
+@contextlib.contextmanager
+def stunnel_chain(net: Network, target_port: int, workdir: Path, tag: str) -> Iterator[tuple[int, int]]:
+    """stunnel4 server on 127.0.0.2 (-> 127.0.0.1:target_port) and client on 127.0.0.1
+    (-> the server), mutual certificates from the network's CA. Yields (client accept
+    port, server accept port)."""
+    binary = shutil.which("stunnel4") or shutil.which("stunnel")
+    if binary is None:
+        raise NetworkError("stunnel4 is not installed (scripts/install-system-parts)")
+    server_port, client_port = free_port(HOSTS["robot_a"]), free_port()
+    common = [
+        "foreground = yes", "pid =", "debug = 3", "syslog = no",
+        "socket = l:TCP_NODELAY=1", "socket = r:TCP_NODELAY=1",
+    ]
+    sides = {
+        "server": (net.cert("stunnel_a"), [
+            f"accept = {HOSTS['robot_a']}:{server_port}", f"connect = 127.0.0.1:{target_port}",
+        ]),
+        "client": (net.cert("stunnel_b"), [
+            "client = yes", f"accept = 127.0.0.1:{client_port}", f"connect = {HOSTS['robot_a']}:{server_port}",
+            f"checkIP = {HOSTS['robot_a']}",
+        ]),
+    }
+    procs = []
+    try:
+        for side, ((cert, key), lines) in sides.items():
+            conf = workdir / f"stunnel-{tag}-{side}.conf"
+            conf.write_text("\n".join([
+                *common, f"output = {workdir / f'stunnel-{tag}-{side}.log'}",
+                f"[{tag}-{side}]", *lines,
+                f"cert = {cert}", f"key = {key}", f"CAfile = {net.ca}", f"CRLfile = {net.pki.crl_path}",
+                "verifyChain = yes", "requireCert = yes", "sslVersionMin = TLSv1.2",
+                "ciphers = ECDHE+AESGCM:ECDHE+CHACHA20:!aNULL",
+            ]) + "\n")
+            procs.append(subprocess.Popen([binary, str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        wait_port(HOSTS["robot_a"], server_port, 10, procs[0], "stunnel server")
+        wait_port("127.0.0.1", client_port, 10, procs[1], "stunnel client")
+        yield client_port, server_port
+    finally:
+        for proc in procs:
+            stop(proc)
+
+
+# ============================================================ throughput and latency
+
+
+@dataclass
+class Mode:
+    key: str
+    label: str
+    mode: str
+    n: int
+    size: int = 0
+
+
+def _summary(mode: Mode, raw: dict) -> dict:
+    got = raw["n"]
+    span = max(raw["t1"] - raw["t0"], 1) / 1e9
+    out: dict = {"received": got, "sent": mode.n}
+    if mode.mode == "small":
+        out["msg_per_s"] = (got - 1) / span if got > 1 else 0.0
+    elif mode.mode == "latency":
+        lat = sorted(raw["lat"])
+        if lat:
+            out["p50_us"] = lat[len(lat) // 2] / 1e3
+            out["p99_us"] = lat[min(len(lat) - 1, int(len(lat) * 0.99))] / 1e3
+    else:
+        per = raw["bytes"] / got if got else 0
+        out["mb_per_s"] = (raw["bytes"] - per) / span / 1e6 if got > 1 else 0.0
+    return out
+
+
+def run_pair(net: Network, impl: str, transport: str, modes: list[Mode], workdir: Path,
+             progress: Callable[[str], None]) -> dict[str, dict]:
+    """One talker and one listener process over ``transport``; every mode in turn."""
+    tag = f"{impl}-{transport}"
+    talker_env_host, listener_env_host = ("robot_a", "robot_b") if transport == "interceptor" else (None, None)
+    talker_port = free_port() if transport == "stunnel" else 0
+    results: dict[str, dict] = {}
+    with contextlib.ExitStack() as stack:
+        listener_extra: dict[str, str] = {}
+        talker_extra: dict[str, str] = {}
+        if transport == "stunnel":
+            client_port, _server_port = stack.enter_context(stunnel_chain(net, talker_port, workdir, tag))
+            listener_extra["BENCH_VIA"] = f"127.0.0.1:{client_port}"
+            talker_extra["BENCH_TCPROS_PORT"] = str(talker_port)
+        listener = Proc(f"{tag} listener", _worker_cmd(impl, "listen"), net.ros_env(listener_env_host, **listener_extra),
+                        workdir / f"{tag}-listener.log")
+        stack.callback(listener.close)
+        listener.expect("SUBSCRIBED", 60)
+        talker = Proc(f"{tag} talker", _worker_cmd(impl, "talk"), net.ros_env(talker_env_host, **talker_extra),
+                      workdir / f"{tag}-talker.log")
+        stack.callback(talker.close)
+        talker.expect("READY", 60)
+        for mode in modes:
+            listener.send(f"{mode.mode} {mode.n} {mode.size}")
+            listener.expect("ARMED", 10)
+            talker.send(f"{mode.mode} {mode.n} {mode.size}")
+            raw = json.loads(listener.expect("RESULT ", 180)[7:])
+            talker.expect("SENT", 60)
+            results[mode.key] = _summary(mode, raw)
+            progress(f"{impl:5s} {transport:11s} {mode.label:28s} {_short(results[mode.key])}")
+    return results
+
+
+def _short(r: dict) -> str:
+    parts = []
+    for k, fmt in (("p50_us", "p50 {:,.0f} us"), ("p99_us", "p99 {:,.0f} us"), ("msg_per_s", "{:,.0f} msg/s"),
+                   ("mb_per_s", "{:,.0f} MB/s")):
+        if k in r:
+            parts.append(fmt.format(r[k]))
+    if r.get("received") != r.get("sent"):
+        parts.append(f"received {r.get('received')}/{r.get('sent')}")
+    return ", ".join(parts)
+
+
+# ============================================================ connection set-up
+
+
+async def _tcpros_probe(host: str, port: int, topic: str = "/bench_str") -> tuple[float, asyncio.StreamWriter]:
+    """Connect, send a subscriber header, read the publisher's reply header: seconds."""
+    from cryptoros.ros1 import msgs
+    from cryptoros.ros1.tcpros import encode_header
+
+    header = encode_header({
+        "callerid": "/bench_probe", "md5sum": msgs.md5sum("std_msgs/String"),
+        "message_definition": msgs.message_definition("std_msgs/String"), "tcp_nodelay": "1",
+        "topic": topic, "type": "std_msgs/String",
+    })
+    t0 = time.perf_counter()
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), 10)
+    try:
+        writer.write(header)
+        (length,) = struct.unpack("<I", await asyncio.wait_for(reader.readexactly(4), 10))
+        body = await asyncio.wait_for(reader.readexactly(length), 10)
+    except BaseException:
+        writer.close()
+        raise
+    elapsed = time.perf_counter() - t0
+    if b"error=" in body:
+        writer.close()
+        raise NetworkError(f"publisher refused the probe: {body[:200]!r}")
+    return elapsed, writer
+
+
+async def _request_topic(uri: str, topic: str = "/bench_str") -> tuple[float, tuple[str, int]]:
+    from cryptoros.ros1.node import call
+
+    t0 = time.perf_counter()
+    reply = await call(uri, "requestTopic", "/bench_probe", topic, [["TCPROS"]], timeout=10)
+    elapsed = time.perf_counter() - t0
+    if not (isinstance(reply, list) and len(reply) == 3):
+        raise NetworkError(f"requestTopic answered {reply!r}")
+    return elapsed, (reply[1], int(reply[2]))
+
+
+class Capture:
+    """tcpdump on ``lo`` into a pcap file, with a bounded start and stop."""
+
+    def __init__(self, path: Path, bpf: str) -> None:
+        self.path = path
+        binary = shutil.which("tcpdump")
+        if binary is None:
+            raise NetworkError("tcpdump is not installed")
+        self.err = path.with_suffix(".err")
+        self.proc = subprocess.Popen([binary, "-i", "lo", "-n", "-U", "--immediate-mode", "-s", "128", "-w", str(path), bpf],
+                                     stdout=subprocess.DEVNULL, stderr=self.err.open("w"))
+        deadline = time.monotonic() + 10
+        while "listening on" not in self.err.read_text():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                stop(self.proc)
+                raise NetworkError(f"tcpdump did not start: {self.err.read_text()[-300:]}")
+            time.sleep(0.02)
+
+    def stop(self) -> list[dict]:
+        time.sleep(0.3)  # the last ACKs
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        stop(self.proc)
+        return flows(self.path)
+
+
+def flows(path: Path) -> list[dict]:
+    """TCP flows of a pcap (Ethernet, Linux SLL or raw IPv4), in order of their first
+    packet: frame bytes (as Wireshark counts them), IP bytes and TCP payload bytes."""
+    data = path.read_bytes() if path.exists() else b""
+    if len(data) < 24:
+        return []
+    magic = data[:4]
+    endian = "<" if magic in (b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1") else ">"
+    linktype = struct.unpack(endian + "I", data[20:24])[0]
+    offset_link = {1: 14, 113: 16, 276: 20, 101: 0, 228: 0}.get(linktype)
+    if offset_link is None:
+        raise NetworkError(f"pcap link type {linktype} not understood")
+    table: dict[tuple, dict] = {}
+    pos = 24
+    while pos + 16 <= len(data):
+        _sec, _frac, incl, orig = struct.unpack(endian + "IIII", data[pos:pos + 16])
+        pkt = data[pos + 16: pos + 16 + incl]
+        pos += 16 + incl
+        ip = pkt[offset_link:]
+        if len(ip) < 20 or ip[0] >> 4 != 4 or ip[9] != 6:
+            continue
+        ihl = (ip[0] & 15) * 4
+        total = struct.unpack("!H", ip[2:4])[0]
+        tcp = ip[ihl:]
+        if len(tcp) < 20:
+            continue
+        sport, dport = struct.unpack("!HH", tcp[:4])
+        thl = (tcp[12] >> 4) * 4
+        src, dst = ip[12:16], ip[16:20]
+        key = tuple(sorted([(src, sport), (dst, dport)]))
+        flow = table.setdefault(key, {"frames": 0, "frame_bytes": 0, "ip_bytes": 0, "payload_bytes": 0,
+                                      "order": len(table)})
+        flow["frames"] += 1
+        flow["frame_bytes"] += orig
+        flow["ip_bytes"] += total
+        flow["payload_bytes"] += max(0, total - ihl - thl)
+    return sorted(table.values(), key=lambda f: f["order"])
+
+
+def _stats(samples: list[float]) -> dict:
+    ms = sorted(s * 1e3 for s in samples)
+    return {"median_ms": statistics.median(ms), "p90_ms": ms[min(len(ms) - 1, int(len(ms) * 0.9))], "n": len(ms)}
+
+
+def _bytes_entry(fl: list[dict], labels: list[str]) -> dict:
+    out: dict = {}
+    for label, flow in zip(labels, fl, strict=False):
+        out[label] = {k: flow[k] for k in ("frames", "frame_bytes", "ip_bytes", "payload_bytes")}
+    out["total"] = {k: sum(flow[k] for flow in fl[: len(labels)]) for k in ("frames", "frame_bytes", "ip_bytes",
+                                                                           "payload_bytes")}
+    return out
+
+
+def token_sizes(net: Network, names: tuple[str, ...] = ("robot_a", "robot_b")) -> dict[str, int]:
+    """Bytes of each manager's access token as the daemon issues it (what a preamble carries)."""
+    import http.client
+
+    from cryptoros.tls import TLSConfig, client_context
+
+    sizes = {}
+    host, port = net.authz_url.split("://", 1)[1].rsplit(":", 1)
+    for name in names:
+        cert, key = net.cert(name)
+        ctx = client_context(TLSConfig(ca_file=net.ca, cert_file=cert, key_file=key))
+        conn = http.client.HTTPSConnection(host, int(port), context=ctx, timeout=10)
+        try:
+            conn.request("POST", "/token", body="grant_type=client_credentials",
+                         headers={"Content-Type": "application/x-www-form-urlencoded"})
+            body = json.loads(conn.getresponse().read())
+            sizes[name] = len(body.get("access_token", ""))
+        finally:
+            conn.close()
+    return sizes
+
+
+def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[str], None]) -> dict:
+    """TCPROS connection set-up time and bytes, plus requestTopic time, per transport.
+
+    An idle talker of our node client publishes /bench_str; a probe in this process
+    does what a subscriber does. Plain: requestTopic on the talker, TCPROS to its port.
+    Interceptor: the probe registers through B's interceptor (gets B's relay URI),
+    then requestTopic and TCPROS through B's relays, tunnelled to A. Stunnel: TCPROS to
+    the stunnel client's port (the talker's fixed port behind the server)."""
+    result: dict = {}
+    with contextlib.suppress(Exception):
+        result["token_bytes"] = token_sizes(net)
+    talker_port = free_port()
+    # -------- plain and stunnel: one idle talker registered straight with rosmaster
+    idle = Proc("idle talker (plain)", _worker_cmd("ours", "idle"), net.ros_env(None, BENCH_TCPROS_PORT=str(talker_port)),
+                workdir / "idle-plain.log")
+    try:
+        _, uri, port_text = idle.expect("URI ", 30).split()
+        xml_port = int(uri.rstrip("/").rsplit(":", 1)[1])
+        with stunnel_chain(net, talker_port, workdir, "setup") as (client_port, server_port):
+
+            async def plain_and_stunnel() -> dict:
+                out: dict = {"plain": {}, "stunnel": {}}
+                rt, tc, st = [], [], []
+                for _ in range(reps):
+                    t, (host, port) = await _request_topic(uri)
+                    rt.append(t)
+                    t, w = await _tcpros_probe(host, port)
+                    tc.append(t)
+                    w.close()
+                    t, w = await _tcpros_probe("127.0.0.1", client_port)
+                    st.append(t)
+                    w.close()
+                    await asyncio.sleep(0.02)
+                out["plain"]["request_topic"] = _stats(rt)
+                out["plain"]["tcpros_connect"] = _stats(tc)
+                out["stunnel"]["tcpros_connect"] = _stats(st)
+                cap = Capture(workdir / "plain.pcap", f"tcp and host 127.0.0.1 and (port {xml_port} or port {port_text})")
+                try:
+                    _, (host, port) = await _request_topic(uri)
+                    await asyncio.sleep(0.1)
+                    _, w = await _tcpros_probe(host, port)
+                finally:
+                    fl = await asyncio.to_thread(cap.stop)
+                w.close()
+                out["plain"]["bytes"] = _bytes_entry(fl, ["request_topic", "tcpros"])
+                cap = Capture(workdir / "stunnel.pcap", f"tcp and port {server_port}")
+                try:
+                    _, w = await _tcpros_probe("127.0.0.1", client_port)
+                finally:
+                    fl = await asyncio.to_thread(cap.stop)
+                w.close()
+                out["stunnel"]["bytes"] = _bytes_entry(fl, ["tcpros"])
+                return out
+
+            result.update(asyncio.run(plain_and_stunnel()))
+    finally:
+        idle.close()
+    progress(f"set-up plain:   requestTopic {result['plain']['request_topic']['median_ms']:.2f} ms, "
+             f"TCPROS {result['plain']['tcpros_connect']['median_ms']:.2f} ms, "
+             f"{result['plain']['bytes']['total']['frame_bytes']:,} B")
+    progress(f"set-up stunnel: TCPROS {result['stunnel']['tcpros_connect']['median_ms']:.2f} ms, "
+             f"{result['stunnel']['bytes']['total']['frame_bytes']:,} B")
+    # -------- interceptor: idle talker on A, probe on B
+    idle = Proc("idle talker (A)", _worker_cmd("ours", "idle"), net.ros_env("robot_a"), workdir / "idle-icpt.log")
+    try:
+        idle.expect("URI ", 30)
+
+        async def intercepted() -> dict:
+            from cryptoros.ros1.node import Node
+
+            out: dict = {}
+            a_public = net.hosts["robot_a"].public_port
+            async with Node("/bench_probe", net.hosts["robot_b"].master_uri) as node:
+                pubs = await node.master("registerSubscriber", "/bench_str", "std_msgs/String", node.uri)
+                if not pubs:
+                    raise NetworkError("no publisher of /bench_str reached B's interceptor")
+                relay = pubs[0]
+                rt, tc = [], []
+                for _ in range(reps):
+                    t, (host, port) = await _request_topic(relay)
+                    rt.append(t)
+                    t, w = await _tcpros_probe(host, port)
+                    tc.append(t)
+                    w.close()
+                    await asyncio.sleep(0.05)  # keep below the per-peer new-stream rate limit
+                out["request_topic"] = _stats(rt)
+                out["tcpros_connect"] = _stats(tc)
+                await asyncio.sleep(0.3)
+                cap = Capture(workdir / "interceptor.pcap", f"tcp and host {HOSTS['robot_a']} and port {a_public}")
+                try:
+                    _, (host, port) = await _request_topic(relay)
+                    await asyncio.sleep(0.1)
+                    _, w = await _tcpros_probe(host, port)
+                finally:
+                    fl = await asyncio.to_thread(cap.stop)
+                w.close()
+                out["bytes"] = _bytes_entry(fl, ["request_topic", "tcpros"])
+                with contextlib.suppress(Exception):
+                    await node.master("unregisterSubscriber", "/bench_str", node.uri)
+            return out
+
+        result["interceptor"] = asyncio.run(intercepted())
+    finally:
+        idle.close()
+    progress(f"set-up interceptor: requestTopic {result['interceptor']['request_topic']['median_ms']:.2f} ms, "
+             f"TCPROS {result['interceptor']['tcpros_connect']['median_ms']:.2f} ms, "
+             f"{result['interceptor']['bytes']['total']['frame_bytes']:,} B")
+    return result
+
+
+# ============================================================ the paper's experiment
+
+
+@dataclass
+class PaperRun:
+    n: int
+    variant: str  # "without" | "with"
+    slot: int
+    elapsed: float | None = None
+    to_first: float | None = None
+    received: int = 0
+    error: str = ""
+    started: threading.Event = field(default_factory=threading.Event)
+
+
+def _paper_one(net: Network, run: PaperRun, workdir: Path) -> None:
+    talker_host, listener_host = ("robot_c", "robot_d") if run.variant == "with" else (None, None)
+    topic = f"/paper_{run.slot}"
+    name = f"paper_{run.slot}_{run.variant}"
+    talker = Proc(f"paper talker {run.slot}", [SYS_PY, str(NODES / "paper_talker.py"), f"talker_{name}", topic,
+                                                str(run.n)], net.ros_env(talker_host), workdir / f"{name}-talker.log")
+    listener = None
+    try:
+        talker.expect("REGISTERED", 60)
+        t0 = time.monotonic()
+        listener = subprocess.Popen([SYS_PY, str(NODES / "paper_listener.py"), f"listener_{name}", topic, str(run.n)],
+                                    env=net.ros_env(listener_host), stdout=subprocess.PIPE, text=True,
+                                    stderr=(workdir / f"{name}-listener.log").open("w"))
+        assert listener.stdout is not None
+        for line in listener.stdout:  # bounded: the listener gives up after n * 0.1 + 60 s
+            if line.startswith("FIRST"):
+                run.to_first = float(line.split()[1]) - t0
+                run.started.set()
+            elif line.startswith("DONE"):
+                run.received = int(line.split()[1])
+        listener.wait(30)
+        run.elapsed = time.monotonic() - t0
+    except Exception as exc:  # reported in the table, never hidden
+        run.error = str(exc)[:300]
+    finally:
+        run.started.set()
+        if listener is not None:
+            stop(listener)
+        stop(talker.proc)
+
+
+def paper_experiment(net: Network, counts: list[int], reps: int, workdir: Path,
+                     progress: Callable[[str], None]) -> list[dict]:
+    """Every (N, with/without, repetition) at once on its own topic, largest N first,
+    each launched once the previous listener got its first message (start-ups do not
+    overlap; the 10 Hz traffic that runs meanwhile is negligible)."""
+    runs = []
+    slot = 0
+    for n in sorted(counts, reverse=True):
+        for rep in range(reps):
+            for variant in (("without", "with") if rep % 2 == 0 else ("with", "without")):
+                runs.append(PaperRun(n=n, variant=variant, slot=slot))
+                slot += 1
+    if slot > PAPER_SLOTS:
+        raise click.UsageError(f"at most {PAPER_SLOTS} paper runs (counts x repetitions x 2)")
+    threads = []
+    for run in runs:
+        thread = threading.Thread(target=_paper_one, args=(net, run, workdir), daemon=True)
+        thread.start()
+        threads.append(thread)
+        run.started.wait(30)
+        progress(f"paper N={run.n} {run.variant:7s} launched (first message after "
+                 f"{run.to_first if run.to_first is not None else float('nan'):.3f} s)")
+    for thread in threads:
+        thread.join(max(counts) * 0.1 + 120)
+    rows = []
+    for n in sorted(counts):
+        row: dict = {"messages": n}
+        for variant in ("without", "with"):
+            mine = [r for r in runs if r.n == n and r.variant == variant]
+            ok = [r for r in mine if r.elapsed is not None and r.received == n]
+            row[variant] = {
+                "elapsed_s": [r.elapsed for r in mine],
+                "to_first_s": [r.to_first for r in mine],
+                "mean_s": statistics.fmean(r.elapsed for r in ok) if ok else None,
+                "mean_to_first_s": statistics.fmean(r.to_first for r in ok if r.to_first is not None) if ok else None,
+                "errors": [r.error or f"received {r.received}/{n}" for r in mine if r not in ok],
+            }
+        a, b = row["without"]["mean_s"], row["with"]["mean_s"]
+        row["overhead_pct"] = (b - a) / a * 100 if a and b else None
+        if n in PAPER:
+            pa, pb = PAPER[n]
+            row["paper"] = {"without_s": pa, "with_s": pb, "overhead_pct": (pb - pa) / pa * 100}
+        rows.append(row)
+        progress(f"paper N={n}: without {a or float('nan'):.3f} s, with {b or float('nan'):.3f} s, "
+                 f"overhead {row['overhead_pct'] if row['overhead_pct'] is not None else float('nan'):+.2f} %")
+    return rows
+
+
+# ============================================================ report
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a and b else None
+
+
+def build_report(results: dict) -> dict:
+    """Targets and ratios from the raw results (also what --json writes)."""
+    tp = results.get("throughput", {})
+    targets = []
+    for impl in IMPLS:
+        by = {t: tp.get(impl, {}).get(t, {}) for t in TRANSPORTS}
+        for key, metric, label in (("small", "msg_per_s", "small messages"), ("image80k", "mb_per_s", "80 KB images"),
+                                   ("image1m", "mb_per_s", "1 MB images")):
+            icpt = by["interceptor"].get(key, {}).get(metric)
+            stun = by["stunnel"].get(key, {}).get(metric)
+            r = _ratio(icpt, stun)
+            targets.append({"target": f"{label} throughput >= 1.3x stunnel ({impl})", "measured": r,
+                            "unit": "x", "met": r is not None and r >= 1.3})
+        p = {t: by[t].get("latency", {}).get("p50_us") for t in TRANSPORTS}
+        if None not in p.values():
+            added_i, added_s = p["interceptor"] - p["plain"], p["stunnel"] - p["plain"]
+            targets.append({"target": f"added p50 latency at 1 kHz <= stunnel's ({impl})",
+                            "measured": added_i, "limit": added_s, "unit": "us", "met": added_i <= added_s})
+    setup = results.get("setup")
+    if setup:
+        plain_b = setup["plain"]["bytes"].get("tcpros", {}).get("frame_bytes")
+        icpt_b = setup["interceptor"]["bytes"].get("tcpros", {}).get("frame_bytes")
+        limit = (PAPER_SETUP_BYTES[1] - PAPER_SETUP_BYTES[0]) / 2
+        if plain_b is not None and icpt_b is not None:
+            targets.append({"target": "set-up bytes added per TCPROS connection <= half the paper's (6,000 B)",
+                            "measured": icpt_b - plain_b, "limit": limit, "unit": "B", "met": icpt_b - plain_b <= limit})
+        plain_t = setup["plain"]["bytes"]["total"]["frame_bytes"]
+        icpt_t = setup["interceptor"]["bytes"]["total"]["frame_bytes"]
+        targets.append({"target": "set-up bytes added per subscription (requestTopic + TCPROS) <= 6,000 B",
+                        "measured": icpt_t - plain_t, "limit": limit, "unit": "B", "met": icpt_t - plain_t <= limit})
+    for row in results.get("paper", []):
+        o = row.get("overhead_pct")
+        targets.append({"target": f"paper experiment N={row['messages']}: overhead <= 0.2 %", "measured": o,
+                        "limit": 0.2, "unit": "%", "met": o is not None and o <= 0.2})
+    return {**results, "targets": targets}
+
+
+def _fmt(v: float | None, fmt: str) -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def table_rows(report: dict) -> list[list[str]]:
+    """measure | impl | plain | interceptor | stunnel | interceptor/stunnel | interceptor/plain"""
+    rows = []
+    tp = report.get("throughput", {})
+    spec = [
+        ("latency", "p50_us", "one-way latency 1 kHz p50", "{:,.0f} us", False),
+        ("latency", "p99_us", "one-way latency 1 kHz p99", "{:,.0f} us", False),
+        ("small", "msg_per_s", "std_msgs/String throughput", "{:,.0f} msg/s", True),
+        ("image80k", "mb_per_s", "sensor_msgs/Image 80 KB", "{:,.0f} MB/s", True),
+        ("image1m", "mb_per_s", "sensor_msgs/Image 1 MB", "{:,.0f} MB/s", True),
+    ]
+    for key, metric, label, fmt, _higher in spec:
+        for impl in IMPLS:
+            if impl not in tp:
+                continue
+            vals = {t: tp[impl].get(t, {}).get(key, {}) for t in TRANSPORTS}
+            cells = []
+            for t in TRANSPORTS:
+                v = vals[t].get(metric)
+                lost = "" if vals[t].get("received") == vals[t].get("sent") else f" ({vals[t].get('received')}/{vals[t].get('sent')})"
+                cells.append(_fmt(v, fmt) + (lost if vals[t] else ""))
+            i, s, p = (vals[t].get(metric) for t in ("interceptor", "stunnel", "plain"))
+            rows.append([label, impl, *cells, _fmt(_ratio(i, s), "{:.2f}x"), _fmt(_ratio(i, p), "{:.2f}x")])
+    setup = report.get("setup")
+    if setup:
+        for what, label in (("tcpros_connect", "TCPROS connection set-up (median)"),
+                            ("request_topic", "requestTopic call (median)")):
+            v = {t: setup.get(t, {}).get(what, {}).get("median_ms") for t in TRANSPORTS}
+            rows.append([label, "probe", *(_fmt(v[t], "{:.2f} ms") for t in TRANSPORTS),
+                         _fmt(_ratio(v["interceptor"], v["stunnel"]), "{:.2f}x"),
+                         _fmt(_ratio(v["interceptor"], v["plain"]), "{:.2f}x")])
+        for what, label in (("tcpros", "bytes per TCPROS connection set-up"),
+                            ("total", "bytes per subscription set-up")):
+            v = {t: setup.get(t, {}).get("bytes", {}).get(what, {}).get("frame_bytes") for t in TRANSPORTS}
+            pay = {t: setup.get(t, {}).get("bytes", {}).get(what, {}).get("payload_bytes") for t in TRANSPORTS}
+            cells = [(_fmt(v[t], "{:,} B") + (f" ({pay[t]:,} payload)" if pay[t] is not None else "")) for t in TRANSPORTS]
+            rows.append([label, "probe", *cells, _fmt(_ratio(v["interceptor"], v["stunnel"]), "{:.2f}x"),
+                         _fmt(_ratio(v["interceptor"], v["plain"]), "{:.2f}x")])
+        tok = setup.get("token_bytes")
+        if tok:
+            rows.append(["access token per preamble (A / B)", "probe", "-",
+                         " / ".join(f"{v:,} B" for v in tok.values()), "-", "-", "-"])
+        rows.append(["paper: bytes per set-up", "CryptoROS", f"{PAPER_SETUP_BYTES[0]:,} B", f"{PAPER_SETUP_BYTES[1]:,} B",
+                     "-", "-", f"{PAPER_SETUP_BYTES[1] / PAPER_SETUP_BYTES[0]:.2f}x"])
+    for row in report.get("paper", []):
+        w, wi = row["without"]["mean_s"], row["with"]["mean_s"]
+        o = row.get("overhead_pct")
+        paper = row.get("paper")
+        note = f" (paper {paper['without_s']:.3f} / {paper['with_s']:.3f} s, {paper['overhead_pct']:+.1f} %)" if paper else ""
+        rows.append([f"paper experiment N={row['messages']} at 10 Hz{note}", "rospy", _fmt(w, "{:.3f} s"),
+                     _fmt(wi, "{:.3f} s"), "-", "-", _fmt(o, "{:+.2f} %")])
+        fw, fwi = row["without"]["mean_to_first_s"], row["with"]["mean_to_first_s"]
+        rows.append([f"  of which launch to first message (N={row['messages']})", "rospy", _fmt(fw, "{:.3f} s"),
+                     _fmt(fwi, "{:.3f} s"), "-", "-",
+                     _fmt((fwi - fw) * 1e3 if fw is not None and fwi is not None else None, "{:+.0f} ms")])
+    return rows
+
+
+HEADERS = ["measure", "nodes", "plain", "interceptor", "stunnel", "interceptor/stunnel", "interceptor/plain"]
+
+
+def render(report: dict, markdown: bool) -> None:
+    rows = table_rows(report)
+    if markdown:
+        click.echo("| " + " | ".join(HEADERS) + " |")
+        click.echo("|---|---|" + "---:|" * (len(HEADERS) - 2))
+        for row in rows:
+            click.echo("| " + " | ".join(row) + " |")
+        click.echo("\n| target | measured | met |\n|---|---:|---|")
+        for t in report["targets"]:
+            click.echo(f"| {t['target']} | {_target_value(t)} | {'yes' if t['met'] else 'NO'} |")
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(width=None if sys.stdout.isatty() else 150)
+    table = Table(title="ROS 1 through cryptoros interceptors vs stunnel4 vs plain (loopback, one run)")
+    for i, h in enumerate(HEADERS):
+        table.add_column(h, justify="left" if i < 2 else "right")
+    for row in rows:
+        table.add_row(*row)
+    console.print(table)
+    targets = Table(title="Targets")
+    targets.add_column("target")
+    targets.add_column("measured", justify="right")
+    targets.add_column("met")
+    for t in report["targets"]:
+        targets.add_row(t["target"], _target_value(t), "[green]yes[/]" if t["met"] else "[red]NO[/]")
+    console.print(targets)
+
+
+def _target_value(t: dict) -> str:
+    m = t.get("measured")
+    if m is None:
+        return "-"
+    text = {"x": f"{m:.2f}x", "us": f"{m:+,.0f} us", "B": f"{m:+,.0f} B", "%": f"{m:+.2f} %"}[t["unit"]]
+    if "limit" in t and t["unit"] == "us":
+        text += f" (stunnel {t['limit']:+,.0f} us)"
+    return text
+
+
+# ============================================================ command
+
+
+@click.command()
+@click.option("--quick", is_flag=True, help="Fewer messages, 5 set-up probes, the paper's experiment for N=100 only.")
+@click.option("--messages", type=int, default=None,
+              help="Messages per throughput/latency row (default: 2,000 latency, 50,000 small, 3,000 x 80 KB, 400 x 1 MB).")
+@click.option("--paper", "paper_counts", default=None,
+              help="Comma-separated N for the paper's experiment (default 100,250,500; --quick: 100; 0: skip).")
+@click.option("--paper-repeat", type=int, default=None, help="Repetitions per N and variant (default 4; --quick: 1).")
+@click.option("--setup-probes", type=int, default=None, help="Connection set-ups timed per transport (default 20).")
+@click.option("--only", type=click.Choice(IMPLS), default=None, help="Run one node client only.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write the results here.")
+@click.option("--markdown", is_flag=True, help="Print the tables as Markdown (for the README).")
+@click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
+def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
+                setup_probes: int | None, only: str | None, json_path: str | None, markdown: bool, keep: bool) -> None:
+    """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
+    if not Path(SYS_PY).exists() or subprocess.run([SYS_PY, "-c", "import rospy"], capture_output=True).returncode:
+        raise click.ClickException("rospy is not installed for /usr/bin/python3 (scripts/install-system-parts)")
+    for binary in ("rosmaster", "tcpdump"):
+        if shutil.which(binary) is None:
+            raise click.ClickException(f"{binary} is not installed (scripts/install-system-parts)")
+    if not (shutil.which("stunnel4") or shutil.which("stunnel")):
+        raise click.ClickException("stunnel4 is not installed (scripts/install-system-parts)")
+    if paper_counts is None:
+        counts = [100] if quick else [100, 250, 500]
+    else:
+        counts = [int(x) for x in paper_counts.split(",") if int(x) > 0]
+    reps = paper_repeat or (1 if quick else 4)
+    probes = setup_probes or (5 if quick else 20)
+    scale = 0.2 if quick else 1.0
+
+    def n(default: int) -> int:
+        return messages if messages else max(10, int(default * scale))
+
+    modes = [
+        Mode("latency", "one-way latency at 1 kHz", "latency", n(2000)),
+        Mode("small", "std_msgs/String throughput", "small", n(50_000)),
+        Mode("image80k", "sensor_msgs/Image 80 KB", "image", n(3000), 80_000),
+        Mode("image1m", "sensor_msgs/Image 1 MB", "image", n(400), 1_000_000),
+    ]
+    impls = [i for i in IMPLS if only in (None, i)]
+    started = time.monotonic()
+
+    def progress(message: str) -> None:
+        click.echo(f"[{time.monotonic() - started:6.1f} s] {message}", err=True)
+
+    workdir = Path(tempfile.mkdtemp(prefix="cryptoros-bench-icpt-"))
+    results: dict = {"config": {"messages": {m.key: m.n for m in modes}, "paper_counts": counts, "paper_repeat": reps,
+                                "setup_probes": probes, "cpus": os.cpu_count()}}
+    try:
+        with bench_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
+                                                            ("stunnel_b", "127.0.0.1")], progress=progress) as net:
+            progress("network up")
+            results["setup"] = measure_setup(net, probes, workdir, progress)
+            tp: dict = {}
+            for impl in impls:
+                for transport in TRANSPORTS:
+                    tp.setdefault(impl, {})[transport] = run_pair(net, impl, transport, modes, workdir, progress)
+            results["throughput"] = tp
+            if counts:
+                results["paper"] = paper_experiment(net, counts, reps, workdir, progress)
+    except NetworkError as exc:
+        raise click.ClickException(f"{exc} (work directory {workdir})") from None
+    finally:
+        if keep:
+            click.echo(f"work directory kept: {workdir}", err=True)
+        else:
+            shutil.rmtree(workdir, ignore_errors=True)
+    report = build_report(results)
+    report["elapsed_s"] = time.monotonic() - started
+    if json_path:
+        Path(json_path).write_text(json.dumps(report, indent=2))
+    render(report, markdown)
+    click.echo(_legend(), err=False)
+
+
+def _legend() -> str:
+    return (
+        "\nplain: straight to rosmaster and the talker. interceptor: talker on A, listener on B, everything through\n"
+        "A's and B's interceptors (mutual TLS + token; header checked, then bytes pumped). stunnel: a fixed chain,\n"
+        "talker's TCPROS port <- stunnel4 server <- stunnel4 client <- listener (XML-RPC plain). 'probe' rows: an\n"
+        "in-process subscriber against an idle publisher of our node client; bytes counted by tcpdump on lo between\n"
+        "the two hosts (frames as Wireshark counts them, TCP payload in brackets); the TCPROS row is from connect\n"
+        "to the publisher's header reply (no message yet); a subscription adds the requestTopic call. stunnel's\n"
+        "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates).\n"
+        "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."
+    )
+
+
+__all__ = ["interceptor", "build_report", "flows"]

@@ -1,0 +1,258 @@
+"""A small robot network on loopback for the benchmarks (no pytest, no tests/ import).
+
+The same network as ``tests/interceptor_harness.py``, built from the installed
+package: a PKI (:class:`certs.pki.PKI`), a registry filled by ``cryptoros-authz
+import``, a real ``cryptoros-authz serve`` daemon, Debian's ``rosmaster``, and one
+``cryptoros-interceptor --config`` per host:
+
+==========  ============  ==========================================
+host        address       interceptor role
+==========  ============  ==========================================
+master      127.0.0.4     master (fronts rosmaster)
+robot_a     127.0.0.2     node (publishers live here)
+robot_b     127.0.0.3     node (subscribers live here)
+==========  ============  ==========================================
+
+Extra certificates (``stunnel_a``, ``stunnel_b``) are issued from the same CA for
+the stunnel comparison. Every process is stopped in a ``finally``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from certs.pki import PKI
+
+HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
+SIGNING_PASSPHRASE = "bench-signing-passphrase"
+
+
+class NetworkError(RuntimeError):
+    """A part of the benchmark network did not come up."""
+
+
+def tool(name: str) -> str:
+    """A console script of this package (next to the running interpreter) or on PATH."""
+    sibling = Path(sys.executable).parent / name
+    if sibling.exists():
+        return str(sibling)
+    found = shutil.which(name)
+    if found is None:
+        raise NetworkError(f"{name} is not installed (pip install the cryptoros package)")
+    return found
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen | None = None, what: str = "") -> None:
+    """Bounded wait until something accepts on ``host:port``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise NetworkError(f"{what or proc.args[0]} exited with {proc.returncode} before listening on {host}:{port}")
+        with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.5):
+            return
+        time.sleep(0.05)
+    raise NetworkError(f"{what or 'nothing'} listened on {host}:{port} within {timeout:.0f} s")
+
+
+def stop(proc: subprocess.Popen | None, timeout: float = 5.0) -> None:
+    """SIGTERM, then SIGKILL after ``timeout``: bounded."""
+    if proc is None or proc.poll() is not None:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=timeout)
+
+
+def clean_env(**extra: str) -> dict[str, str]:
+    """The environment without ROS_* and PYTHONPATH, plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ROS_") and not k.startswith("CRYPTOROS_AUTHZ")}
+    env.pop("PYTHONPATH", None)
+    env.update(extra)
+    return env
+
+
+@dataclass
+class Host:
+    name: str
+    address: str
+    public_port: int
+    local_master_port: int
+    config: Path
+    proc: subprocess.Popen | None = None
+    log: Path | None = None
+
+    @property
+    def master_uri(self) -> str:
+        return f"http://127.0.0.1:{self.local_master_port}/"
+
+
+@dataclass
+class Network:
+    workdir: Path
+    pki: PKI
+    rosmaster_uri: str
+    authz_url: str
+    hosts: dict[str, Host] = field(default_factory=dict)
+    procs: list[subprocess.Popen] = field(default_factory=list)
+
+    def ros_env(self, host: str | None, **extra: str) -> dict[str, str]:
+        """Environment of an unmodified ROS node on ``host`` (None: straight to rosmaster)."""
+        uri = self.hosts[host].master_uri if host else self.rosmaster_uri
+        home = self.workdir / "ros_home"
+        home.mkdir(exist_ok=True)
+        return clean_env(ROS_MASTER_URI=uri, ROS_IP="127.0.0.1", ROS_HOME=str(home), PYTHONUNBUFFERED="1", **extra)
+
+    def cert(self, name: str) -> tuple[Path, Path]:
+        return self.pki.cert_path_for(name), self.pki.key_path_for(name)
+
+    @property
+    def ca(self) -> Path:
+        return self.pki.ca_cert_path
+
+
+def _interceptor_config(
+    pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str,
+    authz_url: str, upstream: str | None,
+) -> str:
+    roles = ["master"] if upstream else ["node"]
+    lines = [
+        f'manager = "{name}"',
+        f'roles = ["{roles[0]}"]',
+        "[tls]",
+        f'ca = "{pki.ca_cert_path}"',
+        f'cert = "{pki.cert_path_for(name)}"',
+        f'key = "{pki.key_path_for(name)}"',
+        f'crl = "{pki.crl_path}"',
+        "[authz]",
+        f'url = "{authz_url}"',
+        "[listen]",
+        f'public = "{address}:{public_port}"',
+    ]
+    if not upstream:
+        lines.append(f'local_master = "127.0.0.1:{local_master_port}"')
+    lines += ["[master]", 'manager = "master"', f'interceptor = "{master_endpoint}"']
+    if upstream:
+        lines.append(f'upstream = "{upstream}"')
+    return "\n".join(lines) + "\n"
+
+
+@contextlib.contextmanager
+def bench_network(
+    workdir: Path,
+    policy: str,
+    *,
+    hosts: dict[str, str] | None = None,
+    extra_certs: Sequence[tuple[str, str]] = (),
+    log_level: str = "warning",
+    progress: Callable[[str], None] = lambda _m: None,
+) -> Iterator[Network]:
+    """PKI, registry, authz daemon, rosmaster and the three interceptors.
+
+    ``hosts`` maps host names to loopback addresses (default :data:`HOSTS`; ``master``
+    is required and fronts rosmaster, every other host gets a node-role interceptor).
+    ``policy`` is the registry YAML with one ``{name}`` placeholder per host for the
+    certificate fingerprints. ``extra_certs`` are (name, address)
+    pairs issued as interceptor certificates with an IP SAN (e.g. for stunnel).
+    """
+    rosmaster = shutil.which("rosmaster")
+    if rosmaster is None:
+        raise NetworkError("rosmaster is not installed (scripts/install-system-parts)")
+    hosts = dict(hosts or HOSTS)
+    workdir.mkdir(parents=True, exist_ok=True)
+    progress("PKI and registry")
+    pki = PKI.init(workdir / "pki", unsafe_no_passphrase=True)
+    fingerprints = {}
+    for name, address in hosts.items():
+        issued = pki.issue(name, kind="master" if name == "master" else "interceptor", sans=(f"IP:{address}",),
+                           unsafe_no_passphrase=True)
+        fingerprints[name] = issued.fingerprint_sha256
+    for name, address in extra_certs:
+        pki.issue(name, kind="interceptor", sans=(f"IP:{address}",), unsafe_no_passphrase=True)
+    server = pki.issue("authz", kind="server", sans=("IP:127.0.0.1", "DNS:localhost"), unsafe_no_passphrase=True)
+    db = f"sqlite:///{workdir / 'registry.db'}"
+    policy_file = workdir / "policy.yaml"
+    policy_file.write_text(policy.format(**fingerprints))
+    authz = tool("cryptoros-authz")
+    env = clean_env()
+    result = subprocess.run([authz, "--db", db, "import", str(policy_file)], capture_output=True, text=True,
+                            timeout=60, env=env)
+    if result.returncode != 0:
+        raise NetworkError(f"cryptoros-authz import failed: {result.stderr.strip() or result.stdout.strip()}")
+    procs: list[subprocess.Popen] = []
+    net: Network | None = None
+    try:
+        progress("authorization server and rosmaster")
+        authz_port = free_port()
+        pass_file = workdir / "signing.pass"
+        pass_file.write_text(SIGNING_PASSPHRASE + "\n")
+        authz_log = (workdir / "authz.log").open("w")
+        daemon = subprocess.Popen(
+            [authz, "--db", db, "serve", "--port", str(authz_port), "--ca", str(pki.ca_cert_path),
+             "--cert", str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
+             "--key-passphrase-file", str(pass_file), "--log-level", "warning"],
+            stdout=authz_log, stderr=subprocess.STDOUT, env=env,
+        )
+        procs.append(daemon)
+        ros_port = free_port()
+        master_env = clean_env(ROS_MASTER_URI=f"http://127.0.0.1:{ros_port}", ROS_HOME=str(workdir), ROS_IP="127.0.0.1")
+        master = subprocess.Popen([rosmaster, "--core", "-p", str(ros_port)], env=master_env,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        procs.append(master)
+        wait_port("127.0.0.1", authz_port, 30, daemon, "cryptoros-authz")
+        wait_port("127.0.0.1", ros_port, 15, master, "rosmaster")
+        net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"http://127.0.0.1:{ros_port}/",
+                      authz_url=f"https://127.0.0.1:{authz_port}", procs=procs)
+        master_public = free_port(hosts["master"])
+        interceptor = tool("cryptoros-interceptor")
+        for name, address in hosts.items():
+            public = master_public if name == "master" else free_port(address)
+            local_master = free_port()
+            config = workdir / f"{name}.toml"
+            config.write_text(_interceptor_config(
+                pki, name, address, public_port=public, local_master_port=local_master,
+                master_endpoint=f"{hosts['master']}:{master_public}", authz_url=net.authz_url,
+                upstream=f"http://127.0.0.1:{ros_port}" if name == "master" else None,
+            ))
+            net.hosts[name] = Host(name, address, public, local_master, config)
+        progress("interceptors")
+        for host in net.hosts.values():
+            host.log = workdir / f"interceptor-{host.name}.log"
+            host.proc = subprocess.Popen(
+                [interceptor, "--config", str(host.config), "--log-level", log_level],
+                stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=env,
+            )
+            procs.append(host.proc)
+        for host in net.hosts.values():
+            wait_port(host.address, host.public_port, 30, host.proc, f"interceptor {host.name}")
+            if host.name != "master":
+                wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {host.name}")
+        yield net
+    finally:
+        for proc in reversed(procs):
+            stop(proc, timeout=10)
+
+
+__all__ = ["HOSTS", "Host", "Network", "NetworkError", "bench_network", "clean_env", "free_port", "stop", "tool",
+           "wait_port"]

@@ -1,0 +1,61 @@
+"""Smoke test of ``cryptoros bench interceptor`` in its quickest mode.
+
+Runs the whole benchmark (network, rospy and our node client over plain ROS,
+interceptors and stunnel4, set-up probes with tcpdump, the paper's experiment with
+few messages) and checks that the JSON holds every row with positive numbers. Speed
+is never asserted here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from tests.support import require, run, script
+
+pytestmark = [pytest.mark.ros1, pytest.mark.slow]
+
+
+@pytest.mark.timeout(240)
+def test_bench_interceptor_quick(tmp_path):
+    require("rosmaster", "tcpdump", "stunnel4")
+    if os.geteuid() != 0:
+        pytest.skip("tcpdump on lo needs root")
+    out = tmp_path / "bench.json"
+    result = run([script("cryptoros"), "bench", "interceptor", "--quick", "--messages", "200", "--paper", "30",
+                  "--setup-probes", "3", "--json", str(out)], timeout=230)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
+    report = json.loads(out.read_text())
+
+    for impl in ("rospy", "ours"):
+        for transport in ("plain", "interceptor", "stunnel"):
+            rows = report["throughput"][impl][transport]
+            assert rows["latency"]["p50_us"] > 0 and rows["latency"]["p99_us"] > 0, (impl, transport, rows)
+            assert rows["small"]["msg_per_s"] > 0, (impl, transport, rows)
+            assert rows["image80k"]["mb_per_s"] > 0, (impl, transport, rows)
+            assert rows["image1m"]["mb_per_s"] > 0, (impl, transport, rows)
+            for row in rows.values():
+                assert row["received"] > 0
+
+    setup = report["setup"]
+    for transport in ("plain", "interceptor", "stunnel"):
+        assert setup[transport]["tcpros_connect"]["median_ms"] > 0
+        assert setup[transport]["bytes"]["tcpros"]["frame_bytes"] > 0
+        assert setup[transport]["bytes"]["tcpros"]["payload_bytes"] > 0
+    for transport in ("plain", "interceptor"):
+        assert setup[transport]["request_topic"]["median_ms"] > 0
+        assert setup[transport]["bytes"]["request_topic"]["frame_bytes"] > 0
+    # TLS and tokens cost bytes: the tunnelled set-up is bigger than the plain one
+    assert setup["interceptor"]["bytes"]["tcpros"]["frame_bytes"] > setup["plain"]["bytes"]["tcpros"]["frame_bytes"]
+
+    (paper,) = report["paper"]
+    assert paper["messages"] == 30
+    for variant in ("without", "with"):
+        assert paper[variant]["mean_s"] > 3.0, paper  # 30 messages at 10 Hz
+        assert not paper[variant]["errors"], paper
+    assert paper["overhead_pct"] is not None
+
+    assert report["targets"] and all(isinstance(t["met"], bool) for t in report["targets"])
+    assert "interceptor/stunnel" in result.stdout
