@@ -131,6 +131,7 @@ class TokenKeeper:
         self._clock = clock
         self._token: OwnToken | None = None
         self.refreshed = asyncio.Event()
+        self._wake = asyncio.Event()
 
     def current(self) -> str:
         token = self._token
@@ -147,20 +148,31 @@ class TokenKeeper:
         self.refreshed.set()
         log.info("access token refreshed, valid for %.0f s", self._token.expires_at - self._clock())
 
+    def invalidate(self) -> None:
+        """Our token was revoked (or our manager disabled): drop it and ask again now."""
+        self._token = None
+        self._wake.set()
+
     async def run(self) -> None:
-        """Refresh before expiry forever; back off (1 s doubling to 30 s) on failure."""
+        """Refresh before expiry forever; back off (1 s doubling to 30 s) on failure;
+        wake early when :meth:`invalidate` is called."""
         backoff = 1.0
         while True:
             try:
                 await self.refresh()
                 backoff = 1.0
                 lifetime = self._token.expires_at - self._clock()
-                await asyncio.sleep(max(1.0, min(lifetime - self._margin, lifetime / 2)))
+                delay = max(1.0, min(lifetime - self._margin, lifetime / 2))
             except TokenError as exc:
                 remaining = (self._token.expires_at - self._clock()) if self._token else 0
                 log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail, max(0, remaining))
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, 30.0)
+                delay = backoff
+                backoff = min(backoff * 2, 8.0)
+            self._wake.clear()
+            try:
+                await asyncio.wait_for(self._wake.wait(), delay)
+            except asyncio.TimeoutError:
+                pass
 
 
 @dataclass(eq=False)
@@ -195,6 +207,8 @@ class PeerVerifier:
         self._last_jwks = 0.0
         self.ready = asyncio.Event()
         self.last_feed_at: float | None = None
+        #: Called with each new feed (after open streams were cut).
+        self.listeners: list[Callable[[Revocations], None]] = []
 
     def verify(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
         """Verify with the keys and revocations known now; TokenError on any failure."""
@@ -255,6 +269,8 @@ class PeerVerifier:
                 entry.on_revoked(reason)
             except Exception:  # a broken stream must not stop the others from being cut
                 log.exception("closing a revoked stream failed")
+        for listener in self.listeners:
+            listener(revocations)
         return cut
 
     async def run(self) -> None:

@@ -36,6 +36,7 @@ Example::
     [limits]
     max_connections_per_peer = 64
     max_new_connections_per_second = 50.0
+    max_messages_per_second = 2000.0  # per peer, over TCPROS; absent = unlimited
 
 Relative paths are relative to the configuration file's directory.
 """
@@ -116,6 +117,9 @@ class Limits:
     max_xmlrpc_body: int = 1 << 20
     max_header_size: int = 1 << 20
     handshake_timeout: float = 10.0
+    #: Messages per second one peer may send into this host over TCPROS (all its
+    #: streams together); absent = no limit. Excess is throttled, not parsed or dropped.
+    max_messages_per_second: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -266,7 +270,7 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
             )
 
     limits_raw = _check_keys(top.get("limits", {}), "limits")
-    limit_types = {f.name: (float if f.type in ("float", float) else int) for f in fields(Limits)}
+    limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
     limits = Limits(**{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()})
 
     return InterceptorConfig(

@@ -17,6 +17,7 @@ already read past the header, and returns a future resolved when both sides clos
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Callable
 
 DEFAULT_BUFFER_SIZE = 256 * 1024
@@ -25,16 +26,97 @@ HIGH_WATER = 1024 * 1024
 LOW_WATER = 256 * 1024
 
 
-class PumpProtocol(asyncio.BufferedProtocol):
-    """Reads into one reused buffer and writes each read to the peer transport."""
+class FrameCounter:
+    """Finds TCPROS frame starts (``u32 LE length`` + body) in a byte stream without
+    copying bodies: only the 4-byte length prefixes are looked at."""
 
-    def __init__(self, *, buffer_size: int = DEFAULT_BUFFER_SIZE, on_bytes: Callable[[int], None] | None = None):
+    __slots__ = ("_need", "_prefix")
+
+    def __init__(self) -> None:
+        self._need = 0  # body bytes still to come of the current frame
+        self._prefix = b""  # a length prefix split across reads
+
+    def take(self, data: bytes | bytearray | memoryview, allowed: int) -> tuple[int, int]:
+        """Walk ``data`` but start at most ``allowed`` new frames: returns the byte
+        offset where the walk stopped (everything before may be forwarded) and how
+        many frames were started. A started frame's body is always let through."""
+        started, pos, n = 0, 0, len(data)
+        while pos < n:
+            if self._need:
+                step = min(self._need, n - pos)
+                self._need -= step
+                pos += step
+                continue
+            if not self._prefix:
+                if started >= allowed:
+                    break
+                started += 1
+            chunk = bytes(data[pos : pos + 4 - len(self._prefix)])
+            pos += len(chunk)
+            self._prefix += chunk
+            if len(self._prefix) == 4:
+                self._need = int.from_bytes(self._prefix, "little")
+                self._prefix = b""
+        return pos, started
+
+
+class MessageBudget:
+    """A token bucket of messages per second, shared by every stream of one peer."""
+
+    def __init__(self, rate: float, *, burst: float | None = None, clock: Callable[[], float] = time.monotonic):
+        if rate <= 0:
+            raise ValueError("rate must be positive")
+        self.rate = rate
+        self.burst = burst if burst is not None else max(1.0, rate)
+        self._clock = clock
+        self._tokens = self.burst
+        self._last = clock()
+        self.throttled = 0  # how many times a stream had to wait
+
+    def allowance(self) -> int:
+        """Whole messages that may pass now."""
+        now = self._clock()
+        self._tokens = min(self.burst, self._tokens + (now - self._last) * self.rate)
+        self._last = now
+        return max(0, int(self._tokens))
+
+    def spend(self, count: int) -> None:
+        self._tokens -= count
+
+
+class PumpProtocol(asyncio.BufferedProtocol):
+    """Reads into one reused buffer and writes each read to the peer transport.
+
+    With a ``budget``, the TCPROS frames read are counted and reading pauses while the
+    peer is over its message rate (the sender then sees TCP backpressure)."""
+
+    def __init__(
+        self,
+        *,
+        buffer_size: int = DEFAULT_BUFFER_SIZE,
+        on_bytes: Callable[[int], None] | None = None,
+        budget: MessageBudget | None = None,
+    ):
         self._buffer = bytearray(buffer_size)
         self._view = memoryview(self._buffer)
         self._on_bytes = on_bytes
+        self._budget = budget
+        self._frames = FrameCounter() if budget is not None else None
+        self._held = bytearray()  # bytes read but over the message budget
+        self._paused_by: set[str] = set()
         self.transport: asyncio.Transport | None = None
         self.peer: PumpProtocol | None = None
         self.closed: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+    def pause(self, reason: str) -> None:
+        if not self._paused_by and self.transport is not None and not self.transport.is_closing():
+            self.transport.pause_reading()
+        self._paused_by.add(reason)
+
+    def unpause(self, reason: str) -> None:
+        self._paused_by.discard(reason)
+        if not self._paused_by and self.transport is not None and not self.transport.is_closing():
+            self.transport.resume_reading()
 
     # -- wiring
     def connection_made(self, transport: asyncio.BaseTransport) -> None:  # pragma: no cover - set_protocol path
@@ -50,8 +132,40 @@ class PumpProtocol(asyncio.BufferedProtocol):
         return self._view
 
     def buffer_updated(self, nbytes: int) -> None:
-        # Copy out of the reused buffer: a transport may keep what it could not send yet.
-        self.forward(bytes(self._view[:nbytes]))
+        if self._budget is None:
+            # Copy out of the reused buffer: a transport may keep what it could not send yet.
+            self.forward(bytes(self._view[:nbytes]))
+            return
+        self._held += self._view[:nbytes]
+        self._release()
+
+    def feed(self, data: bytes) -> None:
+        """Bytes read from our side before the pump took over, as if just read."""
+        if self._budget is None:
+            self.forward(data)
+        else:
+            self._held += data
+            self._release()
+
+    def _release(self) -> None:
+        """Forward the held frames the budget allows; hold the rest and stop reading
+        until the budget refills (the sender sees TCP backpressure)."""
+        cut, started = self._frames.take(self._held, self._budget.allowance())
+        self._budget.spend(started)
+        if cut:
+            self.forward(bytes(self._held[:cut]))
+            del self._held[:cut]
+        if self._held:
+            if "rate" not in self._paused_by:
+                self._budget.throttled += 1
+            self.pause("rate")
+            asyncio.get_running_loop().call_later(1.0 / self._budget.rate, self._retry)
+        else:
+            self.unpause("rate")
+
+    def _retry(self) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self._release()
 
     def forward(self, data: bytes) -> None:
         peer = self.peer
@@ -75,12 +189,12 @@ class PumpProtocol(asyncio.BufferedProtocol):
 
     # -- backpressure: our transport's write buffer is full -> stop reading the peer
     def pause_writing(self) -> None:
-        if self.peer is not None and self.peer.transport is not None:
-            self.peer.transport.pause_reading()
+        if self.peer is not None:
+            self.peer.pause("backpressure")
 
     def resume_writing(self) -> None:
-        if self.peer is not None and self.peer.transport is not None and not self.peer.transport.is_closing():
-            self.peer.transport.resume_reading()
+        if self.peer is not None:
+            self.peer.unpause("backpressure")
 
 
 def splice(
@@ -91,23 +205,26 @@ def splice(
     right_pending: bytes = b"",
     on_left_bytes: Callable[[int], None] | None = None,
     on_right_bytes: Callable[[int], None] | None = None,
+    left_budget: MessageBudget | None = None,
+    right_budget: MessageBudget | None = None,
 ) -> asyncio.Future[None]:
     """Relay ``left`` <-> ``right`` until both close.
 
     ``left_pending`` are bytes already read from ``left`` (past the header) that must
     reach ``right`` first; likewise ``right_pending``. ``on_*_bytes`` count the bytes
-    read from each side (for metrics); they must be cheap.
+    read from each side (for metrics); they must be cheap. A ``*_budget`` rate-limits
+    the TCPROS frames read from that side.
     """
-    a = PumpProtocol(on_bytes=on_left_bytes)
-    b = PumpProtocol(on_bytes=on_right_bytes)
+    a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget)
+    b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget)
     a.attach(left, b)
     b.attach(right, a)
     left.set_protocol(a)
     right.set_protocol(b)
     if left_pending:
-        a.forward(left_pending)
+        a.feed(left_pending)
     if right_pending:
-        b.forward(right_pending)
+        b.feed(right_pending)
     if left.is_closing():
         a.connection_lost(None)
     if right.is_closing():
@@ -115,4 +232,4 @@ def splice(
     return asyncio.gather(a.closed, b.closed)  # type: ignore[return-value]
 
 
-__all__ = ["PumpProtocol", "splice", "DEFAULT_BUFFER_SIZE"]
+__all__ = ["DEFAULT_BUFFER_SIZE", "FrameCounter", "MessageBudget", "PumpProtocol", "splice"]

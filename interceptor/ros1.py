@@ -68,7 +68,7 @@ from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
 from interceptor.metrics import Metrics
-from interceptor.pump import splice
+from interceptor.pump import MessageBudget, splice
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Canonical, Translator
 
 log = logging.getLogger("cryptoros.interceptor")
@@ -245,6 +245,7 @@ class Interceptor:
         self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         self._open_per_peer: dict[str, int] = {}
+        self._budgets: dict[str, MessageBudget] = {}
         self._new_conn_limiter = RateLimiter(cfg.limits.max_new_connections_per_second)
         self._servers: list[asyncio.AbstractServer] = []
         self._public_server: asyncio.AbstractServer | None = None
@@ -259,6 +260,7 @@ class Interceptor:
             await asyncio.wait_for(self._first_token(), token_wait)
         except (asyncio.TimeoutError, TokenError) as exc:
             log.error("no access token yet (%s): everything is refused until one arrives", exc)
+        self.verifier.listeners.append(self._on_feed)
         self._tasks.append(asyncio.create_task(self.keeper.run(), name="token-keeper"))
         self._tasks.append(asyncio.create_task(self.verifier.run(), name="revocation-feed"))
         self._public_server = await self._listen_public(self._server_ctx)
@@ -355,6 +357,15 @@ class Interceptor:
         await web.TCPSite(self._metrics_runner, self.cfg.metrics.host, self.cfg.metrics.port).start()
 
     # ================================================================ helpers
+    def _on_feed(self, revocations) -> None:
+        """When the feed revokes our own token or disables our manager, drop the token
+        (nothing is allowed on it any more) and ask for a new one at once."""
+        own = self._own_access
+        if own is not None and (own.jti in revocations.revoked_jtis or own.subject in revocations.disabled_subjects):
+            log.warning("our own access token was revoked; asking for a new one")
+            self._own_access = None
+            self.keeper.invalidate()
+
     def own_access(self) -> AccessToken:
         """Our own token, verified like a peer's (it carries our grants)."""
         token = self.keeper.current()
@@ -700,21 +711,39 @@ class Interceptor:
             raise
         self.metrics.allowed.labels(purpose).inc()
         writer.write(encode_header(reply) + reply_rest)
-        await self._pump(reader, writer, local_reader, local_writer)
+        # Service requests from the peer count against its message budget.
+        budget = self._budget(peer) if purpose == "service" else None
+        await self._pump(reader, writer, local_reader, local_writer, left_budget=budget)
 
-    async def _pump(self, peer_reader, peer_writer, local_reader, local_writer) -> None:
-        """Hand both streams to the byte pump and wait until both sides closed."""
+    def _budget(self, peer: Peer) -> MessageBudget | None:
+        """The message budget of one peer (shared by all its streams), if limited."""
+        rate = self.cfg.limits.max_messages_per_second
+        if rate is None:
+            return None
+        budget = self._budgets.get(peer.manager)
+        if budget is None or budget.rate != rate:
+            budget = self._budgets[peer.manager] = MessageBudget(rate)
+        return budget
+
+    async def _pump(
+        self, left_reader, left_writer, right_reader, right_writer, *,
+        left_budget: MessageBudget | None = None, right_budget: MessageBudget | None = None,
+    ) -> None:
+        """Hand both streams to the byte pump and wait until both sides closed. The
+        left side is toward the peer (bytes read there count as rx)."""
         tx = self.metrics.bytes.labels("tx")
         rx = self.metrics.bytes.labels("rx")
         done = splice(
-            peer_writer.transport,
-            local_writer.transport,
-            left_pending=_take_stream_buffer(peer_reader),
-            right_pending=_take_stream_buffer(local_reader),
+            left_writer.transport,
+            right_writer.transport,
+            left_pending=_take_stream_buffer(left_reader),
+            right_pending=_take_stream_buffer(right_reader),
             on_left_bytes=rx.inc,
             on_right_bytes=tx.inc,
+            left_budget=left_budget,
+            right_budget=right_budget,
         )
-        for transport in (peer_writer.transport, local_writer.transport):
+        for transport in (left_writer.transport, right_writer.transport):
             if not transport.is_closing() and not transport.is_reading():
                 transport.resume_reading()
         await done
@@ -806,7 +835,9 @@ class Interceptor:
             writer.write(encode_header(reply) + reply_rest)
             self.metrics.open_streams.labels(purpose).inc()
             try:
-                await self._pump(reader, writer, tunnel_reader, tunnel_writer)
+                # Messages a peer publishes into this host count against its budget.
+                budget = self._budget(peer) if purpose == "topic" else None
+                await self._pump(tunnel_reader, tunnel_writer, reader, writer, left_budget=budget)
             finally:
                 unwatch()
                 self.metrics.open_streams.labels(purpose).dec()

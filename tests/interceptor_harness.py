@@ -42,6 +42,8 @@ managers:
     - {{node: /roscpp_talker, topic: /chatter, type: std_msgs/String}}
     - {{node: /talker_a, topic: /chatter, type: std_msgs/String}}
     - {{node: /talker_a, topic: /secret, type: std_msgs/String}}
+    subscribe:
+    - {{node: /victim, topic: /chatter, type: std_msgs/String}}
     serve:
     - {{node: /rospy_server, service: /rospy_loggers, type: roscpp/GetLoggers}}
 - name: robot_b
@@ -49,6 +51,7 @@ managers:
   grants:
     subscribe:
     - {{node: /rospy_listener, topic: /chatter, type: std_msgs/String}}
+    - {{node: /victim, topic: /chatter, type: std_msgs/String}}
     - {{node: '*', topic: /chatter, type: std_msgs/String}}
     call:
     - {{node: /rospy_client, service: /rospy_loggers, type: roscpp/GetLoggers}}
