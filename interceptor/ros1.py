@@ -184,12 +184,16 @@ class XmlRpcTunnel:
             for attempt in (0, 1):
                 fresh = self._stream is None
                 if fresh:
-                    self._stream = await self._owner.open_tunnel(*self._address, self._purpose, self._target)
+                    # The first request rides with the preamble: no extra round trip.
                     self._conn = XmlRpcConnection(Role.CLIENT, max_body_size=self._owner.cfg.limits.max_xmlrpc_body)
+                    self._stream = await self._owner.open_tunnel(
+                        *self._address, self._purpose, self._target, first=self._conn.send(request)
+                    )
                 reader, writer, _peer = self._stream
                 try:
-                    writer.write(self._conn.send(request))
-                    await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
+                    if not fresh:
+                        writer.write(self._conn.send(request))
+                        await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
                     event = await read_xmlrpc(reader, self._conn, CALL_TIMEOUT)
                     if isinstance(event, ConnectionClosed):
                         raise ConnectionResetError("tunnel closed")
@@ -208,6 +212,34 @@ class XmlRpcTunnel:
     async def close(self) -> None:
         async with self._lock:
             await self.close_locked()
+
+
+class TunnelPool:
+    """Reusable XML-RPC tunnels to one peer endpoint: rospy opens a new connection for
+    every node-API call, and a TLS handshake per call would cost about 8 KB and
+    10 ms; idle tunnels are kept (up to ``max_idle``) and reused."""
+
+    def __init__(self, owner: Interceptor, host: str, port: int, purpose: str, target: str, max_idle: int = 4):
+        self._args = (owner, host, port, purpose, target)
+        self._idle: list[XmlRpcTunnel] = []
+        self._max_idle = max_idle
+
+    async def call(self, request: Request) -> Response | Fault:
+        tunnel = self._idle.pop() if self._idle else XmlRpcTunnel(*self._args)
+        try:
+            response = await tunnel.call(request)
+        except BaseException:
+            await tunnel.close()
+            raise
+        if len(self._idle) < self._max_idle:
+            self._idle.append(tunnel)
+        else:
+            await tunnel.close()
+        return response
+
+    async def close(self) -> None:
+        while self._idle:
+            await self._idle.pop().close()
 
 
 class Interceptor:
@@ -246,6 +278,7 @@ class Interceptor:
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         self._open_per_peer: dict[str, int] = {}
         self._budgets: dict[str, MessageBudget] = {}
+        self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._new_conn_limiter = RateLimiter(cfg.limits.max_new_connections_per_second)
         self._servers: list[asyncio.AbstractServer] = []
         self._public_server: asyncio.AbstractServer | None = None
@@ -311,6 +344,8 @@ class Interceptor:
         for server in servers:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(server.wait_closed(), 1)
+        for pool in self._pools.values():
+            await pool.close()
         if self._metrics_runner is not None:
             await self._metrics_runner.cleanup()
         await self.authz.close()
@@ -405,11 +440,20 @@ class Interceptor:
         log.debug("relay %s:%d -> %s", host, port, target)
         return host, port
 
+    def pool(self, host: str, port: int, purpose: str, target: str) -> TunnelPool:
+        key = (host, port, purpose, target)
+        pool = self._pools.get(key)
+        if pool is None:
+            pool = self._pools[key] = TunnelPool(self, host, port, purpose, target)
+        return pool
+
     async def open_tunnel(
-        self, host: str, port: int, purpose: str, target: str
+        self, host: str, port: int, purpose: str, target: str, *, first: bytes = b""
     ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter, Peer]:
         """Mutual TLS to a peer interceptor, our token in the preamble, its token in
-        the reply (verified and bound to its certificate)."""
+        the reply (verified and bound to its certificate). ``first`` (a connection
+        header, an XML-RPC request) is sent right behind the preamble, saving a round
+        trip; the peer reads it only once our token passed."""
         token = self.keeper.current()
         try:
             reader, writer = await asyncio.wait_for(
@@ -422,7 +466,7 @@ class Interceptor:
         except (OSError, asyncio.TimeoutError) as exc:
             raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
         try:
-            writer.write(encode(Preamble(token=token, purpose=purpose, target=target)))
+            writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
             preamble_reader = PreambleReader(PreambleReply)
             reply = None
             while reply is None:
@@ -501,6 +545,8 @@ class Interceptor:
         except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
             if isinstance(exc, CryptorosError):
                 self._deny(purpose, exc, who)
+        except asyncio.CancelledError:
+            pass  # stop(): the grace period is over
         finally:
             unwatch()
             self.metrics.open_streams.labels(purpose).dec()
@@ -751,7 +797,7 @@ class Interceptor:
     # ---------------------------------------------------------------- local master
     async def _on_local_master(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         master = self.cfg.master.interceptor or self.cfg.public
-        tunnel = XmlRpcTunnel(self, master.host, master.port, "master", "")
+        tunnel = self.pool(master.host, master.port, "master", "")
 
         def decide(call: Request) -> Request:
             own = self.own_access()
@@ -774,13 +820,12 @@ class Interceptor:
         except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
             log.warning("local master connection dropped: %s", exc)
         finally:
-            await tunnel.close()
             writer.close()
 
     # ---------------------------------------------------------------- relays
     async def _on_xmlrpc_relay(self, reader, writer, target: Canonical) -> None:
         """A local process calls a remote node's API (or the master calls a node's)."""
-        tunnel = XmlRpcTunnel(self, target.host, target.port, "node", target.id)
+        tunnel = self.pool(target.host, target.port, "node", target.id)
 
         def decide(call: Request) -> Request:
             if call.method == "shutdown":
@@ -798,7 +843,6 @@ class Interceptor:
         except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
             log.warning("relay %s dropped: %s", target, exc)
         finally:
-            await tunnel.close()
             writer.close()
 
     async def _on_tcpros_relay(self, reader, writer, target: Canonical) -> None:
@@ -821,9 +865,10 @@ class Interceptor:
                 client_types = check_service_client_header(fields, grants=own.grants)
             else:
                 raise PolicyDenied("malformed", "TCPROS header with neither topic nor service")
-            tunnel_reader, tunnel_writer, peer = await self.open_tunnel(target.host, target.port, purpose, target.id)
+            tunnel_reader, tunnel_writer, peer = await self.open_tunnel(
+                target.host, target.port, purpose, target.id, first=encode_header(header) + rest
+            )
             unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
-            tunnel_writer.write(encode_header(header) + rest)
             reply, reply_rest = await read_tcpros_header(tunnel_reader, CALL_TIMEOUT, limits.max_header_size)
             reply_fields = reply.as_dict()
             if purpose == "topic":
