@@ -31,7 +31,7 @@ def test_no_attack_reaches_the_coverage_target_with_a_correct_map():
     assert r["outcome"]["mean_map_accuracy"] == 1.0
     assert r["packets"]["sent"] > 0 and r["packets"]["rejected"] == 0
     # sharing maps: every robot believes it knows far more than it saw itself
-    assert min(v["map"]["believed_coverage"] for v in r["robots"].values()) > 0.7
+    assert all(v["map"]["believed_coverage"] > 1.3 * v["map"]["own_coverage"] for v in r["robots"].values())
 
 
 def test_attack1_impersonation_leaves_the_map_incomplete_without_authentication():
@@ -59,14 +59,20 @@ def test_attack1_by_an_insider_passes_authentication_but_not_the_plausibility_ch
 
 
 def test_attack2_mitm_raises_task_time_without_integrity_and_not_with_a_keyed_mac():
-    legacy = task_time(mission())
-    attacked = task_time(mission("mitm"))
-    bare = task_time(mission("mitm", "sha256"))
-    keyed = mission("mitm", "hmac")
+    seeds = (1, 2, 3)  # the effect is on a mean: single missions vary with the map
+
+    def mean(attacks, security):
+        return sum(task_time(mission(attacks, security, seed=s)) for s in seeds) / len(seeds)
+
+    legacy = mean("", "none")
+    attacked = mean("mitm", "none")
+    bare = mean("mitm", "sha256")
+    keyed = mean("mitm", "hmac")
     assert attacked > 1.25 * legacy
     assert bare > 1.25 * legacy  # a bare SHA-256 digest is recomputed by the attacker
-    assert keyed["outcome"]["completed"] and task_time(keyed) < 1.15 * legacy
-    assert keyed["packets"]["rejected_by_reason"].get("bad_mac", 0) > 0
+    assert keyed < 1.1 * legacy
+    assert all(mission("mitm", "hmac", seed=s)["outcome"]["completed"] for s in seeds)
+    assert mission("mitm", "hmac")["packets"]["rejected_by_reason"].get("bad_mac", 0) > 0
 
 
 def test_attack3_eavesdropper_reconstructs_the_map_unless_encrypted():

@@ -6,9 +6,10 @@ The paper's three first, then more:
   MapUpdate with every cell free). ``impersonate-insider``: the same from a robot
   holding a valid team key (authentication cannot tell; the plausibility check in
   :mod:`cryptoros.sim.comm` bounds what it can claim).
-* ``mitm``: hears every map update and re-sends it at once with the map data erased
-  (same author and sequence number, newer timestamp), recomputing a bare SHA-256
-  digest when there is one; it cannot recompute a MAC or a signature.
+* ``mitm``: hears every map update and re-sends it at once with the map data and goal
+  erased and the sequence number pushed ahead (so the author's next genuine updates
+  look stale), recomputing a bare SHA-256 digest when there is one; it cannot
+  recompute a MAC or a signature.
 * ``eavesdrop``: records everything and reconstructs what it can parse: the map and
   robots' positions.
 * ``replay``: re-sends recorded frames byte for byte ``replay_delay`` seconds later.
@@ -126,7 +127,10 @@ class ManInTheMiddle(Attacker):
 
     @staticmethod
     def _erase(msg: Any) -> Any:
-        return P.replace(msg, data=np.full(len(msg.data), -1, dtype=np.int8), timestamp=msg.timestamp + 1e-3)
+        # the map data and the goal are erased (the goal becomes the robot's position),
+        # and the unprotected sequence number is pushed ahead so that the author's
+        # genuine updates that follow look stale to the receivers
+        return P.replace(msg, data=np.full(len(msg.data), -1, dtype=np.int8), goal=msg.position, seq=msg.seq + 1000, timestamp=msg.timestamp + 1e-3)
 
     def forge(self, frame: P.Frame) -> bytes | None:
         if frame.typename == P.MAP:

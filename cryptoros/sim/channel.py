@@ -32,6 +32,7 @@ class Radio:
     position: Callable[[], tuple[float, float]]  # metres
     range_m: float
     up: Callable[[], bool] = lambda: True
+    rx_range_m: float = 0.0  # a sensitive receiver (attacker's antenna) hears farther
     busy_until: float = 0.0
     # reception intervals still relevant: list of [start, end, reception]
     receiving: list = field(default_factory=list)
@@ -72,7 +73,7 @@ class Channel:
 
     def add(self, radio: Radio) -> None:
         self.radios[radio.name] = radio
-        self._max_range = max(self._max_range, radio.range_m)
+        self._max_range = max(self._max_range, radio.range_m, radio.rx_range_m)
 
     def _grid(self) -> dict[tuple[int, int], list[Radio]]:
         cell = self._max_range
@@ -116,7 +117,7 @@ class Channel:
                         continue
                     rx, ry = r.position()
                     d = math.hypot(rx - sx, ry - sy)
-                    if d > sender.range_m:
+                    if d > sender.range_m and d > r.rx_range_m:
                         continue
                     start = start_tx + d / C_LIGHT
                     rec = Reception(frame, r.name, start, start + tx)
@@ -140,8 +141,8 @@ class Channel:
     def _check_collision(self, r: Radio, rec: Reception) -> None:
         keep = []
         for other in r.receiving:
-            if other.end <= rec.start - 1.0:
-                continue  # long finished: forget
+            if other.end <= rec.start:
+                continue  # finished before this one starts: cannot overlap any more
             keep.append(other)
             if other.start < rec.end and rec.start < other.end:
                 if not other.lost:

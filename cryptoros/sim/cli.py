@@ -28,7 +28,7 @@ def sim() -> None:
               help="measured: time each primitive once on this machine; nominal: fixed figures (reproducible anywhere)")
 @click.option("--plausibility/--no-plausibility", default=False, help="reject map claims beyond what the sender could have seen")
 @click.option("--seed", default=1, show_default=True)
-@click.option("--size", default="60x60", show_default=True, help="generated grid WxH (cells of --resolution m)")
+@click.option("--size", default="100x100", show_default=True, help="generated grid WxH (cells of --resolution m)")
 @click.option("--resolution", default=0.2, show_default=True)
 @click.option("--map", "map_yaml", default="", help="map_server YAML to load instead of generating")
 @click.option("--bases", default=1, show_default=True)
@@ -116,7 +116,7 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
 @click.option("--seeds", default=3, show_default=True, help="seeds 1..N")
 @click.option("--out", default="sim-out/sweep", show_default=True, type=click.Path(file_okay=False))
 @click.option("--workers", default=0, help="processes (0: all cores)")
-@click.option("--size", default="60x60", show_default=True)
+@click.option("--size", default="100x100", show_default=True)
 @click.option("--max-time", default=900.0, show_default=True)
 @click.option("--prefix", default="sim-", show_default=True, help="figure file name prefix")
 def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, prefix) -> None:

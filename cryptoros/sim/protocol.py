@@ -66,6 +66,8 @@ class Protocol:
     hello_seq: int = 0
     lsu_seq: int = 0
     seen_lsu: dict[str, int] = field(default_factory=dict)
+    duplicates: dict[tuple[str, int], int] = field(default_factory=dict)  # copies heard, for suppression
+    suppress_after: int = 3
     _routes: tuple[dict[str, int], dict[str, str]] | None = None
     _last_set: frozenset[str] = frozenset()
 
@@ -112,9 +114,17 @@ class Protocol:
             position=P.Point(*pos), residual_energy=energy, state=state, neighbours=sorted(self.neighbours),
         )
 
+    def still_worth_forwarding(self, fwd: Any) -> bool:
+        """Counter-based flooding (Ni et al., the broadcast storm problem): a robot that
+        heard ``suppress_after`` copies while waiting to forward adds nothing."""
+        n = self.duplicates.pop((fwd.origin, int(fwd.seq)), 0)
+        return n < self.suppress_after
+
     def on_lsu(self, msg: Any, now: float) -> Any | None:
         """Update the topology; return the LSU to forward (or None)."""
         if msg.origin == self.me or self.seen_lsu.get(msg.origin, -1) >= msg.seq:
+            key = (msg.origin, int(msg.seq))
+            self.duplicates[key] = self.duplicates.get(key, 0) + 1
             return None
         self.seen_lsu[msg.origin] = int(msg.seq)
         self.topology[msg.origin] = NodeInfo((msg.position.x, msg.position.y), float(msg.residual_energy), int(msg.state), now, int(msg.seq), tuple(msg.neighbours))

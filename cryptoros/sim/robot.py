@@ -100,6 +100,7 @@ class Robot:
         self._cpu_backlog = 0.0
         self._belief_checked = -1
         self._pending_lsu = False
+        self._last_lsu = -1e9
         self.travelled_m = 0.0
         self.finished_at: float | None = None
         self.counters = {"rx": 0, "tx": 0, "rejected": 0, "forwarded": 0, "recruited": 0, "recruit_requests": 0,
@@ -199,15 +200,24 @@ class Robot:
         self.host.call_later(self._jitter(self.cfg.hello_period), self._hello_timer)
 
     def _request_lsu(self) -> None:
-        if not self._pending_lsu:
+        if not self._pending_lsu and self.host.now() - self._last_lsu >= 2.0:
             self._pending_lsu = True
             self.host.call_later(0.2 + 0.3 * float(self.rng.random()), self._send_lsu)
 
     def _send_lsu(self) -> None:
         self._pending_lsu = False
+        self._last_lsu = self.host.now()
         self._sync()
         if self.state != DEAD:
             self.send(self.protocol.lsu(self.host.now(), self.pos, self.battery.energy, self.state), P.LSU)
+
+    def _forward_lsu(self, fwd: Any) -> None:
+        self._sync()
+        if self.protocol.still_worth_forwarding(fwd):
+            self.counters["forwarded"] += 1
+            self.send(fwd, P.LSU)
+        else:
+            self.counters["suppressed"] = self.counters.get("suppressed", 0) + 1
 
     def _lsu_timer(self) -> None:
         self._send_lsu()
@@ -471,8 +481,7 @@ class Robot:
         elif typename == P.LSU:
             fwd = self.protocol.on_lsu(msg, now)
             if fwd is not None:
-                self.counters["forwarded"] += 1
-                self._send_later(fwd, P.LSU)
+                self.host.call_later(float(self.rng.random()) * 0.1, lambda: self._forward_lsu(fwd))
         elif typename == P.MAP:
             ok, why, _ = self.comm.on_map(msg, now, self.belief)
             if not ok and why not in ("own", "stale"):

@@ -28,8 +28,8 @@ from cryptoros.sim.world import FREE, OCC, UNKNOWN, Lidar, World, generate, load
 class SimConfig:
     robots: int = 4
     seed: int = 1
-    width: int = 60
-    height: int = 60
+    width: int = 100  # 20 m x 20 m at 0.2 m
+    height: int = 100
     map_yaml: str = ""
     resolution: float = 0.2
     bases: int = 1
@@ -136,7 +136,7 @@ class Mission:
             host.robot = att
             self.hosts[a] = host
             self.attackers[a] = att
-            self.channel.add(Radio(a, host.position, cfg.attacker_range_m, up=host.up))
+            self.channel.add(Radio(a, host.position, cfg.attacker_range_m, up=host.up, rx_range_m=cfg.attacker_range_m))
         self.explorable = w.explorable()
         self.n_explorable = int(self.explorable.sum())
         self.timeline: list[tuple[float, float]] = []
@@ -228,7 +228,8 @@ class Mission:
                 "crypto_cpu_s": round(r.security.cpu_total, 6),
                 "counters": dict(r.counters),
                 "rejected": dict(sorted(r.rejected.items())),
-                "map": self._map_quality(r.belief.known),
+                "map": {**self._map_quality(r.belief.known),
+                        "own_coverage": round(int(np.count_nonzero((r.belief.own == FREE) & self.explorable)) / max(1, self.n_explorable), 5)},
             }
         lost_total = sum(st.lost.values())
         attack: dict[str, Any] = {}
