@@ -60,6 +60,28 @@ class Capture:
         if "listening" not in line:
             self.proc.kill()
             pytest.fail(f"tcpdump did not start: {line}")
+        self._wait_until_capturing(bpf)
+
+    def _wait_until_capturing(self, bpf: str) -> None:
+        """"listening" is printed before packets really flow into the file: send marker
+        packets on loopback until one shows up in the pcap."""
+        if bpf != "tcp":
+            time.sleep(1.0)  # the filtered capture cannot see a marker; plain one proved the delay
+            return
+        server = socket.create_server(("127.0.0.1", 0))
+        port = server.getsockname()[1]
+        deadline = time.monotonic() + 10
+        try:
+            while time.monotonic() < deadline:
+                with socket.create_connection(("127.0.0.1", port), timeout=2) as c:
+                    c.sendall(b"cryptoros-capture-marker")
+                server.accept()[0].close()
+                time.sleep(0.1)
+                if self.path.exists() and b"cryptoros-capture-marker" in self.path.read_bytes():
+                    return
+            pytest.fail("tcpdump never captured a marker packet")
+        finally:
+            server.close()
 
     def stop(self) -> bytes:
         time.sleep(0.5)
