@@ -17,6 +17,8 @@ SUBCOMMANDS: dict[str, str] = {
     "master": "cryptoros.ros1.cli:master",
     "sim": "cryptoros.sim.cli:sim",
     "bench": "cryptoros.bench:bench",
+    "demo": "cryptoros.demo.cli:demo",
+    "attack": "cryptoros.attack.cli:attack",
 }
 
 

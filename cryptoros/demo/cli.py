@@ -1,0 +1,99 @@
+"""``cryptoros demo``: the command (options, live display, table, JSON, report)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+from cryptoros.demo.attackers import ATTACKS
+
+
+def _sigterm(_sig: int, _frame: Any) -> None:
+    raise KeyboardInterrupt  # the same clean-up path as Ctrl-C
+
+
+@click.command()
+@click.option("--robots", default=3, show_default=True, type=click.IntRange(2, 8), help="Robots in the team.")
+@click.option("--attacks", default="all", show_default=True,
+              help=f"Comma-separated attacks, 'all' or 'none': {', '.join(ATTACKS)}.")
+@click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(5, 3600),
+              help="Wall-clock budget of one mission (the demo runs two).")
+@click.option("--mode", "mode", type=click.Choice(["both", "plain", "protected"]), default="both", show_default=True,
+              help="Plain ROS, protected by cryptoros, or both side by side.")
+@click.option("--master-uri", default=None, help="Use this running ROS master (e.g. a real rosmaster) instead of the embedded one.")
+@click.option("--keep", is_flag=True, help="Keep the work directory (PKI, database, logs, statuses).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the results as JSON here.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("demo-out"),
+              show_default=True, help="Directory of the report (Markdown + PNG figures).")
+@click.option("--scale", default=8.0, show_default=True, type=click.FloatRange(1, 50),
+              help="Simulated seconds per wall second.")
+@click.option("--seed", default=1, show_default=True, type=int, help="World and robot seed.")
+@click.option("--size", default=60, show_default=True, type=click.IntRange(30, 200), help="Arena side in cells of 0.2 m.")
+@click.option("--workdir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Work directory (default: a new temporary one).")
+def demo(robots: int, attacks: str, seconds: float, mode: str, master_uri: str | None, keep: bool, json_path: Path | None,
+         out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None) -> None:
+    """A live robot team under attack: plain ROS, then behind cryptoros interceptors.
+
+    Starts a throwaway PKI, the authorization server, a ROS master and one robot
+    process per robot (the simulator's exploration robots as live ROS nodes), runs the
+    attacks of seed papers 000 and 001 against the live graph as separate processes,
+    and prints what reached the robots in each mode.
+    """
+    from rich.console import Console
+
+    from cryptoros.demo import report as rep
+    from cryptoros.demo.run import ALL_ATTACKS, DemoError, DemoOptions, run_demo
+
+    if attacks == "all":
+        chosen = ALL_ATTACKS
+    elif attacks == "none":
+        chosen = ()
+    else:
+        chosen = tuple(a.strip() for a in attacks.split(",") if a.strip())
+        bad = [a for a in chosen if a not in ATTACKS]
+        if bad:
+            raise click.BadParameter(f"unknown attack {bad[0]!r}; one of {', '.join(ATTACKS)}", param_hint="--attacks")
+    modes = ("plain", "protected") if mode == "both" else (mode,)
+    opts = DemoOptions(robots=robots, attacks=chosen, seconds=seconds, modes=modes, master_uri=master_uri, keep=keep,
+                       seed=seed, width=size, height=size, scale=scale,
+                       workdir=str(workdir) if workdir else None)
+    console = Console(stderr=False)
+    signal.signal(signal.SIGTERM, _sigterm)
+    live = rep.LiveView(console)
+    t0 = time.monotonic()
+    result: dict[str, Any] | None = None
+    try:
+        with live:
+            result = run_demo(opts, progress=live.update, note=live.note)
+    except KeyboardInterrupt:
+        console.print("[yellow]interrupted: every child process was stopped[/yellow]")
+        sys.exit(130)
+    except DemoError as exc:
+        raise click.ClickException(str(exc)) from None
+    finally:
+        if result is None and opts.workdir is None and not keep:
+            pass
+    result["wall_s"] = round(time.monotonic() - t0, 1)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report_path = rep.write_report(result, out_dir)
+    result["report"] = str(report_path)
+    console.print(rep.table(result))
+    console.print(rep.summary_lines(result))
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=1, default=str))
+        console.print(f"JSON: {json_path}")
+    console.print(f"Report: {report_path}")
+    if keep:
+        console.print(f"Kept: {result['workdir']}")
+    else:
+        shutil.rmtree(result["workdir"], ignore_errors=True)

@@ -1,0 +1,523 @@
+"""``cryptoros demo``: a live robot team, attacked, plain ROS then behind cryptoros.
+
+Every part is a separate process in its own process group: the authorization server,
+the ROS master (embedded, or the user's with ``--master-uri``), one interceptor per
+host, one process per robot (:mod:`cryptoros.demo.robot`) and one per attack
+(:mod:`cryptoros.demo.attackers`). Hosts are loopback addresses:
+
+==========  ==============  ===================================================
+host        address         what runs there
+==========  ==============  ===================================================
+master      127.0.0.10      the ROS master (protected: behind its interceptor)
+rN          127.0.0.(11+N)  robot N's nodes ``/rN`` and ``/rN_base``
+stranger    127.0.0.66      attackers without certificate or token
+==========  ==============  ===================================================
+
+In protected mode an attack runs either as a *stranger* (a machine on the network
+without a certificate: it can only reach the interceptors' public TLS ports) or as an
+*insider* (a node on another robot's host, behind that robot's interceptor, whose
+manager has no grant for what it attacks). Success is judged from what the victims
+actually received and executed, recorded by the robots themselves.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from cryptoros.demo.attackers import ATTACKS, insider_host, target_of
+
+MASTER_ADDR = "127.0.0.10"
+STRANGER_ADDR = "127.0.0.66"
+ALL_ATTACKS = tuple(ATTACKS)
+TEAM_TYPES = {"hello": "cryptoros_sim/Hello", "lsu": "cryptoros_sim/LinkStateUpdate", "map": "cryptoros_sim/MapUpdate",
+              "recruit": "cryptoros_sim/RecruitPacket", "protocol": "cryptoros_sim/ProtocolPacket"}
+
+
+class DemoError(RuntimeError):
+    pass
+
+
+@dataclass
+class DemoOptions:
+    robots: int = 3
+    attacks: tuple[str, ...] = ALL_ATTACKS
+    seconds: float = 30.0  # wall-clock budget of one mission
+    modes: tuple[str, ...] = ("plain", "protected")
+    master_uri: str | None = None
+    keep: bool = False
+    seed: int = 1
+    width: int = 60
+    height: int = 60
+    scale: float = 8.0  # simulated seconds per wall second
+    coverage_target: float = 0.9
+    attack_delay: float = 1.0  # wall seconds after the start
+    workdir: str | None = None
+
+
+def robot_addr(i: int) -> str:
+    return f"127.0.0.{11 + i}"
+
+
+def policy(n: int) -> str:
+    lines = ["version: 1", "managers:", "- name: master", "  fingerprint_sha256: {master}"]
+    for i in range(n):
+        r = f"r{i}"
+        lines += [f"- name: {r}", f"  fingerprint_sha256: {{{r}}}", "  grants:", "    publish:"]
+        for short, ty in TEAM_TYPES.items():
+            lines.append(f"    - {{{{node: /{r}, topic: /team/{short}, type: {ty}}}}}")
+        lines += [f"    - {{{{node: /{r}, topic: /{r}/cmd_vel, type: geometry_msgs/Twist}}}}",
+                  f"    - {{{{node: /{r}_base, topic: /{r}/pose, type: geometry_msgs/PoseStamped}}}}",
+                  f"    - {{{{node: /{r}_base, topic: /{r}/scan, type: sensor_msgs/LaserScan}}}}",
+                  "    subscribe:"]
+        for short, ty in TEAM_TYPES.items():
+            lines.append(f"    - {{{{node: /{r}, topic: /team/{short}, type: {ty}}}}}")
+        lines += [f"    - {{{{node: /{r}, topic: /{r}/pose, type: geometry_msgs/PoseStamped}}}}",
+                  f"    - {{{{node: /{r}, topic: /{r}/scan, type: sensor_msgs/LaserScan}}}}",
+                  f"    - {{{{node: /{r}_base, topic: /{r}/cmd_vel, type: geometry_msgs/Twist}}}}"]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- processes
+
+
+class Children:
+    """Every child in its own process group; all of them killed on the way out."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, cmd: list[str], log: Path, env: dict[str, str]) -> subprocess.Popen:
+        p = subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        self.procs.append(p)
+        return p
+
+    def terminate(self, procs: list[subprocess.Popen], timeout: float = 8.0) -> None:
+        for p in procs:
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(p.pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for p in procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, signal.SIGKILL)  # the group: anything a child left behind
+            if p.poll() is None:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    p.wait(timeout=5)
+
+    def kill_all(self) -> None:
+        self.terminate(self.procs, timeout=5.0)
+
+
+def _env(**extra: str) -> dict[str, str]:
+    from cryptoros.bench.network import clean_env
+
+    return clean_env(PYTHONUNBUFFERED="1", **extra)
+
+
+def _cpu_seconds(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def scrape(port: int) -> dict[str, Any]:
+    """Denials by reason and bytes relayed from one interceptor's ``/metrics``."""
+    out: dict[str, Any] = {"denied": {}, "bytes": 0.0, "allowed": 0.0}
+    try:
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=3).read().decode()
+    except OSError:
+        return out
+    for line in text.splitlines():
+        if line.startswith("cryptoros_interceptor_denied_total{"):
+            m = re.search(r'reason="([^"]*)"\}\s+([0-9.e+]+)', line)
+            if m:
+                out["denied"][m.group(1)] = out["denied"].get(m.group(1), 0) + int(float(m.group(2)))
+        elif line.startswith("cryptoros_interceptor_bytes_total{"):
+            out["bytes"] += float(line.rsplit(" ", 1)[1])
+        elif line.startswith("cryptoros_interceptor_allowed_total{"):
+            out["allowed"] += float(line.rsplit(" ", 1)[1])
+    return out
+
+
+# ----------------------------------------------------------------------------- one mission
+
+
+@dataclass
+class Graph:
+    """Where robots and attackers of one mode connect."""
+
+    robot_master: dict[str, str]  # robot -> ROS_MASTER_URI
+    robot_ip: dict[str, str]
+    stranger_master: str
+    insider_master: dict[str, str]  # host -> ROS_MASTER_URI of a node there
+    insider_ip: dict[str, str]
+    interceptors: dict[str, Any] = field(default_factory=dict)  # name -> Host (protected)
+    ports: list[tuple[str, int]] = field(default_factory=list)
+
+
+class Mission:
+    def __init__(self, opts: DemoOptions, mode: str, workdir: Path, children: Children,
+                 progress: Callable[[dict[str, Any]], None]) -> None:
+        self.opts = opts
+        self.mode = mode
+        self.dir = workdir / mode
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.children = children
+        self.progress = progress
+        self.team = [f"r{i}" for i in range(opts.robots)]
+        from cryptoros.demo.robot import make_world
+
+        self.world = make_world({"seed": opts.seed, "width": opts.width, "height": opts.height})
+        self.explorable = self.world.explorable()
+        self.n_explorable = int(self.explorable.sum())
+
+    # -- graphs ---------------------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def graph(self):  # type: ignore[no-untyped-def]
+        if self.mode == "plain":
+            yield from self._plain()
+        else:
+            yield from self._protected()
+
+    def _plain(self):  # type: ignore[no-untyped-def]
+        from cryptoros.bench.network import free_port, tool, wait_port
+
+        if self.opts.master_uri:
+            uri = self.opts.master_uri.rstrip("/") + "/"
+            ports: list[tuple[str, int]] = []
+        else:
+            port = free_port(MASTER_ADDR)
+            p = self.children.start([tool("cryptoros"), "master", "--host", MASTER_ADDR, "--port", str(port)],
+                                    self.dir / "master.log", _env())
+            wait_port(MASTER_ADDR, port, 20, p, "cryptoros master")
+            uri = f"http://{MASTER_ADDR}:{port}/"
+            ports = [(MASTER_ADDR, port)]
+        try:
+            yield Graph(robot_master={r: uri for r in self.team}, robot_ip={r: robot_addr(i) for i, r in enumerate(self.team)},
+                        stranger_master=uri, insider_master={r: uri for r in self.team},
+                        insider_ip={r: robot_addr(i) for i, r in enumerate(self.team)}, ports=ports)
+        finally:
+            if ports:
+                self.children.terminate([p])
+
+    def _protected(self):  # type: ignore[no-untyped-def]
+        from cryptoros.bench.network import bench_network
+
+        hosts = {"master": MASTER_ADDR, **{r: robot_addr(i) for i, r in enumerate(self.team)}}
+        with bench_network(self.dir / "net", policy(len(self.team)), hosts=hosts,
+                           master=self.opts.master_uri or "embedded", metrics=True, new_session=True) as net:
+            ports = []
+            for h in net.hosts.values():
+                ports.append((h.address, h.public_port))
+                if h.name != "master":
+                    ports.append(("127.0.0.1", h.local_master_port))
+                if h.metrics_port:
+                    ports.append(("127.0.0.1", h.metrics_port))
+            yield Graph(robot_master={r: net.hosts[r].master_uri for r in self.team},
+                        robot_ip={r: "127.0.0.1" for r in self.team},
+                        stranger_master=f"http://{MASTER_ADDR}:{net.hosts['master'].public_port}/",
+                        insider_master={r: net.hosts[r].master_uri for r in self.team},
+                        insider_ip={r: "127.0.0.1" for r in self.team}, interceptors=net.hosts, ports=ports)
+
+    # -- run ---------------------------------------------------------------------------------
+
+    def run(self) -> dict[str, Any]:
+        t_setup = time.monotonic()
+        with self.graph() as g:
+            setup_s = time.monotonic() - t_setup
+            return self._mission(g, setup_s)
+
+    def _start_robots(self, g: Graph) -> dict[str, subprocess.Popen]:
+        procs = {}
+        for r in self.team:
+            cfg = {"name": r, "team": self.team, "seed": self.opts.seed, "width": self.opts.width, "height": self.opts.height,
+                   "scale": self.opts.scale, "master_uri": g.robot_master[r], "ros_ip": g.robot_ip[r],
+                   "status": str(self.dir / f"{r}.status.json"), "go": str(self.dir / "go.json"), "connect_timeout": 20}
+            path = self.dir / f"{r}.json"
+            path.write_text(json.dumps(cfg))
+            procs[r] = self.children.start([sys.executable, "-m", "cryptoros.demo.robot", str(path)], self.dir / f"{r}.log", _env())
+        return procs
+
+    def _start_attack(self, kind: str, g: Graph) -> subprocess.Popen:
+        n = len(self.team)
+        who = ATTACKS[kind]["as"] if self.mode == "protected" else ATTACKS[kind]["as"]
+        if who == "stranger":
+            master, ip = g.stranger_master, STRANGER_ADDR
+        else:
+            h = insider_host(kind, n)
+            master, ip = g.insider_master[h], g.insider_ip[h]
+        cfg = {"kind": kind, "master_uri": master, "ros_ip": ip, "target": target_of(kind, n), "team": self.team,
+               "width": self.opts.width, "height": self.opts.height, "duration": self.opts.seconds,
+               "report": str(self.dir / f"attack-{kind}.report.json"), "bag": str(self.dir / "eavesdrop.bag")}
+        path = self.dir / f"attack-{kind}.json"
+        path.write_text(json.dumps(cfg))
+        return self.children.start([sys.executable, "-m", "cryptoros.demo.attackers", str(path)],
+                                   self.dir / f"attack-{kind}.log", _env())
+
+    def _read_status(self) -> dict[str, dict[str, Any]]:
+        out = {}
+        for r in self.team:
+            with contextlib.suppress(OSError, ValueError):
+                out[r] = json.loads((self.dir / f"{r}.status.json").read_text())
+        return out
+
+    def coverage(self, statuses: dict[str, dict[str, Any]]) -> tuple[float, np.ndarray]:
+        seen = np.zeros(self.world.shape, dtype=bool)
+        for s in statuses.values():
+            bits = np.unpackbits(np.frombuffer(base64.b64decode(s["observed"]), dtype=np.uint8))[: seen.size]
+            seen |= bits.reshape(seen.shape).astype(bool)
+        return float(np.count_nonzero(seen & self.explorable)) / max(1, self.n_explorable), seen
+
+    def _mission(self, g: Graph, setup_s: float) -> dict[str, Any]:
+        opts = self.opts
+        robots = self._start_robots(g)
+        attackers: dict[str, subprocess.Popen] = {}
+        timeline: list[list[float]] = []
+        cpu0 = {n: _cpu_seconds(h.proc.pid) for n, h in g.interceptors.items() if h.proc}
+        end_reason, mission_time, mission_wall = "", None, None
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                st = self._read_status()
+                if len(st) == len(self.team) and all(s.get("ready") for s in st.values()):
+                    break
+                for r, p in robots.items():
+                    if p.poll() is not None:
+                        raise DemoError(f"robot {r} exited with {p.returncode} ({self.dir / (r + '.log')})")
+                if time.monotonic() > deadline:
+                    raise DemoError(f"robots not connected within 60 s ({self.dir})")
+                time.sleep(0.1)
+            t0 = time.time() + 0.3
+            (self.dir / "go.json").write_text(json.dumps({"t0": t0}))
+            started = time.monotonic() + 0.3
+            quiet_since = None
+            last_cov = 0.0
+            while True:
+                time.sleep(0.25)
+                wall = time.monotonic() - started
+                if wall >= opts.attack_delay and not attackers:
+                    attackers = {k: self._start_attack(k, g) for k in opts.attacks}
+                st = self._read_status()
+                cov, _ = self.coverage(st)
+                sim_t = max((s.get("t", 0.0) for s in st.values()), default=0.0)
+                timeline.append([round(sim_t, 2), round(wall, 2), round(cov, 4)])
+                last_cov = cov
+                self.progress({"mode": self.mode, "wall": wall, "sim": sim_t, "coverage": cov, "statuses": st,
+                               "budget": opts.seconds, "target": opts.coverage_target})
+                if cov >= opts.coverage_target:
+                    end_reason, mission_time, mission_wall = "coverage_target", sim_t, wall
+                    break
+                active = any(s.get("state") in ("explore", "home", "recruited") and not s.get("shut_down") for s in st.values())
+                if active or wall < 3.0:
+                    quiet_since = None
+                elif quiet_since is None:
+                    quiet_since = wall
+                if quiet_since is not None and wall - quiet_since >= 2.0:
+                    end_reason = "robots_stopped"
+                    break
+                if wall >= opts.seconds:
+                    end_reason = "time_limit"
+                    break
+                for r, p in robots.items():
+                    if p.poll() is not None:
+                        end_reason = f"robot {r} exited"
+                if end_reason:
+                    break
+            wall_total = time.monotonic() - started
+            cpu = {n: round(_cpu_seconds(h.proc.pid) - cpu0.get(n, 0.0), 3) for n, h in g.interceptors.items() if h.proc}
+            rss = {n: round(_rss_mb(h.proc.pid), 1) for n, h in g.interceptors.items() if h.proc}
+            metrics = {n: scrape(h.metrics_port) for n, h in g.interceptors.items() if h.metrics_port}
+        finally:
+            self.children.terminate(list(attackers.values()), timeout=8)
+            self.children.terminate(list(robots.values()), timeout=8)
+        final = self._read_status()
+        cov, seen = self.coverage(final)
+        reports = {}
+        for k in attackers:
+            with contextlib.suppress(OSError, ValueError):
+                reports[k] = json.loads((self.dir / f"attack-{k}.report.json").read_text())
+        np.save(self.dir / "coverage_map.npy", seen)
+        return {
+            "mode": self.mode,
+            "setup_s": round(setup_s, 2),
+            "end_reason": end_reason,
+            "coverage": round(cov, 4),
+            "coverage_target": opts.coverage_target,
+            "target_reached": mission_time is not None,
+            "mission_time_sim_s": round(mission_time, 1) if mission_time is not None else None,
+            "mission_time_wall_s": round(mission_wall, 2) if mission_wall is not None else None,
+            "wall_s": round(wall_total, 2),
+            "timeline": timeline,
+            "robots": {r: _robot_summary(s) for r, s in final.items()},
+            "messages": {"tx": sum(s["stats"]["tx_messages"] for s in final.values()),
+                         "rx": sum(s["stats"]["rx_messages"] for s in final.values()),
+                         "tx_bytes": sum(s["stats"]["tx_bytes"] for s in final.values()),
+                         "rx_bytes": sum(s["stats"]["rx_bytes"] for s in final.values())},
+            "denials": _sum_denials(metrics),
+            "interceptors": {"cpu_s": cpu, "cpu_s_total": round(sum(cpu.values()), 3),
+                             "cpu_share_of_one_core": round(sum(cpu.values()) / max(1e-9, wall_total), 3),
+                             "rss_mb": rss, "bytes_relayed": int(sum(m["bytes"] for m in metrics.values())),
+                             "metrics": metrics},
+            "attack_reports": reports,
+            "_final": final,
+        }
+
+
+def _robot_summary(s: dict[str, Any]) -> dict[str, Any]:
+    return {"state": s.get("state"), "shut_down": s.get("shut_down"), "travelled_m": s.get("travelled_m"),
+            "halted_s": s.get("halted_s"), "false_obstacles": s.get("false_obstacles"), "stats": s.get("stats"),
+            "rejected": s.get("rejected"), "callback_errors": s.get("callback_errors")}
+
+
+def _sum_denials(metrics: dict[str, dict[str, Any]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for m in metrics.values():
+        for k, v in m["denied"].items():
+            out[k] = out.get(k, 0) + v
+    return dict(sorted(out.items()))
+
+
+# ----------------------------------------------------------------------------- judging
+
+
+def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, dict[str, Any]]:
+    """Per attack: did it succeed, from what the victims received and executed."""
+    final = mode["_final"]
+    stats = {r: s["stats"] for r, s in final.items()}
+    published: set[str] = set()
+    for s in final.values():
+        published.update(s.get("published", []))
+
+    def foreign(r: str, key: str) -> int:
+        return sum(1 for h in final[r].get("received", {}).get(key, []) if h not in published)
+
+    out: dict[str, dict[str, Any]] = {}
+    for k in attacks:
+        t = target_of(k, n)
+        rep = mode["attack_reports"].get(k, {})
+        ok, ev = False, ""
+        if k == "spoof-pose":
+            c = stats[t]["pose_foreign"]
+            ok, ev = c > 0, f"{t} received {c} spoofed poses (max error {stats[t]['pose_max_error_m']} m)"
+        elif k == "scan-noise":
+            c = stats[t]["scan_foreign"]
+            ok, ev = c > 0, f"{t} received {c} noise scans ({stats[t]['scan_cells_corrupted']} phantom cells in its map)"
+        elif k == "cmd-flood":
+            c = stats[t]["cmd_foreign"]
+            ok, ev = c > 0, f"{t} received {c} foreign stop commands, halted {final[t].get('halted_s', 0)} s"
+        elif k == "false-map":
+            c = sum(s["map_from_non_team"] for s in stats.values())
+            done = sum(1 for s in final.values() if s.get("state") == "done")
+            ok, ev = c > 0, f"robots received {c} false map claims; {done} believed the map explored"
+        elif k == "map-erase":
+            c = sum(max(0, foreign(r, "map") - foreign(r, "map_non_team")) for r in final)
+            ok, ev = c > 0, f"robots received {c} altered team map updates"
+        elif k == "eavesdrop":
+            c = int(rep.get("messages", 0))
+            ok = c > 0
+            ev = (f"attacker read {c} messages ({rep.get('bytes', 0)} B) on {len(rep.get('topics', {}))} topics, "
+                  f"positions of {len(rep.get('positions_read', {}))} robots, {rep.get('map_share_read', 0):.0%} of the map cells")
+        elif k == "shutdown":
+            reasons = [x for x in stats[t]["shutdown_reasons"] if "same name" not in x]
+            ok, ev = bool(reasons), (f"{t} executed shutdown ({reasons[0]})" if reasons else f"{t} got no shutdown call")
+        elif k == "hijack":
+            reasons = [x for x in stats[t]["shutdown_reasons"] if "same name" in x]
+            ok, ev = bool(reasons), (f"{t} was shut down by the master: {reasons[0]}" if reasons else f"{t} kept its name")
+        if not ok and rep.get("refused"):
+            ev += f"; attacker: {rep['refused']}"
+        out[k] = {"succeeded": ok, "evidence": ev}
+    return out
+
+
+# ----------------------------------------------------------------------------- the whole demo
+
+
+def attacker_role(kind: str, n: int) -> str:
+    if ATTACKS[kind]["as"] == "stranger":
+        return "stranger (no certificate, no token)"
+    what = {"spoof-pose": f"/{target_of(kind, n)}/pose", "map-erase": "/team/map as /mitm",
+            "shutdown": f"shutdown of /{target_of(kind, n)}", "hijack": f"the name /{target_of(kind, n)}"}.get(kind, kind)
+    return f"insider on {insider_host(kind, n)}'s host (manager has no grant for {what})"
+
+
+def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lambda _e: None,
+             note: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
+    if opts.robots < 2:
+        raise DemoError("the demo needs at least 2 robots")
+    for a in opts.attacks:
+        if a not in ATTACKS:
+            raise DemoError(f"unknown attack {a!r}; one of {', '.join(ATTACKS)}")
+    workdir = Path(opts.workdir) if opts.workdir else Path(tempfile.mkdtemp(prefix="cryptoros-demo-"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    children = Children()
+    result: dict[str, Any] = {"config": {**asdict(opts), "attacks": list(opts.attacks), "modes": list(opts.modes)},
+                              "workdir": str(workdir), "modes": {}, "attacks": {}}
+    ports: list[tuple[str, int]] = []
+    try:
+        for mode in opts.modes:
+            note(f"{mode}: starting {'the master' if mode == 'plain' else 'PKI, authorization server, master and interceptors'}"
+                 f" and {opts.robots} robots")
+            m = Mission(opts, mode, workdir, children, progress)
+            res = m.run()
+            res["judged"] = judge(res, opts.attacks, opts.robots)
+            result["modes"][mode] = res
+        for k in opts.attacks:
+            entry = {"seed": ATTACKS[k]["seed"], "what": ATTACKS[k]["what"].format(t=target_of(k, opts.robots) or ""),
+                     "protected_attacker": attacker_role(k, opts.robots)}
+            for mode, res in result["modes"].items():
+                entry[mode] = res["judged"][k]
+            result["attacks"][k] = entry
+    finally:
+        children.kill_all()
+        ports = []
+        for res in result["modes"].values():
+            ports += res.get("_ports", [])
+    for res in result["modes"].values():
+        res.pop("_final", None)
+    result["leftover_children"] = [p.pid for p in children.procs if p.poll() is None]
+    if not opts.keep:
+        result["kept"] = False
+    _ = ports
+    return result
+
+
+def free_after(ports: list[tuple[str, int]]) -> list[tuple[str, int]]:
+    busy = []
+    for host, port in ports:
+        with socket.socket() as s:
+            s.settimeout(0.3)
+            if s.connect_ex((host, port)) == 0:
+                busy.append((host, port))
+    return busy
