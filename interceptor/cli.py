@@ -31,6 +31,8 @@ async def _run(config_path: str, grace: float) -> None:
     from interceptor.ros1 import Interceptor
 
     cfg = load(config_path)
+    if "ros2" in cfg.roles:  # the DDS bridge role; rclpy itself runs in a child process
+        from interceptor.ros2 import Ros2Interceptor as Interceptor
     interceptor = Interceptor(cfg)
     try:
         await interceptor.start()

@@ -38,6 +38,12 @@ Example::
     max_new_connections_per_second = 50.0
     max_messages_per_second = 2000.0  # per peer, over TCPROS; absent = unlimited
 
+    [ros2]                            # the ros2 role (roles = ["ros2"]): see docs/ros2.md
+    domain_id = 11                    # this robot's localhost-only DDS domain
+    peers = ["127.0.0.3:11400"]       # interceptors of robots to forward to
+    python = ".ros2-venv/bin/python"  # optional: env CRYPTOROS_ROS2_PYTHON, else <repo>/.ros2-venv
+    depth = 10                        # history depth of bridged topics (the graph does not report it)
+
 Relative paths are relative to the configuration file's directory.
 """
 
@@ -55,7 +61,8 @@ from cryptoros.errors import ConfigError
 from cryptoros.tls import TLSConfig
 
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
-ROLES = ("node", "master")
+ROLES = ("node", "master", "ros2")
+ROS2_PYTHON_ENV = "CRYPTOROS_ROS2_PYTHON"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -123,6 +130,24 @@ class Limits:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Ros2Settings:
+    domain_id: int
+    python: Path
+    peers: tuple[Endpoint, ...] = ()
+    depth: int = 10
+    node_name: str = "cryptoros_bridge"
+    graph_interval: float = 0.5
+    max_message_size: int = 16 * 1024 * 1024
+
+
+def default_ros2_python() -> Path:
+    """``$CRYPTOROS_ROS2_PYTHON``, else the venv ``scripts/ros2-venv`` creates."""
+    if os.environ.get(ROS2_PYTHON_ENV):
+        return Path(os.environ[ROS2_PYTHON_ENV])
+    return Path(__file__).resolve().parent.parent / ".ros2-venv" / "bin" / "python"
+
+
+@dataclass(frozen=True, kw_only=True)
 class InterceptorConfig:
     manager: str
     roles: tuple[str, ...]
@@ -134,10 +159,12 @@ class InterceptorConfig:
     master: MasterSettings
     limits: Limits = field(default_factory=Limits)
     unsafe_plaintext_upstream: bool = False
+    ros2: Ros2Settings | None = None
 
 
 _SECTIONS = {
-    "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream"},
+    "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2"},
+    "ros2": {f.name for f in fields(Ros2Settings)},
     "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
     "authz": {f.name for f in fields(AuthzSettings)},
     "listen": {"public", "local_master", "metrics"},
@@ -273,6 +300,12 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
     limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
     limits = Limits(**{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()})
 
+    ros2 = None
+    if "ros2" in top and "ros2" not in roles:
+        raise ConfigError('[ros2] is set but roles does not include "ros2"')
+    if "ros2" in roles:
+        ros2 = _parse_ros2(_check_keys(top.get("ros2", {}), "ros2"), base)
+
     return InterceptorConfig(
         manager=manager,
         roles=tuple(roles),
@@ -284,7 +317,41 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         master=master,
         limits=limits,
         unsafe_plaintext_upstream=unsafe_plaintext,
+        ros2=ros2,
     )
 
 
-__all__ = ["AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings", "load", "parse"]
+def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
+    domain = raw.get("domain_id")
+    if not isinstance(domain, int) or isinstance(domain, bool) or not 0 <= domain <= 232:
+        raise ConfigError(f"the ros2 role needs [ros2] domain_id, an integer in 0..232, got {domain!r}")
+    python = _path(base, raw["python"], "[ros2] python") if "python" in raw else default_ros2_python()
+    if not python.exists():
+        raise ConfigError(f"[ros2] python: {python} does not exist (create it with scripts/ros2-venv)")
+    peers_raw = raw.get("peers", [])
+    if not isinstance(peers_raw, list):
+        raise ConfigError("[ros2] peers must be a list of host:port")
+    peers = tuple(Endpoint.parse(p, "[ros2] peers") for p in peers_raw)
+    if len(set(peers)) != len(peers):
+        raise ConfigError("[ros2] peers lists an interceptor twice")
+    node_name = _typed(raw.get("node_name", "cryptoros_bridge"), str, "[ros2] node_name")
+    if not node_name.isidentifier():
+        raise ConfigError(f"[ros2] node_name must be a plain ROS node name, got {node_name!r}")
+    depth = _typed(raw.get("depth", 10), int, "[ros2] depth")
+    if depth > 1000:
+        raise ConfigError("[ros2] depth must be at most 1000")
+    return Ros2Settings(
+        domain_id=domain,
+        python=python,
+        peers=peers,
+        depth=depth,
+        node_name=node_name,
+        graph_interval=_typed(raw.get("graph_interval", 0.5), float, "[ros2] graph_interval"),
+        max_message_size=_typed(raw.get("max_message_size", 16 * 1024 * 1024), int, "[ros2] max_message_size"),
+    )
+
+
+__all__ = [
+    "AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings", "Ros2Settings",
+    "default_ros2_python", "load", "parse",
+]

@@ -1,0 +1,325 @@
+"""The DDS bridge: a child process of ``cryptoros-interceptor`` running rclpy.
+
+Runs under the ROS 2 venv's python (the wheels' bootstrapper re-executes that
+interpreter, so rclpy never enters the interceptor's own process). It joins its
+robot's localhost-only domain as one node, reports the local graph, and does what the
+interceptor tells it over one local socket (inherited descriptor ``--fd``), framed by
+:mod:`cryptoros.ros2.framing`:
+
+- ``subscribe``: a raw subscription whose serialized messages go to the interceptor;
+- ``advertise`` + PUBLISH frames: serialized messages republished as they came;
+- ``serve``: a proxy service whose requests go to the interceptor, answered by REPLY;
+- ``client`` + CALL frames: requests for a local service, answered by RESULT.
+
+It decides nothing: every grant is checked by the interceptor. Imports only rclpy,
+message packages and the standard library. Messages this bridge republished are not
+forwarded again (its own publications come back through its subscription on the same
+topic and are recognised by content within a few seconds): only what originated on
+this domain leaves it, so two robots bridging each other do not loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import itertools
+import os
+import queue
+import re
+import socket
+import sys
+import threading
+import time
+
+try:
+    from cryptoros.ros2 import framing as fr
+except ImportError:  # run as a script by the ROS 2 venv's python: import the sibling module
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import framing as fr  # type: ignore[no-redef]
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.task import Future
+
+_TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$")
+ECHO_TTL = 5.0
+READ_SIZE = 1 << 20
+
+
+def load_type(name: str, kind: str):
+    match = _TYPE.match(name)
+    if not match or match.group(2) != kind:
+        raise ValueError(f"not a ROS 2 {kind} type: {name!r}")
+    module = importlib.import_module(f"{match.group(1)}.{kind}")
+    cls = getattr(module, match.group(3), None)
+    if cls is None or not hasattr(cls, "_TYPE_SUPPORT" if kind == "msg" else "Request"):
+        raise ValueError(f"{name} is not an installed ROS 2 {kind} type")
+    return cls
+
+
+def make_qos(q: dict) -> QoSProfile:
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=int(q.get("depth", 10)),
+        reliability=ReliabilityPolicy.BEST_EFFORT if q.get("reliability") == "best_effort" else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if q.get("durability") == "transient_local" else DurabilityPolicy.VOLATILE,
+    )
+
+
+def _fqn(name: str, namespace: str) -> str:
+    return (namespace.rstrip("/") + "/" + name) if namespace else "/" + name
+
+
+class Bridge:
+    def __init__(self, sock: socket.socket, name: str, graph_interval: float, max_size: int) -> None:
+        self.sock = sock
+        self.node = rclpy.create_node(name, start_parameter_services=False, enable_rosout=False)
+        self.own = self.node.get_fully_qualified_name()
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.commands: queue.SimpleQueue = queue.SimpleQueue()
+        self.guard = self.node.create_guard_condition(self._drain)
+        self.send_lock = threading.Lock()
+        self.max_size = max_size
+        self.pubs: dict[int, tuple[object, str]] = {}
+        self.subs: dict[int, object] = {}
+        self.servers: dict[int, object] = {}
+        self.clients: dict[int, tuple[object, type]] = {}
+        self.pending: dict[int, Future] = {}
+        self.ids = itertools.count(1)
+        self.echo_lock = threading.Lock()
+        self.echo: dict[str, dict[int, list]] = {}  # topic -> hash(cdr) -> [count, expiry]
+        self.last_graph: dict | None = None
+        self.node.create_timer(graph_interval, self._report_graph)
+
+    # ------------------------------------------------------------ to the interceptor
+    def send(self, data: bytes) -> None:
+        with self.send_lock:
+            self.sock.sendall(data)
+
+    def error(self, detail: str, **extra) -> None:
+        self.send(fr.encode_control({"op": "error", "detail": detail, **extra}))
+
+    def _report_graph(self) -> None:
+        node = self.node
+        topics = []
+        for name, types in node.get_topic_names_and_types():
+            pubs = [
+                {
+                    "node": _fqn(i.node_name, i.node_namespace),
+                    "reliability": "best_effort" if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT else "reliable",
+                    "durability": "transient_local" if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
+                }
+                for i in node.get_publishers_info_by_topic(name)
+                if _fqn(i.node_name, i.node_namespace) != self.own
+            ]
+            subs = sorted(
+                {_fqn(i.node_name, i.node_namespace) for i in node.get_subscriptions_info_by_topic(name)} - {self.own}
+            )
+            if pubs or subs:
+                topics.append({"name": name, "types": sorted(types), "publishers": sorted(pubs, key=str), "subscribers": subs})
+        services: dict[str, dict] = {}
+        for n, ns in node.get_node_names_and_namespaces():
+            fqn = _fqn(n, ns)
+            if fqn == self.own:
+                continue
+            try:
+                served = node.get_service_names_and_types_by_node(n, ns)
+            except Exception:  # the node left between the two calls
+                continue
+            for sname, stypes in served:
+                entry = services.setdefault(sname, {"name": sname, "types": set(), "servers": []})
+                entry["types"].update(stypes)
+                entry["servers"].append(fqn)
+        graph = {
+            "op": "graph",
+            "topics": sorted(topics, key=lambda t: t["name"]),
+            "services": [
+                {"name": s["name"], "types": sorted(s["types"]), "servers": sorted(s["servers"])}
+                for s in sorted(services.values(), key=lambda s: s["name"])
+            ],
+        }
+        if graph != self.last_graph:
+            self.last_graph = graph
+            self.send(fr.encode_control(graph))
+        now = time.monotonic()
+        with self.echo_lock:
+            for seen in self.echo.values():
+                for key in [k for k, v in seen.items() if v[1] < now]:
+                    del seen[key]
+
+    # ------------------------------------------------------------ from the interceptor
+    def read_loop(self) -> None:
+        decoder = fr.FrameDecoder(max_size=self.max_size)
+        try:
+            while True:
+                data = self.sock.recv(READ_SIZE)
+                if not data:
+                    break
+                decoder.feed(data)
+                for kind, chan, payload in decoder.frames():
+                    if kind == fr.PUBLISH:
+                        self._publish(chan, payload)
+                    elif kind == fr.CONTROL and fr.decode_control(payload)["op"] in ("advertise", "unadvertise"):
+                        self._pub_control(fr.decode_control(payload))
+                    else:
+                        self.commands.put((kind, chan, payload))
+                        self.guard.trigger()
+        except (OSError, fr.FrameError) as exc:
+            sys.stderr.write(f"cryptoros bridge: link to the interceptor failed: {exc}\n")
+        os._exit(0)  # the interceptor is gone: so is its bridge
+
+    def _publish(self, chan: int, payload: bytes) -> None:
+        entry = self.pubs.get(chan)
+        if entry is None:
+            return
+        publisher, topic = entry
+        seen = self.echo.get(topic)
+        if seen is not None:
+            key = hash(payload)
+            with self.echo_lock:
+                slot = seen.setdefault(key, [0, 0.0])
+                slot[0] += 1
+                slot[1] = time.monotonic() + ECHO_TTL
+        publisher.publish(payload)
+
+    def _pub_control(self, cmd: dict) -> None:
+        chan = int(cmd["chan"])
+        if cmd["op"] == "advertise":
+            try:
+                cls = load_type(cmd["type"], "msg")
+                publisher = self.node.create_publisher(cls, cmd["topic"], make_qos(cmd.get("qos", {})))
+            except Exception as exc:
+                self.error(f"cannot advertise {cmd.get('topic')}: {exc}", chan=chan)
+                return
+            with self.echo_lock:
+                self.echo.setdefault(cmd["topic"], {})
+            self.pubs[chan] = (publisher, cmd["topic"])
+        else:
+            entry = self.pubs.pop(chan, None)
+            if entry is not None:
+                self.node.destroy_publisher(entry[0])
+                if not any(t == entry[1] for _, t in self.pubs.values()):
+                    with self.echo_lock:
+                        self.echo.pop(entry[1], None)
+
+    def _drain(self) -> None:
+        """Guard-condition callback: run queued commands in the executor's thread."""
+        while True:
+            try:
+                kind, chan, payload = self.commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                if kind == fr.CONTROL:
+                    self._control(fr.decode_control(payload))
+                elif kind == fr.CALL:
+                    self._call(chan, payload)
+                elif kind == fr.REPLY:
+                    (rid,) = fr.ID.unpack_from(payload)
+                    future = self.pending.pop(rid, None)
+                    if future is not None and not future.done():
+                        future.set_result(fr.split_status(payload[4:]))
+            except Exception as exc:  # one bad command must not stop the bridge
+                self.error(f"command {kind} on channel {chan} failed: {type(exc).__name__}: {exc}", chan=chan)
+
+    def _control(self, cmd: dict) -> None:
+        op, chan = cmd["op"], int(cmd.get("chan", 0))
+        if op == "subscribe":
+            cls = load_type(cmd["type"], "msg")
+            topic = cmd["topic"]
+            send, header = self.send, fr.HEAD
+
+            def forward(data: bytes, _info=None, _chan=chan, _topic=topic) -> None:
+                seen = self.echo.get(_topic)
+                if seen:
+                    key = hash(data)
+                    with self.echo_lock:
+                        slot = seen.get(key)
+                        if slot is not None:
+                            slot[0] -= 1
+                            if slot[0] <= 0:
+                                del seen[key]
+                            return  # our own republication coming back
+                send(header.pack(5 + len(data), fr.MESSAGE, _chan) + data)
+
+            self.subs[chan] = self.node.create_subscription(cls, topic, forward, make_qos(cmd.get("qos", {})), raw=True)
+        elif op == "unsubscribe":
+            sub = self.subs.pop(chan, None)
+            if sub is not None:
+                self.node.destroy_subscription(sub)
+        elif op == "serve":
+            cls = load_type(cmd["type"], "srv")
+            self.servers[chan] = self.node.create_service(cls, cmd["service"], self._proxy(chan, cls))
+        elif op == "unserve":
+            srv = self.servers.pop(chan, None)
+            if srv is not None:
+                self.node.destroy_service(srv)
+        elif op == "client":
+            cls = load_type(cmd["type"], "srv")
+            self.clients[chan] = (self.node.create_client(cls, cmd["service"]), cls)
+        elif op == "unclient":
+            entry = self.clients.pop(chan, None)
+            if entry is not None:
+                self.node.destroy_client(entry[0])
+        else:
+            raise ValueError(f"unknown op {op!r}")
+
+    def _proxy(self, chan: int, cls):
+        async def handle(request, _response):
+            rid = next(self.ids)
+            future = Future()
+            self.pending[rid] = future
+            self.send(fr.encode(fr.REQUEST, chan, fr.ID.pack(rid) + serialize_message(request)))
+            ok, cdr = await future
+            if not ok:
+                await Future()  # refused or failed: no answer at all (the client times out), never a made-up one
+            return deserialize_message(cdr, cls.Response)
+
+        return handle
+
+    def _call(self, chan: int, payload: bytes) -> None:
+        (rid,) = fr.ID.unpack_from(payload)
+        entry = self.clients.get(chan)
+        if entry is None or not entry[0].service_is_ready():
+            self.send(fr.encode(fr.RESULT, chan, fr.ID.pack(rid) + b"\x00"))
+            return
+        client, cls = entry
+        future = client.call_async(deserialize_message(payload[4:], cls.Request))
+
+        def done(f: Future) -> None:
+            result = f.result() if not f.cancelled() and f.exception() is None else None
+            body = b"\x01" + serialize_message(result) if result is not None else b"\x00"
+            self.send(fr.encode(fr.RESULT, chan, fr.ID.pack(rid) + body))
+
+        future.add_done_callback(done)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="cryptoros DDS bridge (started by cryptoros-interceptor)")
+    parser.add_argument("--fd", type=int, required=True)
+    parser.add_argument("--name", default="cryptoros_bridge")
+    parser.add_argument("--graph-interval", type=float, default=0.5)
+    parser.add_argument("--max-size", type=int, default=fr.DEFAULT_MAX_SIZE)
+    args = parser.parse_args()
+    sock = socket.socket(fileno=args.fd)
+    sock.setblocking(True)
+    rclpy.init()
+    bridge = Bridge(sock, args.name, args.graph_interval, args.max_size)
+    bridge.send(
+        fr.encode_control(
+            {"op": "hello", "pid": os.getpid(), "rmw": rclpy.get_rmw_implementation_identifier(),
+             "domain": int(os.environ.get("ROS_DOMAIN_ID", "0")), "node": bridge.own}
+        )
+    )
+    threading.Thread(target=bridge.read_loop, name="link", daemon=True).start()
+    try:
+        bridge.executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,536 @@
+"""The interceptor's ``ros2`` role: the asyncio edge between a robot's DDS domain and
+the other robots' interceptors.
+
+The ROS 1 :class:`~interceptor.ros1.Interceptor` already owns everything a role
+shares: the mutual-TLS public listener, the preamble, token verification bound to the
+certificate, the revocation feed that cuts watched streams, reload, limits and
+metrics. :class:`Ros2Interceptor` adds one stream purpose (``ros2``) and a DDS bridge
+child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2 venv's python) over a local
+socket.
+
+Outbound (this robot's publishers and servers): the bridge reports the local graph;
+every topic whose local publishers may all publish it (this interceptor's own grants,
+per node) gets a raw subscription and one stream per configured peer; a stream is
+used only once the peer's token (from the preamble reply) shows its manager may
+subscribe. Services alike (``serve`` here, ``call`` there).
+
+Inbound: a ``ros2`` stream's target (:class:`~cryptoros.ros2.target.StreamTarget`)
+is checked against the sender's grants for the node it names and against this robot's
+own manager's grants, then its messages are republished (or a proxy service is
+offered) on this robot's domain with the QoS the sender saw.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import os
+import socket
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cryptoros.ros2
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.names import validate_graph_name
+from cryptoros.ros2 import framing as fr
+from cryptoros.ros2.target import QoS, StreamTarget, manager_may
+from cryptoros.tunnel import Preamble
+from interceptor.config import Endpoint, InterceptorConfig
+from interceptor.ros1 import READ_SIZE, Interceptor, Peer
+
+log = logging.getLogger("cryptoros.interceptor.ros2")
+
+BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py"
+#: ROS 2 plumbing every node has; never bridged, never logged as a denial.
+INFRA_TOPICS = frozenset({"/rosout", "/parameter_events"})
+INFRA_SERVICE_TYPES = ("rcl_interfaces/srv/", "type_description_interfaces/srv/")
+BRIDGE_START_TIMEOUT = 30.0
+RECONCILE_INTERVAL = 1.0
+#: A peer stream whose send buffer is above this drops new messages (counted).
+MAX_STREAM_BACKLOG = 8 * 1024 * 1024
+MAX_PENDING_CALLS = 64
+LOCAL_SOCKET_BUFFER = 4 * 1024 * 1024
+
+
+class BridgeLink(asyncio.Protocol):
+    """The local socket to the bridge child: frames in, frames out."""
+
+    def __init__(self, on_frame: Callable[[int, int, bytes], None], max_size: int) -> None:
+        self._on_frame = on_frame
+        self._decoder = fr.FrameDecoder(max_size=max_size + 64)
+        self.transport: asyncio.Transport | None = None
+        self.closed = asyncio.get_running_loop().create_future()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def data_received(self, data: bytes) -> None:
+        try:
+            self._decoder.feed(data)
+            for kind, chan, payload in self._decoder.frames():
+                self._on_frame(kind, chan, payload)
+        except fr.FrameError as exc:
+            log.error("the DDS bridge sent garbage (%s); restarting it", exc)
+            self.transport.abort()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.closed.done():
+            self.closed.set_result(None)
+
+    def send(self, data: bytes) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.write(data)
+
+    def control(self, **body: Any) -> None:
+        self.send(fr.encode_control(body))
+
+
+@dataclass(eq=False)
+class Outbound:
+    """One local topic or service offered to the peers."""
+
+    target: StreamTarget
+    chan: int
+    writers: dict[Endpoint, asyncio.StreamWriter] = field(default_factory=dict)
+    tasks: dict[Endpoint, asyncio.Task] = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class Proxy:
+    """A remote service offered on this domain: requests go down one inbound stream."""
+
+    chan: int
+    writer: asyncio.StreamWriter
+    pending: set[int] = field(default_factory=set)
+
+
+class Ros2Interceptor(Interceptor):
+    """The interceptor with the ``ros2`` role (and whatever ROS 1 roles it also has)."""
+
+    def __init__(self, cfg: InterceptorConfig) -> None:
+        super().__init__(cfg)
+        if cfg.ros2 is None:
+            raise CryptorosError("the ros2 role needs a [ros2] section")
+        self._chans = itertools.count(1)
+        self._call_ids = itertools.count(1)
+        self._link: BridgeLink | None = None
+        self._bridge: asyncio.subprocess.Process | None = None
+        self._bridge_ready = asyncio.Event()
+        self._hello: dict[str, Any] = {}
+        self._graph: dict[str, Any] = {"topics": [], "services": []}
+        self._outbound: dict[tuple[str, str, str], Outbound] = {}  # (kind, name, type)
+        self._out_by_chan: dict[int, Outbound] = {}
+        self._calls: dict[int, tuple[asyncio.StreamWriter, int, set[int]]] = {}
+        self._adverts: dict[tuple[str, str], list] = {}  # (topic, type) -> [chan, refcount]
+        self._proxies: dict[str, Proxy] = {}
+        self._proxy_by_chan: dict[int, Proxy] = {}
+        self._inbound: set[asyncio.StreamWriter] = set()
+        self._noted: set[tuple] = set()
+        self._stopping = False
+        self.dropped = 0
+
+    # ================================================================ life cycle
+    async def start(self, *, token_wait: float = 10.0) -> None:
+        await self._start_bridge()
+        await super().start(token_wait=token_wait)
+        self._tasks.append(asyncio.create_task(self._supervise(), name="ros2-bridge"))
+        self._tasks.append(asyncio.create_task(self._reconcile_loop(), name="ros2-reconcile"))
+        log.info("ros2 role up: domain %d, peers %s", self.cfg.ros2.domain_id,
+                 ", ".join(map(str, self.cfg.ros2.peers)) or "none")
+
+    async def stop(self, grace: float = 5.0) -> None:
+        self._stopping = True
+        for out in list(self._outbound.values()):
+            self._withdraw(out)
+        await super().stop(grace=grace)
+        await self._stop_bridge()
+
+    async def reload(self, cfg: InterceptorConfig) -> None:
+        if cfg.ros2 is None or (cfg.ros2.domain_id, cfg.ros2.python) != (self.cfg.ros2.domain_id, self.cfg.ros2.python):
+            raise CryptorosError("[ros2] domain_id and python cannot change on reload; restart the interceptor")
+        await super().reload(cfg)
+        self._noted.clear()
+        self._reconcile()
+
+    async def _start_bridge(self) -> None:
+        settings = self.cfg.ros2
+        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        for sock in (parent, child):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, LOCAL_SOCKET_BUFFER)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, LOCAL_SOCKET_BUFFER)
+        env = dict(os.environ)
+        env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # the ROS 2 venv sets up its own libraries
+        env.update(ROS_DOMAIN_ID=str(settings.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        self._bridge_ready.clear()
+        try:
+            self._bridge = await asyncio.create_subprocess_exec(
+                str(settings.python), str(BRIDGE_SCRIPT), "--fd", str(child.fileno()), "--name", settings.node_name,
+                "--graph-interval", str(settings.graph_interval), "--max-size", str(settings.max_message_size),
+                pass_fds=(child.fileno(),), env=env, stdin=asyncio.subprocess.DEVNULL,
+            )
+        finally:
+            child.close()
+        loop = asyncio.get_running_loop()
+        _, self._link = await loop.connect_accepted_socket(
+            lambda: BridgeLink(self._on_bridge_frame, settings.max_message_size), sock=parent
+        )
+        try:
+            await asyncio.wait_for(self._bridge_ready.wait(), BRIDGE_START_TIMEOUT)
+        except asyncio.TimeoutError:
+            await self._stop_bridge()
+            raise CryptorosError(f"the DDS bridge ({settings.python}) did not start within {BRIDGE_START_TIMEOUT:.0f} s")
+        log.info("DDS bridge up: pid %s, %s, domain %s", self._hello.get("pid"), self._hello.get("rmw"),
+                 self._hello.get("domain"))
+
+    async def _stop_bridge(self) -> None:
+        if self._link is not None and self._link.transport is not None:
+            self._link.transport.close()
+        proc = self._bridge
+        if proc is not None and proc.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                proc.terminate()
+            try:
+                await asyncio.wait_for(proc.wait(), 3)
+            except asyncio.TimeoutError:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                await proc.wait()
+
+    async def _supervise(self) -> None:
+        """Restart the bridge if it dies; what it carried is set up again from scratch."""
+        while True:
+            proc = self._bridge
+            await asyncio.wait([asyncio.ensure_future(proc.wait()), self._link.closed],
+                               return_when=asyncio.FIRST_COMPLETED)
+            if self._stopping:
+                return
+            log.error("the DDS bridge exited (status %s); restarting it", proc.returncode)
+            await self._stop_bridge()
+            self._reset_local_state()
+            await asyncio.sleep(1.0)
+            try:
+                await self._start_bridge()
+            except (CryptorosError, OSError) as exc:
+                log.error("cannot restart the DDS bridge: %s", exc)
+
+    def _reset_local_state(self) -> None:
+        for out in list(self._outbound.values()):
+            self._withdraw(out, tell_bridge=False)
+        for writer in list(self._inbound):
+            writer.transport.abort()
+        self._adverts.clear()
+        self._graph = {"topics": [], "services": []}
+
+    # ================================================================ bridge frames
+    def _on_bridge_frame(self, kind: int, chan: int, payload: bytes) -> None:
+        if kind == fr.MESSAGE:
+            out = self._out_by_chan.get(chan)
+            if out is None or not out.writers:
+                return
+            frame = fr.HEAD.pack(5 + len(payload), fr.DATA, 0) + payload
+            for writer in out.writers.values():
+                transport = writer.transport
+                if transport.get_write_buffer_size() > MAX_STREAM_BACKLOG:
+                    self.dropped += 1
+                    continue
+                transport.write(frame)
+            self.metrics.bytes.labels("tx").inc(len(frame) * len(out.writers))
+        elif kind == fr.REQUEST:  # a local client called a proxy of a remote service
+            rid, cdr = fr.ID.unpack_from(payload)[0], payload[4:]
+            proxy = self._proxy_by_chan.get(chan)
+            if proxy is None or len(proxy.pending) >= MAX_PENDING_CALLS:
+                self._link.send(fr.encode(fr.REPLY, chan, fr.ID.pack(rid) + b"\x00"))
+                return
+            proxy.pending.add(rid)
+            proxy.writer.write(fr.encode(fr.SRV_REQUEST, rid, cdr))
+        elif kind == fr.RESULT:  # the local server answered a remote caller
+            bid = fr.ID.unpack_from(payload)[0]
+            entry = self._calls.pop(bid, None)
+            if entry is not None:
+                writer, rid, pending = entry
+                pending.discard(bid)
+                if not writer.transport.is_closing():
+                    writer.write(fr.encode(fr.SRV_RESPONSE, rid, payload[4:]))
+        elif kind == fr.CONTROL:
+            try:
+                body = fr.decode_control(payload)
+            except fr.FrameError as exc:
+                log.error("bad control frame from the DDS bridge: %s", exc)
+                return
+            op = body["op"]
+            if op == "graph":
+                self._graph = body
+                self._reconcile()
+            elif op == "hello":
+                self._hello = body
+                self._bridge_ready.set()
+            elif op == "error":
+                log.error("DDS bridge: %s", body.get("detail"))
+        else:
+            log.error("unexpected frame kind %d from the DDS bridge", kind)
+
+    # ================================================================ outbound
+    def _note_deny(self, key: tuple, kind: str, exc: PolicyDenied, who: str) -> None:
+        """Log a local denial once (the graph is re-read every half second)."""
+        if key not in self._noted:
+            self._noted.add(key)
+            self._deny(kind, exc, who)
+
+    def _desired(self) -> dict[tuple[str, str, str], StreamTarget]:
+        """What this robot may offer now: local publishers and servers it is granted."""
+        try:
+            grants = self.own_access().grants
+        except TokenError:
+            return {}
+        me = f"local domain {self.cfg.ros2.domain_id}"
+        want: dict[tuple[str, str, str], StreamTarget] = {}
+        entries = [("topic", t, t.get("publishers", [])) for t in self._graph.get("topics", [])]
+        entries += [("service", s, [{"node": n} for n in s.get("servers", [])]) for s in self._graph.get("services", [])]
+        for kind, entry, sources in entries:
+            name, types = entry["name"], entry["types"]
+            if not sources or name in INFRA_TOPICS or any(t.startswith(INFRA_SERVICE_TYPES) for t in types):
+                continue
+            action = "publish" if kind == "topic" else "serve"
+            try:
+                validate_graph_name(name)
+                if len(types) != 1:
+                    raise PolicyDenied("type_conflict", f"{name} is offered with several types {types}")
+                nodes = sorted({s["node"] for s in sources})
+                if any("_UNKNOWN_" in node for node in nodes):
+                    continue  # discovery has not told us the node names yet: decide next round
+                for node in nodes:
+                    if not grants.allows(action, node, name, types[0]):
+                        raise PolicyDenied("not_granted", f"{node} may not {action} {name} [{types[0]}]")
+                qos = QoS()
+                if kind == "topic":
+                    qos = QoS(
+                        reliability="best_effort" if any(p["reliability"] == "best_effort" for p in sources) else "reliable",
+                        durability="transient_local" if all(p["durability"] == "transient_local" for p in sources) else "volatile",
+                        depth=self.cfg.ros2.depth,
+                    )
+                want[(kind, name, types[0])] = StreamTarget(kind=kind, name=name, type=types[0], node=nodes[0], qos=qos)
+            except PolicyDenied as exc:
+                self._note_deny((kind, name, tuple(types), exc.reason), f"ros2_{action}", exc, me)
+            except CryptorosError as exc:  # a name we cannot carry (hidden topics, relative names)
+                log.debug("not bridging %s %s: %s", kind, name, exc)
+        return want
+
+    def _reconcile(self) -> None:
+        if self._stopping or self._link is None or not self._bridge_ready.is_set():
+            return
+        want = {} if self._link.transport is None or self._link.transport.is_closing() else self._desired()
+        for key, out in list(self._outbound.items()):
+            if key not in want or want[key] != out.target:
+                self._withdraw(out)
+        peers = set(self.cfg.ros2.peers)
+        for key, target in want.items():
+            out = self._outbound.get(key)
+            if out is None:
+                out = self._outbound[key] = Outbound(target=target, chan=next(self._chans))
+                self._out_by_chan[out.chan] = out
+                if target.kind == "topic":
+                    self._link.control(op="subscribe", chan=out.chan, topic=target.name, type=target.type,
+                                       qos=target.qos.to_dict())
+                else:
+                    self._link.control(op="client", chan=out.chan, service=target.name, type=target.type)
+                log.info("offering %s %s [%s] to %d peer(s)", target.kind, target.name, target.type, len(peers))
+            for endpoint in peers - set(out.tasks):
+                out.tasks[endpoint] = asyncio.create_task(self._forward(out, endpoint))
+            for endpoint in set(out.tasks) - peers:
+                out.tasks.pop(endpoint).cancel()
+        if self._inbound:
+            try:
+                self.own_access()
+            except TokenError:  # our own token is gone: nothing comes in either
+                for writer in list(self._inbound):
+                    writer.transport.abort()
+
+    def _withdraw(self, out: Outbound, *, tell_bridge: bool = True) -> None:
+        key = (out.target.kind, out.target.name, out.target.type)
+        if self._outbound.get(key) is out:
+            del self._outbound[key]
+        self._out_by_chan.pop(out.chan, None)
+        for task in out.tasks.values():
+            task.cancel()
+        for writer in out.writers.values():
+            writer.transport.abort()
+        if tell_bridge and self._link is not None:
+            self._link.control(op="unsubscribe" if out.target.kind == "topic" else "unclient", chan=out.chan)
+
+    async def _reconcile_loop(self) -> None:
+        while True:
+            await asyncio.sleep(RECONCILE_INTERVAL)
+            self._reconcile()
+
+    async def _forward(self, out: Outbound, endpoint: Endpoint) -> None:
+        """Keep one stream to one peer for one outbound topic or service."""
+        target = out.target
+        backoff = 0.25
+        while True:
+            try:
+                reader, writer, peer = await self.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                key = ("unreachable", endpoint, target.name)
+                if key not in self._noted:
+                    self._noted.add(key)
+                    log.warning("cannot open the %s stream for %s to %s: %s", target.kind, target.name, endpoint, exc)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 5.0)
+                continue
+            self._noted.discard(("unreachable", endpoint, target.name))
+            unwatch: Callable[[], None] = lambda: None  # noqa: E731
+            pending: set[int] = set()
+            try:
+                if not manager_may(peer.access.grants, target.peer_action, target.name, target.type):
+                    raise PolicyDenied(
+                        "not_granted", f"{peer.manager} may not {target.peer_action} {target.name} [{target.type}]"
+                    )
+
+                def cut(reason: str, writer=writer) -> None:
+                    self.metrics.cutoffs.inc()
+                    writer.transport.abort()
+
+                unwatch = self.verifier.watch(peer.access, cut)
+                self.metrics.allowed.labels(f"ros2_{target.kind}_out").inc()
+                self.metrics.open_streams.labels("ros2").inc()
+                out.writers[endpoint] = writer
+                backoff = 0.25
+                try:
+                    if target.kind == "topic":
+                        while await reader.read(READ_SIZE):
+                            raise RemoteProtocolError("the receiver of a topic stream sent data")
+                    else:
+                        await self._serve_calls(reader, writer, out, pending)
+                finally:
+                    out.writers.pop(endpoint, None)
+                    self.metrics.open_streams.labels("ros2").dec()
+            except PolicyDenied as exc:
+                self._deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
+                backoff = 5.0
+            except (CryptorosError, ConnectionError, OSError) as exc:
+                if isinstance(exc, CryptorosError):
+                    self._deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
+            finally:
+                unwatch()
+                writer.close()
+                for bid in pending:
+                    self._calls.pop(bid, None)
+            await asyncio.sleep(backoff)
+
+    async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int]) -> None:
+        """Requests from the calling robot to a local server (through the bridge's client)."""
+        decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_REQUEST}))
+        while data := await reader.read(READ_SIZE):
+            decoder.feed(data)
+            for _, rid, cdr in decoder.frames():
+                if len(pending) >= MAX_PENDING_CALLS:
+                    writer.write(fr.encode(fr.SRV_RESPONSE, rid, b"\x00"))
+                    continue
+                bid = next(self._call_ids)
+                pending.add(bid)
+                self._calls[bid] = (writer, rid, pending)
+                self._link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
+
+    # ================================================================ inbound
+    def _check_purpose(self, preamble: Preamble) -> None:
+        if preamble.purpose != "ros2":
+            return super()._check_purpose(preamble)
+        StreamTarget.decode(preamble.target)  # malformed targets are refused before the reply
+        if not self._bridge_ready.is_set():
+            raise PolicyDenied("bridge_down", "the DDS bridge is not running")
+
+    async def _serve_tcpros_stream(self, reader, writer, peer: Peer, target: str, purpose: str) -> None:
+        if purpose != "ros2":
+            return await super()._serve_tcpros_stream(reader, writer, peer, target, purpose)
+        return await self._serve_ros2_stream(reader, writer, peer, StreamTarget.decode(target))
+
+    async def _serve_ros2_stream(self, reader, writer, peer: Peer, target: StreamTarget) -> None:
+        if not peer.access.grants.allows(target.action, target.node, target.name, target.type):
+            raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
+        own = self.own_access()
+        if not manager_may(own.grants, target.peer_action, target.name, target.type):
+            raise PolicyDenied(
+                "not_granted_here", f"this robot's manager {own.subject} may not {target.peer_action} {target.name}"
+            )
+        link = self._link
+        if link is None or not self._bridge_ready.is_set():
+            raise PolicyDenied("bridge_down", "the DDS bridge is not running")
+        self.metrics.allowed.labels(f"ros2_{target.kind}").inc()
+        self._inbound.add(writer)
+        try:
+            if target.kind == "topic":
+                await self._republish(reader, peer, target, link)
+            else:
+                await self._offer_service(reader, writer, target, link)
+        finally:
+            self._inbound.discard(writer)
+
+    async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink) -> None:
+        key = (target.name, target.type)
+        advert = self._adverts.get(key)
+        if advert is None:
+            advert = self._adverts[key] = [next(self._chans), 0]
+            link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type, qos=target.qos.to_dict())
+        advert[1] += 1
+        chan = advert[0]
+        log.info("republishing %s [%s] from %s (%s)", target.name, target.type, peer.manager, target.node)
+        decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
+        budget = self._budget(peer)
+        rx = self.metrics.bytes.labels("rx")
+        pack = fr.HEAD.pack
+        try:
+            while data := await reader.read(READ_SIZE):
+                rx.inc(len(data))
+                try:
+                    decoder.feed(data)
+                    frames = decoder.frames()
+                except fr.FrameError as exc:
+                    raise RemoteProtocolError(str(exc)) from None
+                if budget is not None:
+                    while budget.allowance() < len(frames):
+                        budget.throttled += 1
+                        await asyncio.sleep(max(0.001, len(frames) / budget.rate / 4))
+                    budget.spend(len(frames))
+                if frames:
+                    link.send(b"".join(pack(5 + len(p), fr.PUBLISH, chan) + p for _, _, p in frames))
+        finally:
+            advert[1] -= 1
+            if advert[1] <= 0 and self._adverts.get(key) is advert:
+                del self._adverts[key]
+                link.control(op="unadvertise", chan=chan)
+
+    async def _offer_service(self, reader, writer, target: StreamTarget, link: BridgeLink) -> None:
+        if target.name in self._proxies:
+            raise PolicyDenied("already_offered", f"{target.name} is already offered by another robot")
+        proxy = Proxy(chan=next(self._chans), writer=writer)
+        self._proxies[target.name] = proxy
+        self._proxy_by_chan[proxy.chan] = proxy
+        link.control(op="serve", chan=proxy.chan, service=target.name, type=target.type)
+        log.info("offering remote service %s [%s] on the local domain", target.name, target.type)
+        decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_RESPONSE}))
+        try:
+            while data := await reader.read(READ_SIZE):
+                try:
+                    decoder.feed(data)
+                    frames = decoder.frames()
+                    for _, rid, body in frames:
+                        fr.split_status(body)
+                        if rid not in proxy.pending:
+                            raise RemoteProtocolError(f"response to request {rid}, which was never sent")
+                        proxy.pending.discard(rid)
+                        link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + body))
+                except fr.FrameError as exc:
+                    raise RemoteProtocolError(str(exc)) from None
+        finally:
+            del self._proxies[target.name]
+            del self._proxy_by_chan[proxy.chan]
+            link.control(op="unserve", chan=proxy.chan)
+            for rid in proxy.pending:
+                link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
+
+
+__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Interceptor"]

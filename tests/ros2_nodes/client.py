@@ -1,0 +1,30 @@
+"""An unmodified rclpy service client (no cryptoros code).
+
+    client.py SERVICE COUNT TIMEOUT
+
+Waits up to TIMEOUT s for SERVICE (std_srvs/srv/SetBool), calls it COUNT times and
+prints ``RESULT <success> <message>`` per answer, or ``NO_SERVICE`` / ``TIMEOUT``.
+"""
+
+import sys
+import time
+
+import rclpy
+from std_srvs.srv import SetBool
+
+service, count, timeout = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+rclpy.init()
+node = rclpy.create_node("flag_client")
+client = node.create_client(SetBool, service)
+if not client.wait_for_service(timeout_sec=timeout):
+    print("NO_SERVICE", flush=True)
+    sys.exit(1)
+deadline = time.monotonic() + timeout
+for i in range(count):
+    future = client.call_async(SetBool.Request(data=i % 2 == 0))
+    rclpy.spin_until_future_complete(node, future, timeout_sec=max(0.1, deadline - time.monotonic()))
+    if not future.done():
+        print("TIMEOUT", flush=True)
+        sys.exit(1)
+    r = future.result()
+    print(f"RESULT {r.success} {r.message}", flush=True)

@@ -1,0 +1,43 @@
+"""An unmodified rclpy listener (no cryptoros code).
+
+    listener.py KIND TOPIC SECONDS [--latched] [--node NAME]
+
+Prints READY, then ``GOT <seq>`` for every intact message and ``BAD <seq>`` for any
+other, for SECONDS seconds.
+"""
+
+import argparse
+import time
+
+import rclpy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from payload import TYPES, intact, seq_of
+
+parser = argparse.ArgumentParser()
+parser.add_argument("kind", choices=sorted(TYPES))
+parser.add_argument("topic")
+parser.add_argument("seconds", type=float)
+parser.add_argument("--latched", action="store_true")
+parser.add_argument("--node", default="listener")
+args = parser.parse_args()
+
+rclpy.init()
+node = rclpy.create_node(args.node)
+qos = QoSProfile(
+    depth=100,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL if args.latched else DurabilityPolicy.VOLATILE,
+    reliability=ReliabilityPolicy.RELIABLE,
+)
+
+
+def on_message(msg) -> None:
+    print(f"{'GOT' if intact(args.kind, msg) else 'BAD'} {seq_of(args.kind, msg)}", flush=True)
+
+
+node.create_subscription(TYPES[args.kind], args.topic, on_message, qos)
+print("READY", flush=True)
+end = time.monotonic() + args.seconds
+while time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.05)
+print("END", flush=True)

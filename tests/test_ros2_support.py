@@ -1,0 +1,261 @@
+"""Robots on ROS 2 domains behind interceptors, for the ROS 2 tests (no tests here).
+
+Each robot is one localhost-only DDS domain (fresh ids per test session, derived from
+the pid) plus one ``cryptoros-interceptor`` with the ``ros2`` role on its own loopback
+address; a real ``cryptoros-authz`` daemon holds the registry. The ROS 2 nodes are
+unmodified rclpy scripts (tests/ros2_nodes) run by the ROS 2 venv's python, which
+``scripts/ros2-venv`` creates (skipped locally, failed under CI=true, if it cannot).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import os
+import queue
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tests.pki_fixtures import TestPKIFactory
+from tests.support import REPO, free_port, missing, script, stop, wait_for_port
+from tests.test_authz_support import AuthzDaemon, authz, ok
+
+NODES = Path(__file__).parent / "ros2_nodes"
+HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3", "robot_c": "127.0.0.5"}
+PEERS = {"robot_a": ("robot_b", "robot_c"), "robot_b": ("robot_a",), "robot_c": ("robot_a",)}
+
+POLICY = """\
+version: 1
+managers:
+- name: robot_a
+  fingerprint_sha256: {robot_a}
+  grants:
+    publish:
+    - {{node: /talker, topic: /chatter, type: std_msgs/msg/String}}
+    - {{node: /talker, topic: /latched, type: std_msgs/msg/String}}
+    - {{node: /talker, topic: /twist, type: geometry_msgs/msg/Twist}}
+    - {{node: /talker, topic: /scan, type: sensor_msgs/msg/LaserScan}}
+    - {{node: /talker, topic: /image, type: sensor_msgs/msg/Image}}
+    - {{node: /talker, topic: /bench, type: std_msgs/msg/String}}
+    subscribe:
+    - {{node: '*', topic: /back, type: std_msgs/msg/String}}
+    serve:
+    - {{node: /flag_server, service: /set_flag, type: std_srvs/srv/SetBool}}
+- name: robot_b
+  fingerprint_sha256: {robot_b}
+  grants:
+    subscribe:
+    - {{node: '*', topic: /chatter, type: std_msgs/msg/String}}
+    - {{node: '*', topic: /latched, type: std_msgs/msg/String}}
+    - {{node: '*', topic: /secret, type: std_msgs/msg/String}}
+    - {{node: '*', topic: /twist, type: geometry_msgs/msg/Twist}}
+    - {{node: '*', topic: /scan, type: sensor_msgs/msg/LaserScan}}
+    - {{node: '*', topic: /image, type: sensor_msgs/msg/Image}}
+    publish:
+    - {{node: /talker, topic: /back, type: std_msgs/msg/String}}
+    call:
+    - {{node: '*', service: /set_flag, type: std_srvs/srv/SetBool}}
+- name: robot_c
+  fingerprint_sha256: {robot_c}
+"""
+
+
+@functools.cache
+def ros2_python() -> Path:
+    """The ROS 2 venv's python, created by scripts/ros2-venv on first use."""
+    venv = Path(os.environ.get("CRYPTOROS_ROS2_VENV", REPO / ".ros2-venv"))
+    try:
+        result = subprocess.run([str(REPO / "scripts" / "ros2-venv"), str(venv)], capture_output=True, text=True,
+                                timeout=600)
+    except subprocess.TimeoutExpired:
+        result = None
+    if result is None or result.returncode != 0:
+        missing(f"cannot create the ROS 2 venv with scripts/ros2-venv: {result.stderr[-500:] if result else 'timeout'}")
+    return venv / "bin" / "python"
+
+
+def fresh_domains(count: int) -> list[int]:
+    """Domain ids in 0..101 unlikely to collide with another test session."""
+    base = (os.getpid() * 7) % (102 - count)
+    return [base + i for i in range(count)]
+
+
+def ros2_env(domain: int) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "_ROS_WHEELS", "RMW_"))}
+    env.pop("PYTHONPATH", None)
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    return env
+
+
+class Lines:
+    """A process's stdout lines, read by a thread so every wait can be bounded."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.proc = proc
+        self.queue: queue.Queue[str | None] = queue.Queue()
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        for line in self.proc.stdout:
+            self.queue.put(line.rstrip("\n"))
+        self.queue.put(None)
+
+    def until(self, wanted: str | None, timeout: float) -> list[str]:
+        """Lines read until one equals ``wanted`` (None: for ``timeout`` seconds)."""
+        lines, deadline = [], time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                if wanted is None:
+                    return lines
+                raise AssertionError(f"no {wanted!r} within {timeout}s; got {lines[-5:]}")
+            try:
+                line = self.queue.get(timeout=left)
+            except queue.Empty:
+                continue
+            if line is None:
+                if wanted is None:
+                    return lines
+                raise AssertionError(f"process ended before {wanted!r}; got {lines[-10:]}")
+            lines.append(line)
+            if line == wanted:
+                return lines
+
+
+def collect(lines: Lines, count: int, timeout: float) -> list[str]:
+    """Lines until ``count`` GOT lines arrived (AssertionError after ``timeout``)."""
+    out, deadline = [], time.monotonic() + timeout
+    while len(got(out)) < count:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise AssertionError(f"only {len(got(out))} of {count} messages within {timeout}s; last {out[-5:]}")
+        try:
+            line = lines.queue.get(timeout=left)
+        except queue.Empty:
+            continue
+        if line is None:
+            raise AssertionError(f"process ended after {len(got(out))} of {count} messages; last {out[-5:]}")
+        out.append(line)
+    return out
+
+
+def got(lines: list[str]) -> list[int]:
+    return [int(line.split()[1]) for line in lines if line.startswith("GOT ")]
+
+
+@dataclass
+class Robot:
+    name: str
+    address: str
+    domain: int
+    public_port: int
+    metrics_port: int
+    config: Path
+    proc: subprocess.Popen | None = None
+    log: Path | None = None
+
+    def logs(self) -> str:
+        return self.log.read_text() if self.log and self.log.exists() else ""
+
+    def denials(self) -> str:
+        return "\n".join(line for line in self.logs().splitlines() if "DENY" in line)
+
+
+@dataclass
+class Ros2Network:
+    workdir: Path
+    pki: TestPKIFactory
+    daemon: AuthzDaemon
+    python: Path
+    robots: dict[str, Robot] = field(default_factory=dict)
+
+    @contextlib.contextmanager
+    def node(self, robot: str, script_name: str, *args: str, domain: int | None = None) -> Iterator[Lines]:
+        """An unmodified rclpy node on ``robot``'s domain; stopped on exit."""
+        env = ros2_env(self.robots[robot].domain if domain is None else domain)
+        proc = subprocess.Popen([str(self.python), str(NODES / script_name), *args], env=env, cwd=str(NODES),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            yield Lines(proc)
+        finally:
+            stop(proc, timeout=5)
+
+    def start(self, name: str) -> Robot:
+        robot = self.robots[name]
+        robot.log = self.workdir / f"interceptor-{name}.log"
+        robot.proc = subprocess.Popen(
+            [script("cryptoros-interceptor"), "--config", str(robot.config), "--log-level", "debug"],
+            stdout=robot.log.open("a"), stderr=subprocess.STDOUT,
+        )
+        wait_for_port(robot.address, robot.public_port, timeout=40, proc=robot.proc)
+        return robot
+
+    def stop(self, name: str) -> None:
+        robot = self.robots[name]
+        if robot.proc is not None:
+            stop(robot.proc, timeout=10)
+            robot.proc = None
+
+    def cli(self, *args: str):
+        return authz(*args, db=self.daemon.db)
+
+    def metrics(self, name: str) -> str:
+        import urllib.request
+
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.robots[name].metrics_port}/metrics", timeout=5) as r:
+            return r.read().decode()
+
+
+def robot_config(pki: TestPKIFactory, name: str, address: str, *, public: int, metrics: int, domain: int,
+                 peers: list[str], authz_url: str, python: Path, extra: str = "") -> str:
+    cert, key = pki.pki.cert_path_for(name), pki.pki.key_path_for(name)
+    peer_list = ", ".join(f'"{p}"' for p in peers)
+    return "\n".join([
+        f'manager = "{name}"',
+        'roles = ["ros2"]',
+        "[tls]", f'ca = "{pki.ca_cert}"', f'cert = "{cert}"', f'key = "{key}"', f'crl = "{pki.crl}"',
+        "[authz]", f'url = "{authz_url}"', "revocation_poll_interval = 0.5",
+        "[listen]", f'public = "{address}:{public}"', f'metrics = "127.0.0.1:{metrics}"',
+        "[ros2]", f"domain_id = {domain}", f"peers = [{peer_list}]", f'python = "{python}"', "graph_interval = 0.25",
+        extra,
+    ]) + "\n"
+
+
+@contextlib.contextmanager
+def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b", "robot_c"),
+                 policy: str = POLICY, extra: dict[str, str] | None = None) -> Iterator[Ros2Network]:
+    python = ros2_python()
+    pki = TestPKIFactory(workdir / "pki")
+    fingerprints = {}
+    for name, address in HOSTS.items():
+        fingerprints[name] = pki.issue(name, kind="interceptor", sans=(f"IP:{address}",)).fingerprint_sha256
+    db = f"sqlite:///{workdir / 'registry.db'}"
+    (workdir / "policy.yaml").write_text(policy.format(**fingerprints))
+    ok(authz("import", str(workdir / "policy.yaml"), db=db))
+    daemon = AuthzDaemon(pki=pki, db=db, workdir=workdir)
+    net = None
+    try:
+        daemon.start()
+        net = Ros2Network(workdir=workdir, pki=pki, daemon=daemon, python=python)
+        ports = {name: free_port(address) for name, address in HOSTS.items()}
+        for (name, address), domain in zip(HOSTS.items(), fresh_domains(len(HOSTS)), strict=True):
+            config = workdir / f"{name}.toml"
+            metrics = free_port()
+            config.write_text(robot_config(
+                pki, name, address, public=ports[name], metrics=metrics, domain=domain,
+                peers=[f"{HOSTS[p]}:{ports[p]}" for p in PEERS[name]], authz_url=daemon.base, python=python,
+                extra=(extra or {}).get(name, ""),
+            ))
+            net.robots[name] = Robot(name, address, domain, ports[name], metrics, config)
+        for name in start:
+            net.start(name)
+        yield net
+    finally:
+        if net is not None:
+            for name in net.robots:
+                net.stop(name)
+        daemon.stop()
