@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from cryptoros.ros1 import msgs
-from cryptoros.ros1.node import Node, call
+from cryptoros.ros1.node import Node, RosApiError, call
 
 __all__ = ["build", "noise", "spoof_publish", "flood", "manipulate", "shutdown", "hijack_name", "eavesdrop", "store"]
 
@@ -326,12 +326,15 @@ async def shutdown(master_uri: str, node_name: str, *, reason: str = "cryptoros 
     except Exception as exc:
         rep["refused"] = f"lookupNode: {_err(exc)}"
         return rep
+    rep["sent"] = True
     try:
         reply = await call(uri, "shutdown", name, reason, timeout=timeout)
         rep["reply"] = reply
         rep["accepted"] = True
-    except Exception as exc:
+    except RosApiError as exc:  # an answer: the call was refused
         rep["refused"] = f"shutdown: {_err(exc)}"
+    except Exception as exc:  # no answer: e.g. the node exited while answering (rospy does)
+        rep["no_reply"] = f"shutdown: {_err(exc)}"
     return rep
 
 
