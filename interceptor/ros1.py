@@ -45,6 +45,7 @@ from cryptoros.policy import (
     ros_error,
 )
 from cryptoros.ros1 import msgs
+from cryptoros.ros1.node import tune_malloc
 from cryptoros.ros1.rewrite import rewrite_call, rewrite_response
 from cryptoros.ros1.tcpros import NEED_DATA as TCPROS_NEED_DATA
 from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, encode_header
@@ -289,6 +290,9 @@ class Interceptor:
 
     # ================================================================ life cycle
     async def start(self, *, token_wait: float = 10.0) -> None:
+        # Large reads are copied out of the pump's buffer: keep glibc from mmap-ing
+        # (and page-faulting) each one (perf-baselines.md: +30 to 100 % on 1 MB frames).
+        tune_malloc()
         try:
             await asyncio.wait_for(self._first_token(), token_wait)
         except (asyncio.TimeoutError, TokenError) as exc:
