@@ -23,6 +23,7 @@ offered) on this robot's domain with the QoS the sender saw.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import itertools
 import logging
@@ -97,6 +98,9 @@ class Outbound:
     chan: int
     writers: dict[Endpoint, asyncio.StreamWriter] = field(default_factory=dict)
     tasks: dict[Endpoint, asyncio.Task] = field(default_factory=dict)
+    #: transient_local topics: the last ``depth`` frames, replayed to every stream that
+    #: opens later (a latched message must reach robots that connect after it was sent)
+    history: collections.deque | None = None
 
 
 @dataclass(eq=False)
@@ -229,9 +233,11 @@ class Ros2Interceptor(Interceptor):
     def _on_bridge_frame(self, kind: int, chan: int, payload: bytes) -> None:
         if kind == fr.MESSAGE:
             out = self._out_by_chan.get(chan)
-            if out is None or not out.writers:
+            if out is None:
                 return
             frame = fr.HEAD.pack(5 + len(payload), fr.DATA, 0) + payload
+            if out.history is not None:
+                out.history.append(frame)
             for writer in out.writers.values():
                 transport = writer.transport
                 if transport.get_write_buffer_size() > MAX_STREAM_BACKLOG:
@@ -246,10 +252,12 @@ class Ros2Interceptor(Interceptor):
                 self._link.send(fr.encode(fr.REPLY, chan, fr.ID.pack(rid) + b"\x00"))
                 return
             proxy.pending.add(rid)
+            log.debug("request %d for proxy channel %d goes to the serving robot", rid, chan)
             proxy.writer.write(fr.encode(fr.SRV_REQUEST, rid, cdr))
         elif kind == fr.RESULT:  # the local server answered a remote caller
             bid = fr.ID.unpack_from(payload)[0]
             entry = self._calls.pop(bid, None)
+            log.debug("result of call %d: %s", bid, "ok" if payload[4:5] == b"\x01" else "failed")
             if entry is not None:
                 writer, rid, pending = entry
                 pending.discard(bid)
@@ -331,6 +339,8 @@ class Ros2Interceptor(Interceptor):
             out = self._outbound.get(key)
             if out is None:
                 out = self._outbound[key] = Outbound(target=target, chan=next(self._chans))
+                if target.qos.durability == "transient_local":
+                    out.history = collections.deque(maxlen=target.qos.depth)
                 self._out_by_chan[out.chan] = out
                 if target.kind == "topic":
                     self._link.control(op="subscribe", chan=out.chan, topic=target.name, type=target.type,
@@ -397,6 +407,8 @@ class Ros2Interceptor(Interceptor):
                 unwatch = self.verifier.watch(peer.access, cut)
                 self.metrics.allowed.labels(f"ros2_{target.kind}_out").inc()
                 self.metrics.open_streams.labels("ros2").inc()
+                for frame in out.history or ():
+                    writer.write(frame)
                 out.writers[endpoint] = writer
                 backoff = 0.25
                 try:
@@ -431,6 +443,7 @@ class Ros2Interceptor(Interceptor):
                     writer.write(fr.encode(fr.SRV_RESPONSE, rid, b"\x00"))
                     continue
                 bid = next(self._call_ids)
+                log.debug("call %d (request %d) to the local server of %s", bid, rid, out.target.name)
                 pending.add(bid)
                 self._calls[bid] = (writer, rid, pending)
                 self._link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))

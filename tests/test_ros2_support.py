@@ -40,9 +40,10 @@ managers:
     - {{node: /talker, topic: /twist, type: geometry_msgs/msg/Twist}}
     - {{node: /talker, topic: /scan, type: sensor_msgs/msg/LaserScan}}
     - {{node: /talker, topic: /image, type: sensor_msgs/msg/Image}}
-    - {{node: /talker, topic: /bench, type: std_msgs/msg/String}}
+    - {{node: /talker, topic: /both, type: std_msgs/msg/String}}
     subscribe:
     - {{node: '*', topic: /back, type: std_msgs/msg/String}}
+    - {{node: '*', topic: /both, type: std_msgs/msg/String}}
     serve:
     - {{node: /flag_server, service: /set_flag, type: std_srvs/srv/SetBool}}
 - name: robot_b
@@ -55,8 +56,10 @@ managers:
     - {{node: '*', topic: /twist, type: geometry_msgs/msg/Twist}}
     - {{node: '*', topic: /scan, type: sensor_msgs/msg/LaserScan}}
     - {{node: '*', topic: /image, type: sensor_msgs/msg/Image}}
+    - {{node: '*', topic: /both, type: std_msgs/msg/String}}
     publish:
     - {{node: /talker, topic: /back, type: std_msgs/msg/String}}
+    - {{node: /talker_b, topic: /both, type: std_msgs/msg/String}}
     call:
     - {{node: '*', service: /set_flag, type: std_srvs/srv/SetBool}}
 - name: robot_c

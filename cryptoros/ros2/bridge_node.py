@@ -38,13 +38,20 @@ except ImportError:  # run as a script by the ROS 2 venv's python: import the si
     import framing as fr  # type: ignore[no-redef]
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
 
 _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$")
 ECHO_TTL = 5.0
+CALL_TIMEOUT = 30.0
+SERVICE_THREADS = 8
+
+
+class NoAnswer(Exception):
+    """A proxied call was refused or failed: the local client gets no answer at all."""
 READ_SIZE = 1 << 20
 
 
@@ -79,6 +86,13 @@ class Bridge:
         self.own = self.node.get_fully_qualified_name()
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
+        # Proxy services block a thread each until the remote answer arrives, so they
+        # live on a second node with its own multi-threaded executor: topics never wait.
+        self.srv_node = rclpy.create_node(f"{name}_srv", start_parameter_services=False, enable_rosout=False)
+        self.srv_executor = MultiThreadedExecutor(num_threads=SERVICE_THREADS)
+        self.srv_executor.add_node(self.srv_node)
+        self.srv_group = ReentrantCallbackGroup()
+        self.own_names = {self.own, self.srv_node.get_fully_qualified_name()}
         self.commands: queue.SimpleQueue = queue.SimpleQueue()
         self.guard = self.node.create_guard_condition(self._drain)
         self.send_lock = threading.Lock()
@@ -87,7 +101,7 @@ class Bridge:
         self.subs: dict[int, object] = {}
         self.servers: dict[int, object] = {}
         self.clients: dict[int, tuple[object, type]] = {}
-        self.pending: dict[int, Future] = {}
+        self.pending: dict[int, list] = {}  # request id -> [threading.Event, (ok, cdr) or None]
         self.ids = itertools.count(1)
         self.echo_lock = threading.Lock()
         self.echo: dict[str, dict[int, list]] = {}  # topic -> hash(cdr) -> [count, expiry]
@@ -113,17 +127,17 @@ class Bridge:
                     "durability": "transient_local" if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
                 }
                 for i in node.get_publishers_info_by_topic(name)
-                if _fqn(i.node_name, i.node_namespace) != self.own
+                if _fqn(i.node_name, i.node_namespace) not in self.own_names
             ]
             subs = sorted(
-                {_fqn(i.node_name, i.node_namespace) for i in node.get_subscriptions_info_by_topic(name)} - {self.own}
+                {_fqn(i.node_name, i.node_namespace) for i in node.get_subscriptions_info_by_topic(name)} - self.own_names
             )
             if pubs or subs:
                 topics.append({"name": name, "types": sorted(types), "publishers": sorted(pubs, key=str), "subscribers": subs})
         services: dict[str, dict] = {}
         for n, ns in node.get_node_names_and_namespaces():
             fqn = _fqn(n, ns)
-            if fqn == self.own:
+            if fqn in self.own_names:
                 continue
             try:
                 served = node.get_service_names_and_types_by_node(n, ns)
@@ -162,6 +176,12 @@ class Bridge:
                 for kind, chan, payload in decoder.frames():
                     if kind == fr.PUBLISH:
                         self._publish(chan, payload)
+                    elif kind == fr.REPLY:
+                        (rid,) = fr.ID.unpack_from(payload)
+                        slot = self.pending.pop(rid, None)
+                        if slot is not None:
+                            slot[1] = fr.split_status(payload[4:])
+                            slot[0].set()
                     elif kind == fr.CONTROL and fr.decode_control(payload)["op"] in ("advertise", "unadvertise"):
                         self._pub_control(fr.decode_control(payload))
                     else:
@@ -217,11 +237,6 @@ class Bridge:
                     self._control(fr.decode_control(payload))
                 elif kind == fr.CALL:
                     self._call(chan, payload)
-                elif kind == fr.REPLY:
-                    (rid,) = fr.ID.unpack_from(payload)
-                    future = self.pending.pop(rid, None)
-                    if future is not None and not future.done():
-                        future.set_result(fr.split_status(payload[4:]))
             except Exception as exc:  # one bad command must not stop the bridge
                 self.error(f"command {kind} on channel {chan} failed: {type(exc).__name__}: {exc}", chan=chan)
 
@@ -252,11 +267,15 @@ class Bridge:
                 self.node.destroy_subscription(sub)
         elif op == "serve":
             cls = load_type(cmd["type"], "srv")
-            self.servers[chan] = self.node.create_service(cls, cmd["service"], self._proxy(chan, cls))
+            self.servers[chan] = self.srv_node.create_service(
+                cls, cmd["service"], self._proxy(chan, cls), callback_group=self.srv_group
+            )
+            self.srv_executor.wake()
         elif op == "unserve":
             srv = self.servers.pop(chan, None)
             if srv is not None:
-                self.node.destroy_service(srv)
+                self.srv_node.destroy_service(srv)
+                self.srv_executor.wake()
         elif op == "client":
             cls = load_type(cmd["type"], "srv")
             self.clients[chan] = (self.node.create_client(cls, cmd["service"]), cls)
@@ -268,17 +287,27 @@ class Bridge:
             raise ValueError(f"unknown op {op!r}")
 
     def _proxy(self, chan: int, cls):
-        async def handle(request, _response):
+        def handle(request, _response):
             rid = next(self.ids)
-            future = Future()
-            self.pending[rid] = future
+            slot = [threading.Event(), None]
+            self.pending[rid] = slot
             self.send(fr.encode(fr.REQUEST, chan, fr.ID.pack(rid) + serialize_message(request)))
-            ok, cdr = await future
-            if not ok:
-                await Future()  # refused or failed: no answer at all (the client times out), never a made-up one
-            return deserialize_message(cdr, cls.Response)
+            if not slot[0].wait(CALL_TIMEOUT) or not slot[1][0]:
+                self.pending.pop(rid, None)
+                # Refused or failed: no answer at all (the client times out), never a made-up one.
+                raise NoAnswer(f"call {rid} of channel {chan}")
+            return deserialize_message(slot[1][1], cls.Response)
 
         return handle
+
+    def spin_services(self) -> None:
+        while rclpy.ok():
+            try:
+                self.srv_executor.spin_once(timeout_sec=0.5)
+            except NoAnswer:
+                pass
+            except ExternalShutdownException:
+                return
 
     def _call(self, chan: int, payload: bytes) -> None:
         (rid,) = fr.ID.unpack_from(payload)
@@ -315,6 +344,7 @@ def main() -> None:
         )
     )
     threading.Thread(target=bridge.read_loop, name="link", daemon=True).start()
+    threading.Thread(target=bridge.spin_services, name="services", daemon=True).start()
     try:
         bridge.executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

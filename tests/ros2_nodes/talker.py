@@ -22,6 +22,7 @@ parser.add_argument("hz", type=float)
 parser.add_argument("--latched", action="store_true")
 parser.add_argument("--best-effort", action="store_true")
 parser.add_argument("--node", default="talker")
+parser.add_argument("--offset", type=int, default=0)
 parser.add_argument("--linger", type=float, default=30.0)
 args = parser.parse_args()
 
@@ -37,7 +38,7 @@ print("READY", flush=True)
 period = 1.0 / args.hz
 next_at = time.monotonic()
 for seq in range(args.count):
-    pub.publish(make(args.kind, seq))
+    pub.publish(make(args.kind, args.offset + seq))
     next_at += period
     time.sleep(max(0.0, next_at - time.monotonic()))
 print("DONE", flush=True)
