@@ -257,7 +257,9 @@ class Mission:
         t_setup = time.monotonic()
         with self.graph() as g:
             setup_s = time.monotonic() - t_setup
-            return self._mission(g, setup_s)
+            res = self._mission(g, setup_s)
+            res["ports"] = [list(p) for p in g.ports]
+            return res
 
     def _start_robots(self, g: Graph) -> dict[str, subprocess.Popen]:
         procs = {}
@@ -501,15 +503,11 @@ def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lam
             result["attacks"][k] = entry
     finally:
         children.kill_all()
-        ports = []
-        for res in result["modes"].values():
-            ports += res.get("_ports", [])
     for res in result["modes"].values():
         res.pop("_final", None)
+    result["children_started"] = len(children.procs)
     result["leftover_children"] = [p.pid for p in children.procs if p.poll() is None]
-    if not opts.keep:
-        result["kept"] = False
-    _ = ports
+    result["ports_still_open"] = [list(p) for res in result["modes"].values() for p in free_after(res.get("ports", []))]
     return result
 
 

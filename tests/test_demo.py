@@ -1,0 +1,122 @@
+"""`cryptoros demo` as a new user runs it: a fresh venv, the package installed from the
+repository, no ROS anywhere on PATH or in the environment.
+
+Asserts on the JSON it writes: in plain mode every attack succeeded (judged from what
+the victims received), in protected mode every attack was blocked and the mission
+still reached its coverage target; no child process and no port outlives the demo,
+including when it is interrupted with Ctrl-C (SIGINT).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.timeout(420)
+
+
+@pytest.fixture(scope="module")
+def venv(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("fresh") / "venv"
+    subprocess.run(["python3", "-m", "venv", str(root)],
+                   check=True, timeout=120, env=_no_ros_env(None))
+    r = subprocess.run([str(root / "bin" / "pip"), "install", "-q", "--disable-pip-version-check", str(REPO)],
+                       capture_output=True, text=True, timeout=300, env=_no_ros_env(None))
+    assert r.returncode == 0, r.stderr[-3000:]
+    return root
+
+
+def _no_ros_env(venv: Path | None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("ROS") and k not in ("PYTHONPATH", "CMAKE_PREFIX_PATH", "LD_LIBRARY_PATH", "VIRTUAL_ENV")}
+    env["PATH"] = f"{venv}/bin" if venv else "/usr/local/bin:/usr/bin:/bin"
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _processes_using(path: Path) -> list[str]:
+    found = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if str(path) in cmd:
+            found.append(f"{pid}: {cmd[:200]}")
+    return found
+
+
+def _open(ports: list[list]) -> list:
+    busy = []
+    for host, port in ports:
+        with socket.socket() as s:
+            s.settimeout(0.3)
+            if s.connect_ex((host, int(port))) == 0:
+                busy.append((host, port))
+    return busy
+
+
+def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv, tmp_path):
+    out = tmp_path / "out.json"
+    r = subprocess.run([str(venv / "bin" / "cryptoros"), "demo", "--seconds", "20", "--json", str(out),
+                        "--out", str(tmp_path / "report")],
+                       cwd=tmp_path, env=_no_ros_env(venv), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "Report:" in r.stdout and "plain ROS" in r.stdout and "cryptoros" in r.stdout
+    result = json.loads(out.read_text())
+    assert set(result["attacks"]) == {"spoof-pose", "scan-noise", "cmd-flood", "false-map", "map-erase", "eavesdrop",
+                                      "shutdown", "hijack"}
+    for name, a in result["attacks"].items():
+        assert a["plain"]["succeeded"] is True, (name, a["plain"]["evidence"])
+        assert a["protected"]["succeeded"] is False, (name, a["protected"]["evidence"])
+        assert a["protected_attacker"].startswith(("stranger", "insider"))
+    protected = result["modes"]["protected"]
+    assert protected["target_reached"] is True, protected["coverage"]
+    assert protected["coverage"] >= protected["coverage_target"]
+    assert result["modes"]["plain"]["coverage"] < protected["coverage"]
+    assert protected["denials"], "the interceptors counted no denial"
+    assert protected["interceptors"]["cpu_s_total"] > 0
+    report = Path(result["report"])
+    assert report.exists() and (report.parent / "coverage_over_time.png").exists()
+    assert (report.parent / "coverage_maps.png").exists()
+    # hygiene: nothing left running, every port free, the throwaway work directory gone
+    assert result["leftover_children"] == [] and result["ports_still_open"] == []
+    assert _processes_using(venv) == []
+    assert _open([p for m in result["modes"].values() for p in m["ports"]]) == []
+    assert not Path(result["workdir"]).exists()
+
+
+def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
+    proc = subprocess.Popen([str(venv / "bin" / "cryptoros"), "demo", "--mode", "protected", "--seconds", "60",
+                             "--workdir", str(tmp_path / "work")], cwd=tmp_path, env=_no_ros_env(venv),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:  # interrupt once robots run behind the interceptors
+            if list((tmp_path / "work" / "protected").glob("r*.status.json")):
+                break
+            time.sleep(0.2)
+        time.sleep(2)
+        children = [p for p in _processes_using(venv) if not p.startswith(f"{proc.pid}:")]
+        assert len(children) >= 5, children
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, out[-2000:]
+    deadline = time.monotonic() + 10
+    while _processes_using(venv) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _processes_using(venv) == []
