@@ -108,7 +108,7 @@ class Network:
             stderr=subprocess.STDOUT,
         )
         wait_for_port(host.address, host.public_port, timeout=20, proc=host.proc)
-        if name != "master":
+        if "local_master" in host.config.read_text():  # the node role is configured
             wait_for_port("127.0.0.1", host.local_master_port, timeout=20, proc=host.proc)
         return host
 
@@ -152,7 +152,7 @@ def interceptor_config(
 
 @contextlib.contextmanager
 def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[str, ...] = ("master", "robot_a", "robot_b"),
-                  extra: dict[str, str] | None = None) -> Iterator[Network]:
+                  extra: dict[str, str] | None = None, roles: dict[str, list[str]] | None = None) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the interceptors named in ``start``."""
     rosmaster = require("rosmaster")["rosmaster"]
     pki = TestPKIFactory(workdir / "pki")
@@ -184,10 +184,10 @@ def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[s
             config.write_text(
                 interceptor_config(
                     pki, name, address,
-                    roles=["master"] if name == "master" else ["node"],
+                    roles=(roles or {}).get(name) or (["master"] if name == "master" else ["node"]),
                     public_port=public, local_master_port=local_master, metrics_port=metrics,
                     master_endpoint=f"{HOSTS['master']}:{master_public}", authz_url=daemon.base,
-                    upstream=f"http://127.0.0.1:{ros_port}" if name == "master" else None,
+                    upstream=f"http://127.0.0.1:{ros_port}" if "master" in ((roles or {}).get(name) or [name]) else None,
                     extra=(extra or {}).get(name, ""),
                 )
             )

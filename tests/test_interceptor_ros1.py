@@ -141,3 +141,21 @@ def test_nodes_shut_down_cleanly_and_the_master_is_empty_after(network):
     while time.monotonic() < deadline and {"/talker_a", "/listener_b"} & nodes_in_state(master_state(network)):
         time.sleep(0.1)
     assert not {"/talker_a", "/listener_b"} & nodes_in_state(master_state(network))
+
+
+def test_one_process_serves_master_and_node_roles(tmp_path):
+    """The master host's interceptor also fronts a talker on the master host."""
+    from tests.interceptor_harness import DEFAULT_POLICY
+
+    policy = DEFAULT_POLICY.replace(
+        "- name: master\n  fingerprint_sha256: {master}\n",
+        "- name: master\n  fingerprint_sha256: {master}\n  grants:\n    publish:\n"
+        "    - {{node: /talker_m, topic: /chatter, type: std_msgs/String}}\n",
+    )
+    with robot_network(tmp_path, policy=policy, roles={"master": ["master", "node"]}) as net:
+        assert net.hosts["master"].proc.poll() is None
+        with start_sub(net, "robot_b", "/listener_b") as sub:
+            read_lines(sub, "READY", 20)
+            with running([SYS_PY, NODE, "pub", "/talker_m", "/chatter", "5", "20", "1"], env=net.ros_env("master")):
+                lines = read_lines(sub, "GOT secret-4", 30)
+        assert got(lines) == [f"secret-{i}" for i in range(5)]
