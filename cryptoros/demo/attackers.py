@@ -101,6 +101,8 @@ async def run(cfg: dict[str, Any], stop: asyncio.Event) -> dict[str, Any]:
                     positions[h.source] = [round(h.position.x, 2), round(h.position.y, 2)]
                 elif topic == "/team/map":
                     u = P.decode(data, P.MAP)
+                    if u.source not in cfg["team"]:
+                        return  # another attacker's false claim is not the team's map
                     d = np.asarray(u.data).reshape(int(u.height), int(u.width))
                     rr, cc = np.nonzero(d != -1)
                     cells.update(((rr + int(u.origin_y)) * W + (cc + int(u.origin_x))).tolist())
