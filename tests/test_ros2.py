@@ -8,10 +8,20 @@ domains is the interceptors (see tests/test_ros2_support.py for the policy).
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import ssl
+import struct
 import time
 
+import jwt
 import pytest
+from cryptography.hazmat.primitives.asymmetric import rsa
 
+from cryptoros.ros2.target import StreamTarget
+from cryptoros.tokens import Grants, build_claims, sign_token
+from tests.interceptor_harness import rogue_preamble, rogue_tls, signing_key
+from tests.test_interceptor_operations import Capture
 from tests.test_ros2_support import collect, got, ros2_network
 
 
@@ -106,3 +116,134 @@ def test_two_robots_bridging_the_same_topic_do_not_loop(network):
     assert local, "robot A's own talker was not heard"
     duplicates = sorted({s for s in seqs if seqs.count(s) > 1})
     assert duplicates == [], f"messages came back around the loop: {duplicates[:10]}"
+
+
+# ------------------------------------------------------------------ tokens and bad input
+def _rogue(network, host, as_name):
+    h = network.robots[host]
+    return rogue_tls(h.address, h.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for(as_name),
+                     key=network.pki.pki.key_path_for(as_name))
+
+
+CHATTER = StreamTarget(kind="topic", name="/chatter", type="std_msgs/msg/String", node="/talker").encode()
+
+
+def test_forged_expired_foreign_and_revoked_tokens_are_refused(network):
+    key, kid = signing_key(network)
+    now = int(time.time())
+    a_der = ssl.PEM_cert_to_DER_cert(network.pki.pki.cert_path_for("robot_a").read_text())
+
+    def claims(**kw):
+        c = build_claims(issuer="cryptoros-authz", audience="cryptoros", subject="robot_a",
+                         grants=Grants.from_claim({"/talker": {"publish": [["/chatter", "std_msgs/msg/String"]]}}),
+                         cert_der=a_der, now=now, lifetime=300)
+        c.update(kw)
+        return c
+
+    forged = sign_token(claims(), rsa.generate_private_key(public_exponent=65537, key_size=2048), kid)
+    expired = sign_token(claims(iat=now - 900, nbf=now - 900, exp=now - 600), key, kid)
+    status, body = network.daemon.token("robot_c")
+    foreign = body["access_token"]  # genuine, but bound to robot C's certificate
+    status, body = network.daemon.token("robot_a")
+    assert status == 200
+    revoked = body["access_token"]
+    jti = jwt.decode(revoked, options={"verify_signature": False})["jti"]
+    ok_result = network.cli("revoke-token", jti)
+    assert ok_result.returncode == 0, ok_result.stderr
+    time.sleep(1.5)  # two polls of the revocation feed
+    for token in (forged, expired, foreign, revoked):
+        with _rogue(network, "robot_b", "robot_a") as s:
+            reply = rogue_preamble(s, token, "ros2", CHATTER)
+        assert reply is None or reply.ok is False, token[:30]
+    log = network.robots["robot_b"].denials()
+    for reason in ("bad_signature", "expired", "cnf_mismatch", "revoked"):
+        assert reason in log, reason
+
+
+def test_malformed_targets_and_frames_are_refused_and_the_interceptor_keeps_serving(network):
+    status, body = network.daemon.token("robot_a")
+    token = body["access_token"]
+    for target in ("", "{", '{"kind":"topic"}', '{"kind":"topic","name":"chatter","type":"x","node":"/t"}',
+                   CHATTER.replace("/talker", "/intruder")):
+        with _rogue(network, "robot_b", "robot_a") as s:
+            reply = rogue_preamble(s, token, "ros2", target)
+            if reply is not None and reply.ok:  # the target parsed: the grant check closes the stream
+                s.settimeout(5)
+                assert s.recv(100) == b""
+            else:
+                assert reply is None or reply.ok is False
+    with _rogue(network, "robot_b", "robot_a") as s:  # a frame declaring 4 GB
+        reply = rogue_preamble(s, token, "ros2", CHATTER)
+        assert reply.ok
+        s.sendall(struct.pack("<IBI", 0xFFFFFFF0, 16, 0) + b"x" * 100)
+        s.settimeout(5)
+        with contextlib.suppress(ConnectionError, ssl.SSLError):
+            assert s.recv(100) == b""
+    log = network.robots["robot_b"].denials()
+    assert "bad_target" in log or "ros2 target" in log
+    assert "/intruder may not publish /chatter" in log
+    assert "outside 0.." in log
+    test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
+
+
+# ------------------------------------------------------------------ confidentiality, metrics
+
+
+def test_capture_between_interceptors_holds_no_published_string(network, tmp_path):
+    hosts = " or ".join(f"host {r.address}" for r in network.robots.values())
+    capture = Capture(tmp_path / "ros2.pcap", f"tcp and ({hosts})")
+    with network.node("robot_b", "listener.py", "string", "/chatter", "20") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "50"):
+            collect(sub, 50, 20)
+    data = capture.stop()
+    assert len(data) > 5000, "the capture saw no traffic between the interceptors"
+    assert b"secret-" not in data and b"/chatter" not in data and b"std_msgs" not in data
+
+
+def test_metrics_count_streams_bytes_allows_and_denials(network):
+    a, b = network.metrics("robot_a"), network.metrics("robot_b")
+    assert 'cryptoros_interceptor_connections_total{direction="out",purpose="ros2"}' in a
+    assert 'cryptoros_interceptor_connections_total{direction="in",purpose="ros2"}' in b
+    assert 'cryptoros_interceptor_allowed_total{kind="ros2_topic"}' in b
+    assert 'cryptoros_interceptor_denied_total{kind="ros2_publish",reason="not_granted"}' in a
+    assert 'cryptoros_interceptor_bytes_total{direction="rx"}' in b
+    tx = [line for line in a.splitlines() if line.startswith('cryptoros_interceptor_bytes_total{direction="tx"}')]
+    assert tx and float(tx[0].split()[-1]) > 10000
+
+
+# ------------------------------------------------------------------ only through the interceptors; revocation
+
+
+def test_with_the_interceptors_stopped_nothing_arrives(network):
+    network.stop("robot_a")
+    network.stop("robot_b")
+    try:
+        with network.node("robot_b", "listener.py", "string", "/chatter", "6") as sub:
+            sub.until("READY", 20)
+            with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "20"):
+                lines = sub.until(None, 5)
+        assert got(lines) == []
+    finally:
+        network.start("robot_a")
+        network.start("robot_b")
+
+
+def test_sighup_keeps_streams_and_a_disabled_manager_is_cut_off_within_5s(network):
+    with network.node("robot_b", "listener.py", "string", "/chatter", "60") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "50"):
+            collect(sub, 20, 25)
+            for name in ("robot_a", "robot_b"):
+                network.robots[name].proc.send_signal(signal.SIGHUP)
+            assert len(got(sub.until(None, 2.0))) >= 50, "the stream stalled across SIGHUP"
+            assert "reloaded" in network.robots["robot_a"].logs()
+            result = network.cli("disable-manager", "robot_a")
+            assert result.returncode == 0, result.stderr
+            try:
+                sub.until(None, 5.0)  # whatever still arrives within 5 s
+                after = got(sub.until(None, 3.0))
+                assert after == [], f"robot B still receives {len(after)} messages 5 s after robot A was disabled"
+            finally:
+                network.cli("enable-manager", "robot_a")
+    assert "cryptoros_interceptor_revocation_cutoffs_total 0.0" not in network.metrics("robot_b")

@@ -1,0 +1,92 @@
+"""ROS 2 role pieces with no network: frames, stream targets, the [ros2] config section."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from cryptoros.errors import ConfigError, RemoteProtocolError
+from cryptoros.ros2 import framing as fr
+from cryptoros.ros2.target import QoS, StreamTarget, manager_may
+from cryptoros.tokens import Grants
+from interceptor.config import parse
+
+
+def test_frames_round_trip_whole_byte_by_byte_and_with_trailing_data():
+    frames = [(fr.DATA, 0, b"\x00\x01\x00\x00abc"), (fr.SRV_REQUEST, 7, b""), (fr.PUBLISH, 3, bytes(100_000))]
+    wire = b"".join(fr.encode(*f) for f in frames)
+    whole = fr.FrameDecoder()
+    whole.feed(wire + b"\x05")
+    assert whole.frames() == frames and whole.buffered == 1
+    byte_by_byte, out = fr.FrameDecoder(), []
+    for i in range(len(wire)):
+        byte_by_byte.feed(wire[i : i + 1])
+        out += byte_by_byte.frames()
+    assert out == frames
+
+
+def test_oversized_or_unexpected_frames_are_refused_before_buffering():
+    decoder = fr.FrameDecoder(max_size=1000, kinds=frozenset({fr.DATA}))
+    decoder.feed(fr.HEAD.pack(5 + 1001, fr.DATA, 0))
+    with pytest.raises(fr.FrameError):
+        decoder.frames()
+    decoder = fr.FrameDecoder(kinds=frozenset({fr.DATA}))
+    decoder.feed(fr.encode(fr.PUBLISH, 0, b"x"))
+    with pytest.raises(fr.FrameError):
+        decoder.frames()
+
+
+@given(st.binary(max_size=64))
+def test_any_input_parses_or_raises_frame_error(data):
+    decoder = fr.FrameDecoder(max_size=1 << 16)
+    decoder.feed(data)
+    try:
+        decoder.frames()
+    except fr.FrameError:
+        pass
+
+
+def test_stream_target_round_trip_and_strict_decoding():
+    t = StreamTarget(kind="topic", name="/scan", type="sensor_msgs/msg/LaserScan", node="/lidar",
+                     qos=QoS(reliability="best_effort", durability="transient_local", depth=5))
+    assert StreamTarget.decode(t.encode()) == t
+    s = StreamTarget(kind="service", name="/set_flag", type="std_srvs/srv/SetBool", node="/flag_server")
+    assert StreamTarget.decode(s.encode()) == s and (s.action, s.peer_action) == ("serve", "call")
+    for bad in ('[]', '{"kind":"topic","name":"/a","type":"std_msgs/msg/String","node":"/n","x":1}',
+                '{"kind":"topic","name":"/a","type":"std_srvs/srv/SetBool","node":"/n"}',
+                '{"kind":"topic","name":"a","type":"std_msgs/msg/String","node":"/n"}',
+                '{"kind":"topic","name":"/a","type":"std_msgs/msg/String","node":"/n","qos":{"reliability":"x",'
+                '"durability":"volatile","depth":1}}'):
+        with pytest.raises(RemoteProtocolError):
+            StreamTarget.decode(bad)
+
+
+def test_manager_may_is_decided_per_manager():
+    grants = Grants.from_claim({"/listener": {"subscribe": [["/chatter", "std_msgs/msg/String"]]}})
+    assert manager_may(grants, "subscribe", "/chatter", "std_msgs/msg/String")
+    assert not manager_may(grants, "subscribe", "/chatter", "std_msgs/msg/Int32")
+    assert not manager_may(grants, "publish", "/chatter", "std_msgs/msg/String")
+
+
+def _config(tmp_path, ros2: dict | None, roles=("ros2",)):
+    raw = {"manager": "r", "roles": list(roles), "tls": {"ca": "ca", "cert": "c", "key": "k"},
+           "authz": {"url": "https://127.0.0.1:1"}, "listen": {"public": "127.0.0.2:1"}}
+    if ros2 is not None:
+        raw["ros2"] = ros2
+    return parse(raw, base=tmp_path)
+
+
+def test_ros2_config_section(tmp_path):
+    python = tmp_path / "python"
+    for name in ("python", "ca", "c", "k"):
+        (tmp_path / name).touch()
+    cfg = _config(tmp_path, {"domain_id": 0, "python": "python", "peers": ["127.0.0.3:11400"], "depth": 5})
+    assert cfg.ros2.domain_id == 0 and cfg.ros2.python == python and str(cfg.ros2.peers[0]) == "127.0.0.3:11400"
+    for bad in ({"python": "python"}, {"domain_id": 300, "python": "python"}, {"domain_id": 1, "python": "nope"},
+                {"domain_id": 1, "python": "python", "colour": "red"},
+                {"domain_id": 1, "python": "python", "peers": ["x"]}):
+        with pytest.raises(ConfigError):
+            _config(tmp_path, bad)
+    with pytest.raises(ConfigError):
+        _config(tmp_path, {"domain_id": 1, "python": "python"}, roles=("master",))
