@@ -26,6 +26,7 @@ import asyncio
 import contextlib
 import logging
 import socket
+import ssl
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -329,6 +330,7 @@ class Interceptor:
                 await asyncio.sleep(0.5)
 
     async def _listen_public(self, ctx) -> asyncio.AbstractServer:
+        ctx.sslobject_class = self._counting_sslobject_class()
         return await asyncio.start_server(
             self._on_public, self.cfg.public.host, self.cfg.public.port, ssl=ctx, reuse_address=True,
             ssl_handshake_timeout=self.cfg.limits.handshake_timeout, limit=READ_SIZE,
@@ -396,6 +398,25 @@ class Interceptor:
         await web.TCPSite(self._metrics_runner, self.cfg.metrics.host, self.cfg.metrics.port).start()
 
     # ================================================================ helpers
+    def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
+        """An SSLObject whose failed handshakes are counted and logged like every other
+        denial (asyncio itself only logs them in debug mode)."""
+        metrics = self.metrics
+
+        class CountingSSLObject(ssl.SSLObject):
+            def do_handshake(self) -> None:
+                try:
+                    super().do_handshake()
+                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+                    raise
+                except ssl.SSLError as exc:
+                    reason = (exc.reason or type(exc).__name__).lower()
+                    metrics.denied.labels("tls", reason).inc()
+                    log.warning("DENY tls handshake: %s", exc)
+                    raise
+
+        return CountingSSLObject
+
     def _on_feed(self, revocations) -> None:
         """When the feed revokes our own token or disables our manager, drop the token
         (nothing is allowed on it any more) and ask for a new one at once."""

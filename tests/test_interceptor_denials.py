@@ -238,6 +238,16 @@ def test_tls_without_certificate_other_ca_or_revoked_fails_the_handshake(network
         time.sleep(0.1)
     assert refused_at_handshake(host, port, ca, revoked.cert_path, revoked.key_path)
     assert network.hosts["robot_a"].proc.poll() is None
+    # Each refused handshake is a denial with its reason, in the log and in /metrics.
+    log = denials(network, "robot_a")
+    for reason in ("peer did not return a certificate", "unable to get local issuer certificate", "certificate revoked"):
+        assert reason in log
+    import urllib.request
+
+    metrics = urllib.request.urlopen(f"http://127.0.0.1:{network.hosts['robot_a'].metrics_port}/metrics", timeout=5)
+    text = metrics.read().decode()
+    assert 'kind="tls",reason="certificate_verify_failed"' in text
+    assert 'kind="tls",reason="peer_did_not_return_a_certificate"' in text
 
 
 def test_valid_certificate_with_bad_tokens_is_refused(network):
