@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",
     "interceptor": "cryptoros.bench.interceptor:interceptor",
     "ros1": "cryptoros.bench.ros1:ros1",
+    "ros2": "cryptoros.bench.ros2:ros2",
     "sim": "cryptoros.bench.sim:sim",
 }
 

@@ -1,0 +1,166 @@
+"""``cryptoros bench ros2``: rclpy to rclpy on one domain against the same through the
+interceptor pair (robot A's domain -> interceptor A ==mTLS==> interceptor B -> robot
+B's domain), in one run, printed side by side.
+
+Needs the ROS 2 venv (``scripts/ros2-venv``; ``--python`` or ``CRYPTOROS_ROS2_PYTHON``
+to point elsewhere). Builds its own PKI, registry, ``cryptoros-authz serve`` and two
+``cryptoros-interceptor`` processes with the ``ros2`` role; every process is stopped
+in a ``finally``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import click
+
+from cryptoros.bench.network import SIGNING_PASSPHRASE, NetworkError, clean_env, free_port, stop, tool, wait_port
+from interceptor.config import default_ros2_python
+
+NODE = Path(__file__).resolve().parent.parent / "ros2" / "bench_node.py"
+HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
+POLICY = """\
+version: 1
+managers:
+- name: robot_a
+  fingerprint_sha256: {robot_a}
+  grants:
+    publish:
+    - {{node: /bench_pub, topic: /bench, type: std_msgs/msg/String}}
+    - {{node: /bench_pub, topic: /bench, type: sensor_msgs/msg/Image}}
+- name: robot_b
+  fingerprint_sha256: {robot_b}
+  grants:
+    subscribe:
+    - {{node: '*', topic: /bench, type: std_msgs/msg/String}}
+    - {{node: '*', topic: /bench, type: sensor_msgs/msg/Image}}
+"""
+
+
+def _ros_env(domain: int) -> dict[str, str]:
+    env = {k: v for k, v in clean_env().items() if not k.startswith(("_ROS_WHEELS", "RMW_"))}
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    return env
+
+
+@contextlib.contextmanager
+def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int]) -> Iterator[None]:
+    from certs.pki import PKI
+
+    pki = PKI.init(workdir / "pki", unsafe_no_passphrase=True)
+    fingerprints = {name: pki.issue(name, kind="interceptor", sans=(f"IP:{addr}",), unsafe_no_passphrase=True)
+                    for name, addr in HOSTS.items()}
+    server = pki.issue("authz", kind="server", sans=("IP:127.0.0.1", "DNS:localhost"), unsafe_no_passphrase=True)
+    db = f"sqlite:///{workdir / 'registry.db'}"
+    (workdir / "policy.yaml").write_text(POLICY.format(**{n: i.fingerprint_sha256 for n, i in fingerprints.items()}))
+    authz = tool("cryptoros-authz")
+    result = subprocess.run([authz, "--db", db, "import", str(workdir / "policy.yaml")], capture_output=True,
+                            text=True, timeout=60, env=clean_env())
+    if result.returncode != 0:
+        raise NetworkError(f"cryptoros-authz import failed: {result.stderr.strip()}")
+    procs: list[subprocess.Popen] = []
+    try:
+        port = free_port()
+        (workdir / "signing.pass").write_text(SIGNING_PASSPHRASE + "\n")
+        daemon = subprocess.Popen(
+            [authz, "--db", db, "serve", "--port", str(port), "--ca", str(pki.ca_cert_path), "--cert",
+             str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
+             "--key-passphrase-file", str(workdir / "signing.pass"), "--log-level", "warning"],
+            stdout=(workdir / "authz.log").open("w"), stderr=subprocess.STDOUT, env=clean_env())
+        procs.append(daemon)
+        wait_port("127.0.0.1", port, 30, daemon, "cryptoros-authz")
+        publics = {name: free_port(addr) for name, addr in HOSTS.items()}
+        for (name, addr), domain in zip(HOSTS.items(), domains, strict=True):
+            peer = "robot_b" if name == "robot_a" else "robot_a"
+            config = workdir / f"{name}.toml"
+            config.write_text("\n".join([
+                f'manager = "{name}"', 'roles = ["ros2"]',
+                "[tls]", f'ca = "{pki.ca_cert_path}"', f'cert = "{fingerprints[name].cert_path}"',
+                f'key = "{fingerprints[name].key_path}"', f'crl = "{pki.crl_path}"',
+                "[authz]", f'url = "https://127.0.0.1:{port}"',
+                "[listen]", f'public = "{addr}:{publics[name]}"',
+                "[ros2]", f"domain_id = {domain}", f'peers = ["{HOSTS[peer]}:{publics[peer]}"]', f'python = "{python}"',
+                "graph_interval = 0.25",
+            ]) + "\n")
+            proc = subprocess.Popen([tool("cryptoros-interceptor"), "--config", str(config), "--log-level", "warning"],
+                                    stdout=(workdir / f"{name}.log").open("w"), stderr=subprocess.STDOUT, env=clean_env())
+            procs.append(proc)
+            wait_port(addr, publics[name], 40, proc, f"interceptor {name}")
+        yield
+    finally:
+        for proc in reversed(procs):
+            stop(proc)
+
+
+def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, sub_domain: int) -> dict:
+    sub = subprocess.Popen([str(python), str(NODE), "sub", kind, str(count), "3"], env=_ros_env(sub_domain),
+                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    pub = None
+    try:
+        if sub.stdout.readline().strip() != "READY":
+            raise NetworkError("the benchmark subscriber did not start")
+        pub = subprocess.Popen([str(python), str(NODE), "pub", kind, str(count), str(hz)], env=_ros_env(pub_domain),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        out, _ = sub.communicate(timeout=180)
+        return json.loads(out.strip().splitlines()[-1])
+    finally:
+        stop(sub)
+        if pub is not None:
+            stop(pub)
+
+
+@click.command()
+@click.option("--small", "n_small", default=20_000, show_default=True, help="Small messages, as fast as rclpy publishes.")
+@click.option("--at100", "n_100", default=500, show_default=True, help="Messages at 100 Hz for latency.")
+@click.option("--at1k", "n_1k", default=3_000, show_default=True, help="Messages at 1 kHz for latency.")
+@click.option("--image80k", "n_img", default=1_000, show_default=True, help="80 KB images, as fast as possible.")
+@click.option("--python", "python", default=None, help="The ROS 2 venv's python (default: .ros2-venv).")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
+def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, python: str | None, as_json: bool) -> None:
+    """rclpy to rclpy direct against rclpy through the interceptor pair, in one run."""
+    py = Path(python) if python else default_ros2_python()
+    if not py.exists():
+        raise click.ClickException(f"{py} does not exist: create the ROS 2 venv with scripts/ros2-venv")
+    base = (os.getpid() * 7) % 99
+    domains = (base, base + 1, base + 2)  # direct, robot A, robot B
+    rows = [
+        ("std_msgs/String 64 B, max rate", "small", n_small, 0.0),
+        ("one-way latency at 100 Hz", "small", n_100, 100.0),
+        ("one-way latency at 1 kHz", "small", n_1k, 1000.0),
+        ("sensor_msgs/Image 80 KB, max rate", "image", n_img, 0.0),
+    ]
+    results: dict[str, dict[str, dict]] = {}
+    with tempfile.TemporaryDirectory(prefix="cryptoros-bench-ros2-") as tmp:
+        for label, kind, count, hz in rows:
+            results.setdefault(label, {})["direct"] = _run_pair(py, kind, count, hz, domains[0], domains[0])
+            if not as_json:
+                click.echo(f"  {label:36s} direct   {results[label]['direct']}", err=True)
+        with interceptor_pair(Path(tmp), py, domains[1:]):
+            time.sleep(1.0)
+            for label, kind, count, hz in rows:
+                results[label]["bridged"] = _run_pair(py, kind, count, hz, domains[1], domains[2])
+                if not as_json:
+                    click.echo(f"  {label:36s} bridged  {results[label]['bridged']}", err=True)
+    if as_json:
+        click.echo(json.dumps(results, indent=2))
+        return
+    click.echo("\n| measurement | direct (one domain) | through the interceptor pair | ratio / added |")
+    click.echo("|---|---|---|---|")
+    for label, kind, count, hz in rows:
+        d, b = results[label]["direct"], results[label]["bridged"]
+        if hz:
+            added = (b["p50"] or 0) - (d["p50"] or 0)
+            click.echo(f"| {label} (p50 / p99 ms) | {d['p50']:.3f} / {d['p99']:.3f} | {b['p50']:.3f} / {b['p99']:.3f} "
+                       f"| +{added:.3f} ms p50 ({b['received']}/{count} received) |")
+        else:
+            unit, key = ("MB/s", "mbps") if kind == "image" else ("msg/s", "rate")
+            ratio = b[key] / d[key] * 100 if d[key] else 0.0
+            click.echo(f"| {label} ({unit}) | {d[key]:,.1f} | {b[key]:,.1f} | {ratio:.0f} % "
+                       f"({b['received']}/{count} received) |")
