@@ -3,7 +3,7 @@
 Robot A (domain a), robot B (domain b), robot C (domain c), each behind its own
 ``cryptoros-interceptor`` (role ``ros2``); unmodified rclpy talkers, listeners, a
 service server and a client as subprocesses (tests/ros2_nodes). The only way between
-domains is the interceptors (see tests/test_ros2_support.py for the policy).
+domains is the interceptors (see tests/ros2_support.py for the policy).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from cryptoros.ros2.target import StreamTarget
 from cryptoros.tokens import Grants, build_claims, sign_token
 from tests.interceptor_harness import rogue_preamble, rogue_tls, signing_key
 from tests.test_interceptor_operations import Capture
-from tests.test_ros2_support import collect, got, ros2_network
+from tests.ros2_support import collect, got, ros2_network
 
 
 @pytest.fixture(scope="module")
