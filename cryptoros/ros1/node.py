@@ -300,8 +300,22 @@ class _Outgoing(asyncio.Protocol):
         self.drain_waiters: list[asyncio.Future] = []
         self.dropped = 0
         self.sent = 0
+        self.loop = asyncio.get_running_loop()
 
     def write(self, frame: bytes) -> None:
+        scheduled = self.scheduled
+        if not scheduled and not self.paused and len(frame) < 65536:
+            # latency path: the first frame of a loop iteration is written at once,
+            # before any bookkeeping; the rest of a burst is coalesced into one write
+            # at the end of the iteration (flush)
+            transport = self.transport
+            if transport.is_closing():
+                return
+            transport.write(frame)
+            self.sent += 1
+            self.scheduled = True
+            self.loop.call_soon(self.flush)
+            return
         if self.transport.is_closing():
             return
         if self.paused and self.transport.get_write_buffer_size() > self.pub.max_buffer:
@@ -312,11 +326,9 @@ class _Outgoing(asyncio.Protocol):
             self.flush()
             self.transport.write(frame)
             return
-        if not self.scheduled:
-            # the first frame of a loop iteration goes out at once (latency); the rest
-            # of a burst is coalesced into one write at the end of the iteration
+        if not scheduled:
             self.scheduled = True
-            asyncio.get_running_loop().call_soon(self.flush)
+            self.loop.call_soon(self.flush)
             self.transport.write(frame)
             return
         self.pending.append(frame)
@@ -541,6 +553,8 @@ class Publisher:
         self.definition = msgs.message_definition(typename, node.store)
         msgs.warm(typename, node.store)
         self._store_type = msgs.store_name(typename)
+        # flat types (strings, fixed-size fields): one generated struct call makes the frame
+        self._frame = msgs.frame_serializer(typename, node.store) if msgs.is_flat(typename, node.store) else None
         self.latch = latch
         self.max_buffer = max_buffer
         self._links: set[_Outgoing] = set()
@@ -567,6 +581,20 @@ class Publisher:
         await asyncio.wait_for(wait(), timeout)
 
     def publish(self, msg: Any) -> None:
+        make = self._frame
+        if make is not None:
+            try:
+                frame = make(msg)
+            except Exception as err:
+                raise LocalProtocolError(f"cannot serialize {self.type}: {err!r}") from err
+            if len(frame) < 65536:
+                if self.latch:
+                    self._last = frame
+                for link in self._links:
+                    link.write(frame)
+                return
+            self.publish_raw(memoryview(frame)[4:])
+            return
         try:
             data = self.node.store.serialize_ros1(msg, self._store_type)
         except Exception as err:
@@ -613,17 +641,35 @@ class Publisher:
 # ================================================================= subscriber
 
 
-class _Incoming(asyncio.Protocol):
-    """Our connection to one publisher of a subscribed topic."""
+class _Incoming(asyncio.BufferedProtocol):
+    """Our connection to one publisher of a subscribed topic.
+
+    A ``BufferedProtocol``: the event loop reads straight into a reused 64 KiB
+    buffer, frames are parsed in place, and a frame too large for it (an image, a
+    point cloud) is read straight into a buffer of its exact size, which is handed to
+    the deserializer without another copy. Same limits as :class:`TCPROSConnection`
+    (``max_header_size``, ``max_frame_size``), checked before a byte is buffered.
+    """
+
+    BUFFER = 65536
 
     def __init__(self, sub: Subscriber, uri: str) -> None:
         self.sub = sub
         self.uri = uri
-        self.conn = TCPROSConnection(max_header_size=sub.node.max_header_size, max_frame_size=sub.node.max_frame_size)
+        self.max_header_size = sub.node.max_header_size
+        self.max_frame_size = sub.node.max_frame_size
         self.transport: asyncio.Transport | None = None
         self.header: dict[str, str] | None = None
         self.ready: asyncio.Future = asyncio.get_running_loop().create_future()
         self.closed = asyncio.get_running_loop().create_future()
+        self.buf = bytearray(self.BUFFER)
+        self.view = memoryview(self.buf)
+        self.start = 0  # first unparsed byte
+        self.end = 0  # end of received data
+        self.big: bytearray | None = None  # a large unit, read straight into its own buffer
+        self.big_view: memoryview | None = None
+        self.big_pos = 0
+        self.failed = False
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
         self.transport = transport
@@ -644,31 +690,110 @@ class _Incoming(asyncio.Protocol):
             )
         )
 
-    def data_received(self, data: bytes) -> None:
-        conn = self.conn
-        conn.receive_data(data)
-        try:
-            if self.header is None:
-                ev = conn.next_event()
-                if ev is tcpros.NEED_DATA:
-                    return
-                assert isinstance(ev, ConnectionHeader)
-                self.header = tcpros.check_publisher_header(ev)
-                if self.header["md5sum"] not in ("*", self.sub.md5sum) and self.sub.md5sum != "*":
-                    raise RemoteProtocolError(f"publisher md5sum {self.header['md5sum']} != {self.sub.md5sum}")
-                self.sub.connection_headers.append(self.header)
-                if not self.ready.done():
-                    self.ready.set_result(None)
-            frames = conn.messages()
-        except RemoteProtocolError as err:
-            log.info("dropping publisher %s of %s: %s", self.uri, self.sub.topic, err)
-            if not self.ready.done():
-                self.ready.set_exception(err)
-            assert self.transport is not None
-            self.transport.close()
+    def get_buffer(self, sizehint: int) -> memoryview:
+        if self.big is not None:
+            assert self.big_view is not None
+            return self.big_view[self.big_pos :]
+        if self.end == len(self.buf):  # a partial unit at the end: move it to the front
+            self._compact()
+        return self.view[self.end :]
+
+    def _compact(self) -> None:
+        n = self.end - self.start
+        if self.start:
+            self.view[:n] = bytes(self.view[self.start : self.end])
+        self.start, self.end = 0, n
+
+    def buffer_updated(self, nbytes: int) -> None:
+        if self.failed:
+            self.start = self.end = 0
             return
+        big = self.big
+        if big is None:
+            self.end += nbytes
+            self._parse()
+            return
+        self.big_pos += nbytes
+        if self.big_pos < len(big):
+            return
+        self.big = self.big_view = None  # type: ignore[assignment]
+        if self.header is None:
+            try:
+                self._on_header(big)
+            except RemoteProtocolError as err:
+                self._fail(err)
+        else:
+            self.sub._deliver([big], self)
+
+    def _on_header(self, body: bytes | bytearray | memoryview) -> None:
+        header = tcpros.check_publisher_header(tcpros.decode_header(body))
+        if header["md5sum"] not in ("*", self.sub.md5sum) and self.sub.md5sum != "*":
+            raise RemoteProtocolError(f"publisher md5sum {header['md5sum']} != {self.sub.md5sum}")
+        self.header = header
+        self.sub.connection_headers.append(header)
+        if not self.ready.done():
+            self.ready.set_result(None)
+
+    def _fail(self, err: Exception) -> None:
+        log.info("dropping publisher %s of %s: %s", self.uri, self.sub.topic, err)
+        self.failed = True
+        self.start = self.end = 0
+        if not self.ready.done():
+            self.ready.set_exception(err)
+        assert self.transport is not None
+        self.transport.close()
+
+    def _parse(self) -> None:
+        buf, view = self.buf, self.view
+        start, end = self.start, self.end
+        unpack = _U32.unpack_from
+        if self.header is None:
+            if end - start < 4:
+                return
+            (size,) = unpack(buf, start)
+            if size > self.max_header_size:
+                return self._fail(RemoteProtocolError(f"declared header length {size} exceeds the limit {self.max_header_size}"))
+            stop = start + 4 + size
+            if stop > end:
+                self._partial(start, end, size)
+                return
+            try:
+                self._on_header(bytes(view[start + 4 : stop]))
+            except RemoteProtocolError as err:
+                return self._fail(err)
+            start = stop
+        frames = []
+        limit = self.max_frame_size
+        while end - start >= 4:
+            (size,) = unpack(buf, start)
+            if size > limit:  # the frames before it are still delivered
+                self._fail(RemoteProtocolError(f"declared frame length {size} exceeds the limit {limit}"))
+                break
+            stop = start + 4 + size
+            if stop > end:
+                self._partial(start, end, size)
+                break
+            frames.append(bytes(view[start + 4 : stop]))
+            start = stop
+        else:
+            if start == end:
+                start = end = 0
+            self.start, self.end = start, end
         if frames:
             self.sub._deliver(frames, self)
+
+    def _partial(self, start: int, end: int, size: int) -> None:
+        """An incomplete unit of ``size`` body bytes begins at ``start``."""
+        if 4 + size > len(self.buf):  # larger than the buffer: read the rest into its own
+            big = bytearray(size)
+            have = end - start - 4
+            big[:have] = self.view[start + 4 : end]
+            self.big, self.big_view, self.big_pos = big, memoryview(big), have
+            self.start = self.end = 0
+            return
+        self.start, self.end = start, end
+        if start + 4 + size > len(self.buf):
+            self._compact()
 
     def eof_received(self) -> bool:
         return False
@@ -702,8 +827,7 @@ class Subscriber:
         self.definition = "" if typename == "*" else msgs.message_definition(typename, node.store)
         self.callback = callback
         self.raw = raw or typename == "*"
-        if not self.raw:
-            msgs.warm(typename, node.store)
+        self._des = None if self.raw else msgs.deserializer(typename, node.store)
         self.tcp_nodelay = tcp_nodelay
         self.queue: collections.deque = collections.deque(maxlen=queue_size if queue_size > 0 else None)
         self._waiter: asyncio.Future | None = None
@@ -722,15 +846,16 @@ class Subscriber:
     def publishers(self) -> list[str]:
         return sorted(self._links)
 
-    def _deliver(self, frames: list[bytes], link: _Incoming) -> None:
+    def _deliver(self, frames: list[Any], link: _Incoming) -> None:
         self.received += len(frames)
-        if self.raw:
-            items = frames
+        des = self._des
+        if des is None:  # raw: bytes, as before (a large frame arrives in a bytearray)
+            items = [f if type(f) is bytes else bytes(f) for f in frames]
         else:
             items = []
             for f in frames:
                 try:
-                    items.append(msgs.deserialize(f, self.type, self.node.store))
+                    items.append(des(f))
                 except RemoteProtocolError as err:
                     self.errors += 1
                     log.info("bad message on %s from %s: %s", self.topic, link.uri, err)
