@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import free_port, require, script, stop, wait_for_port
-from tests.test_authz_support import AuthzDaemon, authz, ok
+from tests.authz_support import AuthzDaemon, authz, ok
 
 SYS_PY = "/usr/bin/python3"
 NODES = Path(__file__).parent / "ros1_nodes"

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import REPO, free_port, missing, script, stop, wait_for_port
-from tests.test_authz_support import AuthzDaemon, authz, ok
+from tests.authz_support import AuthzDaemon, authz, ok
 
 NODES = Path(__file__).parent / "ros2_nodes"
 HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3", "robot_c": "127.0.0.5"}

@@ -30,7 +30,7 @@ from cryptoros.errors import TokenError
 from cryptoros.tokens import KeySet, Revocations, sign_token, verify_access_token
 from tests.support import require
 from tests.test_tls import client_hello
-from tests.test_authz_support import AuthzDaemon, build_team, ok, read_pem_der
+from tests.authz_support import AuthzDaemon, build_team, ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
 

@@ -17,7 +17,7 @@ import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
 from tests.support import free_port, script
-from tests.test_authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
+from tests.authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
 
 pytest_plugins = ["tests.postgres_fixture"]
 

@@ -17,7 +17,7 @@ import aiohttp
 import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
-from tests.test_authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
+from tests.authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
 

@@ -17,7 +17,7 @@ from cryptoros.errors import TokenError
 from cryptoros.tls import TLSConfig, client_context
 from interceptor.authz_client import AuthzClient, AuthzUnavailable, PeerVerifier, TokenKeeper
 from interceptor.config import AuthzSettings
-from tests.test_authz_support import build_team, running_daemon
+from tests.authz_support import build_team, running_daemon
 
 
 @pytest.fixture
