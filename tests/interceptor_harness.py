@@ -10,16 +10,15 @@ stopped in a ``finally``.
 from __future__ import annotations
 
 import contextlib
-import os
-import subprocess
-import textwrap
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
+from cryptoros.bench.network import Network as BenchNetwork
+from cryptoros.bench.network import bench_network
+from tests.authz_support import AuthzDaemon, authz
 from tests.pki_fixtures import TestPKIFactory
-from tests.support import free_port, require, script, stop, wait_for_port
-from tests.authz_support import AuthzDaemon, authz, ok
+from tests.support import require
 
 SYS_PY = "/usr/bin/python3"
 NODES = Path(__file__).parent / "ros1_nodes"
@@ -63,149 +62,36 @@ HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3", 
 
 
 @dataclass
-class Host:
-    name: str
-    address: str
-    public_port: int
-    local_master_port: int
-    metrics_port: int
-    config: Path
-    proc: subprocess.Popen | None = None
-    log: Path | None = None
-
-    @property
-    def master_uri(self) -> str:
-        return f"http://127.0.0.1:{self.local_master_port}/"
-
-    def logs(self) -> str:
-        return self.log.read_text() if self.log and self.log.exists() else ""
-
-
-@dataclass
 class Network:
-    workdir: Path
+    """The network of :func:`cryptoros.bench.network.bench_network`, with what tests
+    need on top: the PKI as a :class:`TestPKIFactory`, the daemon as an
+    :class:`AuthzDaemon` (tokens over real mTLS), the admin CLI."""
+
+    net: BenchNetwork
     pki: TestPKIFactory
     daemon: AuthzDaemon
-    rosmaster_uri: str
-    hosts: dict[str, Host] = field(default_factory=dict)
 
-    def ros_env(self, host: str | None) -> dict[str, str]:
-        """Environment of an unmodified ROS node on ``host`` (None: straight to rosmaster)."""
-        env = {k: v for k, v in os.environ.items() if not k.startswith("ROS_")}
-        env.pop("PYTHONPATH", None)
-        uri = self.hosts[host].master_uri if host else self.rosmaster_uri
-        home = self.workdir / "ros_home"
-        home.mkdir(exist_ok=True)
-        env.update(ROS_MASTER_URI=uri, ROS_IP="127.0.0.1", ROS_HOME=str(home), PYTHONUNBUFFERED="1")
-        return env
-
-    def start(self, name: str) -> Host:
-        host = self.hosts[name]
-        host.log = self.workdir / f"interceptor-{name}.log"
-        host.proc = subprocess.Popen(
-            [script("cryptoros-interceptor"), "--config", str(host.config), "--log-level", "debug"],
-            stdout=host.log.open("w"),
-            stderr=subprocess.STDOUT,
-        )
-        wait_for_port(host.address, host.public_port, timeout=20, proc=host.proc)
-        if "local_master" in host.config.read_text():  # the node role is configured
-            wait_for_port("127.0.0.1", host.local_master_port, timeout=20, proc=host.proc)
-        return host
-
-    def stop(self, name: str) -> None:
-        host = self.hosts[name]
-        if host.proc is not None:
-            stop(host.proc, timeout=10)
+    def __getattr__(self, name: str):  # workdir, hosts, rosmaster_uri, ros_env, start, stop
+        return getattr(self.net, name)
 
     def cli(self, *args: str):
         return authz(*args, db=self.daemon.db)
 
 
-def interceptor_config(
-    pki: TestPKIFactory, name: str, address: str, *, roles: list[str], public_port: int, local_master_port: int,
-    metrics_port: int, master_endpoint: str, authz_url: str, upstream: str | None, extra: str = "",
-) -> str:
-    cert, key = pki.pki.cert_path_for(name), pki.pki.key_path_for(name)
-    lines = [
-        f'manager = "{name}"',
-        f"roles = {roles!r}".replace("'", '"'),
-        extra,
-        "[tls]",
-        f'ca = "{pki.ca_cert}"',
-        f'cert = "{cert}"',
-        f'key = "{key}"',
-        f'crl = "{pki.crl}"',
-        "[authz]",
-        f'url = "{authz_url}"',
-        "revocation_poll_interval = 0.5",
-        "[listen]",
-        f'public = "{address}:{public_port}"',
-        f'metrics = "127.0.0.1:{metrics_port}"',
-    ]
-    if "node" in roles:
-        lines.append(f'local_master = "127.0.0.1:{local_master_port}"')
-    lines += ["[master]", 'manager = "master"', f'interceptor = "{master_endpoint}"']
-    if upstream:
-        lines.append(f'upstream = "{upstream}"')
-    return "\n".join(lines) + "\n"
-
-
 @contextlib.contextmanager
 def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[str, ...] = ("master", "robot_a", "robot_b"),
                   extra: dict[str, str] | None = None, roles: dict[str, list[str]] | None = None) -> Iterator[Network]:
-    """PKI, registry, authz daemon, rosmaster and the interceptors named in ``start``."""
-    rosmaster = require("rosmaster")["rosmaster"]
-    pki = TestPKIFactory(workdir / "pki")
-    fingerprints = {}
-    for name, address in HOSTS.items():
-        issued = pki.issue(name, kind="master" if name == "master" else "interceptor", sans=(f"IP:{address}",))
-        fingerprints[name] = issued.fingerprint_sha256
-    db = f"sqlite:///{workdir / 'registry.db'}"
-    policy_file = workdir / "policy.yaml"
-    policy_file.write_text(policy.format(**fingerprints))
-    ok(authz("import", str(policy_file), db=db))
-    daemon = AuthzDaemon(pki=pki, db=db, workdir=workdir)
-    ros_port = free_port()
-    master_proc = None
-    net = None
-    try:
-        daemon.start()
-        env = {k: v for k, v in os.environ.items() if not k.startswith("ROS_")}
-        env.update(ROS_MASTER_URI=f"http://127.0.0.1:{ros_port}", ROS_HOME=str(workdir), ROS_IP="127.0.0.1")
-        master_proc = subprocess.Popen([rosmaster, "--core", "-p", str(ros_port)], env=env,
-                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        wait_for_port("127.0.0.1", ros_port, 15, master_proc)
-        net = Network(workdir=workdir, pki=pki, daemon=daemon, rosmaster_uri=f"http://127.0.0.1:{ros_port}/")
-        master_public = free_port(HOSTS["master"])
-        for name, address in HOSTS.items():
-            public = master_public if name == "master" else free_port(address)
-            local_master, metrics = free_port(), free_port()
-            config = workdir / f"{name}.toml"
-            config.write_text(
-                interceptor_config(
-                    pki, name, address,
-                    roles=(roles or {}).get(name) or (["master"] if name == "master" else ["node"]),
-                    public_port=public, local_master_port=local_master, metrics_port=metrics,
-                    master_endpoint=f"{HOSTS['master']}:{master_public}", authz_url=daemon.base,
-                    upstream=f"http://127.0.0.1:{ros_port}" if "master" in ((roles or {}).get(name) or [name]) else None,
-                    extra=(extra or {}).get(name, ""),
-                )
-            )
-            net.hosts[name] = Host(name, address, public, local_master, metrics, config)
-        for name in start:
-            net.start(name)
-        yield net
-    finally:
-        if net is not None:
-            for name in net.hosts:
-                net.stop(name)
-        if master_proc is not None:
-            stop(master_proc)
-        daemon.stop()
-
-
-def interceptor_toml_example() -> str:  # pragma: no cover - documentation aid
-    return textwrap.dedent(interceptor_config.__doc__ or "")
+    """PKI, registry, authz daemon, rosmaster and the interceptors named in ``start``
+    (the others can be started with ``network.start(name)``)."""
+    require("rosmaster")
+    with bench_network(
+        workdir, policy, hosts=HOSTS, master="rosmaster", metrics=True, log_level="debug", poll_interval=0.5,
+        start=start, extra=extra, roles=roles,
+    ) as net:
+        pki = TestPKIFactory(net.pki.directory, pki=net.pki)
+        port = int(net.authz_url.rsplit(":", 1)[1])
+        daemon = AuthzDaemon(pki=pki, db=net.db, workdir=workdir, port=port, proc=net.authz_proc)
+        yield Network(net=net, pki=pki, daemon=daemon)
 
 
 # ------------------------------------------------------------------ a rogue peer

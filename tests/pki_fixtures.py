@@ -25,12 +25,12 @@ class TestPKIFactory:
 
     __test__ = False  # not a test class
 
-    def __init__(self, directory: Path, *, trust_domain: str = "cryptoros.local") -> None:
-        self.pki: PKI = PKI.init(directory, trust_domain=trust_domain, unsafe_no_passphrase=True)
+    def __init__(self, directory: Path, *, trust_domain: str = "cryptoros.local", pki: PKI | None = None) -> None:
+        self.pki: PKI = pki or PKI.init(directory, trust_domain=trust_domain, unsafe_no_passphrase=True)
         self.directory: Path = self.pki.directory
         self.ca_cert: Path = self.pki.ca_cert_path
         self.crl: Path = self.pki.crl_path
-        self.trust_domain: str = trust_domain
+        self.trust_domain: str = self.pki.trust_domain
 
     def issue(
         self,

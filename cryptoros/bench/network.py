@@ -103,10 +103,14 @@ class Host:
     proc: subprocess.Popen | None = None
     log: Path | None = None
     metrics_port: int | None = None
+    roles: tuple[str, ...] = ("node",)
 
     @property
     def master_uri(self) -> str:
         return f"http://127.0.0.1:{self.local_master_port}/"
+
+    def logs(self) -> str:
+        return self.log.read_text() if self.log and self.log.exists() else ""
 
 
 @dataclass
@@ -117,6 +121,27 @@ class Network:
     authz_url: str
     hosts: dict[str, Host] = field(default_factory=dict)
     procs: list[subprocess.Popen] = field(default_factory=list)
+    db: str = ""
+    authz_proc: subprocess.Popen | None = None
+    log_level: str = "warning"
+    popen_extra: dict = field(default_factory=dict)
+
+    def start(self, name: str, timeout: float = 30) -> Host:
+        """Start (or restart) the interceptor of host ``name`` and wait until it listens."""
+        host = self.hosts[name]
+        host.log = self.workdir / f"interceptor-{name}.log"
+        host.proc = subprocess.Popen(
+            [tool("cryptoros-interceptor"), "--config", str(host.config), "--log-level", self.log_level],
+            stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=clean_env(), **self.popen_extra,
+        )
+        self.procs.append(host.proc)
+        wait_port(host.address, host.public_port, timeout, host.proc, f"interceptor {name}")
+        if "node" in host.roles:
+            wait_port("127.0.0.1", host.local_master_port, timeout, host.proc, f"interceptor {name}")
+        return host
+
+    def stop(self, name: str) -> None:
+        stop(self.hosts[name].proc, timeout=10)
 
     def ros_env(self, host: str | None, **extra: str) -> dict[str, str]:
         """Environment of an unmodified ROS node on ``host`` (None: straight to rosmaster)."""
@@ -136,11 +161,12 @@ class Network:
 def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str,
     authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float] | None = None,
+    roles: Sequence[str] = ("node",), extra: str = "", poll_interval: float | None = None,
 ) -> str:
-    roles = ["master"] if upstream else ["node"]
     lines = [
         f'manager = "{name}"',
-        f'roles = ["{roles[0]}"]',
+        "roles = [" + ", ".join(f'"{r}"' for r in roles) + "]",
+        extra,
         "[tls]",
         f'ca = "{pki.ca_cert_path}"',
         f'cert = "{pki.cert_path_for(name)}"',
@@ -148,10 +174,11 @@ def _interceptor_config(
         f'crl = "{pki.crl_path}"',
         "[authz]",
         f'url = "{authz_url}"',
+        *([f"revocation_poll_interval = {poll_interval}"] if poll_interval else []),
         "[listen]",
         f'public = "{address}:{public_port}"',
     ]
-    if not upstream:
+    if "node" in roles:
         lines.append(f'local_master = "127.0.0.1:{local_master_port}"')
     if metrics_port:
         lines.append(f'metrics = "127.0.0.1:{metrics_port}"')
@@ -177,6 +204,10 @@ def bench_network(
     metrics: bool = False,
     new_session: bool = False,
     limits: dict[str, float] | None = None,
+    roles: dict[str, Sequence[str]] | None = None,
+    extra: dict[str, str] | None = None,
+    start: Sequence[str] | None = None,
+    poll_interval: float | None = None,
 ) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the three interceptors.
 
@@ -191,6 +222,11 @@ def bench_network(
     already running. ``metrics`` gives every interceptor a Prometheus port
     (:attr:`Host.metrics_port`); ``limits`` adds a ``[limits]`` table to every
     interceptor; ``new_session`` starts every child in its own process group.
+    ``roles`` overrides a host's roles (default: ``master`` for the master host,
+    ``node`` for the others), ``extra`` adds TOML lines to a host's configuration,
+    ``start`` names the interceptors to start (default: all; the others can be
+    started later with :meth:`Network.start`), ``poll_interval`` sets how often the
+    interceptors poll the revocation feed.
     """
     rosmaster = None
     if master == "rosmaster":
@@ -256,36 +292,43 @@ def bench_network(
         wait_port("127.0.0.1", authz_port, 30, daemon, "cryptoros-authz")
         wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
         net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"{ros_uri}/",
-                      authz_url=f"https://127.0.0.1:{authz_port}", procs=procs)
+                      authz_url=f"https://127.0.0.1:{authz_port}", procs=procs, db=db, authz_proc=daemon,
+                      log_level=log_level, popen_extra=popen_extra)
         master_public = free_port(hosts["master"])
         interceptor = tool("cryptoros-interceptor")
         metrics_ports = {name: free_port() if metrics else None for name in hosts}
         for name, address in hosts.items():
             public = master_public if name == "master" else free_port(address)
             local_master = free_port()
+            host_roles = tuple((roles or {}).get(name) or (["master"] if name == "master" else ["node"]))
             config = workdir / f"{name}.toml"
             config.write_text(_interceptor_config(
                 pki, name, address, public_port=public, local_master_port=local_master,
                 master_endpoint=f"{hosts['master']}:{master_public}", authz_url=net.authz_url,
-                upstream=ros_uri if name == "master" else None,
+                upstream=ros_uri if "master" in host_roles else None,
                 metrics_port=metrics_ports[name], limits=limits,
+                roles=host_roles, extra=(extra or {}).get(name, ""), poll_interval=poll_interval,
             ))
-            net.hosts[name] = Host(name, address, public, local_master, config, metrics_port=metrics_ports[name])
+            net.hosts[name] = Host(name, address, public, local_master, config, metrics_port=metrics_ports[name],
+                                   roles=host_roles)
         progress("interceptors")
-        for host in net.hosts.values():
-            host.log = workdir / f"interceptor-{host.name}.log"
+        started = list(net.hosts) if start is None else list(start)
+        for name in started:  # start all, then wait for all: they come up in parallel
+            host = net.hosts[name]
+            host.log = workdir / f"interceptor-{name}.log"
             host.proc = subprocess.Popen(
                 [interceptor, "--config", str(host.config), "--log-level", log_level],
                 stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=env, **popen_extra,
             )
             procs.append(host.proc)
-        for host in net.hosts.values():
-            wait_port(host.address, host.public_port, 30, host.proc, f"interceptor {host.name}")
-            if host.name != "master":
-                wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {host.name}")
+        for name in started:
+            host = net.hosts[name]
+            wait_port(host.address, host.public_port, 30, host.proc, f"interceptor {name}")
+            if "node" in host.roles:
+                wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {name}")
         yield net
     finally:
-        for proc in reversed(procs):
+        for proc in reversed(net.procs if net is not None else procs):
             stop(proc, timeout=10)
 
 
