@@ -1,7 +1,6 @@
-"""A small robot network on loopback for the benchmarks (no pytest, no tests/ import).
-
-The same network as ``tests/interceptor_harness.py``, built from the installed
-package: a PKI (:class:`certs.pki.PKI`), a registry filled by ``cryptoros-authz
+"""A small robot network on loopback (no pytest, no tests/ import), used by the
+benchmarks, the demo and (through ``tests/interceptor_harness.py``) the interceptor
+tests, built from the installed package: a PKI (:class:`certs.pki.PKI`), a registry filled by ``cryptoros-authz
 import``, a real ``cryptoros-authz serve`` daemon, Debian's ``rosmaster``, and one
 ``cryptoros-interceptor --config`` per host:
 
