@@ -28,12 +28,12 @@ def _fail(message: str, code: int = 2) -> None:
 
 
 async def _run(config_path: str, grace: float) -> None:
-    from interceptor.ros1 import Interceptor
-
     cfg = load(config_path)
     if "ros2" in cfg.roles:  # the DDS bridge role; rclpy itself runs in a child process
-        from interceptor.ros2 import Ros2Interceptor as Interceptor
-    interceptor = Interceptor(cfg)
+        from interceptor.ros2 import Ros2Interceptor as interceptor_class
+    else:
+        from interceptor.ros1 import Interceptor as interceptor_class
+    interceptor = interceptor_class(cfg)
     try:
         await interceptor.start()
     except OSError as exc:

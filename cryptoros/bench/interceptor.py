@@ -110,7 +110,7 @@ def _our_worker() -> None:
     """Entry point of our talker/listener processes; the same protocol as
     ``ros1_nodes/rospy_worker.py`` (argv: ROLE), plus ROLE ``idle``: advertise
     /bench_str, print ``URI <xmlrpc uri> <tcpros port>`` and wait for ``quit``."""
-    from cryptoros.ros1 import msgs
+    from cryptoros.bench.ros1 import publish_workload
     from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
 
     role = sys.argv[1]
@@ -195,37 +195,9 @@ def _our_worker() -> None:
                 return
             await asyncio.sleep(0.3)
             out("READY")
-            String = msgs.msg_class("std_msgs/String")
             async for parts in lines():
                 mode, n, size = parts[0], int(parts[1]), int(parts[2])
-                if mode == "latency":
-                    nxt = time.monotonic()
-                    for _ in range(n):
-                        pub_str.publish(String(data=str(time.monotonic_ns())))
-                        nxt += 0.001
-                        d = nxt - time.monotonic()
-                        if d > 0:
-                            await asyncio.sleep(d)
-                elif mode == "small":
-                    for i in range(n):
-                        pub_str.publish(String(data="hello world %d" % i))
-                        if i & 255 == 255:
-                            await asyncio.sleep(0)
-                            await pub_str.wait_writable()
-                else:
-                    import numpy as np
-
-                    Image = msgs.msg_class("sensor_msgs/Image")
-                    Header = msgs.msg_class("std_msgs/Header")
-                    Time = msgs.typestore().types["builtin_interfaces/msg/Time"]
-                    payload = np.zeros(size, dtype=np.uint8)
-                    for _ in range(n):
-                        pub_img.publish(Image(
-                            header=Header(seq=0, stamp=Time(sec=0, nanosec=0), frame_id=""),
-                            height=1, width=size, encoding="mono8", is_bigendian=0, step=size, data=payload,
-                        ))
-                        await asyncio.sleep(0)
-                        await pub_img.wait_writable()
+                await publish_workload(mode, n, size, pub_str, pub_img)
                 out("SENT")
 
     async def idle() -> None:

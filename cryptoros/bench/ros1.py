@@ -18,6 +18,7 @@ are printed, never asserted.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import os
@@ -96,9 +97,6 @@ else:
 
 def _our_worker() -> None:
     """Entry point of our sender/receiver processes (argv: role mode n size master)."""
-    import asyncio
-
-    from cryptoros.ros1 import msgs
     from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
 
     role, mode, n, size, master = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
@@ -141,45 +139,54 @@ def _our_worker() -> None:
             pub = await node.advertise(TOPIC, typename)
             await pub.wait_for_subscribers(1, 20)
             await asyncio.sleep(0.3)
-            String = msgs.msg_class("std_msgs/String")
-            if mode == "latency":
-                nxt = time.monotonic()
-                for _ in range(n):
-                    pub.publish(String(data=str(time.monotonic_ns())))
-                    nxt += 0.001
-                    d = nxt - time.monotonic()
-                    if d > 0:
-                        # the same pacing as the rospy sender: the OS sleeps the rest of
-                        # the period (time.sleep, a high-resolution timer); asyncio.sleep
-                        # would round to libuv's 1 ms timer resolution and drift, then
-                        # send in bursts. The loop runs its callbacks right after.
-                        time.sleep(d)
-                    await asyncio.sleep(0)
-            elif mode == "small":
-                for i in range(n):
-                    pub.publish(String(data="hello world %d" % i))
-                    if i & 255 == 255:
-                        await asyncio.sleep(0)
-                        await pub.wait_writable()
-            else:
-                import numpy as np
-
-                Image = msgs.msg_class("sensor_msgs/Image")
-                Header = msgs.msg_class("std_msgs/Header")
-                Time = msgs.typestore().types["builtin_interfaces/msg/Time"]
-                payload = np.zeros(size, dtype=np.uint8)
-                for _ in range(n):
-                    img = Image(
-                        header=Header(seq=0, stamp=Time(sec=0, nanosec=0), frame_id=""),
-                        height=1, width=size, encoding="mono8", is_bigendian=0, step=size, data=payload,
-                    )
-                    pub.publish(img)
-                    await asyncio.sleep(0)
-                    await pub.wait_writable()
+            await publish_workload(mode, n, size, pub, pub)
             print("SENT", flush=True)
             await asyncio.sleep(2.0)
 
     asyncio.run(recv() if role == "recv" else send())
+
+
+async def publish_workload(mode: str, n: int, size: int, pub_str, pub_img) -> None:
+    """What our sender publishes for one benchmark row (shared by ``bench ros1`` and
+    ``bench interceptor``): ``latency`` stamps CLOCK_MONOTONIC into a String at 1 kHz,
+    ``small`` sends strings unthrottled (with backpressure), ``image`` sends
+    ``sensor_msgs/Image`` of ``size`` bytes."""
+    from cryptoros.ros1 import msgs
+
+    String = msgs.msg_class("std_msgs/String")
+    if mode == "latency":
+        nxt = time.monotonic()
+        for _ in range(n):
+            pub_str.publish(String(data=str(time.monotonic_ns())))
+            nxt += 0.001
+            d = nxt - time.monotonic()
+            if d > 0:
+                # the same pacing as the rospy sender: the OS sleeps the rest of the
+                # period (time.sleep, a high-resolution timer); asyncio.sleep would
+                # round to libuv's 1 ms timer resolution and drift, then send in
+                # bursts. The loop runs its callbacks right after.
+                time.sleep(d)
+            await asyncio.sleep(0)
+    elif mode == "small":
+        for i in range(n):
+            pub_str.publish(String(data="hello world %d" % i))
+            if i & 255 == 255:
+                await asyncio.sleep(0)
+                await pub_str.wait_writable()
+    else:
+        import numpy as np
+
+        Image = msgs.msg_class("sensor_msgs/Image")
+        Header = msgs.msg_class("std_msgs/Header")
+        Time = msgs.typestore().types["builtin_interfaces/msg/Time"]
+        payload = np.zeros(size, dtype=np.uint8)
+        for _ in range(n):
+            pub_img.publish(Image(
+                header=Header(seq=0, stamp=Time(sec=0, nanosec=0), frame_id=""),
+                height=1, width=size, encoding="mono8", is_bigendian=0, step=size, data=payload,
+            ))
+            await asyncio.sleep(0)
+            await pub_img.wait_writable()
 
 
 def _free_port() -> int:
