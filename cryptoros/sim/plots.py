@@ -64,6 +64,20 @@ def aggregate(rows: list[dict[str, Any]], key: str, group: tuple[str, ...]) -> d
     return {k: (*_ci(v), len(v)) for k, v in sorted(g.items())}
 
 
+#: Legend names of the sweep's scenarios.
+LABELS = {
+    "legacy": "no attack, no security",
+    "attack1": "impersonation, no security",
+    "defended1": "impersonation, ECDSA",
+    "attack2": "man in the middle, no integrity",
+    "sha256-2": "man in the middle, bare SHA-256",
+    "defended2": "man in the middle, HMAC",
+    "eavesdrop": "eavesdropper, no security",
+    "defended3": "eavesdropper, AES-128",
+    "secure": "no attack, full security",
+}
+
+
 def line_plot(rows: list[dict[str, Any]], x: str, y: str, series: str, path: Path, *, title: str, ylabel: str, xlabel: str | None = None) -> Path:
     fig, ax = plt.subplots(figsize=(5, 3.4))
     agg = aggregate(rows, y, (series, x))
@@ -73,7 +87,11 @@ def line_plot(rows: list[dict[str, Any]], x: str, y: str, series: str, path: Pat
         xs = [p[0] for p in pts]
         ms = np.array([p[1][0] for p in pts])
         es = np.array([p[1][1] for p in pts])
-        ax.errorbar(xs, ms, yerr=es, marker="o", capsize=3, label=str(name))
+        ax.errorbar(xs, ms, yerr=es, marker="o", capsize=3, label=LABELS.get(str(name), str(name)))
+    if all(isinstance(k[1], int) for k in agg):  # robot counts: whole numbers only
+        from matplotlib.ticker import MaxNLocator
+
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel(xlabel or x)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
