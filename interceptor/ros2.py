@@ -60,8 +60,10 @@ LOCAL_SOCKET_BUFFER = 4 * 1024 * 1024
 class BridgeLink(asyncio.Protocol):
     """The local socket to the bridge child: frames in, frames out."""
 
-    def __init__(self, on_frame: Callable[[int, int, bytes], None], max_size: int) -> None:
+    def __init__(self, on_frame: Callable[[int, int, bytes], None], max_size: int,
+                 on_messages: Callable[[int, list[bytes]], None] | None = None) -> None:
         self._on_frame = on_frame
+        self._on_messages = on_messages
         self._decoder = fr.FrameDecoder(max_size=max_size + 64)
         self.transport: asyncio.Transport | None = None
         self.closed = asyncio.get_running_loop().create_future()
@@ -72,8 +74,21 @@ class BridgeLink(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         try:
             self._decoder.feed(data)
+            run_chan, run = 0, []  # consecutive MESSAGE frames of one channel go on as one batch
             for kind, chan, payload in self._decoder.frames():
+                if kind == fr.MESSAGE and self._on_messages is not None:
+                    if run and chan != run_chan:
+                        self._on_messages(run_chan, run)
+                        run = []
+                    run_chan = chan
+                    run.append(payload)
+                    continue
+                if run:
+                    self._on_messages(run_chan, run)
+                    run = []
                 self._on_frame(kind, chan, payload)
+            if run:
+                self._on_messages(run_chan, run)
         except fr.FrameError as exc:
             log.error("the DDS bridge sent garbage (%s); restarting it", exc)
             self.transport.abort()
@@ -180,7 +195,7 @@ class Ros2Interceptor(Interceptor):
             child.close()
         loop = asyncio.get_running_loop()
         _, self._link = await loop.connect_accepted_socket(
-            lambda: BridgeLink(self._on_bridge_frame, settings.max_message_size), sock=parent
+            lambda: BridgeLink(self._on_bridge_frame, settings.max_message_size, self._on_bridge_messages), sock=parent
         )
         try:
             await asyncio.wait_for(self._bridge_ready.wait(), BRIDGE_START_TIMEOUT)
@@ -230,21 +245,30 @@ class Ros2Interceptor(Interceptor):
         self._graph = {"topics": [], "services": []}
 
     # ================================================================ bridge frames
+    def _on_bridge_messages(self, chan: int, payloads: list[bytes]) -> None:
+        """Messages of one outbound topic, as one batch: one TLS write per peer stream."""
+        out = self._out_by_chan.get(chan)
+        if out is None:
+            return
+        pack, kind = fr.HEAD.pack, fr.DATA
+        parts = []
+        for payload in payloads:
+            parts.append(pack(5 + len(payload), kind, 0))
+            parts.append(payload)
+        data = b"".join(parts)
+        if out.history is not None:
+            out.history.extend(parts[i] + parts[i + 1] for i in range(0, len(parts), 2))
+        for writer in out.writers.values():
+            transport = writer.transport
+            if transport.get_write_buffer_size() > MAX_STREAM_BACKLOG:
+                self.dropped += len(payloads)
+                continue
+            transport.write(data)
+        self.metrics.bytes.labels("tx").inc(len(data) * len(out.writers))
+
     def _on_bridge_frame(self, kind: int, chan: int, payload: bytes) -> None:
         if kind == fr.MESSAGE:
-            out = self._out_by_chan.get(chan)
-            if out is None:
-                return
-            frame = fr.HEAD.pack(5 + len(payload), fr.DATA, 0) + payload
-            if out.history is not None:
-                out.history.append(frame)
-            for writer in out.writers.values():
-                transport = writer.transport
-                if transport.get_write_buffer_size() > MAX_STREAM_BACKLOG:
-                    self.dropped += 1
-                    continue
-                transport.write(frame)
-            self.metrics.bytes.labels("tx").inc(len(frame) * len(out.writers))
+            self._on_bridge_messages(chan, [payload])
         elif kind == fr.REQUEST:  # a local client called a proxy of a remote service
             rid, cdr = fr.ID.unpack_from(payload)[0], payload[4:]
             proxy = self._proxy_by_chan.get(chan)

@@ -17,6 +17,7 @@ import subprocess
 import tempfile
 import time
 from collections.abc import Iterator
+from typing import Any
 from pathlib import Path
 
 import click
@@ -51,7 +52,7 @@ def _ros_env(domain: int) -> dict[str, str]:
 
 
 @contextlib.contextmanager
-def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int]) -> Iterator[None]:
+def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], depth: int = 10) -> Iterator[None]:
     from certs.pki import PKI
 
     pki = PKI.init(workdir / "pki", unsafe_no_passphrase=True)
@@ -87,7 +88,7 @@ def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int]) -> I
                 "[authz]", f'url = "https://127.0.0.1:{port}"',
                 "[listen]", f'public = "{addr}:{publics[name]}"',
                 "[ros2]", f"domain_id = {domain}", f'peers = ["{HOSTS[peer]}:{publics[peer]}"]', f'python = "{python}"',
-                "graph_interval = 0.25",
+                "graph_interval = 0.25", f"depth = {depth}",
             ]) + "\n")
             proc = subprocess.Popen([tool("cryptoros-interceptor"), "--config", str(config), "--log-level", "warning"],
                                     stdout=(workdir / f"{name}.log").open("w"), stderr=subprocess.STDOUT, env=clean_env())
@@ -100,6 +101,9 @@ def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int]) -> I
 
 
 def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, sub_domain: int) -> dict:
+    """One publisher, one subscriber; warm-up until the subscriber saw a message, then
+    ``count`` measured messages. Returns the subscriber's figures plus the publisher's
+    ``sent`` and ``send_rate``."""
     sub = subprocess.Popen([str(python), str(NODE), "sub", kind, str(count), "3"], env=_ros_env(sub_domain),
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     pub = None
@@ -107,23 +111,39 @@ def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, s
         if sub.stdout.readline().strip() != "READY":
             raise NetworkError("the benchmark subscriber did not start")
         pub = subprocess.Popen([str(python), str(NODE), "pub", kind, str(count), str(hz)], env=_ros_env(pub_domain),
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        out, _ = sub.communicate(timeout=180)
-        return json.loads(out.strip().splitlines()[-1])
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        if sub.stdout.readline().strip() != "WARM":
+            raise NetworkError("no warm-up message reached the benchmark subscriber within 60 s")
+        pub.stdin.write("GO\n")
+        pub.stdin.flush()
+        out, _ = sub.communicate(timeout=240)
+        result = json.loads(out.strip().splitlines()[-1])
+        pub_out, _ = pub.communicate(timeout=30)
+        result.update(json.loads(pub_out.strip().splitlines()[-1]))
+        return result
     finally:
         stop(sub)
         if pub is not None:
             stop(pub)
 
 
+def _load() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "?"
+
+
 @click.command()
-@click.option("--small", "n_small", default=20_000, show_default=True, help="Small messages, as fast as rclpy publishes.")
+@click.option("--small", "n_small", default=20_000, show_default=True, help="Small messages, as fast as the path takes them (reliable, KEEP_ALL).")
 @click.option("--at100", "n_100", default=500, show_default=True, help="Messages at 100 Hz for latency.")
 @click.option("--at1k", "n_1k", default=3_000, show_default=True, help="Messages at 1 kHz for latency.")
-@click.option("--image80k", "n_img", default=1_000, show_default=True, help="80 KB images, as fast as possible.")
+@click.option("--image80k", "n_img", default=1_000, show_default=True, help="80 KB images, as fast as the path takes them (reliable, KEEP_ALL).")
+@click.option("--depth", default=10, show_default=True,
+              help="[ros2] depth of the interceptors (history of the bridge's DDS endpoints).")
 @click.option("--python", "python", default=None, help="The ROS 2 venv's python (default: .ros2-venv).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
-def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, python: str | None, as_json: bool) -> None:
+def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: str | None, as_json: bool) -> None:
     """rclpy to rclpy direct against rclpy through the interceptor pair, in one run."""
     py = Path(python) if python else default_ros2_python()
     if not py.exists():
@@ -136,18 +156,19 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, python: str | None, as
         ("one-way latency at 1 kHz", "small", n_1k, 1000.0),
         ("sensor_msgs/Image 80 KB, max rate", "image", n_img, 0.0),
     ]
-    results: dict[str, dict[str, dict]] = {}
+    results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="cryptoros-bench-ros2-") as tmp:
         for label, kind, count, hz in rows:
             results.setdefault(label, {})["direct"] = _run_pair(py, kind, count, hz, domains[0], domains[0])
             if not as_json:
                 click.echo(f"  {label:36s} direct   {results[label]['direct']}", err=True)
-        with interceptor_pair(Path(tmp), py, domains[1:]):
+        with interceptor_pair(Path(tmp), py, domains[1:], depth):
             time.sleep(1.0)
             for label, kind, count, hz in rows:
                 results[label]["bridged"] = _run_pair(py, kind, count, hz, domains[1], domains[2])
                 if not as_json:
                     click.echo(f"  {label:36s} bridged  {results[label]['bridged']}", err=True)
+    results["load_average"] = _load()
     if as_json:
         click.echo(json.dumps(results, indent=2))
         return
@@ -155,12 +176,14 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, python: str | None, as
     click.echo("|---|---|---|---|")
     for label, kind, count, hz in rows:
         d, b = results[label]["direct"], results[label]["bridged"]
+        got = f"received {d['received']}/{count} direct, {b['received']}/{count} through"
         if hz:
             added = (b["p50"] or 0) - (d["p50"] or 0)
             click.echo(f"| {label} (p50 / p99 ms) | {d['p50']:.3f} / {d['p99']:.3f} | {b['p50']:.3f} / {b['p99']:.3f} "
-                       f"| +{added:.3f} ms p50 ({b['received']}/{count} received) |")
+                       f"| +{added:.3f} ms p50 ({got}) |")
         else:
-            unit, key = ("MB/s", "mbps") if kind == "image" else ("msg/s", "rate")
+            key = "mbps" if kind == "image" else "rate"
             ratio = b[key] / d[key] * 100 if d[key] else 0.0
-            click.echo(f"| {label} ({unit}) | {d[key]:,.1f} | {b[key]:,.1f} | {ratio:.0f} % "
-                       f"({b['received']}/{count} received) |")
+            click.echo(f"| {label} (msg/s; MB/s) | {d['rate']:,.0f}; {d['mbps']:,.1f} | {b['rate']:,.0f}; {b['mbps']:,.1f} "
+                       f"| {ratio:.0f} % ({got}) |")
+    click.echo(f"\nload average after the run: {results['load_average']} (2 cores shared); interceptors' [ros2] depth = {depth}")

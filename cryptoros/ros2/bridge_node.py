@@ -36,6 +36,10 @@ try:
 except ImportError:  # run as a script by the ROS 2 venv's python: import the sibling module
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import framing as fr  # type: ignore[no-redef]
+try:
+    from cryptoros.ros2.rawtake import RawTaker
+except ImportError:
+    from rawtake import RawTaker  # type: ignore[no-redef]
 
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -52,6 +56,12 @@ SERVICE_THREADS = 8
 
 class NoAnswer(Exception):
     """A proxied call was refused or failed: the local client gets no answer at all."""
+
+
+def _unused(_msg) -> None:  # raw subscriptions of the data node: RawTaker takes, never a callback
+    pass
+
+
 READ_SIZE = 1 << 20
 
 
@@ -92,13 +102,17 @@ class Bridge:
         self.srv_executor = MultiThreadedExecutor(num_threads=SERVICE_THREADS)
         self.srv_executor.add_node(self.srv_node)
         self.srv_group = ReentrantCallbackGroup()
-        self.own_names = {self.own, self.srv_node.get_fully_qualified_name()}
+        # Forwarded topics are taken by a lean wait-set loop (RawTaker, own thread), in
+        # batches, from raw subscriptions of a third node that no executor spins.
+        self.data_node = rclpy.create_node(f"{name}_data", start_parameter_services=False, enable_rosout=False)
+        self.taker = RawTaker(self.data_node.context)
+        self.own_names = {self.own, self.srv_node.get_fully_qualified_name(), self.data_node.get_fully_qualified_name()}
         self.commands: queue.SimpleQueue = queue.SimpleQueue()
         self.guard = self.node.create_guard_condition(self._drain)
         self.send_lock = threading.Lock()
         self.max_size = max_size
         self.pubs: dict[int, tuple[object, str]] = {}
-        self.subs: dict[int, object] = {}
+        self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
         self.servers: dict[int, object] = {}
         self.clients: dict[int, tuple[object, type]] = {}
         self.pending: dict[int, list] = {}  # request id -> [threading.Event, (ok, cdr) or None]
@@ -245,26 +259,14 @@ class Bridge:
         if op == "subscribe":
             cls = load_type(cmd["type"], "msg")
             topic = cmd["topic"]
-            send, header = self.send, fr.HEAD
-
-            def forward(data: bytes, _info=None, _chan=chan, _topic=topic) -> None:
-                seen = self.echo.get(_topic)
-                if seen:
-                    key = hash(data)
-                    with self.echo_lock:
-                        slot = seen.get(key)
-                        if slot is not None:
-                            slot[0] -= 1
-                            if slot[0] <= 0:
-                                del seen[key]
-                            return  # our own republication coming back
-                send(header.pack(5 + len(data), fr.MESSAGE, _chan) + data)
-
-            self.subs[chan] = self.node.create_subscription(cls, topic, forward, make_qos(cmd.get("qos", {})), raw=True)
+            sub = self.data_node.create_subscription(cls, topic, _unused, make_qos(cmd.get("qos", {})), raw=True)
+            self.subs[chan] = (sub, topic)
+            self.taker.add(chan, sub)
         elif op == "unsubscribe":
-            sub = self.subs.pop(chan, None)
-            if sub is not None:
-                self.node.destroy_subscription(sub)
+            entry = self.subs.pop(chan, None)
+            if entry is not None:
+                self.taker.remove(chan)
+                self.data_node.destroy_subscription(entry[0])
         elif op == "serve":
             cls = load_type(cmd["type"], "srv")
             self.servers[chan] = self.srv_node.create_service(
@@ -285,6 +287,26 @@ class Bridge:
                 self.node.destroy_client(entry[0])
         else:
             raise ValueError(f"unknown op {op!r}")
+
+    def forward(self, batch: list) -> None:
+        """RawTaker batch -> MESSAGE frames, one write; our own republications are dropped."""
+        pack, kind, out = fr.HEAD.pack, fr.MESSAGE, []
+        topics = {chan: entry[1] for chan, entry in list(self.subs.items())}
+        for chan, data in batch:
+            seen = self.echo.get(topics.get(chan))
+            if seen:
+                key = hash(data)
+                with self.echo_lock:
+                    slot = seen.get(key)
+                    if slot is not None:
+                        slot[0] -= 1
+                        if slot[0] <= 0:
+                            del seen[key]
+                        continue  # our own republication coming back
+            out.append(pack(5 + len(data), kind, chan))
+            out.append(data)
+        if out:
+            self.send(b"".join(out))
 
     def _proxy(self, chan: int, cls):
         def handle(request, _response):
@@ -345,6 +367,7 @@ def main() -> None:
     )
     threading.Thread(target=bridge.read_loop, name="link", daemon=True).start()
     threading.Thread(target=bridge.spin_services, name="services", daemon=True).start()
+    threading.Thread(target=bridge.taker.run, args=(bridge.forward,), name="topics", daemon=True).start()
     try:
         bridge.executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
