@@ -51,8 +51,16 @@ INFRA_TOPICS = frozenset({"/rosout", "/parameter_events"})
 INFRA_SERVICE_TYPES = ("rcl_interfaces/srv/", "type_description_interfaces/srv/")
 BRIDGE_START_TIMEOUT = 30.0
 RECONCILE_INTERVAL = 1.0
-#: A peer stream whose send buffer is above this drops new messages (counted).
-MAX_STREAM_BACKLOG = 8 * 1024 * 1024
+#: Flow control of outbound topics: while a peer stream's send buffer is above
+#: BACKLOG_HIGH, the interceptor stops reading from its bridge (which then stops taking
+#: from DDS: the bridge's history depth decides what is kept, as on a direct DDS path);
+#: reading resumes once every stream is under BACKLOG_LOW, or after BACKLOG_STALL
+#: seconds (a stuck peer must not stall the others). A stream above MAX_STREAM_BACKLOG
+#: drops new messages (counted).
+BACKLOG_HIGH = 8 * 1024 * 1024
+BACKLOG_LOW = 4 * 1024 * 1024
+BACKLOG_STALL = 1.0
+MAX_STREAM_BACKLOG = 32 * 1024 * 1024
 MAX_PENDING_CALLS = 64
 LOCAL_SOCKET_BUFFER = 4 * 1024 * 1024
 
@@ -151,6 +159,7 @@ class Ros2Interceptor(Interceptor):
         self._noted: set[tuple] = set()
         self._stopping = False
         self.dropped = 0
+        self._paused: asyncio.Task | None = None
 
     # ================================================================ life cycle
     async def start(self, *, token_wait: float = 10.0) -> None:
@@ -184,6 +193,9 @@ class Ros2Interceptor(Interceptor):
         env = dict(os.environ)
         env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # the ROS 2 venv sets up its own libraries
         env.update(ROS_DOMAIN_ID=str(settings.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        # glibc mmaps (and page-faults) every buffer of 128 KiB or more; images are read and
+        # joined in such buffers: keep them on the heap (perf-baselines: +30 to 100 % on 1 MB)
+        env.setdefault("GLIBC_TUNABLES", "glibc.malloc.mmap_threshold=16777216")
         self._bridge_ready.clear()
         try:
             self._bridge = await asyncio.create_subprocess_exec(
@@ -258,13 +270,34 @@ class Ros2Interceptor(Interceptor):
         data = b"".join(parts)
         if out.history is not None:
             out.history.extend(parts[i] + parts[i + 1] for i in range(0, len(parts), 2))
+        high = False
         for writer in out.writers.values():
             transport = writer.transport
-            if transport.get_write_buffer_size() > MAX_STREAM_BACKLOG:
+            backlog = transport.get_write_buffer_size()
+            if backlog > MAX_STREAM_BACKLOG:
                 self.dropped += len(payloads)
                 continue
             transport.write(data)
+            high = high or backlog + len(data) > BACKLOG_HIGH
         self.metrics.bytes.labels("tx").inc(len(data) * len(out.writers))
+        if high and self._paused is None and self._link is not None and self._link.transport is not None:
+            self._link.transport.pause_reading()
+            self._paused = asyncio.get_running_loop().create_task(self._resume_link(self._link))
+
+    async def _resume_link(self, link: BridgeLink) -> None:
+        """Read the bridge again once every peer stream drained (or after BACKLOG_STALL)."""
+        loop = asyncio.get_running_loop()
+        until = loop.time() + BACKLOG_STALL
+        try:
+            while loop.time() < until:
+                await asyncio.sleep(0.002)
+                if all(w.transport.get_write_buffer_size() <= BACKLOG_LOW
+                       for out in self._outbound.values() for w in out.writers.values() if not w.transport.is_closing()):
+                    break
+        finally:
+            self._paused = None
+            if link.transport is not None and not link.transport.is_closing():
+                link.transport.resume_reading()
 
     def _on_bridge_frame(self, kind: int, chan: int, payload: bytes) -> None:
         if kind == fr.MESSAGE:
@@ -534,6 +567,14 @@ class Ros2Interceptor(Interceptor):
                     budget.spend(len(frames))
                 if frames:
                     link.send(b"".join(pack(5 + len(p), fr.PUBLISH, chan) + p for _, _, p in frames))
+                    # flow control: while the bridge is behind, stop reading this stream (TLS and
+                    # TCP then hold the sender back) instead of buffering without bound
+                    transport = link.transport
+                    if transport is not None and transport.get_write_buffer_size() > BACKLOG_HIGH:
+                        until = asyncio.get_running_loop().time() + BACKLOG_STALL
+                        while (transport.get_write_buffer_size() > BACKLOG_LOW and not transport.is_closing()
+                               and asyncio.get_running_loop().time() < until):
+                            await asyncio.sleep(0.002)
         finally:
             advert[1] -= 1
             if advert[1] <= 0 and self._adverts.get(key) is advert:

@@ -51,6 +51,8 @@ from rclpy.task import Future
 _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$")
 ECHO_TTL = 5.0
 CALL_TIMEOUT = 30.0
+#: how long a republished message may wait for a full local reader before it is dropped
+PUBLISH_PATIENCE = 1.0
 SERVICE_THREADS = 8
 
 
@@ -63,6 +65,7 @@ def _unused(_msg) -> None:  # raw subscriptions of the data node: RawTaker takes
 
 
 READ_SIZE = 1 << 20
+
 
 
 def load_type(name: str, kind: str):
@@ -120,6 +123,7 @@ class Bridge:
         self.echo_lock = threading.Lock()
         self.echo: dict[str, dict[int, list]] = {}  # topic -> hash(cdr) -> [count, expiry]
         self.last_graph: dict | None = None
+        self.dropped = 0
         self.node.create_timer(graph_interval, self._report_graph)
 
     # ------------------------------------------------------------ to the interceptor
@@ -217,14 +221,32 @@ class Bridge:
                 slot = seen.setdefault(key, [0, 0.0])
                 slot[0] += 1
                 slot[1] = time.monotonic() + ECHO_TTL
-        publisher.publish(payload)
+        give_up = None
+        while True:
+            try:
+                publisher.publish(payload)
+                return
+            except Exception as exc:  # KEEP_ALL: a local reader stayed full for the blocking time
+                now = time.monotonic()
+                give_up = give_up or now + PUBLISH_PATIENCE
+                if now >= give_up:
+                    self.dropped += 1
+                    if self.dropped in (1, 10, 100) or self.dropped % 1000 == 0:
+                        self.error(f"{topic}: a local subscriber is not taking messages ({exc}); "
+                                   f"{self.dropped} message(s) dropped so far", chan=chan)
+                    return
 
     def _pub_control(self, cmd: dict) -> None:
         chan = int(cmd["chan"])
         if cmd["op"] == "advertise":
             try:
                 cls = load_type(cmd["type"], "msg")
-                publisher = self.node.create_publisher(cls, cmd["topic"], make_qos(cmd.get("qos", {})))
+                qos = make_qos(cmd.get("qos", {}))
+                if qos.reliability == ReliabilityPolicy.RELIABLE and qos.durability == DurabilityPolicy.VOLATILE:
+                    # paced by the local readers like a direct KEEP_ALL publisher (the interceptor,
+                    # then the sending robot, are held back) instead of overwriting unsent messages
+                    qos.history = HistoryPolicy.KEEP_ALL
+                publisher = self.node.create_publisher(cls, cmd["topic"], qos)
             except Exception as exc:
                 self.error(f"cannot advertise {cmd.get('topic')}: {exc}", chan=chan)
                 return
@@ -259,7 +281,14 @@ class Bridge:
         if op == "subscribe":
             cls = load_type(cmd["type"], "msg")
             topic = cmd["topic"]
-            sub = self.data_node.create_subscription(cls, topic, _unused, make_qos(cmd.get("qos", {})), raw=True)
+            qos = make_qos(cmd.get("qos", {}))
+            if qos.reliability == ReliabilityPolicy.RELIABLE and qos.durability == DurabilityPolicy.VOLATILE:
+                # Like a direct reliable subscriber with KEEP_ALL: a KEEP_ALL publisher is paced by
+                # what the path takes instead of losing messages in this reader (the interceptor
+                # stops reading this bridge while a peer stream is backed up); a KEEP_LAST
+                # publisher still overwrites only its own history, as it would on a direct path.
+                qos.history = HistoryPolicy.KEEP_ALL
+            sub = self.data_node.create_subscription(cls, topic, _unused, qos, raw=True)
             self.subs[chan] = (sub, topic)
             self.taker.add(chan, sub)
         elif op == "unsubscribe":
