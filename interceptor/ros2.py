@@ -63,6 +63,7 @@ BACKLOG_STALL = 1.0
 MAX_STREAM_BACKLOG = 32 * 1024 * 1024
 MAX_PENDING_CALLS = 64
 LOCAL_SOCKET_BUFFER = 4 * 1024 * 1024
+TOPIC_READ_SIZE = 1024 * 1024
 
 
 class BridgeLink(asyncio.Protocol):
@@ -533,13 +534,13 @@ class Ros2Interceptor(Interceptor):
         self._inbound.add(writer)
         try:
             if target.kind == "topic":
-                await self._republish(reader, peer, target, link)
+                await self._republish(reader, peer, target, link, writer)
             else:
                 await self._offer_service(reader, writer, target, link)
         finally:
             self._inbound.discard(writer)
 
-    async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink) -> None:
+    async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer) -> None:
         key = (target.name, target.type)
         advert = self._adverts.get(key)
         if advert is None:
@@ -552,8 +553,12 @@ class Ros2Interceptor(Interceptor):
         budget = self._budget(peer)
         rx = self.metrics.bytes.labels("rx")
         pack = fr.HEAD.pack
+        # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
+        # an 80 KB image would cost a pause/resume per message. Topic streams read big.
+        if getattr(reader, "_limit", None) is not None:
+            reader._limit = max(reader._limit, TOPIC_READ_SIZE)
         try:
-            while data := await reader.read(READ_SIZE):
+            while data := await reader.read(TOPIC_READ_SIZE):
                 rx.inc(len(data))
                 try:
                     decoder.feed(data)
@@ -565,6 +570,8 @@ class Ros2Interceptor(Interceptor):
                         budget.throttled += 1
                         await asyncio.sleep(max(0.001, len(frames) / budget.rate / 4))
                     budget.spend(len(frames))
+                if writer.transport.is_closing():
+                    break  # cut (revoked, reloaded away): what is still buffered is not republished
                 if frames:
                     link.send(b"".join(pack(5 + len(p), fr.PUBLISH, chan) + p for _, _, p in frames))
                     # flow control: while the bridge is behind, stop reading this stream (TLS and
