@@ -6,6 +6,11 @@ Needs the ROS 2 venv (``scripts/ros2-venv``; ``--python`` or ``CRYPTOROS_ROS2_PY
 to point elsewhere). Builds its own PKI, registry, ``cryptoros-authz serve`` and two
 ``cryptoros-interceptor`` processes with the ``ros2`` role; every process is stopped
 in a ``finally``.
+
+Method (identical for both paths; see ``cryptoros/ros2/bench_node.py``): reliable +
+KEEP_ALL on both ends, serialized messages, a warm-up handshake before the count starts,
+a subscriber that only records (raw take loop on its own thread), rates over the
+subscriber's receive window and counts of what it really received.
 """
 
 from __future__ import annotations

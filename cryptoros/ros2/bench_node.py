@@ -89,6 +89,8 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
                 pub.publish(data)
                 break
             except Exception:  # KEEP_ALL: the reader is full; wait and retry the same message
+                if not rclpy.ok():  # shut down by a signal: stop
+                    raise SystemExit(1)
                 time.sleep(0.0005)
         if period:
             next_at += period

@@ -10,7 +10,7 @@ import argparse
 import time
 
 import rclpy
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from payload import TYPES, intact, seq_of
 
@@ -20,6 +20,7 @@ parser.add_argument("topic")
 parser.add_argument("seconds", type=float)
 parser.add_argument("--latched", action="store_true")
 parser.add_argument("--node", default="listener")
+parser.add_argument("--keep-all", action="store_true", help="KEEP_ALL history (the publisher waits for this reader)")
 args = parser.parse_args()
 
 rclpy.init()
@@ -28,6 +29,7 @@ qos = QoSProfile(
     depth=100,
     durability=DurabilityPolicy.TRANSIENT_LOCAL if args.latched else DurabilityPolicy.VOLATILE,
     reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_ALL if args.keep_all else HistoryPolicy.KEEP_LAST,
 )
 
 
