@@ -163,16 +163,16 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: st
     ]
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="cryptoros-bench-ros2-") as tmp:
-        for label, kind, count, hz in rows:
-            results.setdefault(label, {})["direct"] = _run_pair(py, kind, count, hz, domains[0], domains[0])
-            if not as_json:
-                click.echo(f"  {label:36s} direct   {results[label]['direct']}", err=True)
+        # Both paths of a row run back to back (direct first), so a change of load on the
+        # shared machine hits both alike; the idle interceptors run during the direct rows too.
         with interceptor_pair(Path(tmp), py, domains[1:], depth):
             time.sleep(1.0)
             for label, kind, count, hz in rows:
-                results[label]["bridged"] = _run_pair(py, kind, count, hz, domains[1], domains[2])
-                if not as_json:
-                    click.echo(f"  {label:36s} bridged  {results[label]['bridged']}", err=True)
+                for path, (pub_domain, sub_domain) in (("direct", (domains[0], domains[0])),
+                                                       ("bridged", (domains[1], domains[2]))):
+                    results.setdefault(label, {})[path] = _run_pair(py, kind, count, hz, pub_domain, sub_domain)
+                    if not as_json:
+                        click.echo(f"  {label:36s} {path:8s} {results[label][path]}", err=True)
     results["load_average"] = _load()
     if as_json:
         click.echo(json.dumps(results, indent=2))
