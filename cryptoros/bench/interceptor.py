@@ -110,7 +110,7 @@ def _our_worker() -> None:
     """Entry point of our talker/listener processes; the same protocol as
     ``ros1_nodes/rospy_worker.py`` (argv: ROLE), plus ROLE ``idle``: advertise
     /bench_str, print ``URI <xmlrpc uri> <tcpros port>`` and wait for ``quit``."""
-    from cryptoros.bench.ros1 import publish_workload
+    from cryptoros.bench.ros1 import publish_workload, record_message
     from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
 
     role = sys.argv[1]
@@ -151,15 +151,7 @@ def _our_worker() -> None:
             now = clock()
             if st["mode"] != mode:
                 return
-            if mode == "latency":
-                st["lat"].append(now - int(m.data))
-            elif mode == "image":
-                st["bytes"] += len(m.data)
-            if st["n"] == 0:
-                st["t0"] = now
-            st["t1"] = now
-            st["n"] += 1
-            if st["n"] >= st["want"]:
+            if record_message(st, m.data, mode, now) >= st["want"]:
                 done.set()
 
         async with Node("/bench_listener_ours") as node:

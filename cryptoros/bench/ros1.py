@@ -110,16 +110,7 @@ def _our_worker() -> None:
         clock = time.monotonic_ns
 
         def cb(m) -> None:
-            now = clock()
-            if mode == "latency":
-                st["lat"].append(now - int(m.data))
-            elif mode == "image":
-                st["bytes"] += len(m.data)
-            if st["n"] == 0:
-                st["t0"] = now
-            st["t1"] = now
-            st["n"] += 1
-            if st["n"] >= n:
+            if record_message(st, m.data, mode, clock()) >= n:
                 done.set()
 
         async with Node("/bench_recv_ours", master) as node:
@@ -144,6 +135,22 @@ def _our_worker() -> None:
             await asyncio.sleep(2.0)
 
     asyncio.run(recv() if role == "recv" else send())
+
+
+def record_message(st: dict, data, mode: str, now: int) -> int:
+    """Account one message our receiver got (latency sample, bytes, first and last
+    arrival) in ``st``; returns how many it has got. Shared by ``bench ros1`` and
+    ``bench interceptor``; the rospy receiver script keeps its own copy (it runs
+    under Debian's python, which cannot import cryptoros)."""
+    if mode == "latency":
+        st["lat"].append(now - int(data))
+    elif mode == "image":
+        st["bytes"] += len(data)
+    if st["n"] == 0:
+        st["t0"] = now
+    st["t1"] = now
+    st["n"] += 1
+    return st["n"]
 
 
 async def publish_workload(mode: str, n: int, size: int, pub_str, pub_img) -> None:
