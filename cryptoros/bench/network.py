@@ -158,9 +158,10 @@ class Network:
 
 
 def _interceptor_config(
-    pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str,
+    pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str | None,
     authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float] | None = None,
     roles: Sequence[str] = ("node",), extra: str = "", poll_interval: float | None = None,
+    ros2: tuple[int, Sequence[str], Path | None] | None = None,
 ) -> str:
     lines = [
         f'manager = "{name}"',
@@ -181,9 +182,14 @@ def _interceptor_config(
         lines.append(f'local_master = "127.0.0.1:{local_master_port}"')
     if metrics_port:
         lines.append(f'metrics = "127.0.0.1:{metrics_port}"')
-    lines += ["[master]", 'manager = "master"', f'interceptor = "{master_endpoint}"']
-    if upstream:
-        lines.append(f'upstream = "{upstream}"')
+    if master_endpoint is not None:
+        lines += ["[master]", 'manager = "master"', f'interceptor = "{master_endpoint}"']
+        if upstream:
+            lines.append(f'upstream = "{upstream}"')
+    if ros2 is not None:
+        domain, peers, python = ros2
+        lines += ["[ros2]", f"domain_id = {domain}", "peers = [" + ", ".join(f'"{p}"' for p in peers) + "]",
+                  "graph_interval = 0.25", *([f'python = "{python}"'] if python else [])]
     if limits:
         lines.append("[limits]")
         lines += [f"{k} = {v}" for k, v in limits.items()]
@@ -207,6 +213,8 @@ def bench_network(
     extra: dict[str, str] | None = None,
     start: Sequence[str] | None = None,
     poll_interval: float | None = None,
+    ros2: dict[str, int] | None = None,
+    ros2_python: Path | None = None,
 ) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the three interceptors.
 
@@ -226,14 +234,19 @@ def bench_network(
     ``start`` names the interceptors to start (default: all; the others can be
     started later with :meth:`Network.start`), ``poll_interval`` sets how often the
     interceptors poll the revocation feed.
+
+    ``master="none"`` builds a network without ROS 1 (no master, no ``master`` host);
+    ``ros2`` maps host names to ``ROS_DOMAIN_ID`` s: those hosts get the ``ros2`` role,
+    each with every other ``ros2`` host as a peer, and ``ros2_python`` as the bridge's
+    python (default: the interceptor's, ``$CRYPTOROS_ROS2_PYTHON`` or ``.ros2-venv``).
     """
     rosmaster = None
     if master == "rosmaster":
         rosmaster = shutil.which("rosmaster")
         if rosmaster is None:
             raise NetworkError("rosmaster is not installed (scripts/install-system-parts)")
-    elif master != "embedded" and not master.startswith("http://"):
-        raise NetworkError(f"master must be rosmaster, embedded or an http:// URI, not {master!r}")
+    elif master not in ("embedded", "none") and not master.startswith("http://"):
+        raise NetworkError(f"master must be rosmaster, embedded, none or an http:// URI, not {master!r}")
     popen_extra = {"start_new_session": True} if new_session else {}
     hosts = dict(hosts or HOSTS)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -271,12 +284,13 @@ def bench_network(
             stdout=authz_log, stderr=subprocess.STDOUT, env=env, **popen_extra,
         )
         procs.append(daemon)
+        master_proc = None
+        ros_uri = ""
         if master.startswith("http://"):
-            master_proc = None
             ros_uri = master.rstrip("/")
             ros_host, _, ros_port_text = ros_uri[len("http://"):].partition(":")
             ros_port = int(ros_port_text)
-        else:
+        elif master != "none":
             ros_host, ros_port = "127.0.0.1", free_port()
             ros_uri = f"http://127.0.0.1:{ros_port}"
             if rosmaster is not None:
@@ -289,24 +303,30 @@ def bench_network(
                                            stderr=subprocess.DEVNULL, **popen_extra)
             procs.append(master_proc)
         wait_port("127.0.0.1", authz_port, 30, daemon, "cryptoros-authz")
-        wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
-        net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"{ros_uri}/",
+        if ros_uri:
+            wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
+        net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"{ros_uri}/" if ros_uri else "",
                       authz_url=f"https://127.0.0.1:{authz_port}", procs=procs, db=db, authz_proc=daemon,
                       log_level=log_level, popen_extra=popen_extra)
-        master_public = free_port(hosts["master"])
+        master_public = free_port(hosts["master"]) if "master" in hosts else None
         interceptor = tool("cryptoros-interceptor")
         metrics_ports = {name: free_port() if metrics else None for name in hosts}
+        publics = {name: master_public if name == "master" else free_port(address) for name, address in hosts.items()}
+        ros2 = ros2 or {}
         for name, address in hosts.items():
-            public = master_public if name == "master" else free_port(address)
+            public = publics[name]
             local_master = free_port()
-            host_roles = tuple((roles or {}).get(name) or (["master"] if name == "master" else ["node"]))
+            default_roles = ["ros2"] if name in ros2 else ["master"] if name == "master" else ["node"]
+            host_roles = tuple((roles or {}).get(name) or default_roles)
+            peers = [f"{hosts[p]}:{publics[p]}" for p in ros2 if p != name]
             config = workdir / f"{name}.toml"
             config.write_text(_interceptor_config(
                 pki, name, address, public_port=public, local_master_port=local_master,
-                master_endpoint=f"{hosts['master']}:{master_public}", authz_url=net.authz_url,
+                master_endpoint=f"{hosts['master']}:{master_public}" if master_public else None, authz_url=net.authz_url,
                 upstream=ros_uri if "master" in host_roles else None,
                 metrics_port=metrics_ports[name], limits=limits,
                 roles=host_roles, extra=(extra or {}).get(name, ""), poll_interval=poll_interval,
+                ros2=(ros2[name], peers, ros2_python) if name in ros2 else None,
             ))
             net.hosts[name] = Host(name, address, public, local_master, config, metrics_port=metrics_ports[name],
                                    roles=host_roles)

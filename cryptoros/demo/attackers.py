@@ -37,6 +37,10 @@ ATTACKS: dict[str, dict[str, Any]] = {
     "shutdown": {"seed": "-", "what": "XML-RPC shutdown of node /{t}", "target": -1, "as": "insider"},
     "hijack": {"seed": "-", "what": "node-name hijack of /{t} (register the same name)", "target": 1, "as": "insider"},
 }
+#: the attacks with a ROS 2 counterpart (``cryptoros demo --ros 2``, :mod:`cryptoros.demo.ros2_attackers`):
+#: ``shutdown`` and ``hijack`` are ROS 1 XML-RPC; ``map-erase`` is a man in the middle inside
+#: the victim's own DDS domain, which is that robot's trust zone
+ROS2_ATTACKS = ("spoof-pose", "scan-noise", "cmd-flood", "false-map", "eavesdrop")
 
 
 def target_of(kind: str, n: int) -> str | None:

@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from cryptoros.demo.attackers import ATTACKS
+from cryptoros.demo.attackers import ATTACKS, ROS2_ATTACKS
 
 
 def _sigterm(_sig: int, _frame: Any) -> None:
@@ -21,8 +21,12 @@ def _sigterm(_sig: int, _frame: Any) -> None:
 
 @click.command()
 @click.option("--robots", default=3, show_default=True, type=click.IntRange(2, 8), help="Robots in the team.")
+@click.option("--ros", "ros", type=click.Choice(["1", "2"]), default="1", show_default=True,
+              help="ROS 1 nodes (embedded master or --master-uri) or ROS 2 Jazzy rclpy nodes, one DDS domain per "
+                   "robot behind its interceptor (needs the ROS 2 venv: scripts/ros2-venv).")
 @click.option("--attacks", default="all", show_default=True,
-              help=f"Comma-separated attacks, 'all' or 'none': {', '.join(ATTACKS)}.")
+              help=f"Comma-separated attacks, 'all' or 'none': {', '.join(ATTACKS)} "
+                   f"(ROS 2: {', '.join(ROS2_ATTACKS)}).")
 @click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(5, 3600),
               help="Wall-clock budget of one mission (the demo runs two).")
 @click.option("--mode", "mode", type=click.Choice(["both", "plain", "protected"]), default="both", show_default=True,
@@ -39,7 +43,7 @@ def _sigterm(_sig: int, _frame: Any) -> None:
 @click.option("--size", default=60, show_default=True, type=click.IntRange(30, 200), help="Arena side in cells of 0.2 m.")
 @click.option("--workdir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Work directory (default: a new temporary one).")
-def demo(robots: int, attacks: str, seconds: float, mode: str, master_uri: str | None, keep: bool, json_path: Path | None,
+def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_uri: str | None, keep: bool, json_path: Path | None,
          out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None) -> None:
     """A live robot team under attack: plain ROS, then behind cryptoros interceptors.
 
@@ -47,24 +51,31 @@ def demo(robots: int, attacks: str, seconds: float, mode: str, master_uri: str |
     process per robot (the simulator's exploration robots as live ROS nodes), runs the
     attacks of seed papers 000 and 001 against the live graph as separate processes,
     and prints what reached the robots in each mode.
+
+    With --ros 2 the robots are rclpy nodes (ROS 2 Jazzy): plain, all on one DDS domain;
+    protected, each on its own localhost-only domain behind its interceptor's ros2 role.
     """
     from rich.console import Console
 
     from cryptoros.demo import report as rep
     from cryptoros.demo.run import ALL_ATTACKS, DemoError, DemoOptions, run_demo
 
+    known = ROS2_ATTACKS if ros == "2" else ALL_ATTACKS
     if attacks == "all":
-        chosen = ALL_ATTACKS
+        chosen = known
     elif attacks == "none":
         chosen = ()
     else:
         chosen = tuple(a.strip() for a in attacks.split(",") if a.strip())
-        bad = [a for a in chosen if a not in ATTACKS]
+        bad = [a for a in chosen if a not in known]
         if bad:
-            raise click.BadParameter(f"unknown attack {bad[0]!r}; one of {', '.join(ATTACKS)}", param_hint="--attacks")
+            hint = " (shutdown, hijack and map-erase have no ROS 2 counterpart: docs/demo.md)" if ros == "2" else ""
+            raise click.BadParameter(f"unknown attack {bad[0]!r}; one of {', '.join(known)}{hint}", param_hint="--attacks")
+    if ros == "2" and master_uri:
+        raise click.BadParameter("ROS 2 has no master", param_hint="--master-uri")
     modes = ("plain", "protected") if mode == "both" else (mode,)
     opts = DemoOptions(robots=robots, attacks=chosen, seconds=seconds, modes=modes, master_uri=master_uri, keep=keep,
-                       seed=seed, width=size, height=size, scale=scale,
+                       seed=seed, width=size, height=size, scale=scale, ros=int(ros),
                        workdir=str(workdir) if workdir else None)
     console = Console(stderr=False)
     signal.signal(signal.SIGTERM, _sigterm)

@@ -70,9 +70,14 @@ def _kb(n: float) -> str:
     return f"{n / 1024:.0f} KiB" if n < 10 * 1024 * 1024 else f"{n / 1048576:.1f} MiB"
 
 
+def ros_label(result: dict[str, Any]) -> str:
+    return "ROS 2 Jazzy (rclpy nodes, a DDS domain per robot)" if result["config"].get("ros") == 2 else "ROS 1"
+
+
 def table(result: dict[str, Any]) -> Table:
     modes = list(result["modes"])
-    t = Table(title=f"cryptoros demo: {result['config']['robots']} robots, same mission, plain ROS vs cryptoros")
+    t = Table(title=f"cryptoros demo, {ros_label(result)}: {result['config']['robots']} robots, same mission, "
+                    f"plain ROS vs cryptoros")
     t.add_column("")
     for m in modes:
         t.add_column(MODE_LABEL[m])
@@ -169,7 +174,7 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
     R = result["modes"]
     lines = ["# cryptoros demo report", "",
              f"{result['config']['robots']} exploration robots (seed {result['config']['seed']}, "
-             f"{result['config']['width']}x{result['config']['height']} cells of 0.2 m), live ROS 1 nodes on loopback, "
+             f"{result['config']['width']}x{result['config']['height']} cells of 0.2 m), live {ros_label(result)} on loopback, "
              f"clock x{result['config']['scale']:.0f}; attacks as separate processes.", "",
              "| | " + " | ".join(MODE_LABEL[m] for m in modes) + " |", "|---|" + "---|" * len(modes)]
 
@@ -190,6 +195,13 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
     for k, a in result["attacks"].items():
         lines.append(f"| {k} | {a['what']} | {a['protected_attacker']} | " + " | ".join(a[m]["evidence"] if m in a else "-" for m in modes) + " |")
     lines.append("")
+    denied = result["modes"].get("protected", {}).get("deny_log")
+    if denied:
+        lines += ["## What the interceptors refused (distinct DENY log lines)", ""]
+        for name, entries in denied.items():
+            lines += [f"- **{name}**"] + [f"  - `{e}`" for e in entries]
+        lines += ["", "A robot's own pose, scan and command topics have no grant to leave it: each robot's "
+                  "interceptor logs them once and keeps them on the robot's domain.", ""]
     for title, path in figs:
         lines += [f"## {title}", "", f"![{title}]({path})", ""]
     report = out / "report.md"

@@ -43,7 +43,7 @@ from cryptoros.attack.lib import digest
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import Node
 from cryptoros.sim import packets as P
-from cryptoros.sim.robot import DEAD, DONE, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
+from cryptoros.sim.robot import DEAD, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
 from cryptoros.sim.security import SecurityConfig, make_managers
 from cryptoros.sim.world import OCC, Lidar, generate
 
@@ -212,9 +212,9 @@ class DemoRobot:
             return
         self.stats["pose_foreign"] += 1
         with contextlib.suppress(Exception):
-            m = msgs.deserialize(data, POSE, P.store())
+            px, py = self.read_pose(data)
             x, y = self.robot.pos if self.robot else (0.0, 0.0)
-            err = math.hypot(m.pose.position.x - x, m.pose.position.y - y)
+            err = math.hypot(px - x, py - y)
             self.stats["pose_max_error_m"] = round(max(self.stats["pose_max_error_m"], err), 3)
 
     def _on_scan(self, data: bytes) -> None:
@@ -226,9 +226,9 @@ class DemoRobot:
             return
         self.stats["scan_foreign"] += 1
         try:  # the robot believes its scan: phantom obstacles where the noise says so
-            m = msgs.deserialize(data, SCAN, P.store())
-            ranges = np.asarray(m.ranges, dtype=float)[:SCAN_BEAMS]
-            angles = float(m.angle_min) + float(m.angle_increment or (2 * math.pi / max(1, len(ranges)))) * np.arange(len(ranges))
+            angle_min, angle_increment, ranges = self.read_scan(data)
+            ranges = np.asarray(ranges, dtype=float)[:SCAN_BEAMS]
+            angles = float(angle_min) + float(angle_increment or (2 * math.pi / max(1, len(ranges)))) * np.arange(len(ranges))
             r, c = self.robot.cell
             res = self.robot.cfg.resolution
             rows = np.rint(r + np.sin(angles) * ranges / res).astype(int)
@@ -251,33 +251,57 @@ class DemoRobot:
             return
         self.stats["cmd_foreign"] += 1
         with contextlib.suppress(Exception):
-            m = msgs.deserialize(data, TWIST, P.store())
-            if abs(m.linear.x) < 1e-6 and self.host is not None:
+            if abs(self.read_twist_speed(data)) < 1e-6 and self.host is not None:
                 self.stats["cmd_foreign_stop"] += 1
                 self.host.halted_until = max(self.host.halted_until, self.host.loop.time() + HALT_S)
 
-    async def _drivers(self, base: Node, pose_pub: Any, scan_pub: Any) -> None:
-        i = 0
+    # -- message codec (ROS 1 here; the ROS 2 robot overrides these six) --------------------------
+
+    def pose_bytes(self, seq: int, stamp: float, x: float, y: float) -> bytes:
         store = P.store()
+        pose = msgs.msg_class(POSE, store)(
+            header=msgs.msg_class("std_msgs/Header", store)(seq=seq, stamp=_time(store, stamp), frame_id="map"),
+            pose=msgs.msg_class("geometry_msgs/Pose", store)(
+                position=P.Point(x, y), orientation=msgs.msg_class("geometry_msgs/Quaternion", store)(x=0.0, y=0.0, z=0.0, w=1.0)))
+        return msgs.serialize(pose, POSE, store)
+
+    def scan_bytes(self, seq: int, stamp: float, ranges: np.ndarray) -> bytes:
+        store = P.store()
+        scan = msgs.msg_class(SCAN, store)(
+            header=msgs.msg_class("std_msgs/Header", store)(seq=seq, stamp=_time(store, stamp), frame_id="base_scan"),
+            angle_min=0.0, angle_max=float(2 * math.pi), angle_increment=float(2 * math.pi / SCAN_BEAMS),
+            time_increment=0.0, scan_time=0.2, range_min=0.12, range_max=3.5, ranges=ranges,
+            intensities=np.zeros(0, dtype=np.float32))
+        return msgs.serialize(scan, SCAN, store)
+
+    def twist_bytes(self, speed: float, seq: int, heading: float) -> bytes:
+        store = P.store()
+        vec = msgs.msg_class("geometry_msgs/Vector3", store)
+        t = msgs.msg_class(TWIST, store)(linear=vec(x=speed, y=0.0, z=float(seq)), angular=vec(x=0.0, y=0.0, z=heading))
+        return msgs.serialize(t, TWIST, store)
+
+    def read_pose(self, data: bytes) -> tuple[float, float]:
+        m = msgs.deserialize(data, POSE, P.store())
+        return m.pose.position.x, m.pose.position.y
+
+    def read_scan(self, data: bytes) -> tuple[float, float, Any]:
+        m = msgs.deserialize(data, SCAN, P.store())
+        return m.angle_min, m.angle_increment, m.ranges
+
+    def read_twist_speed(self, data: bytes) -> float:
+        return float(msgs.deserialize(data, TWIST, P.store()).linear.x)
+
+    async def _drivers(self, pose_pub: Any, scan_pub: Any) -> None:
+        i = 0
         while not self.stop.is_set():
             if self.robot is not None and self.robot.state != DEAD:
                 x, y = self.robot.pos
                 stamp = time.time()
-                pose = msgs.msg_class(POSE, store)(
-                    header=msgs.msg_class("std_msgs/Header", store)(seq=i, stamp=_time(store, stamp), frame_id="map"),
-                    pose=msgs.msg_class("geometry_msgs/Pose", store)(
-                        position=P.Point(x, y), orientation=msgs.msg_class("geometry_msgs/Quaternion", store)(x=0.0, y=0.0, z=0.0, w=1.0)))
-                raw = msgs.serialize(pose, POSE, store)
+                raw = self.pose_bytes(i, stamp, x, y)
                 self.base_published.add(digest(raw))
                 self._publish_raw(pose_pub, raw)
                 if i % 4 == 0:
-                    ranges = laser_ranges(self.world.occupied, self.robot.cell, self.robot.cfg.resolution)
-                    scan = msgs.msg_class(SCAN, store)(
-                        header=msgs.msg_class("std_msgs/Header", store)(seq=i, stamp=_time(store, stamp), frame_id="base_scan"),
-                        angle_min=0.0, angle_max=float(2 * math.pi), angle_increment=float(2 * math.pi / SCAN_BEAMS),
-                        time_increment=0.0, scan_time=0.2, range_min=0.12, range_max=3.5, ranges=ranges,
-                        intensities=np.zeros(0, dtype=np.float32))
-                    raw = msgs.serialize(scan, SCAN, store)
+                    raw = self.scan_bytes(i, stamp, laser_ranges(self.world.occupied, self.robot.cell, self.robot.cfg.resolution))
                     self.base_published.add(digest(raw))
                     self._publish_raw(scan_pub, raw)
                 i += 1
@@ -291,10 +315,7 @@ class DemoRobot:
         nxt = r.path[0]
         heading = math.atan2(nxt[0] - r.cell[0], nxt[1] - r.cell[1])
         self._cmd_seq += 1
-        t = msgs.msg_class(TWIST, P.store())(
-            linear=msgs.msg_class("geometry_msgs/Vector3", P.store())(x=float(r.cfg.speed), y=0.0, z=float(self._cmd_seq)),
-            angular=msgs.msg_class("geometry_msgs/Vector3", P.store())(x=0.0, y=0.0, z=float(heading)))
-        raw = msgs.serialize(t, TWIST, P.store())
+        raw = self.twist_bytes(float(r.cfg.speed), self._cmd_seq, float(heading))
         self.explorer_published.add(digest(raw))
         self._publish_raw(self.cmd_pub, raw)
 
@@ -390,8 +411,8 @@ class DemoRobot:
             self.t0 = float(json.loads(self.go_path.read_text())["t0"])
             while time.time() < self.t0:
                 await asyncio.sleep(0.01)
-            self._start_robot(loop, store)
-            tasks.append(asyncio.ensure_future(self._drivers(base, pose_pub, scan_pub)))
+            self._start_robot(loop)
+            tasks.append(asyncio.ensure_future(self._drivers(pose_pub, scan_pub)))
             while not self.stop.is_set():
                 self.write_status()
                 with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
@@ -407,7 +428,7 @@ class DemoRobot:
                     async with asyncio.timeout(3):
                         await n.close()
 
-    def _start_robot(self, loop: asyncio.AbstractEventLoop, store: Any) -> None:
+    def _start_robot(self, loop: asyncio.AbstractEventLoop) -> None:
         seed = int(self.cfg["seed"])
         rng = np.random.default_rng(seed * 1000 + self.index)
         managers, _, _ = make_managers([self.name], SecurityConfig(), seed, {self.name: rng})
@@ -455,7 +476,7 @@ def _time(store: Any, t: float) -> Any:
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s robot %(name)s %(levelname)s %(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s robot %(name)s %(levelname)s %(message)s")
     cfg = json.loads(Path(sys.argv[1]).read_text())
     with contextlib.suppress(Exception):
         from cryptoros.ros1.node import install_uvloop

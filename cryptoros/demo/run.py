@@ -68,6 +68,7 @@ class DemoOptions:
     coverage_target: float = 0.9
     attack_delay: float = 1.0  # wall seconds after the start
     workdir: str | None = None
+    ros: int = 1  # 1: ROS 1 nodes (this module); 2: rclpy nodes (cryptoros.demo.ros2)
 
 
 def robot_addr(i: int) -> str:
@@ -325,7 +326,6 @@ class Mission:
             (self.dir / "go.json").write_text(json.dumps({"t0": t0}))
             started = time.monotonic() + 0.3
             quiet_since = None
-            last_cov = 0.0
             while True:
                 time.sleep(0.25)
                 wall = time.monotonic() - started
@@ -335,7 +335,6 @@ class Mission:
                 cov, _ = self.coverage(st)
                 sim_t = max((s.get("t", 0.0) for s in st.values()), default=0.0)
                 timeline.append([round(sim_t, 2), round(wall, 2), round(cov, 4)])
-                last_cov = cov
                 self.progress({"mode": self.mode, "wall": wall, "sim": sim_t, "coverage": cov, "statuses": st,
                                "budget": opts.seconds, "target": opts.coverage_target})
                 if cov >= opts.coverage_target:
@@ -448,8 +447,12 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
             ok, ev = c > 0, f"robots received {c} altered team map updates"
         elif k == "eavesdrop":
             c = int(rep.get("messages", 0))
+            read = f"{c} messages ({rep.get('bytes', 0)} B)"
+            if "digests" in rep:  # ROS 2: the network may carry other attackers' messages; count the robots'
+                c = sum(1 for d in rep["digests"] if d in published)
+                read = f"{c} of the robots' messages ({rep.get('bytes', 0)} B read in all)"
             ok = c > 0
-            ev = (f"attacker read {c} messages ({rep.get('bytes', 0)} B) on {len(rep.get('topics', {}))} topics, "
+            ev = (f"attacker read {read} on {len(rep.get('topics', {}))} topics, "
                   f"positions of {len(rep.get('positions_read', {}))} robots, {rep.get('map_share_read', 0):.0%} of the map cells")
         elif k == "shutdown":
             reasons = [x for x in stats[t]["shutdown_reasons"] if "same name" not in x]
@@ -478,26 +481,36 @@ def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lam
              note: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
     if opts.robots < 2:
         raise DemoError("the demo needs at least 2 robots")
+    mission_class, role, what = Mission, attacker_role, {}
+    if opts.ros == 2:
+        from cryptoros.demo import ros2
+
+        mission_class, role, what = ros2.Ros2Mission, ros2.attacker_role, ros2.WHAT
+        known = ros2.ROS2_ATTACKS
+    elif opts.ros == 1:
+        known = ALL_ATTACKS
+    else:
+        raise DemoError(f"ros must be 1 or 2, not {opts.ros}")
     for a in opts.attacks:
-        if a not in ATTACKS:
-            raise DemoError(f"unknown attack {a!r}; one of {', '.join(ATTACKS)}")
+        if a not in known:
+            raise DemoError(f"unknown attack {a!r} for ROS {opts.ros}; one of {', '.join(known)}")
     workdir = Path(opts.workdir) if opts.workdir else Path(tempfile.mkdtemp(prefix="cryptoros-demo-"))
     workdir.mkdir(parents=True, exist_ok=True)
     children = Children()
     result: dict[str, Any] = {"config": {**asdict(opts), "attacks": list(opts.attacks), "modes": list(opts.modes)},
                               "workdir": str(workdir), "modes": {}, "attacks": {}}
-    ports: list[tuple[str, int]] = []
     try:
         for mode in opts.modes:
             note(f"{mode}: starting {'the master' if mode == 'plain' else 'PKI, authorization server, master and interceptors'}"
                  f" and {opts.robots} robots")
-            m = Mission(opts, mode, workdir, children, progress)
+            m = mission_class(opts, mode, workdir, children, progress)
             res = m.run()
             res["judged"] = judge(res, opts.attacks, opts.robots)
             result["modes"][mode] = res
         for k in opts.attacks:
-            entry = {"seed": ATTACKS[k]["seed"], "what": ATTACKS[k]["what"].format(t=target_of(k, opts.robots) or ""),
-                     "protected_attacker": attacker_role(k, opts.robots)}
+            entry = {"seed": ATTACKS[k]["seed"],
+                     "what": what.get(k, ATTACKS[k]["what"]).format(t=target_of(k, opts.robots) or ""),
+                     "protected_attacker": role(k, opts.robots)}
             for mode, res in result["modes"].items():
                 entry[mode] = res["judged"][k]
             result["attacks"][k] = entry

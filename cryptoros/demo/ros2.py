@@ -1,0 +1,181 @@
+"""``cryptoros demo --ros 2``: the same mission with the robots as rclpy nodes (ROS 2 Jazzy).
+
+The robots (:mod:`cryptoros.demo.ros2_robot`) and attackers
+(:mod:`cryptoros.demo.ros2_attackers`) run under the ROS 2 venv's python
+(``scripts/ros2-venv``; ``$CRYPTOROS_ROS2_PYTHON`` to point elsewhere) with this
+package on their ``PYTHONPATH``. Every DDS participant is localhost-only
+(``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``); domains stand for machines:
+
+==============  ===========================  ======================================
+mode            where the robots are         what connects them
+==============  ===========================  ======================================
+plain           one shared domain ``D``      DDS itself: every participant on ``D``
+                                             (an attacker too) reaches every robot
+protected       robot N on domain ``D+1+N``  only the robots' interceptors (``ros2``
+                                             role, mutual TLS, tokens, grants);
+                                             domain ``D`` (the network) is empty
+==============  ===========================  ======================================
+
+Interceptor N listens on 127.0.0.(11+N) like the ROS 1 demo's hosts and has every
+other robot's interceptor as a peer. The mission, its clock, the evidence and the
+judging are the ROS 1 demo's (:mod:`cryptoros.demo.run`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+from cryptoros.demo.attackers import ATTACKS, ROS2_ATTACKS, insider_host, target_of
+from cryptoros.demo.robot import SHORT
+from cryptoros.demo.run import DemoError, Graph, Mission, robot_addr
+
+WHAT = {"eavesdrop": "every topic read (DDS discovery, raw subscriptions of any type)"}
+TEAM_TYPE = "std_msgs/msg/UInt8MultiArray"
+PRESENCE = ("/team/presence", "std_msgs/msg/String")
+READY_CHECK = "import rclpy, std_msgs.msg, geometry_msgs.msg, sensor_msgs.msg, cryptography, rosbags, defusedxml, numpy"
+
+
+def policy(n: int) -> str:
+    """Each robot's manager may publish and subscribe the team topics, nothing else:
+    a robot's own pose, scan and command topics never leave its domain."""
+    lines = ["version: 1", "managers:"]
+    for i in range(n):
+        r = f"r{i}"
+        topics = [(f"/team/{short}", TEAM_TYPE) for short in SHORT.values()] + [PRESENCE]
+        lines += [f"- name: {r}", f"  fingerprint_sha256: {{{r}}}", "  grants:"]
+        for action in ("publish", "subscribe"):
+            lines.append(f"    {action}:")
+            lines += [f"    - {{{{node: /{r}, topic: {topic}, type: {ty}}}}}" for topic, ty in topics]
+    return "\n".join(lines) + "\n"
+
+
+def ros2_python() -> Path:
+    """The ROS 2 venv's python, checked to import what the robots need (one clear error)."""
+    from interceptor.config import default_ros2_python
+
+    python = default_ros2_python()
+    if not python.exists():
+        raise DemoError(f"{python} does not exist: create the ROS 2 venv with scripts/ros2-venv "
+                        "(or set CRYPTOROS_ROS2_PYTHON)")
+    try:
+        check = subprocess.run([str(python), "-c", READY_CHECK], capture_output=True, text=True, timeout=120,
+                               env=ros2_env(0, None))
+    except subprocess.TimeoutExpired:
+        raise DemoError(f"{python} did not import rclpy within 120 s") from None
+    if check.returncode != 0:
+        last = (check.stderr.strip().splitlines() or ["?"])[-1]
+        raise DemoError(f"{python} cannot run the ROS 2 robots ({last}); refresh the venv with scripts/ros2-venv")
+    return python
+
+
+def ros2_env(domain: int, pythonpath: Path | None) -> dict[str, str]:
+    from cryptoros.bench.network import clean_env
+
+    env = {k: v for k, v in clean_env().items() if not k.startswith(("_ROS_WHEELS", "RMW_"))}
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath)
+    return env
+
+
+def base_domain() -> int:
+    """``D``: the shared (network) domain; robots use D+1 .. D+8 (all within 0..101)."""
+    return 10 + (os.getpid() * 7) % 80
+
+
+def attacker_role(kind: str, n: int) -> str:
+    if ATTACKS[kind]["as"] == "stranger":
+        return "stranger on the network (no certificate, no token): the robots' DDS is localhost-only, so only the interceptors' TLS ports are left"
+    what = {"spoof-pose": f"/{target_of(kind, n)}/pose"}.get(kind, kind)
+    return f"insider node on {insider_host(kind, n)}'s domain (its manager has no grant for {what})"
+
+
+class Ros2Mission(Mission):
+    """One mission of ``cryptoros demo --ros 2``."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.python = ros2_python()
+        self.base = base_domain()
+        # the robots import this package from a directory holding only it (not the main
+        # venv's site-packages: the ROS 2 venv brings its own numpy and cryptography)
+        self.pythonpath = self.dir / "pylib"
+        self.pythonpath.mkdir(exist_ok=True)
+        link = self.pythonpath / "cryptoros"
+        if not link.exists():
+            import cryptoros
+
+            link.symlink_to(Path(cryptoros.__file__).resolve().parent, target_is_directory=True)
+
+    def robot_domain(self, robot: str) -> int:
+        return self.base if self.mode == "plain" else self.base + 1 + self.team.index(robot)
+
+    def _plain(self):  # type: ignore[no-untyped-def]
+        yield Graph(robot_master={}, robot_ip={}, stranger_master="", insider_master={}, insider_ip={})
+
+    def _protected(self):  # type: ignore[no-untyped-def]
+        from cryptoros.bench.network import bench_network
+
+        hosts = {r: robot_addr(i) for i, r in enumerate(self.team)}
+        with bench_network(self.dir / "net", policy(len(self.team)), hosts=hosts, master="none", metrics=True,
+                           new_session=True, ros2={r: self.robot_domain(r) for r in self.team},
+                           ros2_python=self.python) as net:
+            ports = [(h.address, h.public_port) for h in net.hosts.values()]
+            ports += [("127.0.0.1", h.metrics_port) for h in net.hosts.values() if h.metrics_port]
+            yield Graph(robot_master={}, robot_ip={}, stranger_master="", insider_master={}, insider_ip={},
+                        interceptors=net.hosts, ports=ports)
+
+    def _start_robots(self, g: Graph) -> dict[str, subprocess.Popen]:
+        procs = {}
+        for r in self.team:
+            cfg = {"name": r, "team": self.team, "seed": self.opts.seed, "width": self.opts.width,
+                   "height": self.opts.height, "scale": self.opts.scale, "status": str(self.dir / f"{r}.status.json"),
+                   "go": str(self.dir / "go.json"), "connect_timeout": 40, "domain": self.robot_domain(r)}
+            path = self.dir / f"{r}.json"
+            path.write_text(json.dumps(cfg))
+            procs[r] = self.children.start([str(self.python), "-m", "cryptoros.demo.ros2_robot", str(path)],
+                                           self.dir / f"{r}.log", ros2_env(self.robot_domain(r), self.pythonpath))
+        return procs
+
+    def _start_attack(self, kind: str, g: Graph) -> subprocess.Popen:
+        n = len(self.team)
+        stranger = ATTACKS[kind]["as"] == "stranger"
+        domain = self.base if self.mode == "plain" or stranger else self.robot_domain(insider_host(kind, n))
+        doors = [[h.address, h.public_port] for h in g.interceptors.values()] if stranger and self.mode == "protected" else []
+        cfg = {"kind": kind, "domain": domain, "target": target_of(kind, n), "team": self.team, "width": self.opts.width,
+               "height": self.opts.height, "duration": self.opts.seconds, "doors": doors,
+               "report": str(self.dir / f"attack-{kind}.report.json")}
+        path = self.dir / f"attack-{kind}.json"
+        path.write_text(json.dumps(cfg))
+        return self.children.start([str(self.python), "-m", "cryptoros.demo.ros2_attackers", str(path)],
+                                   self.dir / f"attack-{kind}.log", ros2_env(domain, self.pythonpath))
+
+    def _mission(self, g: Graph, setup_s: float) -> dict[str, Any]:
+        res = super()._mission(g, setup_s)
+        res["domains"] = {r: self.robot_domain(r) for r in self.team} | {"network": self.base}
+        res["deny_log"] = deny_lines(g)
+        return res
+
+
+def deny_lines(g: Graph, limit: int = 40) -> dict[str, list[str]]:
+    """Each interceptor's distinct ``DENY`` log lines (what was refused, by whom, why)."""
+    out: dict[str, list[str]] = {}
+    for name, host in g.interceptors.items():
+        seen: list[str] = []
+        with contextlib.suppress(OSError):
+            for line in host.logs().splitlines():
+                if " DENY " in line:
+                    text = line.split(" DENY ", 1)[1].strip()
+                    if text not in seen:
+                        seen.append(text)
+        if seen:
+            out[name] = seen[:limit]
+    return out
+
+
+__all__ = ["ROS2_ATTACKS", "Ros2Mission", "attacker_role", "policy", "ros2_python"]
