@@ -56,8 +56,66 @@ def _ros_env(domain: int) -> dict[str, str]:
     return env
 
 
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+#: the processes whose CPU is accounted per row (pub and sub report their own)
+PROCESSES = ("publisher", "interceptor_a", "bridge_a", "interceptor_b", "bridge_b", "subscriber")
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """utime + stime of a process (all its threads) from /proc/<pid>/stat; None if gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()  # after "pid (comm)": state is fields[0], utime fields[11]
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def children(pid: int) -> list[int]:
+    """Direct children of ``pid`` (every thread's /proc/<pid>/task/<tid>/children)."""
+    found: list[int] = []
+    with contextlib.suppress(OSError):
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            with contextlib.suppress(OSError):
+                found += [int(c) for c in (task / "children").read_text().split()]
+    return found
+
+
+def long_lived(pids: dict[str, int]) -> dict[str, int]:
+    """The interceptors and their DDS bridge children (looked up again per row: a bridge may restart)."""
+    out = dict(pids)
+    for side in ("a", "b"):
+        kids = children(pids[f"interceptor_{side}"])
+        if kids:
+            out[f"bridge_{side}"] = kids[0]
+    return out
+
+
+def _snapshot(pids: dict[str, int]) -> dict[str, float | None]:
+    return {name: cpu_seconds(pid) for name, pid in pids.items()}
+
+
+def cpu_per_message(result: dict, before: dict, after: dict, bridged: bool) -> dict[str, Any]:
+    """CPU microseconds per received message per process, the total, and the pipeline
+    ceiling (the rate if every process had a core of its own: 1e6 / the largest)."""
+    n = max(1, result.get("received", 0))
+    per: dict[str, float] = {}
+    per["publisher"] = result.get("pub_cpu_s", 0.0) * 1e6 / n
+    for name in ("interceptor_a", "bridge_a", "interceptor_b", "bridge_b"):
+        if before.get(name) is not None and after.get(name) is not None:
+            per[name] = (after[name] - before[name]) * 1e6 / n
+    per["subscriber"] = result.get("sub_cpu_s", 0.0) * 1e6 / n
+    counted = per if bridged else {k: per[k] for k in ("publisher", "subscriber")}
+    top = max(counted.values()) if counted else 0.0
+    return {"us_per_msg": {k: round(v, 1) for k, v in per.items()},
+            "total_us": round(sum(counted.values()), 1),
+            "ceiling_msg_s": round(1e6 / top) if top else None,
+            "busiest": max(counted, key=counted.get) if counted else None,
+            "window_s": round(after.get("_t", 0.0) - before.get("_t", 0.0), 3)}
+
+
 @contextlib.contextmanager
-def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], depth: int = 10) -> Iterator[None]:
+def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], depth: int = 10) -> Iterator[dict[str, int]]:
     from certs.pki import PKI
 
     pki = PKI.init(workdir / "pki", unsafe_no_passphrase=True)
@@ -99,16 +157,19 @@ def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], dept
                                     stdout=(workdir / f"{name}.log").open("w"), stderr=subprocess.STDOUT, env=clean_env())
             procs.append(proc)
             wait_port(addr, publics[name], 40, proc, f"interceptor {name}")
-        yield
+        yield {"interceptor_a": procs[1].pid, "interceptor_b": procs[2].pid}
     finally:
         for proc in reversed(procs):
             stop(proc)
 
 
-def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, sub_domain: int) -> dict:
+def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, sub_domain: int,
+              pids: dict[str, int] | None = None, bridged: bool = False) -> dict:
     """One publisher, one subscriber; warm-up until the subscriber saw a message, then
     ``count`` measured messages. Returns the subscriber's figures plus the publisher's
-    ``sent`` and ``send_rate``."""
+    ``sent`` and ``send_rate``, and ``cpu``: CPU per message of every process (publisher
+    and subscriber over their measured window, the interceptors and bridges of ``pids``
+    from GO until the subscriber got its last message; on the direct path they idle)."""
     sub = subprocess.Popen([str(python), str(NODE), "sub", kind, str(count), "3"], env=_ros_env(sub_domain),
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     pub = None
@@ -119,12 +180,21 @@ def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, s
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         if sub.stdout.readline().strip() != "WARM":
             raise NetworkError("no warm-up message reached the benchmark subscriber within 60 s")
+        watched = long_lived(pids or {})
+        before = _snapshot(watched)
+        before["_t"] = time.monotonic()
         pub.stdin.write("GO\n")
         pub.stdin.flush()
-        out, _ = sub.communicate(timeout=240)
-        result = json.loads(out.strip().splitlines()[-1])
+        if sub.stdout.readline().strip() != "DONE":  # the subscriber stops on its own within 180 s
+            raise NetworkError("the benchmark subscriber did not finish")
+        after = _snapshot(watched)
+        after["_t"] = time.monotonic()
+        line = sub.stdout.readline()  # the JSON line follows DONE (communicate() would miss what readline buffered)
+        sub.wait(timeout=60)
+        result = json.loads(line)
         pub_out, _ = pub.communicate(timeout=30)
         result.update(json.loads(pub_out.strip().splitlines()[-1]))
+        result["cpu"] = cpu_per_message(result, before, after, bridged)
         return result
     finally:
         stop(sub)
@@ -165,12 +235,13 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: st
     with tempfile.TemporaryDirectory(prefix="cryptoros-bench-ros2-") as tmp:
         # Both paths of a row run back to back (direct first), so a change of load on the
         # shared machine hits both alike; the idle interceptors run during the direct rows too.
-        with interceptor_pair(Path(tmp), py, domains[1:], depth):
+        with interceptor_pair(Path(tmp), py, domains[1:], depth) as pids:
             time.sleep(1.0)
             for label, kind, count, hz in rows:
                 for path, (pub_domain, sub_domain) in (("direct", (domains[0], domains[0])),
                                                        ("bridged", (domains[1], domains[2]))):
-                    results.setdefault(label, {})[path] = _run_pair(py, kind, count, hz, pub_domain, sub_domain)
+                    results.setdefault(label, {})[path] = _run_pair(py, kind, count, hz, pub_domain, sub_domain,
+                                                                    pids, path == "bridged")
                     if not as_json:
                         click.echo(f"  {label:36s} {path:8s} {results[label][path]}", err=True)
     results["load_average"] = _load()
@@ -191,4 +262,18 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: st
             ratio = b[key] / d[key] * 100 if d[key] else 0.0
             click.echo(f"| {label} (msg/s; MB/s) | {d['rate']:,.0f}; {d['mbps']:,.1f} | {b['rate']:,.0f}; {b['mbps']:,.1f} "
                        f"| {ratio:.0f} % ({got}) |")
+    click.echo("\nCPU per message (µs; publisher and subscriber over their measured window, interceptors and bridges"
+               " from GO to the last message; on the direct path the pair idles and is not counted in the total):")
+    heads = ("pub", "icpt A", "bridge A", "icpt B", "bridge B", "sub")
+    click.echo(f"| row | path | {' | '.join(heads)} | total | ceiling msg/s | measured msg/s |")
+    click.echo("|---|---|" + "---:|" * (len(heads) + 3))
+    for label, kind, count, hz in rows:
+        for path in ("direct", "bridged"):
+            r = results[label][path]
+            c = r["cpu"]
+            cells = " | ".join(f"{c['us_per_msg'][p]:.1f}" if p in c["us_per_msg"] else "-" for p in PROCESSES)
+            ceiling = f"{c['ceiling_msg_s']:,}" if c["ceiling_msg_s"] else "-"
+            click.echo(f"| {label} | {path} | {cells} | {c['total_us']:.1f} | {ceiling} | {r['rate']:,.0f} |")
+    click.echo("ceiling = 1e6 / the largest per-process µs per message: the rate if every process had a core of its own"
+               " (a paced row's ceiling only says how much headroom is left).")
     click.echo(f"\nload average after the run: {results['load_average']} (2 cores shared); interceptors' [ros2] depth = {depth}")

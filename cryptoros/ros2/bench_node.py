@@ -22,6 +22,10 @@ Identical for both paths (direct and through the interceptor pair):
 - Each message carries its send time (``time.time_ns``; publisher and subscriber share
   the host clock): one-way latency. The subscriber counts what it really received;
   rates are over its receive window, MB/s counts the serialized bytes received.
+- Each node reports its own CPU (``time.process_time``: all threads, rclpy and DDS
+  included) over its measured window: the publisher over its send loop, the
+  subscriber from ``WARM`` to the last message (it prints ``DONE`` then, before
+  parsing, so the controller can read the other processes' CPU at that moment).
 """
 
 import json
@@ -80,6 +84,7 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
                 go = True
     time.sleep(0.3)  # the warm-ups drain before the measured messages
     period = 1.0 / hz if hz else 0.0
+    cpu0 = time.process_time()  # this process's CPU (all threads, incl. rclpy/DDS) over the measured loop
     start = time.monotonic()
     next_at = start
     for _ in range(count):
@@ -98,7 +103,8 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
             if delay > 0:
                 time.sleep(delay)
     elapsed = time.monotonic() - start
-    print(json.dumps({"sent": count, "send_rate": count / elapsed if elapsed else 0.0}), flush=True)
+    cpu = time.process_time() - cpu0
+    print(json.dumps({"sent": count, "send_rate": count / elapsed if elapsed else 0.0, "pub_cpu_s": cpu}), flush=True)
     time.sleep(3.0)  # keep the writer alive while reliable delivery finishes
 
 
@@ -127,6 +133,7 @@ def _subscriber(node, kind: str, count: int, idle: float) -> None:
             warm.set()
         time.sleep(0.005)
     print("WARM", flush=True)
+    cpu0 = time.process_time()  # this process's CPU (all threads) from WARM until the last message
     skip = len(arrivals)
     deadline = time.monotonic() + 180
     last_n, last_change = skip, time.monotonic()
@@ -139,6 +146,8 @@ def _subscriber(node, kind: str, count: int, idle: float) -> None:
             break
         if n != last_n:
             last_n, last_change = n, time.monotonic()
+    cpu = time.process_time() - cpu0
+    print("DONE", flush=True)  # the controller reads the other processes' CPU now, before the parsing below
     got = [(t, d) for t, d in arrivals[skip:] if not is_warm(d)]
     latencies = []
     for t, d in got:
@@ -158,6 +167,9 @@ def _subscriber(node, kind: str, count: int, idle: float) -> None:
         "mbps": size / elapsed / 1e6 if elapsed else 0.0,
         "p50": lat[n // 2] if n else None,
         "p99": lat[min(n - 1, int(n * 0.99))] if n else None,
+        "sub_cpu_s": cpu,
+        # longest silence between two arrivals: a reliable DDS repair (heartbeat, NACK, resend) shows here
+        "max_gap_ms": max(((b[0] - a[0]) / 1e6 for a, b in zip(got, got[1:])), default=0.0),
     }), flush=True)
 
 
