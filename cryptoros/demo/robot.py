@@ -403,20 +403,7 @@ class DemoRobot:
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                 await asyncio.wait_for(_all_connected(subs, len(self.team)), float(cfg.get("connect_timeout", 20)))
             self.ready = True
-            self.write_status()
-            while not self.go_path.exists() and not self.stop.is_set():
-                await asyncio.sleep(0.05)
-            if self.stop.is_set():
-                return
-            self.t0 = float(json.loads(self.go_path.read_text())["t0"])
-            while time.time() < self.t0:
-                await asyncio.sleep(0.01)
-            self._start_robot(loop)
-            tasks.append(asyncio.ensure_future(self._drivers(pose_pub, scan_pub)))
-            while not self.stop.is_set():
-                self.write_status()
-                with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
-                    await asyncio.wait_for(self.stop.wait(), 0.5)
+            await self._run_mission(loop, pose_pub, scan_pub)
         finally:
             self.stop.set()
             for t in tasks:
@@ -427,6 +414,29 @@ class DemoRobot:
                 with contextlib.suppress(Exception):
                     async with asyncio.timeout(3):
                         await n.close()
+
+    async def _run_mission(self, loop: asyncio.AbstractEventLoop, pose_pub: Any, scan_pub: Any,
+                           waiting: Callable[[], None] = lambda: None, period: float = 0.05) -> None:
+        """Once ready: wait for the common start (``waiting()`` every ``period``), then run the
+        robot and its drivers, writing the status twice a second, until stopped."""
+        self.write_status()
+        while not self.go_path.exists() and not self.stop.is_set():
+            waiting()
+            await asyncio.sleep(period)
+        if self.stop.is_set():
+            return
+        self.t0 = float(json.loads(self.go_path.read_text())["t0"])
+        while time.time() < self.t0:
+            await asyncio.sleep(0.01)
+        self._start_robot(loop)
+        drivers = asyncio.ensure_future(self._drivers(pose_pub, scan_pub))
+        try:
+            while not self.stop.is_set():
+                self.write_status()
+                with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
+                    await asyncio.wait_for(self.stop.wait(), 0.5)
+        finally:
+            drivers.cancel()
 
     def _start_robot(self, loop: asyncio.AbstractEventLoop) -> None:
         seed = int(self.cfg["seed"])

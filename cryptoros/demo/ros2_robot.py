@@ -186,24 +186,8 @@ class Ros2DemoRobot(DemoRobot):
                 presence.publish(String(data=self.name))
                 await asyncio.sleep(0.25)
             self.ready = others <= heard
-            self.write_status()
-            while not self.go_path.exists() and not self.stop.is_set():
-                presence.publish(String(data=self.name))  # team mates may still be waiting for us
-                await asyncio.sleep(0.25)
-            if self.stop.is_set():
-                return
-            self.t0 = float(json.loads(self.go_path.read_text())["t0"])
-            while time.time() < self.t0:
-                await asyncio.sleep(0.01)
-            self._start_robot(loop)
-            drivers = asyncio.ensure_future(self._drivers(pose_pub, scan_pub))
-            try:
-                while not self.stop.is_set():
-                    self.write_status()
-                    with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
-                        await asyncio.wait_for(self.stop.wait(), 0.5)
-            finally:
-                drivers.cancel()
+            # team mates may still be waiting to hear us
+            await self._run_mission(loop, pose_pub, scan_pub, lambda: presence.publish(String(data=self.name)), 0.25)
         finally:
             self.stop.set()
             with contextlib.suppress(Exception):
