@@ -114,14 +114,17 @@ class Bridge:
         self.guard = self.node.create_guard_condition(self._drain)
         self.send_lock = threading.Lock()
         self.max_size = max_size
-        self.pubs: dict[int, tuple[object, str]] = {}
+        self.pubs: dict[int, tuple[object, str, object]] = {}  # chan -> (publisher, topic, its C publish_raw)
         self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
+        #: topics this bridge forwards (subscribed) -> number of subscriptions: only a republished
+        #: message of such a topic can come back as an echo, so only those are hashed
+        self.forwarded: dict[str, int] = {}
         self.servers: dict[int, object] = {}
         self.clients: dict[int, tuple[object, type]] = {}
         self.pending: dict[int, list] = {}  # request id -> [threading.Event, (ok, cdr) or None]
         self.ids = itertools.count(1)
         self.echo_lock = threading.Lock()
-        self.echo: dict[str, dict[int, list]] = {}  # topic -> hash(cdr) -> [count, expiry]
+        self.echo: dict[str, dict[int, list]] = {}  # forwarded topic -> hash(cdr) -> [count, expiry]
         self.last_graph: dict | None = None
         self.dropped = 0
         self.node.create_timer(graph_interval, self._report_graph)
@@ -178,9 +181,11 @@ class Bridge:
             self.send(fr.encode_control(graph))
         now = time.monotonic()
         with self.echo_lock:
-            for seen in self.echo.values():
+            for topic, seen in list(self.echo.items()):
                 for key in [k for k, v in seen.items() if v[1] < now]:
                     del seen[key]
+                if not seen:
+                    del self.echo[topic]  # forward() skips every check while no echo is expected
 
     # ------------------------------------------------------------ from the interceptor
     def read_loop(self) -> None:
@@ -213,18 +218,19 @@ class Bridge:
         entry = self.pubs.get(chan)
         if entry is None:
             return
-        publisher, topic = entry
-        seen = self.echo.get(topic)
-        if seen is not None:
+        _, topic, publish_raw = entry
+        if topic in self.forwarded:  # this bridge also takes the topic: our publication comes back
             key = hash(payload)
             with self.echo_lock:
-                slot = seen.setdefault(key, [0, 0.0])
+                slot = self.echo.setdefault(topic, {}).setdefault(key, [0, 0.0])
                 slot[0] += 1
                 slot[1] = time.monotonic() + ECHO_TTL
         give_up = None
         while True:
             try:
-                publisher.publish(payload)
+                # the C publisher itself: rclpy's Publisher.publish only adds a type check and the
+                # handle guard, and publishers are created and destroyed in this thread only
+                publish_raw(payload)
                 return
             except Exception as exc:  # KEEP_ALL: a local reader stayed full for the blocking time
                 now = time.monotonic()
@@ -250,16 +256,11 @@ class Bridge:
             except Exception as exc:
                 self.error(f"cannot advertise {cmd.get('topic')}: {exc}", chan=chan)
                 return
-            with self.echo_lock:
-                self.echo.setdefault(cmd["topic"], {})
-            self.pubs[chan] = (publisher, cmd["topic"])
+            self.pubs[chan] = (publisher, cmd["topic"], publisher.handle.publish_raw)
         else:
             entry = self.pubs.pop(chan, None)
             if entry is not None:
                 self.node.destroy_publisher(entry[0])
-                if not any(t == entry[1] for _, t in self.pubs.values()):
-                    with self.echo_lock:
-                        self.echo.pop(entry[1], None)
 
     def _drain(self) -> None:
         """Guard-condition callback: run queued commands in the executor's thread."""
@@ -288,7 +289,13 @@ class Bridge:
                 # stops reading this bridge while a peer stream is backed up); a KEEP_LAST
                 # publisher still overwrites only its own history, as it would on a direct path.
                 qos.history = HistoryPolicy.KEEP_ALL
-            sub = self.data_node.create_subscription(cls, topic, _unused, qos, raw=True)
+            # marked before the reader exists: every republication it can receive is hashed
+            self.forwarded[topic] = self.forwarded.get(topic, 0) + 1
+            try:
+                sub = self.data_node.create_subscription(cls, topic, _unused, qos, raw=True)
+            except Exception:
+                self._unforward(topic)
+                raise
             self.subs[chan] = (sub, topic)
             self.taker.add(chan, sub)
         elif op == "unsubscribe":
@@ -296,6 +303,7 @@ class Bridge:
             if entry is not None:
                 self.taker.remove(chan)
                 self.data_node.destroy_subscription(entry[0])
+                self._unforward(entry[1])
         elif op == "serve":
             cls = load_type(cmd["type"], "srv")
             self.servers[chan] = self.srv_node.create_service(
@@ -317,9 +325,22 @@ class Bridge:
         else:
             raise ValueError(f"unknown op {op!r}")
 
+    def _unforward(self, topic: str) -> None:
+        left = self.forwarded.get(topic, 0) - 1
+        if left > 0:
+            self.forwarded[topic] = left
+        else:
+            self.forwarded.pop(topic, None)
+
     def forward(self, batch: list) -> None:
         """RawTaker batch -> MESSAGE frames, one write; our own republications are dropped."""
         pack, kind, out = fr.HEAD.pack, fr.MESSAGE, []
+        if not self.echo:  # no republication of a forwarded topic in the last ECHO_TTL s: nothing to check
+            for chan, data in batch:
+                out.append(pack(5 + len(data), kind, chan))
+                out.append(data)
+            self.send(b"".join(out))
+            return
         topics = {chan: entry[1] for chan, entry in list(self.subs.items())}
         for chan, data in batch:
             seen = self.echo.get(topics.get(chan))
