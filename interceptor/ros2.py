@@ -70,7 +70,7 @@ class BridgeLink(asyncio.Protocol):
     """The local socket to the bridge child: frames in, frames out."""
 
     def __init__(self, on_frame: Callable[[int, int, bytes], None], max_size: int,
-                 on_messages: Callable[[int, list[bytes]], None] | None = None) -> None:
+                 on_messages: Callable[[int, int, bytearray], None] | None = None) -> None:
         self._on_frame = on_frame
         self._on_messages = on_messages
         self._decoder = fr.FrameDecoder(max_size=max_size + 64)
@@ -83,21 +83,13 @@ class BridgeLink(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         try:
             self._decoder.feed(data)
-            run_chan, run = 0, []  # consecutive MESSAGE frames of one channel go on as one batch
-            for kind, chan, payload in self._decoder.frames():
+            # consecutive MESSAGE frames of one channel go on as one batch, kept whole (one copy)
+            for kind, chan, count, frames in self._decoder.runs():
                 if kind == fr.MESSAGE and self._on_messages is not None:
-                    if run and chan != run_chan:
-                        self._on_messages(run_chan, run)
-                        run = []
-                    run_chan = chan
-                    run.append(payload)
+                    self._on_messages(chan, count, frames)
                     continue
-                if run:
-                    self._on_messages(run_chan, run)
-                    run = []
-                self._on_frame(kind, chan, payload)
-            if run:
-                self._on_messages(run_chan, run)
+                for payload in fr.payloads(frames):
+                    self._on_frame(kind, chan, payload)
         except fr.FrameError as exc:
             log.error("the DDS bridge sent garbage (%s); restarting it", exc)
             self.transport.abort()
@@ -258,25 +250,21 @@ class Ros2Interceptor(Interceptor):
         self._graph = {"topics": [], "services": []}
 
     # ================================================================ bridge frames
-    def _on_bridge_messages(self, chan: int, payloads: list[bytes]) -> None:
-        """Messages of one outbound topic, as one batch: one TLS write per peer stream."""
+    def _on_bridge_messages(self, chan: int, count: int, frames: bytearray) -> None:
+        """``count`` MESSAGE frames of one outbound topic (checked, whole), as one batch:
+        relabelled DATA in place, one TLS write per peer stream."""
         out = self._out_by_chan.get(chan)
         if out is None:
             return
-        pack, kind = fr.HEAD.pack, fr.DATA
-        parts = []
-        for payload in payloads:
-            parts.append(pack(5 + len(payload), kind, 0))
-            parts.append(payload)
-        data = b"".join(parts)
+        data = fr.retag(frames, fr.DATA, 0)
         if out.history is not None:
-            out.history.extend(parts[i] + parts[i + 1] for i in range(0, len(parts), 2))
+            out.history.extend(fr.encode(fr.DATA, 0, p) for p in fr.payloads(data))
         high = False
         for writer in out.writers.values():
             transport = writer.transport
             backlog = transport.get_write_buffer_size()
             if backlog > MAX_STREAM_BACKLOG:
-                self.dropped += len(payloads)
+                self.dropped += count
                 continue
             transport.write(data)
             high = high or backlog + len(data) > BACKLOG_HIGH
@@ -302,7 +290,7 @@ class Ros2Interceptor(Interceptor):
 
     def _on_bridge_frame(self, kind: int, chan: int, payload: bytes) -> None:
         if kind == fr.MESSAGE:
-            self._on_bridge_messages(chan, [payload])
+            self._on_bridge_messages(chan, 1, bytearray(fr.encode(fr.MESSAGE, chan, payload)))
         elif kind == fr.REQUEST:  # a local client called a proxy of a remote service
             rid, cdr = fr.ID.unpack_from(payload)[0], payload[4:]
             proxy = self._proxy_by_chan.get(chan)
@@ -552,7 +540,6 @@ class Ros2Interceptor(Interceptor):
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
         budget = self._budget(peer)
         rx = self.metrics.bytes.labels("rx")
-        pack = fr.HEAD.pack
         # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
         # an 80 KB image would cost a pause/resume per message. Topic streams read big.
         if getattr(reader, "_limit", None) is not None:
@@ -562,18 +549,20 @@ class Ros2Interceptor(Interceptor):
                 rx.inc(len(data))
                 try:
                     decoder.feed(data)
-                    frames = decoder.frames()
+                    runs = decoder.runs()  # DATA frames, checked and kept whole: relabelled in place
                 except fr.FrameError as exc:
                     raise RemoteProtocolError(str(exc)) from None
+                n = sum(run[2] for run in runs)
                 if budget is not None:
-                    while budget.allowance() < len(frames):
+                    while budget.allowance() < n:
                         budget.throttled += 1
-                        await asyncio.sleep(max(0.001, len(frames) / budget.rate / 4))
-                    budget.spend(len(frames))
+                        await asyncio.sleep(max(0.001, n / budget.rate / 4))
+                    budget.spend(n)
                 if writer.transport.is_closing():
                     break  # cut (revoked, reloaded away): what is still buffered is not republished
-                if frames:
-                    link.send(b"".join(pack(5 + len(p), fr.PUBLISH, chan) + p for _, _, p in frames))
+                if runs:
+                    blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
+                    link.send(blocks[0] if len(blocks) == 1 else b"".join(blocks))
                     # flow control: while the bridge is behind, stop reading this stream (TLS and
                     # TCP then hold the sender back) instead of buffering without bound
                     transport = link.transport

@@ -47,6 +47,39 @@ def test_any_input_parses_or_raises_frame_error(data):
         pass
 
 
+@given(st.lists(st.tuples(st.sampled_from([fr.MESSAGE, fr.DATA, fr.CONTROL]), st.integers(0, 2), st.binary(max_size=40)),
+                max_size=12),
+       st.lists(st.integers(1, 64), max_size=30))
+def test_runs_keep_consecutive_frames_of_one_channel_whole_whatever_the_chunks(frames, cuts):
+    wire = b"".join(fr.encode(*f) for f in frames)
+    decoder, got, pos = fr.FrameDecoder(), [], 0
+    for cut in [*cuts, len(wire)]:
+        decoder.feed(wire[pos : pos + cut])
+        pos += cut
+        for kind, chan, count, block in decoder.runs():
+            payloads = fr.payloads(block)
+            assert len(payloads) == count and bytes(block) == b"".join(fr.encode(kind, chan, p) for p in payloads)
+            got += [(kind, chan, p) for p in payloads]
+        if pos >= len(wire):
+            break
+    assert got == frames and decoder.buffered == 0
+
+
+def test_retag_rewrites_every_header_in_place():
+    block = bytearray(b"".join(fr.encode(fr.MESSAGE, 5, p) for p in (b"a", b"", bytes(70_000))))
+    assert fr.retag(block, fr.DATA, 0) is block
+    decoder = fr.FrameDecoder()
+    decoder.feed(bytes(block))
+    assert decoder.frames() == [(fr.DATA, 0, b"a"), (fr.DATA, 0, b""), (fr.DATA, 0, bytes(70_000))]
+
+
+def test_runs_refuse_oversized_frames_from_the_header():
+    decoder = fr.FrameDecoder(max_size=1000, kinds=frozenset({fr.DATA}))
+    decoder.feed(fr.encode(fr.DATA, 0, b"ok") + fr.HEAD.pack(5 + 1001, fr.DATA, 0))
+    with pytest.raises(fr.FrameError):
+        decoder.runs()
+
+
 def test_stream_target_round_trip_and_strict_decoding():
     t = StreamTarget(kind="topic", name="/scan", type="sensor_msgs/msg/LaserScan", node="/lidar",
                      qos=QoS(reliability="best_effort", durability="transient_local", depth=5))

@@ -21,6 +21,7 @@ from typing import Any, Final
 
 HEAD: Final = struct.Struct("<IBI")
 ID: Final = struct.Struct("<I")
+_LENGTH: Final = struct.Struct("<I")
 #: length counts kind + channel + payload
 _MIN_LENGTH: Final = HEAD.size - 4
 DEFAULT_MAX_SIZE: Final = 16 * 1024 * 1024
@@ -72,46 +73,131 @@ def split_status(payload: bytes) -> tuple[bool, bytes]:
 
 
 class FrameDecoder:
-    """``feed(bytes)`` then iterate ``frames()`` for ``(kind, channel, payload)``."""
+    """``feed(bytes)`` then iterate ``frames()`` for ``(kind, channel, payload)``, or
+    ``runs()`` for runs of consecutive frames of one kind and channel kept whole.
 
-    __slots__ = ("_buffer", "_max_size", "_kinds")
+    A fed chunk is parsed where it is (no copy) unless an incomplete frame is waiting;
+    only the incomplete rest is kept for the next feed. Every header is checked
+    (length against ``max_size``, kind) as soon as its 9 bytes are there, before
+    the body is waited for.
+    """
+
+    __slots__ = ("_buffer", "_chunk", "_max_size", "_kinds")
 
     def __init__(self, *, max_size: int = DEFAULT_MAX_SIZE, kinds: frozenset[int] = KINDS) -> None:
-        self._buffer = bytearray()
+        self._buffer = bytearray()  # the incomplete rest of earlier feeds
+        self._chunk: bytes | bytearray | memoryview = b""  # a fed chunk not parsed yet (when nothing waited)
         self._max_size = max_size
         self._kinds = kinds
 
     def feed(self, data: bytes | bytearray | memoryview) -> None:
-        self._buffer += data
+        if self._chunk:
+            self._buffer += self._chunk
+            self._chunk = b""
+        if self._buffer:
+            self._buffer += data
+        else:
+            self._chunk = data
 
     @property
     def buffered(self) -> int:
-        return len(self._buffer)
+        return len(self._buffer) + len(self._chunk)
+
+    def _source(self) -> memoryview:
+        if self._chunk:
+            src, self._chunk = self._chunk, b""
+            return memoryview(src)
+        return memoryview(self._buffer)
+
+    def _keep(self, src: memoryview, pos: int) -> None:
+        """Keep ``src[pos:]`` (an incomplete frame) for the next feed."""
+        if src.obj is self._buffer:
+            src.release()
+            if pos:
+                del self._buffer[:pos]
+        else:
+            self._buffer = bytearray(src[pos:]) if pos < len(src) else bytearray()
+            src.release()
+
+    def _head(self, src: memoryview, pos: int) -> tuple[int, int, int]:
+        length, kind, channel = HEAD.unpack_from(src, pos)
+        if length < _MIN_LENGTH or length - _MIN_LENGTH > self._max_size:
+            raise FrameError(f"frame of {length} bytes outside 0..{self._max_size}")
+        if kind not in self._kinds:
+            raise FrameError(f"unexpected frame kind {kind}")
+        return length, kind, channel
 
     def frames(self) -> list[tuple[int, int, bytes]]:
         """Every complete frame buffered now; the rest stays for the next feed."""
         out = []
-        buf = self._buffer
-        pos, end = 0, len(buf)
+        src = self._source()
+        pos, end = 0, len(src)
         head = HEAD.size
-        while end - pos >= head:
-            length, kind, channel = HEAD.unpack_from(buf, pos)
-            if length < _MIN_LENGTH or length - _MIN_LENGTH > self._max_size:
-                raise FrameError(f"frame of {length} bytes outside 0..{self._max_size}")
-            if kind not in self._kinds:
-                raise FrameError(f"unexpected frame kind {kind}")
-            stop = pos + 4 + length
-            if stop > end:
-                break
-            out.append((kind, channel, bytes(buf[pos + head : stop])))
-            pos = stop
-        if pos:
-            del buf[:pos]
+        try:
+            while end - pos >= head:
+                length, kind, channel = self._head(src, pos)
+                stop = pos + 4 + length
+                if stop > end:
+                    break
+                out.append((kind, channel, bytes(src[pos + head : stop])))
+                pos = stop
+        finally:
+            self._keep(src, pos)
         return out
+
+    def runs(self) -> list[tuple[int, int, int, bytearray]]:
+        """Every complete frame buffered now as ``(kind, channel, count, frames)``: each run
+        of consecutive frames of one kind and channel, headers included, in one copy (to
+        pass on with :func:`retag`, without splitting the messages apart)."""
+        out: list[tuple[int, int, int, bytearray]] = []
+        src = self._source()
+        pos, end = 0, len(src)
+        head = HEAD.size
+        start, run_kind, run_chan, count = 0, -1, -1, 0
+        try:
+            while end - pos >= head:
+                length, kind, channel = self._head(src, pos)
+                stop = pos + 4 + length
+                if stop > end:
+                    break
+                if (kind, channel) != (run_kind, run_chan):
+                    if count:
+                        out.append((run_kind, run_chan, count, bytearray(src[start:pos])))
+                    start, run_kind, run_chan, count = pos, kind, channel, 0
+                count += 1
+                pos = stop
+            if count:
+                out.append((run_kind, run_chan, count, bytearray(src[start:pos])))
+        finally:
+            self._keep(src, pos)
+        return out
+
+
+def retag(frames: bytearray, kind: int, channel: int) -> bytearray:
+    """Rewrite the kind and channel of every frame in ``frames`` (complete, checked frames,
+    as :meth:`FrameDecoder.runs` gives them) in place; returns ``frames``."""
+    unpack, pack = _LENGTH.unpack_from, HEAD.pack_into
+    pos, end = 0, len(frames)
+    while pos < end:
+        (length,) = unpack(frames, pos)
+        pack(frames, pos, length, kind, channel)
+        pos += 4 + length
+    return frames
+
+
+def payloads(frames: bytes | bytearray) -> list[bytes]:
+    """The payloads of the complete frames in ``frames``."""
+    out, view = [], memoryview(frames)
+    pos, end, head = 0, len(frames), HEAD.size
+    while pos < end:
+        (length,) = _LENGTH.unpack_from(view, pos)
+        out.append(bytes(view[pos + head : pos + 4 + length]))
+        pos += 4 + length
+    return out
 
 
 __all__ = [
     "CALL", "CONTROL", "DATA", "DEFAULT_MAX_SIZE", "FrameDecoder", "FrameError", "HEAD", "ID", "KINDS", "MESSAGE",
     "PUBLISH", "REPLY", "REQUEST", "RESULT", "SRV_REQUEST", "SRV_RESPONSE", "decode_control", "encode",
-    "encode_control", "split_status",
+    "encode_control", "payloads", "retag", "split_status",
 ]
