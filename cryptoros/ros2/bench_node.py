@@ -87,6 +87,7 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
     cpu0 = time.process_time()  # this process's CPU (all threads, incl. rclpy/DDS) over the measured loop
     start = time.monotonic()
     next_at = start
+    retries = 0
     for _ in range(count):
         data = make(False)
         while True:
@@ -96,6 +97,7 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
             except Exception:  # KEEP_ALL: the reader is full; wait and retry the same message
                 if not rclpy.ok():  # shut down by a signal: stop
                     raise SystemExit(1)
+                retries += 1
                 time.sleep(0.0005)
         if period:
             next_at += period
@@ -104,7 +106,8 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
                 time.sleep(delay)
     elapsed = time.monotonic() - start
     cpu = time.process_time() - cpu0
-    print(json.dumps({"sent": count, "send_rate": count / elapsed if elapsed else 0.0, "pub_cpu_s": cpu}), flush=True)
+    print(json.dumps({"sent": count, "send_rate": count / elapsed if elapsed else 0.0, "pub_cpu_s": cpu,
+                      "pub_retries": retries}), flush=True)
     time.sleep(3.0)  # keep the writer alive while reliable delivery finishes
 
 
@@ -170,6 +173,7 @@ def _subscriber(node, kind: str, count: int, idle: float) -> None:
         "sub_cpu_s": cpu,
         # longest silence between two arrivals: a reliable DDS repair (heartbeat, NACK, resend) shows here
         "max_gap_ms": max(((b[0] - a[0]) / 1e6 for a, b in zip(got, got[1:])), default=0.0),
+        "gaps_over_100ms": sum(1 for a, b in zip(got, got[1:]) if b[0] - a[0] > 100_000_000),
     }), flush=True)
 
 
