@@ -24,6 +24,7 @@ judging are the ROS 1 demo's (:mod:`cryptoros.demo.run`).
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import subprocess
@@ -54,8 +55,9 @@ def policy(n: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+@functools.cache
 def ros2_python() -> Path:
-    """The ROS 2 venv's python, checked to import what the robots need (one clear error)."""
+    """The ROS 2 venv's python, checked once to import what the robots need (one clear error)."""
     from interceptor.config import default_ros2_python
 
     python = default_ros2_python()
