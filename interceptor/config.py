@@ -43,12 +43,15 @@ Example::
     peers = ["127.0.0.3:11400"]       # interceptors of robots to forward to
     python = ".ros2-venv/bin/python"  # optional: env CRYPTOROS_ROS2_PYTHON, else <repo>/.ros2-venv
     depth = 10                        # history depth of bridged topics (the graph does not report it)
+    local = ["/tf", "/robot_a/*"]     # topics/services that never leave this robot (fnmatch
+                                      # patterns): not offered, not logged as denials
 
 Relative paths are relative to the configuration file's directory.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import ipaddress
 import os
 import tomllib
@@ -138,6 +141,11 @@ class Ros2Settings:
     node_name: str = "cryptoros_bridge"
     graph_interval: float = 0.5
     max_message_size: int = 16 * 1024 * 1024
+    #: fnmatch patterns of topic and service names that stay on this robot's domain
+    local: tuple[str, ...] = ()
+
+    def is_local(self, name: str) -> bool:
+        return any(fnmatch.fnmatchcase(name, pattern) for pattern in self.local)
 
 
 def default_ros2_python() -> Path:
@@ -340,6 +348,10 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
     depth = _typed(raw.get("depth", 10), int, "[ros2] depth")
     if depth > 1000:
         raise ConfigError("[ros2] depth must be at most 1000")
+    local = raw.get("local", [])
+    if not isinstance(local, list) or len(local) > 256 or not all(
+            isinstance(p, str) and p.startswith("/") and len(p) <= 256 for p in local):
+        raise ConfigError("[ros2] local must be a list of at most 256 name patterns, each starting with /")
     return Ros2Settings(
         domain_id=domain,
         python=python,
@@ -348,6 +360,7 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
         node_name=node_name,
         graph_interval=_typed(raw.get("graph_interval", 0.5), float, "[ros2] graph_interval"),
         max_message_size=_typed(raw.get("max_message_size", 16 * 1024 * 1024), int, "[ros2] max_message_size"),
+        local=tuple(local),
     )
 
 

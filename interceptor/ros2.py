@@ -348,6 +348,8 @@ class Ros2Interceptor(Interceptor):
             name, types = entry["name"], entry["types"]
             if not sources or name in INFRA_TOPICS or any(t.startswith(INFRA_SERVICE_TYPES) for t in types):
                 continue
+            if self.cfg.ros2.is_local(name):  # [ros2] local: stays on this robot, by the operator's choice
+                continue
             action = "publish" if kind == "topic" else "serve"
             try:
                 validate_graph_name(name)

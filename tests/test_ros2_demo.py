@@ -61,6 +61,9 @@ def test_ros2_demo_plain_attacks_succeed_protected_blocked_and_mission_completes
     assert protected["denials"].get("peer_did_not_return_a_certificate", 0) >= 1
     refused = [e for lines in protected["deny_log"].values() for e in lines]
     assert any("/vicon_bridge may not publish /r0/pose" in e for e in refused), refused
+    # a robot's own /rN/* topics are [ros2] local: kept on its domain, not logged as denials
+    assert not any("/r0_base may not publish" in e or "/r1 may not publish /r1/" in e for e in refused), refused
+    assert protected["denials"].get("not_granted") == 1, protected["denials"]
     eaves = protected["attack_reports"]["eavesdrop"]
     assert eaves["positions_read"] == {} and eaves["map_cells_read"] == 0
     assert all(d["outcome"] != "accepted" for d in eaves["doors"])

@@ -118,8 +118,21 @@ def test_ros2_config_section(tmp_path):
     assert cfg.ros2.domain_id == 0 and cfg.ros2.python == python and str(cfg.ros2.peers[0]) == "127.0.0.3:11400"
     for bad in ({"python": "python"}, {"domain_id": 300, "python": "python"}, {"domain_id": 1, "python": "nope"},
                 {"domain_id": 1, "python": "python", "colour": "red"},
-                {"domain_id": 1, "python": "python", "peers": ["x"]}):
+                {"domain_id": 1, "python": "python", "peers": ["x"]},
+                {"domain_id": 1, "python": "python", "local": "/tf"},
+                {"domain_id": 1, "python": "python", "local": ["tf"]},
+                {"domain_id": 1, "python": "python", "local": [3]}):
         with pytest.raises(ConfigError):
             _config(tmp_path, bad)
     with pytest.raises(ConfigError):
         _config(tmp_path, {"domain_id": 1, "python": "python"}, roles=("master",))
+
+
+def test_ros2_local_patterns_keep_names_on_the_robot(tmp_path):
+    for name in ("python", "ca", "c", "k"):
+        (tmp_path / name).touch()
+    settings = _config(tmp_path, {"domain_id": 1, "python": "python", "local": ["/tf", "/r0/*"]}).ros2
+    assert settings.local == ("/tf", "/r0/*")
+    assert settings.is_local("/tf") and settings.is_local("/r0/pose") and settings.is_local("/r0/scan")
+    assert not settings.is_local("/tf_static") and not settings.is_local("/team/map") and not settings.is_local("/r01")
+    assert not _config(tmp_path, {"domain_id": 1, "python": "python"}).ros2.is_local("/tf")

@@ -161,7 +161,7 @@ def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str | None,
     authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float] | None = None,
     roles: Sequence[str] = ("node",), extra: str = "", poll_interval: float | None = None,
-    ros2: tuple[int, Sequence[str], Path | None] | None = None,
+    ros2: tuple[int, Sequence[str], Path | None, Sequence[str]] | None = None,
 ) -> str:
     lines = [
         f'manager = "{name}"',
@@ -187,8 +187,9 @@ def _interceptor_config(
         if upstream:
             lines.append(f'upstream = "{upstream}"')
     if ros2 is not None:
-        domain, peers, python = ros2
+        domain, peers, python, local = ros2
         lines += ["[ros2]", f"domain_id = {domain}", "peers = [" + ", ".join(f'"{p}"' for p in peers) + "]",
+                  "local = [" + ", ".join(f'"{p}"' for p in local) + "]",
                   "graph_interval = 0.25", *([f'python = "{python}"'] if python else [])]
     if limits:
         lines.append("[limits]")
@@ -215,6 +216,7 @@ def bench_network(
     poll_interval: float | None = None,
     ros2: dict[str, int] | None = None,
     ros2_python: Path | None = None,
+    ros2_local: dict[str, Sequence[str]] | None = None,
 ) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the three interceptors.
 
@@ -237,8 +239,9 @@ def bench_network(
 
     ``master="none"`` builds a network without ROS 1 (no master, no ``master`` host);
     ``ros2`` maps host names to ``ROS_DOMAIN_ID`` s: those hosts get the ``ros2`` role,
-    each with every other ``ros2`` host as a peer, and ``ros2_python`` as the bridge's
-    python (default: the interceptor's, ``$CRYPTOROS_ROS2_PYTHON`` or ``.ros2-venv``).
+    each with every other ``ros2`` host as a peer, ``ros2_python`` as the bridge's
+    python (default: the interceptor's, ``$CRYPTOROS_ROS2_PYTHON`` or ``.ros2-venv``) and
+    ``ros2_local`` a host's ``[ros2] local`` patterns (names that never leave it).
     """
     rosmaster = None
     if master == "rosmaster":
@@ -326,7 +329,7 @@ def bench_network(
                 upstream=ros_uri if "master" in host_roles else None,
                 metrics_port=metrics_ports[name], limits=limits,
                 roles=host_roles, extra=(extra or {}).get(name, ""), poll_interval=poll_interval,
-                ros2=(ros2[name], peers, ros2_python) if name in ros2 else None,
+                ros2=(ros2[name], peers, ros2_python, (ros2_local or {}).get(name, ())) if name in ros2 else None,
             ))
             net.hosts[name] = Host(name, address, public, local_master, config, metrics_port=metrics_ports[name],
                                    roles=host_roles)

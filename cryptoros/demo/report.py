@@ -200,8 +200,8 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
         lines += ["## What the interceptors refused (distinct DENY log lines)", ""]
         for name, entries in denied.items():
             lines += [f"- **{name}**"] + [f"  - `{e}`" for e in entries]
-        lines += ["", "A robot's own pose, scan and command topics have no grant to leave it: each robot's "
-                  "interceptor logs them once and keeps them on the robot's domain.", ""]
+        lines += ["", "A robot's own `/rN/*` topics are `[ros2] local` on its interceptor: they stay on its "
+                  "domain and are not listed here.", ""]
     for title, path in figs:
         lines += [f"## {title}", "", f"![{title}]({path})", ""]
     report = out / "report.md"

@@ -42,8 +42,9 @@ READY_CHECK = "import rclpy, std_msgs.msg, geometry_msgs.msg, sensor_msgs.msg, c
 
 
 def policy(n: int) -> str:
-    """Each robot's manager may publish and subscribe the team topics, nothing else:
-    a robot's own pose, scan and command topics never leave its domain."""
+    """Each robot's manager may publish and subscribe the team topics, nothing else.
+    A robot's own pose, scan and command topics (``/rN/*``) are also ``[ros2] local`` on
+    its interceptor: they stay on its domain without a denial for each of them."""
     lines = ["version: 1", "managers:"]
     for i in range(n):
         r = f"r{i}"
@@ -126,7 +127,7 @@ class Ros2Mission(Mission):
         hosts = {r: robot_addr(i) for i, r in enumerate(self.team)}
         with bench_network(self.dir / "net", policy(len(self.team)), hosts=hosts, master="none", metrics=True,
                            new_session=True, ros2={r: self.robot_domain(r) for r in self.team},
-                           ros2_python=self.python) as net:
+                           ros2_python=self.python, ros2_local={r: [f"/{r}/*"] for r in self.team}) as net:
             ports = [(h.address, h.public_port) for h in net.hosts.values()]
             ports += [("127.0.0.1", h.metrics_port) for h in net.hosts.values() if h.metrics_port]
             yield Graph(robot_master={}, robot_ip={}, stranger_master="", insider_master={}, insider_ip={},
