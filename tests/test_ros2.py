@@ -58,6 +58,26 @@ def test_reliable_burst_arrives_without_loss_through_the_interceptors(network):
     assert seqs == list(range(seqs[0], 2100)), f"{2100 - seqs[0] - len(seqs)} message(s) lost or reordered"
 
 
+def test_a_stuck_subscriber_on_robot_b_does_not_stall_robot_bs_other_topics(network):
+    """A KEEP_ALL listener on robot B stops taking messages: its reader fills, then bridge
+    B's publisher. The bridge waits for it once (PUBLISH_PATIENCE), then drops that topic's
+    messages (reported) and only probes it once a second, so the other topics arriving on
+    robot B keep flowing instead of waiting behind every stuck message."""
+    with network.node("robot_b", "listener.py", "string", "/chatter", "60", "--keep-all", "--stall-after", "1") as stuck, \
+            network.node("robot_b", "listener.py", "twist", "/twist", "60") as flow:
+        stuck.until("READY", 20)
+        flow.until("READY", 20)
+        with network.node("robot_a", "talker.py", "twist", "/twist", "100000", "20"):
+            assert collect(flow, 10, 30), "/twist did not flow"
+            with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "20", "--keep-all",
+                              "--burst-after", "20"):
+                stuck.until("STALLED", 30)
+                lines = flow.until(None, 12.0)  # the burst fills the stuck reader within about a second
+    received = got(lines)
+    assert len(received) >= 12 * 20 * 0.5, f"/twist got {len(received)} messages in 12 s at 20 Hz"
+    assert "not taking messages" in network.robots["robot_b"].logs()
+
+
 def test_topic_not_granted_to_the_sender_never_leaves_robot_a(network):
     with network.node("robot_b", "listener.py", "string", "/secret", "8") as sub:
         sub.until("READY", 20)

@@ -52,7 +52,11 @@ _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$
 ECHO_TTL = 5.0
 CALL_TIMEOUT = 30.0
 #: how long a republished message may wait for a full local reader before it is dropped
-PUBLISH_PATIENCE = 1.0
+PUBLISH_PATIENCE = 3.0
+#: once a topic's local reader has been full for PUBLISH_PATIENCE, its messages are dropped
+#: at once and the reader is probed (one publish attempt) only this often, so the other
+#: topics arriving through this bridge do not wait behind every message of a stuck one
+STALLED_PROBE_INTERVAL = 1.0
 SERVICE_THREADS = 8
 
 
@@ -127,6 +131,7 @@ class Bridge:
         self.echo: dict[str, dict[int, list]] = {}  # forwarded topic -> hash(cdr) -> [count, expiry]
         self.last_graph: dict | None = None
         self.dropped = 0
+        self.stalled: dict[int, float] = {}  # chan -> when to probe its full local reader again
         self.node.create_timer(graph_interval, self._report_graph)
 
     # ------------------------------------------------------------ to the interceptor
@@ -225,22 +230,33 @@ class Bridge:
                 slot = self.echo.setdefault(topic, {}).setdefault(key, [0, 0.0])
                 slot[0] += 1
                 slot[1] = time.monotonic() + ECHO_TTL
-        give_up = None
+        now = time.monotonic()
+        probe_at = self.stalled.get(chan)
+        if probe_at is not None and now < probe_at:
+            self._drop(chan, topic, "stalled")
+            return
+        # a stalled topic gets one attempt (it blocks for the DDS max_blocking_time), others the patience
+        give_up = now if probe_at is not None else now + PUBLISH_PATIENCE
         while True:
             try:
                 # the C publisher itself: rclpy's Publisher.publish only adds a type check and the
                 # handle guard, and publishers are created and destroyed in this thread only
                 publish_raw(payload)
+                if probe_at is not None:
+                    del self.stalled[chan]
                 return
             except Exception as exc:  # KEEP_ALL: a local reader stayed full for the blocking time
                 now = time.monotonic()
-                give_up = give_up or now + PUBLISH_PATIENCE
                 if now >= give_up:
-                    self.dropped += 1
-                    if self.dropped in (1, 10, 100) or self.dropped % 1000 == 0:
-                        self.error(f"{topic}: a local subscriber is not taking messages ({exc}); "
-                                   f"{self.dropped} message(s) dropped so far", chan=chan)
+                    self.stalled[chan] = now + STALLED_PROBE_INTERVAL
+                    self._drop(chan, topic, str(exc))
                     return
+
+    def _drop(self, chan: int, topic: str, why: str) -> None:
+        self.dropped += 1
+        if self.dropped in (1, 10, 100) or self.dropped % 1000 == 0:
+            self.error(f"{topic}: a local subscriber is not taking messages ({why}); "
+                       f"{self.dropped} message(s) dropped so far", chan=chan)
 
     def _pub_control(self, cmd: dict) -> None:
         chan = int(cmd["chan"])
@@ -259,6 +275,7 @@ class Bridge:
             self.pubs[chan] = (publisher, cmd["topic"], publisher.handle.publish_raw)
         else:
             entry = self.pubs.pop(chan, None)
+            self.stalled.pop(chan, None)
             if entry is not None:
                 self.node.destroy_publisher(entry[0])
 

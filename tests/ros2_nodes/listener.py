@@ -21,6 +21,8 @@ parser.add_argument("seconds", type=float)
 parser.add_argument("--latched", action="store_true")
 parser.add_argument("--node", default="listener")
 parser.add_argument("--keep-all", action="store_true", help="KEEP_ALL history (the publisher waits for this reader)")
+parser.add_argument("--stall-after", type=int, default=None,
+                    help="after this many messages, stop taking any (a stuck subscriber: its reader fills up)")
 args = parser.parse_args()
 
 rclpy.init()
@@ -33,7 +35,12 @@ qos = QoSProfile(
 )
 
 
+received = 0
+
+
 def on_message(msg) -> None:
+    global received
+    received += 1
     print(f"{'GOT' if intact(args.kind, msg) else 'BAD'} {seq_of(args.kind, msg)}", flush=True)
 
 
@@ -41,5 +48,9 @@ node.create_subscription(TYPES[args.kind], args.topic, on_message, qos)
 print("READY", flush=True)
 end = time.monotonic() + args.seconds
 while time.monotonic() < end:
+    if args.stall_after is not None and received >= args.stall_after:
+        print("STALLED", flush=True)
+        time.sleep(max(0.0, end - time.monotonic()))
+        break
     rclpy.spin_once(node, timeout_sec=0.05)
 print("END", flush=True)
