@@ -218,7 +218,10 @@ def _load() -> str:
               help="[ros2] depth of the interceptors (history of the bridge's DDS endpoints).")
 @click.option("--python", "python", default=None, help="The ROS 2 venv's python (default: .ros2-venv).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
-def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: str | None, as_json: bool) -> None:
+@click.option("--keep", "keep", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Work in this directory and keep it (PKI, registry, the interceptors' logs) to look into a run.")
+def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: str | None, as_json: bool,
+         keep: Path | None) -> None:
     """rclpy to rclpy direct against rclpy through the interceptor pair, in one run."""
     py = Path(python) if python else default_ros2_python()
     if not py.exists():
@@ -232,7 +235,10 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: st
         ("sensor_msgs/Image 80 KB, max rate", "image", n_img, 0.0),
     ]
     results: dict[str, Any] = {}
-    with tempfile.TemporaryDirectory(prefix="cryptoros-bench-ros2-") as tmp:
+    if keep is not None:
+        keep.mkdir(parents=True, exist_ok=True)
+    with (contextlib.nullcontext(str(keep)) if keep is not None
+          else tempfile.TemporaryDirectory(prefix="cryptoros-bench-ros2-")) as tmp:
         # Both paths of a row run back to back (direct first), so a change of load on the
         # shared machine hits both alike; the idle interceptors run during the direct rows too.
         with interceptor_pair(Path(tmp), py, domains[1:], depth) as pids:
