@@ -509,7 +509,9 @@ class Registry:
 
 
 def new_jti() -> str:
-    return secrets.token_urlsafe(16)
+    """128 random bits in hex: never starts with '-', so ``cryptoros-authz revoke-token JTI``
+    cannot mistake a token id for an option (base64url ids did, one in 64)."""
+    return secrets.token_hex(16)
 
 
 # ---------------------------------------------------------------------- policy parsing

@@ -302,3 +302,11 @@ def test_audit_log_keeps_issues_and_denials_in_order(reg):
     assert [(r.event, r.reason) for r in rows] == [("denied", "unknown_certificate"), ("issued", "")]
     assert rows[1].jti == jti and rows[0].at <= rows[1].at <= datetime.now(UTC) + timedelta(seconds=1)
     assert [r.event for r in reg.audit(event="denied")] == ["denied"]
+
+
+def test_token_ids_are_128_bit_hex_so_the_cli_never_reads_one_as_an_option():
+    from authz_server.registry import new_jti
+
+    ids = [new_jti() for _ in range(5000)]
+    assert len(set(ids)) == len(ids)
+    assert all(len(j) == 32 and int(j, 16) >= 0 and not j.startswith("-") for j in ids)
