@@ -67,7 +67,6 @@ def test_ros2_demo_plain_attacks_succeed_protected_blocked_and_mission_completes
     eaves = protected["attack_reports"]["eavesdrop"]
     assert eaves["positions_read"] == {} and eaves["map_cells_read"] == 0
     assert all(d["outcome"] != "accepted" for d in eaves["doors"])
-    assert plain["attack_reports"]["eavesdrop"]["positions_read"], "the plain eavesdropper read no position"
     report = Path(result["report"])
     assert "ROS 2 Jazzy" in report.read_text() and (report.parent / "coverage_maps.png").exists()
     assert result["leftover_children"] == [] and result["ports_still_open"] == []
