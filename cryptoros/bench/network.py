@@ -84,6 +84,16 @@ def stop(proc: subprocess.Popen | None, timeout: float = 5.0) -> None:
             proc.wait(timeout=timeout)
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """utime + stime of a process (all its threads) from /proc/<pid>/stat; None if gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()  # after "pid (comm)": state is fields[0], utime fields[11]
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def clean_env(**extra: str) -> dict[str, str]:
     """The environment without ROS_* and PYTHONPATH, plus ``extra``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ROS_") and not k.startswith("CRYPTOROS_AUTHZ")}
@@ -161,7 +171,7 @@ def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str | None,
     authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float] | None = None,
     roles: Sequence[str] = ("node",), extra: str = "", poll_interval: float | None = None,
-    ros2: tuple[int, Sequence[str], Path | None, Sequence[str]] | None = None,
+    ros2: tuple[int, Sequence[str], Path | None, Sequence[str], int] | None = None,
 ) -> str:
     lines = [
         f'manager = "{name}"',
@@ -187,9 +197,9 @@ def _interceptor_config(
         if upstream:
             lines.append(f'upstream = "{upstream}"')
     if ros2 is not None:
-        domain, peers, python, local = ros2
+        domain, peers, python, local, depth = ros2
         lines += ["[ros2]", f"domain_id = {domain}", "peers = [" + ", ".join(f'"{p}"' for p in peers) + "]",
-                  "local = [" + ", ".join(f'"{p}"' for p in local) + "]",
+                  "local = [" + ", ".join(f'"{p}"' for p in local) + "]", f"depth = {depth}",
                   "graph_interval = 0.25", *([f'python = "{python}"'] if python else [])]
     if limits:
         lines.append("[limits]")
@@ -217,6 +227,7 @@ def bench_network(
     ros2: dict[str, int] | None = None,
     ros2_python: Path | None = None,
     ros2_local: dict[str, Sequence[str]] | None = None,
+    ros2_depth: int = 10,
 ) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the three interceptors.
 
@@ -241,7 +252,8 @@ def bench_network(
     ``ros2`` maps host names to ``ROS_DOMAIN_ID`` s: those hosts get the ``ros2`` role,
     each with every other ``ros2`` host as a peer, ``ros2_python`` as the bridge's
     python (default: the interceptor's, ``$CRYPTOROS_ROS2_PYTHON`` or ``.ros2-venv``) and
-    ``ros2_local`` a host's ``[ros2] local`` patterns (names that never leave it).
+    ``ros2_local`` a host's ``[ros2] local`` patterns (names that never leave it), and
+    ``ros2_depth`` their ``[ros2] depth``.
     """
     rosmaster = None
     if master == "rosmaster":
@@ -329,7 +341,7 @@ def bench_network(
                 upstream=ros_uri if "master" in host_roles else None,
                 metrics_port=metrics_ports[name], limits=limits,
                 roles=host_roles, extra=(extra or {}).get(name, ""), poll_interval=poll_interval,
-                ros2=(ros2[name], peers, ros2_python, (ros2_local or {}).get(name, ())) if name in ros2 else None,
+                ros2=(ros2[name], peers, ros2_python, (ros2_local or {}).get(name, ()), ros2_depth) if name in ros2 else None,
             ))
             net.hosts[name] = Host(name, address, public, local_master, config, metrics_port=metrics_ports[name],
                                    roles=host_roles)
@@ -345,7 +357,8 @@ def bench_network(
             procs.append(host.proc)
         for name in started:
             host = net.hosts[name]
-            wait_port(host.address, host.public_port, 30, host.proc, f"interceptor {name}")
+            # a ros2 interceptor listens once its DDS bridge is up (BRIDGE_START_TIMEOUT, 30 s)
+            wait_port(host.address, host.public_port, 40, host.proc, f"interceptor {name}")
             if "node" in host.roles:
                 wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {name}")
         yield net
@@ -354,5 +367,5 @@ def bench_network(
             stop(proc, timeout=10)
 
 
-__all__ = ["HOSTS", "Host", "Network", "NetworkError", "bench_network", "clean_env", "free_port", "stop", "tool",
-           "wait_port"]
+__all__ = ["HOSTS", "Host", "Network", "NetworkError", "bench_network", "clean_env", "cpu_seconds", "free_port", "stop",
+           "tool", "wait_port"]

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import click
 
-from cryptoros.bench.network import SIGNING_PASSPHRASE, NetworkError, clean_env, free_port, stop, tool, wait_port
+from cryptoros.bench.network import NetworkError, bench_network, clean_env, cpu_seconds, stop
 from interceptor.config import default_ros2_python
 
 NODE = Path(__file__).resolve().parent.parent / "ros2" / "bench_node.py"
@@ -56,19 +56,8 @@ def _ros_env(domain: int) -> dict[str, str]:
     return env
 
 
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 #: the processes whose CPU is accounted per row (pub and sub report their own)
 PROCESSES = ("publisher", "interceptor_a", "bridge_a", "interceptor_b", "bridge_b", "subscriber")
-
-
-def cpu_seconds(pid: int) -> float | None:
-    """utime + stime of a process (all its threads) from /proc/<pid>/stat; None if gone."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    fields = stat.rsplit(")", 1)[1].split()  # after "pid (comm)": state is fields[0], utime fields[11]
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
 def children(pid: int) -> list[int]:
@@ -116,51 +105,11 @@ def cpu_per_message(result: dict, before: dict, after: dict, bridged: bool) -> d
 
 @contextlib.contextmanager
 def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], depth: int = 10) -> Iterator[dict[str, int]]:
-    from certs.pki import PKI
-
-    pki = PKI.init(workdir / "pki", unsafe_no_passphrase=True)
-    fingerprints = {name: pki.issue(name, kind="interceptor", sans=(f"IP:{addr}",), unsafe_no_passphrase=True)
-                    for name, addr in HOSTS.items()}
-    server = pki.issue("authz", kind="server", sans=("IP:127.0.0.1", "DNS:localhost"), unsafe_no_passphrase=True)
-    db = f"sqlite:///{workdir / 'registry.db'}"
-    (workdir / "policy.yaml").write_text(POLICY.format(**{n: i.fingerprint_sha256 for n, i in fingerprints.items()}))
-    authz = tool("cryptoros-authz")
-    result = subprocess.run([authz, "--db", db, "import", str(workdir / "policy.yaml")], capture_output=True,
-                            text=True, timeout=60, env=clean_env())
-    if result.returncode != 0:
-        raise NetworkError(f"cryptoros-authz import failed: {result.stderr.strip()}")
-    procs: list[subprocess.Popen] = []
-    try:
-        port = free_port()
-        (workdir / "signing.pass").write_text(SIGNING_PASSPHRASE + "\n")
-        daemon = subprocess.Popen(
-            [authz, "--db", db, "serve", "--port", str(port), "--ca", str(pki.ca_cert_path), "--cert",
-             str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
-             "--key-passphrase-file", str(workdir / "signing.pass"), "--log-level", "warning"],
-            stdout=(workdir / "authz.log").open("w"), stderr=subprocess.STDOUT, env=clean_env())
-        procs.append(daemon)
-        wait_port("127.0.0.1", port, 30, daemon, "cryptoros-authz")
-        publics = {name: free_port(addr) for name, addr in HOSTS.items()}
-        for (name, addr), domain in zip(HOSTS.items(), domains, strict=True):
-            peer = "robot_b" if name == "robot_a" else "robot_a"
-            config = workdir / f"{name}.toml"
-            config.write_text("\n".join([
-                f'manager = "{name}"', 'roles = ["ros2"]',
-                "[tls]", f'ca = "{pki.ca_cert_path}"', f'cert = "{fingerprints[name].cert_path}"',
-                f'key = "{fingerprints[name].key_path}"', f'crl = "{pki.crl_path}"',
-                "[authz]", f'url = "https://127.0.0.1:{port}"',
-                "[listen]", f'public = "{addr}:{publics[name]}"',
-                "[ros2]", f"domain_id = {domain}", f'peers = ["{HOSTS[peer]}:{publics[peer]}"]', f'python = "{python}"',
-                "graph_interval = 0.25", f"depth = {depth}",
-            ]) + "\n")
-            proc = subprocess.Popen([tool("cryptoros-interceptor"), "--config", str(config), "--log-level", "warning"],
-                                    stdout=(workdir / f"{name}.log").open("w"), stderr=subprocess.STDOUT, env=clean_env())
-            procs.append(proc)
-            wait_port(addr, publics[name], 40, proc, f"interceptor {name}")
-        yield {"interceptor_a": procs[1].pid, "interceptor_b": procs[2].pid}
-    finally:
-        for proc in reversed(procs):
-            stop(proc)
+    """Robot A's and robot B's interceptors (``ros2`` role, peers of each other) with their
+    PKI, registry and authorization server; yields the two interceptors' pids."""
+    with bench_network(workdir, POLICY, hosts=HOSTS, master="none", ros2=dict(zip(HOSTS, domains, strict=True)),
+                       ros2_python=python, ros2_depth=depth) as net:
+        yield {"interceptor_a": net.hosts["robot_a"].proc.pid, "interceptor_b": net.hosts["robot_b"].proc.pid}
 
 
 def _run_pair(python: Path, kind: str, count: int, hz: float, pub_domain: int, sub_domain: int,

@@ -135,11 +135,9 @@ def _env(**extra: str) -> dict[str, str]:
 
 
 def _cpu_seconds(pid: int) -> float:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
+    from cryptoros.bench.network import cpu_seconds
+
+    return cpu_seconds(pid) or 0.0
 
 
 def _rss_mb(pid: int) -> float:
