@@ -37,6 +37,14 @@ Example::
     max_connections_per_peer = 64
     max_new_connections_per_second = 50.0
     max_messages_per_second = 2000.0  # per peer, over TCPROS; absent = unlimited
+    max_message_size = 16777216       # bytes per TCPROS message from a peer (default 16 MiB)
+    preamble_timeout = 5.0            # seconds from accept until the peer's preamble is verified
+    max_pending_per_source = 16       # unauthenticated streams per source address
+    max_pending_per_certificate = 8   # ... and per client certificate
+    max_relays_per_peer = 512         # relay listeners toward one peer interceptor
+
+    [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
+    "/camera/points" = 67108864
 
     [ros2]                            # the ros2 role (roles = ["ros2"]): see docs/ros2.md
     domain_id = 11                    # this robot's localhost-only DDS domain
@@ -130,6 +138,31 @@ class Limits:
     #: Messages per second one peer may send into this host over TCPROS (all its
     #: streams together); absent = no limit. Excess is throttled, not parsed or dropped.
     max_messages_per_second: float | None = None
+    #: Largest TCPROS message (topic message, service request or response) a peer may
+    #: send into this host; a larger declared frame cuts the stream before a byte of
+    #: it is relayed. Per-topic exceptions: ``[limits.message_size]``.
+    max_message_size: int = 16 << 20
+    #: fnmatch pattern of a topic or service -> its own max_message_size (first match wins).
+    message_size: tuple[tuple[str, int], ...] = ()
+    #: Overall deadline, from accept, for a peer's preamble (after the TLS handshake).
+    preamble_timeout: float = 5.0
+    #: Streams not yet authenticated (TLS done, preamble not verified) per source
+    #: address and per client certificate.
+    max_pending_per_source: int = 16
+    max_pending_per_certificate: int = 8
+    #: Relay listeners toward one peer interceptor (its canonical endpoints handed to
+    #: local processes or to the master); more is refused with ``relay_limit``.
+    max_relays_per_peer: int = 512
+    #: Calls in one ``system.multicall``; fields in one TCPROS connection header.
+    max_multicall: int = 256
+    max_header_fields: int = 32
+
+    def message_size_for(self, name: str) -> int:
+        """The max_message_size of one topic or service."""
+        for pattern, size in self.message_size:
+            if fnmatch.fnmatchcase(name, pattern):
+                return size
+        return self.max_message_size
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -304,9 +337,20 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
                 "set unsafe_plaintext_upstream = true to allow it"
             )
 
-    limits_raw = _check_keys(top.get("limits", {}), "limits")
+    limits_raw = dict(_check_keys(top.get("limits", {}), "limits"))
+    sizes_raw = limits_raw.pop("message_size", {})
+    if not isinstance(sizes_raw, dict) or len(sizes_raw) > 256:
+        raise ConfigError("[limits.message_size] must be a table of at most 256 \"/topic/pattern\" = bytes")
+    sizes = []
+    for pattern, size in sizes_raw.items():
+        if not pattern.startswith("/") or len(pattern) > 256:
+            raise ConfigError(f"[limits.message_size] {pattern!r}: a topic or service pattern starts with /")
+        sizes.append((pattern, _typed(size, int, f"[limits.message_size] {pattern!r}")))
     limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
-    limits = Limits(**{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()})
+    limits = Limits(
+        message_size=tuple(sizes),
+        **{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()},
+    )
 
     ros2 = None
     if "ros2" in top and "ros2" not in roles:

@@ -20,6 +20,8 @@ import asyncio
 import time
 from collections.abc import Callable
 
+from cryptoros.errors import PolicyDenied
+
 DEFAULT_BUFFER_SIZE = 256 * 1024
 #: Write-buffer limits of each transport: pause the source above HIGH, resume below LOW.
 HIGH_WATER = 1024 * 1024
@@ -27,20 +29,28 @@ LOW_WATER = 256 * 1024
 
 
 class FrameCounter:
-    """Finds TCPROS frame starts (``u32 LE length`` + body) in a byte stream without
-    copying bodies: only the 4-byte length prefixes are looked at."""
+    """Finds TCPROS frame starts in a byte stream without copying bodies: only the
+    length prefixes are looked at. ``u32 LE length`` + body by default; with
+    ``service_response=True``, ``u8 ok`` + ``u32 LE length`` + body (a service
+    server's replies). A declared length over ``max_size`` (None: unbounded) raises
+    :class:`~cryptoros.errors.PolicyDenied` ``message_too_large`` before a byte of
+    that frame is let through; so does an ``ok`` byte other than 0 or 1."""
 
-    __slots__ = ("_need", "_prefix")
+    __slots__ = ("_need", "_prefix", "_prefix_len", "max_size", "what")
 
-    def __init__(self) -> None:
+    def __init__(self, *, max_size: int | None = None, service_response: bool = False, what: str = "stream") -> None:
         self._need = 0  # body bytes still to come of the current frame
         self._prefix = b""  # a length prefix split across reads
+        self._prefix_len = 5 if service_response else 4
+        self.max_size = max_size
+        self.what = what
 
     def take(self, data: bytes | bytearray | memoryview, allowed: int) -> tuple[int, int]:
         """Walk ``data`` but start at most ``allowed`` new frames: returns the byte
         offset where the walk stopped (everything before may be forwarded) and how
         many frames were started. A started frame's body is always let through."""
         started, pos, n = 0, 0, len(data)
+        plen = self._prefix_len
         while pos < n:
             if self._need:
                 step = min(self._need, n - pos)
@@ -50,14 +60,31 @@ class FrameCounter:
             if not self._prefix:
                 if started >= allowed:
                     break
+                if n - pos >= plen:  # the common case: a whole prefix in this read
+                    self._need = self._check(bytes(data[pos : pos + plen]))
+                    started += 1
+                    pos += plen
+                    continue
+            chunk = bytes(data[pos : pos + plen - len(self._prefix)])
+            if not self._prefix:
                 started += 1
-            chunk = bytes(data[pos : pos + 4 - len(self._prefix)])
             pos += len(chunk)
             self._prefix += chunk
-            if len(self._prefix) == 4:
-                self._need = int.from_bytes(self._prefix, "little")
+            if len(self._prefix) == plen:
+                self._need = self._check(self._prefix)
                 self._prefix = b""
         return pos, started
+
+    def _check(self, prefix: bytes) -> int:
+        if self._prefix_len == 5 and prefix[0] > 1:
+            raise PolicyDenied("malformed", f"{self.what}: service response ok byte {prefix[0]}")
+        size = int.from_bytes(prefix[-4:], "little")
+        if self.max_size is not None and size > self.max_size:
+            raise PolicyDenied(
+                "message_too_large",
+                f"{self.what}: frame of {size} bytes exceeds max_message_size {self.max_size}",
+            )
+        return size
 
 
 class MessageBudget:
@@ -87,8 +114,12 @@ class MessageBudget:
 class PumpProtocol(asyncio.BufferedProtocol):
     """Reads into one reused buffer and writes each read to the peer transport.
 
-    With a ``budget``, the TCPROS frames read are counted and reading pauses while the
-    peer is over its message rate (the sender then sees TCP backpressure)."""
+    With ``frames`` (a :class:`FrameCounter`), the TCPROS frames read are walked and
+    each declared size checked before it is let through; with a ``budget`` too, they
+    are counted and reading pauses while the peer is over its message rate (the
+    sender then sees TCP backpressure). With ``discard``, what is read is dropped
+    (a direction that carries nothing after the header). A frame over its limit
+    cuts both sides; ``on_deny`` hears why."""
 
     def __init__(
         self,
@@ -96,12 +127,17 @@ class PumpProtocol(asyncio.BufferedProtocol):
         buffer_size: int = DEFAULT_BUFFER_SIZE,
         on_bytes: Callable[[int], None] | None = None,
         budget: MessageBudget | None = None,
+        frames: FrameCounter | None = None,
+        discard: bool = False,
+        on_deny: Callable[[PolicyDenied], None] | None = None,
     ):
         self._buffer = bytearray(buffer_size)
         self._view = memoryview(self._buffer)
         self._on_bytes = on_bytes
         self._budget = budget
-        self._frames = FrameCounter() if budget is not None else None
+        self._frames = frames if frames is not None else (FrameCounter() if budget is not None else None)
+        self._discard = discard
+        self._on_deny = on_deny
         self._held = bytearray()  # bytes read but over the message budget
         self._paused_by: set[str] = set()
         self.transport: asyncio.Transport | None = None
@@ -132,25 +168,44 @@ class PumpProtocol(asyncio.BufferedProtocol):
         return self._view
 
     def buffer_updated(self, nbytes: int) -> None:
-        if self._budget is None:
-            # Copy out of the reused buffer: a transport may keep what it could not send yet.
-            self.forward(bytes(self._view[:nbytes]))
-            return
-        self._held += self._view[:nbytes]
-        self._release()
+        # Copy out of the reused buffer: a transport may keep what it could not send yet.
+        self.feed(bytes(self._view[:nbytes]))
 
     def feed(self, data: bytes) -> None:
-        """Bytes read from our side before the pump took over, as if just read."""
-        if self._budget is None:
+        """Bytes read from our side (or before the pump took over, as if just read)."""
+        if self._discard:
+            return
+        if self._frames is None:
+            self.forward(data)
+        elif self._budget is None:
+            try:
+                self._frames.take(data, len(data) + 1)
+            except PolicyDenied as exc:
+                self._deny(exc)
+                return
             self.forward(data)
         else:
             self._held += data
             self._release()
 
+    def _deny(self, exc: PolicyDenied) -> None:
+        """A frame over its limit: nothing more passes either way."""
+        self._held.clear()
+        if self._on_deny is not None:
+            self._on_deny(exc)
+            self._on_deny = None
+        for transport in (self.transport, self.peer.transport if self.peer else None):
+            if transport is not None and not transport.is_closing():
+                transport.abort()
+
     def _release(self) -> None:
         """Forward the held frames the budget allows; hold the rest and stop reading
         until the budget refills (the sender sees TCP backpressure)."""
-        cut, started = self._frames.take(self._held, self._budget.allowance())
+        try:
+            cut, started = self._frames.take(self._held, self._budget.allowance())
+        except PolicyDenied as exc:
+            self._deny(exc)
+            return
         self._budget.spend(started)
         if cut:
             self.forward(bytes(self._held[:cut]))
@@ -207,16 +262,23 @@ def splice(
     on_right_bytes: Callable[[int], None] | None = None,
     left_budget: MessageBudget | None = None,
     right_budget: MessageBudget | None = None,
+    left_frames: FrameCounter | None = None,
+    right_frames: FrameCounter | None = None,
+    left_discard: bool = False,
+    on_deny: Callable[[PolicyDenied], None] | None = None,
 ) -> asyncio.Future[None]:
     """Relay ``left`` <-> ``right`` until both close.
 
     ``left_pending`` are bytes already read from ``left`` (past the header) that must
     reach ``right`` first; likewise ``right_pending``. ``on_*_bytes`` count the bytes
     read from each side (for metrics); they must be cheap. A ``*_budget`` rate-limits
-    the TCPROS frames read from that side.
+    the TCPROS frames read from that side; ``*_frames`` checks their declared sizes;
+    ``left_discard`` drops what ``left`` sends (a subscriber sends nothing after its
+    header). ``on_deny`` hears of a frame over its limit (both sides are then cut).
     """
-    a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget)
-    b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget)
+    a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget, frames=left_frames, discard=left_discard,
+                     on_deny=on_deny)
+    b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget, frames=right_frames, on_deny=on_deny)
     a.attach(left, b)
     b.attach(right, a)
     left.set_protocol(a)

@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import logging
 import socket
 import ssl
 import time
+import urllib.parse
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
@@ -47,9 +49,9 @@ from cryptoros.policy import (
 )
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import tune_malloc
-from cryptoros.ros1.rewrite import rewrite_call, rewrite_response
+from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
 from cryptoros.ros1.tcpros import NEED_DATA as TCPROS_NEED_DATA
-from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, encode_header
+from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, canonical_header, encode_header
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
     ConnectionClosed,
@@ -61,6 +63,7 @@ from cryptoros.ros1.xmlrpc import (
     assemble_multicall,
     expand_multicall,
     make_multicall,
+    request_path,
     split_multicall_response,
 )
 from cryptoros.ros1.xmlrpc import NEED_DATA as XMLRPC_NEED_DATA
@@ -70,8 +73,8 @@ from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
 from interceptor.metrics import Metrics
-from interceptor.pump import MessageBudget, splice
-from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Canonical, Translator
+from interceptor.pump import FrameCounter, MessageBudget, splice
+from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, Translator
 
 log = logging.getLogger("cryptoros.interceptor")
 
@@ -80,6 +83,8 @@ CALL_TIMEOUT = 30.0
 IDLE_TIMEOUT = 600.0
 READ_SIZE = 65536
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
+#: Master calls that release a registration: their URIs must already have a relay.
+_RELEASING_CALLS = frozenset({"unregisterPublisher", "unregisterSubscriber", "unregisterService", "unsubscribeParam"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,10 +134,11 @@ async def read_xmlrpc(reader: asyncio.StreamReader, conn: XmlRpcConnection, time
 
 
 async def read_tcpros_header(
-    reader: asyncio.StreamReader, timeout: float, max_size: int
+    reader: asyncio.StreamReader, timeout: float, max_size: int, max_fields: int = 32
 ) -> tuple[ConnectionHeader, bytes]:
-    """One TCPROS connection header and whatever bytes followed it."""
-    conn = TCPROSConnection(max_header_size=max_size)
+    """One TCPROS connection header and whatever bytes followed it (within
+    ``timeout`` overall; at most ``max_size`` bytes and ``max_fields`` fields)."""
+    conn = TCPROSConnection(max_header_size=max_size, max_header_fields=max_fields)
     deadline = time.monotonic() + timeout
     while True:
         event = conn.next_event()
@@ -268,6 +274,7 @@ class Interceptor:
             public_port=cfg.public.port,
             local_master_uri=local_master,
             open_relay=self._open_relay,
+            max_relays_per_host=cfg.limits.max_relays_per_peer,
         )
         if local_master:
             self.translator.add_master_uri(local_master)
@@ -279,6 +286,7 @@ class Interceptor:
         self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         self._open_per_peer: dict[str, int] = {}
+        self._pending: dict[tuple[str, str], int] = {}  # unauthenticated streams per source / certificate
         self._budgets: dict[str, MessageBudget] = {}
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._new_conn_limiter = RateLimiter(cfg.limits.max_new_connections_per_second)
@@ -352,6 +360,9 @@ class Interceptor:
                 await asyncio.wait_for(server.wait_closed(), 1)
         for pool in self._pools.values():
             await pool.close()
+        for sock in self._relay_sockets:
+            sock.close()
+        self._relay_sockets.clear()
         if self._metrics_runner is not None:
             await self._metrics_runner.cleanup()
         await self.authz.close()
@@ -519,14 +530,27 @@ class Interceptor:
             task.add_done_callback(self._streams.discard)
         peername = writer.get_extra_info("peername")
         who = f"{peername[0]}:{peername[1]}" if peername else "?"
+        limits = self.cfg.limits
+        pending: list[tuple[str, str]] = []
         try:
             der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            # Before the token is verified a stream is bounded per source address and
+            # per certificate, and its preamble has one deadline from accept.
+            for key, cap in (
+                (("source", peername[0] if peername else "?"), limits.max_pending_per_source),
+                (("certificate", hashlib.sha256(der).hexdigest()), limits.max_pending_per_certificate),
+            ):
+                if self._pending.get(key, 0) >= cap:
+                    raise PolicyDenied("pending_limit", f"{cap} unauthenticated streams from this {key[0]} already")
+                self._pending[key] = self._pending.get(key, 0) + 1
+                pending.append(key)
             preamble_reader = PreambleReader(Preamble)
             preamble = None
-            while preamble is None:
-                await _read_into(reader, preamble_reader.receive_data, self.cfg.limits.handshake_timeout)
-                event = preamble_reader.next_event()
-                preamble = event if isinstance(event, Preamble) else None
+            async with asyncio.timeout(limits.preamble_timeout):
+                while preamble is None:
+                    await _read_into(reader, preamble_reader.receive_data, limits.preamble_timeout)
+                    event = preamble_reader.next_event()
+                    preamble = event if isinstance(event, Preamble) else None
             access = await self.verifier.verify_fresh(preamble.token, der)
             who = f"{access.subject}@{who}"
             self._check_purpose(preamble)
@@ -539,12 +563,24 @@ class Interceptor:
             if isinstance(exc, CryptorosError):
                 self._deny("stream", exc, who)
             else:
-                self.metrics.denied.labels("stream", type(exc).__name__).inc()
+                reason = "preamble_timeout" if isinstance(exc, asyncio.TimeoutError) else type(exc).__name__
+                self.metrics.denied.labels("stream", reason).inc()
+                log.warning("DENY stream from %s: %s", who, reason)
             with contextlib.suppress(Exception):
                 writer.write(encode(PreambleReply(ok=False, error="denied")))
                 await asyncio.wait_for(writer.drain(), 1)
-            writer.close()
+            if isinstance(exc, asyncio.TimeoutError) or getattr(exc, "reason", "") == "pending_limit":
+                writer.transport.abort()  # no graceful TLS close for a peer that dribbles
+            else:
+                writer.close()
             return
+        finally:
+            for key in pending:
+                left = self._pending[key] - 1
+                if left:
+                    self._pending[key] = left
+                else:
+                    del self._pending[key]
         writer.write(encode(PreambleReply(ok=True, token=own_token)))
         leftover = preamble_reader.trailing_data()
         if leftover:
@@ -595,10 +631,21 @@ class Interceptor:
         writer: asyncio.StreamWriter,
         handle: Callable[[Request], Awaitable[Response | Fault]],
     ) -> None:
-        """Answer XML-RPC requests on a stream until it closes."""
-        conn = XmlRpcConnection(Role.SERVER, max_body_size=self.cfg.limits.max_xmlrpc_body, gzip_threshold=1400)
+        """Answer XML-RPC requests on a stream until it closes. A request that does not
+        parse (bad head, oversized declared body, bad XML) is answered with one ROS
+        error triple and the connection is cut without reading the rest."""
+        limits = self.cfg.limits
+        conn = XmlRpcConnection(Role.SERVER, max_body_size=limits.max_xmlrpc_body, gzip_threshold=1400)
         while True:
-            event = await read_xmlrpc(reader, conn, IDLE_TIMEOUT)
+            try:
+                event = await read_xmlrpc(reader, conn, IDLE_TIMEOUT)
+            except RemoteProtocolError:
+                writer.transport.pause_reading()
+                with contextlib.suppress(Exception):
+                    writer.write(conn.send(Response(value=ros_error(OPAQUE), keep_alive=False)))
+                    await asyncio.wait_for(writer.drain(), 1)
+                writer.transport.abort()
+                raise
             if isinstance(event, ConnectionClosed):
                 return
             response = await handle(event)
@@ -621,7 +668,7 @@ class Interceptor:
         """Decide each call of a request (a multicall call by call), forward the
         allowed ones in one request, and answer refused ones with a ROS error."""
         try:
-            calls = expand_multicall(request)
+            calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
         except RemoteProtocolError as exc:
             self._deny(kind, exc, who)
             return Fault(code=-1, string=OPAQUE)
@@ -631,7 +678,7 @@ class Interceptor:
             try:
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
-            except (PolicyDenied, RemoteProtocolError) as exc:
+            except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
                 self._deny(kind, exc, f"{who} {call.method}")
                 results[i] = Response(value=ros_error(OPAQUE))
         if allowed:
@@ -642,7 +689,7 @@ class Interceptor:
                 parts = split_multicall_response(reply, len(allowed)) if multicall else [reply]
                 for (i, call), part in zip(allowed, parts, strict=True):
                     results[i] = after(call, part)
-            except (PolicyDenied, RemoteProtocolError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
+            except (CryptorosError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
                 if isinstance(exc, CryptorosError):
                     self._deny(kind, exc, who)
                 else:
@@ -679,12 +726,24 @@ class Interceptor:
                 raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
             return self.translator.to_local(uri)
 
+        def existing_from_peer(uri: str) -> str:
+            # unregister*/unsubscribeParam never open a relay: an endpoint no relay was
+            # opened for was never registered, so the call could match nothing.
+            target = Canonical.parse(uri)
+            if target is None or target.host not in peer.hosts:
+                raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
+            local = self.translator.existing_local(uri)
+            if local is None:
+                raise PolicyDenied("unknown_endpoint", f"{uri!r:.80} was never registered through this interceptor")
+            return local
+
         def decide(call: Request) -> Request:
             check_master_call(
                 call.method, call.params, manager=peer.manager, grants=peer.access.grants, owner_of=self._owner_of
             )
-            call = rewrite_call(call, caller_api=to_local_from_peer, service_api=to_local_from_peer)
-            return _rewrite_param_api(call, to_local_from_peer)
+            uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
+            call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
+            return _rewrite_param_api(call, uri_map)
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             self._note_registration(call, response, peer.manager)
@@ -704,8 +763,9 @@ class Interceptor:
         reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port, limit=READ_SIZE), CALL_TIMEOUT)
         try:
             conn = XmlRpcConnection(Role.CLIENT, host=f"{host}:{port}", max_body_size=self.cfg.limits.max_xmlrpc_body)
-            outgoing = Request(method=request.method, params=request.params, path=request.path, keep_alive=False,
-                               accept_gzip=True)
+            # The path is the one the node advertised, never one a peer wrote.
+            outgoing = Request(method=request.method, params=request.params,
+                               path=request_path(urllib.parse.urlsplit(uri).path), keep_alive=False, accept_gzip=True)
             writer.write(conn.send(outgoing))
             await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
             event = await read_xmlrpc(reader, conn, CALL_TIMEOUT)
@@ -727,9 +787,10 @@ class Interceptor:
                 peer_is_master=peer.manager == self.cfg.master.manager,
                 topic_types=self.topic_types,
             )
-            return rewrite_call(call, publisher_uri=self.translator.to_local)
+            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
+            response = redact_node_reply(call, response, MASTER)
             return rewrite_response(call, response, tcpros=self.translator.tcpros_to_canonical)
 
         async def handle(request: Request) -> Response | Fault:
@@ -742,7 +803,9 @@ class Interceptor:
     async def _serve_tcpros_stream(self, reader, writer, peer: Peer, target: str, purpose: str) -> None:
         endpoint = self.translator.resolve(KIND_TCPROS, target)
         limits = self.cfg.limits
-        header, rest = await read_tcpros_header(reader, limits.handshake_timeout, limits.max_header_size)
+        header, rest = await read_tcpros_header(
+            reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
+        )
         fields = header.as_dict()
         try:
             if purpose == "topic":
@@ -765,7 +828,9 @@ class Interceptor:
             asyncio.open_connection(endpoint.host, endpoint.port, limit=READ_SIZE), limits.handshake_timeout
         )
         try:
-            local_writer.write(encode_header(header) + rest)
+            # Only the known fields, rebuilt from the parsed values, reach the node; what
+            # followed the header (a service request) goes through the frame check below.
+            local_writer.write(encode_header(canonical_header(header)))
             reply, reply_rest = await read_tcpros_header(local_reader, CALL_TIMEOUT, limits.max_header_size)
             reply_fields = reply.as_dict()
             own = self.own_access()
@@ -781,10 +846,18 @@ class Interceptor:
                 writer.write(encode_header({"error": OPAQUE}))
             raise
         self.metrics.allowed.labels(purpose).inc()
-        writer.write(encode_header(reply) + reply_rest)
-        # Service requests from the peer count against its message budget.
-        budget = self._budget(peer) if purpose == "service" else None
-        await self._pump(reader, writer, local_reader, local_writer, left_budget=budget)
+        writer.write(encode_header(canonical_header(reply)))
+        if purpose == "topic":
+            # A subscriber sends nothing after its header: whatever it sends is dropped.
+            await self._pump(reader, writer, local_reader, local_writer, left_pending=b"", right_pending=reply_rest,
+                             left_discard=True)
+        else:
+            # Service requests from the peer: size-checked, and counted against its budget.
+            name = fields["service"]
+            frames = FrameCounter(max_size=limits.message_size_for(name), what=f"{peer.manager} {name}")
+            await self._pump(reader, writer, local_reader, local_writer, left_pending=rest, right_pending=reply_rest,
+                             left_budget=self._budget(peer), left_frames=frames,
+                             on_deny=lambda exc: self._deny(purpose, exc, peer.manager))
 
     def _budget(self, peer: Peer) -> MessageBudget | None:
         """The message budget of one peer (shared by all its streams), if limited."""
@@ -798,21 +871,26 @@ class Interceptor:
 
     async def _pump(
         self, left_reader, left_writer, right_reader, right_writer, *,
-        left_budget: MessageBudget | None = None, right_budget: MessageBudget | None = None,
+        left_pending: bytes, right_pending: bytes,
+        left_budget: MessageBudget | None = None, left_frames: FrameCounter | None = None,
+        left_discard: bool = False, on_deny: Callable[[PolicyDenied], None] | None = None,
     ) -> None:
         """Hand both streams to the byte pump and wait until both sides closed. The
-        left side is toward the peer (bytes read there count as rx)."""
+        left side is toward the peer (bytes read there count as rx); ``*_pending`` are
+        bytes read past the header on each side, which go through the same checks."""
         tx = self.metrics.bytes.labels("tx")
         rx = self.metrics.bytes.labels("rx")
         done = splice(
             left_writer.transport,
             right_writer.transport,
-            left_pending=_take_stream_buffer(left_reader),
-            right_pending=_take_stream_buffer(right_reader),
+            left_pending=left_pending + _take_stream_buffer(left_reader),
+            right_pending=right_pending + _take_stream_buffer(right_reader),
             on_left_bytes=rx.inc,
             on_right_bytes=tx.inc,
             left_budget=left_budget,
-            right_budget=right_budget,
+            left_frames=left_frames,
+            left_discard=left_discard,
+            on_deny=on_deny,
         )
         for transport in (left_writer.transport, right_writer.transport):
             if not transport.is_closing() and not transport.is_reading():
@@ -855,7 +933,7 @@ class Interceptor:
         def decide(call: Request) -> Request:
             if call.method == "shutdown":
                 raise PolicyDenied("shutdown_dropped", "node shutdown is never forwarded")
-            return rewrite_call(call, publisher_uri=self.translator.to_canonical)
+            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_canonical))
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             return rewrite_response(call, response, tcpros=self.translator.tcpros_to_local)
@@ -878,7 +956,9 @@ class Interceptor:
         limits = self.cfg.limits
         tunnel_writer = None
         try:
-            header, rest = await read_tcpros_header(reader, limits.handshake_timeout, limits.max_header_size)
+            header, rest = await read_tcpros_header(
+                reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
+            )
             fields = header.as_dict()
             own = self.own_access()
             if "topic" in fields:
@@ -891,10 +971,12 @@ class Interceptor:
             else:
                 raise PolicyDenied("malformed", "TCPROS header with neither topic nor service")
             tunnel_reader, tunnel_writer, peer = await self.open_tunnel(
-                target.host, target.port, purpose, target.id, first=encode_header(header) + rest
+                target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest
             )
             unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
-            reply, reply_rest = await read_tcpros_header(tunnel_reader, CALL_TIMEOUT, limits.max_header_size)
+            reply, reply_rest = await read_tcpros_header(
+                tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields
+            )
             reply_fields = reply.as_dict()
             if purpose == "topic":
                 check_publisher_header(reply_fields, grants=peer.access.grants, topic=fields["topic"])
@@ -902,12 +984,21 @@ class Interceptor:
                 check_service_server_header(
                     reply_fields, service=fields["service"], server_grants=peer.access.grants, client_types=client_types
                 )
-            writer.write(encode_header(reply) + reply_rest)
+            writer.write(encode_header(canonical_header(reply)))
             self.metrics.open_streams.labels(purpose).inc()
             try:
-                # Messages a peer publishes into this host count against its budget.
+                # What the peer sends into this host (messages it publishes, replies of
+                # its service) is size-checked frame by frame before a byte is relayed;
+                # published messages count against its budget.
+                name = fields.get("topic") or fields["service"]
+                frames = FrameCounter(
+                    max_size=limits.message_size_for(name), service_response=purpose == "service",
+                    what=f"{peer.manager} {name}",
+                )
                 budget = self._budget(peer) if purpose == "topic" else None
-                await self._pump(tunnel_reader, tunnel_writer, reader, writer, left_budget=budget)
+                await self._pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
+                                 right_pending=b"", left_budget=budget, left_frames=frames,
+                                 on_deny=lambda exc: self._deny("relay", exc, str(target)))
             finally:
                 unwatch()
                 self.metrics.open_streams.labels(purpose).dec()

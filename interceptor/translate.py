@@ -94,7 +94,10 @@ class Translator:
         public_port: int,
         local_master_uri: str | None,
         open_relay: Callable[[Canonical], tuple[str, int]],
+        max_relays_per_host: int = 512,
     ) -> None:
+        self.max_relays_per_host = max_relays_per_host
+        self._relays_per_host: dict[str, int] = {}
         self.public_host = public_host
         self.public_port = public_port
         self.local_master_uri = local_master_uri
@@ -130,15 +133,37 @@ class Translator:
         return endpoint
 
     def relay_for(self, target: Canonical) -> tuple[str, int]:
+        """The relay for ``target``, opened on first use; at most
+        ``max_relays_per_host`` toward one peer interceptor (``relay_limit``)."""
         relay = self._relays.get(target)
         if relay is None:
+            count = self._relays_per_host.get(target.host, 0)
+            if count >= self.max_relays_per_host:
+                raise PolicyDenied(
+                    "relay_limit", f"{self.max_relays_per_host} relays toward {target.host} already (max_relays_per_peer)"
+                )
             relay = self._open_relay(target)
             self._relays[target] = relay
             self._relay_targets[relay] = target
+            self._relays_per_host[target.host] = count + 1
         return relay
 
-    def relay_target(self, host: str, port: int) -> Canonical | None:
-        return self._relay_targets.get((host, port))
+    def existing_local(self, text: str) -> str | None:
+        """Like :meth:`to_local`, but never opens a relay: None for a canonical name
+        this interceptor never handed out (an ``unregister*`` of it matches nothing)."""
+        target = Canonical.parse(text)
+        if target is None:
+            raise PolicyDenied("bad_uri", f"not a canonical cryptoros name: {text!r:.80}")
+        if self.owns(target):
+            return self.resolve(target.kind, target.id).uri
+        relay = self._relays.get(target)
+        if relay is None:
+            return None
+        return f"{_KIND_SCHEME[target.kind]}://{relay[0]}:{relay[1]}" + ("/" if target.kind == KIND_XMLRPC else "")
+
+    @property
+    def relay_count(self) -> int:
+        return len(self._relays)
 
     def owns(self, target: Canonical) -> bool:
         return (target.host, target.port) == (self.public_host, self.public_port)

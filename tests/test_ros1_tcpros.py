@@ -209,7 +209,7 @@ def test_local_misuse() -> None:
 
 keys = st.text(st.characters(blacklist_characters="=", blacklist_categories=("Cs",)), min_size=1, max_size=20)
 values = st.text(st.characters(blacklist_categories=("Cs",)), max_size=60)
-headers = st.lists(st.tuples(keys, values), max_size=8)
+headers = st.lists(st.tuples(keys, values), max_size=8, unique_by=lambda kv: kv[0])
 bodies = st.lists(st.binary(max_size=300), max_size=8)
 
 

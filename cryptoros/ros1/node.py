@@ -42,6 +42,7 @@ from cryptoros.ros1.xmlrpc import (
     XmlRpcConnection,
     assemble_multicall,
     expand_multicall,
+    request_path,
 )
 
 log = logging.getLogger(__name__)
@@ -200,7 +201,7 @@ def _split_uri(uri: str, scheme: tuple[str, ...] = ("http",)) -> tuple[str, int,
     u = urllib.parse.urlsplit(uri)
     if u.scheme not in scheme or not u.hostname or not u.port:
         raise RemoteProtocolError(f"bad URI {uri!r}")
-    return u.hostname, u.port, u.path or "/"
+    return u.hostname, u.port, request_path(u.path)
 
 
 class XmlRpcClient:

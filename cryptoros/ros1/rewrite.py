@@ -30,7 +30,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from cryptoros.errors import RemoteProtocolError
+from cryptoros.errors import PolicyDenied, RemoteProtocolError
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
     Fault,
@@ -56,6 +56,8 @@ __all__ = [
     "rewrite_uri_response",
     "rewrite_tcpros_reply",
     "rewrite_response",
+    "tcpros_only",
+    "redact_node_reply",
 ]
 
 UriMap = Callable[[str], str]
@@ -209,4 +211,49 @@ def rewrite_response(
         return rewrite_uri_response(response, uri)
     if tcpros is not None and call.method == "requestTopic":
         return rewrite_tcpros_reply(response, tcpros)
+    return response
+
+
+def tcpros_only(call: Request) -> Request:
+    """``requestTopic(caller, topic, protocols)`` -> the same call offering exactly
+    ``[['TCPROS']]``: the only transport the interceptors carry. A subscriber that
+    offers UDPROS with a TCPROS fallback gets TCPROS; one that offers no TCPROS is
+    refused (``udpros_refused``), so no publisher ever sends a datagram because a
+    peer asked. Other calls pass unchanged."""
+    if call.method != "requestTopic":
+        return call
+    if len(call.params) != 3 or not isinstance(call.params[2], list):
+        raise RemoteProtocolError("requestTopic takes caller_id, topic and a list of protocols")
+    offered = [p[0] for p in call.params[2] if isinstance(p, list) and p and isinstance(p[0], str)]
+    if "TCPROS" not in offered:
+        raise PolicyDenied("udpros_refused", f"requestTopic offers {offered[:4]!r:.80}; only TCPROS is carried")
+    return _with_params(call, call.params[:2] + ([["TCPROS"]],))
+
+
+REDACTED = "[redacted]"
+
+
+def redact_node_reply(call: Request, response: Response | Fault, master: str) -> Response | Fault:
+    """Node-API replies sent to a peer name no host endpoint: ``getMasterUri``
+    answers ``master`` (the canonical master), ``getBusInfo`` keeps connection id,
+    direction, transport, topic and state but not the other end's address or the
+    free-text info (roscpp writes ``127.0.0.1:port`` there)."""
+    if call.method == "getMasterUri":
+        v = _ros_triple(response, "getMasterUri")
+        if v is None or v[0] != 1:
+            return response
+        return Response(value=[v[0], v[1], master], keep_alive=response.keep_alive)
+    if call.method == "getBusInfo":
+        v = _ros_triple(response, "getBusInfo")
+        if v is None or v[0] != 1:
+            return response
+        if not isinstance(v[2], list):
+            raise RemoteProtocolError("getBusInfo value is not a list")
+        rows = []
+        for row in v[2]:
+            if not isinstance(row, list) or len(row) < 6:
+                raise RemoteProtocolError("getBusInfo row is not [id, destination, direction, transport, topic, connected, ...]")
+            destination = row[1] if isinstance(row[1], str) and row[1].startswith("/") else REDACTED
+            rows.append([row[0], destination, row[2], row[3], row[4], row[5]])
+        return Response(value=[v[0], v[1], rows], keep_alive=response.keep_alive)
     return response

@@ -47,9 +47,32 @@ __all__ = [
     "check_service_server_header",
     "DEFAULT_MAX_HEADER_SIZE",
     "DEFAULT_MAX_FRAME_SIZE",
+    "DEFAULT_MAX_HEADER_FIELDS",
+    "KNOWN_HEADER_FIELDS",
+    "canonical_header",
 ]
 
 DEFAULT_MAX_HEADER_SIZE: Final = 1 << 20  # 1 MiB: message_definition of big types fits
+#: Fields of a connection header: rospy and roscpp send 6 to 9 (a service probe 5).
+DEFAULT_MAX_HEADER_FIELDS: Final = 32
+#: The fields ROS 1 defines (ros_comm's rospy and roscpp, rosbag, the TCPROS wiki page).
+#: An interceptor sends on only these, rebuilt from the parsed values
+#: (:func:`canonical_header`); anything else a peer wrote is dropped.
+KNOWN_HEADER_FIELDS: Final = (
+    "callerid",
+    "topic",
+    "service",
+    "type",
+    "md5sum",
+    "request_type",
+    "response_type",
+    "message_definition",
+    "tcp_nodelay",
+    "latching",
+    "persistent",
+    "probe",
+    "error",
+)
 DEFAULT_MAX_FRAME_SIZE: Final = 256 << 20  # 256 MiB: large point clouds fit
 
 _U32 = struct.Struct("<I")
@@ -172,14 +195,21 @@ def encode_header(fields: ConnectionHeader | Mapping[str, str] | Iterable[tuple[
     return _U32.pack(len(body)) + body
 
 
-def decode_header(body: bytes | bytearray | memoryview) -> ConnectionHeader:
+def decode_header(
+    body: bytes | bytearray | memoryview, *, max_fields: int = DEFAULT_MAX_HEADER_FIELDS
+) -> ConnectionHeader:
     """Decode a header body (without its u32 total length). Strict: every field must
-    fit, hold ``=`` with a non-empty key, and be UTF-8."""
+    fit, hold ``=`` with a non-empty key, and be UTF-8; at most ``max_fields`` fields
+    (checked as it goes, so a header of 100,000 tiny fields costs no more than
+    ``max_fields`` of them); no key twice."""
     view = memoryview(body)
     n = len(view)
     pos = 0
     fields: list[tuple[str, str]] = []
+    seen: set[str] = set()
     while pos < n:
+        if len(fields) >= max_fields:
+            raise RemoteProtocolError(f"connection header has more than {max_fields} fields")
         if n - pos < 4:
             raise RemoteProtocolError("truncated header field length")
         (size,) = _U32.unpack_from(view, pos)
@@ -198,8 +228,18 @@ def decode_header(body: bytes | bytearray | memoryview) -> ConnectionHeader:
             value = raw[eq + 1 :].decode("utf-8")
         except UnicodeDecodeError as err:
             raise RemoteProtocolError(f"header field is not UTF-8: {raw[:40]!r}") from err
+        if key in seen:
+            raise RemoteProtocolError(f"header field {key[:40]!r} given twice")
+        seen.add(key)
         fields.append((key, value))
     return ConnectionHeader(fields=tuple(fields))
+
+
+def canonical_header(header: ConnectionHeader) -> ConnectionHeader:
+    """The header an interceptor sends on in place of ``header``: only the
+    :data:`KNOWN_HEADER_FIELDS`, in that order, with the parsed values."""
+    d = header.as_dict()
+    return ConnectionHeader(fields=tuple((k, d[k]) for k in KNOWN_HEADER_FIELDS if k in d))
 
 
 def encode_frame(data: bytes | bytearray | memoryview) -> bytes:
@@ -276,6 +316,7 @@ class TCPROSConnection:
 
     __slots__ = (
         "max_header_size",
+        "max_header_fields",
         "max_frame_size",
         "frame_kind",
         "_buf",
@@ -290,11 +331,13 @@ class TCPROSConnection:
         frame_kind: FrameKind = FrameKind.MESSAGE,
         max_header_size: int = DEFAULT_MAX_HEADER_SIZE,
         max_frame_size: int = DEFAULT_MAX_FRAME_SIZE,
+        max_header_fields: int = DEFAULT_MAX_HEADER_FIELDS,
         expect_header: bool = True,
     ) -> None:
-        if max_header_size < 4 or max_frame_size < 0:
+        if max_header_size < 4 or max_frame_size < 0 or max_header_fields < 1:
             raise LocalProtocolError("limits must be positive")
         self.max_header_size = max_header_size
+        self.max_header_fields = max_header_fields
         self.max_frame_size = max_frame_size
         self.frame_kind = frame_kind
         self._buf = bytearray()
@@ -356,7 +399,7 @@ class TCPROSConnection:
             raise RemoteProtocolError(f"declared header length {size} exceeds the limit {self.max_header_size}")
         if len(buf) < 4 + size:
             return NEED_DATA
-        header = decode_header(memoryview(buf)[4 : 4 + size])
+        header = decode_header(memoryview(buf)[4 : 4 + size], max_fields=self.max_header_fields)
         del buf[: 4 + size]
         self.their_header = header
         self._state = _State.FRAMES

@@ -27,6 +27,7 @@ import base64
 import binascii
 import enum
 import math
+import re
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -56,12 +57,29 @@ __all__ = [
     "assemble_multicall",
     "split_multicall_response",
     "MULTICALL",
+    "ALLOWED_PATHS",
+    "request_path",
 ]
 
 MULTICALL: Final = "system.multicall"
 DEFAULT_MAX_BODY_SIZE: Final = 16 << 20
 DEFAULT_MAX_HEAD_SIZE: Final = 16 << 10
 MAX_DEPTH: Final = 64
+#: Request paths accepted from a peer: what rospy, roscpp and xmlrpc.client send for
+#: ``http://host:port/`` and ``http://host:port``. The path sent on is never the
+#: peer's: callers set it from the URI the receiving node advertised.
+ALLOWED_PATHS: Final = ("/", "/RPC2")
+DEFAULT_MAX_HEADER_FIELDS: Final = 32
+MAX_HEADER_FIELD_SIZE: Final = 4096
+#: Calls one ``system.multicall`` may hold (rospy's shutdown multicall holds one
+#: ``unregister*`` per topic and service of the node).
+DEFAULT_MAX_MULTICALL: Final = 256
+_TOKEN = re.compile(r"[!#$%&'*+\-.^_`|~0-9A-Za-z]+")
+# Anything but printable ASCII, SP, HTAB and CRLF pairs: bare CR, bare LF, NUL, DEL, 8-bit.
+_HEAD_FORBIDDEN = re.compile(rb"[^\x20-\x7e\t\r\n]|\r(?!\n)|(?<!\r)\n")
+_REQUEST_LINE = re.compile(r"(?P<method>[A-Z]{1,10}) (?P<path>[!-~]{1,256}) (?P<version>HTTP/1\.[01])")
+_STATUS_LINE = re.compile(r"(?P<version>HTTP/1\.[01]) (?P<status>[0-9]{3})(?: (?P<reason>[\t !-~]*))?")
+_SINGLE_HEADERS = frozenset({"content-length", "content-encoding", "transfer-encoding", "connection"})
 I4_MIN, I4_MAX = -(2**31), 2**31 - 1
 I8_MIN, I8_MAX = -(2**63), 2**63 - 1
 
@@ -94,8 +112,8 @@ class Request:
             raise LocalProtocolError("Request.method must be a non-empty str")
         if not isinstance(self.params, tuple):
             object.__setattr__(self, "params", tuple(self.params))
-        if not self.path.startswith("/"):
-            raise LocalProtocolError(f"invalid path {self.path!r}")
+        if self.path not in ALLOWED_PATHS:
+            raise LocalProtocolError(f"request path {self.path!r:.40} is not one of {ALLOWED_PATHS}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -127,11 +145,19 @@ class ConnectionClosed:
 Event = Request | Response | Fault | ConnectionClosed
 
 
+def request_path(uri_path: str) -> str:
+    """The request path to send to a server advertised with a URI whose path is
+    ``uri_path``: ``/RPC2`` when it says so, else ``/`` (what the server's own
+    clients send). Never a path a peer wrote."""
+    return "/RPC2" if uri_path.rstrip("/") == "/RPC2" else "/"
+
+
 # ---------------------------------------------------------------- values -> XML
 
 
 def _escape(text: str) -> str:
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    # A raw CR would be normalized away by the receiver's XML parser: keep it as a reference.
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace("\r", "&#13;")
 
 
 def _dump_value(value: Any, out: list[str], depth: int = 0) -> None:
@@ -321,13 +347,15 @@ def loads_response(body: bytes) -> Response | Fault:
 # ---------------------------------------------------------------- multicall
 
 
-def expand_multicall(request: Request) -> list[Request]:
+def expand_multicall(request: Request, *, max_calls: int = DEFAULT_MAX_MULTICALL) -> list[Request]:
     """The calls inside a ``system.multicall`` (or ``[request]`` for any other call).
-    A multicall inside a multicall is refused."""
+    A multicall inside a multicall, or of more than ``max_calls`` calls, is refused."""
     if request.method != MULTICALL:
         return [request]
     if len(request.params) != 1 or not isinstance(request.params[0], list):
         raise RemoteProtocolError("system.multicall takes one array of calls")
+    if len(request.params[0]) > max_calls:
+        raise RemoteProtocolError(f"system.multicall of {len(request.params[0])} calls; at most {max_calls}")
     calls = []
     for item in request.params[0]:
         if not isinstance(item, dict) or set(item) != {"methodName", "params"}:
@@ -445,10 +473,12 @@ class XmlRpcConnection:
         host: str = "localhost",
         max_body_size: int = DEFAULT_MAX_BODY_SIZE,
         max_head_size: int = DEFAULT_MAX_HEAD_SIZE,
+        max_header_fields: int = DEFAULT_MAX_HEADER_FIELDS,
         gzip_threshold: int | None = None,
         user_agent: str = "cryptoros",
     ) -> None:
         self.role = role
+        self.max_header_fields = max_header_fields
         self.host = host
         self.max_body_size = max_body_size
         self.max_head_size = max_head_size
@@ -535,34 +565,44 @@ class XmlRpcConnection:
         return self._finish(body)
 
     def _parse_head(self, raw: bytes) -> _Head:
-        try:
-            text = raw.decode("ascii")
-        except UnicodeDecodeError as err:
-            raise RemoteProtocolError("non-ASCII HTTP head") from err
+        """Strict RFC 9112 head: CRLF lines only, no control characters, no obs-fold,
+        header names are tokens, a bounded number of fields, and (server role) a
+        request line of exactly ``POST SP path SP version`` with ``path`` from
+        :data:`ALLOWED_PATHS`."""
+        if _HEAD_FORBIDDEN.search(raw):
+            raise RemoteProtocolError("control character, bare CR/LF or non-ASCII byte in the HTTP head")
+        text = raw.decode("ascii")
         lines = text.split("\r\n")
+        if len(lines) - 1 > self.max_header_fields:
+            raise RemoteProtocolError(f"more than {self.max_header_fields} HTTP header fields")
         head = _Head(first_line=lines[0])
         for line in lines[1:]:
+            if line[:1] in (" ", "\t"):
+                raise RemoteProtocolError("obsolete line folding in the HTTP head")
             name, sep, value = line.partition(":")
-            if not sep or not name or name != name.strip() or any(c in name for c in " \t"):
+            if not sep or not _TOKEN.fullmatch(name):
                 raise RemoteProtocolError(f"bad HTTP header line {line[:60]!r}")
+            if len(line) > MAX_HEADER_FIELD_SIZE:
+                raise RemoteProtocolError(f"HTTP header field over {MAX_HEADER_FIELD_SIZE} bytes")
             key = name.lower()
-            value = value.strip()
-            if key == "content-length" and key in head.headers and head.headers[key] != value:
-                raise RemoteProtocolError("conflicting Content-Length headers")
+            value = value.strip(" \t")
+            if key in _SINGLE_HEADERS and key in head.headers and head.headers[key] != value:
+                raise RemoteProtocolError(f"conflicting {name} headers")
             head.headers[key] = value
-        parts = head.first_line.split(" ")
         if self.role is Role.SERVER:
-            if len(parts) != 3 or parts[2] not in ("HTTP/1.1", "HTTP/1.0") or not parts[1].startswith("/"):
+            m = _REQUEST_LINE.fullmatch(head.first_line)
+            if m is None:
                 raise RemoteProtocolError(f"bad request line {head.first_line[:80]!r}")
-            if parts[0] != "POST":
-                raise RemoteProtocolError(f"XML-RPC needs POST, got {parts[0][:10]!r}")
+            if m["method"] != "POST":
+                raise RemoteProtocolError(f"XML-RPC needs POST, got {m['method'][:10]!r}")
+            if m["path"] not in ALLOWED_PATHS:
+                raise RemoteProtocolError(f"request path {m['path'][:40]!r} is not one of {', '.join(ALLOWED_PATHS)}")
         else:
-            if len(parts) < 2 or parts[0] not in ("HTTP/1.1", "HTTP/1.0") or not (
-                len(parts[1]) == 3 and parts[1].isdigit()
-            ):
+            m = _STATUS_LINE.fullmatch(head.first_line)
+            if m is None:
                 raise RemoteProtocolError(f"bad status line {head.first_line[:80]!r}")
-            if parts[1] != "200":
-                raise RemoteProtocolError(f"HTTP status {' '.join(parts[1:])[:60]}")
+            if m["status"] != "200":
+                raise RemoteProtocolError(f"HTTP status {m['status']} {m['reason'][:40]}")
         return head
 
     def _finish(self, body: bytes) -> Event:
