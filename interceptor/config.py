@@ -153,6 +153,8 @@ class Limits:
     #: Relay listeners toward one peer interceptor (its canonical endpoints handed to
     #: local processes or to the master); more is refused with ``relay_limit``.
     max_relays_per_peer: int = 512
+    #: Node names one peer may have registered at the master (master role).
+    max_nodes_per_peer: int = 1024
     #: Calls in one ``system.multicall``; fields in one TCPROS connection header.
     max_multicall: int = 256
     max_header_fields: int = 32

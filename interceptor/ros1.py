@@ -83,6 +83,8 @@ CALL_TIMEOUT = 30.0
 IDLE_TIMEOUT = 600.0
 READ_SIZE = 65536
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
+#: Master calls that bind a node name to an API at rosmaster.
+_BINDING_CALLS = frozenset({"registerPublisher", "registerSubscriber", "registerService", "subscribeParam"})
 #: Master calls that release a registration: their URIs must already have a relay.
 _RELEASING_CALLS = frozenset({"unregisterPublisher", "unregisterSubscriber", "unregisterService", "unsubscribeParam"})
 
@@ -705,6 +707,14 @@ class Interceptor:
         entry = self._owners.get(node)
         return entry[0] if entry else None
 
+    def _check_node_limit(self, call: Request, manager: str) -> None:
+        """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
+        if call.method not in _BINDING_CALLS or not call.params or call.params[0] in self._owners:
+            return
+        cap = self.cfg.limits.max_nodes_per_peer
+        if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
+            raise PolicyDenied("node_limit", f"{manager} has {cap} nodes registered already (max_nodes_per_peer)")
+
     def _note_registration(self, call: Request, response: Response | Fault, manager: str) -> None:
         if not _ros_ok(response) or not call.params:
             return
@@ -741,6 +751,7 @@ class Interceptor:
             check_master_call(
                 call.method, call.params, manager=peer.manager, grants=peer.access.grants, owner_of=self._owner_of
             )
+            self._check_node_limit(call, peer.manager)
             uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
             call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
             return _rewrite_param_api(call, uri_map)

@@ -237,12 +237,13 @@ def redact_node_reply(call: Request, response: Response | Fault, master: str) ->
     """Node-API replies sent to a peer name no host endpoint: ``getMasterUri``
     answers ``master`` (the canonical master), ``getBusInfo`` keeps connection id,
     direction, transport, topic and state but not the other end's address or the
-    free-text info (roscpp writes ``127.0.0.1:port`` there)."""
+    free-text info (roscpp writes ``127.0.0.1:port`` there). Their status messages,
+    where rospy repeats the URI, become fixed words."""
     if call.method == "getMasterUri":
         v = _ros_triple(response, "getMasterUri")
         if v is None or v[0] != 1:
             return response
-        return Response(value=[v[0], v[1], master], keep_alive=response.keep_alive)
+        return Response(value=[v[0], "master URI", master], keep_alive=response.keep_alive)
     if call.method == "getBusInfo":
         v = _ros_triple(response, "getBusInfo")
         if v is None or v[0] != 1:
@@ -255,5 +256,5 @@ def redact_node_reply(call: Request, response: Response | Fault, master: str) ->
                 raise RemoteProtocolError("getBusInfo row is not [id, destination, direction, transport, topic, connected, ...]")
             destination = row[1] if isinstance(row[1], str) and row[1].startswith("/") else REDACTED
             rows.append([row[0], destination, row[2], row[3], row[4], row[5]])
-        return Response(value=[v[0], v[1], rows], keep_alive=response.keep_alive)
+        return Response(value=[v[0], "bus info", rows], keep_alive=response.keep_alive)
     return response

@@ -1,0 +1,206 @@
+"""Issue 11: an insider with a valid certificate tries to exhaust or read what it should
+not (findings 2, 3, 5, 6), against real rosmaster and rospy behind real interceptors.
+
+The insider is robot B: a valid certificate and token, subscribe grants on /chatter
+(including the wildcard node ``*``).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import xmlrpc.client
+from contextlib import closing
+from pathlib import Path
+
+import pytest
+
+from cryptoros.ros1.xmlrpc import Fault, Request, make_multicall
+from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc
+from tests.support import running
+from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    extra = {"master": "[limits]\nmax_relays_per_peer = 64\nmax_nodes_per_peer = 128\n",
+             "robot_a": "[limits]\npreamble_timeout = 3.0\nmax_pending_per_certificate = 4\n"}
+    with robot_network(tmp_path_factory.mktemp("bounds"), start=("master", "robot_a", "robot_b"), extra=extra) as net:
+        yield net
+
+
+def token_of(network, name) -> str:
+    status, body = network.daemon.token(name)
+    assert status == 200, body
+    return body["access_token"]
+
+
+def rogue(network, host, as_name):
+    h = network.hosts[host]
+    return rogue_tls(h.address, h.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for(as_name),
+                     key=network.pki.pki.key_path_for(as_name))
+
+
+def denials(network, host) -> str:
+    return "\n".join(line for line in network.hosts[host].logs().splitlines() if "DENY" in line)
+
+
+def fds(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+def wait_registered(network, node, timeout=20):
+    deadline = time.monotonic() + timeout
+    while node not in nodes_in_state(master_state(network)):
+        assert time.monotonic() < deadline, f"{node} never registered"
+        time.sleep(0.1)
+
+
+# ---------------------------------------------------------------- finding 2: relay exhaustion
+
+
+def test_fresh_names_from_one_insider_keep_fds_bounded_and_others_registering(network):
+    master_proc = network.hosts["master"].proc
+    fds_before, rss_before = fds(master_proc.pid), rss_kib(master_proc.pid)
+    token = token_of(network, "robot_b")
+    b_host, b_port = network.hosts["robot_b"].address, network.hosts["robot_b"].public_port
+    with rogue(network, "master", "robot_b") as s:
+        assert rogue_preamble(s, token, "master").ok
+        # unregister* with never-seen endpoints: no relay is ever opened for them
+        for batch in range(10):
+            calls = [Request(method="unregisterSubscriber",
+                             params=("/spy", "/nothing", f"cryptoros://{b_host}:{b_port}/x/{batch * 256 + i + 100000}"))
+                     for i in range(256)]
+            reply = rogue_xmlrpc(s, "system.multicall", make_multicall(calls).params[0])
+            assert all(r == [[-1, "denied by cryptoros", 0]] for r in reply.value)
+        # a multicall over the cap is refused whole
+        calls = [Request(method="getPid", params=("/spy",))] * 2500
+        reply = rogue_xmlrpc(s, "system.multicall", make_multicall(calls).params[0])
+        assert isinstance(reply, Fault) and reply.string == "denied by cryptoros"
+        # register* of fresh names (the wildcard grant allows /chatter for any node of B):
+        # each fresh endpoint needs a relay at the master's interceptor, up to its cap
+        answers = []
+        for i in range(300):
+            answers.append(rogue_xmlrpc(s, "registerSubscriber", f"/fresh_{i}", "/chatter", "std_msgs/String",
+                                        f"cryptoros://{b_host}:{b_port}/x/{200000 + i}").value[0])
+        assert answers.count(1) <= 64 and answers.count(-1) >= 236
+    assert fds(master_proc.pid) - fds_before <= 64 + 16
+    assert rss_kib(master_proc.pid) - rss_before < 64 * 1024
+    log = denials(network, "master")
+    assert "unknown_endpoint" in log or "never registered" in log
+    assert "max_relays_per_peer" in log
+    # another robot's granted registrations still work: robot A's talker and subscriber
+    # register and talk (the insider used up only its own quota)
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"], env=network.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "30"], env=network.ros_env("robot_a")) as sub:
+            read_lines(sub, "READY", 20)
+            wait_registered(network, "/victim")
+            assert got(read_lines(sub, "GOT", 20))
+
+
+# ---------------------------------------------------------------- finding 3: preamble slowloris
+
+
+def test_dribbled_preambles_are_cut_at_the_deadline_and_capped_per_certificate(network):
+    socks = []
+    try:
+        for _ in range(8):
+            s = rogue(network, "robot_a", "robot_b")
+            s.sendall(b"C")  # one byte of the preamble, then nothing
+            socks.append(s)
+        start = time.monotonic()
+        closed_at = []
+        for s in socks:
+            s.settimeout(15)
+            try:
+                data = s.recv(100)
+                while data and b"denied" not in data:
+                    data = s.recv(100)
+            except (OSError, ConnectionError):
+                pass
+            closed_at.append(time.monotonic() - start)
+        # 4 were refused at once (per-certificate cap), the others at the 3 s deadline
+        assert max(closed_at) < 10, closed_at
+    finally:
+        for s in socks:
+            s.close()
+    log = denials(network, "robot_a")
+    assert log.count("4 unauthenticated streams from this certificate already") >= 4
+    assert log.count("preamble_timeout") >= 1
+
+
+# ---------------------------------------------------------------- finding 5: endpoint leaks
+
+
+def test_node_api_replies_to_a_peer_name_no_loopback_endpoint(network):
+    token = token_of(network, "robot_b")
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"], env=network.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        # a subscriber on A: its bus info names the publisher's loopback URI
+        with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "30"], env=network.ros_env("robot_a")) as sub:
+            read_lines(sub, "READY", 20)
+            wait_registered(network, "/victim")
+            assert got(read_lines(sub, "GOT", 20))
+            with rogue(network, "master", "robot_b") as s:
+                assert rogue_preamble(s, token, "master").ok
+                node_api = rogue_xmlrpc(s, "lookupNode", "/spy", "/victim").value[2]
+            with rogue(network, "robot_a", "robot_b") as s:
+                assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
+                master_uri = rogue_xmlrpc(s, "getMasterUri", "/spy").value
+                bus = rogue_xmlrpc(s, "getBusInfo", "/spy").value
+        assert master_uri[0] == 1 and master_uri[2] == "cryptoros://master"
+        assert bus[0] == 1 and bus[2], bus
+        assert "127.0.0.1" not in repr(bus) and "127.0.0.1" not in repr(master_uri)
+
+
+# ---------------------------------------------------------------- finding 6: fragile spots
+
+
+def test_an_oversized_body_is_refused_with_a_ros_error_without_reading_it(network):
+    host, port = network.hosts["robot_b"].master_uri[len("http://"):].rstrip("/").split(":")
+    with closing(socket.create_connection((host, int(port)), timeout=10)) as s:
+        s.sendall(b"POST /RPC2 HTTP/1.1\r\nHost: x\r\nContent-Type: text/xml\r\nContent-Length: 104857600\r\n\r\n")
+        s.settimeout(10)
+        answer = s.recv(65536)
+        assert b"200 OK" in answer and b"<int>-1</int>" in answer
+        sent = 0
+        chunk = b"<" * 65536
+        try:
+            while sent < 100 << 20:
+                sent += s.send(chunk)
+        except OSError:
+            pass
+    assert sent < 16 << 20, f"the interceptor read {sent} bytes of a refused body"
+
+
+def test_with_its_manager_disabled_the_local_master_answers_ros_errors_not_tracebacks(network):
+    local = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+    assert local.getPid("/probe")[0] == 1
+    network.cli("disable-manager", "robot_b")
+    try:
+        deadline = time.monotonic() + 20
+        answer = None
+        while time.monotonic() < deadline:
+            answer = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri).registerSubscriber(
+                "/rospy_listener", "/chatter", "std_msgs/String", "http://127.0.0.1:9/")
+            if answer[0] == -1:
+                break
+            time.sleep(0.3)
+        assert answer is not None and answer[0] == -1 and answer[1] == "denied by cryptoros"
+        assert network.hosts["robot_b"].proc.poll() is None
+        assert "Traceback" not in network.hosts["robot_b"].logs()
+    finally:
+        network.cli("enable-manager", "robot_b")
