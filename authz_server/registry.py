@@ -275,7 +275,10 @@ class Registry:
         g = GrantRow.checked(action, node, name, type_)
         with self._session.begin() as s:
             m = self._manager(s, manager)
-            return self._add_grant(s, m, g)
+            added = self._add_grant(s, m, g)
+            if added:
+                self._bump_serial(s)  # the feed changes: interceptors fetch tokens with the new grant
+            return added
 
     def _add_grant(self, s: Session, m: Manager, g: GrantRow) -> bool:
         cls, column, _rel = GRANT_TABLES[g.action]

@@ -34,7 +34,8 @@ DEFAULT_MAX_SIZE: Final = 64 * 1024
 _HEAD = struct.Struct("<3sBBI")
 
 #: What a stream between interceptors may be for.
-PURPOSES: Final = frozenset({"master", "node", "topic", "service", "ros2"})
+#: ``refresh`` carries nothing: it shows the peer our current token and takes its own.
+PURPOSES: Final = frozenset({"master", "node", "topic", "service", "ros2", "refresh"})
 MAX_TARGET_LENGTH: Final = 512
 
 

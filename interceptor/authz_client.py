@@ -12,6 +12,21 @@
   Open streams register with :meth:`PeerVerifier.watch`; when the feed revokes their
   token or disables their manager, their ``on_revoked`` callback closes them.
 
+A stream never outlives its authority. The verifier keeps the *freshest* verified
+token of every peer (its manager and certificate, :meth:`PeerVerifier.note`): a peer
+presents a new one on any stream, or on a ``refresh`` exchange its interceptor makes
+when its token changes. Every open stream is judged by its peer's freshest token:
+
+- it is cut once that token has expired for more than ``grace`` seconds;
+- when a fresher token arrives, the stream's ``recheck`` runs the policy again with
+  the new grants and cuts the stream if it is no longer covered (a removed grant cuts
+  exactly the streams it covered);
+- when the feed revokes the token a stream was judged by, the stream is not cut at
+  once if the peer can show a fresh, unrevoked token within ``revocation_grace``
+  seconds (its interceptor fetches one as soon as it sees the revocation): then it
+  is rechecked with that token. A peer that shows none (down, or compromised and
+  unwilling) is cut when the grace ends. A disabled manager is cut at once.
+
 Every wait is bounded by ``request_timeout``; failures are logged and retried, never
 raised into the event loop.
 """
@@ -132,6 +147,8 @@ class TokenKeeper:
         self._token: OwnToken | None = None
         self.refreshed = asyncio.Event()
         self._wake = asyncio.Event()
+        #: Called after each new token (the interceptor shows it to its peers).
+        self.listeners: list[Callable[[], None]] = []
 
     def current(self) -> str:
         token = self._token
@@ -147,6 +164,12 @@ class TokenKeeper:
         self._token = await self._client.fetch_token(clock=self._clock)
         self.refreshed.set()
         log.info("access token refreshed, valid for %.0f s", self._token.expires_at - self._clock())
+        for listener in self.listeners:
+            listener()
+
+    def wake(self) -> None:
+        """Refresh now (the registry changed: our grants may have)."""
+        self._wake.set()
 
     def invalidate(self) -> None:
         """Our token was revoked (or our manager disabled): drop it and ask again now."""
@@ -179,6 +202,15 @@ class TokenKeeper:
 class _Watch:
     access: AccessToken
     on_revoked: Callable[[str], None]
+    #: Raises PolicyDenied when the stream is not covered by a (fresher) token.
+    recheck: Callable[[AccessToken], None] | None = None
+    #: When the token it was judged by was revoked: cut at this time unless a fresh one comes.
+    revoked_deadline: float | None = None
+
+
+def _peer_key(access: AccessToken) -> tuple[str, str]:
+    """A peer: its manager and the certificate its tokens are bound to."""
+    return access.subject, access.thumbprint
 
 
 class PeerVerifier:
@@ -194,12 +226,17 @@ class PeerVerifier:
         issuer: str,
         audience: str,
         poll_interval: float,
+        grace: float = 30.0,
+        revocation_grace: float = 3.0,
         clock: Clock = time.time,
     ) -> None:
         self._client = client
         self.issuer = issuer
         self.audience = audience
         self._poll = poll_interval
+        self.grace = grace
+        self.revocation_grace = revocation_grace
+        self._freshest: dict[tuple[str, str], AccessToken] = {}
         self._clock = clock
         self.keys = KeySet({})
         self.revocations = Revocations()
@@ -209,6 +246,8 @@ class PeerVerifier:
         self.last_feed_at: float | None = None
         #: Called with each new feed (after open streams were cut).
         self.listeners: list[Callable[[Revocations], None]] = []
+        #: Called with a peer token the feed just revoked (its holder may have a new one).
+        self.stale_listeners: list[Callable[[AccessToken], None]] = []
 
     def verify(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
         """Verify with the keys and revocations known now; TokenError on any failure."""
@@ -233,11 +272,86 @@ class PeerVerifier:
         await self._refresh_jwks()
         return self.verify(token, peer_cert_der)
 
-    def watch(self, access: AccessToken, on_revoked: Callable[[str], None]) -> Callable[[], None]:
-        """Register an open stream; returns the function to call when it closes."""
-        entry = _Watch(access, on_revoked)
+    def watch(
+        self, access: AccessToken, on_revoked: Callable[[str], None],
+        recheck: Callable[[AccessToken], None] | None = None,
+    ) -> Callable[[], None]:
+        """Register an open stream judged by ``access`` (``recheck`` may be set later on
+        the returned handle); returns the function to call when it closes."""
+        entry = _Watch(self.freshest(access), on_revoked, recheck)
         self._watches.add(entry)
-        return lambda: self._watches.discard(entry)
+        watches = self._watches
+
+        class Handle:
+            def __call__(self) -> None:
+                watches.discard(entry)
+
+            def set_recheck(self, fn: Callable[[AccessToken], None]) -> None:
+                entry.recheck = fn
+
+        return Handle()
+
+    # ------------------------------------------------------------ freshest tokens
+    def note(self, access: AccessToken) -> AccessToken:
+        """Remember a verified token of a peer; returns the peer's freshest. A fresher
+        token re-judges the peer's open streams (:meth:`_rejudge`)."""
+        key = _peer_key(access)
+        current = self._freshest.get(key)
+        if current is not None and (current.expires_at, current.issued_at) >= (access.expires_at, access.issued_at) \
+                and current.jti not in self.revocations.revoked_jtis:
+            return current
+        self._freshest[key] = access
+        self._rejudge(key, access)
+        return access
+
+    def freshest(self, access: AccessToken) -> AccessToken:
+        """The freshest verified token of the peer that presented ``access``."""
+        current = self._freshest.get(_peer_key(access))
+        if current is None or current.expires_at < access.expires_at:
+            return access
+        return current
+
+    def _cut(self, entry: _Watch, reason: str) -> None:
+        self._watches.discard(entry)
+        log.warning("cutting off stream of manager=%s jti=%s: %s", entry.access.subject, entry.access.jti, reason)
+        try:
+            entry.on_revoked(reason)
+        except Exception:  # a broken stream must not stop the others from being cut
+            log.exception("closing a stream failed")
+
+    def _rejudge(self, key: tuple[str, str], access: AccessToken) -> None:
+        from cryptoros.errors import PolicyDenied
+
+        for entry in list(self._watches):
+            if _peer_key(entry.access) != key:
+                continue
+            if entry.recheck is not None:
+                try:
+                    entry.recheck(access)
+                except PolicyDenied as exc:
+                    self._cut(entry, f"grant_removed: {exc.detail}")
+                    continue
+            entry.access = access
+            entry.revoked_deadline = None
+
+    def sweep(self) -> int:
+        """Cut streams whose peer's freshest token expired more than ``grace`` ago, or
+        whose revoked token was not replaced within ``revocation_grace``; forget
+        tokens no stream needs. Returns how many streams were cut."""
+        now = self._clock()
+        cut = 0
+        for entry in list(self._watches):
+            if entry.access.expires_at + self.grace < now:
+                self._cut(entry, f"token_expired: no fresh token {now - entry.access.expires_at:.0f} s after expiry")
+                cut += 1
+            elif entry.revoked_deadline is not None and entry.revoked_deadline <= now:
+                self._cut(entry, "revoked")
+                cut += 1
+        live = {_peer_key(e.access) for e in self._watches}
+        for key, access in list(self._freshest.items()):
+            if key not in live and access.expires_at + self.grace < now:
+                del self._freshest[key]
+        return cut
 
     @property
     def open_streams(self) -> int:
@@ -251,24 +365,27 @@ class PeerVerifier:
             log.warning("cannot refresh JWKS (%s); keeping %d known keys", exc.detail, len(self.keys))
 
     def apply(self, revocations: Revocations) -> int:
-        """Adopt a new feed and cut off every watched stream it revokes; returns how many."""
+        """Adopt a new feed: cut every watched stream of a disabled manager; a stream
+        whose token is revoked gets ``revocation_grace`` seconds for its peer to show a
+        fresh one (see the module docstring). Returns how many were cut now."""
         self.revocations = revocations
         cut = 0
+        stale: dict[tuple[str, str], AccessToken] = {}
+        deadline = self._clock() + self.revocation_grace
         for entry in list(self._watches):
             access = entry.access
-            if access.jti in revocations.revoked_jtis:
-                reason = "revoked"
-            elif access.subject in revocations.disabled_subjects:
-                reason = "subject_disabled"
-            else:
-                continue
-            self._watches.discard(entry)
-            cut += 1
-            log.warning("cutting off stream of manager=%s jti=%s: %s", access.subject, access.jti, reason)
-            try:
-                entry.on_revoked(reason)
-            except Exception:  # a broken stream must not stop the others from being cut
-                log.exception("closing a revoked stream failed")
+            if access.subject in revocations.disabled_subjects:
+                self._cut(entry, "subject_disabled")
+                cut += 1
+            elif access.jti in revocations.revoked_jtis:
+                if entry.revoked_deadline is None:
+                    entry.revoked_deadline = deadline
+                stale[_peer_key(access)] = access
+        for key, access in stale.items():
+            if self._freshest.get(key) is access:
+                del self._freshest[key]
+            for listener in self.stale_listeners:
+                listener(access)
         for listener in self.listeners:
             listener(revocations)
         return cut
@@ -287,6 +404,7 @@ class PeerVerifier:
                     self.ready.set()
             except TokenError as exc:
                 log.warning("cannot poll the revocation feed (%s); keeping the last one", exc.detail)
+            self.sweep()
             await asyncio.sleep(self._poll)
 
 

@@ -119,6 +119,11 @@ class AuthzSettings:
     refresh_margin: float = 60.0
     revocation_poll_interval: float = 1.0
     request_timeout: float = 5.0
+    #: A stream is cut this long after its peer's freshest token expired.
+    token_grace: float = 30.0
+    #: A stream whose token the feed revoked is cut unless its peer shows a fresh
+    #: token within this many seconds (then it is re-judged by that token's grants).
+    revocation_grace: float = 3.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -155,6 +160,9 @@ class Limits:
     max_relays_per_peer: int = 512
     #: Node names one peer may have registered at the master (master role).
     max_nodes_per_peer: int = 1024
+    #: New streams are refused (and /healthz answers 503) while the revocation feed is
+    #: older than this many seconds: a revoked peer could be let in.
+    max_feed_age: float = 60.0
     #: Calls in one ``system.multicall``; fields in one TCPROS connection header.
     max_multicall: int = 256
     max_header_fields: int = 32

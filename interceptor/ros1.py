@@ -31,7 +31,8 @@ import ssl
 import time
 import urllib.parse
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from aiohttp import web
 from cryptography import x509
@@ -91,10 +92,13 @@ _RELEASING_CALLS = frozenset({"unregisterPublisher", "unregisterSubscriber", "un
 
 @dataclass(frozen=True, slots=True)
 class Peer:
-    """A verified peer interceptor: its token and the addresses its certificate names."""
+    """A verified peer interceptor: the token it opened the stream with, the addresses
+    its certificate names, and the stream's registration with the verifier (which
+    re-judges it when the peer shows a fresher token)."""
 
     access: AccessToken
     hosts: frozenset[str]
+    watch: Any = field(default=None, compare=False)
 
     @property
     def manager(self) -> str:
@@ -267,7 +271,13 @@ class Interceptor:
             issuer=cfg.authz.issuer,
             audience=cfg.authz.audience,
             poll_interval=cfg.authz.revocation_poll_interval,
+            grace=cfg.authz.token_grace,
+            revocation_grace=cfg.authz.revocation_grace,
         )
+        #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
+        #: where to show them our new token and fetch theirs.
+        self._peer_endpoints: dict[tuple[str, str], tuple[str, int]] = {}
+        self._exchanges: set[tuple[str, int]] = set()
         local_master = (
             f"http://{cfg.local_master.host}:{cfg.local_master.port}/" if cfg.local_master is not None else None
         )
@@ -298,6 +308,7 @@ class Interceptor:
         self._streams: set[asyncio.Future] = set()
         self._metrics_runner: web.AppRunner | None = None
         self._relay_sockets: list[socket.socket] = []
+        self._started = False
 
     # ================================================================ life cycle
     async def start(self, *, token_wait: float = 10.0) -> None:
@@ -309,6 +320,8 @@ class Interceptor:
         except (asyncio.TimeoutError, TokenError) as exc:
             log.error("no access token yet (%s): everything is refused until one arrives", exc)
         self.verifier.listeners.append(self._on_feed)
+        self.verifier.stale_listeners.append(self._on_stale_peer_token)
+        self.keeper.listeners.append(self._on_own_token)
         self._tasks.append(asyncio.create_task(self.keeper.run(), name="token-keeper"))
         self._tasks.append(asyncio.create_task(self.verifier.run(), name="revocation-feed"))
         self._public_server = await self._listen_public(self._server_ctx)
@@ -317,6 +330,7 @@ class Interceptor:
             self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
         if self.cfg.metrics is not None:
             await self._start_metrics()
+        self._started = True
         log.info(
             "interceptor for manager %s up: roles %s, public %s%s",
             self.cfg.manager,
@@ -333,6 +347,7 @@ class Interceptor:
                 feed = await self.authz.fetch_revocations()
                 if feed is not None:
                     self.verifier.apply(feed)
+                self.verifier.last_feed_at = time.time()
                 self.own_access()
                 return
             except TokenError as exc:
@@ -400,9 +415,12 @@ class Interceptor:
         async def healthz(_request: web.Request) -> web.Response:
             try:
                 self.keeper.current()
-            except TokenError:
-                return web.json_response({"status": "no_token"}, status=503)
-            return web.json_response({"status": "ok", "open_streams": len(self._streams)})
+                self._check_feed_age()
+            except (TokenError, PolicyDenied) as exc:
+                return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
+            last = self.verifier.last_feed_at
+            return web.json_response({"status": "ok", "open_streams": len(self._streams),
+                                      "feed_age": None if last is None else round(time.time() - last, 1)})
 
         app.router.add_get("/metrics", metrics)
         app.router.add_get("/healthz", healthz)
@@ -438,6 +456,38 @@ class Interceptor:
             log.warning("our own access token was revoked; asking for a new one")
             self._own_access = None
             self.keeper.invalidate()
+        elif self._started:
+            self.keeper.wake()  # the registry changed: our grants may have (grants live)
+
+    # ---------------------------------------------------------------- token exchange
+    def _on_own_token(self) -> None:
+        """Show every peer we have streams to our new token (and take theirs)."""
+        for endpoint in set(self._peer_endpoints.values()):
+            self._exchange_soon(endpoint)
+
+    def _on_stale_peer_token(self, access: AccessToken) -> None:
+        """The feed revoked a peer's token: fetch its fresh one if we know where it is
+        (a peer that opened streams to us shows us its own)."""
+        endpoint = self._peer_endpoints.get((access.subject, access.thumbprint))
+        if endpoint is not None:
+            self._exchange_soon(endpoint)
+
+    def _exchange_soon(self, endpoint: tuple[str, int]) -> None:
+        if endpoint in self._exchanges or not self._started:
+            return
+        self._exchanges.add(endpoint)
+
+        async def exchange() -> None:
+            try:
+                _reader, writer, _peer = await self.open_tunnel(*endpoint, "refresh", "")
+                writer.close()
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                log.info("token exchange with %s:%d failed: %s", *endpoint, exc)
+            finally:
+                self._exchanges.discard(endpoint)
+
+        self._tasks.append(asyncio.ensure_future(exchange()))
+        self._tasks = [t for t in self._tasks if not t.done()]
 
     def own_access(self) -> AccessToken:
         """Our own token, verified like a peer's (it carries our grants)."""
@@ -515,6 +565,8 @@ class Interceptor:
                 raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
             der = peer_cert_der(writer.get_extra_info("ssl_object"))
             access = await self.verifier.verify_fresh(reply.token, der)
+            self.verifier.note(access)
+            self._peer_endpoints[(access.subject, access.thumbprint)] = (host, port)
             leftover = preamble_reader.trailing_data()
             if leftover:
                 reader._buffer[:0] = leftover  # type: ignore[attr-defined]  # give back bytes read past the reply
@@ -554,8 +606,11 @@ class Interceptor:
                     event = preamble_reader.next_event()
                     preamble = event if isinstance(event, Preamble) else None
             access = await self.verifier.verify_fresh(preamble.token, der)
+            self.verifier.note(access)
             who = f"{access.subject}@{who}"
-            self._check_purpose(preamble)
+            self._check_feed_age()
+            if preamble.purpose != "refresh":
+                self._check_purpose(preamble)
             if not self._new_conn_limiter.allow(access.subject):
                 raise PolicyDenied("rate_limited", f"more than {self.cfg.limits.max_new_connections_per_second}/s new streams")
             if self._open_per_peer.get(access.subject, 0) >= self.cfg.limits.max_connections_per_peer:
@@ -584,10 +639,15 @@ class Interceptor:
                 else:
                     del self._pending[key]
         writer.write(encode(PreambleReply(ok=True, token=own_token)))
+        if preamble.purpose == "refresh":  # tokens shown both ways: nothing more to do
+            self.metrics.connections.labels("refresh", "in").inc()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(writer.drain(), limits.handshake_timeout)
+            writer.close()
+            return
         leftover = preamble_reader.trailing_data()
         if leftover:
             reader._buffer[:0] = leftover  # type: ignore[attr-defined]
-        peer = Peer(access=access, hosts=cert_hosts(der))
         purpose = preamble.purpose
         self.metrics.connections.labels(purpose, "in").inc()
         self.metrics.open_streams.labels(purpose).inc()
@@ -598,6 +658,7 @@ class Interceptor:
             writer.transport.abort()
 
         unwatch = self.verifier.watch(access, cut)
+        peer = Peer(access=access, hosts=cert_hosts(der), watch=unwatch)
         try:
             if purpose == "master":
                 await self._serve_master_stream(reader, writer, peer)
@@ -615,6 +676,14 @@ class Interceptor:
             self.metrics.open_streams.labels(purpose).dec()
             self._open_per_peer[access.subject] -= 1
             writer.close()
+
+    def _check_feed_age(self) -> None:
+        """Fail closed when the revocation feed is stale: a revoked peer could be let in."""
+        last = self.verifier.last_feed_at
+        age = None if last is None else time.time() - last
+        if age is None or age > self.cfg.limits.max_feed_age:
+            raise PolicyDenied("feed_stale", f"revocation feed {'never read' if age is None else f'{age:.0f} s old'}"
+                                             f" (max_feed_age {self.cfg.limits.max_feed_age:.0f} s)")
 
     def _check_purpose(self, preamble: Preamble) -> None:
         if preamble.purpose == "master":
@@ -748,9 +817,8 @@ class Interceptor:
             return local
 
         def decide(call: Request) -> Request:
-            check_master_call(
-                call.method, call.params, manager=peer.manager, grants=peer.access.grants, owner_of=self._owner_of
-            )
+            grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
+            check_master_call(call.method, call.params, manager=peer.manager, grants=grants, owner_of=self._owner_of)
             self._check_node_limit(call, peer.manager)
             uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
             call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
@@ -794,7 +862,7 @@ class Interceptor:
             check_node_call(
                 call.method,
                 call.params,
-                grants=peer.access.grants,
+                grants=self.verifier.freshest(peer.access).grants,
                 peer_is_master=peer.manager == self.cfg.master.manager,
                 topic_types=self.topic_types,
             )
@@ -818,18 +886,26 @@ class Interceptor:
             reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
         )
         fields = header.as_dict()
-        try:
+
+        def judge(grants) -> frozenset[str] | None:
+            """The peer's side of this stream against its grants (again whenever it shows
+            a fresher token: a removed grant cuts exactly the streams it covered)."""
             if purpose == "topic":
                 if "topic" not in fields:
                     raise PolicyDenied("malformed", "topic stream without a topic header")
                 published = self.topic_types.get(fields["topic"])
                 check_subscriber_header(
-                    fields, grants=peer.access.grants, published_type=published, published_md5=_md5_or_none(published)
+                    fields, grants=grants, published_type=published, published_md5=_md5_or_none(published)
                 )
-            else:
-                if "service" not in fields:
-                    raise PolicyDenied("malformed", "service stream without a service header")
-                client_types = check_service_client_header(fields, grants=peer.access.grants)
+                return None
+            if "service" not in fields:
+                raise PolicyDenied("malformed", "service stream without a service header")
+            return check_service_client_header(fields, grants=grants)
+
+        try:
+            client_types = judge(self.verifier.freshest(peer.access).grants)
+            if peer.watch is not None:
+                peer.watch.set_recheck(lambda fresh: judge(fresh.grants))
         except PolicyDenied:
             writer.write(encode_header({"error": OPAQUE}))
             with contextlib.suppress(Exception):
@@ -989,12 +1065,18 @@ class Interceptor:
                 tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields
             )
             reply_fields = reply.as_dict()
-            if purpose == "topic":
-                check_publisher_header(reply_fields, grants=peer.access.grants, topic=fields["topic"])
-            else:
-                check_service_server_header(
-                    reply_fields, service=fields["service"], server_grants=peer.access.grants, client_types=client_types
-                )
+
+            def judge(grants) -> None:
+                """The publisher's (server's) side against its grants, again on each fresher token."""
+                if purpose == "topic":
+                    check_publisher_header(reply_fields, grants=grants, topic=fields["topic"])
+                else:
+                    check_service_server_header(
+                        reply_fields, service=fields["service"], server_grants=grants, client_types=client_types
+                    )
+
+            judge(self.verifier.freshest(peer.access).grants)
+            unwatch.set_recheck(lambda fresh: judge(fresh.grants))
             writer.write(encode_header(canonical_header(reply)))
             self.metrics.open_streams.labels(purpose).inc()
             try:

@@ -143,3 +143,32 @@ async def test_keeper_refreshes_before_expiry(team, tmp_path):
         finally:
             runner.cancel()
             await alice.close()
+
+
+async def test_a_stream_is_cut_past_its_peers_token_expiry_plus_grace_unless_a_fresher_one_came(team, tmp_path):
+    with running_daemon(team.pki, team.db, tmp_path, extra=("--token-lifetime", "10")) as daemon:
+        alice = client_for(daemon, "alice")
+        keeper = TokenKeeper(alice, refresh_margin=1)
+        await keeper.refresh()
+        bob_client, _ = verifier_for(daemon)
+        skew = [0.0]
+        verifier = PeerVerifier(bob_client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1,
+                                grace=5, clock=lambda: time.time() + skew[0])
+        await verifier._refresh_jwks()
+        der = der_of(team.pki, "alice")
+        first = verifier.note(verifier.verify(keeper.current(), der))
+        cuts: list[str] = []
+        verifier.watch(first, cuts.append)
+        await asyncio.sleep(1.1)  # a later token (a later iat and exp)
+        await keeper.refresh()
+        second = verifier.verify(keeper.current(), der)
+        kept: list[str] = []
+        verifier.watch(first, kept.append)
+        verifier.note(second)  # the peer showed a fresher token: the stream is judged by it
+        skew[0] = first.expires_at - time.time() + 5.5  # first expired + 5.5 s, second 4.4 s
+        assert verifier.sweep() == 0 and not cuts and not kept
+        skew[0] += 2
+        assert verifier.sweep() == 2
+        assert cuts and cuts[0].startswith("token_expired")
+        await alice.close()
+        await bob_client.close()

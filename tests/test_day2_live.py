@@ -1,0 +1,115 @@
+"""Issue 13 (first part): grants and revocations take effect live, and a stream never
+outlives its authority. Real rosmaster, rospy nodes, interceptors and authz daemon;
+only the admin CLI is used, never SIGHUP or a restart.
+
+- A grant added with ``cryptoros-authz grant`` lets the node in within 10 s.
+- A grant removed with ``cryptoros-authz revoke`` cuts exactly the stream it covered
+  within 5 s; the robot's other stream keeps flowing.
+- With the revocation feed stale, /healthz answers 503 and new streams are refused.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+import xmlrpc.client
+
+import pytest
+
+from tests.interceptor_harness import NODE, SYS_PY, robot_network
+from tests.support import running
+from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    with robot_network(tmp_path_factory.mktemp("day2"), start=("master", "robot_a", "robot_b")) as net:
+        yield net
+
+
+def wait_registered(network, node, timeout=20):
+    deadline = time.monotonic() + timeout
+    while node not in nodes_in_state(master_state(network)):
+        assert time.monotonic() < deadline, f"{node} never registered"
+        time.sleep(0.1)
+
+
+def arrivals(proc, seconds: float, window: float = 0.2) -> list[float]:
+    """When a listener printed GOT lines during ``seconds`` (to within ``window``)."""
+    out = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        lines = read_lines(proc, None, window)
+        if any(line.startswith("GOT") for line in lines):
+            out.append(time.monotonic())
+    return out
+
+
+def test_a_new_grant_takes_effect_within_10_s_and_removing_it_cuts_only_its_stream(network):
+    local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+    dummy = "http://127.0.0.1:9/"
+    assert local_b.registerSubscriber("/listener_s", "/secret", "std_msgs/String", dummy)[0] == -1
+    network.cli("grant", "robot_b", "subscribe", "/listener_s", "/secret", "std_msgs/String")
+    started = time.monotonic()
+    while local_b.registerSubscriber("/listener_s", "/secret", "std_msgs/String", dummy)[0] != 1:
+        assert time.monotonic() - started < 10, "the new grant did not reach robot B's interceptor within 10 s"
+        time.sleep(0.2)
+    local_b.unregisterSubscriber("/listener_s", "/secret", dummy)
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "60"], env=network.ros_env("robot_a")) as sec, \
+            running([SYS_PY, NODE, "pub", "/rospy_talker", "/chatter", "100000", "20", "60"],
+                    env=network.ros_env("robot_a")) as chat:
+        read_lines(sec, "READY", 20)
+        read_lines(chat, "READY", 20)
+        wait_registered(network, "/talker_a")
+        wait_registered(network, "/rospy_talker")
+        with running([SYS_PY, NODE, "sub", "/listener_s", "/secret", "60"], env=network.ros_env("robot_b")) as s_sub, \
+                running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "60"], env=network.ros_env("robot_b")) as c_sub:
+            read_lines(s_sub, "READY", 20)
+            read_lines(c_sub, "READY", 20)
+            assert got(read_lines(s_sub, "GOT", 20))
+            assert got(read_lines(c_sub, "GOT", 20))
+            network.cli("revoke", "robot_b", "subscribe", "/listener_s", "/secret")
+            revoked_at = time.monotonic()
+            # /chatter keeps flowing, with no gap, while /secret stops within 5 s
+            chatter = arrivals(c_sub, 6)
+            read_lines(s_sub, None, 0.1)  # what /secret got until now, up to 6 s after the revoke
+            secret = arrivals(s_sub, 2)
+            assert not secret, "the revoked /secret stream still delivered 6 s after the revoke"
+            assert chatter and chatter[-1] > revoked_at + 5
+            gaps = [b - a for a, b in zip([revoked_at, *chatter], chatter)]
+            assert max(gaps) < 1.0, f"the /chatter stream stalled {max(gaps):.2f} s"
+    log = network.hosts["robot_a"].logs()
+    assert "grant_removed" in log
+
+
+def test_healthz_and_new_streams_fail_closed_when_the_feed_is_stale(tmp_path):
+    from tests.interceptor_harness import rogue_preamble, rogue_tls
+
+    extra = {"robot_a": "[limits]\nmax_feed_age = 3.0\n"}
+    with robot_network(tmp_path, start=("master", "robot_a"), extra=extra) as net:
+        host = net.hosts["robot_a"]
+        health = f"http://127.0.0.1:{host.metrics_port}/healthz"
+        assert json.loads(urllib.request.urlopen(health, timeout=5).read())["status"] == "ok"
+        status, body = net.daemon.token("robot_b")
+        assert status == 200
+        net.authz_proc.terminate()
+        net.authz_proc.wait(timeout=10)
+        deadline = time.monotonic() + 15
+        while True:
+            try:
+                urllib.request.urlopen(health, timeout=5)
+            except urllib.error.HTTPError as exc:
+                assert exc.code == 503
+                assert json.loads(exc.read())["status"] == "feed_stale"
+                break
+            assert time.monotonic() < deadline, "/healthz never reported the stale feed"
+            time.sleep(0.2)
+        cert, key = net.pki.pki.cert_path_for("robot_b"), net.pki.pki.key_path_for("robot_b")
+        with rogue_tls(host.address, host.public_port, ca=net.pki.ca_cert, cert=cert, key=key) as s:
+            reply = rogue_preamble(s, body["access_token"], "node", "1")
+        assert reply is None or reply.ok is False
+        assert "feed_stale" in host.logs()
