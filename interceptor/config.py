@@ -9,6 +9,7 @@ Example::
 
     manager = "robot1"              # the manager whose token this interceptor holds
     roles = ["node"]                # "node", "master", or both
+    state_dir = "state"             # tables kept across restarts (nodes need no restart)
 
     [tls]
     ca = "pki/ca.crt"
@@ -211,10 +212,15 @@ class InterceptorConfig:
     limits: Limits = field(default_factory=Limits)
     unsafe_plaintext_upstream: bool = False
     ros2: Ros2Settings | None = None
+    #: Where the export and relay tables, the published topics and (master role) the
+    #: node owners are kept across restarts; None: nothing is kept, and a restart
+    #: needs the host's nodes restarted too.
+    state_dir: Path | None = None
 
 
 _SECTIONS = {
-    "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2"},
+    "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2",
+         "state_dir"},
     "ros2": {f.name for f in fields(Ros2Settings)},
     "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
     "authz": {f.name for f in fields(AuthzSettings)},
@@ -379,6 +385,7 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         master=master,
         limits=limits,
         unsafe_plaintext_upstream=unsafe_plaintext,
+        state_dir=_path(base, top["state_dir"], "state_dir") if "state_dir" in top else None,
         ros2=ros2,
     )
 

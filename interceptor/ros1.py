@@ -25,7 +25,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import json
 import logging
+import os
 import socket
 import ssl
 import time
@@ -287,6 +289,7 @@ class Interceptor:
             local_master_uri=local_master,
             open_relay=self._open_relay,
             max_relays_per_host=cfg.limits.max_relays_per_peer,
+            on_change=self._save_state,
         )
         if local_master:
             self.translator.add_master_uri(local_master)
@@ -309,12 +312,17 @@ class Interceptor:
         self._metrics_runner: web.AppRunner | None = None
         self._relay_sockets: list[socket.socket] = []
         self._started = False
+        self._state_loaded = False
+        self._save_pending = False
+        self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
+        self._resubscribing: set[str] = set()
 
     # ================================================================ life cycle
     async def start(self, *, token_wait: float = 10.0) -> None:
         # Large reads are copied out of the pump's buffer: keep glibc from mmap-ing
         # (and page-faulting) each one (perf-baselines.md: +30 to 100 % on 1 MB frames).
         tune_malloc()
+        self._load_state()
         try:
             await asyncio.wait_for(self._first_token(), token_wait)
         except (asyncio.TimeoutError, TokenError) as exc:
@@ -331,6 +339,8 @@ class Interceptor:
         if self.cfg.metrics is not None:
             await self._start_metrics()
         self._started = True
+        for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
+            self._resubscribe_soon(topic, delay=0.5)
         log.info(
             "interceptor for manager %s up: roles %s, public %s%s",
             self.cfg.manager,
@@ -508,12 +518,19 @@ class Interceptor:
         future.add_done_callback(self._streams.discard)
         return future
 
-    def _open_relay(self, target: Canonical) -> tuple[str, int]:
-        """Bind a loopback listener for ``target`` now (so its URI exists at once);
-        it starts accepting on the next turn of the loop."""
+    def _open_relay(self, target: Canonical, port: int = 0) -> tuple[str, int]:
+        """Bind a loopback listener for ``target`` now (so its URI exists at once), on
+        ``port`` if given and free (a relay kept across a restart); it starts
+        accepting on the next turn of the loop."""
         sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(("127.0.0.1", 0))
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            if not port:
+                sock.close()
+                raise
+            sock.bind(("127.0.0.1", 0))
         sock.listen(128)
         sock.setblocking(False)
         self._relay_sockets.append(sock)
@@ -527,6 +544,61 @@ class Interceptor:
         host, port = sock.getsockname()[:2]
         log.debug("relay %s:%d -> %s", host, port, target)
         return host, port
+
+    # ---------------------------------------------------------------- state across restarts
+    def _state_path(self):
+        return None if self.cfg.state_dir is None else self.cfg.state_dir / f"{self.cfg.manager}.state.json"
+
+    def _save_state(self) -> None:
+        """Keep the tables a restart would otherwise lose (written atomically)."""
+        path = self._state_path()
+        if path is None or not self._state_loaded:
+            return
+        data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
+                "owners": self._owners, "local_subscribers": self._local_subscribers}
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                json.dump(data, f)
+            os.replace(tmp, path)
+        except OSError as exc:
+            log.error("cannot keep state in %s: %s", path, exc)
+
+    def _save_state_soon(self) -> None:
+        """Save once after this turn of the loop (a multicall changes many owners)."""
+        if self._state_path() is not None and not self._save_pending:
+            self._save_pending = True
+
+            def save() -> None:
+                self._save_pending = False
+                self._save_state()
+
+            asyncio.get_running_loop().call_soon(save)
+
+    def _load_state(self) -> None:
+        path = self._state_path()
+        self._state_loaded = True
+        if path is None or not path.exists():
+            return
+        try:
+            data = json.loads(path.read_text())
+            if data.get("version") != 1:
+                raise ValueError(f"unknown state version {data.get('version')!r}")
+            problems = self.translator.restore(data["translator"])
+            self.topic_types.update({str(k): str(v) for k, v in data.get("topic_types", {}).items()})
+            self._owners.update({str(k): [str(v[0]), int(v[1])] for k, v in data.get("owners", {}).items()})
+            for topic, subscribers in data.get("local_subscribers", {}).items():
+                self._local_subscribers[str(topic)] = {str(n): str(api) for n, api in subscribers.items()}
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.error("state in %s not used (%s): nodes of this host may need a restart", path, exc)
+            return
+        for problem in problems:
+            log.warning("state: %s", problem)
+        log.info("state restored from %s: %d exports, %d relays, %d published topics", path,
+                 len(data["translator"].get("exports", {})), self.translator.relay_count, len(self.topic_types))
+        self._save_state()
 
     def pool(self, host: str, port: int, purpose: str, target: str) -> TunnelPool:
         key = (host, port, purpose, target)
@@ -788,6 +860,7 @@ class Interceptor:
         if not _ros_ok(response) or not call.params:
             return
         node = call.params[0]
+        self._save_state_soon()
         if call.method.startswith("register"):
             entry = self._owners.setdefault(node, [manager, 0])
             entry[1] += 1
@@ -999,7 +1072,11 @@ class Interceptor:
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             if call.method == "registerPublisher" and _ros_ok(response):
-                self.topic_types[call.params[1]] = call.params[2]
+                if self.topic_types.get(call.params[1]) != call.params[2]:
+                    self.topic_types[call.params[1]] = call.params[2]
+                    self._save_state()
+            elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
+                self._note_local_subscriber(call)
             return rewrite_response(call, response, uri=self.translator.to_local)
 
         async def handle(request: Request) -> Response | Fault:
@@ -1011,6 +1088,80 @@ class Interceptor:
             log.warning("local master connection dropped: %s", exc)
         finally:
             writer.close()
+
+    # ---------------------------------------------------------------- subscribers reconnect
+    def _note_local_subscriber(self, call: Request) -> None:
+        """Which local nodes subscribe what, and their node APIs (to nudge them)."""
+        node, topic = call.params[0], call.params[1]
+        api = call.params[3] if call.method == "registerSubscriber" else call.params[2]
+        subscribers = self._local_subscribers.setdefault(topic, {})
+        if call.method == "registerSubscriber":
+            subscribers[node] = self.translator.to_local(api)
+        else:
+            subscribers.pop(node, None)
+            if not subscribers:
+                del self._local_subscribers[topic]
+        self._save_state()
+
+    def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
+        """A topic stream into this host ended: tell the topic's local subscribers the
+        current publishers (``publisherUpdate``, as the master would), so rospy and
+        roscpp connect again once the publisher's side is back (they retry a failed
+        connect by themselves, but not a connection the other side closed). ``via``
+        is the publisher's interceptor: waited for (a token exchange, backing off up
+        to a minute) before the subscribers are told."""
+        if topic not in self._local_subscribers or topic in self._resubscribing or not self._started:
+            return
+        self._resubscribing.add(topic)
+
+        async def nudge() -> None:
+            try:
+                await asyncio.sleep(delay)
+                if via is not None:
+                    await self._wait_reachable(via)
+                uris = await self._publishers_of(topic)
+                for node, api in list(self._local_subscribers.get(topic, {}).items()):
+                    try:
+                        await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, uris)))
+                    except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                        log.info("publisherUpdate of %s to %s failed: %s", topic, node, exc)
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                log.info("cannot list the publishers of %s: %s", topic, exc)
+            finally:
+                self._resubscribing.discard(topic)
+
+        self._tasks.append(asyncio.ensure_future(nudge()))
+        self._tasks = [t for t in self._tasks if not t.done()]
+
+    async def _wait_reachable(self, endpoint: tuple[str, int], patience: float = 60.0) -> None:
+        """Until a token exchange with a peer interceptor succeeds (or ``patience`` ends)."""
+        deadline = time.monotonic() + patience
+        backoff = 0.25
+        while True:
+            try:
+                _reader, writer, _peer = await self.open_tunnel(*endpoint, "refresh", "")
+                writer.close()
+                return
+            except (CryptorosError, OSError, asyncio.TimeoutError):
+                if time.monotonic() + backoff > deadline:
+                    raise
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 4.0)
+
+    async def _publishers_of(self, topic: str) -> list[str]:
+        """The topic's publishers as the master knows them, as URIs local nodes can call."""
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+        state = await tunnel.call(Request(method="getSystemState", params=("/cryptoros",)))
+        if not _ros_ok(state):
+            raise PolicyDenied("master_refused", f"getSystemState: {state!r:.80}")
+        nodes = next((names for name, names in state.value[2][0] if name == topic), [])
+        uris = []
+        for node in nodes:
+            reply = await tunnel.call(Request(method="lookupNode", params=("/cryptoros", node)))
+            if _ros_ok(reply) and isinstance(reply.value[2], str):
+                uris.append(self.translator.to_local(reply.value[2]))
+        return uris
 
     # ---------------------------------------------------------------- relays
     async def _on_xmlrpc_relay(self, reader, writer, target: Canonical) -> None:
@@ -1095,6 +1246,8 @@ class Interceptor:
             finally:
                 unwatch()
                 self.metrics.open_streams.labels(purpose).dec()
+                if purpose == "topic":
+                    self._resubscribe_soon(fields["topic"], via=(target.host, target.port))
         except (CryptorosError, asyncio.TimeoutError, ConnectionError, OSError) as exc:
             if isinstance(exc, CryptorosError):
                 self._deny("relay", exc, str(target))

@@ -93,9 +93,11 @@ class Translator:
         public_host: str,
         public_port: int,
         local_master_uri: str | None,
-        open_relay: Callable[[Canonical], tuple[str, int]],
+        open_relay: Callable[[Canonical, int], tuple[str, int]],
         max_relays_per_host: int = 512,
+        on_change: Callable[[], None] = lambda: None,
     ) -> None:
+        self._on_change = on_change
         self.max_relays_per_host = max_relays_per_host
         self._relays_per_host: dict[str, int] = {}
         self.public_host = public_host
@@ -123,6 +125,7 @@ class Translator:
             ident = str(len(self._exports) + 1)
             self._export_ids[key] = ident
             self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=port, uri=uri)
+            self._on_change()
         return Canonical(host=self.public_host, port=self.public_port, kind=kind, id=ident)
 
     def resolve(self, kind: str, ident: str) -> LocalEndpoint:
@@ -132,9 +135,10 @@ class Translator:
             raise PolicyDenied("unknown_target", f"no exported {kind} endpoint {ident!r:.20}")
         return endpoint
 
-    def relay_for(self, target: Canonical) -> tuple[str, int]:
-        """The relay for ``target``, opened on first use; at most
-        ``max_relays_per_host`` toward one peer interceptor (``relay_limit``)."""
+    def relay_for(self, target: Canonical, *, port: int = 0) -> tuple[str, int]:
+        """The relay for ``target``, opened on first use (on ``port`` if given and
+        free); at most ``max_relays_per_host`` toward one peer interceptor
+        (``relay_limit``)."""
         relay = self._relays.get(target)
         if relay is None:
             count = self._relays_per_host.get(target.host, 0)
@@ -142,11 +146,41 @@ class Translator:
                 raise PolicyDenied(
                     "relay_limit", f"{self.max_relays_per_host} relays toward {target.host} already (max_relays_per_peer)"
                 )
-            relay = self._open_relay(target)
+            relay = self._open_relay(target, port)
             self._relays[target] = relay
             self._relay_targets[relay] = target
             self._relays_per_host[target.host] = count + 1
+            self._on_change()
         return relay
+
+    # ------------------------------------------------------------ kept across restarts
+    def snapshot(self) -> dict:
+        """The export and relay tables as JSON-able data (see :meth:`restore`)."""
+        return {
+            "exports": {i: [e.kind, e.host, e.port, e.uri] for i, e in self._exports.items()},
+            "relays": [[str(t), port] for t, (_h, port) in self._relays.items()],
+        }
+
+    def restore(self, data: dict) -> list[str]:
+        """Take back a :meth:`snapshot` after a restart: the same export ids, and the
+        relays re-opened on their old ports where free. Returns problems, one line each."""
+        problems = []
+        for ident, (kind, host, port, uri) in data.get("exports", {}).items():
+            if kind in _KIND_SCHEME and is_loopback(host) and ident.isdigit():
+                self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=int(port), uri=uri)
+                self._export_ids[(kind, host, int(port))] = ident
+        for text, port in data.get("relays", []):
+            target = Canonical.parse(text)
+            if target is None:
+                continue
+            try:
+                relay = self.relay_for(target, port=int(port))
+            except (OSError, PolicyDenied) as exc:
+                problems.append(f"relay {text}: {exc}")
+                continue
+            if relay[1] != int(port):
+                problems.append(f"relay {text} moved from port {port} to {relay[1]}")
+        return problems
 
     def existing_local(self, text: str) -> str | None:
         """Like :meth:`to_local`, but never opens a relay: None for a canonical name

@@ -113,3 +113,28 @@ def test_healthz_and_new_streams_fail_closed_when_the_feed_is_stale(tmp_path):
             reply = rogue_preamble(s, body["access_token"], "node", "1")
         assert reply is None or reply.ok is False
         assert "feed_stale" in host.logs()
+
+
+@pytest.mark.parametrize("restarted", ["robot_a", "robot_b", "master"])
+def test_restarting_an_interceptor_needs_no_node_restart(tmp_path, restarted):
+    """The talker on A and the listener on B keep running; the interceptor of A (the
+    publisher's), of B (the subscriber's) or of the master restarts with its state
+    directory: the listener receives again within 10 s."""
+    extra = {name: f'state_dir = "{tmp_path / "state" / name}"' for name in ("master", "robot_a", "robot_b")}
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), extra=extra) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "90"], env=net.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(net, "/talker_a")
+        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "90"], env=net.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            assert got(read_lines(sub, "GOT", 20))
+            net.stop(restarted)
+            read_lines(sub, None, 0.5)  # drain what arrived before the restart
+            net.start(restarted)
+            restarted_at = time.monotonic()
+            read_lines(sub, None, 0.2)
+            lines = read_lines(sub, "GOT", 10)
+            assert got(lines), f"nothing arrived within 10 s of restarting {restarted}'s interceptor"
+            assert time.monotonic() - restarted_at < 10.5
+            assert sub.poll() is None and pub.poll() is None
+        assert "state restored" in net.hosts[restarted].logs()
