@@ -215,15 +215,21 @@ def remove_manager(ctx: click.Context, name: str) -> None:
 @click.argument("action", type=click.Choice(ACTIONS))
 @click.argument("node")
 @click.argument("name")
-@click.argument("type_", metavar="TYPE")
+@click.argument("type_", metavar="[TYPE]", required=False)
 @click.pass_context
-def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, type_: str) -> None:
-    """Let MANAGER's NODE ACTION (publish|subscribe|serve|call) topic or service NAME of TYPE.
+def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, type_: str | None) -> None:
+    """Let MANAGER's NODE ACTION (publish|subscribe|serve|call) topic or service NAME of
+    TYPE, or read_param|write_param the parameter namespace NAME (no TYPE; write
+    implies read; NAME / is every parameter).
 
-    Example: cryptoros-authz grant alice publish /talker /chatter std_msgs/String
+    \b
+    Examples:
+      cryptoros-authz grant alice publish /talker /chatter std_msgs/String
+      cryptoros-authz grant alice read_param '*' /robot1
+      cryptoros-authz grant alice write_param /planner /robot1/goals
     """
     added = _registry(ctx).grant(manager, action, node, name, type_)
-    click.echo(f"{'granted' if added else 'already granted'}: {manager} {node} {action} {name} {type_}")
+    click.echo(f"{'granted' if added else 'already granted'}: {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
 
 
 @main.command("revoke")

@@ -59,6 +59,12 @@ class Manager(Base):
     service_clients: Mapped[list[ServiceClient]] = relationship(
         back_populates="manager", cascade="all, delete-orphan", order_by="ServiceClient.id"
     )
+    param_readers: Mapped[list[ParamReader]] = relationship(
+        back_populates="manager", cascade="all, delete-orphan", order_by="ParamReader.id"
+    )
+    param_writers: Mapped[list[ParamWriter]] = relationship(
+        back_populates="manager", cascade="all, delete-orphan", order_by="ParamWriter.id"
+    )
 
 
 class Publisher(Base):
@@ -109,12 +115,42 @@ class ServiceClient(Base):
     manager: Mapped[Manager] = relationship(back_populates="service_clients")
 
 
+class ParamReader(Base):
+    """``name`` (a node) may read the parameters in ``namespace`` (data_type is ``param``)."""
+
+    __tablename__ = "param_reader"
+    __table_args__ = (UniqueConstraint("manager_id", "name", "namespace", "data_type", name="uq_param_reader"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    namespace: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    manager: Mapped[Manager] = relationship(back_populates="param_readers")
+
+
+class ParamWriter(Base):
+    """``name`` (a node) may read and write the parameters in ``namespace``."""
+
+    __tablename__ = "param_writer"
+    __table_args__ = (UniqueConstraint("manager_id", "name", "namespace", "data_type", name="uq_param_writer"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    namespace: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    manager: Mapped[Manager] = relationship(back_populates="param_writers")
+
+
 #: action -> (ORM class, name of the topic/service column, relationship on Manager)
 GRANT_TABLES: dict[str, tuple[type, str, str]] = {
     "publish": (Publisher, "topic", "publishers"),
     "subscribe": (Subscriber, "topic", "subscribers"),
     "serve": (Service, "service", "services"),
     "call": (ServiceClient, "service", "service_clients"),
+    "read_param": (ParamReader, "namespace", "param_readers"),
+    "write_param": (ParamWriter, "namespace", "param_writers"),
 }
 
 

@@ -36,9 +36,17 @@ from authz_server.models import (
     SigningKey,
 )
 from cryptoros.errors import RegistryError
-from cryptoros.names import validate_graph_name, validate_node_name, validate_type
+from cryptoros.names import PARAM_TYPE, validate_graph_name, validate_namespace, validate_node_name, validate_type
 
-ACTIONS = ("publish", "subscribe", "serve", "call")
+ACTIONS = ("publish", "subscribe", "serve", "call", "read_param", "write_param")
+PARAM_ACTIONS = ("read_param", "write_param")
+
+
+def grant_key(action: str) -> str:
+    """The YAML key naming what a grant of ``action`` is on."""
+    if action in PARAM_ACTIONS:
+        return "namespace"
+    return "topic" if action in ("publish", "subscribe") else "service"
 _MANAGER_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,127}$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 POLICY_VERSION = 1
@@ -81,14 +89,16 @@ class GrantRow:
     type: str
 
     @classmethod
-    def checked(cls, action: str, node: str, name: str, type_: str) -> GrantRow:
+    def checked(cls, action: str, node: str, name: str, type_: str | None) -> GrantRow:
+        validate_action(action)
+        if action in PARAM_ACTIONS:  # a namespace; parameters carry no type
+            if type_ not in (None, PARAM_TYPE):
+                raise RegistryError(f"a {action} grant takes no type (got {type_!r})")
+            return cls(action, validate_node_name(node), validate_namespace(name), PARAM_TYPE)
+        if type_ is None:
+            raise RegistryError(f"a {action} grant needs a data type")
         what = "topic" if action in ("publish", "subscribe") else "service name"
-        return cls(
-            validate_action(action),
-            validate_node_name(node),
-            validate_graph_name(name, what),
-            validate_type(type_),
-        )
+        return cls(action, validate_node_name(node), validate_graph_name(name, what), validate_type(type_))
 
 
 @dataclass(frozen=True)
@@ -270,7 +280,7 @@ class Registry:
             return None if m is None else _info(m)
 
     # ------------------------------------------------------------------ grants
-    def grant(self, manager: str, action: str, node: str, name: str, type_: str) -> bool:
+    def grant(self, manager: str, action: str, node: str, name: str, type_: str | None) -> bool:
         """Add a grant; return False if it was already there."""
         g = GrantRow.checked(action, node, name, type_)
         with self._session.begin() as s:
@@ -299,7 +309,11 @@ class Registry:
         """
         validate_action(action)
         validate_node_name(node)
-        validate_graph_name(name, "topic" if action in ("publish", "subscribe") else "service name")
+        if action in PARAM_ACTIONS:
+            validate_namespace(name)
+            type_ = None
+        else:
+            validate_graph_name(name, "topic" if action in ("publish", "subscribe") else "service name")
         if type_ is not None:
             validate_type(type_)
         cls, column, _rel = GRANT_TABLES[action]
@@ -321,8 +335,10 @@ class Registry:
         for m in self.list_managers():
             grants: dict[str, list[dict]] = {a: [] for a in ACTIONS}
             for g in m.grants:
-                key = "topic" if g.action in ("publish", "subscribe") else "service"
-                grants[g.action].append({"node": g.node, key: g.name, "type": g.type})
+                row = {"node": g.node, grant_key(g.action): g.name}
+                if g.action not in PARAM_ACTIONS:
+                    row["type"] = g.type
+                grants[g.action].append(row)
             managers.append(
                 {
                     "name": m.name,
@@ -571,11 +587,12 @@ def _parse_grants(grants: object) -> frozenset[GrantRow]:
     rows = set()
     for action, items in grants.items():
         validate_action(action)
-        key = "topic" if action in ("publish", "subscribe") else "service"
+        key = grant_key(action)
+        keys = {"node", key} if action in PARAM_ACTIONS else {"node", key, "type"}
         if not isinstance(items, list):
             raise RegistryError(f"grants.{action} must be a list")
         for j, item in enumerate(items):
-            if not isinstance(item, Mapping) or set(item) != {"node", key, "type"}:
-                raise RegistryError(f"grants.{action}[{j}] must have exactly the keys node, {key}, type")
-            rows.add(GrantRow.checked(action, item["node"], item[key], item["type"]))
+            if not isinstance(item, Mapping) or set(item) != keys:
+                raise RegistryError(f"grants.{action}[{j}] must have exactly the keys {', '.join(sorted(keys))}")
+            rows.add(GrantRow.checked(action, item["node"], item[key], item.get("type")))
     return frozenset(rows)

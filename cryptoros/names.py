@@ -30,6 +30,30 @@ def validate_graph_name(name: str, what: str = "topic or service name") -> str:
     return name
 
 
+#: The "type" of a parameter grant: parameters carry no declared type.
+PARAM_TYPE = "param"
+
+
+def validate_namespace(name: str) -> str:
+    """A parameter namespace: ``/`` (every parameter) or a global name (``/robot1``
+    covers ``/robot1`` and everything below it, not ``/robot10``)."""
+    if name == "/":
+        return name
+    return validate_graph_name(name, "parameter namespace")
+
+
+_CALLER_ID = re.compile(r"^(/[A-Za-z][A-Za-z0-9_-]*)+$")
+
+
+def validate_caller_id(name: str) -> str:
+    """The ``caller_id`` of an XML-RPC call: a global name, where stock tools'
+    anonymous names (``/rosparam-4242``, ``/rostopic_4242_1700000000000``) may hold
+    ``-`` too. Grants still name nodes by :func:`validate_node_name` rules."""
+    if not isinstance(name, str) or len(name) > MAX_NAME_LENGTH or not _CALLER_ID.match(name):
+        raise RegistryError(f"invalid caller_id {name!r}: expected a global ROS name such as /talker")
+    return name
+
+
 def validate_node_name(name: str) -> str:
     """A global node name such as ``/talker``, or the explicit wildcard ``*``."""
     if name == NODE_WILDCARD:
@@ -50,4 +74,5 @@ def validate_type(type_name: str) -> str:
     return type_name
 
 
-__all__ = ["NODE_WILDCARD", "validate_graph_name", "validate_node_name", "validate_type"]
+__all__ = ["NODE_WILDCARD", "PARAM_TYPE", "validate_caller_id", "validate_graph_name", "validate_namespace", "validate_node_name",
+           "validate_type"]

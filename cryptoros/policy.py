@@ -29,11 +29,13 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import re
+
 from cryptoros.errors import PolicyDenied
-from cryptoros.names import validate_graph_name
+from cryptoros.names import validate_caller_id
 from cryptoros.tokens import Grants
 
-#: Master-API methods that only read.
+#: Master-API methods that only read the graph.
 MASTER_READ_ONLY = frozenset(
     {
         "lookupNode",
@@ -43,17 +45,22 @@ MASTER_READ_ONLY = frozenset(
         "getPublishedTopics",
         "getUri",
         "getPid",
-        "getParam",
-        "hasParam",
-        "searchParam",
-        "getParamNames",
-        "subscribeParam",
-        "unsubscribeParam",
     }
 )
 MASTER_REGISTER = frozenset({"registerPublisher", "registerSubscriber", "registerService"})
 MASTER_UNREGISTER = frozenset({"unregisterPublisher", "unregisterSubscriber", "unregisterService"})
+#: Parameter-server methods, by the access they need; the key is parameter 1.
+PARAM_READ = frozenset({"getParam", "hasParam", "searchParam", "subscribeParam", "unsubscribeParam"})
 PARAM_WRITE = frozenset({"setParam", "deleteParam"})
+#: Master calls that bind the caller's node name to its caller_api at rosmaster
+#: (``_register_node_api`` in rosmaster/registrations.py): a name another manager
+#: registered is refused, and the caller must be one of the manager's nodes.
+NAME_BINDING = MASTER_REGISTER | frozenset({"subscribeParam"})
+#: Parameters every node may read without a grant: what unmodified rospy and roscpp
+#: nodes read at start-up. A node may also read and write its own private namespace
+#: (``/<node name>/...``); everything else needs a ``read_param`` or ``write_param``
+#: grant on a namespace holding the key.
+DEFAULT_PARAM_READS = frozenset({"/use_sim_time", "/rosdistro", "/rosversion", "/run_id"})
 #: Node-API methods that only read.
 NODE_READ_ONLY = frozenset(
     {"getBusInfo", "getBusStats", "getPid", "getName", "getMasterUri", "getSubscriptions", "getPublications"}
@@ -65,6 +72,9 @@ ROSOUT = ("/rosout", "rosgraph_msgs/Log")
 LOGGER_SERVICES = {"get_loggers": "roscpp/GetLoggers", "set_logger_level": "roscpp/SetLoggerLevel"}
 
 
+_PARAM_SEGMENT = re.compile(r"^[A-Za-z_~][A-Za-z0-9_-]*$")
+
+
 def _deny(reason: str, detail: str) -> PolicyDenied:
     return PolicyDenied(reason, detail)
 
@@ -73,7 +83,7 @@ def _caller(call_params: tuple, method: str) -> str:
     if not call_params or not isinstance(call_params[0], str):
         raise _deny("malformed", f"{method} without a caller_id")
     try:
-        return validate_graph_name(call_params[0], "caller_id")
+        return validate_caller_id(call_params[0])
     except Exception as exc:
         raise _deny("malformed", f"{method}: {exc}") from None
 
@@ -82,6 +92,109 @@ def _str_param(params: tuple, index: int, method: str, what: str) -> str:
     if len(params) <= index or not isinstance(params[index], str):
         raise _deny("malformed", f"{method} without {what}")
     return params[index]
+
+
+# ---------------------------------------------------------------- parameters
+
+
+def resolve_param_key(key: str, caller: str) -> str:
+    """A parameter key as rosmaster resolves it for ``caller`` (rosgraph
+    ``resolve_name``): global keys as they are, ``~private`` under the caller's name,
+    relative keys in the caller's namespace; ``//`` collapsed, no trailing ``/``."""
+    if not isinstance(key, str) or len(key) > 1024:
+        raise _deny("malformed", "parameter key is not a string of at most 1024 characters")
+    if key.startswith("~"):
+        key = caller + "/" + key[1:]
+    elif not key.startswith("/"):
+        key = caller.rsplit("/", 1)[0] + "/" + key
+    parts = [p for p in key.split("/") if p]
+    for part in parts:
+        if not _PARAM_SEGMENT.match(part):
+            raise _deny("malformed", f"invalid parameter key {key[:80]!r}")
+    return "/" + "/".join(parts)
+
+
+def _own_private(grants: Grants, caller: str, key: str) -> bool:
+    """``key`` is in the private namespace of ``caller``, one of the manager's nodes."""
+    return (key == caller or key.startswith(caller + "/")) and grants.names_node(caller)
+
+
+def may_read_param(grants: Grants, caller: str, key: str) -> bool:
+    """Read access to one resolved key (defaults, own private namespace, grants)."""
+    if key in DEFAULT_PARAM_READS or _own_private(grants, caller, key):
+        return True
+    return grants.param_allows("read", caller, key)
+
+
+def may_write_param(grants: Grants, caller: str, key: str) -> bool:
+    return _own_private(grants, caller, key) or grants.param_allows("write", caller, key)
+
+
+def _may_read_below(grants: Grants, caller: str, key: str) -> bool:
+    """Whether some readable key lies at or below the namespace ``key``."""
+    from cryptoros.tokens import in_namespace
+
+    readable = set(DEFAULT_PARAM_READS) | grants.param_namespaces(caller) | {caller}
+    return any(in_namespace(ns, key) for ns in readable)
+
+
+def check_param_call(method: str, params: tuple, *, grants: Grants) -> tuple:
+    """Decide one parameter-server call; returns its params with the key resolved
+    (what is sent on). ``getParam`` of a namespace the caller may read only partly
+    is allowed here and pruned by :func:`filter_param_reply`."""
+    caller = _caller(params, method)
+    if method == "getParamNames":
+        return params
+    index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+    key = resolve_param_key(_str_param(params, index, method, "a key"), caller)
+    if method in PARAM_WRITE:
+        if not may_write_param(grants, caller, key):
+            raise _deny("param_write_denied", f"{caller} may not write {key}")
+    elif method in ("getParam", "subscribeParam"):
+        if not (may_read_param(grants, caller, key) or _may_read_below(grants, caller, key)):
+            raise _deny("param_read_denied", f"{caller} may not read {key}")
+    elif method in ("hasParam", "unsubscribeParam"):
+        if not may_read_param(grants, caller, key):
+            raise _deny("param_read_denied", f"{caller} may not read {key}")
+    # searchParam searches upwards from the caller's namespace: the answer is filtered
+    return params[:index] + (key if method != "searchParam" else params[1],) + params[index + 1 :]
+
+
+def prune_param_value(key: str, value: Any, readable: Callable[[str], bool]) -> Any:
+    """What of the value at ``key`` (a namespace's dict, or a leaf) the caller may
+    read; ``None`` when nothing."""
+    if readable(key):
+        return value
+    if not isinstance(value, dict):
+        return None
+    out = {}
+    for name, child in value.items():
+        pruned = prune_param_value(key.rstrip("/") + "/" + name, child, readable)
+        if pruned is not None:
+            out[name] = pruned
+    return out or None  # a namespace with nothing readable is not even named
+
+
+def filter_param_reply(method: str, params: tuple, value: Any, *, grants: Grants) -> Any:
+    """The reply value of a parameter call, narrowed to what the caller may read:
+    ``getParam``/``subscribeParam`` of a namespace pruned, ``getParamNames`` filtered,
+    ``searchParam``'s found key dropped if unreadable. ``value`` is ``[code, msg, v]``."""
+    if not (isinstance(value, list) and len(value) == 3 and value[0] == 1):
+        return value
+    caller = params[0]
+
+    def readable(key: str) -> bool:
+        return may_read_param(grants, caller, key)
+
+    if method == "getParamNames" and isinstance(value[2], list):
+        return [1, value[1], [k for k in value[2] if isinstance(k, str) and readable(k)]]
+    if method in ("getParam", "subscribeParam"):
+        key = params[2 if method == "subscribeParam" else 1]
+        pruned = prune_param_value(key, value[2], readable)
+        return [1, value[1], {} if pruned is None else pruned]
+    if method == "searchParam" and isinstance(value[2], str) and value[2] and not readable(value[2]):
+        return [-1, "Cannot find parameter in an upwards search", ""]
+    return value
 
 
 def infrastructure_allows(action: str, node: str, name: str, type_name: str | None) -> bool:
@@ -115,10 +228,15 @@ def check_master_call(
     if method in MASTER_READ_ONLY:
         return
     caller = _caller(params, method)
-    if method in MASTER_REGISTER or method in PARAM_WRITE:
+    if method in NAME_BINDING or method in PARAM_WRITE or method in ("unsubscribeParam",):
         owner = owner_of(caller)
         if owner is not None and owner != manager:
             raise _deny("name_taken", f"node {caller} is registered by manager {owner}")
+    if method in ("subscribeParam", "unsubscribeParam") and not grants.names_node(caller):
+        raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
+    if method in PARAM_READ or method in PARAM_WRITE or method == "getParamNames":
+        check_param_call(method, params, grants=grants)
+        return
     if method in ("registerPublisher", "registerSubscriber"):
         topic = _str_param(params, 1, method, "a topic")
         type_name = _str_param(params, 2, method, "a type")
@@ -139,11 +257,6 @@ def check_master_call(
             raise _deny("name_taken", f"node {caller} is registered by manager {owner}")
         if owner is None and not grants.names_node(caller):
             raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
-        return
-    if method in PARAM_WRITE:
-        key = _str_param(params, 1, method, "a key")
-        if not grants.names_node(caller) or not (key == caller or key.startswith(caller + "/")):
-            raise _deny("param_write_denied", f"{caller} may only write parameters under {caller}/, not {key}")
         return
     raise _deny("method_not_allowed", f"master method {method!r} is not on the allowlist")
 
@@ -257,7 +370,16 @@ __all__ = [
     "MASTER_REGISTER",
     "MASTER_UNREGISTER",
     "NODE_READ_ONLY",
+    "DEFAULT_PARAM_READS",
+    "NAME_BINDING",
+    "PARAM_READ",
     "check_master_call",
+    "check_param_call",
+    "filter_param_reply",
+    "may_read_param",
+    "may_write_param",
+    "prune_param_value",
+    "resolve_param_key",
     "check_node_call",
     "check_publisher_header",
     "check_service_client_header",

@@ -30,12 +30,22 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from jwt.algorithms import RSAAlgorithm
 
 from cryptoros.errors import TokenError
-from cryptoros.names import NODE_WILDCARD, validate_graph_name, validate_node_name, validate_type
+from cryptoros.names import (
+    NODE_WILDCARD,
+    PARAM_TYPE,
+    validate_graph_name,
+    validate_namespace,
+    validate_node_name,
+    validate_type,
+)
 from cryptoros.tls import cert_thumbprint_s256
 
 ALGORITHM = "RS256"
 TOKEN_TYPE = "at+jwt"
-ACTIONS = ("publish", "subscribe", "serve", "call")
+#: Parameter grants: ``name`` is a namespace, ``type`` is always :data:`PARAM_TYPE`;
+#: ``write_param`` implies ``read_param``.
+PARAM_ACTIONS = ("read_param", "write_param")
+ACTIONS = ("publish", "subscribe", "serve", "call", *PARAM_ACTIONS)
 REQUIRED_CLAIMS = ("iss", "aud", "sub", "iat", "nbf", "exp", "jti", "cnf", "grants")
 MAX_TOKEN_BYTES = 64 * 1024
 
@@ -53,8 +63,13 @@ class Grant:
         if self.action not in ACTIONS:
             raise ValueError(f"unknown action {self.action!r}; expected one of {', '.join(ACTIONS)}")
         validate_node_name(self.node)
-        validate_graph_name(self.name)
-        validate_type(self.type)
+        if self.action in PARAM_ACTIONS:
+            validate_namespace(self.name)
+            if self.type != PARAM_TYPE:
+                raise ValueError(f"a parameter grant has type {PARAM_TYPE!r}, not {self.type!r}")
+        else:
+            validate_graph_name(self.name)
+            validate_type(self.type)
 
 
 class Grants:
@@ -93,6 +108,18 @@ class Grants:
             if g.action == action and g.name == name and g.node in (node, NODE_WILDCARD)
         )
 
+    def param_allows(self, access: str, node: str, key: str) -> bool:
+        """Whether ``node`` may ``access`` ("read" or "write") the global parameter
+        ``key`` under a granted namespace (``write_param`` implies read)."""
+        actions = ("write_param",) if access == "write" else ("read_param", "write_param")
+        return any(
+            g.action in actions and g.node in (node, NODE_WILDCARD) and in_namespace(key, g.name) for g in self._grants
+        )
+
+    def param_namespaces(self, node: str) -> frozenset[str]:
+        """The namespaces ``node`` may read (for pruning namespace reads)."""
+        return frozenset(g.name for g in self._grants if g.action in PARAM_ACTIONS and g.node in (node, NODE_WILDCARD))
+
     def names_node(self, node: str) -> bool:
         """Whether any grant names ``node`` (or is a wildcard): the node is this manager's."""
         return any(g.node in (node, NODE_WILDCARD) for g in self._grants)
@@ -128,6 +155,11 @@ class Grants:
         except Exception as exc:  # invalid names, types or actions
             raise TokenError("malformed", f"invalid grant: {exc}") from exc
         return cls(grants)
+
+
+def in_namespace(key: str, namespace: str) -> bool:
+    """``/a/b`` is in ``/a`` and in ``/``; ``/ab`` is not in ``/a``."""
+    return namespace == "/" or key == namespace or key.startswith(namespace + "/")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -42,7 +42,12 @@ from cryptography.hazmat.primitives.serialization import Encoding
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.policy import (
+    NAME_BINDING,
+    PARAM_READ,
+    PARAM_WRITE,
     check_master_call,
+    check_param_call,
+    filter_param_reply,
     check_node_call,
     check_publisher_header,
     check_service_client_header,
@@ -86,8 +91,6 @@ CALL_TIMEOUT = 30.0
 IDLE_TIMEOUT = 600.0
 READ_SIZE = 65536
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
-#: Master calls that bind a node name to an API at rosmaster.
-_BINDING_CALLS = frozenset({"registerPublisher", "registerSubscriber", "registerService", "subscribeParam"})
 #: Master calls that release a registration: their URIs must already have a relay.
 _RELEASING_CALLS = frozenset({"unregisterPublisher", "unregisterSubscriber", "unregisterService", "unsubscribeParam"})
 
@@ -850,7 +853,7 @@ class Interceptor:
 
     def _check_node_limit(self, call: Request, manager: str) -> None:
         """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
-        if call.method not in _BINDING_CALLS or not call.params or call.params[0] in self._owners:
+        if call.method not in NAME_BINDING or not call.params or call.params[0] in self._owners:
             return
         cap = self.cfg.limits.max_nodes_per_peer
         if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
@@ -860,16 +863,18 @@ class Interceptor:
         if not _ros_ok(response) or not call.params:
             return
         node = call.params[0]
-        self._save_state_soon()
-        if call.method.startswith("register"):
+        if call.method.startswith("register") or call.method == "subscribeParam":
             entry = self._owners.setdefault(node, [manager, 0])
             entry[1] += 1
-        elif call.method.startswith("unregister") and isinstance(response.value[2], int) and response.value[2] > 0:
+            self._save_state_soon()
+        elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
+                isinstance(response.value[2], int) and response.value[2] > 0:
             entry = self._owners.get(node)
             if entry is not None:
                 entry[1] -= 1
                 if entry[1] <= 0:
                     del self._owners[node]
+                self._save_state_soon()
 
     async def _serve_master_stream(self, reader, writer, peer: Peer) -> None:
         def to_local_from_peer(uri: str) -> str:
@@ -892,6 +897,7 @@ class Interceptor:
         def decide(call: Request) -> Request:
             grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
             check_master_call(call.method, call.params, manager=peer.manager, grants=grants, owner_of=self._owner_of)
+            call = _resolved_param_call(call, grants)
             self._check_node_limit(call, peer.manager)
             uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
             call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
@@ -899,6 +905,7 @@ class Interceptor:
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             self._note_registration(call, response, peer.manager)
+            response = _filtered_param_reply(call, response, self.verifier.freshest(peer.access).grants)
             return rewrite_response(call, response, uri=self.translator.to_canonical)
 
         async def handle(request: Request) -> Response | Fault:
@@ -1067,6 +1074,7 @@ class Interceptor:
             check_master_call(
                 call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
             )
+            call = _resolved_param_call(call, own.grants)
             call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
             return _rewrite_param_api(call, self.translator.to_canonical)
 
@@ -1077,6 +1085,7 @@ class Interceptor:
                     self._save_state()
             elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
                 self._note_local_subscriber(call)
+            response = _filtered_param_reply(call, response, self.own_access().grants)
             return rewrite_response(call, response, uri=self.translator.to_local)
 
         async def handle(request: Request) -> Response | Fault:
@@ -1256,6 +1265,23 @@ class Interceptor:
             if tunnel_writer is not None:
                 tunnel_writer.close()
             writer.close()
+
+
+def _resolved_param_call(call: Request, grants) -> Request:
+    """A parameter call sent on with its key resolved as rosmaster would (checked)."""
+    if call.method not in PARAM_READ and call.method not in PARAM_WRITE:
+        return call
+    params = check_param_call(call.method, call.params, grants=grants)
+    return Request(method=call.method, params=params, path=call.path, keep_alive=call.keep_alive,
+                   accept_gzip=call.accept_gzip)
+
+
+def _filtered_param_reply(call: Request, response: Response | Fault, grants) -> Response | Fault:
+    """Parameter replies narrowed to what the caller may read."""
+    if not isinstance(response, Response) or (call.method not in PARAM_READ and call.method != "getParamNames"):
+        return response
+    value = filter_param_reply(call.method, call.params, response.value, grants=grants)
+    return response if value is response.value else Response(value=value, keep_alive=response.keep_alive)
 
 
 def _rewrite_param_api(call: Request, fn: Callable[[str], str]) -> Request:

@@ -27,7 +27,7 @@ FP = {n: (c * 64) for n, c in (("alice", "a"), ("bob", "b"), ("carol", "c"), ("d
 UNSAFE = KeyProtection(passphrase=None, unsafe_no_passphrase=True)
 
 
-TABLES = ("publisher", "subscriber", "service", "service_client", "manager", "revoked_token", "audit_log",
+TABLES = ("publisher", "subscriber", "service", "service_client", "param_reader", "param_writer", "manager", "revoked_token", "audit_log",
           "signing_key", "registry_state")
 
 

@@ -75,9 +75,12 @@ def test_master_calls_denied_with_reason(method, params, reason):
 
 
 def test_read_only_and_own_params_pass():
-    for method in ("getSystemState", "lookupNode", "getTopicTypes", "getParam", "getUri"):
+    for method in ("getSystemState", "lookupNode", "getTopicTypes", "getUri"):
         master(method, "/anyone", "/x")
     master("setParam", "/talker", "/talker/rate", 10)
+    master("getParam", "/talker", "/talker/rate")
+    master("getParam", "/anyone", "/use_sim_time")
+    assert denied(master, "getParam", "/anyone", "/x") == "param_read_denied"
 
 
 def test_rosout_and_logger_services_are_infrastructure():

@@ -1,0 +1,111 @@
+"""Issue 11, findings 1 and 4: parameter calls bind names and read secrets; against real
+rosmaster, rospy and Debian's rosparam behind real interceptors.
+
+The insider is robot B (valid certificate, subscribe grants on /chatter, no parameter
+grants); robot A runs the talker and owns ``/robot_a``; an operator's
+``/secrets/db_password`` sits in rosmaster.
+"""
+
+from __future__ import annotations
+
+import time
+import xmlrpc.client
+
+import pytest
+
+from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc
+from tests.support import require, run, running
+from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    with robot_network(tmp_path_factory.mktemp("params"), start=("master", "robot_a", "robot_b")) as net:
+        master = xmlrpc.client.ServerProxy(net.rosmaster_uri)
+        master.setParam("/operator", "/robot_a/api_key", "A-KEY-123")
+        master.setParam("/operator", "/secrets/db_password", "hunter2")
+        master.setParam("/operator", "/shared/map_size", 42)
+        yield net
+
+
+def wait_registered(network, node, timeout=20):
+    deadline = time.monotonic() + timeout
+    while node not in nodes_in_state(master_state(network)):
+        assert time.monotonic() < deadline, f"{node} never registered"
+        time.sleep(0.1)
+
+
+def token_of(network, name) -> str:
+    status, body = network.daemon.token(name)
+    assert status == 200, body
+    return body["access_token"]
+
+
+def test_subscribe_param_cannot_rebind_another_robots_node(network):
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "40"], env=network.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+        # on the insider's own local master port, and by hand over a master stream
+        assert local_b.subscribeParam("/talker_a", "http://127.0.0.1:9/", "/spy/x")[0] == -1
+        b = network.hosts["robot_b"]
+        m = network.hosts["master"]
+        with rogue_tls(m.address, m.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for("robot_b"),
+                       key=network.pki.pki.key_path_for("robot_b")) as s:
+            assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
+            reply = rogue_xmlrpc(s, "subscribeParam", "/talker_a", f"cryptoros://{b.address}:{b.public_port}/x/1", "/x")
+        assert reply.value[0] == -1
+        # /talker still publishes: a new subscriber receives
+        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "30"], env=network.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            assert got(read_lines(sub, "GOT", 20))
+        assert "/talker_a" in nodes_in_state(master_state(network))
+        assert pub.poll() is None
+    log = network.hosts["master"].logs() + network.hosts["robot_b"].logs()
+    assert "name_taken" in log or "is not one of its nodes" in log
+
+
+def test_parameter_reads_are_narrowed_to_what_the_caller_may_read(network):
+    local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+    code, _, tree = local_b.getParam("/rospy_listener", "/")
+    assert code == 1
+    assert "api_key" not in repr(tree) and "hunter2" not in repr(tree) and "secrets" not in tree
+    assert local_b.getParam("/rospy_listener", "/secrets/db_password")[0] == -1
+    assert local_b.getParam("/rospy_listener", "/robot_a")[0] == -1
+    assert local_b.hasParam("/rospy_listener", "/secrets/db_password")[0] == -1
+    code, _, names = local_b.getParamNames("/rospy_listener")
+    assert code == 1 and not [n for n in names if n.startswith(("/secrets", "/robot_a"))]
+    assert local_b.searchParam("/rospy_listener", "secrets")[0] == -1
+    assert local_b.subscribeParam("/rospy_listener", "http://127.0.0.1:9/", "/secrets")[0] == -1
+    # what every node may read, and its own private namespace
+    assert local_b.getParam("/rospy_listener", "/rosdistro")[0] in (1, -1)  # set by roscore, not rosmaster --core
+    assert local_b.setParam("/rospy_listener", "~rate", 5)[0] == 1
+    assert local_b.getParam("/rospy_listener", "/rospy_listener/rate") == [1, "Parameter [/rospy_listener/rate]", 5]
+    # writes outside the caller's namespace are ROS errors, and nothing is written
+    assert local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned") == [-1, "denied by cryptoros", 0]
+    master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
+    assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
+    log = network.hosts["robot_b"].logs()
+    assert "param_read_denied" in log and "param_write_denied" in log
+
+
+def test_rosparam_set_get_and_list_work_with_a_grant(network):
+    require("rosparam")
+    network.cli("grant", "robot_b", "write_param", "*", "/shared")
+    env = network.ros_env("robot_b")
+    deadline = time.monotonic() + 15
+    while True:  # the grant reaches robot B's interceptor within seconds (no SIGHUP)
+        result = run(["rosparam", "set", "/shared/speed", "3"], env=env, timeout=30)
+        if result.returncode == 0:
+            break
+        assert time.monotonic() < deadline, result.stdout + result.stderr
+        time.sleep(0.5)
+    got_value = run(["rosparam", "get", "/shared/speed"], env=env, timeout=30)
+    assert got_value.returncode == 0 and got_value.stdout.strip() == "3"
+    listed = run(["rosparam", "list"], env=env, timeout=30)
+    assert listed.returncode == 0 and "/shared/speed" in listed.stdout and "/secrets/db_password" not in listed.stdout
+    denied = run(["rosparam", "set", "/secrets/db_password", "x"], env=env, timeout=30)
+    assert denied.returncode != 0
+    assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/o", "/secrets/db_password")[2] == "hunter2"
