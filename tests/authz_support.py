@@ -46,6 +46,7 @@ class AuthzDaemon:
     db: str
     workdir: Path
     port: int = 0
+    host: str = "127.0.0.1"
     extra: Sequence[str] = ()
     proc: subprocess.Popen | None = None
     log_path: Path | None = None
@@ -53,7 +54,7 @@ class AuthzDaemon:
 
     @property
     def base(self) -> str:
-        return f"https://127.0.0.1:{self.port}"
+        return f"https://{self.host}:{self.port}"
 
     def start(self, timeout: float = 20.0) -> None:
         self.port = self.port or free_port()
@@ -98,7 +99,7 @@ class AuthzDaemon:
 
     def request(self, method: str, path: str, *, cert: Path, key: Path, body: str | None = None,
                 headers: dict | None = None, ca: Path | None = None) -> tuple[int, bytes]:
-        conn = http.client.HTTPSConnection("127.0.0.1", self.port, context=self.context(cert, key, ca=ca),
+        conn = http.client.HTTPSConnection(self.host, self.port, context=self.context(cert, key, ca=ca),
                                            timeout=10)
         try:
             hdrs = dict(headers or {})

@@ -18,7 +18,7 @@ from cryptoros.bench.network import Network as BenchNetwork
 from cryptoros.bench.network import bench_network
 from tests.authz_support import AuthzDaemon, authz
 from tests.pki_fixtures import TestPKIFactory
-from tests.support import require
+from tests.support import missing, require
 
 SYS_PY = "/usr/bin/python3"
 NODES = Path(__file__).parent / "ros1_nodes"
@@ -78,19 +78,33 @@ class Network:
         return authz(*args, db=self.daemon.db)
 
 
+def separate_hosts() -> bool:
+    """Whether this run gives each test host its own network namespace (as real robots
+    have their own loopback). As root they do; without root the tests that need it
+    skip with the reason (and fail under CI=true, which runs as root)."""
+    from cryptoros.lab.netns import netns_unavailable
+
+    reason = netns_unavailable()
+    if reason is not None:
+        missing(f"separate hosts (network namespaces): {reason}")
+    return True
+
+
 @contextlib.contextmanager
 def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[str, ...] = ("master", "robot_a", "robot_b"),
-                  extra: dict[str, str] | None = None, roles: dict[str, list[str]] | None = None) -> Iterator[Network]:
+                  extra: dict[str, str] | None = None, roles: dict[str, list[str]] | None = None,
+                  netns: bool = False) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the interceptors named in ``start``
-    (the others can be started with ``network.start(name)``)."""
+    (the others can be started with ``network.start(name)``). ``netns=True`` puts each
+    host in its own network namespace (:func:`separate_hosts` decides whether it can)."""
     require("rosmaster")
     with bench_network(
         workdir, policy, hosts=HOSTS, master="rosmaster", metrics=True, log_level="debug", poll_interval=0.5,
-        start=start, extra=extra, roles=roles,
+        start=start, extra=extra, roles=roles, netns=netns,
     ) as net:
         pki = TestPKIFactory(net.pki.directory, pki=net.pki)
-        port = int(net.authz_url.rsplit(":", 1)[1])
-        daemon = AuthzDaemon(pki=pki, db=net.db, workdir=workdir, port=port, proc=net.authz_proc)
+        host, port = net.authz_url[len("https://"):].rsplit(":", 1)
+        daemon = AuthzDaemon(pki=pki, db=net.db, workdir=workdir, port=int(port), host=host, proc=net.authz_proc)
         yield Network(net=net, pki=pki, daemon=daemon)
 
 

@@ -70,9 +70,16 @@ def wait_for_port(host: str, port: int, timeout: float = 10.0, proc: subprocess.
     raise AssertionError(f"nothing listened on {host}:{port} within {timeout}s")
 
 
+def on_host(args: Sequence[str], env: dict[str, str] | None) -> list[str]:
+    """``args`` run on the host ``env`` belongs to: in its network namespace when the
+    network is built with namespaces (``CRYPTOROS_NETNS``, set by ``Network.ros_env``)."""
+    ns = (env or {}).get("CRYPTOROS_NETNS")
+    return ["ip", "netns", "exec", ns, *args] if ns else list(args)
+
+
 def run(args: Sequence[str], *, timeout: float = 60, check: bool = False, **kw) -> subprocess.CompletedProcess:
-    """Run a command with a bounded wait, capturing text output."""
-    result = subprocess.run(list(args), capture_output=True, text=True, timeout=timeout, **kw)
+    """Run a command with a bounded wait, capturing text output (on the host of ``env``)."""
+    result = subprocess.run(on_host(args, kw.get("env")), capture_output=True, text=True, timeout=timeout, **kw)
     if check and result.returncode != 0:
         raise AssertionError(f"{args} exited {result.returncode}\nstdout:\n{result.stdout}\nstderr:\n{result.stderr}")
     return result
@@ -91,7 +98,9 @@ def stop(proc: subprocess.Popen, timeout: float = 5.0) -> None:
 
 @contextlib.contextmanager
 def running(args: Sequence[str], **kw) -> Iterator[subprocess.Popen]:
-    proc = subprocess.Popen(list(args), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+    """A process with its output piped, stopped in a finally (on the host of ``env``)."""
+    proc = subprocess.Popen(on_host(args, kw.get("env")), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            **kw)
     try:
         yield proc
     finally:

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.interceptor_harness import SYS_PY, robot_network
-from tests.support import require, running
+from tests.interceptor_harness import SYS_PY, robot_network, separate_hosts
+from tests.support import on_host, require, running
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -53,14 +53,15 @@ managers:
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
     require("rosmaster")
-    with robot_network(tmp_path_factory.mktemp("net"), policy=POLICY, start=("master", "robot_a", "robot_c")) as net:
+    with robot_network(tmp_path_factory.mktemp("net"), policy=POLICY, start=("master", "robot_a", "robot_c"),
+                       netns=separate_hosts()) as net:
         yield net
 
 
 def attack(env: dict[str, str], *args: str, timeout: float = 60) -> tuple[str, dict]:
     out = Path(env["ROS_HOME"]) / f"attack-{time.monotonic_ns()}.json"
-    r = subprocess.run([CRYPTOROS, "attack", *args, "--json", str(out)], env=env, capture_output=True, text=True,
-                       timeout=timeout)
+    r = subprocess.run(on_host([CRYPTOROS, "attack", *args, "--json", str(out)], env), env=env, capture_output=True,
+                       text=True, timeout=timeout)
     assert r.returncode == 0, r.stderr
     return r.stdout, json.loads(out.read_text())
 

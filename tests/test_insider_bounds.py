@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from cryptoros.ros1.xmlrpc import Fault, Request, make_multicall
-from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc
+from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc, separate_hosts
 from tests.support import running
 from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
 
@@ -28,7 +28,8 @@ pytestmark = [pytest.mark.ros1]
 def network(tmp_path_factory):
     extra = {"master": "[limits]\nmax_relays_per_peer = 64\nmax_nodes_per_peer = 128\n",
              "robot_a": "[limits]\npreamble_timeout = 3.0\nmax_pending_per_certificate = 4\n"}
-    with robot_network(tmp_path_factory.mktemp("bounds"), start=("master", "robot_a", "robot_b"), extra=extra) as net:
+    with robot_network(tmp_path_factory.mktemp("bounds"), start=("master", "robot_a", "robot_b"), extra=extra,
+                       netns=separate_hosts()) as net:
         yield net
 
 
@@ -178,7 +179,7 @@ def test_node_api_replies_to_a_peer_name_no_loopback_endpoint(network):
 
 def test_an_oversized_body_is_refused_with_a_ros_error_without_reading_it(network):
     host, port = network.hosts["robot_b"].master_uri[len("http://"):].rstrip("/").split(":")
-    with closing(socket.create_connection((host, int(port)), timeout=10)) as s:
+    with network.inside("robot_b"), closing(socket.create_connection((host, int(port)), timeout=10)) as s:
         s.sendall(b"POST /RPC2 HTTP/1.1\r\nHost: x\r\nContent-Type: text/xml\r\nContent-Length: 104857600\r\n\r\n")
         s.settimeout(10)
         answer = s.recv(65536)
@@ -194,15 +195,16 @@ def test_an_oversized_body_is_refused_with_a_ros_error_without_reading_it(networ
 
 
 def test_with_its_manager_disabled_the_local_master_answers_ros_errors_not_tracebacks(network):
-    local = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
-    assert local.getPid("/probe")[0] == 1
+    with network.inside("robot_b"):
+        assert xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri).getPid("/probe")[0] == 1
     network.cli("disable-manager", "robot_b")
     try:
         deadline = time.monotonic() + 20
         answer = None
         while time.monotonic() < deadline:
-            answer = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri).registerSubscriber(
-                "/rospy_listener", "/chatter", "std_msgs/String", "http://127.0.0.1:9/")
+            with network.inside("robot_b"):
+                answer = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri).registerSubscriber(
+                    "/rospy_listener", "/chatter", "std_msgs/String", "http://127.0.0.1:9/")
             if answer[0] == -1:
                 break
             time.sleep(0.3)

@@ -9,6 +9,7 @@ between A and B) are unharmed.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import struct
 import time
@@ -18,7 +19,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tcpros, rogue_tls
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    robot_network,
+    rogue_preamble,
+    rogue_tcpros,
+    rogue_tls,
+    separate_hosts,
+)
 from tests.support import require, run, running
 from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
 
@@ -40,7 +49,8 @@ GETPID = b"<?xml version='1.0'?><methodCall><methodName>getPid</methodName><para
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("insider"), start=("master", "robot_a", "robot_b")) as net:
+    with robot_network(tmp_path_factory.mktemp("insider"), start=("master", "robot_a", "robot_b"),
+                       netns=separate_hosts()) as net:
         yield net
 
 
@@ -76,7 +86,9 @@ def rosmaster_proc(network):
 
 
 def master_alive(network) -> bool:
-    return rosmaster_proc(network).poll() is None and xmlrpc.client.ServerProxy(network.rosmaster_uri).getPid("/t")[0] == 1
+    with network.inside("master"):
+        return rosmaster_proc(network).poll() is None and \
+            xmlrpc.client.ServerProxy(network.rosmaster_uri).getPid("/t")[0] == 1
 
 
 def token_of(network, name) -> str:
@@ -110,7 +122,7 @@ def test_calls_hidden_in_the_request_path_never_reach_rosmaster(network):
     host, port = network.hosts["robot_b"].master_uri[len("http://"):].rstrip("/").split(":")
     # through the insider's own interceptor's local master port (plain HTTP on loopback)
     for hidden in (HIDDEN_SETPARAM, HIDDEN_SHUTDOWN):
-        with closing(socket.create_connection((host, int(port)), timeout=10)) as s:
+        with network.inside("robot_b"), closing(socket.create_connection((host, int(port)), timeout=10)) as s:
             answer = exchange(s, smuggling(hidden))
         assert b"<int>-1</int>" in answer and b"denied by cryptoros" in answer, answer[:300]
     # and over a raw TLS master stream with the insider's certificate and token
@@ -119,7 +131,8 @@ def test_calls_hidden_in_the_request_path_never_reach_rosmaster(network):
             assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
             answer = exchange(s, smuggling(hidden))
         assert b"<int>-1</int>" in answer, answer[:300]
-    assert master.hasParam("/t", "/robot_a/owned") == [1, "/robot_a/owned", False]
+    with network.inside("master"):
+        assert master.hasParam("/t", "/robot_a/owned") == [1, "/robot_a/owned", False]
     assert master_alive(network), "rosmaster was shut down"
     assert "control character, bare CR/LF" in denials(network, "master")
 
@@ -132,15 +145,16 @@ def test_a_shutdown_hidden_in_the_path_to_a_relay_leaves_the_talker_running(netw
         while "/talker_a" not in nodes_in_state(master_state(network)):
             assert time.monotonic() < deadline, "/talker_a never registered"
             time.sleep(0.1)
-        local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
-        code, _, relay = local_master.lookupNode("/spy", "/talker_a")
-        assert code == 1 and relay.startswith("http://127.0.0.1:")
-        host, port = relay[len("http://"):].rstrip("/").split(":")
-        with closing(socket.create_connection((host, int(port)), timeout=10)) as s:
-            answer = exchange(s, smuggling(HIDDEN_SHUTDOWN))
-        assert b"<int>-1</int>" in answer
-        # the talker answers its API and is still registered
-        assert xmlrpc.client.ServerProxy(relay).getPid("/spy")[0] == 1
+        with network.inside("robot_b"):
+            local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+            code, _, relay = local_master.lookupNode("/spy", "/talker_a")
+            assert code == 1 and relay.startswith("http://127.0.0.1:")
+            host, port = relay[len("http://"):].rstrip("/").split(":")
+            with closing(socket.create_connection((host, int(port)), timeout=10)) as s:
+                answer = exchange(s, smuggling(HIDDEN_SHUTDOWN))
+            assert b"<int>-1</int>" in answer
+            # the talker answers its API and is still registered
+            assert xmlrpc.client.ServerProxy(relay).getPid("/spy")[0] == 1
         assert pub.poll() is None
         assert "/talker_a" in nodes_in_state(master_state(network))
     assert master_alive(network)
@@ -169,8 +183,12 @@ def roscpp_nodes(request, tmp_path_factory):
 
 
 def test_udpros_is_never_offered_and_a_udp_listener_gets_tcpros_through_the_tunnel(network, roscpp_nodes):
-    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    stranger.bind(("127.0.0.9", 0))
+    # the stranger listens for datagrams on its own host (127.0.0.9 on a shared loopback)
+    stranger_host = network.lab.add_host(f"udp{time.monotonic_ns() % 10000}") if network.lab else None
+    stranger_address = stranger_host.address if stranger_host else "127.0.0.9"
+    with network.lab.hosts[stranger_host.name].inside() if stranger_host else contextlib.nullcontext():
+        stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        stranger.bind((stranger_address, 0))
     stranger.settimeout(0.2)
     udp_port = stranger.getsockname()[1]
     with closing(stranger), running([roscpp_nodes["talker"], "/chatter", "200000"], env=network.ros_env("robot_a")):
@@ -186,9 +204,9 @@ def test_udpros_is_never_offered_and_a_udp_listener_gets_tcpros_through_the_tunn
         with rogue(network, "robot_a", "robot_b") as s:
             assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
             udp_only = rogue_xmlrpc_value(s, "requestTopic", "/spy", "/chatter",
-                                          [["UDPROS", header, "127.0.0.9", udp_port, 1500]], whole=True)
+                                          [["UDPROS", header, stranger_address, udp_port, 1500]], whole=True)
             both = rogue_xmlrpc_value(s, "requestTopic", "/spy", "/chatter",
-                                      [["UDPROS", header, "127.0.0.9", udp_port, 1500], ["TCPROS"]], whole=True)
+                                      [["UDPROS", header, stranger_address, udp_port, 1500], ["TCPROS"]], whole=True)
         assert udp_only[0] == -1
         assert both[0] == 1 and both[2][0] == "TCPROS" and both[2][1].startswith("cryptoros://")
         # a real roscpp listener that prefers UDP receives over TCPROS, through the interceptors

@@ -13,7 +13,7 @@ import xmlrpc.client
 
 import pytest
 
-from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc
+from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc, separate_hosts
 from tests.support import require, run, running
 from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
 
@@ -22,11 +22,13 @@ pytestmark = [pytest.mark.ros1]
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("params"), start=("master", "robot_a", "robot_b")) as net:
-        master = xmlrpc.client.ServerProxy(net.rosmaster_uri)
-        master.setParam("/operator", "/robot_a/api_key", "A-KEY-123")
-        master.setParam("/operator", "/secrets/db_password", "hunter2")
-        master.setParam("/operator", "/shared/map_size", 42)
+    with robot_network(tmp_path_factory.mktemp("params"), start=("master", "robot_a", "robot_b"),
+                       netns=separate_hosts()) as net:
+        with net.inside("master"):
+            master = xmlrpc.client.ServerProxy(net.rosmaster_uri)
+            master.setParam("/operator", "/robot_a/api_key", "A-KEY-123")
+            master.setParam("/operator", "/secrets/db_password", "hunter2")
+            master.setParam("/operator", "/shared/map_size", 42)
         yield net
 
 
@@ -49,7 +51,8 @@ def test_subscribe_param_cannot_rebind_another_robots_node(network):
         wait_registered(network, "/talker_a")
         local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
         # on the insider's own local master port, and by hand over a master stream
-        assert local_b.subscribeParam("/talker_a", "http://127.0.0.1:9/", "/spy/x")[0] == -1
+        with network.inside("robot_b"):
+            assert local_b.subscribeParam("/talker_a", "http://127.0.0.1:9/", "/spy/x")[0] == -1
         b = network.hosts["robot_b"]
         m = network.hosts["master"]
         with rogue_tls(m.address, m.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for("robot_b"),
@@ -68,6 +71,13 @@ def test_subscribe_param_cannot_rebind_another_robots_node(network):
 
 
 def test_parameter_reads_are_narrowed_to_what_the_caller_may_read(network):
+    with network.inside("robot_b"):
+        _narrowed_reads(network)
+    log = network.hosts["robot_b"].logs()
+    assert "param_read_denied" in log and "param_write_denied" in log
+
+
+def _narrowed_reads(network):
     local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
     code, _, tree = local_b.getParam("/rospy_listener", "/")
     assert code == 1
@@ -85,10 +95,9 @@ def test_parameter_reads_are_narrowed_to_what_the_caller_may_read(network):
     assert local_b.getParam("/rospy_listener", "/rospy_listener/rate") == [1, "Parameter [/rospy_listener/rate]", 5]
     # writes outside the caller's namespace are ROS errors, and nothing is written
     assert local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned") == [-1, "denied by cryptoros", 0]
-    master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
-    assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
-    log = network.hosts["robot_b"].logs()
-    assert "param_read_denied" in log and "param_write_denied" in log
+    with network.inside("master"):
+        master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
+        assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
 
 
 def test_rosparam_set_get_and_list_work_with_a_grant(network):
@@ -108,4 +117,5 @@ def test_rosparam_set_get_and_list_work_with_a_grant(network):
     assert listed.returncode == 0 and "/shared/speed" in listed.stdout and "/secrets/db_password" not in listed.stdout
     denied = run(["rosparam", "set", "/secrets/db_password", "x"], env=env, timeout=30)
     assert denied.returncode != 0
-    assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/o", "/secrets/db_password")[2] == "hunter2"
+    with network.inside("master"):
+        assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/o", "/secrets/db_password")[2] == "hunter2"

@@ -19,6 +19,7 @@ from cryptoros.tls import cert_thumbprint_s256
 from cryptoros.tokens import Grants, build_claims, sign_token
 from tests.interceptor_harness import (
     NODE,
+    separate_hosts,
     SYS_PY,
     robot_network,
     rogue_preamble,
@@ -35,7 +36,8 @@ pytestmark = [pytest.mark.ros1]
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b", "robot_c")) as net:
+    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b", "robot_c"),
+                       netns=separate_hosts()) as net:
         yield net
 
 
@@ -112,7 +114,7 @@ def test_header_with_wrong_type_or_md5_is_refused_by_the_publishers_interceptor(
             assert rogue_preamble(s, token, "master").ok
             reply = rogue_xmlrpc(s, "lookupNode", "/rogue", "/talker_a")
         code, _, node_api = reply.value
-        assert code == 1 and node_api.startswith("cryptoros://127.0.0.2:")
+        assert code == 1 and node_api.startswith(f"cryptoros://{network.hosts['robot_a'].address}:")
         x_id = node_api.rsplit("/", 1)[1]
         with rogue(network, "robot_a", "robot_b") as s:
             assert rogue_preamble(s, token, "node", x_id).ok
@@ -148,12 +150,13 @@ def test_shutdown_is_dropped_for_the_master_and_for_nodes(network):
             reply = rogue_xmlrpc(s, "shutdown", "/evil", "bye")
         assert isinstance(reply, Response) and reply.value[0] == -1
         # to the master, from a local process through its host's interceptor
-        local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
-        assert local_master.shutdown("/evil", "bye")[0] == -1
-        # to a node, through the relay a local process on B is handed
-        code, _, relay = local_master.lookupNode("/evil", "/talker_a")
-        assert code == 1 and relay.startswith("http://127.0.0.1:")
-        assert xmlrpc.client.ServerProxy(relay).shutdown("/evil", "bye")[0] == -1
+        with network.inside("robot_b"):
+            local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+            assert local_master.shutdown("/evil", "bye")[0] == -1
+            # to a node, through the relay a local process on B is handed
+            code, _, relay = local_master.lookupNode("/evil", "/talker_a")
+            assert code == 1 and relay.startswith("http://127.0.0.1:")
+            assert xmlrpc.client.ServerProxy(relay).shutdown("/evil", "bye")[0] == -1
         # ... and by hand, straight to A's interceptor with B's valid token
         node_api = rogue_lookup(network, token, "/talker_a")
         with rogue(network, "robot_a", "robot_b") as s:
@@ -163,7 +166,8 @@ def test_shutdown_is_dropped_for_the_master_and_for_nodes(network):
         time.sleep(1)
         assert pub.poll() is None, "the talker was shut down"
         assert "/talker_a" in nodes_in_state(master_state(network))
-    assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getPid("/t")[0] == 1  # rosmaster alive
+    with network.inside("master"):
+        assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getPid("/t")[0] == 1  # rosmaster alive
     assert denials(network, "robot_a").count("shutdown_dropped") >= 1
 
 
@@ -244,8 +248,9 @@ def test_tls_without_certificate_other_ca_or_revoked_fails_the_handshake(network
         assert reason in log
     import urllib.request
 
-    metrics = urllib.request.urlopen(f"http://127.0.0.1:{network.hosts['robot_a'].metrics_port}/metrics", timeout=5)
-    text = metrics.read().decode()
+    with network.inside("robot_a"):
+        metrics = urllib.request.urlopen(f"http://127.0.0.1:{network.hosts['robot_a'].metrics_port}/metrics", timeout=5)
+        text = metrics.read().decode()
     assert 'kind="tls",reason="certificate_verify_failed"' in text
     assert 'kind="tls",reason="peer_did_not_return_a_certificate"' in text
 

@@ -16,8 +16,8 @@ import xmlrpc.client
 
 import pytest
 
-from tests.interceptor_harness import NODE, NODES, SYS_PY, robot_network
-from tests.support import require, running
+from tests.interceptor_harness import NODE, NODES, SYS_PY, robot_network, separate_hosts
+from tests.support import on_host, require, running
 from tests.test_ros1_interop import roscpp_talker  # noqa: F401  (compiled roscpp talker fixture)
 
 pytestmark = [pytest.mark.ros1]
@@ -62,7 +62,8 @@ def got(lines: list[str]) -> list[str]:
 
 def master_state(network) -> list:
     """getSystemState straight from the real rosmaster (what it really holds)."""
-    return xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
+    with network.inside("master"):
+        return xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
 
 
 def nodes_in_state(state) -> set[str]:
@@ -71,7 +72,8 @@ def nodes_in_state(state) -> set[str]:
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b", "robot_c")) as net:
+    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b", "robot_c"),
+                       netns=separate_hosts()) as net:
         yield net
 
 
@@ -110,13 +112,15 @@ def test_rostopic_echo_list_and_rosnode_list_through_interceptors(network):
     rostopic, rosnode = require("rostopic", "rosnode").values()
     env_b = network.ros_env("robot_b")
     with start_pub(network, "robot_a", "/talker_a", 400, hz=20, linger=1):
-        echo = subprocess.run([rostopic, "echo", "-n", "3", "/chatter"], env=env_b, capture_output=True,
-                              text=True, timeout=40)
+        echo = subprocess.run(on_host([rostopic, "echo", "-n", "3", "/chatter"], env_b), env=env_b,
+                              capture_output=True, text=True, timeout=40)
         assert echo.returncode == 0, echo.stderr
         assert echo.stdout.count("data: \"secret-") == 3
-        topics = subprocess.run([rostopic, "list"], env=env_b, capture_output=True, text=True, timeout=20)
+        topics = subprocess.run(on_host([rostopic, "list"], env_b), env=env_b, capture_output=True, text=True,
+                                timeout=20)
         assert "/chatter" in topics.stdout.split()
-        nodes = subprocess.run([rosnode, "list"], env=env_b, capture_output=True, text=True, timeout=20)
+        nodes = subprocess.run(on_host([rosnode, "list"], env_b), env=env_b, capture_output=True, text=True,
+                               timeout=20)
         assert "/talker_a" in nodes.stdout.split()
 
 

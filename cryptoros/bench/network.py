@@ -27,6 +27,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -94,6 +95,10 @@ def cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+#: Names the network namespace of the host a process belongs on (netns mode).
+NETNS_ENV = "CRYPTOROS_NETNS"
+
+
 def clean_env(**extra: str) -> dict[str, str]:
     """The environment without ROS_* and PYTHONPATH, plus ``extra``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ROS_") and not k.startswith("CRYPTOROS_AUTHZ")}
@@ -134,29 +139,53 @@ class Network:
     authz_proc: subprocess.Popen | None = None
     log_level: str = "warning"
     popen_extra: dict = field(default_factory=dict)
+    #: In network-namespace mode: the lab, and each host's namespace host.
+    lab: Any = None
+    ns_hosts: dict[str, Any] = field(default_factory=dict)
+
+    def argv(self, host: str | None, argv: Sequence[str]) -> list[str]:
+        """A command line that runs on ``host`` (as it is, without namespaces)."""
+        ns_host = self.ns_hosts.get(host) if host else None
+        return ns_host.argv(argv) if ns_host is not None else list(argv)
+
+    @contextlib.contextmanager
+    def inside(self, host: str | None) -> Iterator[None]:
+        """Sockets opened in the block are on ``host`` (a no-op without namespaces)."""
+        ns_host = self.ns_hosts.get(host) if host else None
+        if ns_host is None:
+            yield
+        else:
+            with ns_host.inside():
+                yield
 
     def start(self, name: str, timeout: float = 30) -> Host:
         """Start (or restart) the interceptor of host ``name`` and wait until it listens."""
         host = self.hosts[name]
         host.log = self.workdir / f"interceptor-{name}.log"
         host.proc = subprocess.Popen(
-            [tool("cryptoros-interceptor"), "--config", str(host.config), "--log-level", self.log_level],
+            self.argv(name, [tool("cryptoros-interceptor"), "--config", str(host.config), "--log-level", self.log_level]),
             stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=clean_env(), **self.popen_extra,
         )
         self.procs.append(host.proc)
         wait_port(host.address, host.public_port, timeout, host.proc, f"interceptor {name}")
         if "node" in host.roles:
-            wait_port("127.0.0.1", host.local_master_port, timeout, host.proc, f"interceptor {name}")
+            with self.inside(name):
+                wait_port("127.0.0.1", host.local_master_port, timeout, host.proc, f"interceptor {name}")
         return host
 
     def stop(self, name: str) -> None:
         stop(self.hosts[name].proc, timeout=10)
 
     def ros_env(self, host: str | None, **extra: str) -> dict[str, str]:
-        """Environment of an unmodified ROS node on ``host`` (None: straight to rosmaster)."""
+        """Environment of an unmodified ROS node on ``host`` (None: straight to rosmaster).
+        In namespace mode it names the host's namespace in ``CRYPTOROS_NETNS``, so a
+        launcher that reads it (tests/support.py) starts the node on that host."""
         uri = self.hosts[host].master_uri if host else self.rosmaster_uri
         home = self.workdir / "ros_home"
         home.mkdir(exist_ok=True)
+        ns_host = self.ns_hosts.get(host or "master")
+        if ns_host is not None:
+            extra = {**extra, NETNS_ENV: ns_host.ns}
         return clean_env(ROS_MASTER_URI=uri, ROS_IP="127.0.0.1", ROS_HOME=str(home), PYTHONUNBUFFERED="1", **extra)
 
     def cert(self, name: str) -> tuple[Path, Path]:
@@ -228,6 +257,7 @@ def bench_network(
     ros2_python: Path | None = None,
     ros2_local: dict[str, Sequence[str]] | None = None,
     ros2_depth: int = 10,
+    netns: bool = False,
 ) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the three interceptors.
 
@@ -254,6 +284,13 @@ def bench_network(
     python (default: the interceptor's, ``$CRYPTOROS_ROS2_PYTHON`` or ``.ros2-venv``) and
     ``ros2_local`` a host's ``[ros2] local`` patterns (names that never leave it), and
     ``ros2_depth`` their ``[ros2] depth``.
+
+    ``netns=True`` (root only) puts every host in its own network namespace
+    (:mod:`cryptoros.lab.netns`): its interceptor's public port on the host's bridge
+    address (the ``hosts`` addresses are replaced), its local master, nodes and (on the
+    master host) rosmaster on its own 127.0.0.1, and the authorization server on the
+    lab's gateway address; :meth:`Network.argv` and :meth:`Network.inside` reach a
+    host, ``net.lab.add_host`` adds one (a stranger).
     """
     rosmaster = None
     if master == "rosmaster":
@@ -264,6 +301,20 @@ def bench_network(
         raise NetworkError(f"master must be rosmaster, embedded, none or an http:// URI, not {master!r}")
     popen_extra = {"start_new_session": True} if new_session else {}
     hosts = dict(hosts or HOSTS)
+    lab = None
+    ns_hosts: dict[str, Any] = {}
+    authz_host = "127.0.0.1"
+    if netns:
+        from cryptoros.lab.netns import NetnsLab, netns_unavailable
+
+        reason = netns_unavailable()
+        if reason is not None:
+            raise NetworkError(f"network namespaces: {reason}")
+        lab = NetnsLab()
+        for name in hosts:
+            ns_hosts[name] = lab.add_host(name)
+            hosts[name] = ns_hosts[name].address
+        authz_host = lab.gateway
     workdir.mkdir(parents=True, exist_ok=True)
     progress("PKI and registry")
     pki = PKI.init(workdir / "pki", unsafe_no_passphrase=True)
@@ -274,7 +325,8 @@ def bench_network(
         fingerprints[name] = issued.fingerprint_sha256
     for name, address in extra_certs:
         pki.issue(name, kind="interceptor", sans=(f"IP:{address}",), unsafe_no_passphrase=True)
-    server = pki.issue("authz", kind="server", sans=("IP:127.0.0.1", "DNS:localhost"), unsafe_no_passphrase=True)
+    server = pki.issue("authz", kind="server", sans=("IP:127.0.0.1", "DNS:localhost", f"IP:{authz_host}"),
+                       unsafe_no_passphrase=True)
     db = f"sqlite:///{workdir / 'registry.db'}"
     policy_file = workdir / "policy.yaml"
     policy_file.write_text(policy.format(**fingerprints))
@@ -283,6 +335,8 @@ def bench_network(
     result = subprocess.run([authz, "--db", db, "import", str(policy_file)], capture_output=True, text=True,
                             timeout=60, env=env)
     if result.returncode != 0:
+        if lab is not None:
+            lab.close()
         raise NetworkError(f"cryptoros-authz import failed: {result.stderr.strip() or result.stdout.strip()}")
     procs: list[subprocess.Popen] = []
     net: Network | None = None
@@ -293,7 +347,7 @@ def bench_network(
         pass_file.write_text(SIGNING_PASSPHRASE + "\n")
         authz_log = (workdir / "authz.log").open("w")
         daemon = subprocess.Popen(
-            [authz, "--db", db, "serve", "--port", str(authz_port), "--ca", str(pki.ca_cert_path),
+            [authz, "--db", db, "serve", "--host", authz_host, "--port", str(authz_port), "--ca", str(pki.ca_cert_path),
              "--cert", str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
              "--key-passphrase-file", str(pass_file), "--log-level", "warning"],
             stdout=authz_log, stderr=subprocess.STDOUT, env=env, **popen_extra,
@@ -314,23 +368,30 @@ def bench_network(
             else:
                 master_env = clean_env()
                 master_cmd = [tool("cryptoros"), "master", "--host", "127.0.0.1", "--port", str(ros_port)]
+            if "master" in ns_hosts:
+                master_cmd = ns_hosts["master"].argv(master_cmd)
             master_proc = subprocess.Popen(master_cmd, env=master_env, stdout=subprocess.DEVNULL,
                                            stderr=subprocess.DEVNULL, **popen_extra)
             procs.append(master_proc)
-        wait_port("127.0.0.1", authz_port, 30, daemon, "cryptoros-authz")
-        if ros_uri:
-            wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
+        wait_port(authz_host, authz_port, 30, daemon, "cryptoros-authz")
         net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"{ros_uri}/" if ros_uri else "",
-                      authz_url=f"https://127.0.0.1:{authz_port}", procs=procs, db=db, authz_proc=daemon,
-                      log_level=log_level, popen_extra=popen_extra)
-        master_public = free_port(hosts["master"]) if "master" in hosts else None
+                      authz_url=f"https://{authz_host}:{authz_port}", procs=procs, db=db, authz_proc=daemon,
+                      log_level=log_level, popen_extra=popen_extra, lab=lab, ns_hosts=ns_hosts)
+        if ros_uri:
+            with net.inside("master"):
+                wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
+        def port_on(name: str, address: str = "127.0.0.1") -> int:
+            with net.inside(name):
+                return free_port(address)
+
+        master_public = port_on("master", hosts["master"]) if "master" in hosts else None
         interceptor = tool("cryptoros-interceptor")
-        metrics_ports = {name: free_port() if metrics else None for name in hosts}
-        publics = {name: master_public if name == "master" else free_port(address) for name, address in hosts.items()}
+        metrics_ports = {name: port_on(name) if metrics else None for name in hosts}
+        publics = {name: master_public if name == "master" else port_on(name, address) for name, address in hosts.items()}
         ros2 = ros2 or {}
         for name, address in hosts.items():
             public = publics[name]
-            local_master = free_port()
+            local_master = port_on(name)
             default_roles = ["ros2"] if name in ros2 else ["master"] if name == "master" else ["node"]
             host_roles = tuple((roles or {}).get(name) or default_roles)
             peers = [f"{hosts[p]}:{publics[p]}" for p in ros2 if p != name]
@@ -351,7 +412,7 @@ def bench_network(
             host = net.hosts[name]
             host.log = workdir / f"interceptor-{name}.log"
             host.proc = subprocess.Popen(
-                [interceptor, "--config", str(host.config), "--log-level", log_level],
+                net.argv(name, [interceptor, "--config", str(host.config), "--log-level", log_level]),
                 stdout=host.log.open("w"), stderr=subprocess.STDOUT, env=env, **popen_extra,
             )
             procs.append(host.proc)
@@ -360,11 +421,14 @@ def bench_network(
             # a ros2 interceptor listens once its DDS bridge is up (BRIDGE_START_TIMEOUT, 30 s)
             wait_port(host.address, host.public_port, 40, host.proc, f"interceptor {name}")
             if "node" in host.roles:
-                wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {name}")
+                with net.inside(name):
+                    wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {name}")
         yield net
     finally:
         for proc in reversed(net.procs if net is not None else procs):
             stop(proc, timeout=10)
+        if lab is not None:
+            lab.close()
 
 
 __all__ = ["HOSTS", "Host", "Network", "NetworkError", "bench_network", "clean_env", "cpu_seconds", "free_port", "stop",

@@ -1,0 +1,1 @@
+"""Test beds shared by the tests, the demo and the benchmarks (no benchmark logic here)."""
