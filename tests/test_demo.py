@@ -122,3 +122,24 @@ def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
     while _processes_using(venv) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert _processes_using(venv) == []
+
+
+def test_demo_netns_runs_the_protected_mission_on_separate_hosts(tmp_path):
+    """`cryptoros demo --netns`: the master, every robot and the stranger each in its own
+    network namespace (issue 11): the mission reaches its target, every attack fails."""
+    from tests.interceptor_harness import separate_hosts
+    from tests.support import script
+
+    separate_hosts()
+    out = tmp_path / "out.json"
+    r = subprocess.run([script("cryptoros"), "demo", "--netns", "--mode", "protected", "--seconds", "45",
+                        "--attacks", "spoof-pose,eavesdrop,shutdown,hijack", "--json", str(out),
+                        "--out", str(tmp_path / "report")], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert result["config"]["netns"] is True
+    protected = result["modes"]["protected"]
+    assert protected["target_reached"] is True, protected["coverage"]
+    for name, verdict in protected["judged"].items():
+        assert verdict["succeeded"] is False, (name, verdict["evidence"])
+    assert result["leftover_children"] == []

@@ -43,8 +43,11 @@ def _sigterm(_sig: int, _frame: Any) -> None:
 @click.option("--size", default=60, show_default=True, type=click.IntRange(30, 200), help="Arena side in cells of 0.2 m.")
 @click.option("--workdir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Work directory (default: a new temporary one).")
+@click.option("--netns", is_flag=True,
+              help="Protected mode on separate hosts: each robot, the master and the stranger in its own network "
+                   "namespace, as robots on a LAN (needs root).")
 def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_uri: str | None, keep: bool, json_path: Path | None,
-         out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None) -> None:
+         out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None, netns: bool) -> None:
     """A live robot team under attack: plain ROS, then behind cryptoros interceptors.
 
     Starts a throwaway PKI, the authorization server, a ROS master and one robot
@@ -73,10 +76,18 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_
             raise click.BadParameter(f"unknown attack {bad[0]!r}; one of {', '.join(known)}{hint}", param_hint="--attacks")
     if ros == "2" and master_uri:
         raise click.BadParameter("ROS 2 has no master", param_hint="--master-uri")
+    if netns:
+        from cryptoros.lab.netns import netns_unavailable
+
+        reason = netns_unavailable()
+        if reason is not None:
+            raise click.ClickException(f"--netns: {reason}")
+        if ros == "2" or master_uri:
+            raise click.BadParameter("runs the ROS 1 demo with its embedded master", param_hint="--netns")
     modes = ("plain", "protected") if mode == "both" else (mode,)
     opts = DemoOptions(robots=robots, attacks=chosen, seconds=seconds, modes=modes, master_uri=master_uri, keep=keep,
                        seed=seed, width=size, height=size, scale=scale, ros=int(ros),
-                       workdir=str(workdir) if workdir else None)
+                       workdir=str(workdir) if workdir else None, netns=netns)
     console = Console(stderr=False)
     signal.signal(signal.SIGTERM, _sigterm)
     live = rep.LiveView(console)

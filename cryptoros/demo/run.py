@@ -69,6 +69,7 @@ class DemoOptions:
     attack_delay: float = 1.0  # wall seconds after the start
     workdir: str | None = None
     ros: int = 1  # 1: ROS 1 nodes (this module); 2: rclpy nodes (cryptoros.demo.ros2)
+    netns: bool = False  # protected mode: every host in its own network namespace (root)
 
 
 def robot_addr(i: int) -> str:
@@ -183,6 +184,9 @@ class Graph:
     insider_ip: dict[str, str]
     interceptors: dict[str, Any] = field(default_factory=dict)  # name -> Host (protected)
     ports: list[tuple[str, int]] = field(default_factory=list)
+    stranger_ip: str = STRANGER_ADDR
+    #: (host or None for the stranger, argv) -> the command line that runs on that host
+    on_host: Callable[[str | None, list[str]], list[str]] = lambda _host, argv: argv
 
 
 class Mission:
@@ -236,7 +240,8 @@ class Mission:
 
         hosts = {"master": MASTER_ADDR, **{r: robot_addr(i) for i, r in enumerate(self.team)}}
         with bench_network(self.dir / "net", policy(len(self.team)), hosts=hosts,
-                           master=self.opts.master_uri or "embedded", metrics=True, new_session=True) as net:
+                           master=self.opts.master_uri or "embedded", metrics=True, new_session=True,
+                           netns=self.opts.netns) as net:
             ports = []
             for h in net.hosts.values():
                 ports.append((h.address, h.public_port))
@@ -244,11 +249,20 @@ class Mission:
                     ports.append(("127.0.0.1", h.local_master_port))
                 if h.metrics_port:
                     ports.append(("127.0.0.1", h.metrics_port))
+            stranger = net.lab.add_host("stranger") if net.lab is not None else None
+
+            def on_host(host: str | None, argv: list[str]) -> list[str]:
+                if host is None:
+                    return stranger.argv(argv) if stranger is not None else argv
+                return net.argv(host, argv)
+
+            master = net.hosts["master"]
             yield Graph(robot_master={r: net.hosts[r].master_uri for r in self.team},
                         robot_ip={r: "127.0.0.1" for r in self.team},
-                        stranger_master=f"http://{MASTER_ADDR}:{net.hosts['master'].public_port}/",
+                        stranger_master=f"http://{master.address}:{master.public_port}/",
                         insider_master={r: net.hosts[r].master_uri for r in self.team},
-                        insider_ip={r: "127.0.0.1" for r in self.team}, interceptors=net.hosts, ports=ports)
+                        insider_ip={r: "127.0.0.1" for r in self.team}, interceptors=net.hosts, ports=ports,
+                        on_host=on_host, stranger_ip=stranger.address if stranger is not None else STRANGER_ADDR)
 
     # -- run ---------------------------------------------------------------------------------
 
@@ -268,23 +282,24 @@ class Mission:
                    "status": str(self.dir / f"{r}.status.json"), "go": str(self.dir / "go.json"), "connect_timeout": 20}
             path = self.dir / f"{r}.json"
             path.write_text(json.dumps(cfg))
-            procs[r] = self.children.start([sys.executable, "-m", "cryptoros.demo.robot", str(path)], self.dir / f"{r}.log", _env())
+            procs[r] = self.children.start(g.on_host(r, [sys.executable, "-m", "cryptoros.demo.robot", str(path)]),
+                                           self.dir / f"{r}.log", _env())
         return procs
 
     def _start_attack(self, kind: str, g: Graph) -> subprocess.Popen:
         n = len(self.team)
         who = ATTACKS[kind]["as"] if self.mode == "protected" else ATTACKS[kind]["as"]
         if who == "stranger":
-            master, ip = g.stranger_master, STRANGER_ADDR
+            master, ip, host = g.stranger_master, g.stranger_ip, None
         else:
-            h = insider_host(kind, n)
+            host = h = insider_host(kind, n)
             master, ip = g.insider_master[h], g.insider_ip[h]
         cfg = {"kind": kind, "master_uri": master, "ros_ip": ip, "target": target_of(kind, n), "team": self.team,
                "width": self.opts.width, "height": self.opts.height, "duration": self.opts.seconds,
                "report": str(self.dir / f"attack-{kind}.report.json"), "bag": str(self.dir / "eavesdrop.bag")}
         path = self.dir / f"attack-{kind}.json"
         path.write_text(json.dumps(cfg))
-        return self.children.start([sys.executable, "-m", "cryptoros.demo.attackers", str(path)],
+        return self.children.start(g.on_host(host, [sys.executable, "-m", "cryptoros.demo.attackers", str(path)]),
                                    self.dir / f"attack-{kind}.log", _env())
 
     def _read_status(self) -> dict[str, dict[str, Any]]:
