@@ -232,6 +232,7 @@ class AuthzService:
         self.executor = ThreadPoolExecutor(max_workers=cfg.db_threads, thread_name_prefix="authz-db")
         self.metrics = Metrics()
         self._managers = _Cache(cfg.cache_seconds)
+        self._feed_serial: int | None = None
         self._shared = _Cache(cfg.cache_seconds)
         self._signer: _Signer | None = None
         self.audit = _AuditWriter(self)
@@ -300,6 +301,11 @@ class AuthzService:
             return await self.db(self.registry.revocation_feed, now=time.time())
 
         feed = await self._shared.get("feed", fetch)
+        if feed.serial != self._feed_serial:
+            # the registry changed (a grant, a revocation): the next token of any
+            # manager is built from the database, not from grants cached before
+            self._feed_serial = feed.serial
+            self._managers.clear()
         self.metrics.revocation_serial.set(feed.serial)
         return feed
 

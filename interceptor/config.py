@@ -187,9 +187,16 @@ class Ros2Settings:
     max_message_size: int = 16 * 1024 * 1024
     #: fnmatch patterns of topic and service names that stay on this robot's domain
     local: tuple[str, ...] = ()
+    #: fnmatch patterns of the topics a peer may republish here as transient_local
+    #: (kept for late joiners); any other topic is republished volatile, whatever the
+    #: sender asks. The receiver decides: depth is capped at ``depth`` too.
+    transient_local: tuple[str, ...] = ()
 
     def is_local(self, name: str) -> bool:
         return any(fnmatch.fnmatchcase(name, pattern) for pattern in self.local)
+
+    def keeps_for_late_joiners(self, name: str) -> bool:
+        return any(fnmatch.fnmatchcase(name, pattern) for pattern in self.transient_local)
 
 
 def default_ros2_python() -> Path:
@@ -413,6 +420,10 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
     if not isinstance(local, list) or len(local) > 256 or not all(
             isinstance(p, str) and p.startswith("/") and len(p) <= 256 for p in local):
         raise ConfigError("[ros2] local must be a list of at most 256 name patterns, each starting with /")
+    latched = raw.get("transient_local", [])
+    if not isinstance(latched, list) or len(latched) > 256 or not all(
+            isinstance(p, str) and p.startswith("/") and len(p) <= 256 for p in latched):
+        raise ConfigError("[ros2] transient_local must be a list of at most 256 topic patterns, each starting with /")
     return Ros2Settings(
         domain_id=domain,
         python=python,
@@ -422,6 +433,7 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
         graph_interval=_typed(raw.get("graph_interval", 0.5), float, "[ros2] graph_interval"),
         max_message_size=_typed(raw.get("max_message_size", 16 * 1024 * 1024), int, "[ros2] max_message_size"),
         local=tuple(local),
+        transient_local=tuple(latched),
     )
 
 

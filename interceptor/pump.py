@@ -110,6 +110,20 @@ class MessageBudget:
     def spend(self, count: int) -> None:
         self._tokens -= count
 
+    def delay(self, count: int) -> float:
+        """Seconds to wait before ``count`` messages may pass (0: they pass now and
+        are spent). A batch larger than the bucket passes once the bucket is full and
+        leaves a debt that later batches wait out: the rate holds on average, and no
+        batch size, however large, waits forever."""
+        now = self._clock()
+        self._tokens = min(self.burst, self._tokens + (now - self._last) * self.rate)
+        self._last = now
+        need = min(count, self.burst)
+        if self._tokens >= need:
+            self._tokens -= count
+            return 0.0
+        return (need - self._tokens) / self.rate
+
 
 class PumpProtocol(asyncio.BufferedProtocol):
     """Reads into one reused buffer and writes each read to the peer transport.

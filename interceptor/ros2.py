@@ -38,7 +38,8 @@ import cryptoros.ros2
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.names import validate_graph_name
 from cryptoros.ros2 import framing as fr
-from cryptoros.ros2.target import QoS, StreamTarget, manager_may
+from cryptoros.ros2.cdr import CdrError, checker_for
+from cryptoros.ros2.target import QoS, StreamTarget, manager_may, receiver_qos
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
 from interceptor.ros1 import READ_SIZE, Interceptor, Peer
@@ -510,8 +511,14 @@ class Ros2Interceptor(Interceptor):
         return await self._serve_ros2_stream(reader, writer, peer, StreamTarget.decode(target))
 
     async def _serve_ros2_stream(self, reader, writer, peer: Peer, target: StreamTarget) -> None:
-        if not peer.access.grants.allows(target.action, target.node, target.name, target.type):
-            raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
+        def judge(grants) -> None:
+            """The peer's grant for this stream (again on each fresher token it shows)."""
+            if not grants.allows(target.action, target.node, target.name, target.type):
+                raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
+
+        judge(self.verifier.freshest(peer.access).grants)
+        if peer.watch is not None:
+            peer.watch.set_recheck(lambda fresh: judge(fresh.grants))
         own = self.own_access()
         if not manager_may(own.grants, target.peer_action, target.name, target.type):
             raise PolicyDenied(
@@ -535,11 +542,17 @@ class Ros2Interceptor(Interceptor):
         advert = self._adverts.get(key)
         if advert is None:
             advert = self._adverts[key] = [next(self._chans), 0]
-            link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type, qos=target.qos.to_dict())
+            link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
+                         qos=self._receiver_qos(target).to_dict())
         advert[1] += 1
         chan = advert[0]
         log.info("republishing %s [%s] from %s (%s)", target.name, target.type, peer.manager, target.node)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
+        try:
+            check = checker_for(target.type)
+        except CdrError as exc:
+            raise PolicyDenied("type_not_checkable", f"{target.type}: {exc}") from None
+        refused = 0
         budget = self._budget(peer)
         rx = self.metrics.bytes.labels("rx")
         # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
@@ -554,12 +567,20 @@ class Ros2Interceptor(Interceptor):
                     runs = decoder.runs()  # DATA frames, checked and kept whole: relabelled in place
                 except fr.FrameError as exc:
                     raise RemoteProtocolError(str(exc)) from None
+                runs, bad = _checked_runs(runs, check)
+                if bad:
+                    if not refused:
+                        log.warning("DENY ros2 sample from %s on %s [%s]: %s (dropped; logged once per stream)",
+                                    peer.manager, target.name, target.type, bad[0])
+                    refused += len(bad)
+                    self.metrics.denied.labels("ros2_sample", "malformed_sample").inc(len(bad))
                 n = sum(run[2] for run in runs)
                 if budget is not None:
-                    while budget.allowance() < n:
+                    # throttle, never stall: a batch larger than the bucket passes once the
+                    # bucket is full and leaves a debt the next reads wait out
+                    while (wait := budget.delay(n)) > 0:
                         budget.throttled += 1
-                        await asyncio.sleep(max(0.001, n / budget.rate / 4))
-                    budget.spend(n)
+                        await asyncio.sleep(wait)
                 if writer.transport.is_closing():
                     break  # cut (revoked, reloaded away): what is still buffered is not republished
                 if runs:
@@ -578,6 +599,13 @@ class Ros2Interceptor(Interceptor):
             if advert[1] <= 0 and self._adverts.get(key) is advert:
                 del self._adverts[key]
                 link.control(op="unadvertise", chan=chan)
+
+    def _receiver_qos(self, target: StreamTarget) -> QoS:
+        """The sender's QoS is a request: this robot caps the depth at its own ``depth``
+        and keeps samples for late joiners only on its ``transient_local`` topics."""
+        settings = self.cfg.ros2
+        return receiver_qos(target.qos, depth=settings.depth,
+                            keep_for_late_joiners=settings.keeps_for_late_joiners(target.name))
 
     async def _offer_service(self, reader, writer, target: StreamTarget, link: BridgeLink) -> None:
         if target.name in self._proxies:
@@ -607,6 +635,34 @@ class Ros2Interceptor(Interceptor):
             link.control(op="unserve", chan=proxy.chan)
             for rid in proxy.pending:
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
+
+
+def _checked_runs(runs: list, check) -> tuple[list, list[str]]:
+    """Runs of DATA frames with every sample whose CDR does not check out removed;
+    the reasons of the removed ones."""
+    bad: list[str] = []
+    out = []
+    head = fr.HEAD.size
+    for kind, chan, count, frames in runs:
+        pos, keep, kept, dropped = 0, [], 0, False
+        view = memoryview(frames)
+        while pos < len(frames):
+            (length,) = fr.ID.unpack_from(frames, pos)  # u32 LE length, as the frame head starts
+            stop = pos + 4 + length
+            try:
+                check(view[pos + head : stop])
+                keep.append((pos, stop))
+                kept += 1
+            except CdrError as exc:
+                bad.append(str(exc))
+                dropped = True
+            pos = stop
+        view.release()
+        if not dropped:
+            out.append((kind, chan, count, frames))
+        elif kept:
+            out.append((kind, chan, kept, bytearray(b"".join(frames[a:b] for a, b in keep))))
+    return out, bad
 
 
 __all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Interceptor"]

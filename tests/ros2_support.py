@@ -224,6 +224,7 @@ def robot_config(pki: TestPKIFactory, name: str, address: str, *, public: int, m
         "[authz]", f'url = "{authz_url}"', "revocation_poll_interval = 0.5",
         "[listen]", f'public = "{address}:{public}"', f'metrics = "127.0.0.1:{metrics}"',
         "[ros2]", f"domain_id = {domain}", f"peers = [{peer_list}]", f'python = "{python}"', "graph_interval = 0.25",
+        'transient_local = ["/latched"]',
         extra,
     ]) + "\n"
 

@@ -43,6 +43,14 @@ class QoS:
         return {"reliability": self.reliability, "durability": self.durability, "depth": self.depth}
 
 
+def receiver_qos(asked: QoS, *, depth: int, keep_for_late_joiners: bool) -> QoS:
+    """What a receiving robot republishes with: the sender's QoS is a request, its depth
+    capped at the receiver's ``depth``, ``transient_local`` only where the receiver
+    keeps samples for late joiners on that topic."""
+    durability = asked.durability if keep_for_late_joiners else "volatile"
+    return QoS(reliability=asked.reliability, durability=durability, depth=min(asked.depth, depth))
+
+
 @dataclass(frozen=True, kw_only=True, slots=True)
 class StreamTarget:
     kind: str

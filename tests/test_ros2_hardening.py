@@ -1,0 +1,207 @@
+"""Issue 19 (part): every ROS 2 sample checked before it is republished, rate limits
+that throttle and never stall, the receiver's QoS, and a stream cut when the grant
+that carried it is revoked. Unit tests of the pure parts, and real rclpy processes
+behind real interceptors for the system behaviour.
+"""
+
+from __future__ import annotations
+
+import socket
+import ssl
+import struct
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from cryptoros.ros2 import framing as fr
+from cryptoros.ros2.cdr import CdrError, checker_for
+from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
+from interceptor.pump import MessageBudget
+
+# ---------------------------------------------------------------- samples of the demo's types
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _samples() -> dict[str, bytes]:
+    ts = _typestore()
+    T, H = ts.types["builtin_interfaces/msg/Time"], ts.types["std_msgs/msg/Header"]
+    header = H(stamp=T(sec=5, nanosec=7), frame_id="map")
+    P, Q = ts.types["geometry_msgs/msg/Point"], ts.types["geometry_msgs/msg/Quaternion"]
+    V = ts.types["geometry_msgs/msg/Vector3"]
+    layout = ts.types["std_msgs/msg/MultiArrayLayout"](
+        dim=[ts.types["std_msgs/msg/MultiArrayDimension"](label="x", size=3, stride=3)], data_offset=0)
+    msgs = {
+        "std_msgs/msg/String": ts.types["std_msgs/msg/String"](data="héllo"),
+        "geometry_msgs/msg/PoseStamped": ts.types["geometry_msgs/msg/PoseStamped"](
+            header=header, pose=ts.types["geometry_msgs/msg/Pose"](position=P(x=1.0, y=2.0, z=0.0),
+                                                                   orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0))),
+        "sensor_msgs/msg/LaserScan": ts.types["sensor_msgs/msg/LaserScan"](
+            header=header, angle_min=0.0, angle_max=1.0, angle_increment=0.1, time_increment=0.0, scan_time=0.1,
+            range_min=0.1, range_max=10.0, ranges=np.arange(360, dtype=np.float32),
+            intensities=np.zeros(0, dtype=np.float32)),
+        "geometry_msgs/msg/Twist": ts.types["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0.0, z=0.0),
+                                                                       angular=V(x=0.0, y=0.0, z=0.1)),
+        "std_msgs/msg/UInt8MultiArray": ts.types["std_msgs/msg/UInt8MultiArray"](
+            layout=layout, data=np.arange(7, dtype=np.uint8)),
+    }
+    return {t: bytes(ts.serialize_cdr(m, t)) for t, m in msgs.items()}
+
+
+SAMPLES = _samples()
+
+
+@pytest.mark.parametrize("type_name", sorted(SAMPLES))
+def test_genuine_samples_pass_and_broken_ones_are_refused(type_name):
+    check, raw = checker_for(type_name), SAMPLES[type_name]
+    check(raw)
+    check(raw + b"\x00" * 3)  # alignment padding at the end
+    for bad in (b"", raw[:3], raw[:-1] if len(raw) > 8 else raw[:4], raw + b"\x00" * 8, b"\x00\x06" + raw[2:]):
+        with pytest.raises(CdrError):
+            check(bad)
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(sorted(SAMPLES)), st.data())
+def test_random_and_mutated_payloads_raise_cdr_errors_and_nothing_else(type_name, data):
+    raw = bytearray(SAMPLES[type_name])
+    how = data.draw(st.sampled_from(["random", "flip", "cut", "grow"]))
+    if how == "random":
+        raw = bytearray(data.draw(st.binary(max_size=200)))
+    elif how == "flip":
+        i = data.draw(st.integers(0, len(raw) - 1))
+        raw[i] = data.draw(st.integers(0, 255))
+    elif how == "cut":
+        raw = raw[: data.draw(st.integers(0, len(raw) - 1))]
+    else:
+        raw += data.draw(st.binary(min_size=4, max_size=50))
+    try:
+        checker_for(type_name)(bytes(raw))
+    except CdrError:
+        pass
+    if how in ("cut", "grow"):  # a length off by more than padding never passes
+        with pytest.raises(CdrError):
+            checker_for(type_name)(bytes(raw))
+
+
+# ---------------------------------------------------------------- the limiter
+
+
+@pytest.mark.parametrize("factor", [1, 10, 1000])
+def test_a_burst_of_any_size_is_throttled_to_the_rate_and_never_stalls(factor):
+    now = [0.0]
+    budget = MessageBudget(200, clock=lambda: now[0])
+    burst = int(budget.burst)
+    batch = burst * factor
+    waited = 0.0
+    for _ in range(1000):  # a bounded loop: it must get through long before this
+        wait = budget.delay(batch)
+        if wait == 0:
+            break
+        waited += wait
+        now[0] += wait
+    else:
+        raise AssertionError(f"a batch of {batch} never passed")
+    # the batch passes once the bucket is full; the debt it leaves holds the next ones back
+    assert waited <= 1.0 / 200 * burst + 1e-9
+    then = now[0]
+    while budget.delay(1) > 0:
+        now[0] += budget.delay(1)
+    assert now[0] - then == pytest.approx(max(0, batch - burst + 1) / 200, rel=0.01, abs=0.01)
+
+
+def test_the_receiver_decides_qos():
+    from interceptor.config import Ros2Settings
+
+    asked = QoS(reliability="reliable", durability="transient_local", depth=1000)
+    here = Ros2Settings(domain_id=1, python=__import__("pathlib").Path("/x"), depth=10, transient_local=("/map",))
+    spy = receiver_qos(asked, depth=here.depth, keep_for_late_joiners=here.keeps_for_late_joiners("/spyout"))
+    assert (spy.durability, spy.depth) == ("volatile", 10)
+    team_map = receiver_qos(asked, depth=here.depth, keep_for_late_joiners=here.keeps_for_late_joiners("/map"))
+    assert (team_map.durability, team_map.depth) == ("transient_local", 10)
+
+
+# ---------------------------------------------------------------- real rclpy processes
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    from tests.ros2_support import ros2_network
+
+    with ros2_network(tmp_path_factory.mktemp("ros2h"), start=("robot_a", "robot_b", "robot_c")) as net:
+        yield net
+
+
+def _rogue(network, host, as_name):
+    from tests.interceptor_harness import rogue_tls
+
+    h = network.robots[host]
+    return rogue_tls(h.address, h.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for(as_name),
+                     key=network.pki.pki.key_path_for(as_name))
+
+
+def test_an_empty_or_garbage_sample_is_refused_and_the_listener_keeps_receiving(network):
+    from tests.interceptor_harness import rogue_preamble
+    from tests.ros2_support import collect, got
+
+    target = StreamTarget(kind="topic", name="/chatter", type="std_msgs/msg/String", node="/talker").encode()
+    status, body = network.daemon.token("robot_a")
+    assert status == 200
+    with network.node("robot_b", "listener.py", "string", "/chatter", "40") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "20"):
+            assert got(collect(sub, 5, 25)), "nothing arrived before the attack"
+            with _rogue(network, "robot_b", "robot_a") as s:  # an insider with robot A's publish grant
+                assert rogue_preamble(s, body["access_token"], "ros2", target).ok
+                bad_utf8 = b"\x00\x01\x00\x00" + struct.pack("<I", 3) + b"\xff\xfe\x00"
+                s.sendall(fr.encode(fr.DATA, 0, b"") + fr.encode(fr.DATA, 0, bad_utf8))
+                after = collect(sub, 20, 15)
+            assert len(got(after)) >= 20, "robot B's listener stopped receiving robot A's messages"
+            assert not [line for line in after if line.startswith("BAD")]
+    log = network.robots["robot_b"].denials()
+    assert "DENY ros2 sample from robot_a on /chatter" in log
+    assert log.count("DENY ros2 sample") == 1  # once per stream
+
+
+def test_removing_the_grant_cuts_an_open_ros2_stream_within_5_s(network):
+    from tests.interceptor_harness import rogue_preamble
+
+    import jwt
+
+    network.cli("grant", "robot_c", "publish", "/spy", "/chatter", "std_msgs/msg/String")
+    deadline = time.monotonic() + 10  # the daemon caches a manager's grants for a second
+    while True:
+        status, body = network.daemon.token("robot_c")
+        assert status == 200
+        if "/spy" in jwt.decode(body["access_token"], options={"verify_signature": False})["grants"]:
+            break
+        assert time.monotonic() < deadline, "the new grant never reached a token"
+        time.sleep(0.2)
+    target = StreamTarget(kind="topic", name="/chatter", type="std_msgs/msg/String", node="/spy").encode()
+    sample = SAMPLES["std_msgs/msg/String"]
+    with _rogue(network, "robot_b", "robot_c") as s:
+        assert rogue_preamble(s, body["access_token"], "ros2", target).ok
+        s.sendall(fr.encode(fr.DATA, 0, sample))
+        network.cli("revoke", "robot_c", "publish", "/spy", "/chatter")
+        revoked_at = time.monotonic()
+        s.settimeout(0.2)
+        cut = None
+        while time.monotonic() - revoked_at < 10:
+            try:
+                s.sendall(fr.encode(fr.DATA, 0, sample))
+                if s.recv(100) == b"":
+                    cut = time.monotonic() - revoked_at
+                    break
+            except socket.timeout:
+                continue
+            except (OSError, ssl.SSLError):
+                cut = time.monotonic() - revoked_at
+                break
+        assert cut is not None and cut < 5, f"the stream was not cut within 5 s ({cut})"
