@@ -12,6 +12,7 @@ import asyncio
 import logging
 import signal
 import sys
+from pathlib import Path
 
 import click
 
@@ -60,15 +61,32 @@ async def _run(config_path: str, grace: float) -> None:
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--config", "config_path", required=True, help="TOML configuration file (see interceptor/config.py).")
+@click.option("--config", "config_path", help="TOML configuration file (see interceptor/config.py).")
 @click.option("--check", is_flag=True, help="Validate the configuration and TLS material, then exit.")
+@click.option("--ros2-profile", "ros2_profile", type=click.Path(dir_okay=False, allow_dash=True),
+              help="Write the Fast DDS profile that keeps a robot's ROS 2 nodes on loopback to this file "
+                   "('-': standard output), then exit.")
 @click.option("--grace", default=5.0, show_default=True, help="Seconds open streams get to finish on SIGTERM.")
 @click.option(
     "--log-level", default="info", show_default=True, type=click.Choice(["debug", "info", "warning", "error"])
 )
 @click.option("--no-uvloop", is_flag=True, help="Use the standard asyncio event loop.")
-def main(config_path: str, check: bool, grace: float, log_level: str, no_uvloop: bool) -> None:
+def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: float, log_level: str,
+         no_uvloop: bool) -> None:
     """Run the cryptoros interceptor: a drop-in mutual-TLS/JWT proxy for unmodified ROS nodes."""
+    if ros2_profile:
+        from cryptoros.ros2.profile import LOCALHOST_PROFILE, PROFILE_ENV
+
+        text = LOCALHOST_PROFILE.read_text(encoding="utf-8")
+        if ros2_profile == "-":
+            click.echo(text, nl=False)
+        else:
+            Path(ros2_profile).write_text(text, encoding="utf-8")
+            click.echo(f"wrote {ros2_profile}: start every ROS 2 node of this robot with "
+                       f"{PROFILE_ENV}={Path(ros2_profile).resolve()} (and ROS_DOMAIN_ID of its [ros2] domain_id)")
+        return
+    if not config_path:
+        raise click.UsageError("--config is required")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         cfg = load(config_path)
@@ -78,6 +96,13 @@ def main(config_path: str, check: bool, grace: float, log_level: str, no_uvloop:
         _fail(str(exc))
     if check:
         click.echo(f"configuration ok: manager {cfg.manager}, roles {', '.join(cfg.roles)}, public {cfg.public}")
+        if "ros2" in cfg.roles:
+            from cryptoros.ros2.profile import environment_problem
+
+            problem = environment_problem()
+            if problem:
+                click.echo(f"warning: {problem}: ROS 2 nodes started from this environment answer discovery from "
+                           "other hosts; write the profile with --ros2-profile FILE and export it", err=True)
         return
     runner = asyncio.run
     if not no_uvloop:

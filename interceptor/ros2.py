@@ -39,6 +39,7 @@ from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, 
 from cryptoros.names import validate_graph_name
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
+from cryptoros.ros2.profile import localhost_env
 from cryptoros.ros2.target import QoS, StreamTarget, manager_may, receiver_qos
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
@@ -187,6 +188,7 @@ class Ros2Interceptor(Interceptor):
         env = dict(os.environ)
         env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # the ROS 2 venv sets up its own libraries
         env.update(ROS_DOMAIN_ID=str(settings.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        env = localhost_env(env)  # DDS on 127.0.0.1 and shared memory only: private to this host
         # glibc mmaps (and page-faults) every buffer of 128 KiB or more; images are read and
         # joined in such buffers: keep them on the heap (perf-baselines: +30 to 100 % on 1 MB)
         env.setdefault("GLIBC_TUNABLES", "glibc.malloc.mmap_threshold=16777216")

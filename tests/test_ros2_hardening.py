@@ -205,3 +205,45 @@ def test_removing_the_grant_cuts_an_open_ros2_stream_within_5_s(network):
                 cut = time.monotonic() - revoked_at
                 break
         assert cut is not None and cut < 5, f"the stream was not cut within 5 s ({cut})"
+
+
+# ---------------------------------------------------------------- a robot's domain private to its host
+
+
+def test_the_localhost_profile_keeps_a_robots_domain_from_a_stranger_on_another_host(tmp_path):
+    """Robot A's rclpy talker in its own network namespace; a stranger in another one,
+    given A's address as a static peer. Without the profile (the control: what
+    ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST alone gives) the stranger reads the topic;
+    with it, nothing."""
+    import os
+    import subprocess
+
+    from cryptoros.lab.netns import NetnsLab
+    from cryptoros.ros2.profile import localhost_env
+    from tests.interceptor_harness import separate_hosts
+    from tests.ros2_support import NODES, fresh_domains, ros2_env, ros2_python
+
+    separate_hosts()
+    python = str(ros2_python())
+    (domain,) = fresh_domains(1)
+    got = {}
+    with NetnsLab() as lab:
+        a, s = lab.add_host("a"), lab.add_host("s")
+        for profile in (False, True):
+            env_a = ros2_env(domain)
+            if profile:
+                env_a = localhost_env(env_a)
+            env_s = {**ros2_env(domain), "ROS_STATIC_PEERS": a.address}
+            env_s.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+            talker = subprocess.Popen(a.argv([python, str(NODES / "talker.py"), "string", "/secret", "100000", "20"]),
+                                      env=env_a, cwd=str(NODES), stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+            try:
+                listener = subprocess.run(s.argv([python, str(NODES / "listener.py"), "string", "/secret", "8"]),
+                                          env=env_s, cwd=str(NODES), capture_output=True, text=True, timeout=60)
+            finally:
+                talker.terminate()
+                talker.wait(timeout=10)
+            got[profile] = [line for line in listener.stdout.splitlines() if line.startswith("GOT")]
+    assert got[False], "control: without the profile the stranger should read the topic (the test can fail)"
+    assert got[True] == [], f"with the profile the stranger read {len(got[True])} messages"
+    assert os.path.exists(localhost_env({})["FASTRTPS_DEFAULT_PROFILES_FILE"])

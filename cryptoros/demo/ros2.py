@@ -81,6 +81,9 @@ def ros2_env(domain: int, pythonpath: Path | None) -> dict[str, str]:
 
     env = {k: v for k, v in clean_env().items() if not k.startswith(("_ROS_WHEELS", "RMW_"))}
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    from cryptoros.ros2.profile import localhost_env
+
+    env = localhost_env(env)  # a robot's domain stays on its host
     if pythonpath is not None:
         env["PYTHONPATH"] = str(pythonpath)
     return env
