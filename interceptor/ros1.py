@@ -314,6 +314,9 @@ class Interceptor:
         self._streams: set[asyncio.Future] = set()
         self._metrics_runner: web.AppRunner | None = None
         self._relay_sockets: list[socket.socket] = []
+        self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
+        self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
+        self._relay_refs: dict[tuple[str, int], int] = {}  # master role: registrations behind each relay
         self._started = False
         self._state_loaded = False
         self._save_pending = False
@@ -539,12 +542,18 @@ class Interceptor:
         self._relay_sockets.append(sock)
         handler = self._on_xmlrpc_relay if target.kind == KIND_XMLRPC else self._on_tcpros_relay
 
+        host, port = sock.getsockname()[:2]
+
         async def serve() -> None:
             server = await asyncio.start_server(lambda r, w: handler(r, w, target), sock=sock, limit=READ_SIZE)
             self._servers.append(server)
+            if sock.fileno() < 0:  # released before it started
+                server.close()
+            else:
+                self._relay_servers[(host, port)] = server
 
+        self._relay_socket_of[(host, port)] = sock
         asyncio.get_running_loop().create_task(serve())
-        host, port = sock.getsockname()[:2]
         log.debug("relay %s:%d -> %s", host, port, target)
         return host, port
 
@@ -866,6 +875,7 @@ class Interceptor:
         if call.method.startswith("register") or call.method == "subscribeParam":
             entry = self._owners.setdefault(node, [manager, 0])
             entry[1] += 1
+            self._count_relay_refs(call, +1)
             self._save_state_soon()
         elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
                 isinstance(response.value[2], int) and response.value[2] > 0:
@@ -875,6 +885,33 @@ class Interceptor:
                 if entry[1] <= 0:
                     del self._owners[node]
                 self._save_state_soon()
+            self._count_relay_refs(call, -1)
+
+    def _count_relay_refs(self, call: Request, delta: int) -> None:
+        """Relays the master holds URIs of: one count per registration behind each;
+        a relay whose last registration was released is closed (its fd freed)."""
+        for index in _RELAY_URI_INDEX.get(call.method, ()):
+            uri = call.params[index] if len(call.params) > index else None
+            endpoint = _local_endpoint(uri)
+            if endpoint is None or self.translator.relay_target(*endpoint) is None:
+                continue
+            count = self._relay_refs.get(endpoint, 0) + delta
+            if count > 0:
+                self._relay_refs[endpoint] = count
+                continue
+            self._relay_refs.pop(endpoint, None)
+            if delta < 0:
+                self._release_relay(endpoint)
+
+    def _release_relay(self, endpoint: tuple[str, int]) -> None:
+        self.translator.forget_relay(*endpoint)
+        server = self._relay_servers.pop(endpoint, None)
+        if server is not None:
+            server.close()
+        sock = self._relay_socket_of.pop(endpoint, None)
+        if sock is not None:
+            sock.close()
+        log.debug("relay %s:%d released (no registration behind it)", *endpoint)
 
     async def _serve_master_stream(self, reader, writer, peer: Peer) -> None:
         def to_local_from_peer(uri: str) -> str:
@@ -1265,6 +1302,23 @@ class Interceptor:
             if tunnel_writer is not None:
                 tunnel_writer.close()
             writer.close()
+
+
+#: Where the URIs of a master call sit that are relays at the master's interceptor.
+_RELAY_URI_INDEX = {
+    "registerPublisher": (3,), "registerSubscriber": (3,), "registerService": (2, 3), "subscribeParam": (1,),
+    "unregisterPublisher": (2,), "unregisterSubscriber": (2,), "unregisterService": (2,), "unsubscribeParam": (1,),
+}
+
+
+def _local_endpoint(uri) -> tuple[str, int] | None:
+    if not isinstance(uri, str):
+        return None
+    try:
+        u = urllib.parse.urlsplit(uri)
+        return (u.hostname, u.port) if u.hostname and u.port else None
+    except ValueError:
+        return None
 
 
 def _resolved_param_call(call: Request, grants) -> Request:

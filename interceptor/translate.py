@@ -182,6 +182,23 @@ class Translator:
                 problems.append(f"relay {text} moved from port {port} to {relay[1]}")
         return problems
 
+    def relay_target(self, host: str, port: int) -> Canonical | None:
+        """The canonical target behind one of our relays, or None."""
+        return self._relay_targets.get((host, port))
+
+    def forget_relay(self, host: str, port: int) -> None:
+        """Drop a released relay (its listener is closed by the caller)."""
+        target = self._relay_targets.pop((host, port), None)
+        if target is None:
+            return
+        self._relays.pop(target, None)
+        left = self._relays_per_host.get(target.host, 1) - 1
+        if left > 0:
+            self._relays_per_host[target.host] = left
+        else:
+            self._relays_per_host.pop(target.host, None)
+        self._on_change()
+
     def existing_local(self, text: str) -> str | None:
         """Like :meth:`to_local`, but never opens a relay: None for a canonical name
         this interceptor never handed out (an ``unregister*`` of it matches nothing)."""

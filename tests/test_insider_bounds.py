@@ -68,6 +68,31 @@ def wait_registered(network, node, timeout=20):
 
 
 # ---------------------------------------------------------------- finding 2: relay exhaustion
+def test_a_relay_is_released_when_its_last_registration_is(network):
+    """The master's interceptor holds one relay per registered endpoint; unregistering
+    the last registration behind it closes the relay (its fd is freed)."""
+    token = token_of(network, "robot_b")
+    master_proc = network.hosts["master"].proc
+    b = network.hosts["robot_b"]
+    with rogue(network, "master", "robot_b") as s:
+        assert rogue_preamble(s, token, "master").ok
+        before = fds(master_proc.pid)
+        uris = [f"cryptoros://{b.address}:{b.public_port}/x/{900000 + i}" for i in range(8)]
+        results = [rogue_xmlrpc(s, "registerSubscriber", f"/temp_{i}", "/chatter", "std_msgs/String", uri).value[0]
+                   for i, uri in enumerate(uris)]
+        opened = results.count(1)
+        during = fds(master_proc.pid)
+        for i, uri in enumerate(uris):
+            if results[i] == 1:
+                assert rogue_xmlrpc(s, "unregisterSubscriber", f"/temp_{i}", "/chatter", uri).value[0] == 1
+        deadline = time.monotonic() + 5
+        while fds(master_proc.pid) > before and time.monotonic() < deadline:
+            time.sleep(0.1)
+        after = fds(master_proc.pid)
+    assert opened == 8 and during - before >= 8
+    assert after <= before, (before, during, after)
+
+
 
 
 def test_fresh_names_from_one_insider_keep_fds_bounded_and_others_registering(network):
@@ -213,3 +238,4 @@ def test_with_its_manager_disabled_the_local_master_answers_ros_errors_not_trace
         assert "Traceback" not in network.hosts["robot_b"].logs()
     finally:
         network.cli("enable-manager", "robot_b")
+
