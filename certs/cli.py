@@ -332,16 +332,38 @@ def sign(csr, directory, kind, name, sans, days, ca_passphrase_file, force):
 @dir_option
 @click.option("--reason", type=click.Choice(REASONS), default="unspecified", show_default=True)
 @click.option("--crl-days", type=click.IntRange(min=1), default=7, show_default=True, help="Validity of the new CRL.")
+@click.option("--serial", "pick", help="With a NAME that has several valid certificates: revoke only this serial.")
+@click.option("--all", "all_", is_flag=True, help="With a NAME that has several valid certificates: revoke every one.")
 @ca_pass_option
-def revoke(name_or_serial, directory, reason, crl_days, ca_passphrase_file):
-    """Revoke a certificate by NAME or SERIAL and publish a new CRL."""
+def revoke(name_or_serial, directory, reason, crl_days, pick, all_, ca_passphrase_file):
+    """Revoke a certificate by NAME or SERIAL and publish a new CRL.
+
+    A NAME with several valid certificates (a renewal in progress, say) is refused
+    unless --serial picks one or --all says every one: revoking the one in use by
+    mistake cuts a robot off."""
     pki = PKI.open(directory)
-    if not pki.find(name_or_serial):
+    found = pki.find(name_or_serial)
+    if not found:
         raise BadInput(f"no certificate with name or serial {name_or_serial!r} in {directory}")
+    live = [r for r in found if r.status != "revoked"]
+    targets: list[int | str] = [name_or_serial]
+    if pick is not None:
+        serial = pkimod.parse_serial(pick)
+        chosen = [r for r in live if r.serial == serial]
+        if not chosen:
+            raise BadInput(f"{name_or_serial!r} has no valid certificate with serial {pick}")
+        targets = [chosen[0].serial]
+    elif len(live) > 1:
+        if not all_:
+            serials = ", ".join(f"{r.serial:x}" for r in live)
+            raise BadInput(f"{name_or_serial!r} has {len(live)} valid certificates (serials {serials}): "
+                           "give --serial SERIAL for one, or --all for every one")
+        targets = [r.serial for r in live]
     pki = open_for_signing(directory, ca_passphrase_file)
-    serial = pki.revoke(name_or_serial, reason=reason)
+    serials = [pki.revoke(t, reason=reason) for t in targets]
     crl = pki.write_crl(days=crl_days)
-    click.echo(f"revoked serial {serial:x}")
+    for serial in serials:
+        click.echo(f"revoked serial {serial:x}")
     click.echo(f"CRL: {crl}")
 
 

@@ -346,3 +346,20 @@ def test_passphrase_file_and_unsafe_exclude_each_other(tmp_path: Path, pwfile: P
     assert_bad_input(certs("init", "--dir", tmp_path / "p", "--passphrase-file", pwfile, "--unsafe-no-passphrase"),
                      "exclude")
     assert not (tmp_path / "p" / "ca.crt").exists()
+
+
+def test_revoking_a_name_with_several_valid_certificates_needs_serial_or_all(ca: Path):
+    """Day 2: a renewed robot has two valid certificates; revoking by name alone must
+    not silently revoke the one in use."""
+    ok("issue", "twin", "--dir", ca, "--san", "IP:127.0.0.7", "--unsafe-no-passphrase")
+    ok("issue", "twin", "--dir", ca, "--san", "IP:127.0.0.7", "--unsafe-no-passphrase", "--force")
+    records = [r for r in json.loads(ok("list", "--dir", ca, "--json").stdout) if r["name"] == "twin"]
+    assert len(records) == 2
+    old, new = sorted(records, key=lambda r: r["serial"])
+    assert_bad_input(certs("revoke", "twin", "--dir", ca), "--serial")
+    ok("revoke", "twin", "--dir", ca, "--serial", format(old["serial"], "x"))
+    status = {r["serial"]: r["status"] for r in json.loads(ok("list", "--dir", ca, "--json").stdout)}
+    assert status[old["serial"]] == "revoked" and status[new["serial"]] == "valid"
+    ok("issue", "twin", "--dir", ca, "--san", "IP:127.0.0.7", "--unsafe-no-passphrase", "--force")
+    out = ok("revoke", "twin", "--dir", ca, "--all").stdout
+    assert out.count("revoked serial") == 2
