@@ -185,3 +185,76 @@ def signing_key(network: Network):
     key = load_private(active.private_pem, active.encrypted, protection(str(network.workdir / "signing.pass")),
                        active.kid)
     return key, active.kid
+
+
+# ------------------------------------------------------------------ helpers of the insider and day-2 tests
+
+def token_of(network, name: str) -> str:
+    """A genuine access token of manager ``name``, straight from the daemon."""
+    status, body = network.daemon.token(name)
+    assert status == 200, body
+    return body["access_token"]
+
+
+def rogue_to(network, host: str, as_name: str):
+    """TLS to ``host``'s public port with ``as_name``'s valid certificate."""
+    h = network.hosts[host]
+    return rogue_tls(h.address, h.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for(as_name),
+                     key=network.pki.pki.key_path_for(as_name))
+
+
+def denials(network, host: str) -> str:
+    return "\n".join(line for line in network.hosts[host].logs().splitlines() if "DENY" in line)
+
+
+def wait_registered(network, node: str, timeout: float = 20) -> None:
+    """Until rosmaster itself lists ``node`` (as publisher, subscriber or server)."""
+    import time
+    import xmlrpc.client
+
+    deadline = time.monotonic() + timeout
+    while True:
+        with network.inside("master"):
+            state = xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
+        if node in {n for section in state for _name, nodes in section for n in nodes}:
+            return
+        assert time.monotonic() < deadline, f"{node} never registered"
+        time.sleep(0.1)
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError(f"no VmRSS for {pid}")
+
+
+def open_fds(pid: int) -> int:
+    import os
+
+    return len(os.listdir(f"/proc/{pid}/fd"))
+
+
+def dribble(socks, data: bytes, steps: int = 20) -> set[int]:
+    """Send ``data`` one byte a second on every socket (a preamble slowloris); returns
+    the indexes of the sockets the other side had not closed after ``steps`` bytes."""
+    import socket as socketmod
+    import ssl
+    import time
+
+    open_ = set(range(len(socks)))
+    for step in range(steps):
+        for i in list(open_):
+            try:
+                socks[i].sendall(data[step:step + 1])
+                socks[i].settimeout(0.01)
+                if socks[i].recv(100) == b"":
+                    open_.discard(i)
+            except socketmod.timeout:
+                pass
+            except (OSError, ssl.SSLError):
+                open_.discard(i)
+        if not open_:
+            break
+        time.sleep(1)
+    return open_

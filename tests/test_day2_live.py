@@ -18,9 +18,9 @@ import xmlrpc.client
 
 import pytest
 
-from tests.interceptor_harness import NODE, SYS_PY, robot_network
+from tests.interceptor_harness import NODE, SYS_PY, robot_network, wait_registered
 from tests.support import running
-from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+from tests.test_interceptor_ros1 import got, read_lines
 
 pytestmark = [pytest.mark.ros1]
 
@@ -30,12 +30,6 @@ def network(tmp_path_factory):
     with robot_network(tmp_path_factory.mktemp("day2"), start=("master", "robot_a", "robot_b")) as net:
         yield net
 
-
-def wait_registered(network, node, timeout=20):
-    deadline = time.monotonic() + timeout
-    while node not in nodes_in_state(master_state(network)):
-        assert time.monotonic() < deadline, f"{node} never registered"
-        time.sleep(0.1)
 
 
 def arrivals(proc, seconds: float, window: float = 0.2) -> list[float]:

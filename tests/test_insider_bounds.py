@@ -7,19 +7,31 @@ The insider is robot B: a valid certificate and token, subscribe grants on /chat
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 import xmlrpc.client
 from contextlib import closing
-from pathlib import Path
 
 import pytest
 
 from cryptoros.ros1.xmlrpc import Fault, Request, make_multicall
-from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc, separate_hosts
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    denials,
+    dribble,
+    robot_network,
+    rogue_preamble,
+    rogue_xmlrpc,
+    rss_kib,
+    separate_hosts,
+    token_of,
+    wait_registered,
+)
+from tests.interceptor_harness import open_fds as fds
+from tests.interceptor_harness import rogue_to as rogue
 from tests.support import running
-from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+from tests.test_interceptor_ros1 import got, read_lines
 
 pytestmark = [pytest.mark.ros1]
 
@@ -33,38 +45,10 @@ def network(tmp_path_factory):
         yield net
 
 
-def token_of(network, name) -> str:
-    status, body = network.daemon.token(name)
-    assert status == 200, body
-    return body["access_token"]
 
 
-def rogue(network, host, as_name):
-    h = network.hosts[host]
-    return rogue_tls(h.address, h.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for(as_name),
-                     key=network.pki.pki.key_path_for(as_name))
 
 
-def denials(network, host) -> str:
-    return "\n".join(line for line in network.hosts[host].logs().splitlines() if "DENY" in line)
-
-
-def fds(pid: int) -> int:
-    return len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def rss_kib(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise AssertionError("no VmRSS")
-
-
-def wait_registered(network, node, timeout=20):
-    deadline = time.monotonic() + timeout
-    while node not in nodes_in_state(master_state(network)):
-        assert time.monotonic() < deadline, f"{node} never registered"
-        time.sleep(0.1)
 
 
 # ---------------------------------------------------------------- finding 2: relay exhaustion
@@ -147,23 +131,9 @@ def test_dribbled_preambles_are_cut_at_the_deadline_and_capped_per_certificate(n
 
     preamble = encode(Preamble(token=token_of(network, "robot_b"), purpose="node", target="1"))
     socks = [rogue(network, "robot_a", "robot_b") for _ in range(8)]
-    open_ = set(range(len(socks)))
     start = time.monotonic()
     try:
-        for step in range(15):
-            for i in list(open_):
-                try:
-                    socks[i].sendall(preamble[step:step + 1])
-                    socks[i].settimeout(0.01)
-                    if socks[i].recv(100) == b"":
-                        open_.discard(i)
-                except socket.timeout:
-                    pass
-                except (OSError, ConnectionError):
-                    open_.discard(i)
-            if not open_:
-                break
-            time.sleep(1)
+        open_ = dribble(socks, preamble, steps=15)
         elapsed = time.monotonic() - start
     finally:
         for s in socks:

@@ -22,12 +22,16 @@ import pytest
 from tests.interceptor_harness import (
     NODE,
     SYS_PY,
+    denials,
     robot_network,
     rogue_preamble,
     rogue_tcpros,
-    rogue_tls,
+    rss_kib,
     separate_hosts,
+    token_of,
+    wait_registered,
 )
+from tests.interceptor_harness import rogue_to as rogue
 from tests.support import require, run, running
 from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
 
@@ -91,27 +95,8 @@ def master_alive(network) -> bool:
             xmlrpc.client.ServerProxy(network.rosmaster_uri).getPid("/t")[0] == 1
 
 
-def token_of(network, name) -> str:
-    status, body = network.daemon.token(name)
-    assert status == 200, body
-    return body["access_token"]
 
 
-def rogue(network, host, as_name):
-    h = network.hosts[host]
-    return rogue_tls(h.address, h.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for(as_name),
-                     key=network.pki.pki.key_path_for(as_name))
-
-
-def denials(network, host) -> str:
-    return "\n".join(line for line in network.hosts[host].logs().splitlines() if "DENY" in line)
-
-
-def rss_kib(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise AssertionError("no VmRSS")
 
 
 # ---------------------------------------------------------------- finding 1: request-line smuggling
@@ -141,10 +126,7 @@ def test_a_shutdown_hidden_in_the_path_to_a_relay_leaves_the_talker_running(netw
     with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"],
                  env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
-        deadline = time.monotonic() + 20
-        while "/talker_a" not in nodes_in_state(master_state(network)):
-            assert time.monotonic() < deadline, "/talker_a never registered"
-            time.sleep(0.1)
+        wait_registered(network, "/talker_a")
         with network.inside("robot_b"):
             local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
             code, _, relay = local_master.lookupNode("/spy", "/talker_a")
@@ -192,10 +174,7 @@ def test_udpros_is_never_offered_and_a_udp_listener_gets_tcpros_through_the_tunn
     stranger.settimeout(0.2)
     udp_port = stranger.getsockname()[1]
     with closing(stranger), running([roscpp_nodes["talker"], "/chatter", "200000"], env=network.ros_env("robot_a")):
-        deadline = time.monotonic() + 30
-        while "/roscpp_talker" not in nodes_in_state(master_state(network)):
-            assert time.monotonic() < deadline, "/roscpp_talker never registered"
-            time.sleep(0.1)
+        wait_registered(network, "/roscpp_talker", timeout=30)
         token = token_of(network, "robot_b")
         with rogue(network, "master", "robot_b") as s:
             assert rogue_preamble(s, token, "master").ok

@@ -13,7 +13,17 @@ import xmlrpc.client
 
 import pytest
 
-from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls, rogue_xmlrpc, separate_hosts
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    robot_network,
+    rogue_preamble,
+    rogue_tls,
+    rogue_xmlrpc,
+    separate_hosts,
+    token_of,
+    wait_registered,
+)
 from tests.support import require, run, running
 from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
 
@@ -32,17 +42,6 @@ def network(tmp_path_factory):
         yield net
 
 
-def wait_registered(network, node, timeout=20):
-    deadline = time.monotonic() + timeout
-    while node not in nodes_in_state(master_state(network)):
-        assert time.monotonic() < deadline, f"{node} never registered"
-        time.sleep(0.1)
-
-
-def token_of(network, name) -> str:
-    status, body = network.daemon.token(name)
-    assert status == 200, body
-    return body["access_token"]
 
 
 def test_subscribe_param_cannot_rebind_another_robots_node(network):

@@ -253,29 +253,15 @@ def test_dribbled_preambles_to_the_ros2_role_are_cut_at_the_deadline(network):
     """Finding 7: the insider's preamble slowloris against the ros2 role: one byte a
     second on each of 12 TLS connections with its certificate; every one is closed by
     the preamble deadline (5 s) or refused past the per-certificate cap (8)."""
-    from tests.interceptor_harness import rogue_preamble  # noqa: F401  (same wire as ROS 1)
     from cryptoros.tunnel import Preamble, encode
+    from tests.interceptor_harness import dribble
 
     status, body = network.daemon.token("robot_a")
     preamble = encode(Preamble(token=body["access_token"], purpose="ros2", target="{}"))
     socks = [_rogue(network, "robot_b", "robot_a") for _ in range(12)]
-    open_ = set(range(len(socks)))
     start = time.monotonic()
     try:
-        for step in range(20):
-            for i in list(open_):
-                try:
-                    socks[i].sendall(preamble[step:step + 1])
-                    socks[i].settimeout(0.01)
-                    if socks[i].recv(100) == b"":
-                        open_.discard(i)
-                except socket.timeout:
-                    pass
-                except (OSError, ssl.SSLError):
-                    open_.discard(i)
-            if not open_:
-                break
-            time.sleep(1)
+        open_ = dribble(socks, preamble, steps=20)
     finally:
         for s in socks:
             s.close()
