@@ -41,6 +41,7 @@ managers:
     - {{node: /talker, topic: /scan, type: sensor_msgs/msg/LaserScan}}
     - {{node: /talker, topic: /image, type: sensor_msgs/msg/Image}}
     - {{node: /talker, topic: /both, type: std_msgs/msg/String}}
+    - {{node: /talker, topic: /stuck, type: std_msgs/msg/String}}
     subscribe:
     - {{node: '*', topic: /back, type: std_msgs/msg/String}}
     - {{node: '*', topic: /both, type: std_msgs/msg/String}}
@@ -57,6 +58,7 @@ managers:
     - {{node: '*', topic: /scan, type: sensor_msgs/msg/LaserScan}}
     - {{node: '*', topic: /image, type: sensor_msgs/msg/Image}}
     - {{node: '*', topic: /both, type: std_msgs/msg/String}}
+    - {{node: '*', topic: /stuck, type: std_msgs/msg/String}}
     publish:
     - {{node: /talker, topic: /back, type: std_msgs/msg/String}}
     - {{node: /talker_b, topic: /both, type: std_msgs/msg/String}}
@@ -87,11 +89,15 @@ def fresh_domains(count: int) -> list[int]:
     return [base + i for i in range(count)]
 
 
-def ros2_env(domain: int) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "_ROS_WHEELS", "RMW_"))}
+def ros2_env(domain: int, *, localhost_profile: bool = True) -> dict[str, str]:
+    """The environment of an unmodified rclpy node on a robot: its domain, and (as
+    docs/ros2.md asks of operators) cryptoros's localhost-only Fast DDS profile."""
+    from cryptoros.ros2.profile import PROFILE_ENV, localhost_env
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "_ROS_WHEELS", "RMW_", PROFILE_ENV))}
     env.pop("PYTHONPATH", None)
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-    return env
+    return localhost_env(env) if localhost_profile else env
 
 
 class Lines:

@@ -230,11 +230,8 @@ def test_the_localhost_profile_keeps_a_robots_domain_from_a_stranger_on_another_
     with NetnsLab() as lab:
         a, s = lab.add_host("a"), lab.add_host("s")
         for profile in (False, True):
-            env_a = ros2_env(domain)
-            if profile:
-                env_a = localhost_env(env_a)
-            env_s = {**ros2_env(domain), "ROS_STATIC_PEERS": a.address}
-            env_s.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+            env_a = ros2_env(domain, localhost_profile=profile)
+            env_s = {**ros2_env(domain, localhost_profile=False), "ROS_STATIC_PEERS": a.address}
             talker = subprocess.Popen(a.argv([python, str(NODES / "talker.py"), "string", "/secret", "100000", "20"]),
                                       env=env_a, cwd=str(NODES), stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
             try:

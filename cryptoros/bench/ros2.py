@@ -51,9 +51,12 @@ managers:
 
 
 def _ros_env(domain: int) -> dict[str, str]:
+    """A robot's rclpy node: its domain and the localhost-only profile (docs/ros2.md)."""
+    from cryptoros.ros2.profile import localhost_env
+
     env = {k: v for k, v in clean_env().items() if not k.startswith(("_ROS_WHEELS", "RMW_"))}
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-    return env
+    return localhost_env(env)
 
 
 #: the processes whose CPU is accounted per row (pub and sub report their own)
