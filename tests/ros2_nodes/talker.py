@@ -7,6 +7,8 @@ can check every message arrived intact and in order.
 """
 
 import argparse
+import signal
+import threading
 import time
 
 import rclpy
@@ -25,8 +27,11 @@ parser.add_argument("--node", default="talker")
 parser.add_argument("--offset", type=int, default=0)
 parser.add_argument("--linger", type=float, default=30.0)
 parser.add_argument("--keep-all", action="store_true", help="KEEP_ALL history (publish waits for the readers)")
-parser.add_argument("--burst-after", type=int, default=None, help="after this many messages, publish without pause")
+parser.add_argument("--burst-on-signal", action="store_true",
+                    help="publish without pause from the first SIGUSR1 on (the caller saw the path up)")
 args = parser.parse_args()
+burst = threading.Event()
+signal.signal(signal.SIGUSR1, lambda *_: burst.set())
 
 rclpy.init()
 node = rclpy.create_node(args.node)
@@ -50,10 +55,10 @@ for seq in range(args.count):
             if not rclpy.ok():  # shut down (SIGINT/SIGTERM): stop, do not retry
                 raise SystemExit(0)
             time.sleep(0.001)
-    if args.burst_after is not None and seq >= args.burst_after:
+    if burst.is_set():
         continue
     next_at += period
-    time.sleep(max(0.0, next_at - time.monotonic()))
+    burst.wait(max(0.0, next_at - time.monotonic()))
 print("DONE", flush=True)
 end = time.monotonic() + args.linger  # keep the publisher (and a latched message) alive
 while time.monotonic() < end:
