@@ -28,6 +28,7 @@ import functools
 import json
 import os
 import subprocess
+import time
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,8 @@ from cryptoros.demo.run import DemoError, Graph, Mission, robot_addr
 WHAT = {"eavesdrop": "every topic read (DDS discovery, raw subscriptions of any type)"}
 TEAM_TYPE = "std_msgs/msg/UInt8MultiArray"
 PRESENCE = ("/team/presence", "std_msgs/msg/String")
+#: how long an attacker waits for DDS to match it with its victims before it reports armed anyway
+ARM_TIMEOUT = 60.0
 READY_CHECK = "import rclpy, std_msgs.msg, geometry_msgs.msg, sensor_msgs.msg, cryptography, rosbags, defusedxml, numpy"
 
 
@@ -155,11 +158,43 @@ class Ros2Mission(Mission):
         doors = [[h.address, h.public_port] for h in g.interceptors.values()] if stranger and self.mode == "protected" else []
         cfg = {"kind": kind, "domain": domain, "target": target_of(kind, n), "team": self.team, "width": self.opts.width,
                "height": self.opts.height, "duration": self.opts.seconds, "doors": doors,
-               "report": str(self.dir / f"attack-{kind}.report.json")}
+               "report": str(self.dir / f"attack-{kind}.report.json"),
+               # the arm/fire handshake (see _arm_attacks); on the shared domain of plain mode
+               # the attacker is armed only once DDS has matched it with its victims
+               "armed": str(self.dir / f"attack-{kind}.armed.json"), "fire": str(self.dir / "attacks-fire.json"),
+               "expect_victims": self.mode == "plain", "arm_timeout": ARM_TIMEOUT}
         path = self.dir / f"attack-{kind}.json"
         path.write_text(json.dumps(cfg))
         return self.children.start([str(self.python), "-m", "cryptoros.demo.ros2_attackers", str(path)],
                                    self.dir / f"attack-{kind}.log", ros2_env(domain, self.pythonpath))
+
+    def _arm_attacks(self, g: Graph) -> dict[str, subprocess.Popen]:
+        """Every attacker started before the clock and waited for until it reports itself
+        armed: its DDS endpoints created and, on plain mode's shared domain, matched with
+        its victims' (discovery of five new participants takes seconds on a cold machine;
+        the attacks must neither depend on that nor on each other's timing)."""
+        (self.dir / "attacks-fire.json").unlink(missing_ok=True)
+        procs = {k: self._start_attack(k, g) for k in self.opts.attacks}
+        deadline = time.monotonic() + ARM_TIMEOUT + 30
+        waiting = set(procs)
+        while waiting:
+            for k in sorted(waiting):
+                if (self.dir / f"attack-{k}.armed.json").exists():
+                    waiting.discard(k)
+                elif procs[k].poll() is not None:
+                    raise DemoError(f"attacker {k} exited with {procs[k].returncode} before it was armed "
+                                    f"({self.dir / f'attack-{k}.log'})")
+            if waiting and time.monotonic() > deadline:
+                raise DemoError(f"attackers {sorted(waiting)} not armed within {ARM_TIMEOUT + 30:.0f} s ({self.dir})")
+            time.sleep(0.1)
+        return procs
+
+    def _fire_attacks(self, g: Graph, armed: dict[str, subprocess.Popen]) -> dict[str, subprocess.Popen]:
+        fire = self.dir / "attacks-fire.json"
+        tmp = fire.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"at": time.time()}))
+        tmp.replace(fire)
+        return armed
 
     def _mission(self, g: Graph, setup_s: float) -> dict[str, Any]:
         res = super()._mission(g, setup_s)

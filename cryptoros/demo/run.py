@@ -302,6 +302,15 @@ class Mission:
         return self.children.start(g.on_host(host, [sys.executable, "-m", "cryptoros.demo.attackers", str(path)]),
                                    self.dir / f"attack-{kind}.log", _env())
 
+    def _arm_attacks(self, g: Graph) -> dict[str, subprocess.Popen]:
+        """Attackers started before the clock, each ready to strike; none here (a ROS 1
+        attacker needs no discovery: the master tells it its victims when it registers)."""
+        return {}
+
+    def _fire_attacks(self, g: Graph, armed: dict[str, subprocess.Popen]) -> dict[str, subprocess.Popen]:
+        """At ``attack_delay``: every attack under way."""
+        return armed or {k: self._start_attack(k, g) for k in self.opts.attacks}
+
     def _read_status(self) -> dict[str, dict[str, Any]]:
         out = {}
         for r in self.team:
@@ -320,6 +329,8 @@ class Mission:
         opts = self.opts
         robots = self._start_robots(g)
         attackers: dict[str, subprocess.Popen] = {}
+        armed: dict[str, subprocess.Popen] = {}
+        fired = False
         timeline: list[list[float]] = []
         cpu0 = {n: _cpu_seconds(h.proc.pid) for n, h in g.interceptors.items() if h.proc}
         end_reason, mission_time, mission_wall = "", None, None
@@ -335,6 +346,7 @@ class Mission:
                 if time.monotonic() > deadline:
                     raise DemoError(f"robots not connected within 60 s ({self.dir})")
                 time.sleep(0.1)
+            armed = self._arm_attacks(g)
             t0 = time.time() + 0.3
             (self.dir / "go.json").write_text(json.dumps({"t0": t0}))
             started = time.monotonic() + 0.3
@@ -342,8 +354,8 @@ class Mission:
             while True:
                 time.sleep(0.25)
                 wall = time.monotonic() - started
-                if wall >= opts.attack_delay and not attackers:
-                    attackers = {k: self._start_attack(k, g) for k in opts.attacks}
+                if wall >= opts.attack_delay and not fired:
+                    attackers, fired = self._fire_attacks(g, armed), True
                 st = self._read_status()
                 cov, _ = self.coverage(st)
                 sim_t = max((s.get("t", 0.0) for s in st.values()), default=0.0)
@@ -374,7 +386,7 @@ class Mission:
             rss = {n: round(_rss_mb(h.proc.pid), 1) for n, h in g.interceptors.items() if h.proc}
             metrics = {n: scrape(h.metrics_port) for n, h in g.interceptors.items() if h.metrics_port}
         finally:
-            self.children.terminate(list(attackers.values()), timeout=8)
+            self.children.terminate(list((armed | attackers).values()), timeout=8)
             self.children.terminate(list(robots.values()), timeout=8)
         final = self._read_status()
         cov, seen = self.coverage(final)
