@@ -41,7 +41,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
-from cryptoros.policy import (
+from cryptoros.policy.ros1 import (
     NAME_BINDING,
     PARAM_READ,
     PARAM_WRITE,

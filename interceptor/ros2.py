@@ -36,11 +36,11 @@ from typing import Any
 
 import cryptoros.ros2
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
-from cryptoros.names import validate_graph_name
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.profile import localhost_env
-from cryptoros.ros2.target import QoS, StreamTarget, manager_may, receiver_qos
+from cryptoros.policy.ros2 import Offer, local_offer, manager_may
+from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
 from interceptor.ros1 import READ_SIZE, Interceptor, Peer
@@ -49,8 +49,6 @@ log = logging.getLogger("cryptoros.interceptor.ros2")
 
 BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py"
 #: ROS 2 plumbing every node has; never bridged, never logged as a denial.
-INFRA_TOPICS = frozenset({"/rosout", "/parameter_events"})
-INFRA_SERVICE_TYPES = ("rcl_interfaces/srv/", "type_description_interfaces/srv/")
 BRIDGE_START_TIMEOUT = 30.0
 RECONCILE_INTERVAL = 1.0
 #: Flow control of outbound topics: while a peer stream's send buffer is above
@@ -119,6 +117,8 @@ class Outbound:
     #: transient_local topics: the last ``depth`` frames, replayed to every stream that
     #: opens later (a latched message must reach robots that connect after it was sent)
     history: collections.deque | None = None
+    #: the local publisher nodes whose samples the bridge forwards (topics)
+    granted_writers: frozenset[str] = frozenset()
 
 
 @dataclass(eq=False)
@@ -325,6 +325,10 @@ class Ros2Interceptor(Interceptor):
             elif op == "hello":
                 self._hello = body
                 self._bridge_ready.set()
+            elif op == "refused_writer":  # a sample on a forwarded topic from a publisher under no grant
+                exc = PolicyDenied("not_granted", f"{body.get('node')} (writer {body.get('gid')}) may not publish "
+                                   f"{body.get('topic')}: its samples are dropped")
+                self._deny("ros2_sample", exc, f"local domain {self.cfg.ros2.domain_id}")
             elif op == "error":
                 log.error("DDS bridge: %s", body.get("detail"))
         else:
@@ -337,45 +341,36 @@ class Ros2Interceptor(Interceptor):
             self._noted.add(key)
             self._deny(kind, exc, who)
 
-    def _desired(self) -> dict[tuple[str, str, str], StreamTarget]:
-        """What this robot may offer now: local publishers and servers it is granted."""
+    def _desired(self) -> dict[tuple[str, str, str], Offer]:
+        """What this robot may offer now, decided by :func:`cryptoros.policy.ros2.local_offer`."""
         try:
             grants = self.own_access().grants
         except TokenError:
             return {}
         me = f"local domain {self.cfg.ros2.domain_id}"
-        want: dict[tuple[str, str, str], StreamTarget] = {}
+        want: dict[tuple[str, str, str], Offer] = {}
         entries = [("topic", t, t.get("publishers", [])) for t in self._graph.get("topics", [])]
         entries += [("service", s, [{"node": n} for n in s.get("servers", [])]) for s in self._graph.get("services", [])]
         for kind, entry, sources in entries:
             name, types = entry["name"], entry["types"]
-            if not sources or name in INFRA_TOPICS or any(t.startswith(INFRA_SERVICE_TYPES) for t in types):
-                continue
             if self.cfg.ros2.is_local(name):  # [ros2] local: stays on this robot, by the operator's choice
                 continue
             action = "publish" if kind == "topic" else "serve"
             try:
-                validate_graph_name(name)
-                if len(types) != 1:
-                    raise PolicyDenied("type_conflict", f"{name} is offered with several types {types}")
-                nodes = sorted({s["node"] for s in sources})
-                if any("_UNKNOWN_" in node for node in nodes):
-                    continue  # discovery has not told us the node names yet: decide next round
-                for node in nodes:
-                    if not grants.allows(action, node, name, types[0]):
-                        raise PolicyDenied("not_granted", f"{node} may not {action} {name} [{types[0]}]")
-                qos = QoS()
-                if kind == "topic":
-                    qos = QoS(
-                        reliability="best_effort" if any(p["reliability"] == "best_effort" for p in sources) else "reliable",
-                        durability="transient_local" if all(p["durability"] == "transient_local" for p in sources) else "volatile",
-                        depth=self.cfg.ros2.depth,
-                    )
-                want[(kind, name, types[0])] = StreamTarget(kind=kind, name=name, type=types[0], node=nodes[0], qos=qos)
+                offer = local_offer(kind, name, types, sources, grants=grants, depth=self.cfg.ros2.depth)
             except PolicyDenied as exc:
                 self._note_deny((kind, name, tuple(types), exc.reason), f"ros2_{action}", exc, me)
+                continue
             except CryptorosError as exc:  # a name we cannot carry (hidden topics, relative names)
                 log.debug("not bridging %s %s: %s", kind, name, exc)
+                continue
+            if offer is None:
+                continue
+            for node in offer.refused:  # forwarded without them: their samples are dropped
+                exc = PolicyDenied("not_granted", f"{node} may not {action} {name} [{offer.target.type}] "
+                                   "(its samples are dropped; the granted publishers' still flow)")
+                self._note_deny((kind, name, node, "not_granted"), f"ros2_{action}", exc, me)
+            want[(kind, name, offer.target.type)] = offer
         return want
 
     def _reconcile(self) -> None:
@@ -383,19 +378,23 @@ class Ros2Interceptor(Interceptor):
             return
         want = {} if self._link.transport is None or self._link.transport.is_closing() else self._desired()
         for key, out in list(self._outbound.items()):
-            if key not in want or want[key] != out.target:
+            if key not in want or want[key].target != out.target:
                 self._withdraw(out)
         peers = set(self.cfg.ros2.peers)
-        for key, target in want.items():
+        for key, offer in want.items():
+            target = offer.target
             out = self._outbound.get(key)
+            if out is not None and target.kind == "topic" and offer.writers != out.granted_writers:
+                out.granted_writers = offer.writers
+                self._link.control(op="writers", chan=out.chan, nodes=sorted(offer.writers))
             if out is None:
-                out = self._outbound[key] = Outbound(target=target, chan=next(self._chans))
+                out = self._outbound[key] = Outbound(target=target, chan=next(self._chans), granted_writers=offer.writers)
                 if target.qos.durability == "transient_local":
                     out.history = collections.deque(maxlen=target.qos.depth)
                 self._out_by_chan[out.chan] = out
                 if target.kind == "topic":
                     self._link.control(op="subscribe", chan=out.chan, topic=target.name, type=target.type,
-                                       qos=target.qos.to_dict())
+                                       qos=target.qos.to_dict(), nodes=sorted(offer.writers))
                 else:
                     self._link.control(op="client", chan=out.chan, service=target.name, type=target.type)
                 log.info("offering %s %s [%s] to %d peer(s)", target.kind, target.name, target.type, len(peers))

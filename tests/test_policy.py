@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from cryptoros.errors import PolicyDenied
-from cryptoros.policy import (
+from cryptoros.policy.ros1 import (
     check_master_call,
     check_node_call,
     check_publisher_header,

@@ -265,3 +265,29 @@ def test_dribbled_preambles_to_the_ros2_role_are_cut_at_the_deadline(network):
     assert not open_, f"{len(open_)} dribbling connections still open after {time.monotonic() - start:.0f} s"
     log = network.robots["robot_b"].denials()
     assert "preamble_timeout" in log and "unauthenticated streams from this certificate" in log
+
+
+# ---------------------------------------------------------------- only granted publishers are forwarded
+
+
+def test_a_rogue_publisher_under_an_ungranted_name_is_dropped_from_its_first_sample(network):
+    """Finding 5: a process on robot A's domain publishing robot A's granted ``/chatter``
+    under a name without a grant (``/rogue``, 100 Hz, its own sequence numbers from
+    500000) while the granted ``/talker`` runs: robot B gets none of the rogue's samples,
+    not even the first, and the talker's messages keep arriving (the topic is not taken
+    off the air); robot A logs the refusal."""
+    from tests.ros2_support import collect, got
+
+    with network.node("robot_b", "listener.py", "string", "/chatter", "60") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "20"):
+            assert got(collect(sub, 5, 25)), "nothing arrived before the rogue"
+            with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "100", "--node", "rogue",
+                              "--offset", "500000") as rogue:
+                rogue.until("READY", 20)
+                during = collect(sub, 60, 20)  # 3 s of the talker while the rogue publishes 5x faster
+    seqs = got(during)
+    assert not [s for s in seqs if s >= 500000], "a sample of the ungranted publisher reached robot B"
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "the granted talker's messages were interrupted"
+    log = network.robots["robot_a"].denials()
+    assert "/rogue may not publish /chatter" in log

@@ -6,9 +6,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cryptoros.errors import ConfigError, RemoteProtocolError
+from cryptoros.errors import ConfigError, PolicyDenied, RemoteProtocolError
+from cryptoros.policy.ros2 import local_offer, manager_may, may_learn
 from cryptoros.ros2 import framing as fr
-from cryptoros.ros2.target import QoS, StreamTarget, manager_may
+from cryptoros.ros2.target import QoS, StreamTarget
 from cryptoros.tokens import Grants
 from interceptor.config import parse
 
@@ -100,6 +101,55 @@ def test_manager_may_is_decided_per_manager():
     assert manager_may(grants, "subscribe", "/chatter", "std_msgs/msg/String")
     assert not manager_may(grants, "subscribe", "/chatter", "std_msgs/msg/Int32")
     assert not manager_may(grants, "publish", "/chatter", "std_msgs/msg/String")
+
+
+# ---------------------------------------------------------------- the ROS 2 policy (pure)
+
+STRING = "std_msgs/msg/String"
+A_GRANTS = Grants.from_claim({"/talker": {"publish": [["/chatter", STRING]], "serve": [["/set_flag", "std_srvs/srv/SetBool"]]}})
+
+
+def _pub(node, reliability="reliable", durability="volatile"):
+    return {"node": node, "reliability": reliability, "durability": durability}
+
+
+def test_a_topic_is_offered_with_only_its_granted_publishers_as_writers():
+    offer = local_offer("topic", "/chatter", [STRING], [_pub("/talker"), _pub("/rogue", "best_effort")],
+                        grants=A_GRANTS, depth=10)
+    assert offer.writers == frozenset({"/talker"}) and offer.refused == ("/rogue",)
+    assert offer.target.node == "/talker"
+    assert offer.target.qos.reliability == "reliable"  # the rogue's QoS does not choose the stream's
+
+
+@pytest.mark.parametrize(("kind", "name", "types", "sources", "reason"), [
+    ("topic", "/chatter", [STRING], [_pub("/rogue")], "not_granted"),
+    ("topic", "/chatter", [STRING, "std_msgs/msg/Int32"], [_pub("/talker")], "type_conflict"),
+    ("topic", "/secret", [STRING], [_pub("/talker")], "not_granted"),
+    # a service cannot be filtered per server: one ungranted server withholds it
+    ("service", "/set_flag", ["std_srvs/srv/SetBool"], [{"node": "/flag_server"}], "not_granted"),
+])
+def test_what_a_robot_may_not_offer_is_denied_with_a_reason(kind, name, types, sources, reason):
+    with pytest.raises(PolicyDenied) as info:
+        local_offer(kind, name, types, sources, grants=A_GRANTS, depth=10)
+    assert info.value.reason == reason
+
+
+@pytest.mark.parametrize(("name", "types", "sources"), [
+    ("/rosout", ["rcl_interfaces/msg/Log"], [_pub("/talker")]),  # ROS infrastructure stays local
+    ("/talker/get_parameters", ["rcl_interfaces/srv/GetParameters"], [{"node": "/talker"}]),
+    ("/chatter", [STRING], [_pub("/_NODE_NAME_UNKNOWN_")]),  # discovery not done: decided next round
+    ("/chatter", [STRING], []),
+])
+def test_infrastructure_and_undecidable_entries_are_not_offered(name, types, sources):
+    kind = "service" if types[0].count("/srv/") else "topic"
+    assert local_offer(kind, name, types, sources, grants=A_GRANTS, depth=10) is None
+
+
+def test_a_peer_learns_of_a_stream_only_when_it_may_receive_it():
+    target = StreamTarget(kind="topic", name="/chatter", type=STRING, node="/talker")
+    assert may_learn(Grants.from_claim({"*": {"subscribe": [["/chatter", STRING]]}}), target)
+    assert not may_learn(Grants.from_claim({"*": {"subscribe": [["/other", STRING]]}}), target)
+    assert not may_learn(Grants.from_claim({"*": {"publish": [["/chatter", STRING]]}}), target)
 
 
 def _config(tmp_path, ros2: dict | None, roles=("ros2",)):

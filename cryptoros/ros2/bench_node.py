@@ -118,7 +118,7 @@ def _subscriber(node, kind: str, count: int, idle: float) -> None:
 
     def on_batch(batch) -> None:
         now = time.time_ns()
-        for _, data in batch:
+        for _, data, _ in batch:
             record((now, data))
 
     sub = node.create_subscription(Image if kind == "image" else String, "/bench", lambda _: None, QOS, raw=True)

@@ -6,16 +6,19 @@ robot's localhost-only domain as one node, reports the local graph, and does wha
 interceptor tells it over one local socket (inherited descriptor ``--fd``), framed by
 :mod:`cryptoros.ros2.framing`:
 
-- ``subscribe``: a raw subscription whose serialized messages go to the interceptor;
+- ``subscribe`` (+ ``writers``): a raw subscription whose serialized messages go to the
+  interceptor, each only when its writer (GID) belongs to one of the granted publisher
+  nodes the interceptor named;
 - ``advertise`` + PUBLISH frames: serialized messages republished as they came;
 - ``serve``: a proxy service whose requests go to the interceptor, answered by REPLY;
 - ``client`` + CALL frames: requests for a local service, answered by RESULT.
 
-It decides nothing: every grant is checked by the interceptor. Imports only rclpy,
-message packages and the standard library. Messages this bridge republished are not
-forwarded again (its own publications come back through its subscription on the same
-topic and are recognised by content within a few seconds): only what originated on
-this domain leaves it, so two robots bridging each other do not loop.
+It decides nothing: every grant is checked by the interceptor, which names the
+granted publisher nodes of each forwarded topic; the bridge maps each sample's writer
+GID to its node through the graph and drops the samples of every other writer from the
+first one (a rogue publisher, and this bridge's own republications, so two robots
+bridging each other do not loop). Imports only rclpy, message packages and the
+standard library.
 """
 
 from __future__ import annotations
@@ -49,7 +52,9 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.task import Future
 
 _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$")
-ECHO_TTL = 5.0
+#: writer decisions remembered per topic before the table starts over (a rogue creating
+#: writers by the thousand costs lookups, never unbounded memory)
+MAX_WRITERS_PER_TOPIC = 1024
 CALL_TIMEOUT = 30.0
 #: how long a republished message may wait for a full local reader before it is dropped
 PUBLISH_PATIENCE = 3.0
@@ -117,18 +122,19 @@ class Bridge:
         self.commands: queue.SimpleQueue = queue.SimpleQueue()
         self.guard = self.node.create_guard_condition(self._drain)
         self.send_lock = threading.Lock()
+        self.writers_lock = threading.Lock()
         self.max_size = max_size
         self.pubs: dict[int, tuple[object, str, object]] = {}  # chan -> (publisher, topic, its C publish_raw)
         self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
-        #: topics this bridge forwards (subscribed) -> number of subscriptions: only a republished
-        #: message of such a topic can come back as an echo, so only those are hashed
-        self.forwarded: dict[str, int] = {}
+        #: chan -> the granted publisher nodes whose writers' samples are forwarded
+        self.writer_nodes: dict[int, frozenset[str]] = {}
+        #: chan -> writer GID -> forwarded? (decided once per writer from the graph)
+        self.writer_ok: dict[int, dict[bytes, bool]] = {}
+        self.refused_noted: set[tuple[int, bytes]] = set()
         self.servers: dict[int, object] = {}
         self.clients: dict[int, tuple[object, type]] = {}
         self.pending: dict[int, list] = {}  # request id -> [threading.Event, (ok, cdr) or None]
         self.ids = itertools.count(1)
-        self.echo_lock = threading.Lock()
-        self.echo: dict[str, dict[int, list]] = {}  # forwarded topic -> hash(cdr) -> [count, expiry]
         self.last_graph: dict | None = None
         self.dropped = 0
         self.stalled: dict[int, float] = {}  # chan -> when to probe its full local reader again
@@ -184,13 +190,6 @@ class Bridge:
         if graph != self.last_graph:
             self.last_graph = graph
             self.send(fr.encode_control(graph))
-        now = time.monotonic()
-        with self.echo_lock:
-            for topic, seen in list(self.echo.items()):
-                for key in [k for k, v in seen.items() if v[1] < now]:
-                    del seen[key]
-                if not seen:
-                    del self.echo[topic]  # forward() skips every check while no echo is expected
 
     # ------------------------------------------------------------ from the interceptor
     def read_loop(self) -> None:
@@ -224,12 +223,6 @@ class Bridge:
         if entry is None:
             return
         _, topic, publish_raw = entry
-        if topic in self.forwarded:  # this bridge also takes the topic: our publication comes back
-            key = hash(payload)
-            with self.echo_lock:
-                slot = self.echo.setdefault(topic, {}).setdefault(key, [0, 0.0])
-                slot[0] += 1
-                slot[1] = time.monotonic() + ECHO_TTL
         now = time.monotonic()
         probe_at = self.stalled.get(chan)
         if probe_at is not None and now < probe_at:
@@ -306,12 +299,12 @@ class Bridge:
                 # stops reading this bridge while a peer stream is backed up); a KEEP_LAST
                 # publisher still overwrites only its own history, as it would on a direct path.
                 qos.history = HistoryPolicy.KEEP_ALL
-            # marked before the reader exists: every republication it can receive is hashed
-            self.forwarded[topic] = self.forwarded.get(topic, 0) + 1
+            # the filter exists before the reader: its first sample is already decided
+            self._set_writers(chan, cmd.get("nodes", ()))
             try:
                 sub = self.data_node.create_subscription(cls, topic, _unused, qos, raw=True)
             except Exception:
-                self._unforward(topic)
+                self._set_writers(chan, None)
                 raise
             self.subs[chan] = (sub, topic)
             self.taker.add(chan, sub)
@@ -320,7 +313,9 @@ class Bridge:
             if entry is not None:
                 self.taker.remove(chan)
                 self.data_node.destroy_subscription(entry[0])
-                self._unforward(entry[1])
+            self._set_writers(chan, None)
+        elif op == "writers":
+            self._set_writers(chan, cmd.get("nodes", ()))
         elif op == "serve":
             cls = load_type(cmd["type"], "srv")
             self.servers[chan] = self.srv_node.create_service(
@@ -342,36 +337,62 @@ class Bridge:
         else:
             raise ValueError(f"unknown op {op!r}")
 
-    def _unforward(self, topic: str) -> None:
-        left = self.forwarded.get(topic, 0) - 1
-        if left > 0:
-            self.forwarded[topic] = left
-        else:
-            self.forwarded.pop(topic, None)
+    def _set_writers(self, chan: int, nodes) -> None:
+        """The granted publisher nodes of ``chan`` (None: the channel is gone)."""
+        with self.writers_lock:
+            if nodes is None:
+                self.writer_nodes.pop(chan, None)
+            else:
+                self.writer_nodes[chan] = frozenset(str(n) for n in nodes) - self.own_names
+            self.writer_ok.pop(chan, None)  # decided again from the graph, writer by writer
+
+    def _writer_granted(self, chan: int, topic: str, gid: bytes) -> bool:
+        """Whether ``gid`` is the writer of a granted publisher node of ``chan``: looked up
+        in the graph on its first sample (discovery tells the graph about a writer before
+        its first sample can match), remembered while the grant stands. A writer the
+        graph does not show (yet) is refused and looked up again on a later sample."""
+        with self.writers_lock:
+            known = self.writer_ok.get(chan, {}).get(gid)
+            nodes = self.writer_nodes.get(chan)
+        if known is not None:
+            return known
+        if nodes is None:
+            return False
+        node = None
+        for info in self.data_node.get_publishers_info_by_topic(topic):
+            if bytes(info.endpoint_gid)[: len(gid)] == gid:
+                node = _fqn(info.node_name, info.node_namespace)
+                break
+        if node is None or "_UNKNOWN_" in node:  # not (fully) discovered yet: ask again next sample
+            return False
+        ok = node in nodes
+        with self.writers_lock:
+            decided = self.writer_ok.setdefault(chan, {})
+            if len(decided) >= MAX_WRITERS_PER_TOPIC:  # a flood of short-lived writers: start over
+                decided.clear()
+            decided[gid] = ok
+        if not ok and node not in self.own_names and (chan, gid) not in self.refused_noted:
+            if len(self.refused_noted) < MAX_WRITERS_PER_TOPIC:
+                self.refused_noted.add((chan, gid))
+                self.send(fr.encode_control({"op": "refused_writer", "chan": chan, "topic": topic, "node": node,
+                                             "gid": gid.hex()}))
+        return ok
 
     def forward(self, batch: list) -> None:
-        """RawTaker batch -> MESSAGE frames, one write; our own republications are dropped."""
+        """RawTaker batch -> MESSAGE frames of granted writers' samples, one write."""
         pack, kind, out = fr.HEAD.pack, fr.MESSAGE, []
-        if not self.echo:  # no republication of a forwarded topic in the last ECHO_TTL s: nothing to check
-            for chan, data in batch:
+        topics: dict[int, str] | None = None
+        decided: dict[tuple[int, bytes], bool] = {}
+        for chan, data, gid in batch:
+            ok = decided.get((chan, gid))
+            if ok is None:
+                if topics is None:
+                    topics = {c: entry[1] for c, entry in list(self.subs.items())}
+                topic = topics.get(chan)
+                ok = decided[(chan, gid)] = topic is not None and self._writer_granted(chan, topic, gid)
+            if ok:
                 out.append(pack(5 + len(data), kind, chan))
                 out.append(data)
-            self.send(b"".join(out))
-            return
-        topics = {chan: entry[1] for chan, entry in list(self.subs.items())}
-        for chan, data in batch:
-            seen = self.echo.get(topics.get(chan))
-            if seen:
-                key = hash(data)
-                with self.echo_lock:
-                    slot = seen.get(key)
-                    if slot is not None:
-                        slot[0] -= 1
-                        if slot[0] <= 0:
-                            del seen[key]
-                        continue  # our own republication coming back
-            out.append(pack(5 + len(data), kind, chan))
-            out.append(data)
         if out:
             self.send(b"".join(out))
 

@@ -19,7 +19,6 @@ from typing import Any, Final
 
 from cryptoros.errors import RegistryError, RemoteProtocolError
 from cryptoros.names import validate_graph_name, validate_type
-from cryptoros.tokens import Grants
 
 KINDS: Final = ("topic", "service")
 RELIABILITY: Final = ("reliable", "best_effort")
@@ -110,12 +109,4 @@ class StreamTarget:
         return cls(kind=obj["kind"], name=obj["name"], type=obj["type"], node=obj["node"], qos=qos)
 
 
-def manager_may(grants: Grants, action: str, name: str, type_name: str) -> bool:
-    """Whether any node of the token's manager may ``action`` ``name`` with ``type_name``.
-
-    A receiving robot cannot tell DDS which of its own nodes may read a republished
-    topic (its domain is one trust zone), so the receiving side is decided per manager."""
-    return any(g.action == action and g.name == name and g.type == type_name for g in grants)
-
-
-__all__ = ["DURABILITY", "KINDS", "QoS", "RELIABILITY", "StreamTarget", "manager_may"]
+__all__ = ["DURABILITY", "KINDS", "QoS", "RELIABILITY", "StreamTarget", "receiver_qos"]

@@ -9,13 +9,12 @@ robot (and attacker) gets a :class:`SimHost` implementing
 from __future__ import annotations
 
 import heapq
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
-from cryptoros.sim.channel import Channel, Radio, Reception
+from cryptoros.sim.channel import Channel, Reception
 from cryptoros.sim.packets import Frame
 from cryptoros.sim.world import Lidar, World
 

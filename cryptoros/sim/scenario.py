@@ -19,7 +19,7 @@ from cryptoros.sim import attacks as A
 from cryptoros.sim.battery import BatterySpec
 from cryptoros.sim.channel import Channel, Radio
 from cryptoros.sim.engine import Engine, SimHost
-from cryptoros.sim.robot import DEAD, DONE, EXPLORE, HOME, IDLE, RECRUITED, STATE_NAMES, CHARGING, Robot, RobotConfig
+from cryptoros.sim.robot import DEAD, DONE, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
 from cryptoros.sim.security import SecurityConfig, make_managers
 from cryptoros.sim.world import FREE, OCC, UNKNOWN, Lidar, World, generate, load_map_server
 

@@ -32,6 +32,7 @@ from typing import Any
 import re
 
 from cryptoros.errors import PolicyDenied
+from cryptoros.policy.infrastructure import ros1_allows
 from cryptoros.names import validate_caller_id
 from cryptoros.tokens import Grants
 
@@ -68,8 +69,6 @@ NODE_READ_ONLY = frozenset(
 FROM_MASTER_ONLY = frozenset({"publisherUpdate", "paramUpdate"})
 ALWAYS_DROPPED = frozenset({"shutdown"})
 
-ROSOUT = ("/rosout", "rosgraph_msgs/Log")
-LOGGER_SERVICES = {"get_loggers": "roscpp/GetLoggers", "set_logger_level": "roscpp/SetLoggerLevel"}
 
 
 _PARAM_SEGMENT = re.compile(r"^[A-Za-z_~][A-Za-z0-9_-]*$")
@@ -198,13 +197,9 @@ def filter_param_reply(method: str, params: tuple, value: Any, *, grants: Grants
 
 
 def infrastructure_allows(action: str, node: str, name: str, type_name: str | None) -> bool:
-    """``/rosout`` publishing and the node's own logger services."""
-    if action == "publish" and (name, type_name) == ROSOUT:
-        return True
-    if action == "serve" and name.startswith(node + "/"):
-        suffix = name[len(node) + 1 :]
-        return suffix in LOGGER_SERVICES and type_name in (None, LOGGER_SERVICES[suffix])
-    return False
+    """``/rosout`` publishing and the node's own logger services (one list:
+    :mod:`cryptoros.policy.infrastructure`)."""
+    return ros1_allows(action, node, name, type_name)
 
 
 def _granted(grants: Grants, action: str, node: str, name: str, type_name: str, infrastructure: bool) -> bool:
