@@ -282,6 +282,8 @@ class Interceptor:
         #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
         #: where to show them our new token and fetch theirs.
         self._peer_endpoints: dict[tuple[str, str], tuple[str, int]] = {}
+        #: the last token each peer endpoint we connected to showed us (need to know: ROS 2)
+        self._peer_tokens: dict[tuple[str, int], AccessToken] = {}
         self._exchanges: set[tuple[str, int]] = set()
         local_master = (
             f"http://{cfg.local_master.host}:{cfg.local_master.port}/" if cfg.local_master is not None else None
@@ -651,6 +653,7 @@ class Interceptor:
             access = await self.verifier.verify_fresh(reply.token, der)
             self.verifier.note(access)
             self._peer_endpoints[(access.subject, access.thumbprint)] = (host, port)
+            self._peer_tokens[(host, port)] = access
             leftover = preamble_reader.trailing_data()
             if leftover:
                 reader._buffer[:0] = leftover  # type: ignore[attr-defined]  # give back bytes read past the reply

@@ -29,6 +29,7 @@ import itertools
 import logging
 import os
 import socket
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,8 +40,9 @@ from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, 
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.profile import localhost_env
-from cryptoros.policy.ros2 import Offer, local_offer, manager_may
+from cryptoros.policy.ros2 import Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
+from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
 from interceptor.ros1 import READ_SIZE, Interceptor, Peer
@@ -51,6 +53,8 @@ BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py
 #: ROS 2 plumbing every node has; never bridged, never logged as a denial.
 BRIDGE_START_TIMEOUT = 30.0
 RECONCILE_INTERVAL = 1.0
+#: a peer that may not receive a stream is asked for a fresh token (a new grant) this often
+PEER_RECHECK = 10.0
 #: Flow control of outbound topics: while a peer stream's send buffer is above
 #: BACKLOG_HIGH, the interceptor stops reading from its bridge (which then stops taking
 #: from DDS: the bridge's history depth decides what is kept, as on a direct DDS path);
@@ -152,6 +156,8 @@ class Ros2Interceptor(Interceptor):
         self._proxy_by_chan: dict[int, Proxy] = {}
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
+        self._peer_learnt: dict[Endpoint, float] = {}  # when a peer's token was last asked for
+        self._peer_lookups: dict[Endpoint, asyncio.Future] = {}
         self._stopping = False
         self.dropped = 0
         self._paused: asyncio.Task | None = None
@@ -432,6 +438,19 @@ class Ros2Interceptor(Interceptor):
         backoff = 0.25
         while True:
             try:
+                # need to know: the target (name, type, node, QoS) goes only to a peer whose
+                # grants let it receive the stream, learnt from its token first
+                known = await self._peer_token(endpoint, target)
+                if not may_learn(known.grants, target):
+                    key = ("not_offered", endpoint, target.name)
+                    if key not in self._noted:
+                        self._noted.add(key)
+                        self._deny(f"ros2_{target.kind}_out", PolicyDenied(
+                            "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
+                            f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}")
+                    await asyncio.sleep(PEER_RECHECK)
+                    continue
+                self._noted.discard(("not_offered", endpoint, target.name))
                 reader, writer, peer = await self.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
             except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
                 key = ("unreachable", endpoint, target.name)
@@ -482,6 +501,32 @@ class Ros2Interceptor(Interceptor):
                 for bid in pending:
                     self._calls.pop(bid, None)
             await asyncio.sleep(backoff)
+
+    async def _peer_token(self, endpoint: Endpoint, target: StreamTarget) -> AccessToken:
+        """The peer's freshest verified token: the last one it showed us (any stream, any
+        purpose) while unexpired and either granting ``target`` or learnt within
+        PEER_RECHECK; else one token exchange (purpose ``refresh``: tokens both ways, no
+        target), shared by every stream waiting on that peer."""
+        now = time.time()
+        known = self._peer_tokens.get((endpoint.host, endpoint.port))
+        if known is not None:
+            known = self.verifier.freshest(known)
+            fresh = known.expires_at > now + 5
+            if fresh and (may_learn(known.grants, target) or now - self._peer_learnt.get(endpoint, 0.0) < PEER_RECHECK):
+                return known
+        task = self._peer_lookups.get(endpoint)
+        if task is None:
+            async def exchange() -> AccessToken:
+                try:
+                    _reader, writer, peer = await self.open_tunnel(endpoint.host, endpoint.port, "refresh", "")
+                    writer.close()
+                    self._peer_learnt[endpoint] = time.time()
+                    return peer.access
+                finally:
+                    self._peer_lookups.pop(endpoint, None)
+
+            task = self._peer_lookups[endpoint] = asyncio.ensure_future(exchange())
+        return await asyncio.shield(task)
 
     async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int]) -> None:
         """Requests from the calling robot to a local server (through the bridge's client)."""

@@ -291,3 +291,31 @@ def test_a_rogue_publisher_under_an_ungranted_name_is_dropped_from_its_first_sam
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "the granted talker's messages were interrupted"
     log = network.robots["robot_a"].denials()
     assert "/rogue may not publish /chatter" in log
+
+
+# ---------------------------------------------------------------- need to know
+
+
+def test_a_peer_without_the_grant_learns_no_name_of_what_robot_a_offers(network):
+    """Finding 8: robot A offers ``/twist`` to its peers B and C; C's manager may not
+    subscribe it. A learns C's grants from C's token first (a ``refresh`` exchange, no
+    target) and never opens the stream to C: C's interceptor receives no ``ros2`` stream
+    preamble at all, so neither the topic's name, type, node nor QoS."""
+    from tests.ros2_support import collect, got
+
+    def ros2_streams_in(name: str) -> float:
+        for line in network.metrics(name).splitlines():
+            if line.startswith("cryptoros_interceptor_connections_total") and 'purpose="ros2"' in line \
+                    and 'direction="in"' in line:
+                return float(line.rsplit(" ", 1)[1])
+        return 0.0
+
+    before = ros2_streams_in("robot_c")
+    with network.node("robot_b", "listener.py", "twist", "/twist", "30") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "twist", "/twist", "100000", "20"):
+            assert got(collect(sub, 10, 25)), "robot B did not receive /twist"
+    assert ros2_streams_in("robot_c") == before, "robot C was offered a stream it may not receive"
+    assert "/twist" not in network.robots["robot_c"].logs()
+    assert "robot_c may not subscribe /twist [geometry_msgs/msg/Twist]: not offered to it" in \
+        network.robots["robot_a"].denials()
