@@ -52,6 +52,8 @@ Example::
     peers = ["127.0.0.3:11400"]       # interceptors of robots to forward to
     python = ".ros2-venv/bin/python"  # optional: env CRYPTOROS_ROS2_PYTHON, else <repo>/.ros2-venv
     depth = 10                        # history depth of bridged topics (the graph does not report it)
+    transient_local = ["/map"]        # topics kept for late joiners here (else republished volatile)
+    max_kept_bytes_per_peer = 67108864  # what one peer may make this robot keep for late joiners
     local = ["/tf", "/robot_a/*"]     # topics/services that never leave this robot (fnmatch
                                       # patterns): not offered, not logged as denials
 
@@ -191,6 +193,9 @@ class Ros2Settings:
     #: (kept for late joiners); any other topic is republished volatile, whatever the
     #: sender asks. The receiver decides: depth is capped at ``depth`` too.
     transient_local: tuple[str, ...] = ()
+    #: what one peer's streams may make this robot keep for late joiners: the sum over its
+    #: transient_local streams of depth x the topic's max_message_size (bytes)
+    max_kept_bytes_per_peer: int = 64 * 1024 * 1024
 
     def is_local(self, name: str) -> bool:
         return any(fnmatch.fnmatchcase(name, pattern) for pattern in self.local)
@@ -434,6 +439,8 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
         max_message_size=_typed(raw.get("max_message_size", 16 * 1024 * 1024), int, "[ros2] max_message_size"),
         local=tuple(local),
         transient_local=tuple(latched),
+        max_kept_bytes_per_peer=_typed(raw.get("max_kept_bytes_per_peer", 64 * 1024 * 1024), int,
+                                       "[ros2] max_kept_bytes_per_peer"),
     )
 
 

@@ -104,6 +104,8 @@ class Peer:
     access: AccessToken
     hosts: frozenset[str]
     watch: Any = field(default=None, compare=False)
+    #: why the gateway cut the stream ("reason" key), if it did (revoked, grant removed, expired)
+    cut: dict = field(default_factory=dict, compare=False)
 
     @property
     def manager(self) -> str:
@@ -740,12 +742,15 @@ class Interceptor:
         self.metrics.open_streams.labels(purpose).inc()
         self._open_per_peer[access.subject] = self._open_per_peer.get(access.subject, 0) + 1
 
+        cut_by: dict[str, str] = {}
+
         def cut(reason: str) -> None:
+            cut_by.setdefault("reason", reason)
             self.metrics.cutoffs.inc()
             writer.transport.abort()
 
         unwatch = self.verifier.watch(access, cut)
-        peer = Peer(access=access, hosts=cert_hosts(der), watch=unwatch)
+        peer = Peer(access=access, hosts=cert_hosts(der), watch=unwatch, cut=cut_by)
         try:
             if purpose == "master":
                 await self._serve_master_stream(reader, writer, peer)

@@ -151,11 +151,13 @@ class Ros2Interceptor(Interceptor):
         self._outbound: dict[tuple[str, str, str], Outbound] = {}  # (kind, name, type)
         self._out_by_chan: dict[int, Outbound] = {}
         self._calls: dict[int, tuple[asyncio.StreamWriter, int, set[int]]] = {}
-        self._adverts: dict[tuple[str, str], list] = {}  # (topic, type) -> [chan, refcount]
+        #: (topic, type) -> [chan, refcount, {stream id: its last samples kept for late joiners}]
+        self._adverts: dict[tuple[str, str], list] = {}
         self._proxies: dict[str, Proxy] = {}
         self._proxy_by_chan: dict[int, Proxy] = {}
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
+        self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
         self._peer_learnt: dict[Endpoint, float] = {}  # when a peer's token was last asked for
         self._peer_lookups: dict[Endpoint, asyncio.Future] = {}
         self._stopping = False
@@ -587,11 +589,17 @@ class Ros2Interceptor(Interceptor):
         key = (target.name, target.type)
         advert = self._adverts.get(key)
         if advert is None:
-            advert = self._adverts[key] = [next(self._chans), 0]
+            advert = self._adverts[key] = [next(self._chans), 0, {}]
             link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
                          qos=self._receiver_qos(target).to_dict())
         advert[1] += 1
-        chan = advert[0]
+        qos = self._receiver_qos(target)
+        kept_depth = qos.depth if qos.durability == "transient_local" else 0
+        kept = 0  # what this stream makes this robot keep for late joiners: depth x largest sample
+        mine: collections.deque = collections.deque(maxlen=kept_depth or 1)  # its samples now kept
+        if kept_depth:
+            advert[2][id(mine)] = mine
+        kept_limit = self.cfg.ros2.max_kept_bytes_per_peer
         log.info("republishing %s [%s] from %s (%s)", target.name, target.type, peer.manager, target.node)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
         try:
@@ -629,7 +637,20 @@ class Ros2Interceptor(Interceptor):
                         await asyncio.sleep(wait)
                 if writer.transport.is_closing():
                     break  # cut (revoked, reloaded away): what is still buffered is not republished
+                if runs and kept_depth:
+                    largest = max(len(p) for run in runs for p in fr.payloads(run[3]))
+                    if largest * kept_depth > kept:
+                        held = self._kept.get(peer.manager, 0) - kept + largest * kept_depth
+                        if held > kept_limit:
+                            raise PolicyDenied("kept_budget", (
+                                f"{peer.manager}'s samples kept for late joiners would take {held} bytes here "
+                                f"({kept_depth} x {largest} B on {target.name}); the limit is {kept_limit} "
+                                "([ros2] max_kept_bytes_per_peer)"))
+                        self._kept[peer.manager] = held
+                        kept = largest * kept_depth
+                    mine.extend(p for run in runs for p in fr.payloads(run[3]))
                 if runs:
+                    chan = advert[0]
                     blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
                     link.send(blocks[0] if len(blocks) == 1 else b"".join(blocks))
                     # flow control: while the bridge is behind, stop reading this stream (TLS and
@@ -640,11 +661,34 @@ class Ros2Interceptor(Interceptor):
                         while (transport.get_write_buffer_size() > BACKLOG_LOW and not transport.is_closing()
                                and asyncio.get_running_loop().time() < until):
                             await asyncio.sleep(0.002)
+        except PolicyDenied:
+            peer.cut.setdefault("reason", "kept_budget")
+            raise
         finally:
+            advert[2].pop(id(mine), None)
+            if kept:
+                left = self._kept.get(peer.manager, 0) - kept
+                if left > 0:
+                    self._kept[peer.manager] = left
+                else:
+                    self._kept.pop(peer.manager, None)
             advert[1] -= 1
             if advert[1] <= 0 and self._adverts.get(key) is advert:
                 del self._adverts[key]
-                link.control(op="unadvertise", chan=chan)
+                link.control(op="unadvertise", chan=advert[0])
+            elif kept and peer.cut and self._adverts.get(key) is advert:
+                # cut by authority (revoked, grant removed) or over budget: the samples it
+                # brought must not be replayed to late joiners. The topic's publisher is made
+                # anew and given only the other streams' kept samples again.
+                old, advert[0] = advert[0], next(self._chans)
+                link.control(op="unadvertise", chan=old)
+                link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
+                             qos=qos.to_dict())
+                again = [fr.encode(fr.PUBLISH, advert[0], p) for other in advert[2].values() for p in other]
+                if again:
+                    link.send(b"".join(again))
+                log.info("dropped the samples kept for late joiners on %s (%s's stream was cut: %s)",
+                         target.name, peer.manager, peer.cut.get("reason"))
 
     def _receiver_qos(self, target: StreamTarget) -> QoS:
         """The sender's QoS is a request: this robot caps the depth at its own ``depth``

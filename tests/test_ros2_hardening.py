@@ -135,7 +135,9 @@ def test_the_receiver_decides_qos():
 def network(tmp_path_factory):
     from tests.ros2_support import ros2_network
 
-    with ros2_network(tmp_path_factory.mktemp("ros2h"), start=("robot_a", "robot_b", "robot_c")) as net:
+    # robot B keeps at most 1 MiB of one peer's samples for late joiners (/latched only)
+    with ros2_network(tmp_path_factory.mktemp("ros2h"), start=("robot_a", "robot_b", "robot_c"),
+                      extra={"robot_b": "max_kept_bytes_per_peer = 1048576"}) as net:
         yield net
 
 
@@ -319,3 +321,90 @@ def test_a_peer_without_the_grant_learns_no_name_of_what_robot_a_offers(network)
     assert "/twist" not in network.robots["robot_c"].logs()
     assert "robot_c may not subscribe /twist [geometry_msgs/msg/Twist]: not offered to it" in \
         network.robots["robot_a"].denials()
+
+
+# ---------------------------------------------------------------- what the receiver keeps
+
+
+def _string_cdr(text: str) -> bytes:
+    ts = _typestore()
+    return bytes(ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
+
+
+def _insider_latched_stream(network):
+    """robot_c granted to publish /latched as /spy; its token and a transient_local target."""
+    import jwt
+
+    network.cli("grant", "robot_c", "publish", "/spy", "/latched", "std_msgs/msg/String")
+    deadline = time.monotonic() + 10  # the daemon caches a manager's grants for a second
+    while True:
+        status, body = network.daemon.token("robot_c")
+        assert status == 200
+        claims = jwt.decode(body["access_token"], options={"verify_signature": False})
+        if "/latched" in str(claims["grants"]):
+            break
+        assert time.monotonic() < deadline, "the new grant never reached a token"
+        time.sleep(0.2)
+    target = StreamTarget(kind="topic", name="/latched", type="std_msgs/msg/String", node="/spy",
+                          qos=QoS(reliability="reliable", durability="transient_local", depth=1000)).encode()
+    return body["access_token"], target
+
+
+def _late_listener_hears(network, seconds: float = 4.0) -> list[str]:
+    with network.node("robot_b", "listener.py", "string", "/latched", str(seconds), "--latched") as late:
+        late.until("READY", 20)
+        return [line for line in late.until("END", seconds + 20) if line.startswith(("GOT", "BAD"))]
+
+
+def test_samples_kept_for_late_joiners_are_dropped_when_the_grant_that_carried_them_goes(network):
+    """Finding 2: robot A's latched talker and an insider's transient_local stream both
+    leave a sample robot B keeps for late joiners (control: a late listener gets both);
+    once the insider's grant is revoked and its stream cut, a new late listener gets
+    robot A's sample and nothing of the insider's (the topic stays advertised: A's
+    stream is still open)."""
+    from tests.interceptor_harness import rogue_preamble
+
+    token, target = _insider_latched_stream(network)
+    try:
+        with network.node("robot_a", "talker.py", "string", "/latched", "1", "1", "--latched", "--offset", "7"):
+            deadline = time.monotonic() + 30
+            while _late_listener_hears(network, 2.0) != ["GOT 7"]:
+                assert time.monotonic() < deadline, "robot A's latched sample never reached robot B"
+            with _rogue(network, "robot_b", "robot_c") as s:
+                assert rogue_preamble(s, token, "ros2", target).ok
+                s.sendall(fr.encode(fr.DATA, 0, _string_cdr("secret-4242")))
+                assert sorted(_late_listener_hears(network)) == ["GOT 4242", "GOT 7"], "the control failed"
+                network.cli("revoke", "robot_c", "publish", "/spy", "/latched")
+                s.settimeout(10)
+                with pytest.raises((OSError, ssl.SSLError)):  # cut: reset, or EOF then a failing send
+                    while s.recv(100):
+                        pass
+                    s.sendall(fr.encode(fr.DATA, 0, _string_cdr("secret-1")))
+                    raise OSError("closed")
+            assert _late_listener_hears(network) == ["GOT 7"], "a late joiner got the revoked insider's sample"
+    finally:
+        network.cli("revoke", "robot_c", "publish", "/spy", "/latched")
+
+
+def test_a_peer_over_its_kept_memory_budget_is_refused_with_a_clear_denial(network):
+    """Finding 2: robot B keeps at most 1 MiB of one peer's samples for late joiners; an
+    insider's transient_local stream of 200 KB samples (depth capped at 10: 2 MB) is cut
+    with ``kept_budget`` and nothing of it is replayed to a late joiner."""
+    from tests.interceptor_harness import rogue_preamble
+
+    token, target = _insider_latched_stream(network)
+    try:
+        with _rogue(network, "robot_b", "robot_c") as s:
+            assert rogue_preamble(s, token, "ros2", target).ok
+            s.settimeout(10)
+            with pytest.raises((OSError, ssl.SSLError)):
+                for i in range(50):
+                    s.sendall(fr.encode(fr.DATA, 0, _string_cdr("x" * 200_000 + f"-{i}")))
+                while s.recv(100):
+                    pass
+                raise OSError("closed")
+        log = network.robots["robot_b"].denials()
+        assert "kept_budget" in log and "max_kept_bytes_per_peer" in log
+        assert _late_listener_hears(network) == []
+    finally:
+        network.cli("revoke", "robot_c", "publish", "/spy", "/latched")
