@@ -1,3 +1,31 @@
 """Shared fixtures. The throwaway PKI fixtures live in tests/pki_fixtures.py."""
 
+import hashlib
+from pathlib import Path
+
+import pytest
+
+from tests.support import require, run
+
 pytest_plugins = ["tests.pki_fixtures"]
+
+ROS1_NODES = Path(__file__).parent / "ros1_nodes"
+
+
+@pytest.fixture(scope="module")
+def roscpp_talker(request) -> str:
+    """Debian's roscpp talker (tests/ros1_nodes/talker.cpp), compiled once and cached."""
+    require("g++", "pkg-config")
+    src = ROS1_NODES / "talker.cpp"
+    flags = run(["pkg-config", "--cflags", "--libs", "roscpp", "std_msgs"], timeout=10)
+    if flags.returncode != 0:
+        from tests.support import missing
+
+        missing("roscpp development files are not installed (libroscpp-dev)")
+    digest = hashlib.sha256(src.read_bytes() + flags.stdout.encode()).hexdigest()[:16]
+    out = Path(request.config.cache.mkdir("ros1_roscpp")) / f"talker-{digest}"
+    if not out.exists():
+        tmp = out.with_suffix(".tmp")
+        run(["g++", "-O2", "-o", str(tmp), str(src), *flags.stdout.split()], timeout=180, check=True)
+        tmp.rename(out)
+    return str(out)

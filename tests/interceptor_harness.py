@@ -10,12 +10,17 @@ stopped in a ``finally``.
 from __future__ import annotations
 
 import contextlib
+import queue
+import subprocess
+import threading
+import time
+import xmlrpc.client
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from cryptoros.bench.network import Network as BenchNetwork
-from cryptoros.bench.network import bench_network
+from cryptoros.lab.network import Network as BenchNetwork
+from cryptoros.lab.network import lab_network
 from tests.authz_support import AuthzDaemon, authz
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import missing, require
@@ -63,7 +68,7 @@ HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3", 
 
 @dataclass
 class Network:
-    """The network of :func:`cryptoros.bench.network.bench_network`, with what tests
+    """The network of :func:`cryptoros.lab.network.lab_network`, with what tests
     need on top: the PKI as a :class:`TestPKIFactory`, the daemon as an
     :class:`AuthzDaemon` (tokens over real mTLS), the admin CLI."""
 
@@ -98,7 +103,7 @@ def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[s
     (the others can be started with ``network.start(name)``). ``netns=True`` puts each
     host in its own network namespace (:func:`separate_hosts` decides whether it can)."""
     require("rosmaster")
-    with bench_network(
+    with lab_network(
         workdir, policy, hosts=HOSTS, master="rosmaster", metrics=True, log_level="debug", poll_interval=0.5,
         start=start, extra=extra, roles=roles, netns=netns,
     ) as net:
@@ -258,3 +263,52 @@ def dribble(socks, data: bytes, steps: int = 20) -> set[int]:
             break
         time.sleep(1)
     return open_
+
+
+# ------------------------------------------------------------------ reading the nodes' output
+
+def read_lines(proc: subprocess.Popen, until: str | None, timeout: float) -> list[str]:
+    """A process's output lines until one contains ``until`` (None: until timeout or EOF).
+
+    A thread drains stdout into a queue (a select() on a buffered pipe would miss lines
+    already sitting in Python's buffer)."""
+    lines = getattr(proc, "_line_queue", None)
+    if lines is None:
+        lines = proc._line_queue = queue.Queue()
+
+        def pump() -> None:
+            for line in proc.stdout:
+                lines.put(line)
+            lines.put(None)
+
+        threading.Thread(target=pump, daemon=True).start()
+    seen: list[str] = []
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            line = lines.get(timeout=left)
+        except queue.Empty:
+            break
+        if line is None:
+            lines.put(None)  # keep the end marker for later calls
+            break
+        seen.append(line)
+        if until is not None and until in line:
+            return seen
+    if until is not None:
+        raise AssertionError(f"no {until!r} within {timeout}s; output:\n{''.join(seen)}")
+    return seen
+
+
+def got(lines: list[str]) -> list[str]:
+    return [line.split(" ", 1)[1].strip() for line in lines if line.startswith("GOT ")]
+
+
+def master_state(network) -> list:
+    """getSystemState straight from the real rosmaster (what it really holds)."""
+    with network.inside("master"):
+        return xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
+
+
+def nodes_in_state(state) -> set[str]:
+    return {node for section in state for _name, nodes in section for node in nodes}

@@ -105,3 +105,85 @@ def running(args: Sequence[str], **kw) -> Iterator[subprocess.Popen]:
         yield proc
     finally:
         stop(proc)
+
+
+class Capture:
+    """tcpdump on lo writing a pcap; stopped with SIGINT so it flushes."""
+
+    def __init__(self, path, bpf: str) -> None:
+        tcpdump = require("tcpdump")["tcpdump"]
+        self.path = path
+        self.proc = subprocess.Popen([tcpdump, "-i", "lo", "-U", "-s", "0", "-w", str(path), bpf],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        line = self.proc.stderr.readline()  # "listening on lo, ..."
+        if "listening" not in line:
+            self.proc.kill()
+            pytest.fail(f"tcpdump did not start: {line}")
+        self._wait_until_capturing(bpf)
+
+    def _wait_until_capturing(self, bpf: str) -> None:
+        """"listening" is printed before packets really flow into the file: send marker
+        packets on loopback until one shows up in the pcap."""
+        if bpf != "tcp":
+            time.sleep(1.0)  # the filtered capture cannot see a marker; plain one proved the delay
+            return
+        server = socket.create_server(("127.0.0.1", 0))
+        port = server.getsockname()[1]
+        deadline = time.monotonic() + 10
+        try:
+            while time.monotonic() < deadline:
+                with socket.create_connection(("127.0.0.1", port), timeout=2) as c:
+                    c.sendall(b"cryptoros-capture-marker")
+                server.accept()[0].close()
+                time.sleep(0.1)
+                if self.path.exists() and b"cryptoros-capture-marker" in self.path.read_bytes():
+                    return
+            pytest.fail("tcpdump never captured a marker packet")
+        finally:
+            server.close()
+
+    def stop(self) -> bytes:
+        time.sleep(0.5)
+        self.proc.send_signal(signal.SIGINT)
+        self.proc.wait(timeout=10)
+        return self.path.read_bytes()
+
+
+def client_hello(version: int, suites: list[int]) -> bytes:
+    """A minimal, well-formed TLS ClientHello offering exactly ``suites``.
+
+    Debian's OpenSSL can no longer offer 3DES or RC4 at all, so the test speaks the
+    offer itself, byte for byte, the way an old or hostile client would.
+    """
+    import os
+    import struct
+
+    def ext(kind: int, body: bytes) -> bytes:
+        return struct.pack("!HH", kind, len(body)) + body
+
+    groups = struct.pack("!H", 4) + struct.pack("!HH", 0x0017, 0x001D)  # secp256r1, x25519
+    sigalgs = struct.pack("!H", 6) + struct.pack("!HHH", 0x0403, 0x0804, 0x0401)
+    extensions = ext(0x000A, groups) + ext(0x000B, b"\x01\x00") + ext(0x000D, sigalgs)
+    cipher_bytes = b"".join(struct.pack("!H", c) for c in suites)
+    body = (
+        struct.pack("!H", version) + os.urandom(32) + b"\x00"
+        + struct.pack("!H", len(cipher_bytes)) + cipher_bytes + b"\x01\x00"
+        + struct.pack("!H", len(extensions)) + extensions
+    )
+    handshake = b"\x01" + len(body).to_bytes(3, "big") + body
+    return b"\x16\x03\x01" + struct.pack("!H", len(handshake)) + handshake
+
+
+def processes_using(path: Path) -> list[str]:
+    """Processes whose command line names ``path`` (what a run left behind)."""
+    found = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if str(path) in cmd:
+            found.append(f"{pid}: {cmd[:200]}")
+    return found

@@ -28,8 +28,7 @@ from authz_server.keys import load_private, protection
 from authz_server.registry import Registry
 from cryptoros.errors import TokenError
 from cryptoros.tokens import KeySet, Revocations, sign_token, verify_access_token
-from tests.support import require
-from tests.test_tls import client_hello
+from tests.support import client_hello, require
 from tests.authz_support import AuthzDaemon, build_team, ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"

@@ -20,7 +20,7 @@ import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, wait_registered
 from tests.support import running
-from tests.test_interceptor_ros1 import got, read_lines
+from tests.interceptor_harness import got, read_lines
 
 pytestmark = [pytest.mark.ros1]
 

@@ -12,13 +12,14 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+
+from cryptoros.demo.session import free_after
+from tests.support import processes_using
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.timeout(420)
@@ -41,30 +42,6 @@ def _no_ros_env(venv: Path | None) -> dict[str, str]:
     env["PATH"] = f"{venv}/bin" if venv else "/usr/local/bin:/usr/bin:/bin"
     env["PYTHONUNBUFFERED"] = "1"
     return env
-
-
-def _processes_using(path: Path) -> list[str]:
-    found = []
-    for pid in os.listdir("/proc"):
-        if not pid.isdigit():
-            continue
-        try:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        if str(path) in cmd:
-            found.append(f"{pid}: {cmd[:200]}")
-    return found
-
-
-def _open(ports: list[list]) -> list:
-    busy = []
-    for host, port in ports:
-        with socket.socket() as s:
-            s.settimeout(0.3)
-            if s.connect_ex((host, int(port))) == 0:
-                busy.append((host, port))
-    return busy
 
 
 def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv, tmp_path):
@@ -94,8 +71,8 @@ def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv
     assert (report.parent / "coverage_maps.png").exists()
     # hygiene: nothing left running, every port free, the throwaway work directory gone
     assert result["leftover_children"] == [] and result["ports_still_open"] == []
-    assert _processes_using(venv) == []
-    assert _open([p for m in result["modes"].values() for p in m["ports"]]) == []
+    assert processes_using(venv) == []
+    assert free_after([p for m in result["modes"].values() for p in m["ports"]]) == []
     assert not Path(result["workdir"]).exists()
 
 
@@ -110,7 +87,7 @@ def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
                 break
             time.sleep(0.2)
         time.sleep(2)
-        children = [p for p in _processes_using(venv) if not p.startswith(f"{proc.pid}:")]
+        children = [p for p in processes_using(venv) if not p.startswith(f"{proc.pid}:")]
         assert len(children) >= 5, children
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=60)
@@ -119,9 +96,9 @@ def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
             proc.kill()
     assert proc.returncode == 130, out[-2000:]
     deadline = time.monotonic() + 10
-    while _processes_using(venv) and time.monotonic() < deadline:
+    while processes_using(venv) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert _processes_using(venv) == []
+    assert processes_using(venv) == []
 
 
 def test_demo_netns_runs_the_protected_mission_on_separate_hosts(tmp_path):

@@ -31,7 +31,7 @@ from tests.interceptor_harness import (
 from tests.interceptor_harness import open_fds as fds
 from tests.interceptor_harness import rogue_to as rogue
 from tests.support import running
-from tests.test_interceptor_ros1 import got, read_lines
+from tests.interceptor_harness import got, read_lines
 
 pytestmark = [pytest.mark.ros1]
 

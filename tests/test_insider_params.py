@@ -25,7 +25,7 @@ from tests.interceptor_harness import (
     wait_registered,
 )
 from tests.support import require, run, running
-from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+from tests.interceptor_harness import got, master_state, nodes_in_state, read_lines
 
 pytestmark = [pytest.mark.ros1]
 

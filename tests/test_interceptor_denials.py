@@ -29,7 +29,7 @@ from tests.interceptor_harness import (
     signing_key,
 )
 from tests.support import running
-from tests.test_interceptor_ros1 import got, master_state, nodes_in_state, read_lines
+from tests.interceptor_harness import token_of, got, master_state, nodes_in_state, read_lines
 
 pytestmark = [pytest.mark.ros1]
 
@@ -43,12 +43,6 @@ def network(tmp_path_factory):
 
 def cert(network, name):
     return network.pki.pki.cert_path_for(name), network.pki.pki.key_path_for(name)
-
-
-def token_of(network, name) -> str:
-    status, body = network.daemon.token(name)
-    assert status == 200, body
-    return body["access_token"]
 
 
 def public(network, host):

@@ -8,16 +8,14 @@ import random
 import signal
 import socket
 import struct
-import subprocess
 import time
 import urllib.request
 
 import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls
-from tests.support import require, running
-from tests.test_interceptor_denials import token_of
-from tests.test_interceptor_ros1 import got, read_lines
+from tests.interceptor_harness import got, read_lines, token_of
+from tests.support import Capture, running
 
 pytestmark = [pytest.mark.ros1]
 
@@ -46,48 +44,6 @@ def flow_works(network, node_pub="/talker_a", node_sub="/listener_b", count=5) -
 
 
 # ------------------------------------------------------------------ confidentiality
-
-
-class Capture:
-    """tcpdump on lo writing a pcap; stopped with SIGINT so it flushes."""
-
-    def __init__(self, path, bpf: str) -> None:
-        tcpdump = require("tcpdump")["tcpdump"]
-        self.path = path
-        self.proc = subprocess.Popen([tcpdump, "-i", "lo", "-U", "-s", "0", "-w", str(path), bpf],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        line = self.proc.stderr.readline()  # "listening on lo, ..."
-        if "listening" not in line:
-            self.proc.kill()
-            pytest.fail(f"tcpdump did not start: {line}")
-        self._wait_until_capturing(bpf)
-
-    def _wait_until_capturing(self, bpf: str) -> None:
-        """"listening" is printed before packets really flow into the file: send marker
-        packets on loopback until one shows up in the pcap."""
-        if bpf != "tcp":
-            time.sleep(1.0)  # the filtered capture cannot see a marker; plain one proved the delay
-            return
-        server = socket.create_server(("127.0.0.1", 0))
-        port = server.getsockname()[1]
-        deadline = time.monotonic() + 10
-        try:
-            while time.monotonic() < deadline:
-                with socket.create_connection(("127.0.0.1", port), timeout=2) as c:
-                    c.sendall(b"cryptoros-capture-marker")
-                server.accept()[0].close()
-                time.sleep(0.1)
-                if self.path.exists() and b"cryptoros-capture-marker" in self.path.read_bytes():
-                    return
-            pytest.fail("tcpdump never captured a marker packet")
-        finally:
-            server.close()
-
-    def stop(self) -> bytes:
-        time.sleep(0.5)
-        self.proc.send_signal(signal.SIGINT)
-        self.proc.wait(timeout=10)
-        return self.path.read_bytes()
 
 
 def test_capture_between_interceptors_holds_no_published_string(network, tmp_path):

@@ -8,66 +8,16 @@ their host's interceptor; their code is unchanged.
 
 from __future__ import annotations
 
-import queue
 import subprocess
-import threading
 import time
-import xmlrpc.client
 
 import pytest
 
 from tests.interceptor_harness import NODE, NODES, SYS_PY, robot_network, separate_hosts
+from tests.interceptor_harness import got, master_state, nodes_in_state, read_lines
 from tests.support import on_host, require, running
-from tests.test_ros1_interop import roscpp_talker  # noqa: F401  (compiled roscpp talker fixture)
 
 pytestmark = [pytest.mark.ros1]
-
-
-def read_lines(proc: subprocess.Popen, until: str | None, timeout: float) -> list[str]:
-    """A process's output lines until one contains ``until`` (None: until timeout or EOF).
-
-    A thread drains stdout into a queue (a select() on a buffered pipe would miss lines
-    already sitting in Python's buffer)."""
-    lines = getattr(proc, "_line_queue", None)
-    if lines is None:
-        lines = proc._line_queue = queue.Queue()
-
-        def pump() -> None:
-            for line in proc.stdout:
-                lines.put(line)
-            lines.put(None)
-
-        threading.Thread(target=pump, daemon=True).start()
-    seen: list[str] = []
-    deadline = time.monotonic() + timeout
-    while (left := deadline - time.monotonic()) > 0:
-        try:
-            line = lines.get(timeout=left)
-        except queue.Empty:
-            break
-        if line is None:
-            lines.put(None)  # keep the end marker for later calls
-            break
-        seen.append(line)
-        if until is not None and until in line:
-            return seen
-    if until is not None:
-        raise AssertionError(f"no {until!r} within {timeout}s; output:\n{''.join(seen)}")
-    return seen
-
-
-def got(lines: list[str]) -> list[str]:
-    return [line.split(" ", 1)[1].strip() for line in lines if line.startswith("GOT ")]
-
-
-def master_state(network) -> list:
-    """getSystemState straight from the real rosmaster (what it really holds)."""
-    with network.inside("master"):
-        return xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
-
-
-def nodes_in_state(state) -> set[str]:
-    return {node for section in state for _name, nodes in section for node in nodes}
 
 
 @pytest.fixture(scope="module")

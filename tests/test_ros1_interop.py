@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -22,7 +20,7 @@ import pytest
 
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import Node
-from tests.support import REPO, free_port, require, run, stop, wait_for_port
+from tests.support import REPO, free_port, require, stop, wait_for_port
 
 pytestmark = [pytest.mark.ros1]
 
@@ -180,24 +178,6 @@ async def test_our_publisher_to_rostopic_echo(rosmaster, ros_home) -> None:
         assert len(values) == 3, out
         first = int(values[0])  # the latched (latest) message, then the next ones in order
         assert [int(v) for v in values] == [first, first + 1, first + 2]
-
-
-@pytest.fixture(scope="module")
-def roscpp_talker(request) -> str:
-    require("g++", "pkg-config")
-    src = NODES / "talker.cpp"
-    flags = run(["pkg-config", "--cflags", "--libs", "roscpp", "std_msgs"], timeout=10)
-    if flags.returncode != 0:
-        from tests.support import missing
-
-        missing("roscpp development files are not installed (libroscpp-dev)")
-    digest = hashlib.sha256(src.read_bytes() + flags.stdout.encode()).hexdigest()[:16]
-    out = Path(request.config.cache.mkdir("ros1_roscpp")) / f"talker-{digest}"
-    if not out.exists():
-        tmp = out.with_suffix(".tmp")
-        run(["g++", "-O2", "-o", str(tmp), str(src), *flags.stdout.split()], timeout=180, check=True)
-        tmp.rename(out)
-    return str(out)
 
 
 async def test_roscpp_talker_to_our_subscriber(rosmaster, ros_home, roscpp_talker) -> None:

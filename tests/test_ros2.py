@@ -21,8 +21,8 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptoros.ros2.target import StreamTarget
 from cryptoros.tokens import Grants, build_claims, sign_token
 from tests.interceptor_harness import rogue_preamble, rogue_tls, signing_key
-from tests.test_interceptor_operations import Capture
 from tests.ros2_support import collect, got, ros2_network
+from tests.support import Capture
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from tests.ros2_support import ros2_python
-from tests.test_demo import _open, _processes_using
+from cryptoros.demo.session import free_after
+from tests.support import processes_using
 
 REPO = Path(__file__).resolve().parent.parent
 CLI = Path(os.environ.get("VIRTUAL_ENV", REPO / ".venv")) / "bin" / "cryptoros"
@@ -70,8 +71,8 @@ def test_ros2_demo_plain_attacks_succeed_protected_blocked_and_mission_completes
     report = Path(result["report"])
     assert "ROS 2 Jazzy" in report.read_text() and (report.parent / "coverage_maps.png").exists()
     assert result["leftover_children"] == [] and result["ports_still_open"] == []
-    assert _processes_using(Path(result["workdir"])) == []
-    assert _open([p for m in result["modes"].values() for p in m["ports"]]) == []
+    assert processes_using(Path(result["workdir"])) == []
+    assert free_after([p for m in result["modes"].values() for p in m["ports"]]) == []
     assert not Path(result["workdir"]).exists()
 
 

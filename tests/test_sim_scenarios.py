@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 from functools import cache
 
-import pytest
 
 from cryptoros.sim.robot import DEAD
 from cryptoros.sim.scenario import Mission, SimConfig, deterministic, run

@@ -10,7 +10,7 @@ import pytest
 
 from cryptoros.errors import ConfigError
 from cryptoros.tls import STRICT_TLS12_CIPHERS, TLSConfig, client_context, describe_suites, server_context
-from tests.support import require, run
+from tests.support import client_hello, require, run
 
 FS_AEAD_TLS12 = {
     "ECDHE-ECDSA-AES256-GCM-SHA384",
@@ -180,31 +180,6 @@ def test_weak_offers_fail_handshake_with_openssl(pki, server_cfg, offer):
 def test_strict_string_excludes_what_the_paper_excludes():
     for token in ("!LOW", "!EXPORT", "!MD5", "!aNULL", "!ADH", "!AECDH", "!DES", "!eNULL", "!RC2", "!RC4"):
         assert token in STRICT_TLS12_CIPHERS
-
-
-def client_hello(version: int, suites: list[int]) -> bytes:
-    """A minimal, well-formed TLS ClientHello offering exactly ``suites``.
-
-    Debian's OpenSSL can no longer offer 3DES or RC4 at all, so the test speaks the
-    offer itself, byte for byte, the way an old or hostile client would.
-    """
-    import os
-    import struct
-
-    def ext(kind: int, body: bytes) -> bytes:
-        return struct.pack("!HH", kind, len(body)) + body
-
-    groups = struct.pack("!H", 4) + struct.pack("!HH", 0x0017, 0x001D)  # secp256r1, x25519
-    sigalgs = struct.pack("!H", 6) + struct.pack("!HHH", 0x0403, 0x0804, 0x0401)
-    extensions = ext(0x000A, groups) + ext(0x000B, b"\x01\x00") + ext(0x000D, sigalgs)
-    cipher_bytes = b"".join(struct.pack("!H", c) for c in suites)
-    body = (
-        struct.pack("!H", version) + os.urandom(32) + b"\x00"
-        + struct.pack("!H", len(cipher_bytes)) + cipher_bytes + b"\x01\x00"
-        + struct.pack("!H", len(extensions)) + extensions
-    )
-    handshake = b"\x01" + len(body).to_bytes(3, "big") + body
-    return b"\x16\x03\x01" + struct.pack("!H", len(handshake)) + handshake
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import click
 
-from cryptoros.cli import LazyGroup
+from cryptoros.lazy import LazyGroup
 
 BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",

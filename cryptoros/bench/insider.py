@@ -106,14 +106,14 @@ class _Insider:
               help="TLS connections that dribble their preamble.")
 def insider(names: int, dribblers: int) -> None:
     """Interceptor fds and RSS under an insider's relay-exhaustion and slowloris attacks."""
-    from cryptoros.bench.network import bench_network
+    from cryptoros.lab.network import lab_network
     from cryptoros.ros1.xmlrpc import Request, make_multicall
 
     if shutil.which("rosmaster") is None:
         raise click.ClickException("rosmaster is not installed (scripts/install-system-parts installs it as root)")
     work = Path(tempfile.mkdtemp(prefix="cryptoros-bench-insider-"))
     try:
-        with bench_network(work, POLICY, hosts=HOSTS, master="rosmaster", progress=lambda m: click.echo(f"... {m}")) as net:
+        with lab_network(work, POLICY, hosts=HOSTS, master="rosmaster", progress=lambda m: click.echo(f"... {m}")) as net:
             procs = {name: h.proc for name, h in net.hosts.items()}
             before = {name: _usage(p.pid) for name, p in procs.items()}
             me = _Insider(net, "robot_b")

@@ -1,6 +1,6 @@
 """``cryptoros bench interceptor``: plain ROS 1, our interceptors and stunnel4, side by side.
 
-One run builds a robot network on loopback (:mod:`cryptoros.bench.network`: PKI,
+One run builds a robot network on loopback (:mod:`cryptoros.lab.network`: PKI,
 registry, ``cryptoros-authz`` daemon, Debian ``rosmaster``, interceptors for hosts
 M 127.0.0.4, A 127.0.0.2, B 127.0.0.3) and measures, for real rospy nodes (Debian's
 ``/usr/bin/python3``) and for our node client (:mod:`cryptoros.ros1.node`, uvloop):
@@ -49,7 +49,7 @@ from pathlib import Path
 
 import click
 
-from cryptoros.bench.network import HOSTS, Network, NetworkError, bench_network, free_port, stop, wait_port
+from cryptoros.lab.network import HOSTS, Network, NetworkError, lab_network, free_port, stop, wait_port
 
 SYS_PY = "/usr/bin/python3"
 NODES = Path(__file__).parent / "ros1_nodes"
@@ -927,7 +927,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
     results: dict = {"config": {"messages": {m.key: m.n for m in modes}, "paper_counts": counts, "paper_repeat": reps,
                                 "setup_probes": probes, "cpus": os.cpu_count()}}
     try:
-        with bench_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
+        with lab_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
                                                             ("stunnel_b", "127.0.0.1")], progress=progress) as net:
             progress("network up")
             results["setup"] = measure_setup(net, probes, workdir, progress)

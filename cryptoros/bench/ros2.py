@@ -27,7 +27,7 @@ from pathlib import Path
 
 import click
 
-from cryptoros.bench.network import NetworkError, bench_network, clean_env, cpu_seconds, stop
+from cryptoros.lab.network import NetworkError, lab_network, clean_env, cpu_seconds, stop
 from interceptor.config import default_ros2_python
 
 NODE = Path(__file__).resolve().parent.parent / "ros2" / "bench_node.py"
@@ -110,7 +110,7 @@ def cpu_per_message(result: dict, before: dict, after: dict, bridged: bool) -> d
 def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], depth: int = 10) -> Iterator[dict[str, int]]:
     """Robot A's and robot B's interceptors (``ros2`` role, peers of each other) with their
     PKI, registry and authorization server; yields the two interceptors' pids."""
-    with bench_network(workdir, POLICY, hosts=HOSTS, master="none", ros2=dict(zip(HOSTS, domains, strict=True)),
+    with lab_network(workdir, POLICY, hosts=HOSTS, master="none", ros2=dict(zip(HOSTS, domains, strict=True)),
                        ros2_python=python, ros2_depth=depth) as net:
         yield {"interceptor_a": net.hosts["robot_a"].proc.pid, "interceptor_b": net.hosts["robot_b"].proc.pid}
 

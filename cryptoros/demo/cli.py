@@ -61,7 +61,8 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_
     from rich.console import Console
 
     from cryptoros.demo import report as rep
-    from cryptoros.demo.run import ALL_ATTACKS, DemoError, DemoOptions, run_demo
+    from cryptoros.demo.run import ALL_ATTACKS, DemoError, DemoOptions
+    from cryptoros.demo.session import run_demo
 
     known = ROS2_ATTACKS if ros == "2" else ALL_ATTACKS
     if attacks == "all":

@@ -80,7 +80,7 @@ def ros2_python() -> Path:
 
 
 def ros2_env(domain: int, pythonpath: Path | None) -> dict[str, str]:
-    from cryptoros.bench.network import clean_env
+    from cryptoros.lab.network import clean_env
 
     env = {k: v for k, v in clean_env().items() if not k.startswith(("_ROS_WHEELS", "RMW_"))}
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
@@ -128,10 +128,10 @@ class Ros2Mission(Mission):
         yield Graph(robot_master={}, robot_ip={}, stranger_master="", insider_master={}, insider_ip={})
 
     def _protected(self):  # type: ignore[no-untyped-def]
-        from cryptoros.bench.network import bench_network
+        from cryptoros.lab.network import lab_network
 
         hosts = {r: robot_addr(i) for i, r in enumerate(self.team)}
-        with bench_network(self.dir / "net", policy(len(self.team)), hosts=hosts, master="none", metrics=True,
+        with lab_network(self.dir / "net", policy(len(self.team)), hosts=hosts, master="none", metrics=True,
                            new_session=True, ros2={r: self.robot_domain(r) for r in self.team},
                            ros2_python=self.python, ros2_local={r: [f"/{r}/*"] for r in self.team}) as net:
             ports = [(h.address, h.public_port) for h in net.hosts.values()]

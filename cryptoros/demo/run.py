@@ -28,13 +28,11 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
-import tempfile
 import time
 import urllib.request
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -130,13 +128,13 @@ class Children:
 
 
 def _env(**extra: str) -> dict[str, str]:
-    from cryptoros.bench.network import clean_env
+    from cryptoros.lab.network import clean_env
 
     return clean_env(PYTHONUNBUFFERED="1", **extra)
 
 
 def _cpu_seconds(pid: int) -> float:
-    from cryptoros.bench.network import cpu_seconds
+    from cryptoros.lab.network import cpu_seconds
 
     return cpu_seconds(pid) or 0.0
 
@@ -215,7 +213,7 @@ class Mission:
             yield from self._protected()
 
     def _plain(self):  # type: ignore[no-untyped-def]
-        from cryptoros.bench.network import free_port, tool, wait_port
+        from cryptoros.lab.network import free_port, tool, wait_port
 
         if self.opts.master_uri:
             uri = self.opts.master_uri.rstrip("/") + "/"
@@ -236,10 +234,10 @@ class Mission:
                 self.children.terminate([p])
 
     def _protected(self):  # type: ignore[no-untyped-def]
-        from cryptoros.bench.network import bench_network
+        from cryptoros.lab.network import lab_network
 
         hosts = {"master": MASTER_ADDR, **{r: robot_addr(i) for i, r in enumerate(self.team)}}
-        with bench_network(self.dir / "net", policy(len(self.team)), hosts=hosts,
+        with lab_network(self.dir / "net", policy(len(self.team)), hosts=hosts,
                            master=self.opts.master_uri or "embedded", metrics=True, new_session=True,
                            netns=self.opts.netns) as net:
             ports = []
@@ -500,60 +498,3 @@ def attacker_role(kind: str, n: int) -> str:
     what = {"spoof-pose": f"/{target_of(kind, n)}/pose", "map-erase": "/team/map as /mitm",
             "shutdown": f"shutdown of /{target_of(kind, n)}", "hijack": f"the name /{target_of(kind, n)}"}.get(kind, kind)
     return f"insider on {insider_host(kind, n)}'s host (manager has no grant for {what})"
-
-
-def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lambda _e: None,
-             note: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
-    if opts.robots < 2:
-        raise DemoError("the demo needs at least 2 robots")
-    mission_class, role, what = Mission, attacker_role, {}
-    if opts.ros == 2:
-        from cryptoros.demo import ros2
-
-        mission_class, role, what = ros2.Ros2Mission, ros2.attacker_role, ros2.WHAT
-        known = ros2.ROS2_ATTACKS
-    elif opts.ros == 1:
-        known = ALL_ATTACKS
-    else:
-        raise DemoError(f"ros must be 1 or 2, not {opts.ros}")
-    for a in opts.attacks:
-        if a not in known:
-            raise DemoError(f"unknown attack {a!r} for ROS {opts.ros}; one of {', '.join(known)}")
-    workdir = Path(opts.workdir) if opts.workdir else Path(tempfile.mkdtemp(prefix="cryptoros-demo-"))
-    workdir.mkdir(parents=True, exist_ok=True)
-    children = Children()
-    result: dict[str, Any] = {"config": {**asdict(opts), "attacks": list(opts.attacks), "modes": list(opts.modes)},
-                              "workdir": str(workdir), "modes": {}, "attacks": {}}
-    try:
-        for mode in opts.modes:
-            note(f"{mode}: starting {'the master' if mode == 'plain' else 'PKI, authorization server, master and interceptors'}"
-                 f" and {opts.robots} robots")
-            m = mission_class(opts, mode, workdir, children, progress)
-            res = m.run()
-            res["judged"] = judge(res, opts.attacks, opts.robots)
-            result["modes"][mode] = res
-        for k in opts.attacks:
-            entry = {"seed": ATTACKS[k]["seed"],
-                     "what": what.get(k, ATTACKS[k]["what"]).format(t=target_of(k, opts.robots) or ""),
-                     "protected_attacker": role(k, opts.robots)}
-            for mode, res in result["modes"].items():
-                entry[mode] = res["judged"][k]
-            result["attacks"][k] = entry
-    finally:
-        children.kill_all()
-    for res in result["modes"].values():
-        res.pop("_final", None)
-    result["children_started"] = len(children.procs)
-    result["leftover_children"] = [p.pid for p in children.procs if p.poll() is None]
-    result["ports_still_open"] = [list(p) for res in result["modes"].values() for p in free_after(res.get("ports", []))]
-    return result
-
-
-def free_after(ports: list[tuple[str, int]]) -> list[tuple[str, int]]:
-    busy = []
-    for host, port in ports:
-        with socket.socket() as s:
-            s.settimeout(0.3)
-            if s.connect_ex((host, port)) == 0:
-                busy.append((host, port))
-    return busy

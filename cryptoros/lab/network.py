@@ -237,7 +237,7 @@ def _interceptor_config(
 
 
 @contextlib.contextmanager
-def bench_network(
+def lab_network(
     workdir: Path,
     policy: str,
     *,
@@ -431,5 +431,5 @@ def bench_network(
             lab.close()
 
 
-__all__ = ["HOSTS", "Host", "Network", "NetworkError", "bench_network", "clean_env", "cpu_seconds", "free_port", "stop",
+__all__ = ["HOSTS", "Host", "Network", "NetworkError", "lab_network", "clean_env", "cpu_seconds", "free_port", "stop",
            "tool", "wait_port"]

@@ -1,0 +1,128 @@
+"""The import graph, read from the source (no imports run): no circles, core at the bottom,
+each layer importing only the layers under it (docs/architecture.md), and no test module
+importing another test module (shared helpers live in tests/*support.py, the harness and
+conftest)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+PACKAGES = ("cryptoros", "interceptor", "authz_server", "certs")
+#: cryptoros's own sub-packages above the core, each its own layer
+UPPER = ("cli", "lazy", "demo", "bench", "lab", "attack", "sim")
+CORE = "cryptoros.core"
+#: layer -> the layers it may import (besides itself)
+ALLOWED = {
+    CORE: set(),
+    "certs": {CORE},
+    "authz_server": {CORE},
+    "interceptor": {CORE},
+    "cryptoros.sim": {CORE},
+    "cryptoros.attack": {CORE, "cryptoros.sim"},
+    "cryptoros.lazy": set(),
+    "cryptoros.lab": {CORE, "certs"},
+    "cryptoros.demo": {CORE, "cryptoros.lab", "cryptoros.sim", "cryptoros.attack", "interceptor"},
+    "cryptoros.bench": {CORE, "cryptoros.lab", "cryptoros.sim", "cryptoros.lazy", "interceptor", "certs"},
+    "cryptoros.cli": {"cryptoros.lazy"},  # every subcommand is named by string and imported on use
+}
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for package in PACKAGES:
+        for path in (REPO / package).rglob("*.py"):
+            parts = path.relative_to(REPO).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            found[name] = path
+    return found
+
+
+def _imports(path: Path, known: dict[str, Path]) -> set[str]:
+    """First-party modules ``path`` imports, at module level or inside functions."""
+
+    def resolve(name: str) -> str | None:
+        while name and name not in known:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(r for a in node.names if (r := resolve(a.name)))
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:
+                if r := resolve(f"{node.module}.{a.name}") or resolve(node.module):
+                    out.add(r)
+    return out
+
+
+def _graph() -> dict[str, set[str]]:
+    known = _modules()
+    return {name: _imports(path, known) - {name} for name, path in known.items()}
+
+
+def layer(module: str) -> str:
+    parts = module.split(".")
+    if parts[0] != "cryptoros":
+        return parts[0]
+    return f"cryptoros.{parts[1]}" if len(parts) > 1 and parts[1] in UPPER else CORE
+
+
+def test_the_import_graph_has_no_circles():
+    graph = _graph()
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                circles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not circles, f"import circles: {circles}"
+
+
+def test_each_layer_imports_only_the_layers_under_it():
+    wrong = sorted(
+        f"{a} -> {d}"
+        for a, deps in _graph().items()
+        for d in deps
+        if layer(d) != layer(a) and layer(d) not in ALLOWED[layer(a)]
+    )
+    assert not wrong, "imports against the layering of docs/architecture.md:\n" + "\n".join(wrong)
+
+
+def test_no_test_module_imports_another_test_module():
+    offenders = []
+    for path in sorted((REPO / "tests").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            offenders += [f"{path.name}: {n}" for n in names if n.startswith("tests.test_")]
+    assert not offenders, offenders
