@@ -124,9 +124,6 @@ class Grants:
         """Whether any grant names ``node`` (or is a wildcard): the node is this manager's."""
         return any(g.node in (node, NODE_WILDCARD) for g in self._grants)
 
-    def for_node(self, node: str) -> Grants:
-        return Grants(g for g in self._grants if g.node in (node, NODE_WILDCARD))
-
     def to_claim(self) -> dict[str, dict[str, list[list[str]]]]:
         claim: dict[str, dict[str, list[list[str]]]] = {}
         for g in sorted(self._grants):

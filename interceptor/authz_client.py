@@ -269,7 +269,7 @@ class PeerVerifier:
         except TokenError as exc:
             if exc.reason != "unknown_kid" or self._clock() - self._last_jwks < self.UNKNOWN_KID_COOLDOWN:
                 raise
-        await self._refresh_jwks()
+        await self.refresh_jwks()
         return self.verify(token, peer_cert_der)
 
     def watch(
@@ -357,7 +357,8 @@ class PeerVerifier:
     def open_streams(self) -> int:
         return len(self._watches)
 
-    async def _refresh_jwks(self) -> None:
+    async def refresh_jwks(self) -> None:
+        """Fetch the authorization server's signing keys now (kept as they were if it fails)."""
         self._last_jwks = self._clock()
         try:
             self.keys = await self._client.fetch_jwks()
@@ -394,7 +395,7 @@ class PeerVerifier:
         """Poll the revocation feed every interval and the JWKS every minute, forever."""
         while True:
             if self._clock() - self._last_jwks >= self.JWKS_REFRESH_INTERVAL or not len(self.keys):
-                await self._refresh_jwks()
+                await self.refresh_jwks()
             try:
                 feed = await self._client.fetch_revocations()
                 self.last_feed_at = self._clock()

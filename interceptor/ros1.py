@@ -363,7 +363,7 @@ class Interceptor:
         while True:
             try:
                 await self.keeper.refresh()
-                await self.verifier._refresh_jwks()
+                await self.verifier.refresh_jwks()
                 feed = await self.authz.fetch_revocations()
                 if feed is not None:
                     self.verifier.apply(feed)

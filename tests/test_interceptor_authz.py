@@ -111,7 +111,7 @@ async def test_daemon_down_cached_token_works_until_it_expires(team, tmp_path):
         keeper = TokenKeeper(alice, refresh_margin=1, clock=lambda: time.time() + skew[0])
         await keeper.refresh()
         bob_client, verifier = verifier_for(daemon)
-        await verifier._refresh_jwks()
+        await verifier.refresh_jwks()
         token = keeper.current()
         daemon.stop()
         # Server down: the cached token is still handed out and still verifies.
@@ -154,7 +154,7 @@ async def test_a_stream_is_cut_past_its_peers_token_expiry_plus_grace_unless_a_f
         skew = [0.0]
         verifier = PeerVerifier(bob_client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1,
                                 grace=5, clock=lambda: time.time() + skew[0])
-        await verifier._refresh_jwks()
+        await verifier.refresh_jwks()
         der = der_of(team.pki, "alice")
         first = verifier.note(verifier.verify(keeper.current(), der))
         cuts: list[str] = []
