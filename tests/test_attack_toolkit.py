@@ -66,14 +66,17 @@ def attack(env: dict[str, str], *args: str, timeout: float = 60) -> tuple[str, d
     return r.stdout, json.loads(out.read_text())
 
 
-def victim_run(victim_env: dict[str, str], attacks: list[tuple[dict[str, str], list[str]]], seconds: float = 14):
-    """Start the victim, run the attacks one after the other, return its output lines."""
-    with running([SYS_PY, VICTIM, str(seconds)], env=victim_env) as victim:
+def victim_run(victim_env: dict[str, str], attacks: list[tuple[dict[str, str], list[str]]], seconds: float = 240):
+    """Start the victim, run the attacks one after the other, then close the victim's
+    stdin (it ends there: however slow a cold machine starts each attack, every attack
+    meets a running victim); return its output lines."""
+    with running([SYS_PY, VICTIM, str(seconds), "--until-stdin-closes"], env=victim_env,
+                 stdin=subprocess.PIPE) as victim:
         first = victim.stdout.readline()
         assert first.strip() == "READY", first
         time.sleep(1.0)
         reports = [attack(env, *args) for env, args in attacks]
-        out, _ = victim.communicate(timeout=seconds + 30)
+        out, _ = victim.communicate(timeout=60)
     return [first, *out.splitlines()], reports
 
 

@@ -8,9 +8,12 @@ to the same topics, as a robot's controller and base would. Every message it rec
 that is not its own genuine content is foreign: it prints ``FOREIGN <topic> <summary>``
 (at most 5 per topic) and at the end ``COUNTS pose=N scan=N cmd=N``. A ``shutdown``
 call prints ``SHUTDOWN <reason>``. Prints READY once registered; lines are flushed.
-argv: SECONDS
+It runs for SECONDS, or with ``--until-stdin-closes`` until its stdin closes (the
+caller's attacks are over), SECONDS at most.
+argv: SECONDS [--until-stdin-closes]
 """
 import sys
+import threading
 import time
 
 import rospy
@@ -52,16 +55,22 @@ rospy.Subscriber("/victim/pose", PoseStamped, on_pose)
 rospy.Subscriber("/victim/scan", LaserScan, on_scan)
 rospy.Subscriber("/victim/cmd_vel", Twist, on_cmd, queue_size=1000)
 print("READY", flush=True)
+done = threading.Event()
+if "--until-stdin-closes" in sys.argv[2:]:
+    threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
 end = time.monotonic() + seconds
 pose = PoseStamped()
 pose.pose.position.x = 1.0
 scan = LaserScan(ranges=[1.0] * 36, range_max=3.5)
 cmd = Twist()
 cmd.linear.x = 0.5
-while time.monotonic() < end and not rospy.is_shutdown():
-    pose_pub.publish(pose)
-    scan_pub.publish(scan)
-    cmd_pub.publish(cmd)
+while time.monotonic() < end and not done.is_set() and not rospy.is_shutdown():
+    try:
+        pose_pub.publish(pose)
+        scan_pub.publish(scan)
+        cmd_pub.publish(cmd)
+    except rospy.ROSException:  # shut down (by an attack) between the check and the publish
+        break
     time.sleep(0.1)
 print("COUNTS pose=%d scan=%d cmd=%d" % (counts["pose"], counts["scan"], counts["cmd"]), flush=True)
 print("END", flush=True)
