@@ -85,6 +85,13 @@ class AuthzClient:
         if self._session is not None:
             await self._session.close()
 
+    async def use_ssl_context(self, ssl_context: ssl.SSLContext) -> None:
+        """Present a new client certificate from the next request on (reload): the
+        pooled connections, made with the old one, are closed."""
+        old, self._session, self._ssl = self._session, None, ssl_context
+        if old is not None:
+            await old.close()
+
     async def _json(self, method: str, path: str, **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
         url = self.settings.url + path
         try:

@@ -419,7 +419,11 @@ class Interceptor:
             raise
         self._server_ctx, self._client_ctx = server_ctx, client_ctx
         self.cfg = cfg
-        await self.keeper.refresh()  # new grants
+        # every holder of the certificate reads the new one: the authorization server
+        # binds the next token to it, and our own token is checked against it
+        self._own_cert_der = _read_cert_der(cfg.tls.cert_file)
+        await self.authz.use_ssl_context(client_context(cfg.tls, check_hostname=True))
+        await self.keeper.refresh()  # new grants, a token bound to the new certificate
         self._own_access = None
         self.own_access()
         log.info("reloaded certificates, CRL and policy")

@@ -288,3 +288,27 @@ def test_sighup_keeps_streams_and_a_disabled_manager_is_cut_off_within_5s(networ
             finally:
                 network.cli("enable-manager", "robot_a")
     assert "cryptoros_interceptor_revocation_cutoffs_total 0.0" not in network.metrics("robot_b")
+
+
+def test_a_renewed_certificate_is_used_everywhere_after_sighup(network):
+    """Day 2: robot A's certificate is renewed (new key), the registry bound to it
+    (``set-cert``: tokens of the old one revoked) and robot A reloaded. Every holder of
+    the certificate reads the new one: the authorization server sees it (a token is
+    issued), the token is bound to it, and robot B accepts robot A's new streams."""
+    address = network.robots["robot_a"].address
+    renewed = network.pki.issue("robot_a", kind="interceptor", sans=(f"IP:{address}",), force=True)
+    result = network.cli("set-cert", "robot_a", "--fingerprint", renewed.fingerprint_sha256)
+    assert result.returncode == 0, result.stderr
+    log_before = len(network.robots["robot_a"].logs())
+    network.robots["robot_a"].proc.send_signal(signal.SIGHUP)
+    deadline = time.monotonic() + 20
+    while "reloaded certificates" not in network.robots["robot_a"].logs()[log_before:]:
+        assert time.monotonic() < deadline, network.robots["robot_a"].logs()[log_before:][-2000:]
+        time.sleep(0.1)
+    with network.node("robot_b", "listener.py", "scan", "/scan", "40") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "scan", "/scan", "100000", "20"):
+            assert got(collect(sub, 10, 30)), "robot B received nothing from robot A's renewed certificate"
+    tail = network.robots["robot_a"].logs()[log_before:]
+    assert "access token refreshed" in tail, tail[-2000:]  # the authorization server took the new certificate
+    assert " ERROR " not in tail, tail[-2000:]

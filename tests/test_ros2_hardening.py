@@ -149,6 +149,22 @@ def _rogue(network, host, as_name):
                      key=network.pki.pki.key_path_for(as_name))
 
 
+def _granted_token(network, manager: str, node: str, topic: str, type_name: str = "std_msgs/msg/String") -> str:
+    """Grant ``manager``'s ``node`` to publish ``topic``; a token of it that carries the grant."""
+    import jwt
+
+    network.cli("grant", manager, "publish", node, topic, type_name)
+    deadline = time.monotonic() + 10  # the daemon caches a manager's grants for a second
+    while True:
+        status, body = network.daemon.token(manager)
+        assert status == 200
+        grants = jwt.decode(body["access_token"], options={"verify_signature": False})["grants"]
+        if topic in str(grants.get(node, {})):
+            return body["access_token"]
+        assert time.monotonic() < deadline, "the new grant never reached a token"
+        time.sleep(0.2)
+
+
 def test_an_empty_or_garbage_sample_is_refused_and_the_listener_keeps_receiving(network):
     from tests.interceptor_harness import rogue_preamble
     from tests.ros2_support import collect, got
@@ -175,21 +191,11 @@ def test_an_empty_or_garbage_sample_is_refused_and_the_listener_keeps_receiving(
 def test_removing_the_grant_cuts_an_open_ros2_stream_within_5_s(network):
     from tests.interceptor_harness import rogue_preamble
 
-    import jwt
-
-    network.cli("grant", "robot_c", "publish", "/spy", "/chatter", "std_msgs/msg/String")
-    deadline = time.monotonic() + 10  # the daemon caches a manager's grants for a second
-    while True:
-        status, body = network.daemon.token("robot_c")
-        assert status == 200
-        if "/spy" in jwt.decode(body["access_token"], options={"verify_signature": False})["grants"]:
-            break
-        assert time.monotonic() < deadline, "the new grant never reached a token"
-        time.sleep(0.2)
+    token = _granted_token(network, "robot_c", "/spy", "/chatter")
     target = StreamTarget(kind="topic", name="/chatter", type="std_msgs/msg/String", node="/spy").encode()
     sample = SAMPLES["std_msgs/msg/String"]
     with _rogue(network, "robot_b", "robot_c") as s:
-        assert rogue_preamble(s, body["access_token"], "ros2", target).ok
+        assert rogue_preamble(s, token, "ros2", target).ok
         s.sendall(fr.encode(fr.DATA, 0, sample))
         network.cli("revoke", "robot_c", "publish", "/spy", "/chatter")
         revoked_at = time.monotonic()
@@ -333,21 +339,10 @@ def _string_cdr(text: str) -> bytes:
 
 def _insider_latched_stream(network):
     """robot_c granted to publish /latched as /spy; its token and a transient_local target."""
-    import jwt
-
-    network.cli("grant", "robot_c", "publish", "/spy", "/latched", "std_msgs/msg/String")
-    deadline = time.monotonic() + 10  # the daemon caches a manager's grants for a second
-    while True:
-        status, body = network.daemon.token("robot_c")
-        assert status == 200
-        claims = jwt.decode(body["access_token"], options={"verify_signature": False})
-        if "/latched" in str(claims["grants"]):
-            break
-        assert time.monotonic() < deadline, "the new grant never reached a token"
-        time.sleep(0.2)
+    token = _granted_token(network, "robot_c", "/spy", "/latched")
     target = StreamTarget(kind="topic", name="/latched", type="std_msgs/msg/String", node="/spy",
                           qos=QoS(reliability="reliable", durability="transient_local", depth=1000)).encode()
-    return body["access_token"], target
+    return token, target
 
 
 def _late_listener_hears(network, seconds: float = 4.0) -> list[str]:
