@@ -55,6 +55,8 @@ BRIDGE_START_TIMEOUT = 30.0
 RECONCILE_INTERVAL = 1.0
 #: a peer that may not receive a stream is asked for a fresh token (a new grant) this often
 PEER_RECHECK = 10.0
+#: denials remembered (to log each once) before the memory starts over
+MAX_NOTED = 10_000
 #: Flow control of outbound topics: while a peer stream's send buffer is above
 #: BACKLOG_HIGH, the interceptor stops reading from its bridge (which then stops taking
 #: from DDS: the bridge's history depth decides what is kept, as on a direct DDS path);
@@ -346,6 +348,8 @@ class Ros2Interceptor(Interceptor):
     def _note_deny(self, key: tuple, kind: str, exc: PolicyDenied, who: str) -> None:
         """Log a local denial once (the graph is re-read every half second)."""
         if key not in self._noted:
+            if len(self._noted) >= MAX_NOTED:  # a process inventing names by the thousand: log again, never grow
+                self._noted.clear()
             self._noted.add(key)
             self._deny(kind, exc, who)
 

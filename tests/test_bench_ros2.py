@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -40,3 +41,18 @@ def test_cpu_per_message_totals_and_pipeline_ceiling():
     assert bridged["ceiling_msg_s"] == round(1e6 / 30.0) and bridged["window_s"] == 1.0
     direct = bench.cpu_per_message(result, before, after, bridged=False)  # the idle pair is shown, not counted
     assert direct["total_us"] == 30.0 and direct["ceiling_msg_s"] == 50_000 and direct["busiest"] == "publisher"
+
+
+def test_bench_ros2_insider_prints_the_depth_attack_and_burst_figures():
+    """``cryptoros bench ros2-insider`` on small numbers: it runs against the real pair and
+    prints robot B's RSS rows and the burst's delivery (every frame of a burst larger
+    than the bucket arrives: throttled, never stalled)."""
+    from tests.ros2_support import ros2_python
+
+    python = ros2_python()
+    r = subprocess.run([str(Path(sys.executable).parent / "cryptoros"), "bench", "ros2-insider", "--depth-samples", "20",
+                        "--sample-kib", "64", "--burst", "300", "--rate", "200", "--python", str(python)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "interceptor_b" in r.stdout and "bridge_b" in r.stdout
+    assert "delivered to robot B's listener: 360 of 360" in r.stdout, r.stdout[-1500:]

@@ -113,6 +113,12 @@ def _pub(node, reliability="reliable", durability="volatile"):
     return {"node": node, "reliability": reliability, "durability": durability}
 
 
+def test_a_publisher_discovery_has_not_named_yet_does_not_take_the_topic_off_the_air():
+    offer = local_offer("topic", "/chatter", [STRING], [_pub("/talker"), _pub("/_NODE_NAME_UNKNOWN_")],
+                        grants=A_GRANTS, depth=10)
+    assert offer.writers == frozenset({"/talker"}) and offer.refused == ()
+
+
 def test_a_topic_is_offered_with_only_its_granted_publishers_as_writers():
     offer = local_offer("topic", "/chatter", [STRING], [_pub("/talker"), _pub("/rogue", "best_effort")],
                         grants=A_GRANTS, depth=10)

@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, str] = {
     "interceptor": "cryptoros.bench.interceptor:interceptor",
     "ros1": "cryptoros.bench.ros1:ros1",
     "ros2": "cryptoros.bench.ros2:ros2",
+    "ros2-insider": "cryptoros.bench.ros2_insider:ros2_insider",
     "sim": "cryptoros.bench.sim:sim",
 }
 

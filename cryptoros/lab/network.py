@@ -341,7 +341,7 @@ def lab_network(
     procs: list[subprocess.Popen] = []
     net: Network | None = None
     try:
-        progress("authorization server and rosmaster")
+        progress("authorization server" + (" and rosmaster" if master == "rosmaster" else ""))
         authz_port = free_port()
         pass_file = workdir / "signing.pass"
         pass_file.write_text(SIGNING_PASSPHRASE + "\n")

@@ -48,7 +48,7 @@ def local_offer(kind: str, name: str, types: Sequence[str], sources: Sequence[Ma
     ``sources`` (publishers: ``node``, ``reliability``, ``durability``; servers: ``node``).
 
     Returns ``None`` for what is never bridged (ROS infrastructure, nothing published)
-    or not decidable yet (discovery has not told the node names); raises
+    or not decidable yet (discovery has told no publisher's node name); raises
     :class:`PolicyDenied` (``type_conflict``, ``not_granted``) or, for a name that cannot
     be carried, :class:`~cryptoros.errors.RegistryError`."""
     if not sources or ros2_stays_local(name, types):
@@ -58,8 +58,11 @@ def local_offer(kind: str, name: str, types: Sequence[str], sources: Sequence[Ma
     if len(types) != 1:
         raise PolicyDenied("type_conflict", f"{name} is offered with several types {list(types)}")
     type_name = types[0]
-    nodes = sorted({s["node"] for s in sources})
-    if any(UNKNOWN_NODE_MARK in node for node in nodes):
+    # A publisher whose node name discovery has not told yet is neither granted nor
+    # refused: it is decided next round (the bridge drops its samples meanwhile, as it
+    # drops any writer it cannot map to a granted node), and the topic stays on the air.
+    nodes = sorted({s["node"] for s in sources if UNKNOWN_NODE_MARK not in s["node"]})
+    if not nodes:
         return None
     granted = [n for n in nodes if grants.allows(action, n, name, type_name)]
     refused = tuple(n for n in nodes if n not in granted)

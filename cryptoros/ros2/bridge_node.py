@@ -55,6 +55,8 @@ _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$
 #: writer decisions remembered per topic before the table starts over (a rogue creating
 #: writers by the thousand costs lookups, never unbounded memory)
 MAX_WRITERS_PER_TOPIC = 1024
+#: a writer the graph does not show yet is looked up again after this long (its samples dropped meanwhile)
+UNKNOWN_WRITER_RETRY = 0.1
 CALL_TIMEOUT = 30.0
 #: how long a republished message may wait for a full local reader before it is dropped
 PUBLISH_PATIENCE = 3.0
@@ -131,6 +133,7 @@ class Bridge:
         #: chan -> writer GID -> forwarded? (decided once per writer from the graph)
         self.writer_ok: dict[int, dict[bytes, bool]] = {}
         self.refused_noted: set[tuple[int, bytes]] = set()
+        self.unknown_until: dict[tuple[int, bytes], float] = {}  # writers the graph did not show yet
         self.servers: dict[int, object] = {}
         self.clients: dict[int, tuple[object, type]] = {}
         self.pending: dict[int, list] = {}  # request id -> [threading.Event, (ok, cdr) or None]
@@ -358,12 +361,18 @@ class Bridge:
             return known
         if nodes is None:
             return False
+        now = time.monotonic()
+        if self.unknown_until.get((chan, gid), 0.0) > now:  # looked up a moment ago: not in the graph yet
+            return False
         node = None
         for info in self.data_node.get_publishers_info_by_topic(topic):
             if bytes(info.endpoint_gid)[: len(gid)] == gid:
                 node = _fqn(info.node_name, info.node_namespace)
                 break
-        if node is None or "_UNKNOWN_" in node:  # not (fully) discovered yet: ask again next sample
+        if node is None or "_UNKNOWN_" in node:  # not (fully) discovered yet: ask again a little later
+            if len(self.unknown_until) >= MAX_WRITERS_PER_TOPIC:
+                self.unknown_until.clear()
+            self.unknown_until[(chan, gid)] = now + UNKNOWN_WRITER_RETRY
             return False
         ok = node in nodes
         with self.writers_lock:
