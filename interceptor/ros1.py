@@ -440,6 +440,7 @@ class Interceptor:
             try:
                 self.keeper.current()
                 self._check_feed_age()
+                self.own_access()  # our own token verifies now: not revoked, manager not disabled
             except (TokenError, PolicyDenied) as exc:
                 return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
             last = self.verifier.last_feed_at

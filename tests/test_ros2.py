@@ -295,6 +295,22 @@ def test_a_renewed_certificate_is_used_everywhere_after_sighup(network):
     (``set-cert``: tokens of the old one revoked) and robot A reloaded. Every holder of
     the certificate reads the new one: the authorization server sees it (a token is
     issued), the token is bound to it, and robot B accepts robot A's new streams."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    def healthy() -> bool:  # robot A's own authority holds (the earlier test disabled and re-enabled it)
+        url = f"http://127.0.0.1:{network.robots['robot_a'].metrics_port}/healthz"
+        try:
+            with urllib.request.urlopen(url, timeout=5) as r:
+                return json.loads(r.read())["status"] == "ok"
+        except urllib.error.HTTPError:
+            return False
+
+    deadline = time.monotonic() + 20
+    while not healthy():
+        assert time.monotonic() < deadline, "robot A's /healthz did not turn ok"
+        time.sleep(0.1)
     address = network.robots["robot_a"].address
     renewed = network.pki.issue("robot_a", kind="interceptor", sans=(f"IP:{address}",), force=True)
     result = network.cli("set-cert", "robot_a", "--fingerprint", renewed.fingerprint_sha256)

@@ -20,12 +20,15 @@ Nothing is asserted; the figures are printed.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import queue
 import shutil
 import socket
 import ssl
 import subprocess
 import tempfile
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -37,17 +40,32 @@ from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.target import QoS, StreamTarget
 
 LISTENER = """
-import sys, time, rclpy
+import sys, threading, time, rclpy
 from std_msgs.msg import String
+expected = int(sys.argv[1])
+closed = threading.Event()
+threading.Thread(target=lambda: (sys.stdin.read(), closed.set()), daemon=True).start()
 rclpy.init()
 node = rclpy.create_node("bench_listener")
 arrivals = []
-node.create_subscription(String, "/bench", lambda m: arrivals.append(time.monotonic()), 1000)
+
+
+def on_message(m):
+    if m.data == "probe":  # the path is up: the burst may start
+        if not arrivals:
+            print("FIRST", flush=True)
+        arrivals.append(None)
+    else:
+        arrivals.append(time.monotonic())
+
+
+node.create_subscription(String, "/bench", on_message, 1000)
 print("READY", flush=True)
-end = time.monotonic() + float(sys.argv[1])
-while time.monotonic() < end:
+end = time.monotonic() + 300
+while time.monotonic() < end and not closed.is_set() and sum(t is not None for t in arrivals) < expected:
     rclpy.spin_once(node, timeout_sec=0.05)
-print(len(arrivals), (arrivals[-1] - arrivals[0]) if len(arrivals) > 1 else 0.0, flush=True)
+times = [t for t in arrivals if t is not None]
+print(len(times), (times[-1] - times[0]) if len(times) > 1 else 0.0, flush=True)
 """
 
 
@@ -63,6 +81,39 @@ def _string_cdr(size: int) -> bytes:
     body = b"x" * size + b"\x00"
     cdr = b"\x00\x01\x00\x00" + len(body).to_bytes(4, "little") + body
     return cdr + b"\x00" * (-len(cdr) % 4)
+
+
+def _probe_cdr() -> bytes:
+    body = b"probe\x00"
+    cdr = b"\x00\x01\x00\x00" + len(body).to_bytes(4, "little") + body
+    return cdr + b"\x00" * (-len(cdr) % 4)
+
+
+class _Lines:
+    """A process's stdout lines, read by a thread so every wait is bounded."""
+
+    def __init__(self, stream) -> None:
+        self._lines: queue.Queue = queue.Queue()
+        self._seen: list[str] = []
+        threading.Thread(target=lambda: [self._lines.put(line.strip()) for line in stream], daemon=True).start()
+
+    def has(self, wanted: str) -> bool:
+        with contextlib.suppress(queue.Empty):
+            while True:
+                self._seen.append(self._lines.get_nowait())
+        return wanted in self._seen
+
+    def next_line(self, timeout: float) -> str:
+        """The next line that is not FIRST."""
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self._lines.get(timeout=left)
+            except queue.Empty:
+                break
+            if line != "FIRST":
+                return line
+        return ""
 
 
 class _RobotA:
@@ -135,20 +186,35 @@ def ros2_insider(depth_samples: int, sample_kib: int, burst: int, rate: float, p
                 after = {k: _rss_kib(p) for k, p in b_pids.items()}
 
             click.echo(f"... burst: {burst} frames at once, then 60 at 10 Hz, throttled to {rate:g}/s")
-            listener = subprocess.Popen([str(py), "-c", LISTENER, "20"], env=_ros_env(domains[1]),
-                                        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            listener = subprocess.Popen([str(py), "-c", LISTENER, str(burst + 60)], env=_ros_env(domains[1]),
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                        text=True)
             try:
                 if listener.stdout.readline().strip() != "READY":
                     raise click.ClickException("the listener on robot B's domain did not start")
                 small = fr.encode(fr.DATA, 0, _string_cdr(16))
-                t0 = time.monotonic()
+                probe = fr.encode(fr.DATA, 0, _probe_cdr())
                 with me.stream(b.address, b.public_port, QoS()) as s:
+                    # robot B republishes on a DDS publisher made when the stream opens: the
+                    # burst starts once the listener has matched it (a probe arrived)
+                    first = _Lines(listener.stdout)
+                    deadline = time.monotonic() + 30
+                    while not first.has("FIRST"):
+                        if time.monotonic() > deadline:
+                            raise click.ClickException("no probe reached the listener on robot B within 30 s")
+                        s.sendall(probe)
+                        time.sleep(0.1)
+                    t0 = time.monotonic()
                     s.sendall(small * burst)
                     for _ in range(60):
                         time.sleep(0.1)
                         s.sendall(small)
                     sent_s = time.monotonic() - t0
-                    answer = (listener.stdout.readline().split() or ["0", "0"])
+                    # the listener ends when all arrived; what has not within 15 s more is not coming
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        listener.wait(timeout=15)
+                    listener.stdin.close()
+                    answer = (first.next_line(30).split() or ["0", "0"])
                     delivered, span = int(answer[0]), float(answer[1])
             finally:
                 listener.kill()
