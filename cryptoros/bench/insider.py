@@ -17,14 +17,12 @@ whether robot A can still register afterwards. Nothing is asserted.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import socket
 import ssl
 import tempfile
 import time
-import urllib.request
 import xmlrpc.client
 from pathlib import Path
 
@@ -62,15 +60,7 @@ class _Insider:
     """Robot B speaking to an interceptor's public port by hand."""
 
     def __init__(self, net, name: str) -> None:
-        cert, key = net.cert(name)
-        self.ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        self.ctx.check_hostname = False
-        self.ctx.load_verify_locations(cafile=str(net.ca))
-        self.ctx.load_cert_chain(str(cert), str(key))
-        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=self.ctx))
-        reply = opener.open(urllib.request.Request(f"{net.authz_url}/token", data=b"grant_type=client_credentials"),
-                            timeout=10)
-        self.token = json.loads(reply.read())["access_token"]
+        self.ctx, self.token = net.client_of(name)
 
     def connect(self, host: str, port: int) -> ssl.SSLSocket:
         raw = socket.create_connection((host, port), timeout=10)

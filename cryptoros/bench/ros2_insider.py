@@ -21,7 +21,6 @@ Nothing is asserted; the figures are printed.
 from __future__ import annotations
 
 import contextlib
-import json
 import queue
 import shutil
 import socket
@@ -30,7 +29,6 @@ import subprocess
 import tempfile
 import threading
 import time
-import urllib.request
 from pathlib import Path
 
 import click
@@ -120,15 +118,7 @@ class _RobotA:
     """Robot A's certificate and token, speaking ``ros2`` streams by hand."""
 
     def __init__(self, net) -> None:
-        cert, key = net.cert("robot_a")
-        self.ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        self.ctx.check_hostname = False
-        self.ctx.load_verify_locations(cafile=str(net.ca))
-        self.ctx.load_cert_chain(str(cert), str(key))
-        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=self.ctx))
-        reply = opener.open(urllib.request.Request(f"{net.authz_url}/token", data=b"grant_type=client_credentials"),
-                            timeout=10)
-        self.token = json.loads(reply.read())["access_token"]
+        self.ctx, self.token = net.client_of("robot_a")
 
     def stream(self, host: str, port: int, qos: QoS) -> ssl.SSLSocket:
         from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode

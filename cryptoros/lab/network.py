@@ -19,6 +19,9 @@ the stunnel comparison. Every process is stopped in a ``finally``.
 from __future__ import annotations
 
 import contextlib
+import urllib.request
+import ssl
+import json
 import os
 import shutil
 import signal
@@ -194,6 +197,19 @@ class Network:
     @property
     def ca(self) -> Path:
         return self.pki.ca_cert_path
+
+    def client_of(self, name: str) -> tuple[ssl.SSLContext, str]:
+        """A by-hand client holding ``name``'s certificate: its TLS context (the test CA,
+        no hostname check) and a genuine access token fetched with it."""
+        cert, key = self.cert(name)
+        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+        ctx.check_hostname = False
+        ctx.load_verify_locations(cafile=str(self.ca))
+        ctx.load_cert_chain(str(cert), str(key))
+        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=ctx))
+        request = urllib.request.Request(f"{self.authz_url}/token", data=b"grant_type=client_credentials")
+        with opener.open(request, timeout=10) as reply:
+            return ctx, json.loads(reply.read())["access_token"]
 
 
 def _interceptor_config(
