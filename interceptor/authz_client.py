@@ -301,10 +301,17 @@ class PeerVerifier:
     # ------------------------------------------------------------ freshest tokens
     def note(self, access: AccessToken) -> AccessToken:
         """Remember a verified token of a peer; returns the peer's freshest. A fresher
-        token re-judges the peer's open streams (:meth:`_rejudge`)."""
+        token re-judges the peer's open streams (:meth:`_rejudge`).
+
+        Token times are whole seconds: of two tokens issued in the same second (a grant
+        changed just after the peer fetched one), the one shown last wins. Only the
+        holder of the peer's certificate can show tokens for it, and an interceptor
+        always shows its newest."""
         key = _peer_key(access)
         current = self._freshest.get(key)
-        if current is not None and (current.expires_at, current.issued_at) >= (access.expires_at, access.issued_at) \
+        if current is access or current is not None and current.jti == access.jti:
+            return current
+        if current is not None and (current.expires_at, current.issued_at) > (access.expires_at, access.issued_at) \
                 and current.jti not in self.revocations.revoked_jtis:
             return current
         self._freshest[key] = access

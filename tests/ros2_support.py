@@ -251,10 +251,11 @@ def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b
     try:
         daemon.start()
         net = Ros2Network(workdir=workdir, pki=pki, daemon=daemon, python=python)
-        ports = {name: free_port(address) for name, address in HOSTS.items()}
+        taken: set[int] = set()  # every robot's ports distinct (metrics all on 127.0.0.1)
+        ports = {name: free_port(address, taken) for name, address in HOSTS.items()}
         for (name, address), domain in zip(HOSTS.items(), fresh_domains(len(HOSTS)), strict=True):
             config = workdir / f"{name}.toml"
-            metrics = free_port()
+            metrics = free_port("127.0.0.1", taken)
             config.write_text(robot_config(
                 pki, name, address, public=ports[name], metrics=metrics, domain=domain,
                 peers=[f"{HOSTS[p]}:{ports[p]}" for p in PEERS[name]], authz_url=daemon.base, python=python,

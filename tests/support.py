@@ -21,6 +21,8 @@ from pathlib import Path
 
 import pytest
 
+from cryptoros.lab.network import free_port  # noqa: F401  (one port picker for tests and the lab)
+
 REPO = Path(__file__).resolve().parent.parent
 VENV_BIN = Path(sys.executable).parent
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
@@ -50,12 +52,6 @@ def script(name: str) -> str:
     if not path.exists():
         pytest.fail(f"console script {name} is not installed in {VENV_BIN}: run 'pip install -e .'")
     return str(path)
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
 
 
 def wait_for_port(host: str, port: int, timeout: float = 10.0, proc: subprocess.Popen | None = None) -> None:

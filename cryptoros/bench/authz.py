@@ -29,11 +29,7 @@ from pathlib import Path
 
 import click
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from cryptoros.lab.network import free_port
 
 
 def _authz_exe() -> str:
@@ -125,7 +121,7 @@ def authz(clients: int, total: int, db_url: str | None, verify_iterations: int, 
             admin("grant", "alice", "publish", f"/talker{i}", f"/robot1/topic{i}", "std_msgs/String")
             admin("grant", "alice", "subscribe", f"/listener{i}", f"/robot1/topic{i}", "std_msgs/String")
         admin("rotate-key", "--key-passphrase-file", str(work / "signing.pass"), "--bits", key_bits)
-        port = _free_port()
+        port = free_port()
         log = (work / "authz.log").open("w")
         proc = subprocess.Popen(
             [exe, "--db", db, "serve", "--port", str(port), "--ca", str(pki.ca_cert_path),

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import click
 
+from cryptoros.lab.network import free_port
+
 SYS_PY = "/usr/bin/python3"
 TOPIC = "/bench"
 
@@ -196,12 +198,6 @@ async def publish_workload(mode: str, n: int, size: int, pub_str, pub_img) -> No
             await pub_img.wait_writable()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _wait_port(port: int, timeout: float = 15) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -287,7 +283,7 @@ def ros1(n_small: int, n_latency: int, n_80k: int, n_1m: int, only: str | None, 
     impls = [i for i in ("rospy", "ours") if (only is None or only == i) and (i != "rospy" or have_ros)]
     if not have_ros and only != "ours":
         click.echo("rospy is not installed: running our side only (scripts/install-system-parts)", err=True)
-    port = _free_port()
+    port = free_port()
     master = f"http://127.0.0.1:{port}/"
     home = tempfile.mkdtemp(prefix="cryptoros-bench-")
     env = {k: v for k, v in os.environ.items() if not k.startswith("ROS_")}

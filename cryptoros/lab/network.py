@@ -55,18 +55,39 @@ def tool(name: str) -> str:
     return found
 
 
-def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
+def free_port(host: str = "127.0.0.1", taken: set[int] | None = None) -> int:
+    """A port nothing listens on now; with ``taken``, also one not handed out before
+    (the kernel may give the same free port twice in a row, and two listeners of one
+    host picked that way would collide when they start), and it is added there."""
+    for _ in range(100):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind((host, 0))
+            port = s.getsockname()[1]
+        if taken is None:
+            return port
+        if port not in taken:
+            taken.add(port)
+            return port
+    raise NetworkError(f"no free port on {host} that was not handed out already")
 
 
-def wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen | None = None, what: str = "") -> None:
-    """Bounded wait until something accepts on ``host:port``."""
+def log_tail(path: Path | None, lines: int = 12) -> str:
+    """The last lines of a child's log, for an error saying why it died."""
+    if path is None or not path.exists():
+        return ""
+    tail = path.read_text(errors="replace").splitlines()[-lines:]
+    return "\n".join(["", f"last lines of {path.name}:"] + [f"  {line}" for line in tail]) if tail else ""
+
+
+def wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen | None = None, what: str = "",
+              log: Path | None = None) -> None:
+    """Bounded wait until something accepts on ``host:port`` (``log``: the child's
+    log, whose tail the error shows when it exits first)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc is not None and proc.poll() is not None:
-            raise NetworkError(f"{what or proc.args[0]} exited with {proc.returncode} before listening on {host}:{port}")
+            raise NetworkError(f"{what or proc.args[0]} exited with {proc.returncode} before listening on "
+                               f"{host}:{port}{log_tail(log)}")
         with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.5):
             return
         time.sleep(0.05)
@@ -358,7 +379,8 @@ def lab_network(
     net: Network | None = None
     try:
         progress("authorization server" + (" and rosmaster" if master == "rosmaster" else ""))
-        authz_port = free_port()
+        taken: dict[str, set[int]] = {}  # ports handed out, per network namespace
+        authz_port = free_port(authz_host, taken.setdefault("", set()))
         pass_file = workdir / "signing.pass"
         pass_file.write_text(SIGNING_PASSPHRASE + "\n")
         authz_log = (workdir / "authz.log").open("w")
@@ -376,7 +398,9 @@ def lab_network(
             ros_host, _, ros_port_text = ros_uri[len("http://"):].partition(":")
             ros_port = int(ros_port_text)
         elif master != "none":
-            ros_host, ros_port = "127.0.0.1", free_port()
+            ros_host = "127.0.0.1"
+            # picked here, used in the master's namespace (fresh: free there too)
+            ros_port = free_port(ros_host, taken.setdefault("master" if "master" in ns_hosts else "", set()))
             ros_uri = f"http://127.0.0.1:{ros_port}"
             if rosmaster is not None:
                 master_env = clean_env(ROS_MASTER_URI=ros_uri, ROS_HOME=str(workdir), ROS_IP="127.0.0.1")
@@ -389,7 +413,7 @@ def lab_network(
             master_proc = subprocess.Popen(master_cmd, env=master_env, stdout=subprocess.DEVNULL,
                                            stderr=subprocess.DEVNULL, **popen_extra)
             procs.append(master_proc)
-        wait_port(authz_host, authz_port, 30, daemon, "cryptoros-authz")
+        wait_port(authz_host, authz_port, 30, daemon, "cryptoros-authz", workdir / "authz.log")
         net = Network(workdir=workdir, pki=pki, rosmaster_uri=f"{ros_uri}/" if ros_uri else "",
                       authz_url=f"https://{authz_host}:{authz_port}", procs=procs, db=db, authz_proc=daemon,
                       log_level=log_level, popen_extra=popen_extra, lab=lab, ns_hosts=ns_hosts)
@@ -398,7 +422,7 @@ def lab_network(
                 wait_port(ros_host, ros_port, 15, master_proc, "ROS master")
         def port_on(name: str, address: str = "127.0.0.1") -> int:
             with net.inside(name):
-                return free_port(address)
+                return free_port(address, taken.setdefault(name if name in ns_hosts else "", set()))
 
         master_public = port_on("master", hosts["master"]) if "master" in hosts else None
         interceptor = tool("cryptoros-interceptor")
@@ -435,10 +459,10 @@ def lab_network(
         for name in started:
             host = net.hosts[name]
             # a ros2 interceptor listens once its DDS bridge is up (BRIDGE_START_TIMEOUT, 30 s)
-            wait_port(host.address, host.public_port, 40, host.proc, f"interceptor {name}")
+            wait_port(host.address, host.public_port, 40, host.proc, f"interceptor {name}", host.log)
             if "node" in host.roles:
                 with net.inside(name):
-                    wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {name}")
+                    wait_port("127.0.0.1", host.local_master_port, 30, host.proc, f"interceptor {name}", host.log)
         yield net
     finally:
         for proc in reversed(net.procs if net is not None else procs):
