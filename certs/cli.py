@@ -268,6 +268,41 @@ def issue(name, directory, kind, sans, key_type, days, passphrase_file, unsafe_n
     _print_issued(out, encrypted=passphrase is not None)
 
 
+@cli.command()
+@click.argument("name")
+@dir_option
+@click.option("--same-key", is_flag=True, help="Keep the current key pair: only the certificate is new.")
+@click.option("--key-type", type=click.Choice(KEY_TYPES), default=None,
+              help="Type of the new key (default: the type of the current one).")
+@click.option("--days", type=click.IntRange(min=1), default=365, show_default=True, help="Validity.")
+@new_pass_options
+@ca_pass_option
+def renew(name, directory, same_key, key_type, days, passphrase_file, unsafe_no_passphrase, ca_passphrase_file):
+    """A new certificate for NAME with the kind and DNS/IP names of its current one.
+
+    A new key by default (--same-key keeps it). The current certificate stays valid, so
+    the robot keeps running: bind the registry to the new one (cryptoros-authz set-cert),
+    send the interceptor SIGHUP, then revoke the old serial; the lines printed say how."""
+    pkimod.check_name(name)
+    pki = PKI.open(directory)
+    if not pki.cert_path_for(name).exists():
+        raise BadInput(f"no certificate for {name!r} in {directory}: issue one first")
+    pki = open_for_signing(directory, ca_passphrase_file)
+    if same_key:
+        if key_type or passphrase_file or unsafe_no_passphrase:
+            raise BadInput("--same-key keeps the key: --key-type and passphrase options do not apply")
+        passphrase = None
+    else:
+        passphrase = new_key_passphrase(passphrase_file, unsafe_no_passphrase, name)
+    out, old_serial = pki.renew(name, new_key=not same_key, key_type=key_type, days=days, passphrase=passphrase,
+                                unsafe_no_passphrase=unsafe_no_passphrase and not same_key)
+    _print_issued(out, encrypted=passphrase is not None if not same_key else None)
+    click.echo(f"previous:    serial {old_serial:x} (still valid)")
+    click.echo("next:        cryptoros-authz set-cert " + f"{name} --fingerprint {out.fingerprint_sha256}")
+    click.echo("             then SIGHUP the interceptor using it (it reloads the new files), then")
+    click.echo(f"             cryptoros-certs revoke {name} --serial {old_serial:x} --dir {directory}")
+
+
 def _print_issued(out: pkimod.Issued, *, encrypted: bool | None) -> None:
     click.echo(f"certificate: {out.cert_path}")
     if out.key_path is not None:

@@ -210,6 +210,15 @@ def generate_key(key_type: str):
     raise PKIError(f"unknown key type {key_type!r}: choose one of {', '.join(KEY_TYPES)}")
 
 
+def _key_type_of(public_key) -> str:
+    """The KEY_TYPES name of a public key (renewal keeps the type)."""
+    if isinstance(public_key, ec.EllipticCurvePublicKey) and isinstance(public_key.curve, ec.SECP256R1):
+        return "ec-p256"
+    if isinstance(public_key, rsa.RSAPublicKey) and public_key.key_size in (2048, 3072):
+        return f"rsa{public_key.key_size}"
+    raise PKIError(f"cannot renew a {type(public_key).__name__} key: choose a key type")
+
+
 def _key_encryption(passphrase: bytes | None, unsafe_no_passphrase: bool) -> serialization.KeySerializationEncryption:
     if unsafe_no_passphrase:
         if passphrase is not None:
@@ -707,6 +716,62 @@ class PKI:
             serial=cert.serial_number,
             fingerprint_sha256=cert_fingerprint_sha256(cert),
         )
+
+    def renew(
+        self,
+        name: str,
+        *,
+        new_key: bool = True,
+        key_type: str | None = None,
+        days: int = 365,
+        passphrase: bytes | None = None,
+        unsafe_no_passphrase: bool = False,
+    ) -> tuple[Issued, int]:
+        """A new certificate for ``name`` with the kind and DNS/IP names of its current
+        one, for a new key (of the same type unless ``key_type``) or the same public
+        key (``new_key=False``: no private key is read or written). The current
+        certificate stays valid: revoke it once the registry (``set-cert``) and the
+        interceptor (SIGHUP) use the new one. Returns the new one and the old serial."""
+        check_name(name)
+        _check_days(days)
+        cert_path, key_path = self.cert_path_for(name), self.key_path_for(name)
+        if not cert_path.exists():
+            raise PKIError(f"no certificate for {name} in {self.directory}: issue one first")
+        old = load_certificate(cert_path)
+        records = [r for r in self.list() if r.serial == old.serial_number]
+        if not records:
+            raise PKIError(f"{cert_path} (serial {old.serial_number:x}) was not issued by this CA directory")
+        kind = records[0].kind
+        try:
+            present = old.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        except x509.ExtensionNotFound:
+            present = []
+        sans = [g for g in present if isinstance(g, (x509.DNSName, x509.IPAddress))]
+        key_pem = None
+        if new_key:
+            encryption = _key_encryption(passphrase, unsafe_no_passphrase)
+            key_type = key_type or _key_type_of(old.public_key())
+            self._ca_key()  # wrong CA passphrase: fail before the (slow) key generation
+            key = generate_key(key_type)
+            public_key = key.public_key()
+            key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, encryption)
+        else:
+            if key_type is not None or passphrase is not None or unsafe_no_passphrase:
+                raise PKIError("the same key is kept: no key type or passphrase applies")
+            public_key = old.public_key()
+            _check_public_key(public_key)
+        with self._locked() as index:
+            fs = _FileSet(force=True)
+            cert = self._build_cert(name=name, kind=kind, public_key=public_key, sans=sans, days=days)
+            self._record(index, cert, name, kind)
+            with fs:
+                if key_pem is not None:
+                    fs.add(key_path, key_pem, 0o600)
+                fs.add(cert_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
+            write_file(self.index_path, self._index_bytes(index), force=True)
+        issued = Issued(name=name, cert_path=cert_path, key_path=key_path if key_pem is not None else None,
+                        serial=cert.serial_number, fingerprint_sha256=cert_fingerprint_sha256(cert))
+        return issued, old.serial_number
 
     def sign_csr(
         self,

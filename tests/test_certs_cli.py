@@ -363,3 +363,44 @@ def test_revoking_a_name_with_several_valid_certificates_needs_serial_or_all(ca:
     ok("issue", "twin", "--dir", ca, "--san", "IP:127.0.0.7", "--unsafe-no-passphrase", "--force")
     out = ok("revoke", "twin", "--dir", ca, "--all").stdout
     assert out.count("revoked serial") == 2
+
+
+def test_renew_keeps_kind_and_names_and_prints_the_next_steps(ca: Path, pwfile: Path):
+    """Day 2: `renew NAME` gives a new key and certificate with the same kind and IP/DNS
+    names; the old certificate stays valid until revoked by the serial the output names;
+    `--same-key` re-certifies the current public key without touching the key file."""
+    ok("issue", "robot_r", "--dir", ca, "--kind", "interceptor", "--san", "IP:127.0.0.7", "--san", "DNS:robot-r.lan",
+       "--unsafe-no-passphrase")
+    first = load_cert(ca / "issued" / "robot_r.crt")
+    out = ok("renew", "robot_r", "--dir", ca, "--passphrase-file", pwfile).stdout
+    second = load_cert(ca / "issued" / "robot_r.crt")
+    assert second.serial_number != first.serial_number
+    assert second.public_key().public_numbers() != first.public_key().public_numbers()
+    assert isinstance(second.public_key(), ec.EllipticCurvePublicKey)  # same key type
+    for cert in (first, second):
+        assert cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)[0].value == "interceptor"
+    names = second.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert {str(n.value) for n in names if not isinstance(n, x509.UniformResourceIdentifier)} == \
+        {"127.0.0.7", "robot-r.lan"}
+    key = load_private_key(ca / "private" / "robot_r.key", b"correct horse")  # encrypted with the new passphrase
+    assert key.public_key().public_numbers() == second.public_key().public_numbers()
+    assert "set-cert robot_r --fingerprint" in out and f"--serial {first.serial_number:x}" in out
+    status = {r["serial"]: r["status"] for r in json.loads(ok("list", "--dir", ca, "--json").stdout)}
+    assert status[first.serial_number] == "valid" and status[second.serial_number] == "valid"
+    ok("revoke", "robot_r", "--dir", ca, "--serial", format(first.serial_number, "x"))
+
+    key_before = (ca / "private" / "robot_r.key").read_bytes()
+    ok("renew", "robot_r", "--dir", ca, "--same-key", "--days", "30")
+    third = load_cert(ca / "issued" / "robot_r.crt")
+    assert third.public_key().public_numbers() == second.public_key().public_numbers()
+    assert (ca / "private" / "robot_r.key").read_bytes() == key_before
+    assert (third.not_valid_after_utc - third.not_valid_before_utc).days <= 31
+    assert no_temp_files(ca)
+
+
+def test_renew_refuses_what_it_cannot_do_in_one_line(ca: Path, pwfile: Path):
+    assert_bad_input(certs("renew", "nobody", "--dir", ca, "--unsafe-no-passphrase"), "issue one first")
+    ok("issue", "robot_s", "--dir", ca, "--unsafe-no-passphrase")
+    before = snapshot(ca)
+    assert_bad_input(certs("renew", "robot_s", "--dir", ca, "--same-key", "--passphrase-file", pwfile), "--same-key")
+    assert snapshot(ca) == before
