@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, str] = {
     "bench": "cryptoros.bench:bench",
     "demo": "cryptoros.demo.cli:demo",
     "attack": "cryptoros.attack.cli:attack",
+    "status": "interceptor.status:status",
 }
 
 

@@ -204,3 +204,31 @@ def test_sigterm_stops_the_interceptor_cleanly(network):
     with pytest.raises(OSError):
         socket.create_connection((host.address, host.public_port), timeout=1).close()
 
+
+
+def test_cryptoros_status_shows_token_grants_feed_certificate_and_peers(network):
+    """Day 2: `cryptoros status --config` on a host answers who its interceptor is to
+    the registry now, read from the interceptor itself (its loopback /status): here
+    robot A while robot B's listener receives its talker."""
+    import json
+
+    from tests.support import run, script
+
+    host = network.hosts["robot_a"]
+    status = [script("cryptoros"), "status", "--config", str(host.config)]
+    with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "30"], env=network.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "1"],
+                     env=network.ros_env("robot_a")):
+            assert got(read_lines(sub, "GOT", 30))
+            shown = run(status, timeout=30)
+            raw = json.loads(run([*status, "--json"], timeout=30).stdout)
+    assert shown.returncode == 0, shown.stdout + shown.stderr
+    assert "manager robot_a (node)" in shown.stdout and shown.stdout.splitlines()[0].endswith(": ok")
+    assert "token     subject robot_a" in shown.stdout and "publish /chatter" in shown.stdout
+    assert "cert      serial" in shown.stdout and "feed      age" in shown.stdout and "robot_b (" in shown.stdout
+    assert raw["token"]["subject"] == "robot_a" and raw["feed"]["age"] is not None and raw["feed"]["age"] < 10
+    assert raw["certificate"]["days_left"] > 300
+    assert raw["peers"].get("robot_b", 0) >= 1  # robot B's topic stream into robot A
+    down = run([script("cryptoros"), "status", "--url", "http://127.0.0.1:9/status"], timeout=30)
+    assert down.returncode == 2 and "cannot read" in down.stderr and "Traceback" not in down.stderr
