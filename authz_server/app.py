@@ -6,7 +6,10 @@ CA never gets past the handshake):
 - ``POST /token``: OAuth 2 client credentials grant (RFC 6749 section 4.4), the
   client authenticated by its TLS certificate (RFC 8705). The certificate's SHA-256
   fingerprint names the manager; the answer is an RS256 JWT bound to that certificate
-  (``cnf.x5t#S256``) carrying the manager's grants.
+  (``cnf.x5t#S256``) carrying the manager's grants. With ``resource`` (RFC 8707,
+  ``urn:cryptoros:peer:<x5t#S256 of a peer's certificate>``) the token's audience is
+  that peer alone and it carries only the grants on topics and services the peer's
+  manager is granted too (``invalid_target`` for an unknown or disabled peer).
 - ``GET /.well-known/jwks.json``: the active key and every retired key a still-valid
   token may have been signed with.
 - ``GET /revocations``: revoked token ids (unexpired) and disabled managers, with a
@@ -41,7 +44,15 @@ from authz_server.config import ServeConfig
 from authz_server.registry import AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
 from cryptoros.errors import ConfigError, CryptorosError, TokenError
 from cryptoros.tls import cert_fingerprint_sha256, peer_cert_der
-from cryptoros.tokens import Grant, Grants, build_claims, public_jwk, sign_token
+from cryptoros.tokens import (
+    Grant,
+    Grants,
+    build_claims,
+    fingerprint_of_thumbprint,
+    public_jwk,
+    sign_token,
+    thumbprint_of_audience,
+)
 
 log = logging.getLogger("cryptoros.authz")
 T = TypeVar("T")
@@ -158,13 +169,13 @@ class CRLWatcher:
         self.revoked: frozenset[int] = frozenset()
         self.refresh()
 
-    def refresh(self) -> None:
+    def refresh(self, *, force: bool = False) -> None:
         import os
 
         from cryptography import x509
 
         now = time.monotonic()
-        if now - self._checked < self.interval and self._stamp is not None:
+        if not force and now - self._checked < self.interval and self._stamp is not None:
             return
         self._checked = now
         try:
@@ -334,12 +345,16 @@ class AuthzService:
                               manager)
             if not info.enabled:
                 raise _Denied(403, "access_denied", "manager_disabled", manager)
+            audience, note = self.cfg.audience, ""
+            resource = form.get("resource")
+            if resource is not None:  # RFC 8707: a token for one peer interceptor only
+                audience, grants, note = await self._narrowed(resource, grants, manager)
             signer = await self.signer()
-            claims = build_claims(issuer=self.cfg.issuer, audience=self.cfg.audience, subject=info.name,
+            claims = build_claims(issuer=self.cfg.issuer, audience=audience, subject=info.name,
                                   grants=grants, cert_der=der, now=int(time.time()),
                                   lifetime=self.cfg.token_lifetime, jti=new_jti())
             token = sign_token(claims, signer.private_key, signer.kid)
-            await self.audit.write(AuditEntry("issued", info.name, fp, remote, "", claims["jti"], signer.kid,
+            await self.audit.write(AuditEntry("issued", info.name, fp, remote, note, claims["jti"], signer.kid,
                                               claims["exp"]))
         except _Denied as d:
             self.metrics.denied.labels(d.reason.split(" ")[0]).inc()
@@ -355,6 +370,20 @@ class AuthzService:
             {"access_token": token, "token_type": "Bearer", "expires_in": self.cfg.token_lifetime},
             headers={"Cache-Control": "no-store", "Pragma": "no-cache"},
         )
+
+
+    async def _narrowed(self, resource: str, grants: Grants, manager: str) -> tuple[str, Grants, str]:
+        """Audience, grants and audit note of a token for the peer ``resource`` names
+        (``urn:cryptoros:peer:<x5t#S256>``): only the grants on topics and services the
+        peer's manager holds a grant on too, so the peer learns nothing of the others."""
+        try:
+            thumbprint = thumbprint_of_audience(resource)
+        except TokenError:
+            raise _Denied(400, "invalid_target", "resource_malformed", manager) from None
+        target, target_grants = await self.manager_for(fingerprint_of_thumbprint(thumbprint))
+        if target is None or not target.enabled:
+            raise _Denied(400, "invalid_target", "resource_unknown", manager)
+        return resource, grants.narrowed_to(target_grants.names()), f"for {target.name}"
 
 
 async def _read_form(request: web.Request) -> dict[str, str]:
@@ -381,6 +410,27 @@ def _oauth_error(status: int, error: str) -> web.Response:
                              headers={"Cache-Control": "no-store", "Pragma": "no-cache"})
 
 
+_revoked_logged: dict[int, float] = {}
+
+
+def _log_revoked_client(der: bytes, request: web.Request) -> None:
+    """One line per revoked certificate per minute, naming it (a robot retrying every
+    second would otherwise fill the log without saying who it is)."""
+    from cryptography import x509
+
+    cert = x509.load_der_x509_certificate(der)
+    now = time.monotonic()
+    if now - _revoked_logged.get(cert.serial_number, -60.0) < 60.0:
+        return
+    if len(_revoked_logged) >= 1024:
+        _revoked_logged.clear()
+    _revoked_logged[cert.serial_number] = now
+    names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
+    log.warning("refused %s %s from %s: its client certificate (CN %s, serial %x) was revoked since start-up "
+                "(logged once a minute)", request.method, request.path, request.remote,
+                names[0].value if names else "?", cert.serial_number)
+
+
 def make_app(service: AuthzService) -> web.Application:
     metrics = service.metrics
 
@@ -393,7 +443,7 @@ def make_app(service: AuthzService) -> web.Application:
             ssl_object = request.transport.get_extra_info("ssl_object") if request.transport else None
             der = peer_cert_der(ssl_object)
             if service.crl is not None and request.path != "/token" and service.crl.is_revoked(der):
-                log.warning("refused %s %s: client certificate revoked since start-up", request.method, request.path)
+                _log_revoked_client(der, request)
                 return _oauth_error(401, "invalid_client")
             return await handler(request)
         except TokenError:

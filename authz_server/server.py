@@ -4,7 +4,9 @@ Start-up failures (database missing or unreachable, TLS or key files missing, wr
 passphrase, port taken) raise :class:`ConfigError` or :class:`StartupError` with a
 one-line reason; the CLI prints it and exits non-zero. SIGTERM and SIGINT stop
 listening, give open connections ``shutdown_grace`` seconds, flush the audit log
-and exit 0.
+and exit 0. SIGHUP re-reads the TLS material (certificate, key, CA, CRL) from the
+same files: the listener is re-opened with the new context (open connections stay),
+and a reload that fails keeps the old one, in one log line.
 """
 
 from __future__ import annotations
@@ -53,6 +55,12 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
             raise StartupError(f"cannot listen on {cfg.host}:{cfg.port}: {why}") from exc
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
+        sites = [site]
+
+        async def reload() -> None:
+            sites[0] = await _reload_tls(cfg, runner, sites[0], service)
+
+        loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(reload()))
         assert service._signer is not None
         log.info("serving on https://%s:%d (issuer %s, audience %s, token lifetime %ds, signing key %s)",
                  cfg.host, cfg.port, cfg.issuer, cfg.audience, cfg.token_lifetime, service._signer.kid)
@@ -61,10 +69,33 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         await stop.wait()
         log.info("shutting down")
     finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.remove_signal_handler(sig)
         if runner is not None:
             await runner.cleanup()
         await service.close()
         engine.dispose()
     log.info("stopped")
+
+
+async def _reload_tls(cfg: ServeConfig, runner: web.AppRunner, site: web.TCPSite, service: AuthzService) -> web.TCPSite:
+    """SIGHUP: a new TLS context from the same files, or the old one kept."""
+    try:
+        ssl_ctx = server_context(cfg.tls)
+    except CryptorosError as exc:
+        log.error("reload failed, keeping the old TLS material: %s", exc)
+        return site
+    await site.stop()  # stops accepting; open connections carry on
+    new = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=ssl_ctx, backlog=1024, reuse_address=True)
+    try:
+        await new.start()
+    except OSError as exc:
+        log.error("reload failed, keeping the old TLS material: cannot listen again: %s", exc.strerror or exc)
+        old = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=site._ssl_context, backlog=1024,
+                          reuse_address=True)
+        await old.start()
+        return old
+    if service.crl is not None:
+        service.crl.refresh(force=True)
+    log.info("reloaded TLS material (certificate, key, CA, CRL) on SIGHUP")
+    return new

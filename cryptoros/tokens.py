@@ -124,6 +124,16 @@ class Grants:
         """Whether any grant names ``node`` (or is a wildcard): the node is this manager's."""
         return any(g.node in (node, NODE_WILDCARD) for g in self._grants)
 
+    def names(self) -> frozenset[str]:
+        """The topics and services named by any grant (parameter namespaces excluded)."""
+        return frozenset(g.name for g in self._grants if g.action not in PARAM_ACTIONS)
+
+    def narrowed_to(self, names: Iterable[str]) -> Grants:
+        """Only the topic and service grants on ``names`` (no parameter grants): what a
+        peer holding grants on ``names`` needs to judge streams with this manager."""
+        keep = frozenset(names)
+        return Grants(g for g in self._grants if g.action not in PARAM_ACTIONS and g.name in keep)
+
     def to_claim(self) -> dict[str, dict[str, list[list[str]]]]:
         claim: dict[str, dict[str, list[list[str]]]] = {}
         for g in sorted(self._grants):
@@ -152,6 +162,32 @@ class Grants:
         except Exception as exc:  # invalid names, types or actions
             raise TokenError("malformed", f"invalid grant: {exc}") from exc
         return cls(grants)
+
+
+#: RFC 8707 resource indicator (and ``aud``) of a token meant for one peer interceptor,
+#: named by the thumbprint of its TLS certificate.
+PEER_AUDIENCE_PREFIX = "urn:cryptoros:peer:"
+_THUMBPRINT_LENGTH = 43  # base64url of 32 bytes, unpadded
+
+
+def peer_audience(thumbprint: str) -> str:
+    """The audience of a token narrowed for the peer whose certificate has ``thumbprint``."""
+    return PEER_AUDIENCE_PREFIX + thumbprint
+
+
+def thumbprint_of_audience(resource: str) -> str:
+    """The certificate thumbprint a peer audience names; TokenError if it names none."""
+    thumb = resource[len(PEER_AUDIENCE_PREFIX):] if resource.startswith(PEER_AUDIENCE_PREFIX) else ""
+    if len(thumb) != _THUMBPRINT_LENGTH or not all(c.isalnum() or c in "-_" for c in thumb):
+        raise TokenError("invalid_target", f"resource {resource[:80]!r} is not {PEER_AUDIENCE_PREFIX}<x5t#S256>")
+    return thumb
+
+
+def fingerprint_of_thumbprint(thumbprint: str) -> str:
+    """Registry fingerprint (hex SHA-256) of a certificate from its ``x5t#S256``."""
+    import base64
+
+    return base64.urlsafe_b64decode(thumbprint + "=").hex()
 
 
 def in_namespace(key: str, namespace: str) -> bool:
@@ -275,7 +311,7 @@ def verify_access_token(
     *,
     keys: KeySet,
     issuer: str,
-    audience: str,
+    audience: str | tuple[str, ...],
     peer_cert_der: bytes | None,
     now: float | None = None,
     leeway: float = 5.0,
@@ -284,7 +320,8 @@ def verify_access_token(
     """Verify ``token`` completely or raise :class:`TokenError`.
 
     ``peer_cert_der`` is the certificate the peer presented on this TLS connection:
-    the token must be bound to it. ``now`` defaults to the wall clock; pass the
+    the token must be bound to it. ``audience`` may name several accepted audiences
+    (the deployment's and this verifier's own :func:`peer_audience`). ``now`` defaults to the wall clock; pass the
     simulator's clock or a test's fixed time explicitly.
     """
     if not isinstance(token, str) or not token or len(token) > MAX_TOKEN_BYTES:

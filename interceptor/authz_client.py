@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import aiohttp
 
 from cryptoros.errors import TokenError
-from cryptoros.tokens import AccessToken, KeySet, Revocations, verify_access_token
+from cryptoros.tokens import AccessToken, KeySet, Revocations, peer_audience, verify_access_token
 from interceptor.config import AuthzSettings
 
 log = logging.getLogger("cryptoros.interceptor.authz")
@@ -105,9 +105,12 @@ class AuthzClient:
         except (aiohttp.ClientError, asyncio.TimeoutError, ValueError, ssl.SSLError, OSError) as exc:
             raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}") from exc
 
-    async def fetch_token(self, *, clock: Clock = time.time) -> OwnToken:
+    async def fetch_token(self, *, clock: Clock = time.time, resource: str | None = None) -> OwnToken:
+        """Our token; with ``resource`` (RFC 8707) one for that peer only, narrowed to
+        what it needs to judge our streams."""
         asked_at = clock()
-        status, body, _ = await self._json("POST", "/token", data={"grant_type": "client_credentials"})
+        form = {"grant_type": "client_credentials", **({"resource": resource} if resource else {})}
+        status, body, _ = await self._json("POST", "/token", data=form)
         if status != 200 or body is None:
             raise AuthzUnavailable(f"token refused: HTTP {status} {body.get('error') if body else ''}".strip())
         token, lifetime = body.get("access_token"), body.get("expires_in")
@@ -142,16 +145,22 @@ class AuthzClient:
 
 
 class TokenKeeper:
-    """This interceptor's own access token, always fresh or refused."""
+    """This interceptor's own access token, always fresh or refused, and the tokens it
+    shows each peer: bound to that peer's certificate (audience) and narrowed to the
+    grants the peer's manager shares names with (:meth:`for_peer`)."""
 
     #: A token this close to expiry is not handed out: the peer would see it expired.
     MIN_REMAINING = 2.0
+    #: Peers whose narrowed tokens are kept (the least recently used one goes first).
+    MAX_PEERS = 1024
 
     def __init__(self, client: AuthzClient, *, refresh_margin: float, clock: Clock = time.time) -> None:
         self._client = client
         self._margin = refresh_margin
         self._clock = clock
         self._token: OwnToken | None = None
+        self._peer_tokens: dict[str, OwnToken] = {}  # by the peer certificate's thumbprint
+        self._peer_fetches: dict[str, asyncio.Future] = {}
         self.refreshed = asyncio.Event()
         self._wake = asyncio.Event()
         #: Called after each new token (the interceptor shows it to its peers).
@@ -167,10 +176,57 @@ class TokenKeeper:
     def expires_at(self) -> float | None:
         return self._token.expires_at if self._token else None
 
+    async def for_peer(self, thumbprint: str) -> str:
+        """The token to show the peer whose certificate has ``thumbprint``: fetched on
+        first use, again with every refresh of our own token (:meth:`refresh`) and
+        whenever the cached one is within the refresh margin of expiry; one fetch per
+        peer in flight. While the authorization server cannot be reached the cached one is
+        used until it expires, then TokenError (fail closed: never the full token)."""
+        self.current()  # no own token, no peer token either
+        cached = self._peer_tokens.get(thumbprint)
+        now = self._clock()
+        if cached is not None and now < cached.expires_at - max(self.MIN_REMAINING, self._margin):
+            self._peer_tokens[thumbprint] = self._peer_tokens.pop(thumbprint)  # most recently used
+            return cached.token
+        fetch = self._peer_fetches.get(thumbprint)
+        if fetch is None:
+            fetch = self._peer_fetches[thumbprint] = asyncio.ensure_future(self._fetch_for_peer(thumbprint))
+            fetch.add_done_callback(lambda _f: self._peer_fetches.pop(thumbprint, None))
+        try:
+            return (await asyncio.shield(fetch)).token
+        except TokenError:
+            if cached is not None and self._clock() < cached.expires_at - self.MIN_REMAINING:
+                return cached.token
+            raise
+
+    async def _fetch_for_peer(self, thumbprint: str) -> OwnToken:
+        token = await self._client.fetch_token(clock=self._clock, resource=peer_audience(thumbprint))
+        self._peer_tokens.pop(thumbprint, None)
+        self._peer_tokens[thumbprint] = token
+        while len(self._peer_tokens) > self.MAX_PEERS:
+            del self._peer_tokens[next(iter(self._peer_tokens))]
+        return token
+
     async def refresh(self) -> None:
         self._token = await self._client.fetch_token(clock=self._clock)
+        # Grants may have changed: the peers' tokens are fetched anew (kept if that fails).
+        for thumbprint in list(self._peer_tokens):
+            try:
+                await self._fetch_for_peer(thumbprint)
+            except TokenError as exc:
+                log.info("cannot refresh a peer's token (%s); keeping the cached one", exc.detail)
         self.refreshed.set()
         log.info("access token refreshed, valid for %.0f s", self._token.expires_at - self._clock())
+        for listener in self.listeners:
+            listener()
+
+    def install(self, token: OwnToken) -> None:
+        """Adopt a token fetched elsewhere (a reload's, bound to a renewed certificate):
+        the peers' tokens, bound to the old one, are fetched anew on next use."""
+        self._token = token
+        self._peer_tokens.clear()
+        self.refreshed.set()
+        log.info("access token installed, valid for %.0f s", token.expires_at - self._clock())
         for listener in self.listeners:
             listener()
 
@@ -181,13 +237,16 @@ class TokenKeeper:
     def invalidate(self) -> None:
         """Our token was revoked (or our manager disabled): drop it and ask again now."""
         self._token = None
+        self._peer_tokens.clear()
         self._wake.set()
 
     async def run(self) -> None:
-        """Refresh before expiry forever; back off (1 s doubling to 30 s) on failure;
-        wake early when :meth:`invalidate` is called."""
+        """Refresh before expiry forever; back off (1 s doubling to 8 s) on failure;
+        wake early when :meth:`wake` or :meth:`invalidate` is called (a wake that comes
+        while a refresh is under way is not lost: that refresh may predate the change)."""
         backoff = 1.0
         while True:
+            self._wake.clear()
             try:
                 await self.refresh()
                 backoff = 1.0
@@ -198,7 +257,6 @@ class TokenKeeper:
                 log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail, max(0, remaining))
                 delay = backoff
                 backoff = min(backoff * 2, 8.0)
-            self._wake.clear()
             try:
                 await asyncio.wait_for(self._wake.wait(), delay)
             except asyncio.TimeoutError:
@@ -215,9 +273,12 @@ class _Watch:
     revoked_deadline: float | None = None
 
 
-def _peer_key(access: AccessToken) -> tuple[str, str]:
-    """A peer: its manager and the certificate its tokens are bound to."""
-    return access.subject, access.thumbprint
+def _peer_key(access: AccessToken) -> tuple[str, str, str]:
+    """A peer as we know it: its manager, the certificate its tokens are bound to and
+    their audience (the master's interceptor sees a peer's whole token on master
+    streams and the token narrowed for it on node streams: two views, never mixed)."""
+    aud = access.claims.get("aud")
+    return access.subject, access.thumbprint, aud if isinstance(aud, str) else repr(aud)
 
 
 class PeerVerifier:
@@ -240,6 +301,8 @@ class PeerVerifier:
         self._client = client
         self.issuer = issuer
         self.audience = audience
+        #: ``urn:cryptoros:peer:<our certificate's thumbprint>``: tokens peers narrowed for us.
+        self.own_audience: str | None = None
         self._poll = poll_interval
         self.grace = grace
         self.revocation_grace = revocation_grace
@@ -257,12 +320,14 @@ class PeerVerifier:
         self.stale_listeners: list[Callable[[AccessToken], None]] = []
 
     def verify(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
-        """Verify with the keys and revocations known now; TokenError on any failure."""
+        """Verify with the keys and revocations known now; TokenError on any failure.
+        The audience is the deployment's (a whole token) or :attr:`own_audience` (a
+        token narrowed for this interceptor); one narrowed for another peer is refused."""
         return verify_access_token(
             token,
             keys=self.keys,
             issuer=self.issuer,
-            audience=self.audience,
+            audience=(self.audience, self.own_audience) if self.own_audience else self.audience,
             peer_cert_der=peer_cert_der,
             now=self._clock(),
             revocations=self.revocations,
@@ -367,6 +432,13 @@ class PeerVerifier:
                 del self._freshest[key]
         return cut
 
+    def streams_by_peer(self) -> dict[str, int]:
+        """Open streams per peer manager."""
+        counts: dict[str, int] = {}
+        for entry in self._watches:
+            counts[entry.access.subject] = counts.get(entry.access.subject, 0) + 1
+        return dict(sorted(counts.items()))
+
     @property
     def open_streams(self) -> int:
         return len(self._watches)
@@ -407,18 +479,25 @@ class PeerVerifier:
 
     async def run(self) -> None:
         """Poll the revocation feed every interval and the JWKS every minute, forever."""
+        down_since: float | None = None
         while True:
             if self._clock() - self._last_jwks >= self.JWKS_REFRESH_INTERVAL or not len(self.keys):
                 await self.refresh_jwks()
             try:
                 feed = await self._client.fetch_revocations()
+                if down_since is not None:
+                    log.warning("the revocation feed answers again (unreachable for %.0f s)", self._clock() - down_since)
+                    down_since = None
                 self.last_feed_at = self._clock()
                 if feed is not None:
                     self.apply(feed)
                 if len(self.keys):
                     self.ready.set()
             except TokenError as exc:
-                log.warning("cannot poll the revocation feed (%s); keeping the last one", exc.detail)
+                if down_since is None:  # one line when it goes, one when it comes back
+                    down_since = self._clock()
+                    log.warning("cannot poll the revocation feed (%s); keeping the last one, new streams are "
+                                "refused once it is older than max_feed_age", exc.detail)
             self.sweep()
             await asyncio.sleep(self._poll)
 

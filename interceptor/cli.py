@@ -60,9 +60,57 @@ async def _run(config_path: str, grace: float) -> None:
     await interceptor.stop(grace=grace)
 
 
+class _Unreachable(CryptorosError):
+    """--check could not get a token: not a mistake in the file, exit 1."""
+
+    exit_code = 1
+
+
+async def _preflight(cfg) -> list[str]:
+    """What --check checks beyond the file: the certificate names the public address
+    (peers accept endpoints only on their owner's IP SAN), and the authorization server
+    issues this certificate a token for ``manager`` (the registry's binding), verified
+    with its JWKS."""
+    from cryptography import x509
+
+    from cryptoros.tokens import verify_access_token
+    from interceptor.authz_client import AuthzClient
+    from interceptor.ros1 import _read_cert_der, cert_hosts
+
+    der = _read_cert_der(cfg.tls.cert_file)
+    hosts = cert_hosts(der)
+    lines = []
+    if cfg.public.host in ("0.0.0.0", "::"):
+        lines.append(f"warning: public {cfg.public} listens on every address; peers reach it on one of "
+                     f"{', '.join(sorted(hosts)) or 'no name'} (the certificate's IP/DNS names)")
+    elif cfg.public.host not in hosts:
+        raise ConfigError(f"public address {cfg.public.host} is not in {cfg.tls.cert_file}'s IP/DNS names "
+                          f"({', '.join(sorted(hosts)) or 'none'}): peers would refuse every endpoint of this host")
+    client = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
+    try:
+        own = await client.fetch_token()
+        keys = await client.fetch_jwks()
+    except CryptorosError as exc:
+        raise _Unreachable(f"authorization server {cfg.authz.url}: {getattr(exc, 'detail', exc)}") from None
+    finally:
+        await client.close()
+    access = verify_access_token(own.token, keys=keys, issuer=cfg.authz.issuer, audience=cfg.authz.audience,
+                                 peer_cert_der=der)
+    if access.subject != cfg.manager:
+        raise ConfigError(f"the registry binds {cfg.tls.cert_file} to manager {access.subject!r}, "
+                          f"not {cfg.manager!r} (manager in the configuration)")
+    not_after = x509.load_der_x509_certificate(der).not_valid_after_utc
+    lines.append(f"authorization server {cfg.authz.url}: token for manager {access.subject}, "
+                 f"{len(access.grants)} grants, valid {access.expires_at - access.issued_at} s; "
+                 f"certificate valid until {not_after:%Y-%m-%d}")
+    return lines
+
+
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--config", "config_path", help="TOML configuration file (see interceptor/config.py).")
-@click.option("--check", is_flag=True, help="Validate the configuration and TLS material, then exit.")
+@click.option("--check", is_flag=True,
+              help="Validate the configuration and TLS material, that the certificate names the public address "
+                   "and that the authorization server issues it a token for this manager, then exit.")
 @click.option("--ros2-profile", "ros2_profile", type=click.Path(dir_okay=False, allow_dash=True),
               help="Write the Fast DDS profile that keeps a robot's ROS 2 nodes on loopback to this file "
                    "('-': standard output), then exit.")
@@ -95,7 +143,13 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
     except CryptorosError as exc:
         _fail(str(exc))
     if check:
+        try:
+            lines = asyncio.run(_preflight(cfg))
+        except CryptorosError as exc:
+            _fail(str(exc), code=getattr(exc, "exit_code", 2))
         click.echo(f"configuration ok: manager {cfg.manager}, roles {', '.join(cfg.roles)}, public {cfg.public}")
+        for line in lines:
+            click.echo(line)
         if "ros2" in cfg.roles:
             from cryptoros.ros2.profile import environment_problem
 

@@ -75,8 +75,8 @@ from cryptoros.ros1.xmlrpc import (
     split_multicall_response,
 )
 from cryptoros.ros1.xmlrpc import NEED_DATA as XMLRPC_NEED_DATA
-from cryptoros.tls import client_context, peer_cert_der, server_context
-from cryptoros.tokens import AccessToken
+from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
+from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
@@ -303,6 +303,10 @@ class Interceptor:
         if "master" in cfg.roles and cfg.master.upstream:
             self.translator.add_master_uri(cfg.master.upstream)
         self._own_cert_der = _read_cert_der(cfg.tls.cert_file)
+        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
+        #: per peer endpoint, which of our tokens it has seen: whole (master streams) or
+        #: narrowed for it (everything else); a token exchange refreshes each
+        self._views: dict[tuple[str, int], set[bool]] = {}
         self._own_access: AccessToken | None = None
         self._own_token: str | None = None
         self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
@@ -405,10 +409,21 @@ class Interceptor:
         await self.authz.close()
 
     async def reload(self, cfg: InterceptorConfig) -> None:
-        """SIGHUP: new certificates, CRL and policy; open streams stay up. A failure
-        keeps the old state (the caller catches and logs)."""
+        """SIGHUP: new certificates, CRL and policy; open streams stay up. All or
+        nothing: the new TLS material is loaded and a token bound to the new
+        certificate fetched and verified before anything is swapped, so a failure (a
+        renewed certificate the registry does not know yet, the authorization server
+        down) keeps the old state everywhere (the caller catches and logs)."""
         server_ctx = server_context(cfg.tls)
         client_ctx = client_context(cfg.tls, check_hostname=True)
+        authz_ctx = client_context(cfg.tls, check_hostname=True)
+        own_der = _read_cert_der(cfg.tls.cert_file)
+        probe = AuthzClient(cfg.authz, authz_ctx)
+        try:
+            token = await probe.fetch_token()
+        finally:
+            await probe.close()
+        self.verifier.verify(token.token, own_der)  # bound to the new certificate, not revoked
         old = self._public_server
         if old is not None:
             old.close()
@@ -421,12 +436,44 @@ class Interceptor:
         self.cfg = cfg
         # every holder of the certificate reads the new one: the authorization server
         # binds the next token to it, and our own token is checked against it
-        self._own_cert_der = _read_cert_der(cfg.tls.cert_file)
-        await self.authz.use_ssl_context(client_context(cfg.tls, check_hostname=True))
-        await self.keeper.refresh()  # new grants, a token bound to the new certificate
+        self._own_cert_der = own_der
+        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(own_der))
+        await self.authz.use_ssl_context(authz_ctx)
+        self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
         self._own_access = None
         self.own_access()
         log.info("reloaded certificates, CRL and policy")
+
+    def status(self) -> dict:
+        """What ``cryptoros status`` shows: who this interceptor is to the registry now
+        (token subject, grants, expiry), how fresh its view of revocations is
+        (feed, CRL), how long its certificate lasts, and its peers with open streams."""
+        now = time.time()
+        health, token = "ok", None
+        try:
+            access = self.own_access()
+            token = {"subject": access.subject, "jti": access.jti, "expires_in": round(access.expires_at - now),
+                     "grants": [[g.node, g.action, g.name, g.type] for g in access.grants]}
+            self._check_feed_age()
+        except (TokenError, PolicyDenied) as exc:
+            health = f"{exc.reason}: {exc.detail}"
+        cert = x509.load_der_x509_certificate(self._own_cert_der)
+        crl = self.cfg.tls.crl_file
+        last = self.verifier.last_feed_at
+        return {
+            "manager": self.cfg.manager, "roles": list(self.cfg.roles), "public": str(self.cfg.public),
+            "health": health, "token": token,
+            "certificate": {"subject": cert.subject.rfc4514_string(), "serial": format(cert.serial_number, "x"),
+                            "not_after": cert.not_valid_after_utc.isoformat(),
+                            "days_left": round((cert.not_valid_after_utc.timestamp() - now) / 86400, 1)},
+            "feed": {"age": None if last is None else round(now - last, 1),
+                     "revoked_tokens": len(self.verifier.revocations.revoked_jtis),
+                     "disabled_managers": sorted(self.verifier.revocations.disabled_subjects)},
+            "crl": None if crl is None else {"file": str(crl), "age": round(now - os.stat(crl).st_mtime, 1)
+                                             if os.path.exists(crl) else None},
+            "peers": self.verifier.streams_by_peer(),
+            "open_streams": len(self._streams),
+        }
 
     async def _start_metrics(self) -> None:
         app = web.Application()
@@ -447,8 +494,12 @@ class Interceptor:
             return web.json_response({"status": "ok", "open_streams": len(self._streams),
                                       "feed_age": None if last is None else round(time.time() - last, 1)})
 
+        async def status(_request: web.Request) -> web.Response:
+            return web.json_response(self.status())
+
         app.router.add_get("/metrics", metrics)
         app.router.add_get("/healthz", healthz)
+        app.router.add_get("/status", status)
         self._metrics_runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await self._metrics_runner.setup()
         await web.TCPSite(self._metrics_runner, self.cfg.metrics.host, self.cfg.metrics.port).start()
@@ -504,8 +555,9 @@ class Interceptor:
 
         async def exchange() -> None:
             try:
-                _reader, writer, _peer = await self.open_tunnel(*endpoint, "refresh", "")
-                writer.close()
+                for whole in sorted(self._views.get(endpoint, {False})):
+                    _reader, writer, _peer = await self.open_tunnel(*endpoint, "refresh", "", whole=whole)
+                    writer.close()
             except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
                 log.info("token exchange with %s:%d failed: %s", *endpoint, exc)
             finally:
@@ -629,13 +681,19 @@ class Interceptor:
         return pool
 
     async def open_tunnel(
-        self, host: str, port: int, purpose: str, target: str, *, first: bytes = b""
+        self, host: str, port: int, purpose: str, target: str, *, first: bytes = b"", whole: bool | None = None,
     ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter, Peer]:
         """Mutual TLS to a peer interceptor, our token in the preamble, its token in
         the reply (verified and bound to its certificate). ``first`` (a connection
         header, an XML-RPC request) is sent right behind the preamble, saving a round
-        trip; the peer reads it only once our token passed."""
-        token = self.keeper.current()
+        trip; the peer reads it only once our token passed.
+
+        The token shown is narrowed for the peer (its certificate the audience, only
+        the grants on names its manager holds too), except on master streams
+        (``whole``, by default for purpose ``master``): the master's interceptor judges
+        every registration, so it sees every grant."""
+        self.keeper.current()  # no token of our own: nothing is opened
+        whole = purpose == "master" if whole is None else whole
         try:
             reader, writer = await asyncio.wait_for(
                 asyncio.open_connection(
@@ -647,6 +705,9 @@ class Interceptor:
         except (OSError, asyncio.TimeoutError) as exc:
             raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
         try:
+            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
+            self._views.setdefault((host, port), set()).add(whole)
             writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
             preamble_reader = PreambleReader(PreambleReply)
             reply = None
@@ -656,7 +717,6 @@ class Interceptor:
                 reply = event if isinstance(event, PreambleReply) else None
             if not reply.ok:
                 raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
             access = await self.verifier.verify_fresh(reply.token, der)
             self.verifier.note(access)
             self._peer_endpoints[(access.subject, access.thumbprint)] = (host, port)
@@ -709,7 +769,7 @@ class Interceptor:
                 raise PolicyDenied("rate_limited", f"more than {self.cfg.limits.max_new_connections_per_second}/s new streams")
             if self._open_per_peer.get(access.subject, 0) >= self.cfg.limits.max_connections_per_peer:
                 raise PolicyDenied("connection_limit", f"{self.cfg.limits.max_connections_per_peer} streams open")
-            own_token = self.keeper.current()
+            own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
         except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
             if isinstance(exc, CryptorosError):
                 self._deny("stream", exc, who)

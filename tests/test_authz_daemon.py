@@ -72,6 +72,41 @@ def test_token_is_rs256_jwt_bound_to_the_client_certificate_with_grants(daemon):
     assert any(r["event"] == "issued" and r["jti"] == c["jti"] and r["kid"] == hdr["kid"] for r in rows)
 
 
+def test_a_token_for_one_peer_is_bound_to_it_and_carries_only_what_it_shares(daemon):
+    """RFC 8707 resource indicator: alice asks for a token to show bob. It names bob's
+    certificate as audience and carries only alice's grants on names bob holds a grant
+    on too (need to know); carol, or any verifier not bob, refuses it."""
+    import urllib.parse
+
+    from cryptoros.errors import TokenError
+    from cryptoros.tls import cert_thumbprint_s256
+    from cryptoros.tokens import peer_audience
+
+    thumb = {n: cert_thumbprint_s256(read_pem_der(daemon.cert_of(n)[0])) for n in ("alice", "bob", "carol", "stranger")}
+
+    def for_peer(name: str, resource: str) -> tuple[int, dict]:
+        return daemon.token(name, "grant_type=client_credentials&resource=" + urllib.parse.quote(resource, safe=""))
+
+    status, body = for_peer("alice", peer_audience(thumb["bob"]))
+    assert status == 200, body
+    keys = KeySet.from_jwks(daemon.get_json("/.well-known/jwks.json"))
+    alice_der = read_pem_der(daemon.cert_of("alice")[0])
+    tok = verify_access_token(body["access_token"], keys=keys, issuer=ISS, audience=(AUD, peer_audience(thumb["bob"])),
+                              peer_cert_der=alice_der)
+    assert tok.claims["aud"] == peer_audience(thumb["bob"])
+    assert tok.claims["grants"] == {"/adder": {"serve": [["/add_two_ints", "rospy_tutorials/AddTwoInts"]]}}
+    for audience in (AUD, (AUD, peer_audience(thumb["carol"]))):  # a whole-token verifier, carol
+        with pytest.raises(TokenError) as refused:
+            verify_access_token(body["access_token"], keys=keys, issuer=ISS, audience=audience, peer_cert_der=alice_der)
+        assert refused.value.reason == "bad_audience"
+    status, body = for_peer("alice", peer_audience(thumb["carol"]))  # carol shares no name with alice
+    assert status == 200 and claims_of(body["access_token"])["grants"] == {}
+    rows = [json.loads(line) for line in ok(daemon.cli("audit", "--json", "--manager", "alice")).splitlines()]
+    assert any(r["event"] == "issued" and r["jti"] == tok.jti and "for bob" in json.dumps(r) for r in rows)
+    for resource in (peer_audience(thumb["stranger"]), "urn:cryptoros:peer:short", "https://bob.example/"):
+        assert for_peer("alice", resource) == (400, {"error": "invalid_target"})
+
+
 def test_each_token_has_a_fresh_jti(daemon):
     jtis = {claims_of(daemon.token("bob")[1]["access_token"])["jti"] for _ in range(3)}
     assert len(jtis) == 3
@@ -247,3 +282,43 @@ def test_certificate_revoked_while_running_is_refused_within_seconds(daemon):
     cert, key = daemon.cert_of("dave")
     assert daemon.request("GET", "/revocations", cert=cert, key=key)[0] == 401
     assert daemon.token("alice")[0] == 200
+
+
+def test_sighup_reloads_the_tls_material_and_a_bad_one_is_kept_out(daemon):
+    """Day 2: the authorization server's certificate is renewed and the daemon gets
+    SIGHUP: it keeps running (it used to die, rc 129), new connections get the new
+    certificate and tokens are issued; a broken file on the next SIGHUP is one log line
+    and the daemon keeps serving with what it had."""
+    import signal
+    import socket
+
+    def served_serial() -> int:
+        ctx = daemon.context(*daemon.cert_of("alice"))
+        with socket.create_connection((daemon.host, daemon.port), timeout=10) as raw, \
+                ctx.wrap_socket(raw, server_hostname=daemon.host) as tls:
+            from cryptography import x509
+
+            return x509.load_der_x509_certificate(tls.getpeercert(binary_form=True)).serial_number
+
+    def hup_until(needle: str) -> None:
+        before = len(daemon.log())
+        daemon.proc.send_signal(signal.SIGHUP)
+        deadline = time.monotonic() + 15
+        while needle not in daemon.log()[before:]:
+            assert daemon.proc.poll() is None, daemon.log()[-2000:]
+            assert time.monotonic() < deadline, daemon.log()[before:][-2000:]
+            time.sleep(0.05)
+
+    old = served_serial()
+    renewed = daemon.pki.issue("authz", kind="server", force=True)  # same files, new key and serial
+    hup_until("reloaded TLS material")
+    assert served_serial() == renewed.serial != old
+    assert daemon.token("alice")[0] == 200
+    good = renewed.cert_path.read_bytes()
+    try:
+        renewed.cert_path.write_text("not a certificate\n")
+        hup_until("reload failed, keeping the old TLS material")
+        assert served_serial() == renewed.serial and daemon.token("bob")[0] == 200
+    finally:
+        renewed.cert_path.write_bytes(good)
+    assert daemon.proc.poll() is None

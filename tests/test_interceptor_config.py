@@ -125,3 +125,36 @@ def test_passphrase_file_is_read(material, tmp_path, pki):
         f'key = "{material["key"]}"', f'key = "{encrypted.key_path}"\nkey_passphrase_file = "pass"'
     )
     assert load(write(tmp_path, text)).tls.key_passphrase == b"s3cret passphrase"
+
+
+def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_authz_server(tmp_path):
+    """`--check` (day 2): the certificate must name the public address, the registry must
+    bind it to the configured manager, and the authorization server must answer; each
+    mistake is one line, and a good file prints the token it got."""
+    from cryptoros.lab.network import free_port
+    from tests.authz_support import authz, build_team, ok, running_daemon
+    from tests.support import run, script
+
+    team = build_team(tmp_path)
+    issued = team.pki.issue("robot_x", kind="interceptor", sans=("IP:127.0.0.2",))
+    ok(authz("add-manager", "robot_x", "--fingerprint", issued.fingerprint_sha256, db=team.db))
+    material = {"ca": team.pki.ca_cert, "cert": issued.cert_path, "key": issued.key_path, "crl": team.pki.crl}
+
+    def check(url: str, **replace: str):
+        path = tmp_path / "check.toml"
+        path.write_text(textwrap.dedent(good(material, **{'"robot1"': '"robot_x"', "https://127.0.0.1:8443": url,
+                                                          **replace})))
+        return run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
+
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        good_run = check(daemon.base)
+        assert good_run.returncode == 0, good_run.stderr
+        assert "token for manager robot_x" in good_run.stdout
+        for replace, needle in (({"127.0.0.2:11400": "127.0.0.3:11400"}, "127.0.0.3 is not in"),
+                                ({'manager = "robot_x"': 'manager = "robot_y"'}, "binds")):
+            bad = check(daemon.base, **replace)
+            assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr
+            assert len(bad.stderr.strip().splitlines()) == 1 and needle in bad.stderr, bad.stderr
+    down = check(f"https://127.0.0.1:{free_port()}")
+    assert down.returncode == 1 and "authorization server" in down.stderr and "Traceback" not in down.stderr, \
+        down.stderr

@@ -290,6 +290,28 @@ def test_sighup_keeps_streams_and_a_disabled_manager_is_cut_off_within_5s(networ
     assert "cryptoros_interceptor_revocation_cutoffs_total 0.0" not in network.metrics("robot_b")
 
 
+def test_a_reload_that_gets_no_token_for_the_new_certificate_keeps_the_old_one_everywhere(network):
+    """Day 2: the operator renews robot A's certificate files but forgets ``set-cert``
+    and sends SIGHUP. The authorization server refuses the new certificate, so the
+    reload fails as a whole: robot A keeps presenting the old certificate with a token
+    bound to it, and its new streams to robot B flow (before, the listener and TLS
+    contexts were swapped first and every new stream was refused, cnf_mismatch)."""
+    address = network.robots["robot_a"].address
+    network.pki.issue("robot_a", kind="interceptor", sans=(f"IP:{address}",), force=True)  # not in the registry
+    log_before, b_before = len(network.robots["robot_a"].logs()), len(network.robots["robot_b"].logs())
+    network.robots["robot_a"].proc.send_signal(signal.SIGHUP)
+    deadline = time.monotonic() + 20
+    while "reload failed, keeping the old state" not in network.robots["robot_a"].logs()[log_before:]:
+        assert time.monotonic() < deadline, network.robots["robot_a"].logs()[log_before:][-2000:]
+        time.sleep(0.1)
+    assert "reloaded certificates" not in network.robots["robot_a"].logs()[log_before:]
+    with network.node("robot_b", "listener.py", "scan", "/scan", "40") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "scan", "/scan", "100000", "20"):
+            assert got(collect(sub, 10, 30)), "robot A's new streams were refused after a failed reload"
+    assert "cnf_mismatch" not in network.robots["robot_b"].logs()[b_before:]
+
+
 def test_a_renewed_certificate_is_used_everywhere_after_sighup(network):
     """Day 2: robot A's certificate is renewed (new key), the registry bound to it
     (``set-cert``: tokens of the old one revoked) and robot A reloaded. Every holder of
@@ -326,5 +348,5 @@ def test_a_renewed_certificate_is_used_everywhere_after_sighup(network):
         with network.node("robot_a", "talker.py", "scan", "/scan", "100000", "20"):
             assert got(collect(sub, 10, 30)), "robot B received nothing from robot A's renewed certificate"
     tail = network.robots["robot_a"].logs()[log_before:]
-    assert "access token refreshed" in tail, tail[-2000:]  # the authorization server took the new certificate
+    assert "access token installed" in tail, tail[-2000:]  # the authorization server took the new certificate
     assert " ERROR " not in tail, tail[-2000:]

@@ -329,6 +329,39 @@ def test_a_peer_without_the_grant_learns_no_name_of_what_robot_a_offers(network)
         network.robots["robot_a"].denials()
 
 
+def test_the_token_a_robot_shows_a_peer_is_narrowed_to_that_peer(network):
+    """Finding 8, the token: what robot A answers a peer's preamble with is a token whose
+    audience is that peer's certificate and whose grants are only A's grants on names
+    the peer's manager holds a grant on (RFC 8707). Robot C (no grant on anything A
+    publishes or serves) learns none of A's names; robot B, granted all of them, learns
+    them; and the token A showed C is refused by robot B (another audience)."""
+    import jwt
+
+    from tests.interceptor_harness import rogue_preamble, token_of
+
+    def reply_to(as_name: str) -> str:
+        with _rogue(network, "robot_a", as_name) as s:
+            reply = rogue_preamble(s, token_of(network, as_name), "refresh")
+        assert reply is not None and reply.ok
+        return reply.token
+
+    def claims(token: str) -> dict:
+        return jwt.decode(token, options={"verify_signature": False})
+
+    c_names = {name for actions in claims(token_of(network, "robot_c"))["grants"].values()
+               for rows in actions.values() for name, _type in rows}
+    for_c, for_b = reply_to("robot_c"), reply_to("robot_b")
+    assert claims(for_c)["aud"].startswith("urn:cryptoros:peer:") and claims(for_c)["aud"] != claims(for_b)["aud"]
+    names_for_c = {name for actions in claims(for_c)["grants"].values() for rows in actions.values() for name, _ in rows}
+    assert names_for_c <= c_names and not names_for_c & {"/twist", "/set_flag", "/secret", "/scan"}
+    assert {"/twist", "/set_flag", "/chatter"} <= {
+        name for actions in claims(for_b)["grants"].values() for rows in actions.values() for name, _ in rows}
+    # robot B refuses the token narrowed for C: presented as robot A's it fails the audience check
+    with _rogue(network, "robot_b", "robot_a") as s:
+        assert not rogue_preamble(s, for_c, "refresh").ok
+    assert "bad_audience" in network.robots["robot_b"].denials()
+
+
 # ---------------------------------------------------------------- what the receiver keeps
 
 
