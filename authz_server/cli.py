@@ -296,11 +296,16 @@ def _with_passphrase(fn):
 @main.command("rotate-key")
 @_with_passphrase
 @click.option("--bits", type=click.Choice(["2048", "3072"]), default="2048", show_default=True)
+@click.option("--change-passphrase", is_flag=True,
+              help="Encrypt the new key with a passphrase that does not open the current one (restart serve with it).")
 @click.pass_context
-def rotate_key(ctx: click.Context, key_passphrase_file: str | None, unsafe_no_passphrase: bool, bits: str) -> None:
-    """Create a new RS256 signing key; the old one stays in the JWKS until its tokens expire."""
+def rotate_key(ctx: click.Context, key_passphrase_file: str | None, unsafe_no_passphrase: bool, bits: str,
+               change_passphrase: bool) -> None:
+    """Create a new RS256 signing key; the old one stays in the JWKS until its tokens expire.
+
+    The passphrase must open the current key (the one serve uses), unless --change-passphrase."""
     prot = keymod.protection(key_passphrase_file, unsafe_no_passphrase=unsafe_no_passphrase)
-    kid = _registry(ctx, create=True).rotate_key(prot, int(bits))
+    kid = _registry(ctx, create=True).rotate_key(prot, int(bits), change_passphrase=change_passphrase)
     click.echo(f"new signing key {kid}")
 
 

@@ -35,7 +35,7 @@ from authz_server.models import (
     RevokedToken,
     SigningKey,
 )
-from cryptoros.errors import RegistryError
+from cryptoros.errors import ConfigError, RegistryError
 from cryptoros.names import PARAM_TYPE, validate_graph_name, validate_namespace, validate_node_name, validate_type
 
 ACTIONS = ("publish", "subscribe", "serve", "call", "read_param", "write_param")
@@ -433,8 +433,21 @@ class Registry:
         return stats
 
     # ------------------------------------------------------------------ signing keys
-    def rotate_key(self, prot: keymod.KeyProtection, bits: int = keymod.RSA_BITS) -> str:
-        """Create a new active signing key; the previous one is retired (still published)."""
+    def rotate_key(self, prot: keymod.KeyProtection, bits: int = keymod.RSA_BITS, *,
+                   change_passphrase: bool = False) -> str:
+        """Create a new active signing key; the previous one is retired (still published).
+
+        The passphrase must open the current active key (the one ``serve`` was given):
+        a new key under another passphrase would stop the next ``serve`` from starting.
+        ``change_passphrase`` says the operator means to restart ``serve`` with the new one."""
+        current = self.active_key()
+        if current is not None and not change_passphrase:
+            try:
+                keymod.load_private(current.private_pem, current.encrypted, prot, current.kid)
+            except ConfigError:
+                raise RegistryError(f"the passphrase given does not open the current signing key {current.kid}: "
+                                    "give the one serve uses (or --change-passphrase, then restart serve "
+                                    "with the new one)") from None
         new = keymod.generate(prot, bits)
         with self._session.begin() as s:
             s.execute(update(SigningKey).where(SigningKey.active.is_(True)).values(active=False, retired_at=_now()))

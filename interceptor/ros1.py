@@ -87,6 +87,10 @@ from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, T
 log = logging.getLogger("cryptoros.interceptor")
 
 OPAQUE = "denied by cryptoros"
+#: What a caller is told when its call was allowed but nobody answered (the ROS master
+#: or the peer's interceptor down): not a denial, so not worded as one.
+UNANSWERED = "cryptoros: no answer from the ROS master or the peer (not a denial)"
+_UNANSWERED_REASONS = frozenset({"peer_unreachable", "tunnel_failed"})
 CALL_TIMEOUT = 30.0
 IDLE_TIMEOUT = 600.0
 READ_SIZE = 65536
@@ -918,12 +922,13 @@ class Interceptor:
                 for (i, call), part in zip(allowed, parts, strict=True):
                     results[i] = after(call, part)
             except (CryptorosError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
-                if isinstance(exc, CryptorosError):
-                    self._deny(kind, exc, who)
+                unanswered = getattr(exc, "reason", None) in _UNANSWERED_REASONS or not isinstance(exc, CryptorosError)
+                if unanswered:
+                    log.warning("%s call from %s got no answer: %s", kind, who, exc or type(exc).__name__)
                 else:
-                    log.warning("%s call from %s failed: %s", kind, who, exc)
+                    self._deny(kind, exc, who)
                 for i, _ in allowed:
-                    results[i] = Response(value=ros_error(OPAQUE))
+                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else OPAQUE))
         if request.method == MULTICALL:
             return assemble_multicall(results)  # type: ignore[arg-type]
         return results[0]  # type: ignore[return-value]

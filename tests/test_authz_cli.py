@@ -161,6 +161,25 @@ def test_serve_refuses_a_wrong_signing_key_passphrase(team, tmp_path):
     assert "cannot decrypt signing key" in line
 
 
+def test_rotate_key_refuses_a_passphrase_that_does_not_open_the_current_key(tmp_path):
+    """Day 2: rotate-key with another passphrase answered rc 0 and the next serve could
+    not decrypt its signing key. It is refused, in one line, and nothing changes;
+    --change-passphrase says the operator means it."""
+    team = build_team(tmp_path)
+    right, wrong = tmp_path / "right.pass", tmp_path / "wrong.pass"
+    right.write_text("test-signing-passphrase\n")
+    wrong.write_text("another-passphrase\n")
+    ok(cli("rotate-key", "--key-passphrase-file", str(right), db=team.db))
+    keys_before = ok(cli("list-keys", db=team.db))
+    line = one_line_error(cli("rotate-key", "--key-passphrase-file", str(wrong), db=team.db))
+    assert "does not open the current signing key" in line
+    assert ok(cli("list-keys", db=team.db)) == keys_before
+    ok(cli("rotate-key", "--key-passphrase-file", str(right), db=team.db))  # the right one rotates
+    ok(cli("rotate-key", "--key-passphrase-file", str(wrong), "--change-passphrase", db=team.db))
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--key-passphrase-file", str(right)))
+    assert "cannot decrypt signing key" in line  # what --change-passphrase asks of the operator
+
+
 def test_serve_on_a_taken_port_is_one_line_exit_1(team):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
