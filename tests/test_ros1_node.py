@@ -199,3 +199,19 @@ async def test_tcp_nodelay_is_honoured(master) -> None:
         (link,) = pub._links
         sock = link.transport.get_extra_info("socket")
         assert sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+
+
+def test_cryptoros_master_on_a_busy_port_or_a_foreign_address_is_one_line():
+    """Day 2: `cryptoros master` printed a traceback on a port in use or an address the
+    host does not have; it says it in one line and exits 1."""
+    from tests.support import run, script
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        for host, port_, needle in (("127.0.0.1", port, "address already in use"),
+                                    ("10.254.254.254", 0, "no such address on this host")):
+            result = run([script("cryptoros"), "master", "--host", host, "--port", str(port_)], timeout=30)
+            lines = result.stderr.strip().splitlines()
+            assert result.returncode == 1 and len(lines) == 1 and needle in lines[0], result.stderr

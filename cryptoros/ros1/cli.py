@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 import signal
 
@@ -24,7 +25,13 @@ def master(host: str, port: int, verbose: bool) -> None:
 
     async def main() -> None:
         m = Master(host, port)
-        await m.start()
+        try:
+            await m.start()
+        except OSError as exc:  # a port in use, an address this host does not have: one line
+            why = {errno.EADDRINUSE: "address already in use", errno.EADDRNOTAVAIL: "no such address on this host"}
+            click.echo(f"cryptoros master: error: cannot listen on {host}:{port}: "
+                       f"{why.get(exc.errno, exc.strerror or str(exc))}", err=True)
+            raise SystemExit(1) from None
         click.echo(f"ROS_MASTER_URI={m.uri}", err=True)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
