@@ -34,6 +34,7 @@ raised into the event loop.
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 import ssl
 import time
@@ -103,7 +104,7 @@ class AuthzClient:
                     raise AuthzUnavailable(f"{path}: answer is not a JSON object")
                 return resp.status, body, resp.headers
         except (aiohttp.ClientError, asyncio.TimeoutError, ValueError, ssl.SSLError, OSError) as exc:
-            raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}") from exc
+            raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}") from exc
 
     async def fetch_token(self, *, clock: Clock = time.time, resource: str | None = None) -> OwnToken:
         """Our token; with ``resource`` (RFC 8707) one for that peer only, narrowed to
@@ -142,6 +143,19 @@ class AuthzClient:
         return Revocations(
             revoked_jtis=frozenset(str(j) for j in jtis), disabled_subjects=frozenset(str(m) for m in managers)
         )
+
+
+def _hint(exc: BaseException) -> str:
+    """What a bare TLS or connection failure most likely means, for the log line."""
+    if isinstance(exc, aiohttp.ClientConnectorCertificateError):
+        return " (the authorization server's certificate does not verify against [tls] ca, or its name/IP differs)"
+    reset = isinstance(exc, ConnectionResetError) or getattr(exc, "errno", None) == errno.ECONNRESET
+    if reset or isinstance(exc, aiohttp.ServerDisconnectedError) or "alert" in str(exc).lower():
+        return (" (the authorization server closed the TLS connection: is this certificate issued by the CA it "
+                "trusts, and not revoked?)")
+    if isinstance(exc, (aiohttp.ClientConnectorError, ConnectionRefusedError)):
+        return " (nothing answers there: is cryptoros-authz running, and [authz] url right?)"
+    return ""
 
 
 class TokenKeeper:

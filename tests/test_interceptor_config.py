@@ -155,6 +155,13 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
             bad = check(daemon.base, **replace)
             assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr
             assert len(bad.stderr.strip().splitlines()) == 1 and needle in bad.stderr, bad.stderr
+        foreign = {"ca": team.pki.ca_cert, "cert": team.other_pki.pki.cert_path_for("alice"),
+                   "key": team.other_pki.pki.key_path_for("alice"), "crl": team.pki.crl}
+        path = tmp_path / "foreign.toml"
+        path.write_text(textwrap.dedent(good(foreign, **{'"robot1"': '"alice"', "https://127.0.0.1:8443": daemon.base,
+                                                         "127.0.0.2:11400": "0.0.0.0:11400"})))
+        other_ca = run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
+        assert other_ca.returncode == 1 and "issued by the CA it trusts" in other_ca.stderr, other_ca.stderr
     down = check(f"https://127.0.0.1:{free_port()}")
-    assert down.returncode == 1 and "authorization server" in down.stderr and "Traceback" not in down.stderr, \
+    assert down.returncode == 1 and "nothing answers there" in down.stderr and "Traceback" not in down.stderr, \
         down.stderr
