@@ -431,7 +431,9 @@ def _log_revoked_client(der: bytes, request: web.Request) -> None:
                 names[0].value if names else "?", cert.serial_number)
 
 
-def make_app(service: AuthzService) -> web.Application:
+def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
+    """The daemon's application; ``probe``: only ``/healthz`` and ``/metrics``, for the
+    plain-HTTP loopback endpoint health checkers use (no client certificate)."""
     metrics = service.metrics
 
     @web.middleware
@@ -492,6 +494,11 @@ def make_app(service: AuthzService) -> web.Application:
     async def prometheus(request: web.Request) -> web.Response:
         return web.Response(body=generate_latest(metrics.registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
 
+    if probe:
+        app = web.Application(client_max_size=1024)
+        app.router.add_get("/healthz", healthz)
+        app.router.add_get("/metrics", prometheus)
+        return app
     app = web.Application(middlewares=[guard], client_max_size=MAX_BODY)
     app.router.add_post("/token", token)
     app.router.add_get("/.well-known/jwks.json", jwks)

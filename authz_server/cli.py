@@ -408,6 +408,8 @@ def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, a
 @click.option("--issuer", help="Token issuer (iss).  [default: cryptoros-authz]")
 @click.option("--audience", help="Token audience (aud).  [default: cryptoros]")
 @click.option("--token-lifetime", type=int, help="Token lifetime in seconds.  [default: 300]")
+@click.option("--probe", help="Loopback host:port serving /healthz and /metrics over plain HTTP, for probes "
+                              "(no client certificate).")
 @_with_passphrase
 @click.option("--log-level", type=click.Choice(["debug", "info", "warning", "error"]), default="info",
               show_default=True)
@@ -425,7 +427,7 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
     mapping = {
         "host": "host", "port": "port", "ca": "ca", "cert": "cert", "key": "key",
         "tls_key_passphrase_file": "key_passphrase_file", "crl": "crl", "issuer": "issuer",
-        "audience": "audience", "token_lifetime": "token_lifetime",
+        "audience": "audience", "token_lifetime": "token_lifetime", "probe": "probe",
         "key_passphrase_file": "signing_key_passphrase_file",
     }
     for flag, key in mapping.items():

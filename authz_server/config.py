@@ -40,6 +40,8 @@ class ServeConfig:
     db_threads: int = 4
     #: grace period for open connections on SIGTERM
     shutdown_grace: float = 5.0
+    #: ``host:port`` on loopback: /healthz and /metrics over plain HTTP for probes
+    probe: str | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -61,6 +63,21 @@ class ServeConfig:
             raise ConfigError(f"invalid cache_seconds {self.cache_seconds!r}: expected 0..10")
         if not (1 <= self.db_threads <= 64):
             raise ConfigError(f"invalid db_threads {self.db_threads!r}: expected 1..64")
+        if self.probe is not None:
+            self.probe_endpoint()
+
+    def probe_endpoint(self) -> tuple[str, int]:
+        """The probe's (host, port); it must be on loopback: it answers without a certificate."""
+        host, sep, port = str(self.probe).rpartition(":")
+        try:
+            loopback = ipaddress.ip_address(host.strip("[]")).is_loopback
+            number = int(port)
+        except ValueError:
+            loopback, number = False, -1
+        if not sep or not loopback or not 0 < number <= 65535:
+            raise ConfigError(f"invalid probe {self.probe!r}: expected a loopback host:port such as 127.0.0.1:9103 "
+                              "(it answers without a client certificate)")
+        return host.strip("[]"), number
 
 
 #: keys accepted in the TOML file and by build_config (the CLI flags map onto them)
@@ -81,6 +98,7 @@ CONFIG_KEYS = {
     "cache_seconds": float,
     "db_threads": int,
     "shutdown_grace": float,
+    "probe": str,
 }
 
 

@@ -39,6 +39,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     registry = Registry(engine)
     service = AuthzService(cfg, registry)
     runner: web.AppRunner | None = None
+    probe_runner: web.AppRunner | None = None
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     try:
@@ -53,6 +54,16 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         except OSError as exc:
             why = "address already in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
             raise StartupError(f"cannot listen on {cfg.host}:{cfg.port}: {why}") from exc
+        if cfg.probe is not None:
+            probe_runner = web.AppRunner(make_app(service, probe=True), access_log=None, handle_signals=False)
+            await probe_runner.setup()
+            probe_host, probe_port = cfg.probe_endpoint()
+            try:
+                await web.TCPSite(probe_runner, probe_host, probe_port, reuse_address=True).start()
+            except OSError as exc:
+                why = "address already in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
+                raise StartupError(f"cannot listen on the probe {cfg.probe}: {why}") from exc
+            log.info("probe (healthz, metrics; plain HTTP, no client certificate) on http://%s", cfg.probe)
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
         sites = [site]
@@ -71,6 +82,8 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     finally:
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.remove_signal_handler(sig)
+        if probe_runner is not None:
+            await probe_runner.cleanup()
         if runner is not None:
             await runner.cleanup()
         await service.close()

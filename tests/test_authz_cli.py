@@ -264,3 +264,28 @@ def test_serve_from_a_toml_config_with_short_tokens_and_env_passphrase(team, tmp
 
         stop(proc)
     assert proc.returncode == 0
+
+
+def test_probe_serves_health_and_metrics_on_loopback_without_a_certificate(team):
+    """Day 2: a health checker without a client certificate reads /healthz and /metrics
+    on the loopback probe port, and nothing else is there; a probe off loopback is
+    refused at start in one line."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    probe = free_port()
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir, extra=("--probe", f"127.0.0.1:{probe}"))
+    try:
+        d.start()
+        with urllib.request.urlopen(f"http://127.0.0.1:{probe}/healthz", timeout=5) as r:
+            assert json.loads(r.read())["status"] == "ok"
+        with urllib.request.urlopen(f"http://127.0.0.1:{probe}/metrics", timeout=5) as r:
+            assert b"cryptoros_authz" in r.read()
+        with pytest.raises(urllib.error.HTTPError) as info:
+            urllib.request.urlopen(urllib.request.Request(f"http://127.0.0.1:{probe}/token", data=b"x"), timeout=5)
+        assert info.value.code in (404, 405)
+    finally:
+        d.stop()
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--probe", "0.0.0.0:9103"))
+    assert "loopback" in line
