@@ -472,6 +472,9 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         feed = await service.feed()
         stable = {"serial": feed.serial, "revoked_jtis": list(feed.revoked_jtis),
                   "disabled_managers": list(feed.disabled_managers)}
+        if service.crl is not None:  # certificates the CA revoked reach interceptors with no SIGHUP
+            service.crl.refresh()
+            stable["revoked_serials"] = sorted(format(n, "x") for n in service.crl.revoked)
         etag = _etag(json.dumps(stable, sort_keys=True).encode())
         if etag in _if_none_match(request):
             return web.Response(status=304, headers={"ETag": etag, "Cache-Control": "no-cache"})

@@ -201,6 +201,8 @@ class Revocations:
 
     revoked_jtis: frozenset[str] = frozenset()
     disabled_subjects: frozenset[str] = frozenset()
+    #: serials the CA's CRL lists: a token is refused over such a certificate
+    revoked_serials: frozenset[int] = frozenset()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -306,6 +308,12 @@ _PYJWT_REASONS: tuple[tuple[type[Exception], str], ...] = (
 )
 
 
+def _serial_of(der: bytes) -> int:
+    from cryptography import x509
+
+    return x509.load_der_x509_certificate(der).serial_number
+
+
 def verify_access_token(
     token: str,
     *,
@@ -380,6 +388,8 @@ def verify_access_token(
         raise TokenError("cnf_mismatch", "token is bound to another certificate")
 
     if revocations is not None:
+        if revocations.revoked_serials and _serial_of(peer_cert_der) in revocations.revoked_serials:
+            raise TokenError("certificate_revoked", "the certificate this token is bound to was revoked by the CA")
         if jti in revocations.revoked_jtis:
             raise TokenError("revoked", f"token {jti} was revoked")
         if subject in revocations.disabled_subjects:

@@ -42,6 +42,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import aiohttp
+from cryptography import x509
 
 from cryptoros.errors import TokenError
 from cryptoros.tokens import AccessToken, KeySet, Revocations, peer_audience, verify_access_token
@@ -134,14 +135,22 @@ class AuthzClient:
         status, body, resp_headers = await self._json("GET", "/revocations", headers=headers)
         if status == 304:
             return None
+        if status == 401:
+            raise AuthzRefused("revocation feed: HTTP 401 (our certificate is refused: revoked by the CA?)")
         if status != 200 or body is None:
             raise AuthzUnavailable(f"revocation feed: HTTP {status}")
         jtis, managers = body.get("revoked_jtis"), body.get("disabled_managers")
         if not (isinstance(jtis, list) and isinstance(managers, list)):
             raise AuthzUnavailable("revocation feed lacks revoked_jtis or disabled_managers")
+        serials = body.get("revoked_serials", [])
+        try:
+            revoked_serials = frozenset(int(str(n), 16) for n in serials)
+        except (TypeError, ValueError):
+            raise AuthzUnavailable("revocation feed: revoked_serials are not hex serials") from None
         self._feed_etag = resp_headers.get("ETag")
         return Revocations(
-            revoked_jtis=frozenset(str(j) for j in jtis), disabled_subjects=frozenset(str(m) for m in managers)
+            revoked_jtis=frozenset(str(j) for j in jtis), disabled_subjects=frozenset(str(m) for m in managers),
+            revoked_serials=revoked_serials,
         )
 
 
@@ -156,6 +165,10 @@ def _hint(exc: BaseException) -> str:
     if isinstance(exc, (aiohttp.ClientConnectorError, ConnectionRefusedError)):
         return " (nothing answers there: is cryptoros-authz running, and [authz] url right?)"
     return ""
+
+
+class AuthzRefused(AuthzUnavailable):
+    """The authorization server answered, and refused our certificate (401)."""
 
 
 class TokenKeeper:
@@ -299,6 +312,8 @@ class PeerVerifier:
     """Verifies peer tokens; cuts off open streams on revocation."""
 
     JWKS_REFRESH_INTERVAL = 60.0
+    #: certificates whose serials are remembered (for CA revocations in the feed)
+    MAX_CERTIFICATES = 4096
     UNKNOWN_KID_COOLDOWN = 5.0
 
     def __init__(
@@ -321,6 +336,7 @@ class PeerVerifier:
         self.grace = grace
         self.revocation_grace = revocation_grace
         self._freshest: dict[tuple[str, str], AccessToken] = {}
+        self._serials: dict[str, int] = {}  # certificate thumbprint -> serial, of peers verified
         self._clock = clock
         self.keys = KeySet({})
         self.revocations = Revocations()
@@ -328,6 +344,8 @@ class PeerVerifier:
         self._last_jwks = 0.0
         self.ready = asyncio.Event()
         self.last_feed_at: float | None = None
+        #: The last feed poll was refused (401): our certificate is not accepted any more.
+        self.refused = False
         #: Called with each new feed (after open streams were cut).
         self.listeners: list[Callable[[Revocations], None]] = []
         #: Called with a peer token the feed just revoked (its holder may have a new one).
@@ -337,7 +355,7 @@ class PeerVerifier:
         """Verify with the keys and revocations known now; TokenError on any failure.
         The audience is the deployment's (a whole token) or :attr:`own_audience` (a
         token narrowed for this interceptor); one narrowed for another peer is refused."""
-        return verify_access_token(
+        access = verify_access_token(
             token,
             keys=self.keys,
             issuer=self.issuer,
@@ -346,6 +364,11 @@ class PeerVerifier:
             now=self._clock(),
             revocations=self.revocations,
         )
+        if access.thumbprint not in self._serials:  # so a CA revocation in the feed can cut its streams
+            if len(self._serials) >= self.MAX_CERTIFICATES:
+                del self._serials[next(iter(self._serials))]
+            self._serials[access.thumbprint] = x509.load_der_x509_certificate(peer_cert_der).serial_number
+        return access
 
     async def verify_fresh(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
         """Like :meth:`verify`, but an unknown ``kid`` triggers one JWKS refresh first
@@ -466,7 +489,8 @@ class PeerVerifier:
             log.warning("cannot refresh JWKS (%s); keeping %d known keys", exc.detail, len(self.keys))
 
     def apply(self, revocations: Revocations) -> int:
-        """Adopt a new feed: cut every watched stream of a disabled manager; a stream
+        """Adopt a new feed: cut every watched stream of a disabled manager or over a
+        certificate the CA revoked (its serial in the feed's CRL list); a stream
         whose token is revoked gets ``revocation_grace`` seconds for its peer to show a
         fresh one (see the module docstring). Returns how many were cut now."""
         self.revocations = revocations
@@ -477,6 +501,9 @@ class PeerVerifier:
             access = entry.access
             if access.subject in revocations.disabled_subjects:
                 self._cut(entry, "subject_disabled")
+                cut += 1
+            elif self._serials.get(access.thumbprint) in revocations.revoked_serials:
+                self._cut(entry, "certificate_revoked")  # no fresh token helps: they are bound to it
                 cut += 1
             elif access.jti in revocations.revoked_jtis:
                 if entry.revoked_deadline is None:
@@ -499,6 +526,7 @@ class PeerVerifier:
                 await self.refresh_jwks()
             try:
                 feed = await self._client.fetch_revocations()
+                self.refused = False
                 if down_since is not None:
                     log.warning("the revocation feed answers again (unreachable for %.0f s)", self._clock() - down_since)
                     down_since = None
@@ -508,6 +536,7 @@ class PeerVerifier:
                 if len(self.keys):
                     self.ready.set()
             except TokenError as exc:
+                self.refused = isinstance(exc, AuthzRefused)
                 if down_since is None:  # one line when it goes, one when it comes back
                     down_since = self._clock()
                     log.warning("cannot poll the revocation feed (%s); keeping the last one, new streams are "
@@ -516,4 +545,4 @@ class PeerVerifier:
             await asyncio.sleep(self._poll)
 
 
-__all__ = ["AuthzClient", "AuthzUnavailable", "OwnToken", "PeerVerifier", "TokenKeeper"]
+__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "PeerVerifier", "TokenKeeper"]

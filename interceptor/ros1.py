@@ -532,7 +532,13 @@ class Interceptor:
         """When the feed revokes our own token or disables our manager, drop the token
         (nothing is allowed on it any more) and ask for a new one at once."""
         own = self._own_access
-        if own is not None and (own.jti in revocations.revoked_jtis or own.subject in revocations.disabled_subjects):
+        if x509.load_der_x509_certificate(self._own_cert_der).serial_number in revocations.revoked_serials:
+            log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
+                      "renew it (cryptoros-certs renew, set-cert, SIGHUP)",
+                      x509.load_der_x509_certificate(self._own_cert_der).serial_number)
+            self._own_access = None
+            self.keeper.invalidate()
+        elif own is not None and (own.jti in revocations.revoked_jtis or own.subject in revocations.disabled_subjects):
             log.warning("our own access token was revoked; asking for a new one")
             self._own_access = None
             self.keeper.invalidate()
@@ -839,7 +845,11 @@ class Interceptor:
             writer.close()
 
     def _check_feed_age(self) -> None:
-        """Fail closed when the revocation feed is stale: a revoked peer could be let in."""
+        """Fail closed when the revocation feed is stale (a revoked peer could be let in)
+        or the authorization server refuses our certificate (revoked by the CA)."""
+        if self.verifier.refused:
+            raise PolicyDenied("authz_refused", "the authorization server refuses this interceptor's certificate "
+                                                "(HTTP 401: revoked by the CA?)")
         last = self.verifier.last_feed_at
         age = None if last is None else time.time() - last
         if age is None or age > self.cfg.limits.max_feed_age:

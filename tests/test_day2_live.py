@@ -138,3 +138,30 @@ def test_restarting_an_interceptor_needs_no_node_restart(tmp_path, restarted):
             assert time.monotonic() - restarted_at < 10.5
             assert sub.poll() is None and pub.poll() is None
         assert "state restored" in net.hosts[restarted].logs()
+
+
+def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_sighup(tmp_path):
+    """Day 2, revocation without SIGHUP: robot B's certificate is revoked with the CA
+    (a new CRL; no interceptor is signalled). The authorization server's feed lists the
+    serial, so robot A cuts robot B's open stream within 5 s and refuses its new ones
+    (its token is bound to the revoked certificate); robot B's own interceptor, whose
+    feed polls are now refused, says so in /healthz (503) and refuses new streams."""
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b")) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "60"], env=net.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(net, "/talker_a")
+        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "60"], env=net.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            assert got(read_lines(sub, "GOT", 20))
+            net.pki.revoke("robot_b")
+            revoked_at = time.monotonic()
+            deadline = revoked_at + 5
+            while "certificate_revoked" not in net.hosts["robot_a"].logs():
+                assert time.monotonic() < deadline, net.hosts["robot_a"].logs()[-3000:]
+                time.sleep(0.1)
+            read_lines(sub, None, 1.0)  # whatever was in flight
+            assert not got(read_lines(sub, None, 3.0)), "robot B still receives over a revoked certificate"
+        url = f"http://127.0.0.1:{net.hosts['robot_b'].metrics_port}/healthz"
+        with pytest.raises(urllib.error.HTTPError) as unhealthy:
+            urllib.request.urlopen(url, timeout=5)
+        assert unhealthy.value.code == 503 and b"authz_refused" in unhealthy.value.read()
