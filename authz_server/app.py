@@ -149,6 +149,36 @@ class _AuditWriter:
             await self._task
 
 
+class _ClientBuckets:
+    """A token bucket per client certificate (bounded: the least recent go first)."""
+
+    MAX_CLIENTS = 10_000
+
+    def __init__(self, rate: float, burst: int) -> None:
+        self.rate, self.burst = rate, float(burst)
+        self._state: dict[str, tuple[float, float]] = {}
+        self._logged: dict[str, float] = {}
+
+    def allow(self, key: str) -> bool:
+        now = time.monotonic()
+        tokens, last = self._state.pop(key, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - last) * self.rate)
+        allowed = tokens >= 1.0
+        self._state[key] = (tokens - 1.0 if allowed else tokens, now)
+        while len(self._state) > self.MAX_CLIENTS:
+            del self._state[next(iter(self._state))]
+        return allowed
+
+    def should_log(self, key: str) -> bool:
+        now = time.monotonic()
+        if now - self._logged.get(key, -60.0) < 60.0:
+            return False
+        if len(self._logged) >= self.MAX_CLIENTS:
+            self._logged.clear()
+        self._logged[key] = now
+        return True
+
+
 class CRLWatcher:
     """Serials revoked by the CA's CRL, re-read when the file changes.
 
@@ -247,6 +277,8 @@ class AuthzService:
         self._shared = _Cache(cfg.cache_seconds)
         self._signer: _Signer | None = None
         self.audit = _AuditWriter(self)
+        self._token_bucket = _ClientBuckets(cfg.token_rate, cfg.token_burst)
+        self._pruner: asyncio.Task | None = None
         self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
@@ -264,8 +296,23 @@ class AuthzService:
             assert active is not None
         self._signer = await self._load_signer(active.kid, active.private_pem, active.encrypted)
         self.audit.start()
+        self._pruner = asyncio.create_task(self._prune_audit_forever(), name="audit-pruner")
+
+    async def _prune_audit_forever(self, every: float = 3600.0) -> None:
+        """Keep the audit log bounded (audit_keep_days, audit_max_rows), at start and hourly."""
+        while True:
+            try:
+                n = await self.db(self.registry.prune_audit, keep_days=self.cfg.audit_keep_days,
+                                  max_rows=self.cfg.audit_max_rows)
+                if n:
+                    log.info("audit log pruned: %d old rows deleted", n)
+            except Exception as exc:  # the database is down: try again next time
+                log.error("audit log pruning failed: %s", exc)
+            await asyncio.sleep(every)
 
     async def close(self) -> None:
+        if self._pruner is not None:
+            self._pruner.cancel()
         await self.audit.close()
         self.executor.shutdown(wait=True)
 
@@ -335,6 +382,12 @@ class AuthzService:
                 raise _Denied(400, "unsupported_grant_type", f"grant_type {grant_type[:40]!r}")
             if self.crl is not None and self.crl.is_revoked(der):
                 raise _Denied(401, "invalid_client", "certificate_revoked")
+            if not self._token_bucket.allow(fp):  # before any audit row: a flood writes none
+                self.metrics.denied.labels("rate_limited").inc()
+                if self._token_bucket.should_log(fp):
+                    log.warning("token requests from certificate %s (%s) over %.0f/s: answered 429 (logged once a "
+                                "minute)", fp[:16], remote, self.cfg.token_rate)
+                return _oauth_error(429, "slow_down")
             info, grants = await self.manager_for(fp)
             if info is None:
                 raise _Denied(401, "invalid_client", "unknown_certificate")

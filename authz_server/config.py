@@ -42,6 +42,12 @@ class ServeConfig:
     shutdown_grace: float = 5.0
     #: ``host:port`` on loopback: /healthz and /metrics over plain HTTP for probes
     probe: str | None = None
+    #: token requests per second one client certificate may make (bucket of token_burst)
+    token_rate: float = 20.0
+    token_burst: int = 300
+    #: the audit log keeps rows this many days, and at most audit_max_rows (pruned hourly)
+    audit_keep_days: float = 90.0
+    audit_max_rows: int = 1_000_000
 
     def __post_init__(self) -> None:
         try:
@@ -65,6 +71,12 @@ class ServeConfig:
             raise ConfigError(f"invalid db_threads {self.db_threads!r}: expected 1..64")
         if self.probe is not None:
             self.probe_endpoint()
+        if not (0 < self.token_rate <= 10_000 and 1 <= self.token_burst <= 100_000):
+            raise ConfigError(f"invalid token_rate/token_burst {self.token_rate!r}/{self.token_burst!r}: "
+                              "expected 0 < rate <= 10000 and 1 <= burst <= 100000")
+        if not (1 <= self.audit_keep_days <= 36_500 and 1_000 <= self.audit_max_rows <= 1_000_000_000):
+            raise ConfigError(f"invalid audit_keep_days/audit_max_rows {self.audit_keep_days!r}/"
+                              f"{self.audit_max_rows!r}: expected 1..36500 days and 1000..1e9 rows")
 
     def probe_endpoint(self) -> tuple[str, int]:
         """The probe's (host, port); it must be on loopback: it answers without a certificate."""
@@ -99,6 +111,10 @@ CONFIG_KEYS = {
     "db_threads": int,
     "shutdown_grace": float,
     "probe": str,
+    "token_rate": float,
+    "token_burst": int,
+    "audit_keep_days": float,
+    "audit_max_rows": int,
 }
 
 

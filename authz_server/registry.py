@@ -21,7 +21,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
-from sqlalchemy import Engine, delete, func, select, update
+from sqlalchemy import Engine, delete, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -522,6 +522,20 @@ class Registry:
         if rows:
             with self._session.begin() as s:
                 s.add_all(rows)
+
+    def prune_audit(self, *, keep_days: float, max_rows: int, now: float | None = None) -> int:
+        """Bound the audit log: delete rows older than ``keep_days`` and, beyond
+        ``max_rows``, the oldest ones; never a row of a token not yet expired (the JWKS
+        keeps a retired key published while such a token lives). Returns rows deleted."""
+        now_i = int(time.time() if now is None else now)
+        done = or_(AuditLog.expires_at.is_(None), AuditLog.expires_at < now_i)
+        cutoff = datetime.fromtimestamp(now_i - keep_days * 86400, tz=UTC)
+        with self._session.begin() as s:
+            deleted = s.execute(delete(AuditLog).where(AuditLog.at < cutoff, done)).rowcount or 0
+            threshold = s.scalar(select(AuditLog.id).order_by(AuditLog.id.desc()).offset(max_rows).limit(1))
+            if threshold is not None:
+                deleted += s.execute(delete(AuditLog).where(AuditLog.id <= threshold, done)).rowcount or 0
+        return deleted
 
     def audit(self, *, limit: int = 50, manager: str | None = None, event: str | None = None) -> list[AuditEntry]:
         with self._session() as s:

@@ -289,3 +289,26 @@ def test_probe_serves_health_and_metrics_on_loopback_without_a_certificate(team)
         d.stop()
     line = one_line_error(_serve(team, "--port", str(free_port()), "--probe", "0.0.0.0:9103"))
     assert "loopback" in line
+
+
+def test_a_client_hammering_token_gets_429_and_writes_no_audit_rows(tmp_path):
+    """An insider with a valid certificate asking for tokens in a loop (each one a
+    signature and an audit row) is held to token_rate per second after token_burst:
+    429 slow_down, no audit row per refused request, other clients unaffected."""
+    import json
+
+    team = build_team(tmp_path)
+    cfg = tmp_path / "authz.toml"
+    cfg.write_text("token_rate = 0.5\ntoken_burst = 3\n")
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=tmp_path, extra=("--config", str(cfg)))
+    try:
+        d.start()
+        answers = [d.token("alice") for _ in range(6)]
+        assert [status for status, _ in answers[:3]] == [200, 200, 200]
+        assert all(status == 429 and body == {"error": "slow_down"} for status, body in answers[3:]), answers
+        assert d.token("bob")[0] == 200  # per certificate
+        rows = [json.loads(line) for line in ok(cli("audit", "--json", "--manager", "alice", db=team.db)).splitlines()]
+        assert len(rows) == 3
+    finally:
+        d.stop()
+    assert "answered 429" in d.log()

@@ -310,3 +310,23 @@ def test_token_ids_are_128_bit_hex_so_the_cli_never_reads_one_as_an_option():
     ids = [new_jti() for _ in range(5000)]
     assert len(set(ids)) == len(ids)
     assert all(len(j) == 32 and int(j, 16) >= 0 and not j.startswith("-") for j in ids)
+
+
+def test_the_audit_log_is_bounded_by_age_and_rows_but_keeps_unexpired_tokens(reg):
+    """An insider hammering /token (each issue is a row) must not grow the table without
+    bound: rows past the retention and beyond the row cap go, oldest first, except rows
+    of tokens still valid (the JWKS keeps a retired key while one lives)."""
+
+    now = 1_900_000_000
+    at = datetime.fromtimestamp(now, tz=UTC)
+    old = [AuditEntry("issued", None, None, "127.0.0.1", "", f"old{i}", "k1", now - 3600, at - timedelta(days=100))
+           for i in range(5)]
+    live_old = [AuditEntry("issued", None, None, "127.0.0.1", "", "live-old", "k1", now + 300, at - timedelta(days=100))]
+    recent = [AuditEntry("denied", None, None, "127.0.0.1", f"r{i}", at=at - timedelta(seconds=100 - i))
+              for i in range(20)]
+    reg.record(old + live_old + recent)
+    assert reg.prune_audit(keep_days=90, max_rows=10, now=now) == 5 + 10  # old by age, then all but the newest 10
+    left = reg.audit(limit=1000)
+    assert [e.jti for e in left if e.jti] == ["live-old"]  # unexpired: kept past age and cap
+    assert [e.reason for e in left if e.event == "denied"] == [f"r{i}" for i in range(10, 20)]
+    assert reg.prune_audit(keep_days=90, max_rows=10, now=now) == 0
