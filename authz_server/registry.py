@@ -526,7 +526,8 @@ class Registry:
     def prune_audit(self, *, keep_days: float, max_rows: int, now: float | None = None) -> int:
         """Bound the audit log: delete rows older than ``keep_days`` and, beyond
         ``max_rows``, the oldest ones; never a row of a token not yet expired (the JWKS
-        keeps a retired key published while such a token lives). Returns rows deleted."""
+        keeps a retired key published while such a token lives). Revoked-token rows go
+        a day after the token's expiry. Returns rows deleted."""
         now_i = int(time.time() if now is None else now)
         done = or_(AuditLog.expires_at.is_(None), AuditLog.expires_at < now_i)
         cutoff = datetime.fromtimestamp(now_i - keep_days * 86400, tz=UTC)
@@ -535,6 +536,8 @@ class Registry:
             threshold = s.scalar(select(AuditLog.id).order_by(AuditLog.id.desc()).offset(max_rows).limit(1))
             if threshold is not None:
                 deleted += s.execute(delete(AuditLog).where(AuditLog.id <= threshold, done)).rowcount or 0
+            # revoked tokens a day past their expiry: no verifier accepts them anyway
+            deleted += s.execute(delete(RevokedToken).where(RevokedToken.expires_at < now_i - 86400)).rowcount or 0
         return deleted
 
     def audit(self, *, limit: int = 50, manager: str | None = None, event: str | None = None) -> list[AuditEntry]:
