@@ -87,6 +87,11 @@ def _parse_ros_uri(uri: str) -> tuple[str, str, int]:
 class Translator:
     """Export table, relay table and the mappings between them."""
 
+    #: Local endpoints given ids (each node's XML-RPC, TCPROS and service ports; a node
+    #: restarted on new ports adds its new ones): a local process registering endless
+    #: fake URIs is refused past this, and the state file it rewrites stays bounded.
+    MAX_EXPORTS = 16_384
+
     def __init__(
         self,
         *,
@@ -122,6 +127,8 @@ class Translator:
         key = (kind, host, port)
         ident = self._export_ids.get(key)
         if ident is None:
+            if len(self._exports) >= self.MAX_EXPORTS:  # ids are stable for life: a local flood stops here
+                raise PolicyDenied("export_limit", f"{self.MAX_EXPORTS} local endpoints exported already")
             ident = str(len(self._exports) + 1)
             self._export_ids[key] = ident
             self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=port, uri=uri)

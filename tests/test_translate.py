@@ -1,0 +1,47 @@
+"""The export and relay tables of interceptor/translate.py: pure, no sockets."""
+
+from __future__ import annotations
+
+import pytest
+
+from cryptoros.errors import PolicyDenied
+from interceptor.translate import Translator
+
+
+def _translator(**kw) -> Translator:
+    opened: list[tuple[str, int]] = []
+
+    def open_relay(target, port):
+        opened.append((target.host, port))
+        return "127.0.0.1", 40000 + len(opened)
+
+    return Translator(public_host="127.0.0.2", public_port=11400, local_master_uri="http://127.0.0.1:11311/",
+                      open_relay=open_relay, **kw)
+
+
+def test_exports_are_stable_loopback_only_and_bounded(monkeypatch):
+    t = _translator()
+    first = t.to_canonical("http://127.0.0.1:5000/")
+    assert t.to_canonical("http://127.0.0.1:5000/") == first == "cryptoros://127.0.0.2:11400/x/1"
+    assert t.to_local(first) == "http://127.0.0.1:5000/"
+    with pytest.raises(PolicyDenied) as foreign:
+        t.to_canonical("http://10.1.2.3:5000/")
+    assert foreign.value.reason == "foreign_uri"
+    monkeypatch.setattr(Translator, "MAX_EXPORTS", 3)
+    t.to_canonical("http://127.0.0.1:5001/")
+    t.to_canonical("http://127.0.0.1:5002/")
+    with pytest.raises(PolicyDenied) as full:  # a local process registering endless fake URIs
+        t.to_canonical("http://127.0.0.1:5003/")
+    assert full.value.reason == "export_limit"
+    assert t.to_canonical("http://127.0.0.1:5001/").endswith("/x/2")  # known ones still resolve
+
+
+def test_relays_toward_one_peer_are_capped():
+    t = _translator(max_relays_per_host=2)
+    t.to_local("cryptoros://127.0.0.3:11400/x/1")
+    t.to_local("cryptoros://127.0.0.3:11400/x/2")
+    assert t.to_local("cryptoros://127.0.0.3:11400/x/1").startswith("http://127.0.0.1:")  # the same relay again
+    with pytest.raises(PolicyDenied) as capped:
+        t.to_local("cryptoros://127.0.0.3:11400/x/3")
+    assert capped.value.reason == "relay_limit"
+    assert t.to_local("cryptoros://127.0.0.4:11400/x/1")  # another peer is not affected
