@@ -9,6 +9,7 @@ import signal
 import socket
 import struct
 import time
+import urllib.error
 import urllib.request
 
 import pytest
@@ -214,6 +215,14 @@ def test_cryptoros_status_shows_token_grants_feed_certificate_and_peers(network)
 
     from tests.support import run, script
 
+    deadline = time.monotonic() + 20  # the test before disabled and re-enabled robot B: its token is back first
+    while True:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{network.hosts['robot_b'].metrics_port}/healthz", timeout=5):
+                break
+        except urllib.error.HTTPError:
+            assert time.monotonic() < deadline, "robot B's authority did not come back after enable-manager"
+            time.sleep(0.1)
     host = network.hosts["robot_a"]
     status = [script("cryptoros"), "status", "--config", str(host.config)]
     with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "30"], env=network.ros_env("robot_b")) as sub:
