@@ -91,7 +91,7 @@ class LiveHost:
         self.loop.call_later(max(0.0, delay) / self.scale, self._run, fn)
 
     def _run(self, fn: Callable[[], None]) -> None:
-        if getattr(fn, "__func__", None) is Robot._step:
+        if getattr(fn, "__func__", None) is Robot._step or getattr(fn, "is_motion_step", False):
             wait = self.halted_until - self.loop.time()
             if wait > 0:  # the base obeys the stop command it received: no motion now
                 self.halted_s += wait
@@ -463,7 +463,10 @@ def _wrap_schedule(robot: Robot, step: Callable[[], None]) -> Callable[[float], 
     host = robot.host
 
     class _Step:
-        __func__ = Robot._step  # recognised by LiveHost as a motion step (halts obey stop commands)
+        # recognised by LiveHost as a motion step: a halted base obeys the stop commands it
+        # received. (It used to say ``__func__ = Robot._step``, which an instance reads as a
+        # bound method, never ``Robot._step`` itself: stop floods halted nothing.)
+        is_motion_step = True
 
         def __call__(self) -> None:
             step()

@@ -437,7 +437,8 @@ def _sum_denials(metrics: dict[str, dict[str, Any]]) -> dict[str, int]:
 
 
 def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, dict[str, Any]]:
-    """Per attack: did it succeed, from what the victims received and executed."""
+    """Per attack: did it succeed, judged by its effect where the victim shows one (a
+    halted base, phantom cells in a map, an executed shutdown), else by what it received."""
     final = mode["_final"]
     stats = {r: s["stats"] for r, s in final.items()}
     published: set[str] = set()
@@ -456,11 +457,11 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
             c = stats[t]["pose_foreign"]
             ok, ev = c > 0, f"{t} received {c} spoofed poses (max error {stats[t]['pose_max_error_m']} m)"
         elif k == "scan-noise":
-            c = stats[t]["scan_foreign"]
-            ok, ev = c > 0, f"{t} received {c} noise scans ({stats[t]['scan_cells_corrupted']} phantom cells in its map)"
+            c, phantom = stats[t]["scan_foreign"], stats[t]["scan_cells_corrupted"]
+            ok, ev = phantom > 0, f"{t} received {c} noise scans ({phantom} phantom cells in its map)"
         elif k == "cmd-flood":
-            c = stats[t]["cmd_foreign"]
-            ok, ev = c > 0, f"{t} received {c} foreign stop commands, halted {final[t].get('halted_s', 0)} s"
+            c, halted = stats[t]["cmd_foreign"], final[t].get("halted_s") or 0.0
+            ok, ev = halted > 0, f"{t} received {c} foreign stop commands, halted {halted} s"  # judged by effect
         elif k == "false-map":
             c = sum(s["map_from_non_team"] for s in stats.values())
             done = sum(1 for s in final.values() if s.get("state") == "done")
