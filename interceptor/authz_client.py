@@ -74,6 +74,7 @@ class AuthzClient:
         self._ssl = ssl_context
         self._session: aiohttp.ClientSession | None = None
         self._feed_etag: str | None = None
+        self._current = 0  # the replica in use (settings.urls)
 
     def _http(self) -> aiohttp.ClientSession:
         if self._session is None or self._session.closed:
@@ -95,17 +96,34 @@ class AuthzClient:
             await old.close()
 
     async def _json(self, method: str, path: str, **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
-        url = self.settings.url + path
-        try:
-            async with self._http().request(method, url, **kw) as resp:
-                if resp.status == 304:
-                    return resp.status, None, resp.headers
-                body = await resp.json(content_type=None)
-                if not isinstance(body, dict):
-                    raise AuthzUnavailable(f"{path}: answer is not a JSON object")
-                return resp.status, body, resp.headers
-        except (aiohttp.ClientError, asyncio.TimeoutError, ValueError, ssl.SSLError, OSError) as exc:
-            raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}") from exc
+        """One request to the replica in use; one that does not answer (connection
+        refused, reset, TLS failure, timeout) hands the request to the next, which is
+        then used from now on. Any HTTP answer is an answer: no failover on a 4xx."""
+        bases = self.settings.urls or (self.settings.url,)
+        failures = []
+        for attempt in range(len(bases)):
+            index = (self._current + attempt) % len(bases)
+            url = bases[index] + path
+            try:
+                async with self._http().request(method, url, **kw) as resp:
+                    if resp.status == 304:
+                        answer = resp.status, None, resp.headers
+                    else:
+                        body = await resp.json(content_type=None)
+                        if not isinstance(body, dict):
+                            raise AuthzUnavailable(f"{path}: answer is not a JSON object")
+                        answer = resp.status, body, resp.headers
+            except (aiohttp.ClientConnectionError, asyncio.TimeoutError, ssl.SSLError, OSError) as exc:
+                failures.append(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}")
+                continue
+            except (aiohttp.ClientError, ValueError) as exc:
+                raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}") from exc
+            if index != self._current:
+                log.warning("authorization server %s does not answer; using %s", bases[self._current], bases[index])
+                self._current = index
+            return answer
+        raise AuthzUnavailable("; ".join(failures) if len(failures) == 1 else
+                               f"no authorization server answers ({len(failures)} tried): " + "; ".join(failures))
 
     async def fetch_token(self, *, clock: Clock = time.time, resource: str | None = None) -> OwnToken:
         """Our token; with ``resource`` (RFC 8707) one for that peer only, narrowed to

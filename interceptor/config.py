@@ -117,6 +117,8 @@ def _is_loopback(host: str) -> bool:
 @dataclass(frozen=True, kw_only=True)
 class AuthzSettings:
     url: str
+    #: every replica, ``url`` first; requests fail over to the next when one does not answer
+    urls: tuple[str, ...] = ()
     issuer: str = "cryptoros-authz"
     audience: str = "cryptoros"
     refresh_margin: float = 60.0
@@ -320,11 +322,15 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         raise ConfigError("[authz] is required: the interceptor will not start without a token source")
     authz_raw = _check_keys(top["authz"], "authz")
     url = authz_raw.get("url")
-    parsed = urllib.parse.urlsplit(url) if isinstance(url, str) else None
-    if parsed is None or parsed.scheme != "https" or not parsed.hostname:
-        raise ConfigError(f"[authz] url must be an https:// URL, got {url!r}")
+    candidates = url if isinstance(url, list) and url else [url]
+    for one in candidates:
+        parsed = urllib.parse.urlsplit(one) if isinstance(one, str) else None
+        if parsed is None or parsed.scheme != "https" or not parsed.hostname:
+            raise ConfigError(f"[authz] url must be an https:// URL or a list of them (replicas), got {url!r}")
+    urls = tuple(dict.fromkeys(one.rstrip("/") for one in candidates))
     authz = AuthzSettings(
-        url=url.rstrip("/"),
+        url=urls[0],
+        urls=urls,
         **{
             k: _typed(authz_raw[k], str if k in ("issuer", "audience") else float, f"[authz] {k}")
             for k in authz_raw

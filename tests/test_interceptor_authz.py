@@ -19,6 +19,8 @@ from interceptor.authz_client import AuthzClient, AuthzUnavailable, PeerVerifier
 from interceptor.config import AuthzSettings
 from tests.authz_support import build_team, running_daemon
 
+pytest_plugins = ["tests.postgres_fixture"]
+
 
 @pytest.fixture
 def team(tmp_path):
@@ -203,3 +205,45 @@ def test_of_two_tokens_issued_in_one_second_the_one_shown_last_judges_the_peer()
     assert verifier.freshest(before).grants.param_allows("write", "/rosparam", "/shared/speed")
     assert verifier.note(after) is after  # shown again: nothing changes, no re-judging
     assert not stream
+
+
+async def test_replicas_on_postgresql_and_the_client_fails_over_when_one_dies(tmp_path, postgres_url):
+    """Fleet scale: two cryptoros-authz replicas over one PostgreSQL database issue and
+    verify the same (one signing key, one registry); an interceptor's client given both
+    URLs keeps getting tokens, the JWKS and the feed from the second when the first is
+    killed, and says so in one log line."""
+    import logging
+
+    from tests.authz_support import authz, ok
+
+    team = build_team(tmp_path, db=postgres_url)
+    with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, postgres_url, tmp_path) as second:
+        alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
+        ctx = client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert, key_file=alice_key))
+        client = AuthzClient(AuthzSettings(url=first.base, urls=(first.base, second.base), request_timeout=5.0), ctx)
+        verifier = PeerVerifier(client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1)
+        try:
+            before = await client.fetch_token()
+            await verifier.refresh_jwks()
+            assert verifier.verify(before.token, der_of(team.pki, "alice")).subject == "alice"
+            assert await client.fetch_revocations() is not None
+            first.stop()
+            records: list[logging.LogRecord] = []
+            handler = logging.Handler()
+            handler.emit = records.append  # type: ignore[method-assign]
+            logging.getLogger("cryptoros.interceptor.authz").addHandler(handler)
+            try:
+                after = await client.fetch_token()  # from the second replica, signed with the same key
+                assert verifier.verify(after.token, der_of(team.pki, "alice")).subject == "alice"
+                keys = await client.fetch_jwks()
+                assert len(keys) >= 1
+                ok(authz("revoke-token", verifier.verify(before.token, der_of(team.pki, "alice")).jti,
+                         db=postgres_url))
+                feed = await client.fetch_revocations()
+                assert feed is not None and len(feed.revoked_jtis) == 1  # the revocation, seen through the replica
+            finally:
+                logging.getLogger("cryptoros.interceptor.authz").removeHandler(handler)
+            switched = [r.getMessage() for r in records if "does not answer; using" in r.getMessage()]
+            assert switched == [f"authorization server {first.base} does not answer; using {second.base}"]
+        finally:
+            await client.close()

@@ -165,3 +165,13 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
     down = check(f"https://127.0.0.1:{free_port()}")
     assert down.returncode == 1 and "nothing answers there" in down.stderr and "Traceback" not in down.stderr, \
         down.stderr
+
+
+def test_authz_url_may_list_replicas(material, tmp_path):
+    cfg = load(write(tmp_path, good(material, **{'url = "https://127.0.0.1:8443"':
+                                                 'url = ["https://127.0.0.1:8443/", "https://127.0.0.9:8443"]'})))
+    assert cfg.authz.url == "https://127.0.0.1:8443"
+    assert cfg.authz.urls == ("https://127.0.0.1:8443", "https://127.0.0.9:8443")
+    with pytest.raises(ConfigError, match="list of them"):
+        load(write(tmp_path, good(material, **{'url = "https://127.0.0.1:8443"':
+                                               'url = ["https://127.0.0.1:8443", "http://127.0.0.9:8443"]'})))
