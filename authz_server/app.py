@@ -25,6 +25,7 @@ stored, and all rows that arrive meanwhile share one transaction.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import hashlib
 import json
@@ -58,6 +59,10 @@ log = logging.getLogger("cryptoros.authz")
 T = TypeVar("T")
 
 MAX_BODY = 16 * 1024
+#: how often each replica reads the feed from the registry (long-polls wake on a change)
+FEED_WATCH_INTERVAL = 0.25
+#: the longest a long-poll of the feed may wait (``/revocations?wait=``)
+MAX_FEED_WAIT = 55.0
 
 
 class _Cache:
@@ -279,6 +284,9 @@ class AuthzService:
         self.audit = _AuditWriter(self)
         self._token_bucket = _ClientBuckets(cfg.token_rate, cfg.token_burst)
         self._pruner: asyncio.Task | None = None
+        self._watcher: asyncio.Task | None = None
+        self._latest: tuple[dict, str] | None = None
+        self._feed_changed = asyncio.Event()
         self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
@@ -297,6 +305,7 @@ class AuthzService:
         self._signer = await self._load_signer(active.kid, active.private_pem, active.encrypted)
         self.audit.start()
         self._pruner = asyncio.create_task(self._prune_audit_forever(), name="audit-pruner")
+        self._watcher = asyncio.create_task(self._watch_feed(), name="feed-watcher")
 
     async def _prune_audit_forever(self, every: float = 3600.0) -> None:
         """Keep the audit log bounded (audit_keep_days, audit_max_rows), at start and hourly."""
@@ -311,8 +320,9 @@ class AuthzService:
             await asyncio.sleep(every)
 
     async def close(self) -> None:
-        if self._pruner is not None:
-            self._pruner.cancel()
+        for task in (self._pruner, self._watcher):
+            if task is not None:
+                task.cancel()
         await self.audit.close()
         self.executor.shutdown(wait=True)
 
@@ -354,17 +364,64 @@ class AuthzService:
 
         return await self._shared.get("jwks", fetch)
 
+    async def current_feed(self) -> tuple[dict, str]:
+        """The feed as served (registry part and, with a CRL, the revoked serials) and
+        its ETag: the watcher's latest (at most ``FEED_WATCH_INTERVAL`` old), else read."""
+        if self._latest is not None:
+            return self._latest
+        return self._stable(await self.feed())
+
+    def _stable(self, feed: RevocationFeed) -> tuple[dict, str]:
+        stable: dict[str, Any] = {"serial": feed.serial, "revoked_jtis": list(feed.revoked_jtis),
+                                  "disabled_managers": list(feed.disabled_managers)}
+        if self.crl is not None:  # certificates the CA revoked reach interceptors with no SIGHUP
+            self.crl.refresh()
+            stable["revoked_serials"] = sorted(format(n, "x") for n in self.crl.revoked)
+        return stable, _etag(json.dumps(stable, sort_keys=True).encode())
+
+    async def wait_feed_change(self, timeout: float) -> None:
+        """Until the feed changes (a long-poll), or ``timeout``."""
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self._feed_changed.wait(), timeout)
+
+    async def _watch_feed(self) -> None:
+        """One read of the registry's feed per FEED_WATCH_INTERVAL for this replica (not one
+        per interceptor poll); a change wakes every long-poll waiting on this replica."""
+        failing = False
+        while True:
+            try:
+                feed = await self.db(self.registry.revocation_feed, now=time.time())
+                self._note_serial(feed.serial)
+                latest = self._stable(feed)
+                changed = self._latest is not None and latest[1] != self._latest[1]
+                self._latest = latest
+                if changed:
+                    event, self._feed_changed = self._feed_changed, asyncio.Event()
+                    event.set()
+                if failing:
+                    log.warning("the registry answers again: the feed is watched")
+                failing = False
+            except Exception as exc:  # the database is down: serve what was last read
+                if not failing:
+                    log.error("cannot read the revocation feed from the registry: %s", exc)
+                failing = True
+                self._latest = None
+            await asyncio.sleep(FEED_WATCH_INTERVAL)
+
+    def _note_serial(self, serial: int) -> None:
+        if serial != self._feed_serial:
+            # the registry changed (a grant, a revocation): the next token of any
+            # manager is built from the database, not from grants cached before
+            self._feed_serial = serial
+            self._managers.clear()
+        self.metrics.revocation_serial.set(serial)
+
     async def feed(self) -> RevocationFeed:
         async def fetch():
             return await self.db(self.registry.revocation_feed, now=time.time())
 
         feed = await self._shared.get("feed", fetch)
-        if feed.serial != self._feed_serial:
-            # the registry changed (a grant, a revocation): the next token of any
-            # manager is built from the database, not from grants cached before
-            self._feed_serial = feed.serial
-            self._managers.clear()
-        self.metrics.revocation_serial.set(feed.serial)
+        self._note_serial(feed.serial)
         return feed
 
     # ------------------------------------------------------------------ token issuing
@@ -522,17 +579,22 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         return _etagged(request, body, "public, max-age=5")
 
     async def revocations(request: web.Request) -> web.Response:
-        feed = await service.feed()
-        stable = {"serial": feed.serial, "revoked_jtis": list(feed.revoked_jtis),
-                  "disabled_managers": list(feed.disabled_managers)}
-        if service.crl is not None:  # certificates the CA revoked reach interceptors with no SIGHUP
-            service.crl.refresh()
-            stable["revoked_serials"] = sorted(format(n, "x") for n in service.crl.revoked)
-        etag = _etag(json.dumps(stable, sort_keys=True).encode())
+        """The feed; ``?wait=S`` (at most MAX_FEED_WAIT) with a current ``If-None-Match``
+        is a long-poll: the answer comes when the feed changes, or 304 after S seconds."""
+        try:
+            wait = float(request.query.get("wait", "0"))
+        except ValueError:
+            return _oauth_error(400, "invalid_request")
+        if not 0 <= wait <= MAX_FEED_WAIT:
+            return _oauth_error(400, "invalid_request")
+        stable, etag = await service.current_feed()
+        if wait and etag in _if_none_match(request):
+            await service.wait_feed_change(wait)
+            stable, etag = await service.current_feed()
         if etag in _if_none_match(request):
             return web.Response(status=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
-        stable["generated_at"] = int(time.time())
-        return web.json_response(stable, headers={"ETag": etag, "Cache-Control": "no-cache"})
+        body = dict(stable, generated_at=int(time.time()))
+        return web.json_response(body, headers={"ETag": etag, "Cache-Control": "no-cache"})
 
     async def healthz(request: web.Request) -> web.Response:
         async def ping():

@@ -147,10 +147,16 @@ class AuthzClient:
             raise AuthzUnavailable("JWKS holds no RS256 key")
         return keys
 
-    async def fetch_revocations(self) -> Revocations | None:
-        """The feed, or None when it has not changed since the last poll."""
+    async def fetch_revocations(self, *, wait: float = 0.0) -> Revocations | None:
+        """The feed, or None when it has not changed since the last poll. With ``wait``
+        (and a feed already known) a long-poll: the server answers when the feed
+        changes, or with 304 after ``wait`` seconds."""
         headers = {"If-None-Match": self._feed_etag} if self._feed_etag else {}
-        status, body, resp_headers = await self._json("GET", "/revocations", headers=headers)
+        extra = {}
+        if wait and self._feed_etag:
+            extra = {"params": {"wait": f"{wait:g}"},
+                     "timeout": aiohttp.ClientTimeout(total=wait + self.settings.request_timeout)}
+        status, body, resp_headers = await self._json("GET", "/revocations", headers=headers, **extra)
         if status == 304:
             return None
         if status == 401:
@@ -344,10 +350,13 @@ class PeerVerifier:
         grace: float = 30.0,
         revocation_grace: float = 3.0,
         clock: Clock = time.time,
+        feed_wait: float = 0.0,
     ) -> None:
         self._client = client
         self.issuer = issuer
         self.audience = audience
+        #: seconds a feed request may be held by the server (long-poll); 0: plain polling
+        self.feed_wait = feed_wait
         #: ``urn:cryptoros:peer:<our certificate's thumbprint>``: tokens peers narrowed for us.
         self.own_audience: str | None = None
         self._poll = poll_interval
@@ -383,9 +392,13 @@ class PeerVerifier:
             revocations=self.revocations,
         )
         if access.thumbprint not in self._serials:  # so a CA revocation in the feed can cut its streams
+            try:
+                serial = x509.load_der_x509_certificate(peer_cert_der).serial_number
+            except ValueError:  # not a certificate (the TLS layer hands us only real ones)
+                return access
             if len(self._serials) >= self.MAX_CERTIFICATES:
                 del self._serials[next(iter(self._serials))]
-            self._serials[access.thumbprint] = x509.load_der_x509_certificate(peer_cert_der).serial_number
+            self._serials[access.thumbprint] = serial
         return access
 
     async def verify_fresh(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
@@ -537,13 +550,31 @@ class PeerVerifier:
         return cut
 
     async def run(self) -> None:
-        """Poll the revocation feed every interval and the JWKS every minute, forever."""
+        """Follow the revocation feed forever: long-polls of ``feed_wait`` seconds (the
+        server answers at once when it changes), never more often than the poll
+        interval (a server that does not hold the request is simply polled); the JWKS
+        every minute; expired and revoked streams swept every poll interval."""
+        sweeper = asyncio.ensure_future(self._sweep_forever())
+        try:
+            await self._follow_feed()
+        finally:
+            sweeper.cancel()
+
+    async def _sweep_forever(self) -> None:
+        while True:
+            await asyncio.sleep(self._poll)
+            self.sweep()
+            if self._clock() - self._last_jwks >= self.JWKS_REFRESH_INTERVAL:
+                await self.refresh_jwks()
+
+    async def _follow_feed(self) -> None:
         down_since: float | None = None
         while True:
-            if self._clock() - self._last_jwks >= self.JWKS_REFRESH_INTERVAL or not len(self.keys):
+            started = time.monotonic()
+            if not len(self.keys):
                 await self.refresh_jwks()
             try:
-                feed = await self._client.fetch_revocations()
+                feed = await self._client.fetch_revocations(wait=self.feed_wait if self.ready.is_set() else 0.0)
                 self.refused = False
                 if down_since is not None:
                     log.warning("the revocation feed answers again (unreachable for %.0f s)", self._clock() - down_since)
@@ -559,8 +590,7 @@ class PeerVerifier:
                     down_since = self._clock()
                     log.warning("cannot poll the revocation feed (%s); keeping the last one, new streams are "
                                 "refused once it is older than max_feed_age", exc.detail)
-            self.sweep()
-            await asyncio.sleep(self._poll)
+            await asyncio.sleep(max(0.0, self._poll - (time.monotonic() - started)))
 
 
 __all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "PeerVerifier", "TokenKeeper"]

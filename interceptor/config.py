@@ -123,6 +123,10 @@ class AuthzSettings:
     audience: str = "cryptoros"
     refresh_margin: float = 60.0
     revocation_poll_interval: float = 1.0
+    #: the server holds a feed request up to this long and answers at once on a change
+    #: (long-poll: changes arrive within a fraction of a second, one request per this
+    #: many seconds when nothing changes); 0 polls every revocation_poll_interval
+    feed_wait: float = 25.0
     request_timeout: float = 5.0
     #: A stream is cut this long after its peer's freshest token expired.
     token_grace: float = 30.0
@@ -337,6 +341,12 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
             if k != "url"
         },
     )
+
+    for name, low, high in (("revocation_poll_interval", 0.05, 60.0), ("feed_wait", 0.0, 55.0),
+                            ("request_timeout", 0.1, 120.0)):
+        value = getattr(authz, name)
+        if not low <= value <= high:
+            raise ConfigError(f"[authz] {name} = {value!r}: expected {low:g}..{high:g} seconds")
 
     listen = _check_keys(top.get("listen", {}), "listen")
     if "public" not in listen:

@@ -284,6 +284,7 @@ class Interceptor:
             poll_interval=cfg.authz.revocation_poll_interval,
             grace=cfg.authz.token_grace,
             revocation_grace=cfg.authz.revocation_grace,
+            feed_wait=cfg.authz.feed_wait,
         )
         #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
         #: where to show them our new token and fetch theirs.

@@ -172,7 +172,7 @@ def test_revocation_feed_lists_revoked_jti_and_supports_etag(daemon):
     _, body = daemon.token("bob")
     jti = claims_of(body["access_token"])["jti"]
     feed = daemon.get_json("/revocations")
-    assert set(feed) == {"serial", "revoked_jtis", "disabled_managers", "generated_at"}
+    assert set(feed) == {"serial", "revoked_jtis", "disabled_managers", "revoked_serials", "generated_at"}
     assert jti not in feed["revoked_jtis"]
     cert, key = daemon.cert_of("probe")
     status, _ = daemon.request("GET", "/revocations", cert=cert, key=key)
@@ -190,6 +190,40 @@ def test_revocation_feed_lists_revoked_jti_and_supports_etag(daemon):
     new = json.loads(raw)
     assert jti in new["revoked_jtis"] and new["serial"] > feed["serial"]
     assert daemon.last_headers["ETag"] != etag
+
+
+def test_a_long_poll_of_the_feed_answers_as_soon_as_it_changes(daemon):
+    """Fleet scale: ``/revocations?wait=S`` with the current ETag is held until the feed
+    changes (a revocation reaches the waiting interceptor within a watch interval, not
+    a poll later) and answers 304 after S seconds when nothing changed: one request per
+    S seconds per idle interceptor instead of one a second."""
+    import threading
+
+    cert, key = daemon.cert_of("probe")
+    daemon.request("GET", "/revocations", cert=cert, key=key)
+    etag = daemon.last_headers["ETag"]
+    started = time.monotonic()
+    status, _ = daemon.request("GET", "/revocations?wait=1.5", cert=cert, key=key, headers={"If-None-Match": etag})
+    assert status == 304 and 1.4 <= time.monotonic() - started < 5
+    assert daemon.request("GET", "/revocations?wait=99", cert=cert, key=key)[0] == 400
+    _, body = daemon.token("bob")
+    jti = claims_of(body["access_token"])["jti"]
+    answer: dict = {}
+
+    def long_poll() -> None:
+        answer["status"], answer["raw"] = daemon.request("GET", "/revocations?wait=20", cert=cert, key=key,
+                                                         headers={"If-None-Match": etag})
+        answer["at"] = time.monotonic()
+
+    waiter = threading.Thread(target=long_poll)
+    waiter.start()
+    time.sleep(1.0)  # the request is being held
+    assert "status" not in answer
+    revoked_at = time.monotonic()
+    ok(daemon.cli("revoke-token", jti))
+    waiter.join(timeout=25)
+    assert answer["status"] == 200 and jti in json.loads(answer["raw"])["revoked_jtis"]
+    assert answer["at"] - revoked_at < 3.0  # the CLI's own start-up included
 
 
 def test_two_hundred_concurrent_token_requests_all_succeed_and_verify(daemon):
