@@ -287,6 +287,7 @@ class AuthzService:
         self._watcher: asyncio.Task | None = None
         self._latest: tuple[dict, str] | None = None
         self._feed_changed = asyncio.Event()
+        self._closing = False
         self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
@@ -380,9 +381,16 @@ class AuthzService:
         return stable, _etag(json.dumps(stable, sort_keys=True).encode())
 
     async def wait_feed_change(self, timeout: float) -> None:
-        """Until the feed changes (a long-poll), or ``timeout``."""
+        """Until the feed changes (a long-poll), ``timeout``, or the daemon stops."""
+        if self._closing:
+            return
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(self._feed_changed.wait(), timeout)
+
+    def release_waiters(self) -> None:
+        """Stopping: every long-poll answers now (shutdown does not wait for them)."""
+        self._closing = True
+        self._feed_changed.set()
 
     async def _watch_feed(self) -> None:
         """One read of the registry's feed per FEED_WATCH_INTERVAL for this replica (not one

@@ -45,7 +45,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     try:
         await service.start()
         runner = web.AppRunner(make_app(service), access_log=None, handle_signals=False,
-                               shutdown_timeout=cfg.shutdown_grace)
+                               shutdown_timeout=cfg.shutdown_grace, handler_cancellation=True)
         await runner.setup()
         site = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=ssl_ctx, backlog=1024,
                            reuse_address=True)
@@ -82,6 +82,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     finally:
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.remove_signal_handler(sig)
+        service.release_waiters()  # long-polls answer at once instead of holding shutdown_grace
         if probe_runner is not None:
             await probe_runner.cleanup()
         if runner is not None:

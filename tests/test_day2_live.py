@@ -10,6 +10,7 @@ only the admin CLI is used, never SIGHUP or a restart.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 import urllib.error
@@ -109,34 +110,41 @@ def test_healthz_and_new_streams_fail_closed_when_the_feed_is_stale(tmp_path):
         assert "feed_stale" in host.logs()
 
 
+@contextlib.contextmanager
+def talker_a_to_listener_b(tmp_path, *, seconds: int, extra: dict[str, str] | None = None):
+    """A fresh network with robot A's talker reaching robot B's listener: (net, sub, pub)."""
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), extra=extra) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", str(seconds)],
+                    env=net.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(net, "/talker_a")
+        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", str(seconds)],
+                     env=net.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            assert got(read_lines(sub, "GOT", 20))
+            yield net, sub, pub
+
+
 @pytest.mark.parametrize("restarted", ["robot_a", "robot_b", "master"])
 def test_restarting_an_interceptor_needs_no_node_restart(tmp_path, restarted):
     """The talker on A and the listener on B keep running; the interceptor of A (the
     publisher's), of B (the subscriber's) or of the master restarts with its state
     directory: the listener receives again within 10 s."""
     extra = {name: f'state_dir = "{tmp_path / "state" / name}"' for name in ("master", "robot_a", "robot_b")}
-    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), extra=extra) as net, \
-            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "90"], env=net.ros_env("robot_a")) as pub:
-        read_lines(pub, "READY", 20)
-        wait_registered(net, "/talker_a")
-        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "90"], env=net.ros_env("robot_b")) as sub:
-            read_lines(sub, "READY", 20)
-            assert got(read_lines(sub, "GOT", 20))
-            net.stop(restarted)
-            read_lines(sub, None, 0.5)  # drain what arrived before the restart
-            if restarted == "master":  # a call while the master's side is down: not worded as a denial
-                import xmlrpc.client
-
-                with net.inside("robot_b"):
-                    code, text, _ = xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).getSystemState("/probe")
-                assert code == -1 and "no answer" in text and "denied" not in text, text
-            net.start(restarted)
-            restarted_at = time.monotonic()
-            read_lines(sub, None, 0.2)
-            lines = read_lines(sub, "GOT", 10)
-            assert got(lines), f"nothing arrived within 10 s of restarting {restarted}'s interceptor"
-            assert time.monotonic() - restarted_at < 10.5
-            assert sub.poll() is None and pub.poll() is None
+    with talker_a_to_listener_b(tmp_path, extra=extra, seconds=90) as (net, sub, pub):
+        net.stop(restarted)
+        read_lines(sub, None, 0.5)  # drain what arrived before the restart
+        if restarted == "master":  # a call while the master's side is down: not worded as a denial
+            with net.inside("robot_b"):
+                code, text, _ = xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).getSystemState("/probe")
+            assert code == -1 and "no answer" in text and "denied" not in text, text
+        net.start(restarted)
+        restarted_at = time.monotonic()
+        read_lines(sub, None, 0.2)
+        lines = read_lines(sub, "GOT", 10)
+        assert got(lines), f"nothing arrived within 10 s of restarting {restarted}'s interceptor"
+        assert time.monotonic() - restarted_at < 10.5
+        assert sub.poll() is None and pub.poll() is None
         assert "state restored" in net.hosts[restarted].logs()
 
 
@@ -147,21 +155,15 @@ def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_si
     (its token is bound to the revoked certificate); robot B's own interceptor drops
     its token (the feed names its serial) or finds its feed polls refused, and says so
     in /healthz (503)."""
-    with robot_network(tmp_path, start=("master", "robot_a", "robot_b")) as net, \
-            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "60"], env=net.ros_env("robot_a")) as pub:
-        read_lines(pub, "READY", 20)
-        wait_registered(net, "/talker_a")
-        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "60"], env=net.ros_env("robot_b")) as sub:
-            read_lines(sub, "READY", 20)
-            assert got(read_lines(sub, "GOT", 20))
-            net.pki.revoke("robot_b")
-            revoked_at = time.monotonic()
-            deadline = revoked_at + 5
-            while "certificate_revoked" not in net.hosts["robot_a"].logs():
-                assert time.monotonic() < deadline, net.hosts["robot_a"].logs()[-3000:]
-                time.sleep(0.1)
-            read_lines(sub, None, 1.0)  # whatever was in flight
-            assert not got(read_lines(sub, None, 3.0)), "robot B still receives over a revoked certificate"
+    with talker_a_to_listener_b(tmp_path, seconds=60) as (net, sub, _pub):
+        net.pki.revoke("robot_b")
+        revoked_at = time.monotonic()
+        deadline = revoked_at + 5
+        while "certificate_revoked" not in net.hosts["robot_a"].logs():
+            assert time.monotonic() < deadline, net.hosts["robot_a"].logs()[-3000:]
+            time.sleep(0.1)
+        read_lines(sub, None, 1.0)  # whatever was in flight
+        assert not got(read_lines(sub, None, 3.0)), "robot B still receives over a revoked certificate"
         url = f"http://127.0.0.1:{net.hosts['robot_b'].metrics_port}/healthz"
         with pytest.raises(urllib.error.HTTPError) as unhealthy:
             urllib.request.urlopen(url, timeout=5)

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import click
 
+from cryptoros.lab.network import NetworkError, open_stream
+
 POLICY = """\
 version: 1
 managers:
@@ -67,16 +69,10 @@ class _Insider:
         return self.ctx.wrap_socket(raw, server_hostname=host)
 
     def master_stream(self, host: str, port: int):
-        from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
-
-        sock = self.connect(host, port)
-        sock.sendall(encode(Preamble(token=self.token, purpose="master", target="")))
-        reader = PreambleReader(PreambleReply)
-        while not isinstance(event := reader.next_event(), PreambleReply):
-            reader.receive_data(sock.recv(65536))
-        if not event.ok:
-            raise click.ClickException("the master's interceptor refused the insider's stream")
-        return sock
+        try:
+            return open_stream(self.ctx, self.token, host, port, "master")
+        except NetworkError as exc:
+            raise click.ClickException(f"the master's interceptor: {exc}") from None
 
     @staticmethod
     def call(sock, request):

@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import queue
 import shutil
-import socket
 import ssl
 import subprocess
 import tempfile
@@ -32,6 +31,8 @@ import time
 from pathlib import Path
 
 import click
+
+from cryptoros.lab.network import NetworkError, open_stream
 
 from cryptoros.bench.ros2 import HOSTS, POLICY, _ros_env, children
 from cryptoros.ros2 import framing as fr
@@ -121,20 +122,11 @@ class _RobotA:
         self.ctx, self.token = net.client_of("robot_a")
 
     def stream(self, host: str, port: int, qos: QoS) -> ssl.SSLSocket:
-        from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
-
         target = StreamTarget(kind="topic", name="/bench", type="std_msgs/msg/String", node="/bench_pub", qos=qos)
-        sock = self.ctx.wrap_socket(socket.create_connection((host, port), timeout=10), server_hostname=host)
-        sock.sendall(encode(Preamble(token=self.token, purpose="ros2", target=target.encode())))
-        reader = PreambleReader(PreambleReply)
-        while not isinstance(event := reader.next_event(), PreambleReply):
-            data = sock.recv(65536)
-            if not data:
-                raise click.ClickException("robot B closed the stream before its preamble reply")
-            reader.receive_data(data)
-        if not event.ok:
-            raise click.ClickException("robot B refused the stream")
-        return sock
+        try:
+            return open_stream(self.ctx, self.token, host, port, "ros2", target.encode())
+        except NetworkError as exc:
+            raise click.ClickException(f"robot B: {exc}") from None
 
 
 @click.command("ros2-insider")

@@ -79,6 +79,29 @@ def log_tail(path: Path | None, lines: int = 12) -> str:
     return "\n".join(["", f"last lines of {path.name}:"] + [f"  {line}" for line in tail]) if tail else ""
 
 
+def open_stream(ctx: ssl.SSLContext, token: str, host: str, port: int, purpose: str, target: str = "") -> ssl.SSLSocket:
+    """A stream to an interceptor's public port opened by hand (mutual TLS with ``ctx``,
+    a preamble with ``token``), as a peer interceptor or an insider would; NetworkError
+    when the interceptor closes or refuses it."""
+    from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
+
+    sock = ctx.wrap_socket(socket.create_connection((host, port), timeout=10), server_hostname=host)
+    try:
+        sock.sendall(encode(Preamble(token=token, purpose=purpose, target=target)))
+        reader = PreambleReader(PreambleReply)
+        while not isinstance(event := reader.next_event(), PreambleReply):
+            data = sock.recv(65536)
+            if not data:
+                raise NetworkError(f"{host}:{port} closed the {purpose} stream before its preamble reply")
+            reader.receive_data(data)
+        if not event.ok:
+            raise NetworkError(f"{host}:{port} refused the {purpose} stream")
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
 def wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen | None = None, what: str = "",
               log: Path | None = None) -> None:
     """Bounded wait until something accepts on ``host:port`` (``log``: the child's
@@ -471,5 +494,6 @@ def lab_network(
             lab.close()
 
 
-__all__ = ["HOSTS", "Host", "Network", "NetworkError", "lab_network", "clean_env", "cpu_seconds", "free_port", "stop",
+__all__ = ["HOSTS", "Host", "Network", "NetworkError", "lab_network", "clean_env", "cpu_seconds", "free_port",
+           "open_stream", "stop",
            "tool", "wait_port"]
