@@ -59,3 +59,16 @@ def test_bench_interceptor_quick(tmp_path):
 
     assert report["targets"] and all(isinstance(t["met"], bool) for t in report["targets"])
     assert "interceptor/stunnel" in result.stdout
+
+
+@pytest.mark.timeout(120)
+def test_bench_insider_quick():
+    """`cryptoros bench insider` runs its two attacks with a valid certificate and prints
+    the fds and RSS table; robot A can still register afterwards, the dribblers are cut."""
+    require("rosmaster")
+    result = run([script("cryptoros"), "bench", "insider", "--names", "100", "--dribblers", "3"], timeout=110)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "robot A registers a publisher afterwards: yes" in result.stdout
+    assert "slowloris: 3 dribblers, 0 still open" in result.stdout
+    rows = [line.split() for line in result.stdout.splitlines() if line.startswith(("master ", "robot_a ", "robot_b "))]
+    assert len(rows) == 3 and all(int(r[1]) > 0 and float(r[4]) > 0 for r in rows), rows
