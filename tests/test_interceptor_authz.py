@@ -239,7 +239,7 @@ async def test_replicas_on_postgresql_and_the_client_fails_over_when_one_dies(tm
                 assert len(keys) >= 1
                 ok(authz("revoke-token", verifier.verify(before.token, der_of(team.pki, "alice")).jti,
                          db=postgres_url))
-                feed = await client.fetch_revocations()
+                feed = await client.fetch_revocations(wait=10)  # a long-poll: answered once the replica sees it
                 assert feed is not None and len(feed.revoked_jtis) == 1  # the revocation, seen through the replica
             finally:
                 logging.getLogger("cryptoros.interceptor.authz").removeHandler(handler)
