@@ -44,6 +44,7 @@ from authz_server import keys as keymod
 from authz_server.config import ServeConfig
 from authz_server.registry import AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
 from cryptoros.errors import ConfigError, CryptorosError, TokenError
+from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros.tls import cert_fingerprint_sha256, peer_cert_der
 from cryptoros.tokens import (
     Grant,
@@ -63,6 +64,9 @@ MAX_BODY = 16 * 1024
 FEED_WATCH_INTERVAL = 0.25
 #: the longest a long-poll of the feed may wait (``/revocations?wait=``)
 MAX_FEED_WAIT = 55.0
+#: long-polls held at once, per client certificate and per replica (more are answered at once)
+MAX_HELD_PER_CLIENT = 4
+MAX_HELD = 10_000
 
 
 class _Cache:
@@ -152,36 +156,6 @@ class _AuditWriter:
         self._wake.set()
         if self._task is not None:
             await self._task
-
-
-class _ClientBuckets:
-    """A token bucket per client certificate (bounded: the least recent go first)."""
-
-    MAX_CLIENTS = 10_000
-
-    def __init__(self, rate: float, burst: int) -> None:
-        self.rate, self.burst = rate, float(burst)
-        self._state: dict[str, tuple[float, float]] = {}
-        self._logged: dict[str, float] = {}
-
-    def allow(self, key: str) -> bool:
-        now = time.monotonic()
-        tokens, last = self._state.pop(key, (self.burst, now))
-        tokens = min(self.burst, tokens + (now - last) * self.rate)
-        allowed = tokens >= 1.0
-        self._state[key] = (tokens - 1.0 if allowed else tokens, now)
-        while len(self._state) > self.MAX_CLIENTS:
-            del self._state[next(iter(self._state))]
-        return allowed
-
-    def should_log(self, key: str) -> bool:
-        now = time.monotonic()
-        if now - self._logged.get(key, -60.0) < 60.0:
-            return False
-        if len(self._logged) >= self.MAX_CLIENTS:
-            self._logged.clear()
-        self._logged[key] = now
-        return True
 
 
 class CRLWatcher:
@@ -282,12 +256,15 @@ class AuthzService:
         self._shared = _Cache(cfg.cache_seconds)
         self._signer: _Signer | None = None
         self.audit = _AuditWriter(self)
-        self._token_bucket = _ClientBuckets(cfg.token_rate, cfg.token_burst)
+        self._token_bucket = TokenBuckets(cfg.token_rate, cfg.token_burst)
+        self._rate_log = OncePer(60.0)
         self._pruner: asyncio.Task | None = None
         self._watcher: asyncio.Task | None = None
         self._latest: tuple[dict, str] | None = None
         self._feed_changed = asyncio.Event()
         self._closing = False
+        self._held: dict[str, int] = {}  # long-polls held, per client certificate
+        self._held_total = 0
         self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
@@ -387,6 +364,26 @@ class AuthzService:
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(self._feed_changed.wait(), timeout)
 
+    @contextlib.asynccontextmanager
+    async def held_poll(self, client: str):
+        """Whether a long-poll of ``client`` may be held: at most MAX_HELD_PER_CLIENT per
+        client certificate and MAX_HELD in all, so connections held open stay bounded."""
+        held = self._held.get(client, 0)
+        ok = held < MAX_HELD_PER_CLIENT and self._held_total < MAX_HELD
+        if ok:
+            self._held[client] = held + 1
+            self._held_total += 1
+        try:
+            yield ok
+        finally:
+            if ok:
+                self._held_total -= 1
+                left = self._held[client] - 1
+                if left:
+                    self._held[client] = left
+                else:
+                    del self._held[client]
+
     def release_waiters(self) -> None:
         """Stopping: every long-poll answers now (shutdown does not wait for them)."""
         self._closing = True
@@ -449,7 +446,7 @@ class AuthzService:
                 raise _Denied(401, "invalid_client", "certificate_revoked")
             if not self._token_bucket.allow(fp):  # before any audit row: a flood writes none
                 self.metrics.denied.labels("rate_limited").inc()
-                if self._token_bucket.should_log(fp):
+                if self._rate_log(fp):
                     log.warning("token requests from certificate %s (%s) over %.0f/s: answered 429 (logged once a "
                                 "minute)", fp[:16], remote, self.cfg.token_rate)
                 return _oauth_error(429, "slow_down")
@@ -528,7 +525,7 @@ def _oauth_error(status: int, error: str) -> web.Response:
                              headers={"Cache-Control": "no-store", "Pragma": "no-cache"})
 
 
-_revoked_logged: dict[int, float] = {}
+_revoked_log = OncePer(60.0, max_keys=1024)
 
 
 def _log_revoked_client(der: bytes, request: web.Request) -> None:
@@ -537,12 +534,8 @@ def _log_revoked_client(der: bytes, request: web.Request) -> None:
     from cryptography import x509
 
     cert = x509.load_der_x509_certificate(der)
-    now = time.monotonic()
-    if now - _revoked_logged.get(cert.serial_number, -60.0) < 60.0:
+    if not _revoked_log(cert.serial_number):
         return
-    if len(_revoked_logged) >= 1024:
-        _revoked_logged.clear()
-    _revoked_logged[cert.serial_number] = now
     names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)
     log.warning("refused %s %s from %s: its client certificate (CN %s, serial %x) was revoked since start-up "
                 "(logged once a minute)", request.method, request.path, request.remote,
@@ -597,7 +590,10 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
             return _oauth_error(400, "invalid_request")
         stable, etag = await service.current_feed()
         if wait and etag in _if_none_match(request):
-            await service.wait_feed_change(wait)
+            der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)
+            async with service.held_poll(cert_fingerprint_sha256(der)) as held:
+                if held:  # else over the client's or the replica's bound: answered at once, it polls
+                    await service.wait_feed_change(wait)
             stable, etag = await service.current_feed()
         if etag in _if_none_match(request):
             return web.Response(status=304, headers={"ETag": etag, "Cache-Control": "no-cache"})

@@ -55,6 +55,7 @@ from cryptoros.policy.ros1 import (
     check_subscriber_header,
     ros_error,
 )
+from cryptoros.ratelimit import TokenBuckets
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import tune_malloc
 from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
@@ -169,26 +170,6 @@ async def read_tcpros_header(
 
 def _ros_ok(response: Response | Fault) -> bool:
     return isinstance(response, Response) and isinstance(response.value, list) and response.value[:1] == [1]
-
-
-class RateLimiter:
-    """Token bucket per key: ``rate`` new events per second, bursts of ``2 * rate``."""
-
-    def __init__(self, rate: float, clock: Callable[[], float] = time.monotonic) -> None:
-        self.rate = rate
-        self.burst = max(1.0, 2 * rate)
-        self._clock = clock
-        self._state: dict[str, tuple[float, float]] = {}
-
-    def allow(self, key: str) -> bool:
-        now = self._clock()
-        tokens, last = self._state.get(key, (self.burst, now))
-        tokens = min(self.burst, tokens + (now - last) * self.rate)
-        if tokens < 1.0:
-            self._state[key] = (tokens, now)
-            return False
-        self._state[key] = (tokens - 1.0, now)
-        return True
 
 
 class XmlRpcTunnel:
@@ -320,7 +301,8 @@ class Interceptor:
         self._pending: dict[tuple[str, str], int] = {}  # unauthenticated streams per source / certificate
         self._budgets: dict[str, MessageBudget] = {}
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
-        self._new_conn_limiter = RateLimiter(cfg.limits.max_new_connections_per_second)
+        rate = cfg.limits.max_new_connections_per_second
+        self._new_conn_limiter = TokenBuckets(rate, 2 * rate)  # per peer manager
         self._servers: list[asyncio.AbstractServer] = []
         self._public_server: asyncio.AbstractServer | None = None
         self._tasks: list[asyncio.Task] = []
@@ -533,10 +515,10 @@ class Interceptor:
         """When the feed revokes our own token or disables our manager, drop the token
         (nothing is allowed on it any more) and ask for a new one at once."""
         own = self._own_access
-        if x509.load_der_x509_certificate(self._own_cert_der).serial_number in revocations.revoked_serials:
+        serial = x509.load_der_x509_certificate(self._own_cert_der).serial_number
+        if serial in revocations.revoked_serials:
             log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
-                      "renew it (cryptoros-certs renew, set-cert, SIGHUP)",
-                      x509.load_der_x509_certificate(self._own_cert_der).serial_number)
+                      "renew it (cryptoros-certs renew, set-cert, SIGHUP)", serial)
             self._own_access = None
             self.keeper.invalidate()
         elif own is not None and (own.jti in revocations.revoked_jtis or own.subject in revocations.disabled_subjects):
@@ -1456,4 +1438,4 @@ def _read_cert_der(path) -> bytes:
         return x509.load_pem_x509_certificate(f.read()).public_bytes(Encoding.DER)
 
 
-__all__ = ["Interceptor", "Peer", "RateLimiter", "XmlRpcTunnel", "cert_hosts", "read_tcpros_header", "read_xmlrpc"]
+__all__ = ["Interceptor", "Peer", "XmlRpcTunnel", "cert_hosts", "read_tcpros_header", "read_xmlrpc"]

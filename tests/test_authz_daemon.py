@@ -356,3 +356,30 @@ def test_sighup_reloads_the_tls_material_and_a_bad_one_is_kept_out(daemon):
     finally:
         renewed.cert_path.write_bytes(good)
     assert daemon.proc.poll() is None
+
+
+def test_an_insider_cannot_hold_more_than_four_long_polls(daemon):
+    """Long-polls hold connections: a client certificate gets at most four held at once;
+    a fifth is answered at once (304), so one insider cannot pin the server's
+    connections; other clients are not affected."""
+    import threading
+
+    cert, key = daemon.cert_of("alice")
+    daemon.request("GET", "/revocations", cert=cert, key=key)
+    etag = daemon.last_headers["ETag"]
+    done: list[float] = []
+
+    def hold() -> None:
+        daemon.request("GET", "/revocations?wait=4", cert=cert, key=key, headers={"If-None-Match": etag})
+        done.append(time.monotonic())
+
+    holders = [threading.Thread(target=hold) for _ in range(4)]
+    for t in holders:
+        t.start()
+    time.sleep(1.0)
+    started = time.monotonic()
+    status, _ = daemon.request("GET", "/revocations?wait=4", cert=cert, key=key, headers={"If-None-Match": etag})
+    assert status == 304 and time.monotonic() - started < 1.5 and not done
+    for t in holders:
+        t.join(timeout=15)
+    assert len(done) == 4

@@ -1,0 +1,53 @@
+"""Bounded per-key rate limits, shared by the interceptor and the authorization server.
+
+:class:`TokenBuckets` admits ``rate`` events per second per key after a burst;
+:class:`OncePer` lets a log line through once per interval per key. Both keep at
+most ``max_keys`` keys (the least recently used go first), so a flood of new keys
+costs bounded memory. Pure: the clock is passed in.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Hashable
+
+
+class TokenBuckets:
+    """A token bucket per key: ``rate`` per second, up to ``burst`` at once."""
+
+    def __init__(self, rate: float, burst: float, *, max_keys: int = 10_000,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.rate, self.burst, self.max_keys = rate, max(1.0, float(burst)), max_keys
+        self._clock = clock
+        self._state: dict[Hashable, tuple[float, float]] = {}
+
+    def allow(self, key: Hashable) -> bool:
+        now = self._clock()
+        tokens, last = self._state.pop(key, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - last) * self.rate)
+        allowed = tokens >= 1.0
+        self._state[key] = (tokens - 1.0 if allowed else tokens, now)
+        while len(self._state) > self.max_keys:
+            del self._state[next(iter(self._state))]
+        return allowed
+
+
+class OncePer:
+    """True for a key at most once per ``seconds`` (log lines of a repeated event)."""
+
+    def __init__(self, seconds: float, *, max_keys: int = 10_000, clock: Callable[[], float] = time.monotonic) -> None:
+        self.seconds, self.max_keys = seconds, max_keys
+        self._clock = clock
+        self._last: dict[Hashable, float] = {}
+
+    def __call__(self, key: Hashable) -> bool:
+        now = self._clock()
+        last = self._last.pop(key, None)
+        due = last is None or now - last >= self.seconds
+        self._last[key] = now if due else last  # type: ignore[assignment]
+        while len(self._last) > self.max_keys:
+            del self._last[next(iter(self._last))]
+        return due
+
+
+__all__ = ["OncePer", "TokenBuckets"]
