@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from typing import Final
 
 from cryptoros.errors import LocalProtocolError, RemoteProtocolError
+from cryptoros.sansio import NEED_DATA, ReceiveBuffer, TrailingData
+from cryptoros.sansio import NeedData as _NeedData
 
 MAGIC: Final = b"CRT"
 VERSION: Final = 1
@@ -69,15 +71,6 @@ class PreambleReply:
     token: str = ""
 
 
-class _NeedData:
-    __slots__ = ()
-
-    def __repr__(self) -> str:
-        return "NEED_DATA"
-
-
-NEED_DATA: Final = _NeedData()
-
 _KINDS: Final = {KIND_PREAMBLE: Preamble, KIND_REPLY: PreambleReply}
 
 
@@ -97,8 +90,9 @@ class PreambleReader:
     """Reads exactly one preamble (or one reply) from the start of a stream.
 
     ``expect`` is :class:`Preamble` on the accepting side, :class:`PreambleReply` on
-    the connecting side. After the event, :meth:`trailing_data` returns whatever bytes
-    of the relayed stream arrived in the same read.
+    the connecting side. After the event, :attr:`trailing_data` is ``(data, closed)``:
+    whatever bytes of the relayed stream arrived in the same read, and whether the
+    peer closed (``reader.trailing_data()`` gives ``data`` alone).
     """
 
     def __init__(self, expect: type[Preamble] | type[PreambleReply], *, max_size: int = DEFAULT_MAX_SIZE) -> None:
@@ -106,23 +100,19 @@ class PreambleReader:
             raise LocalProtocolError("expect must be Preamble or PreambleReply")
         self._expect = expect
         self._max_size = max_size
-        self._buffer = bytearray()
+        self._rb = ReceiveBuffer()
         self._event: Preamble | PreambleReply | None = None
-        self._closed = False
 
     def receive_data(self, data: bytes) -> None:
         """Buffer bytes from the peer; ``b""`` means the peer closed."""
         if self._event is not None:
             raise LocalProtocolError("the preamble was already read; relay the rest yourself")
-        if not data:
-            self._closed = True
-            return
-        self._buffer += data
-        if len(self._buffer) >= _HEAD.size:
+        self._rb.feed(data)
+        if data and len(self._rb) >= _HEAD.size:
             self._check_head()
 
     def _check_head(self) -> tuple[int, int]:
-        magic, version, kind, length = _HEAD.unpack_from(self._buffer)
+        magic, version, kind, length = _HEAD.unpack_from(self._rb.data)
         if magic != MAGIC:
             raise RemoteProtocolError("not a cryptoros stream (bad magic)")
         if version != VERSION:
@@ -136,18 +126,19 @@ class PreambleReader:
     def next_event(self) -> Preamble | PreambleReply | _NeedData:
         if self._event is not None:
             return self._event
-        if len(self._buffer) < _HEAD.size:
-            if self._closed:
+        if len(self._rb) < _HEAD.size:
+            if self._rb.closed:
                 raise RemoteProtocolError("stream closed before the preamble was complete")
             return NEED_DATA
         _, length = self._check_head()
         end = _HEAD.size + length
-        if len(self._buffer) < end:
-            if self._closed:
+        if len(self._rb) < end:
+            if self._rb.closed:
                 raise RemoteProtocolError("stream closed in the middle of the preamble")
             return NEED_DATA
-        body = bytes(self._buffer[_HEAD.size : end])
-        del self._buffer[:end]
+        self._rb.discard(_HEAD.size)
+        body = self._rb.maybe_extract(length)
+        assert body is not None
         self._event = self._decode(body)
         return self._event
 
@@ -174,13 +165,14 @@ class PreambleReader:
         except LocalProtocolError as exc:  # the peer's values failed validation
             raise RemoteProtocolError(str(exc)) from exc
 
-    def trailing_data(self) -> bytes:
-        """Bytes received after the preamble: the start of the relayed stream."""
+    @property
+    def trailing_data(self) -> TrailingData:
+        """``(data, closed)``: bytes received after the preamble (the start of the
+        relayed stream) and whether the peer closed. ``reader.trailing_data()``
+        gives ``data`` alone."""
         if self._event is None:
             raise LocalProtocolError("no preamble read yet")
-        data = bytes(self._buffer)
-        self._buffer.clear()
-        return data
+        return self._rb.trailing()
 
 
 __all__ = [

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 from typing import Final
 
 from cryptoros.errors import LocalProtocolError, RemoteProtocolError
+from cryptoros.sansio import NEED_DATA, ReceiveBuffer, TrailingData
+from cryptoros.sansio import NeedData as _NeedData
 
 __all__ = [
     "NEED_DATA",
@@ -77,16 +79,6 @@ DEFAULT_MAX_FRAME_SIZE: Final = 256 << 20  # 256 MiB: large point clouds fit
 
 _U32 = struct.Struct("<I")
 _OK_U32 = struct.Struct("<BI")
-
-
-class _NeedData:
-    __slots__ = ()
-
-    def __repr__(self) -> str:
-        return "NEED_DATA"
-
-
-NEED_DATA: Final = _NeedData()
 
 
 class FrameKind(enum.Enum):
@@ -319,9 +311,8 @@ class TCPROSConnection:
         "max_header_fields",
         "max_frame_size",
         "frame_kind",
-        "_buf",
+        "_rb",
         "_state",
-        "_eof",
         "their_header",
     )
 
@@ -340,28 +331,20 @@ class TCPROSConnection:
         self.max_header_fields = max_header_fields
         self.max_frame_size = max_frame_size
         self.frame_kind = frame_kind
-        self._buf = bytearray()
+        self._rb = ReceiveBuffer()
         self._state = _State.HEADER if expect_header else _State.FRAMES
-        self._eof = False
         self.their_header: ConnectionHeader | None = None
 
     # -- input
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
         """Buffer bytes from the peer; ``b""`` means the peer closed."""
-        if self._eof:
-            if data:
-                raise LocalProtocolError("receive_data after EOF")
-            return
-        if data:
-            self._buf += data
-        else:
-            self._eof = True
+        self._rb.feed(data)
 
     @property
-    def trailing_data(self) -> tuple[bytes, bool]:
-        """Bytes buffered but not parsed yet, and whether EOF was seen (for handing
-        the raw stream over to a byte pump after the header check)."""
-        return bytes(self._buf), self._eof
+    def trailing_data(self) -> TrailingData:
+        """``(data, closed)``: bytes buffered but not parsed yet, and whether EOF was
+        seen (for handing the raw stream over to a byte pump after the header check)."""
+        return self._rb.trailing()
 
     def set_frame_kind(self, kind: FrameKind) -> None:
         self.frame_kind = kind
@@ -381,8 +364,8 @@ class TCPROSConnection:
         except RemoteProtocolError:
             self._state = _State.ERROR
             raise
-        if event is NEED_DATA and self._eof:
-            if self._buf or self._state is _State.HEADER:
+        if event is NEED_DATA and self._rb.closed:
+            if self._rb or self._state is _State.HEADER:
                 where = "header" if self._state is _State.HEADER else "frame"
                 self._state = _State.ERROR
                 raise RemoteProtocolError(f"connection closed in the middle of a {where}")
@@ -391,7 +374,7 @@ class TCPROSConnection:
         return event
 
     def _next_header(self) -> Event | _NeedData:
-        buf = self._buf
+        buf = self._rb.data
         if len(buf) < 4:
             return NEED_DATA
         (size,) = _U32.unpack_from(buf, 0)
@@ -406,7 +389,7 @@ class TCPROSConnection:
         return header
 
     def _next_frame(self) -> Event | _NeedData:
-        buf = self._buf
+        buf = self._rb.data
         if self.frame_kind is FrameKind.MESSAGE:
             if len(buf) < 4:
                 return NEED_DATA
@@ -441,7 +424,7 @@ class TCPROSConnection:
             if self._state is _State.ERROR:
                 raise RemoteProtocolError("connection already failed")
             return []
-        buf = self._buf
+        buf = self._rb.data
         n = len(buf)
         pos = 0
         out = []
@@ -465,8 +448,8 @@ class TCPROSConnection:
     def pending_frame_size(self) -> int | None:
         """Declared size of the partial message frame at the head of the buffer
         (lets an I/O layer size its receive buffer), or None."""
-        if self._state is _State.FRAMES and self.frame_kind is FrameKind.MESSAGE and len(self._buf) >= 4:
-            return _U32.unpack_from(self._buf, 0)[0]
+        if self._state is _State.FRAMES and self.frame_kind is FrameKind.MESSAGE and len(self._rb) >= 4:
+            return _U32.unpack_from(self._rb.data, 0)[0]
         return None
 
     # -- output

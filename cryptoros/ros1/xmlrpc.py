@@ -39,6 +39,8 @@ import defusedxml
 import defusedxml.ElementTree as DET
 
 from cryptoros.errors import LocalProtocolError, RemoteProtocolError
+from cryptoros.sansio import NEED_DATA, ReceiveBuffer, TrailingData
+from cryptoros.sansio import NeedData as _NeedData
 
 __all__ = [
     "NEED_DATA",
@@ -82,16 +84,6 @@ _STATUS_LINE = re.compile(r"(?P<version>HTTP/1\.[01]) (?P<status>[0-9]{3})(?: (?
 _SINGLE_HEADERS = frozenset({"content-length", "content-encoding", "transfer-encoding", "connection"})
 I4_MIN, I4_MAX = -(2**31), 2**31 - 1
 I8_MIN, I8_MAX = -(2**63), 2**63 - 1
-
-
-class _NeedData:
-    __slots__ = ()
-
-    def __repr__(self) -> str:
-        return "NEED_DATA"
-
-
-NEED_DATA: Final = _NeedData()
 
 
 # ---------------------------------------------------------------- events
@@ -484,8 +476,7 @@ class XmlRpcConnection:
         self.max_head_size = max_head_size
         self.gzip_threshold = gzip_threshold
         self.user_agent = user_agent
-        self._buf = bytearray()
-        self._eof = False
+        self._rb = ReceiveBuffer()
         self._state = _State.HEAD
         self._head: _Head | None = None
         self._length = 0
@@ -493,14 +484,13 @@ class XmlRpcConnection:
 
     # -- input
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
-        if self._eof:
-            if data:
-                raise LocalProtocolError("receive_data after EOF")
-            return
-        if data:
-            self._buf += data
-        else:
-            self._eof = True
+        """Buffer bytes from the peer; ``b""`` means the peer closed."""
+        self._rb.feed(data)
+
+    @property
+    def trailing_data(self) -> TrailingData:
+        """``(data, closed)``: bytes buffered but not parsed yet, and whether EOF was seen."""
+        return self._rb.trailing()
 
     def next_event(self) -> Event | _NeedData:
         if self._state is _State.ERROR:
@@ -516,22 +506,23 @@ class XmlRpcConnection:
     def _next(self) -> Event | _NeedData:
         if self._state is _State.HEAD:
             # tolerate blank lines between messages (RFC 9112 section 2.2)
-            while self._buf[:2] == b"\r\n":
-                del self._buf[:2]
-            end = self._buf.find(b"\r\n\r\n")
+            while self._rb.data[:2] == b"\r\n":
+                del self._rb.data[:2]
+            end = self._rb.data.find(b"\r\n\r\n")
             if end < 0:
-                if len(self._buf) > self.max_head_size:
+                if len(self._rb.data) > self.max_head_size:
                     raise RemoteProtocolError(f"HTTP head exceeds {self.max_head_size} bytes")
-                if self._eof:
-                    if self._buf:
+                if self._rb.closed:
+                    if self._rb.data:
                         raise RemoteProtocolError("connection closed in the middle of an HTTP head")
                     self._state = _State.CLOSED
                     return ConnectionClosed()
                 return NEED_DATA
             if end > self.max_head_size:
                 raise RemoteProtocolError(f"HTTP head exceeds {self.max_head_size} bytes")
-            raw = bytes(self._buf[:end])
-            del self._buf[: end + 4]
+            raw = self._rb.maybe_extract(end)
+            assert raw is not None
+            self._rb.discard(4)
             self._head = self._parse_head(raw)
             length = self._head.headers.get("content-length")
             if "transfer-encoding" in self._head.headers:
@@ -548,21 +539,18 @@ class XmlRpcConnection:
                     raise RemoteProtocolError(f"declared body of {self._length} bytes exceeds {self.max_body_size}")
                 self._state = _State.BODY
         if self._state is _State.BODY:
-            if len(self._buf) < self._length:
-                if self._eof:
+            body = self._rb.maybe_extract(self._length)
+            if body is None:
+                if self._rb.closed:
                     raise RemoteProtocolError("connection closed in the middle of a body")
                 return NEED_DATA
-            body = bytes(self._buf[: self._length])
-            del self._buf[: self._length]
             return self._finish(body)
         # BODY_TO_EOF
-        if len(self._buf) > self.max_body_size:
+        if len(self._rb) > self.max_body_size:
             raise RemoteProtocolError(f"body exceeds {self.max_body_size} bytes")
-        if not self._eof:
+        if not self._rb.closed:
             return NEED_DATA
-        body = bytes(self._buf)
-        self._buf.clear()
-        return self._finish(body)
+        return self._finish(self._rb.take_all())
 
     def _parse_head(self, raw: bytes) -> _Head:
         """Strict RFC 9112 head: CRLF lines only, no control characters, no obs-fold,
