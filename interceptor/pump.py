@@ -20,7 +20,8 @@ import asyncio
 import time
 from collections.abc import Callable
 
-from cryptoros.errors import PolicyDenied
+from cryptoros.errors import PolicyDenied, RemoteProtocolError
+from cryptoros.ros1.tcpros import FrameTooLarge, FrameWalker
 
 DEFAULT_BUFFER_SIZE = 256 * 1024
 #: Write-buffer limits of each transport: pause the source above HIGH, resume below LOW.
@@ -28,63 +29,32 @@ HIGH_WATER = 1024 * 1024
 LOW_WATER = 256 * 1024
 
 
-class FrameCounter:
-    """Finds TCPROS frame starts in a byte stream without copying bodies: only the
-    length prefixes are looked at. ``u32 LE length`` + body by default; with
-    ``service_response=True``, ``u8 ok`` + ``u32 LE length`` + body (a service
-    server's replies). A declared length over ``max_size`` (None: unbounded) raises
-    :class:`~cryptoros.errors.PolicyDenied` ``message_too_large`` before a byte of
-    that frame is let through; so does an ``ok`` byte other than 0 or 1."""
+class FrameCounter(FrameWalker):
+    """The pump's :class:`~cryptoros.ros1.tcpros.FrameWalker`: finds TCPROS frame
+    starts in a byte stream without copying bodies. ``u32 LE length`` + body by
+    default; with ``service_response=True``, ``u8 ok`` + ``u32 LE length`` + body (a
+    service server's replies). A declared length over ``max_size`` (None: unbounded)
+    raises :class:`~cryptoros.errors.PolicyDenied` ``message_too_large`` before a byte
+    of that frame is let through; an ``ok`` byte other than 0 or 1 ``malformed``."""
 
-    __slots__ = ("_need", "_prefix", "_prefix_len", "max_size", "what")
+    __slots__ = ()
 
     def __init__(self, *, max_size: int | None = None, service_response: bool = False, what: str = "stream") -> None:
-        self._need = 0  # body bytes still to come of the current frame
-        self._prefix = b""  # a length prefix split across reads
-        self._prefix_len = 5 if service_response else 4
-        self.max_size = max_size
-        self.what = what
+        super().__init__(max_size=max_size, service_response=service_response, what=what)
 
     def take(self, data: bytes | bytearray | memoryview, allowed: int) -> tuple[int, int]:
         """Walk ``data`` but start at most ``allowed`` new frames: returns the byte
         offset where the walk stopped (everything before may be forwarded) and how
         many frames were started. A started frame's body is always let through."""
-        started, pos, n = 0, 0, len(data)
-        plen = self._prefix_len
-        while pos < n:
-            if self._need:
-                step = min(self._need, n - pos)
-                self._need -= step
-                pos += step
-                continue
-            if not self._prefix:
-                if started >= allowed:
-                    break
-                if n - pos >= plen:  # the common case: a whole prefix in this read
-                    self._need = self._check(bytes(data[pos : pos + plen]))
-                    started += 1
-                    pos += plen
-                    continue
-            chunk = bytes(data[pos : pos + plen - len(self._prefix)])
-            if not self._prefix:
-                started += 1
-            pos += len(chunk)
-            self._prefix += chunk
-            if len(self._prefix) == plen:
-                self._need = self._check(self._prefix)
-                self._prefix = b""
-        return pos, started
-
-    def _check(self, prefix: bytes) -> int:
-        if self._prefix_len == 5 and prefix[0] > 1:
-            raise PolicyDenied("malformed", f"{self.what}: service response ok byte {prefix[0]}")
-        size = int.from_bytes(prefix[-4:], "little")
-        if self.max_size is not None and size > self.max_size:
+        try:
+            return self.walk(data, allowed)
+        except FrameTooLarge as err:
             raise PolicyDenied(
                 "message_too_large",
-                f"{self.what}: frame of {size} bytes exceeds max_message_size {self.max_size}",
-            )
-        return size
+                f"{self.what}: frame of {err.size} bytes exceeds max_message_size {err.limit}",
+            ) from err
+        except RemoteProtocolError as err:
+            raise PolicyDenied("malformed", str(err)) from err
 
 
 class MessageBudget:

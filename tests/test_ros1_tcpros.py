@@ -243,3 +243,38 @@ def test_any_bytes_give_events_or_remote_protocol_error(data, kind, chunk) -> No
     whole = attempt(len(data) or 1)
     assert attempt(chunk) == whole
     assert attempt(1) == whole
+
+
+# ---------------------------------------------------------------- the frame walker
+
+
+def _frames(*bodies: bytes) -> bytes:
+    return b"".join(tcpros.encode_frame(b) for b in bodies)
+
+
+def test_frame_walker_split_whole_byte_by_byte_and_with_trailing_data():
+    from cryptoros.ros1.tcpros import FrameWalker
+
+    wire = _frames(b"a", b"", b"xyz")
+    walker = FrameWalker(max_size=16)
+    spans, stop, pending, error = walker.split(wire + b"\x05\x00\x00\x00ab")
+    assert [wire[a:b] for a, b in spans] == [b"a", b"", b"xyz"]
+    assert (stop, pending, error) == (len(wire), 5, None)
+    assert walker.split(wire, count=1)[0] == [(4, 5)]
+    # byte by byte through walk(): every frame start is seen once
+    walker = FrameWalker(max_size=16)
+    started = sum(walker.walk(wire[i : i + 1])[1] for i in range(len(wire)))
+    assert started == 3
+
+
+def test_frame_walker_checks_the_length_before_buffering():
+    from cryptoros.ros1.tcpros import FrameTooLarge, FrameWalker
+
+    walker = FrameWalker(max_size=2)
+    spans, stop, pending, error = walker.split(_frames(b"ok") + struct.pack("<I", 3))
+    assert spans == [(4, 6)] and stop == 6 and pending is None
+    assert isinstance(error, FrameTooLarge) and error.size == 3
+    with pytest.raises(FrameTooLarge):
+        FrameWalker(max_size=2).walk(struct.pack("<I", 2**31))
+    with pytest.raises(RemoteProtocolError, match="ok byte"):
+        FrameWalker(service_response=True).walk(struct.pack("<BI", 7, 0))

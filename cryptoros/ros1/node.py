@@ -659,6 +659,8 @@ class _Incoming(asyncio.BufferedProtocol):
         self.uri = uri
         self.max_header_size = sub.node.max_header_size
         self.max_frame_size = sub.node.max_frame_size
+        self.header_walker = tcpros.FrameWalker(max_size=self.max_header_size, what="header")
+        self.walker = tcpros.FrameWalker(max_size=self.max_frame_size)
         self.transport: asyncio.Transport | None = None
         self.header: dict[str, str] | None = None
         self.ready: asyncio.Future = asyncio.get_running_loop().create_future()
@@ -745,37 +747,27 @@ class _Incoming(asyncio.BufferedProtocol):
         self.transport.close()
 
     def _parse(self) -> None:
-        buf, view = self.buf, self.view
+        view = self.view
         start, end = self.start, self.end
-        unpack = _U32.unpack_from
         if self.header is None:
-            if end - start < 4:
-                return
-            (size,) = unpack(buf, start)
-            if size > self.max_header_size:
-                return self._fail(RemoteProtocolError(f"declared header length {size} exceeds the limit {self.max_header_size}"))
-            stop = start + 4 + size
-            if stop > end:
-                self._partial(start, end, size)
+            spans, stop, pending, error = self.header_walker.split(self.buf, start, end, count=1)
+            if error is not None:
+                return self._fail(error)
+            if not spans:
+                if pending is not None:
+                    self._partial(start, end, pending)
                 return
             try:
-                self._on_header(bytes(view[start + 4 : stop]))
+                self._on_header(bytes(view[spans[0][0] : spans[0][1]]))
             except RemoteProtocolError as err:
                 return self._fail(err)
-            start = stop
-        frames = []
-        limit = self.max_frame_size
-        while end - start >= 4:
-            (size,) = unpack(buf, start)
-            if size > limit:  # the frames before it are still delivered
-                self._fail(RemoteProtocolError(f"declared frame length {size} exceeds the limit {limit}"))
-                break
-            stop = start + 4 + size
-            if stop > end:
-                self._partial(start, end, size)
-                break
-            frames.append(bytes(view[start + 4 : stop]))
-            start = stop
+            start = spans[0][1]
+        spans, start, pending, error = self.walker.split(self.buf, start, end)
+        frames = [bytes(view[a:b]) for a, b in spans]
+        if error is not None:  # the frames before it are still delivered
+            self._fail(error)
+        elif pending is not None:
+            self._partial(start, end, pending)
         else:
             if start == end:
                 start = end = 0

@@ -52,6 +52,8 @@ __all__ = [
     "DEFAULT_MAX_HEADER_FIELDS",
     "KNOWN_HEADER_FIELDS",
     "canonical_header",
+    "FrameWalker",
+    "FrameTooLarge",
 ]
 
 DEFAULT_MAX_HEADER_SIZE: Final = 1 << 20  # 1 MiB: message_definition of big types fits
@@ -286,6 +288,121 @@ def check_service_server_header(header: ConnectionHeader) -> dict[str, str]:
     return _require(header, ("md5sum",), "service server")
 
 
+# ---------------------------------------------------------------- the frame walker
+
+
+class FrameTooLarge(RemoteProtocolError):
+    """A frame declared a length over the limit (checked before a byte of it is kept)."""
+
+    def __init__(self, size: int, limit: int, what: str = "frame") -> None:
+        super().__init__(f"declared {what} length {size} exceeds the limit {limit}")
+        self.size = size
+        self.limit = limit
+
+
+class FrameWalker:
+    """Walks the TCPROS frames after a connection header, sans-IO, without copying
+    bodies: only the length prefixes are read. ``u32 LE length`` + body by default;
+    with ``service_response=True``, ``u8 ok`` + ``u32 LE length`` + body. A declared
+    length over ``max_size`` (None: unbounded) raises :class:`FrameTooLarge` before a
+    byte of that frame is buffered or let through; an ``ok`` byte other than 0 or 1
+    raises :class:`RemoteProtocolError`.
+
+    Two ways to walk, one prefix check (:meth:`read_prefix`):
+
+    * :meth:`walk` follows a stream fed in arbitrary pieces (the interceptor's pump:
+      where may the bytes read so far be cut, how many frames began);
+    * :meth:`split` finds the complete frames in a buffer the caller keeps (the node's
+      subscriber: bodies are sliced out of its own receive buffer).
+    """
+
+    __slots__ = ("_need", "_prefix", "prefix_size", "max_size", "what")
+
+    def __init__(self, *, max_size: int | None = None, service_response: bool = False, what: str = "frame") -> None:
+        if max_size is not None and max_size < 0:
+            raise LocalProtocolError("max_size must be None or >= 0")
+        self._need = 0  # body bytes still to come of the current frame (walk)
+        self._prefix = b""  # a length prefix split across reads (walk)
+        self.prefix_size = 5 if service_response else 4
+        self.max_size = max_size
+        self.what = what
+
+    def read_prefix(self, data: bytes | bytearray | memoryview, pos: int = 0) -> int:
+        """The body length declared by the whole prefix at ``data[pos:]``, checked."""
+        if self.prefix_size == 5:
+            ok, size = _OK_U32.unpack_from(data, pos)
+            if ok > 1:
+                raise RemoteProtocolError(f"{self.what}: service response ok byte is {ok}, not 0 or 1")
+        else:
+            (size,) = _U32.unpack_from(data, pos)
+        if self.max_size is not None and size > self.max_size:
+            raise FrameTooLarge(size, self.max_size, self.what)
+        return size
+
+    def walk(self, data: bytes | bytearray | memoryview, allowed: int | None = None) -> tuple[int, int]:
+        """Walk the next piece of the stream but start at most ``allowed`` new frames
+        (None: any number): returns the offset where the walk stopped (everything
+        before may be forwarded) and how many frames were started. A started frame's
+        body is always let through."""
+        started, pos, n = 0, 0, len(data)
+        plen = self.prefix_size
+        while pos < n:
+            if self._need:
+                step = min(self._need, n - pos)
+                self._need -= step
+                pos += step
+                continue
+            if not self._prefix:
+                if allowed is not None and started >= allowed:
+                    break
+                if n - pos >= plen:  # the common case: a whole prefix in this piece
+                    self._need = self.read_prefix(data, pos)
+                    started += 1
+                    pos += plen
+                    continue
+            chunk = bytes(data[pos : pos + plen - len(self._prefix)])
+            if not self._prefix:
+                started += 1
+            pos += len(chunk)
+            self._prefix += chunk
+            if len(self._prefix) == plen:
+                self._need = self.read_prefix(self._prefix)
+                self._prefix = b""
+        return pos, started
+
+    def split(
+        self,
+        data: bytes | bytearray | memoryview,
+        start: int = 0,
+        end: int | None = None,
+        *,
+        count: int | None = None,
+    ) -> tuple[list[tuple[int, int]], int, int | None, RemoteProtocolError | None]:
+        """The complete frames in ``data[start:end]``, for a caller that keeps its own
+        buffer. Returns ``(spans, stop, pending, error)``: ``(body_start, body_end)``
+        of each complete frame, the offset of the first byte not in one, the declared
+        body length of the incomplete frame at ``stop`` if its prefix is whole (else
+        None), and the error of a bad prefix at ``stop`` (the frames before it are
+        still returned, as a subscriber delivers them). At most ``count`` frames
+        (None: all)."""
+        if end is None:
+            end = len(data)
+        plen = self.prefix_size
+        spans: list[tuple[int, int]] = []
+        pos = start
+        while end - pos >= plen and (count is None or len(spans) < count):
+            try:
+                size = self.read_prefix(data, pos)
+            except RemoteProtocolError as err:
+                return spans, pos, None, err
+            stop = pos + plen + size
+            if stop > end:
+                return spans, pos, size, None
+            spans.append((pos + plen, stop))
+            pos = stop
+        return spans, pos, None, None
+
+
 # ---------------------------------------------------------------- the connection
 
 
@@ -314,6 +431,7 @@ class TCPROSConnection:
         "_rb",
         "_state",
         "their_header",
+        "_walker",
     )
 
     def __init__(
@@ -334,6 +452,7 @@ class TCPROSConnection:
         self._rb = ReceiveBuffer()
         self._state = _State.HEADER if expect_header else _State.FRAMES
         self.their_header: ConnectionHeader | None = None
+        self._walker = FrameWalker(max_size=max_frame_size)
 
     # -- input
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
@@ -393,9 +512,7 @@ class TCPROSConnection:
         if self.frame_kind is FrameKind.MESSAGE:
             if len(buf) < 4:
                 return NEED_DATA
-            (size,) = _U32.unpack_from(buf, 0)
-            if size > self.max_frame_size:
-                raise RemoteProtocolError(f"declared frame length {size} exceeds the limit {self.max_frame_size}")
+            size = self._walker.read_prefix(buf, 0)
             end = 4 + size
             if len(buf) < end:
                 return NEED_DATA
@@ -425,22 +542,12 @@ class TCPROSConnection:
                 raise RemoteProtocolError("connection already failed")
             return []
         buf = self._rb.data
-        n = len(buf)
-        pos = 0
-        out = []
-        limit = self.max_frame_size
-        unpack = _U32.unpack_from
+        spans, pos, _pending, error = self._walker.split(buf)
+        if error is not None:
+            self._state = _State.ERROR
+            raise error
         with memoryview(buf) as view:
-            while n - pos >= 4:
-                (size,) = unpack(buf, pos)
-                if size > limit:
-                    self._state = _State.ERROR
-                    raise RemoteProtocolError(f"declared frame length {size} exceeds the limit {limit}")
-                end = pos + 4 + size
-                if end > n:
-                    break
-                out.append(bytes(view[pos + 4 : end]))
-                pos = end
+            out = [bytes(view[a:b]) for a, b in spans]
         if pos:
             del buf[:pos]
         return out
