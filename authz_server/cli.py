@@ -245,6 +245,97 @@ def revoke(ctx: click.Context, manager: str, action: str, node: str, name: str, 
     click.echo(f"revoked {n} grant(s): {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
 
 
+#: The anonymous node names stock ROS 1 tools run under (ros_comm 1.15), as node patterns.
+TOOL_NODES = {
+    "rostopic": "/rostopic_*",      # rostopic echo/hz/pub: init_node('rostopic', anonymous=True)
+    "rosparam": "/rosparam-*",      # rosgraph.Master('/rosparam-<pid>')
+    "rosservice_probe": "/rosservice",  # the service type probe of rosservice call/info
+    "rosservice": "/rosservice_*",  # rosservice call: init_node('rosservice', anonymous=True)
+}
+
+
+def _name_type(value: str, option: str) -> tuple[str, str]:
+    name, sep, type_ = value.partition(":")
+    if not sep or not name or not type_:
+        raise RegistryError(f"{option} {value!r}: expected NAME:TYPE such as /chatter:std_msgs/String")
+    return name, type_
+
+
+def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], services: tuple[str, ...],
+                param_namespaces: tuple[str, ...], params_read_only: bool) -> list[tuple[str, str, str, str | None]]:
+    """The (action, node, name, type) rows ``grant-tools`` grants."""
+    rows: list[tuple[str, str, str, str | None]] = []
+    for value in topics:
+        rows.append(("subscribe", TOOL_NODES["rostopic"], *_name_type(value, "--topic")))
+    for value in publish_topics:
+        rows.append(("publish", TOOL_NODES["rostopic"], *_name_type(value, "--publish-topic")))
+    for value in services:
+        name, type_ = _name_type(value, "--service")
+        rows.append(("call", TOOL_NODES["rosservice_probe"], name, type_))
+        rows.append(("call", TOOL_NODES["rosservice"], name, type_))
+    for ns in param_namespaces:
+        rows.append(("read_param" if params_read_only else "write_param", TOOL_NODES["rosparam"], ns, None))
+    return rows
+
+
+@main.command("grant-tools")
+@click.argument("manager")
+@click.option("--topic", "topics", multiple=True, metavar="NAME:TYPE",
+              help="A topic rostopic echo/hz/bw may subscribe to (repeatable).")
+@click.option("--publish-topic", "publish_topics", multiple=True, metavar="NAME:TYPE",
+              help="A topic rostopic pub may publish (repeatable).")
+@click.option("--service", "services", multiple=True, metavar="NAME:TYPE",
+              help="A service rosservice call may call (repeatable).")
+@click.option("--param-ns", "param_namespaces", multiple=True, metavar="NS",
+              help="Parameter namespace rosparam get/set/list/delete may use (repeatable; default /).")
+@click.option("--params-read-only", is_flag=True, help="rosparam may only read (get, list, dump) the namespaces.")
+@click.option("--no-params", is_flag=True, help="Grant rosparam nothing.")
+@click.option("--remove", is_flag=True, help="Take the same grants away instead.")
+@click.pass_context
+def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publish_topics: tuple[str, ...],
+                services: tuple[str, ...], param_namespaces: tuple[str, ...], params_read_only: bool,
+                no_params: bool, remove: bool) -> None:
+    """Grant MANAGER's stock ROS 1 tools what they need, by the anonymous node names
+    they run under: rostopic as /rostopic_* (--topic, --publish-topic), rosparam as
+    /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
+    /rosservice_* (--service). rosnode list/info/ping and rostopic list/info/type only
+    read the graph and need no grant; rosnode kill is always refused. Idempotent: a
+    grant already there is left as it is.
+
+    \b
+    Example:
+      cryptoros-authz grant-tools robot_b --topic /chatter:std_msgs/String \\
+          --service /add_two_ints:rospy_tutorials/AddTwoInts --param-ns /
+    """
+    if no_params and param_namespaces:
+        raise RegistryError("give either --param-ns or --no-params, not both")
+    namespaces = () if no_params else (param_namespaces or ("/",))
+    rows = tool_grants(topics, publish_topics, services, namespaces, params_read_only)
+    reg = _registry(ctx)
+    reg.get_manager(manager)  # an unknown manager is an error before anything changes
+    from authz_server.registry import GrantRow
+
+    for row in rows:  # all validated before the first write
+        GrantRow.checked(*row)
+    changed = 0
+    for action, node, name, type_ in rows:
+        what = f"{manager} {node} {action} {name}{' ' + type_ if type_ else ''}"
+        if remove:
+            try:
+                reg.revoke(manager, action, node, name, type_)
+            except RegistryError:
+                click.echo(f"not granted: {what}")
+                continue
+            changed += 1
+            click.echo(f"removed: {what}")
+        else:
+            added = reg.grant(manager, action, node, name, type_)
+            changed += added
+            click.echo(f"{'granted' if added else 'already granted'}: {what}")
+    click.echo(f"grant-tools {manager}: {changed} grant(s) {'removed' if remove else 'added'}, "
+               f"{len(rows) - changed} unchanged; rosnode list/info/ping need no grant")
+
+
 @main.command("export")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, writable=True), help="File (default stdout).")
 @click.pass_context

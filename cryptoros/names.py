@@ -2,8 +2,11 @@
 
 The registry stores global names only (``/chatter``, ``/robot1/scan``): a relative or
 private name means something different on every node, so it has no place in a grant.
-A node name may be the explicit wildcard ``*`` ("any node of this manager"); nothing
-else is a wildcard.
+A node name in a grant may also be the explicit wildcard ``*`` ("any node of this
+manager") or a prefix pattern ending in ``*`` (``/rostopic_*``, ``/rosparam-*``,
+``/robot1/*``): the anonymous names stock tools run under (``/rostopic_<pid>_<ms>``,
+``/rosparam-<pid>``). Only a trailing ``*`` is a wildcard; whether a node matches a
+granted name is decided by :func:`cryptoros.tokens.node_matches` alone.
 """
 
 from __future__ import annotations
@@ -54,9 +57,27 @@ def validate_caller_id(name: str) -> str:
     return name
 
 
+def is_node_pattern(name: str) -> bool:
+    """Whether a granted node name is a prefix pattern (``/rostopic_*``), not ``*`` or an exact name."""
+    return isinstance(name, str) and len(name) > 1 and name.endswith(NODE_WILDCARD)
+
+
 def validate_node_name(name: str) -> str:
-    """A global node name such as ``/talker``, or the explicit wildcard ``*``."""
+    """A global node name such as ``/talker``, the explicit wildcard ``*``, or a
+    prefix pattern: a global name prefix (``-`` allowed, as in stock tools' anonymous
+    names) followed by one trailing ``*`` such as ``/rostopic_*``, ``/rosparam-*`` or
+    ``/robot1/*``. The ``*`` stands for one or more characters, ``/`` included."""
     if name == NODE_WILDCARD:
+        return name
+    if is_node_pattern(name):
+        prefix = name[:-1]
+        # prefix + "x" must be a caller_id: "/", a letter, then name characters, "-" or "/"
+        if (NODE_WILDCARD in prefix or prefix == "/" or "//" in prefix or len(name) > MAX_NAME_LENGTH
+                or not _CALLER_ID.match(prefix + "x")):
+            raise RegistryError(
+                f"invalid node pattern {name!r}: expected a global name prefix with one trailing '*', "
+                "such as /rostopic_* or /rosparam-* (or '*' for any node)"
+            )
         return name
     return validate_graph_name(name, "node name")
 
@@ -74,5 +95,5 @@ def validate_type(type_name: str) -> str:
     return type_name
 
 
-__all__ = ["NODE_WILDCARD", "PARAM_TYPE", "validate_caller_id", "validate_graph_name", "validate_namespace", "validate_node_name",
+__all__ = ["NODE_WILDCARD", "PARAM_TYPE", "is_node_pattern", "validate_caller_id", "validate_graph_name", "validate_namespace", "validate_node_name",
            "validate_type"]

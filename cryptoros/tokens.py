@@ -33,6 +33,7 @@ from cryptoros.errors import TokenError
 from cryptoros.names import (
     NODE_WILDCARD,
     PARAM_TYPE,
+    is_node_pattern,
     validate_graph_name,
     validate_namespace,
     validate_node_name,
@@ -72,6 +73,20 @@ class Grant:
             validate_type(self.type)
 
 
+def node_matches(granted: str, node: str) -> bool:
+    """Whether the node name of a grant covers the caller ``node``: the one decision,
+    used by every :class:`Grants` method (so every interceptor decides alike).
+
+    ``*`` covers every node; a prefix pattern ``/rostopic_*`` covers every name that
+    starts with ``/rostopic_`` and has at least one character more (``/`` included);
+    any other grant covers exactly its own name (``/talker`` never ``/talker2``)."""
+    if granted == NODE_WILDCARD:
+        return True
+    if is_node_pattern(granted):
+        return len(node) >= len(granted) and node.startswith(granted[:-1])
+    return granted == node
+
+
 class Grants:
     """An immutable set of grants, as carried in a token."""
 
@@ -79,7 +94,11 @@ class Grants:
 
     def __init__(self, grants: Iterable[Grant] = ()) -> None:
         self._grants = frozenset(grants)
-        self._index = frozenset((g.node, g.action, g.name, g.type) for g in self._grants)
+        index: dict[tuple[str, str, str], list[str]] = {}
+        for g in self._grants:
+            index.setdefault((g.action, g.name, g.type), []).append(g.node)
+        #: (action, name, type) -> granted node names (exact, ``*`` or patterns)
+        self._index = {k: tuple(v) for k, v in index.items()}
 
     def __iter__(self) -> Iterator[Grant]:
         return iter(sorted(self._grants))
@@ -97,15 +116,15 @@ class Grants:
         return f"Grants({sorted(self._grants)!r})"
 
     def allows(self, action: str, node: str, name: str, type: str) -> bool:
-        """Exact match on action, name and type; the node matches itself or ``*``."""
-        return (node, action, name, type) in self._index or (NODE_WILDCARD, action, name, type) in self._index
+        """Exact match on action, name and type; the node by :func:`node_matches`."""
+        return any(node_matches(granted, node) for granted in self._index.get((action, name, type), ()))
 
     def types_for(self, action: str, node: str, name: str) -> frozenset[str]:
         """The types ``node`` may ``action`` the topic or service ``name`` with."""
         return frozenset(
             g.type
             for g in self._grants
-            if g.action == action and g.name == name and g.node in (node, NODE_WILDCARD)
+            if g.action == action and g.name == name and node_matches(g.node, node)
         )
 
     def param_allows(self, access: str, node: str, key: str) -> bool:
@@ -113,16 +132,17 @@ class Grants:
         ``key`` under a granted namespace (``write_param`` implies read)."""
         actions = ("write_param",) if access == "write" else ("read_param", "write_param")
         return any(
-            g.action in actions and g.node in (node, NODE_WILDCARD) and in_namespace(key, g.name) for g in self._grants
+            g.action in actions and node_matches(g.node, node) and in_namespace(key, g.name) for g in self._grants
         )
 
     def param_namespaces(self, node: str) -> frozenset[str]:
         """The namespaces ``node`` may read (for pruning namespace reads)."""
-        return frozenset(g.name for g in self._grants if g.action in PARAM_ACTIONS and g.node in (node, NODE_WILDCARD))
+        return frozenset(g.name for g in self._grants if g.action in PARAM_ACTIONS and node_matches(g.node, node))
 
     def names_node(self, node: str) -> bool:
-        """Whether any grant names ``node`` (or is a wildcard): the node is this manager's."""
-        return any(g.node in (node, NODE_WILDCARD) for g in self._grants)
+        """Whether any grant covers ``node`` (exactly, ``*`` or a prefix pattern): the
+        node is this manager's, so it may register that name at the master."""
+        return any(node_matches(g.node, node) for g in self._grants)
 
     def names(self) -> frozenset[str]:
         """The topics and services named by any grant (parameter namespaces excluded)."""
@@ -417,5 +437,6 @@ __all__ = [
     "build_claims",
     "public_jwk",
     "sign_token",
+    "node_matches",
     "verify_access_token",
 ]
