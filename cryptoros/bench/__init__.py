@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, str] = {
     "ros2": "cryptoros.bench.ros2:ros2",
     "ros2-insider": "cryptoros.bench.ros2_insider:ros2_insider",
     "sim": "cryptoros.bench.sim:sim",
+    "soak": "cryptoros.bench.soak:soak",
 }
 
 
