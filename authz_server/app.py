@@ -43,9 +43,11 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from authz_server import keys as keymod
 from authz_server.config import ServeConfig
 from authz_server.registry import AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
-from cryptoros.errors import ConfigError, CryptorosError, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PKIError, TokenError
 from cryptoros.ratelimit import OncePer, TokenBuckets
-from cryptoros.tls import cert_fingerprint_sha256, peer_cert_der
+from cryptoros import pemfiles
+from cryptoros.pemfiles import cert_fingerprint_sha256
+from cryptoros.tls import peer_cert_der
 from cryptoros.tokens import (
     Grant,
     Grants,
@@ -168,10 +170,8 @@ class CRLWatcher:
     """
 
     def __init__(self, crl_path, ca_path, interval: float = 1.0) -> None:
-        from cryptography import x509
-
         self.path, self.interval = crl_path, interval
-        self._ca = x509.load_pem_x509_certificate(open(ca_path, "rb").read())
+        self._ca = pemfiles.load_certificate(ca_path)
         self._stamp: tuple[int, int] | None = None
         self._bad: tuple[int, int] | None = None
         self._checked = 0.0
@@ -180,8 +180,6 @@ class CRLWatcher:
 
     def refresh(self, *, force: bool = False) -> None:
         import os
-
-        from cryptography import x509
 
         now = time.monotonic()
         if not force and now - self._checked < self.interval and self._stamp is not None:
@@ -194,10 +192,10 @@ class CRLWatcher:
                 return
             with open(self.path, "rb") as fh:
                 data = fh.read()
-            crl = x509.load_pem_x509_crl(data) if b"-----BEGIN" in data else x509.load_der_x509_crl(data)
+            crl = pemfiles.parse_crl(data, self.path)
             if crl.issuer != self._ca.subject or not crl.is_signature_valid(self._ca.public_key()):
                 raise ValueError("not issued by the CA")
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, PKIError) as exc:
             log.error("cannot reload the CRL %s, keeping the previous one: %s", self.path, exc)
             self._bad = locals().get("stamp")
             return
@@ -208,10 +206,8 @@ class CRLWatcher:
         self.revoked = revoked
 
     def is_revoked(self, der: bytes) -> bool:
-        from cryptography import x509
-
         self.refresh()
-        return bool(self.revoked) and x509.load_der_x509_certificate(der).serial_number in self.revoked
+        return bool(self.revoked) and pemfiles.cert_serial(der) in self.revoked
 
 
 @dataclass
@@ -533,7 +529,7 @@ def _log_revoked_client(der: bytes, request: web.Request) -> None:
     second would otherwise fill the log without saying who it is)."""
     from cryptography import x509
 
-    cert = x509.load_der_x509_certificate(der)
+    cert = pemfiles.parse_certificate(der)
     if not _revoked_log(cert.serial_number):
         return
     names = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)

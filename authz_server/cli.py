@@ -22,7 +22,8 @@ from authz_server import keys as keymod
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
 from authz_server.registry import ACTIONS, Registry, validate_manager_name
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
-from cryptoros.tls import cert_fingerprint_sha256
+from cryptoros import pemfiles
+from cryptoros.pemfiles import cert_fingerprint_sha256
 
 PROG = "cryptoros-authz"
 DB_ENV = "CRYPTOROS_AUTHZ_DB"
@@ -67,13 +68,9 @@ def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
     from cryptography.hazmat.primitives import serialization
 
     try:
-        data = Path(cert_file).read_bytes()
-    except OSError as exc:
-        raise RegistryError(f"cannot read certificate {cert_file}: {exc.strerror}") from exc
-    try:
-        cert = x509.load_pem_x509_certificate(data) if b"-----BEGIN" in data else x509.load_der_x509_certificate(data)
-    except ValueError as exc:
-        raise RegistryError(f"{cert_file} is not an X.509 certificate (PEM or DER)") from exc
+        cert = pemfiles.load_certificate(cert_file)
+    except PKIError as exc:
+        raise RegistryError(str(exc)) from exc
     if name is not None:
         try:
             uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value \
@@ -449,7 +446,6 @@ def audit(ctx: click.Context, limit: int, manager: str | None, event: str | None
 def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, audience: str,
                  feed_file: str | None) -> None:
     """Verify an access token offline, as an interceptor does; print its claims."""
-    from cryptography import x509
     from cryptography.hazmat.primitives import serialization
 
     from cryptoros.tokens import KeySet, Revocations, verify_access_token
@@ -467,9 +463,9 @@ def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, a
         except (ValueError, KeyError, TypeError) as exc:
             raise RegistryError(f"{token_file} is JSON without an access_token") from exc
     try:
-        cert = x509.load_pem_x509_certificate(cert_data)
-    except ValueError as exc:
-        raise RegistryError(f"{cert_file} is not a PEM certificate") from exc
+        cert = pemfiles.parse_certificate(cert_data, cert_file)
+    except PKIError as exc:
+        raise RegistryError(str(exc)) from exc
     revocations = None
     if feed is not None:
         revocations = Revocations(revoked_jtis=frozenset(feed.get("revoked_jtis", [])),

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 
-from cryptoros.errors import ConfigError
+from cryptoros import pemfiles
+from cryptoros.errors import ConfigError, PKIError
 
 RSA_BITS = 2048
 PASSPHRASE_ENV = "CRYPTOROS_AUTHZ_KEY_PASSPHRASE"
@@ -97,8 +98,8 @@ def load_private(private_pem: bytes, encrypted: bool, prot: KeyProtection, kid: 
     if encrypted and prot.passphrase is None:
         raise ConfigError(f"signing key {kid} is encrypted: give its passphrase (--key-passphrase-file or {PASSPHRASE_ENV})")
     try:
-        key = serialization.load_pem_private_key(private_pem, password=prot.passphrase if encrypted else None)
-    except (ValueError, TypeError) as exc:
+        key = pemfiles.parse_private_key(private_pem, prot.passphrase if encrypted else None, f"signing key {kid}")
+    except PKIError as exc:
         raise ConfigError(f"cannot decrypt signing key {kid}: wrong passphrase?") from exc
     if not isinstance(key, rsa.RSAPrivateKey):  # pragma: no cover - we only store RSA
         raise ConfigError(f"signing key {kid} is not an RSA key")

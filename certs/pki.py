@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import fcntl
-import hashlib
 import ipaddress
 import json
 import os
@@ -31,12 +30,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
-from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
+from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from cryptoros import pemfiles
 from cryptoros.errors import PKIError
+from cryptoros.pemfiles import key_is_encrypted, load_certificate, load_crl, load_csr, load_private_key
 
 KEY_TYPES = ("ec-p256", "rsa2048", "rsa3072")
 KINDS = ("manager", "interceptor", "server", "master")  # server = authz server
@@ -244,87 +245,10 @@ def _key_pem(key, passphrase: bytes | None, unsafe_no_passphrase: bool) -> bytes
     )
 
 
-def key_is_encrypted(path: str | os.PathLike) -> bool:
-    """True if the PEM key file at ``path`` is passphrase-protected."""
-    try:
-        head = Path(path).read_bytes()[:4096]
-    except OSError as err:
-        raise PKIError(f"cannot read key {path}: {err.strerror}") from err
-    return b"ENCRYPTED PRIVATE KEY" in head or b"Proc-Type: 4,ENCRYPTED" in head
-
-
-def load_private_key(path: str | os.PathLike, passphrase: bytes | None):
-    """Load a PEM (or DER) private key; :class:`PKIError` on a wrong or missing passphrase."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise PKIError(f"cannot read key {path}: {err.strerror}") from err
-    if isinstance(passphrase, str):
-        passphrase = passphrase.encode()
-    encrypted = b"ENCRYPTED" in data[:4096]
-    if encrypted and not passphrase:
-        raise PKIError(f"key {path} is encrypted: a passphrase is required")
-    password = passphrase if encrypted else None
-    loader = serialization.load_pem_private_key if b"-----BEGIN" in data else serialization.load_der_private_key
-    try:
-        return loader(data, password=password)
-    except (ValueError, TypeError, UnsupportedAlgorithm) as err:
-        if encrypted:
-            raise PKIError(f"cannot decrypt key {path}: wrong passphrase?") from err
-        raise PKIError(f"{path} is not a private key") from err
-
-
-def load_certificate(path: str | os.PathLike) -> x509.Certificate:
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise PKIError(f"cannot read certificate {path}: {err.strerror}") from err
-    try:
-        if b"-----BEGIN" in data:
-            return x509.load_pem_x509_certificate(data)
-        return x509.load_der_x509_certificate(data)
-    except ValueError as err:
-        raise PKIError(f"{path} is not an X.509 certificate") from err
-
-
-def load_csr(path: str | os.PathLike) -> x509.CertificateSigningRequest:
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise PKIError(f"cannot read CSR {path}: {err.strerror}") from err
-    try:
-        if b"-----BEGIN" in data:
-            csr = x509.load_pem_x509_csr(data)
-        else:
-            csr = x509.load_der_x509_csr(data)
-    except ValueError as err:
-        raise PKIError(f"{path} is not a certificate signing request") from err
-    if not csr.is_signature_valid:
-        raise PKIError(f"the signature of CSR {path} is invalid")
-    return csr
-
-
-def load_crl(path: str | os.PathLike) -> x509.CertificateRevocationList:
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise PKIError(f"cannot read CRL {path}: {err.strerror}") from err
-    try:
-        if b"-----BEGIN" in data:
-            return x509.load_pem_x509_crl(data)
-        return x509.load_der_x509_crl(data)
-    except ValueError as err:
-        raise PKIError(f"{path} is not a CRL") from err
-
-
 def cert_fingerprint_sha256(cert_or_path: x509.Certificate | str | os.PathLike) -> str:
     """Lowercase hex SHA-256 over the DER encoding of a certificate (or a cert file)."""
     cert = cert_or_path if isinstance(cert_or_path, x509.Certificate) else load_certificate(cert_or_path)
-    return hashlib.sha256(cert.public_bytes(serialization.Encoding.DER)).hexdigest()
+    return pemfiles.cert_fingerprint_sha256(cert.public_bytes(serialization.Encoding.DER))
 
 
 def _check_public_key(key) -> None:

@@ -19,13 +19,12 @@ forward-secret AEAD suites only:
 
 from __future__ import annotations
 
-import base64
-import hashlib
 import ssl
 from dataclasses import dataclass
 from pathlib import Path
 
 from cryptoros.errors import ConfigError, TokenError
+from cryptoros import pemfiles
 
 #: The paper's cipher configuration string (seed 003, Eq. 5), kept for reference.
 PAPER_CIPHER_STRING = "TLSv1.2:!LOW:!EXPORT:!MD5:!aNULL:!ADH:!AECDH:!DES:!eNULL:!RC2:!RC4"
@@ -113,14 +112,10 @@ def peer_cert_der(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> bytes:
     return der
 
 
-def cert_thumbprint_s256(der: bytes) -> str:
-    """RFC 8705 ``x5t#S256``: base64url(SHA-256(DER)) without padding."""
-    return base64.urlsafe_b64encode(hashlib.sha256(der).digest()).rstrip(b"=").decode("ascii")
-
-
-def cert_fingerprint_sha256(der: bytes) -> str:
-    """Lowercase hex SHA-256 of the DER certificate, as stored in the registry."""
-    return hashlib.sha256(der).hexdigest()
+#: The fingerprints of a DER certificate live in :mod:`cryptoros.pemfiles`; kept here
+#: for the callers that import them from this module.
+cert_thumbprint_s256 = pemfiles.cert_thumbprint_s256
+cert_fingerprint_sha256 = pemfiles.cert_fingerprint_sha256
 
 
 def describe_suites(ctx: ssl.SSLContext) -> list[str]:

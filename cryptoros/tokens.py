@@ -39,7 +39,7 @@ from cryptoros.names import (
     validate_node_name,
     validate_type,
 )
-from cryptoros.tls import cert_thumbprint_s256
+from cryptoros.pemfiles import cert_serial, cert_thumbprint_s256
 
 ALGORITHM = "RS256"
 TOKEN_TYPE = "at+jwt"
@@ -329,9 +329,7 @@ _PYJWT_REASONS: tuple[tuple[type[Exception], str], ...] = (
 
 
 def _serial_of(der: bytes) -> int:
-    from cryptography import x509
-
-    return x509.load_der_x509_certificate(der).serial_number
+    return cert_serial(der)
 
 
 def verify_access_token(

@@ -34,6 +34,7 @@ raised into the event loop.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import logging
 import ssl
@@ -42,9 +43,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import aiohttp
-from cryptography import x509
-
-from cryptoros.errors import TokenError
+from cryptoros import pemfiles
+from cryptoros.errors import PKIError, TokenError
 from cryptoros.tokens import AccessToken, KeySet, Revocations, peer_audience, verify_access_token
 from interceptor.config import AuthzSettings
 
@@ -214,6 +214,8 @@ class TokenKeeper:
         self._peer_fetches: dict[str, asyncio.Future] = {}
         self.refreshed = asyncio.Event()
         self._wake = asyncio.Event()
+        self._attempted = asyncio.Event()  # set (and replaced) after every refresh attempt
+        self._last_forced = float("-inf")
         #: Called after each new token (the interceptor shows it to its peers).
         self.listeners: list[Callable[[], None]] = []
 
@@ -285,6 +287,26 @@ class TokenKeeper:
         """Refresh now (the registry changed: our grants may have)."""
         self._wake.set()
 
+    async def ensure(self, timeout: float) -> None:
+        """Hold a valid token if one can be had within ``timeout``: a local call made
+        while none is held (our manager was re-enabled a moment ago, the feed just said
+        so) waits for the next refresh attempt instead of being refused at once. The
+        attempt is forced at most once a second (a flood of local calls must not become
+        a flood of token requests); a refused attempt (manager still disabled) ends the
+        wait at once, and the caller refuses with the reason."""
+        try:
+            self.current()
+            return
+        except TokenError:
+            pass
+        attempted = self._attempted
+        now = time.monotonic()
+        if now - self._last_forced >= 1.0:
+            self._last_forced = now
+            self._wake.set()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(attempted.wait(), timeout)
+
     def invalidate(self) -> None:
         """Our token was revoked (or our manager disabled): drop it and ask again now."""
         self._token = None
@@ -308,6 +330,8 @@ class TokenKeeper:
                 log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail, max(0, remaining))
                 delay = backoff
                 backoff = min(backoff * 2, 8.0)
+            self._attempted.set()
+            self._attempted = asyncio.Event()
             try:
                 await asyncio.wait_for(self._wake.wait(), delay)
             except asyncio.TimeoutError:
@@ -393,8 +417,8 @@ class PeerVerifier:
         )
         if access.thumbprint not in self._serials:  # so a CA revocation in the feed can cut its streams
             try:
-                serial = x509.load_der_x509_certificate(peer_cert_der).serial_number
-            except ValueError:  # not a certificate (the TLS layer hands us only real ones)
+                serial = pemfiles.cert_serial(peer_cert_der)
+            except PKIError:  # not a certificate (the TLS layer hands us only real ones)
                 return access
             if len(self._serials) >= self.MAX_CERTIFICATES:
                 del self._serials[next(iter(self._serials))]
