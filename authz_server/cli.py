@@ -370,7 +370,7 @@ def import_(ctx: click.Context, file: str, merge: bool) -> None:
 # ---------------------------------------------------------------------- keys and tokens
 _passphrase_options = [
     click.option("--key-passphrase-file", type=str,
-                 help=f"File whose first line encrypts the signing keys (or ${keymod.PASSPHRASE_ENV})."),
+                 help=f"File holding the passphrase that encrypts the signing keys (or ${keymod.PASSPHRASE_ENV})."),
     click.option("--unsafe-no-passphrase", is_flag=True, help="Store signing keys unencrypted."),
 ]
 
@@ -490,7 +490,7 @@ def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, a
 @click.option("--ca", help="CA certificate clients must chain to.")
 @click.option("--cert", help="The server's certificate.")
 @click.option("--key", help="The server's private key.")
-@click.option("--tls-key-passphrase-file", help="File whose first line decrypts --key.")
+@click.option("--tls-key-passphrase-file", help="File holding the passphrase that decrypts --key.")
 @click.option("--crl", help="CRL of the CA: revoked client certificates fail the handshake.")
 @click.option("--issuer", help="Token issuer (iss).  [default: cryptoros-authz]")
 @click.option("--audience", help="Token audience (aud).  [default: cryptoros]")

@@ -17,6 +17,7 @@ from typing import Any
 from authz_server.db import DEFAULT_DB_URL
 from authz_server.keys import KeyProtection, protection
 from cryptoros.errors import ConfigError
+from cryptoros.passphrase import read_file
 from cryptoros.tls import TLSConfig
 
 DEFAULT_ISSUER = "cryptoros-authz"
@@ -146,10 +147,7 @@ def build_config(values: dict[str, Any]) -> ServeConfig:
         raise ConfigError(f"serve needs TLS material: missing {', '.join('--' + k for k in missing)}")
     tls_pass = None
     if values.get("key_passphrase_file"):
-        try:
-            tls_pass = Path(values["key_passphrase_file"]).read_bytes().splitlines()[0]
-        except (OSError, IndexError) as exc:
-            raise ConfigError(f"cannot read the TLS key passphrase file {values['key_passphrase_file']}") from exc
+        tls_pass = read_file(values["key_passphrase_file"])
     tls = TLSConfig(
         ca_file=Path(values["ca"]),
         cert_file=Path(values["cert"]),

@@ -11,7 +11,6 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 
 from cryptography.hazmat.primitives import serialization
@@ -19,6 +18,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 
 from cryptoros import pemfiles
 from cryptoros.errors import ConfigError, PKIError
+from cryptoros.passphrase import read_passphrase
 
 RSA_BITS = 2048
 PASSPHRASE_ENV = "CRYPTOROS_AUTHZ_KEY_PASSPHRASE"
@@ -42,18 +42,9 @@ class KeyProtection:
 
 
 def protection(passphrase_file: str | None, *, unsafe_no_passphrase: bool = False) -> KeyProtection:
-    """Passphrase from a file (first line), else the environment, else none."""
-    passphrase: bytes | None = None
-    if passphrase_file:
-        try:
-            with open(passphrase_file, "rb") as fh:
-                passphrase = fh.read().splitlines()[0]
-        except OSError as exc:
-            raise ConfigError(f"cannot read the key passphrase file {passphrase_file}: {exc.strerror}") from exc
-        except IndexError:
-            raise ConfigError(f"the key passphrase file {passphrase_file} is empty") from None
-    elif os.environ.get(PASSPHRASE_ENV):
-        passphrase = os.environ[PASSPHRASE_ENV].encode()
+    """Passphrase from a file, else the environment, else none
+    (:func:`cryptoros.passphrase.read_passphrase`: the one rule)."""
+    passphrase = read_passphrase(passphrase_file, PASSPHRASE_ENV)
     if passphrase is not None and unsafe_no_passphrase:
         raise ConfigError("--unsafe-no-passphrase given together with a passphrase")
     return KeyProtection(passphrase=passphrase, unsafe_no_passphrase=unsafe_no_passphrase)

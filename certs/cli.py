@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed448, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from cryptoros import passphrase as passphrases
 from cryptoros.errors import PKIError
 
 from . import pki as pkimod
@@ -57,15 +57,12 @@ class Refused(click.ClickException):
 # --------------------------------------------------------------------------- passphrases
 
 
-def _read_passphrase_file(path: str) -> bytes:
+def _read_passphrase(path: str | None, env: str) -> bytes | None:
+    """:func:`cryptoros.passphrase.read_passphrase` (the one rule), as a usage error."""
     try:
-        data = Path(path).read_bytes()
-    except OSError as err:
-        raise BadInput(f"cannot read passphrase file {path}: {err.strerror}") from err
-    line = data.split(b"\n", 1)[0].rstrip(b"\r")
-    if not line:
-        raise BadInput(f"passphrase file {path} is empty")
-    return line
+        return passphrases.read_passphrase(path, env)
+    except passphrases.PassphraseError as err:
+        raise BadInput(str(err)) from err
 
 
 def _prompt(label: str, *, confirm: bool) -> bytes:
@@ -104,24 +101,22 @@ def new_key_passphrase(passphrase_file: str | None, unsafe_no_passphrase: bool, 
         if passphrase_file:
             raise BadInput("--passphrase-file and --unsafe-no-passphrase exclude each other")
         return None
-    if passphrase_file:
-        return _read_passphrase_file(passphrase_file)
-    env = os.environ.get(ENV_PASSPHRASE)
-    if env:
-        return env.encode()
+    value = _read_passphrase(passphrase_file, ENV_PASSPHRASE)
+    if value is not None:
+        return value
     return _prompt(f"Passphrase for the new {what} key", confirm=True)
 
 
 def ca_passphrase(pki: PKI, ca_passphrase_file: str | None) -> bytes | None:
     if ca_passphrase_file:
-        return _read_passphrase_file(ca_passphrase_file)
+        return _read_passphrase(ca_passphrase_file, ENV_CA_PASSPHRASE)
     if not pki.ca_key_path.exists():
         raise BadInput(f"{pki.ca_key_path} is missing: this PKI directory cannot sign")
     if not pki.ca_key_encrypted:
         return None
-    env = os.environ.get(ENV_CA_PASSPHRASE)
-    if env:
-        return env.encode()
+    value = _read_passphrase(None, ENV_CA_PASSPHRASE)
+    if value is not None:
+        return value
     return _prompt("CA key passphrase", confirm=False)
 
 
@@ -151,7 +146,7 @@ def ca_pass_option(f):
     return click.option(
         "--ca-passphrase-file",
         type=click.Path(dir_okay=False),
-        help=f"File whose first line is the CA key passphrase (else ${ENV_CA_PASSPHRASE}, else a prompt).",
+        help=f"File holding the CA key passphrase (one trailing newline dropped) (else ${ENV_CA_PASSPHRASE}, else a prompt).",
     )(f)
 
 
@@ -164,7 +159,7 @@ def new_pass_options(f):
     return click.option(
         "--passphrase-file",
         type=click.Path(dir_okay=False),
-        help=f"File whose first line is the new key's passphrase (else ${ENV_PASSPHRASE}, else a prompt).",
+        help=f"File holding the new key's passphrase (one trailing newline dropped) (else ${ENV_PASSPHRASE}, else a prompt).",
     )(f)
 
 

@@ -72,6 +72,7 @@ from pathlib import Path
 from typing import Any
 
 from cryptoros.errors import ConfigError
+from cryptoros.passphrase import PassphraseError, from_env, read_file
 from cryptoros.tls import TLSConfig
 
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
@@ -308,11 +309,11 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
     if "key_passphrase_file" in tls_raw:
         pass_path = _path(base, tls_raw["key_passphrase_file"], "[tls] key_passphrase_file")
         try:
-            passphrase = pass_path.read_bytes().rstrip(b"\r\n")
-        except OSError as exc:
-            raise ConfigError(f"[tls] key_passphrase_file: cannot read {pass_path}: {exc.strerror}") from None
-    elif os.environ.get(PASSPHRASE_ENV):
-        passphrase = os.environ[PASSPHRASE_ENV].encode()
+            passphrase = read_file(pass_path)
+        except PassphraseError as exc:
+            raise ConfigError(f"[tls] key_passphrase_file: {exc}") from None
+    else:
+        passphrase = from_env(PASSPHRASE_ENV)
     tls = TLSConfig(
         ca_file=_path(base, tls_raw["ca"], "[tls] ca"),
         cert_file=_path(base, tls_raw["cert"], "[tls] cert"),
