@@ -50,6 +50,7 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.network import HOSTS, Network, NetworkError, lab_network, free_port, stop, wait_port
+from cryptoros.ros1.uri import host_port
 
 SYS_PY = "/usr/bin/python3"
 NODES = Path(__file__).parent / "ros1_nodes"
@@ -507,7 +508,7 @@ def token_sizes(net: Network, names: tuple[str, ...] = ("robot_a", "robot_b")) -
     from cryptoros.tls import TLSConfig, client_context
 
     sizes = {}
-    host, port = net.authz_url.split("://", 1)[1].rsplit(":", 1)
+    host, port = host_port(net.authz_url, ("https",))
     for name in names:
         cert, key = net.cert(name)
         ctx = client_context(TLSConfig(ca_file=net.ca, cert_file=cert, key_file=key))
@@ -539,7 +540,7 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
                 workdir / "idle-plain.log")
     try:
         _, uri, port_text = idle.expect("URI ", 30).split()
-        xml_port = int(uri.rstrip("/").rsplit(":", 1)[1])
+        xml_port = host_port(uri)[1]
         with stunnel_chain(net, talker_port, workdir, "setup") as (client_port, server_port):
 
             async def plain_and_stunnel() -> dict:

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import click
 
+from cryptoros.ros1.uri import host_port
+
 POLICY = """\
 version: 1
 managers:
@@ -237,7 +239,7 @@ class Soak:
         t = time.monotonic()
         old = self.net.authz_proc
         stop(old, timeout=10)
-        host, port = self.net.authz_url[len("https://"):].rsplit(":", 1)
+        host, port = host_port(self.net.authz_url, ("https",))
         log = (self.work / "authz.log").open("a")
         proc = subprocess.Popen(old.args, stdout=log, stderr=subprocess.STDOUT, env=clean_env(), **self.net.popen_extra)
         self.net.authz_proc = proc

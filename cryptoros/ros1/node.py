@@ -26,7 +26,6 @@ import asyncio
 import contextlib
 import logging
 import os
-import urllib.parse
 from collections.abc import Callable
 from typing import Any
 
@@ -34,6 +33,7 @@ from cryptoros.errors import LocalProtocolError, RemoteProtocolError
 from cryptoros.ros1 import msgs, tcpros
 from cryptoros.ros1.rpc import RosApiError, XmlRpcClient, XmlRpcServer, call
 from cryptoros.ros1.services import ServiceServer, _ServiceClientProtocol
+from cryptoros.ros1.uri import make_uri, split_uri
 from cryptoros.ros1.topics import Publisher, Subscriber, _TcprosServerProtocol
 from cryptoros.ros1.xmlrpc import Fault, Request, Response
 
@@ -257,7 +257,7 @@ class Node:
     # -- services
     @property
     def service_uri(self) -> str:
-        return f"rosrpc://{self.host}:{self._tcpros_port}"
+        return make_uri(self.host, self._tcpros_port, "rosrpc", "")
 
     async def advertise_service(self, name: str, srv_type: str, handler: Callable[[Any], Any]) -> ServiceServer:
         name = _global(name)
@@ -282,13 +282,11 @@ class Node:
         name = _global(name)
         srv = msgs.service_type(srv_type, self.store)
         uri = await self.master("lookupService", name)
-        u = urllib.parse.urlsplit(uri)
-        if u.scheme != "rosrpc" or not u.hostname or not u.port:
-            raise RemoteProtocolError(f"bad service URI {uri!r}")
+        u = split_uri(uri, ("rosrpc",))
         header = {"callerid": self.name, "md5sum": srv.md5sum, "persistent": "0", "service": name}
         proto = _ServiceClientProtocol(header)
         loop = asyncio.get_running_loop()
-        transport, _ = await asyncio.wait_for(loop.create_connection(lambda: proto, u.hostname, u.port), timeout)
+        transport, _ = await asyncio.wait_for(loop.create_connection(lambda: proto, u.host, u.port), timeout)
         try:
             tcpros.check_service_server_header(await proto.next(timeout))
             transport.write(tcpros.encode_frame(msgs.serialize(request, srv.request, srv.store)))

@@ -12,11 +12,11 @@ import asyncio
 import contextlib
 import logging
 import socket
-import urllib.parse
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 from cryptoros.errors import CryptorosError, RemoteProtocolError
+from cryptoros.ros1.uri import make_uri, split_uri
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
     NEED_DATA,
@@ -143,7 +143,7 @@ class XmlRpcServer:
 
     @property
     def uri(self) -> str:
-        return f"http://{self.host}:{self.port}/"
+        return make_uri(self.host, self.port)
 
     async def close(self) -> None:
         if self.server is not None:
@@ -160,10 +160,8 @@ class XmlRpcServer:
 
 
 def _split_uri(uri: str, scheme: tuple[str, ...] = ("http",)) -> tuple[str, int, str]:
-    u = urllib.parse.urlsplit(uri)
-    if u.scheme not in scheme or not u.hostname or not u.port:
-        raise RemoteProtocolError(f"bad URI {uri!r}")
-    return u.hostname, u.port, request_path(u.path)
+    u = split_uri(uri, scheme)
+    return u.host, u.port, request_path(u.path)
 
 
 class XmlRpcClient:
