@@ -28,13 +28,26 @@ def _fail(message: str, code: int = 2) -> None:
     sys.exit(code)
 
 
+def build_interceptor(cfg):
+    """The gateway composed with the roles ``cfg.roles`` names: ROS 1 (``node``,
+    ``master``) and ``ros2`` (imported only when named: rclpy runs in a child)."""
+    from interceptor.gateway import Gateway
+
+    gateway = Gateway(cfg)
+    if "node" in cfg.roles or "master" in cfg.roles:
+        from interceptor.ros1 import Ros1Role
+
+        gateway.add_role(Ros1Role(gateway))
+    if "ros2" in cfg.roles:
+        from interceptor.ros2 import Ros2Role
+
+        gateway.add_role(Ros2Role(gateway))
+    return gateway
+
+
 async def _run(config_path: str, grace: float) -> None:
     cfg = load(config_path)
-    if "ros2" in cfg.roles:  # the DDS bridge role; rclpy itself runs in a child process
-        from interceptor.ros2 import Ros2Interceptor as interceptor_class
-    else:
-        from interceptor.ros1 import Interceptor as interceptor_class
-    interceptor = interceptor_class(cfg)
+    interceptor = build_interceptor(cfg)
     try:
         await interceptor.start()
     except OSError as exc:
@@ -75,9 +88,10 @@ async def _preflight(cfg) -> list[str]:
 
     from cryptoros.tokens import verify_access_token
     from interceptor.authz_client import AuthzClient
-    from interceptor.ros1 import _read_cert_der, cert_hosts
+    from cryptoros.pemfiles import cert_der
+    from interceptor.gateway import cert_hosts
 
-    der = _read_cert_der(cfg.tls.cert_file)
+    der = cert_der(cfg.tls.cert_file)
     hosts = cert_hosts(der)
     lines = []
     if cfg.public.host in ("0.0.0.0", "::"):

@@ -1,61 +1,54 @@
-"""The ROS 1 interceptor: the asyncio edge over the sans-IO codecs and the policy.
+"""The ROS 1 role of the interceptor: XML-RPC and TCPROS over the gateway.
 
-One process per host. Its listeners:
+Composed with :class:`~interceptor.gateway.Gateway`, which owns the public listener,
+tokens, limits, cut-off and reload. This role serves the stream purposes
 
-- **public** (mutual TLS): every stream from another interceptor opens with a
-  :class:`~cryptoros.tunnel.Preamble` (token, purpose, target). The token is
-  verified and bound to the TLS certificate, then, by purpose:
   ``master``  XML-RPC for the master this interceptor fronts (master role);
   ``node``    XML-RPC for one exported local node API;
   ``topic``/``service``  TCPROS for one exported local TCPROS server: the
-  connection header is checked, then bytes are pumped.
-- **local master** (plain HTTP on loopback, node role): the ``ROS_MASTER_URI`` of
-  this host's unmodified nodes. Calls are checked against this interceptor's own
-  grants, their URIs exported, and forwarded over a tunnel to the master's
-  interceptor.
-- **relays** (plain, loopback, created on demand): one per remote endpoint a local
-  process was handed; each tunnels to the endpoint's owner.
+  connection header is checked, then bytes are pumped,
 
-Everything fails closed: a call or stream that cannot be decided is refused, the
-log gets who, what and why, the peer gets an opaque denial.
+and opens its own loopback listeners:
+
+- **local master** (plain HTTP, node role): the ``ROS_MASTER_URI`` of this host's
+  unmodified nodes. Calls are checked against this interceptor's own grants, their
+  URIs exported, and forwarded over a tunnel to the master's interceptor.
+- **relays** (created on demand): one per remote endpoint a local process was
+  handed; each tunnels to the endpoint's owner.
+
+Every decision is a pure function of :mod:`cryptoros.policy.ros1`; this module does
+the I/O. Everything fails closed: a call or stream that cannot be decided is refused,
+the log gets who, what and why, the peer gets an opaque denial.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
 import json
 import logging
 import os
 import socket
-import ssl
 import time
 import urllib.parse
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
-from typing import Any
 
-from aiohttp import web
-from cryptography import x509
-from cryptography.hazmat.primitives.serialization import Encoding
-
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
     NAME_BINDING,
     PARAM_READ,
     PARAM_WRITE,
+    check_local_subscriber_header,
     check_master_call,
-    check_param_call,
-    filter_param_reply,
     check_node_call,
+    check_param_call,
     check_publisher_header,
     check_service_client_header,
     check_service_server_header,
     check_subscriber_header,
+    filter_param_reply,
     ros_error,
 )
-from cryptoros.ratelimit import TokenBuckets
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import tune_malloc
 from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
@@ -76,14 +69,10 @@ from cryptoros.ros1.xmlrpc import (
     split_multicall_response,
 )
 from cryptoros.ros1.xmlrpc import NEED_DATA as XMLRPC_NEED_DATA
-from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
-from cryptoros.tokens import AccessToken, peer_audience
-from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
-from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
-from interceptor.config import InterceptorConfig
-from interceptor.metrics import Metrics
-from interceptor.pump import FrameCounter, MessageBudget, splice
-from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, Translator
+from cryptoros.tunnel import Preamble
+from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
+from interceptor.pump import FrameCounter
+from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
 
 log = logging.getLogger("cryptoros.interceptor")
 
@@ -94,52 +83,16 @@ UNANSWERED = "cryptoros: no answer from the ROS master or the peer (not a denial
 _UNANSWERED_REASONS = frozenset({"peer_unreachable", "tunnel_failed"})
 CALL_TIMEOUT = 30.0
 IDLE_TIMEOUT = 600.0
-READ_SIZE = 65536
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
+#: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
+MAX_REGISTRATIONS = 65_536
+#: how often, and how patiently, the master role asks rosmaster for its pid
+MASTER_WATCH_INTERVAL = 1.0
+MASTER_WATCH_TIMEOUT = 5.0
+#: how long a local node's call waits for this interceptor's token when it holds none
+LOCAL_TOKEN_WAIT = 3.0
 #: Master calls that release a registration: their URIs must already have a relay.
 _RELEASING_CALLS = frozenset({"unregisterPublisher", "unregisterSubscriber", "unregisterService", "unsubscribeParam"})
-
-
-@dataclass(frozen=True, slots=True)
-class Peer:
-    """A verified peer interceptor: the token it opened the stream with, the addresses
-    its certificate names, and the stream's registration with the verifier (which
-    re-judges it when the peer shows a fresher token)."""
-
-    access: AccessToken
-    hosts: frozenset[str]
-    watch: Any = field(default=None, compare=False)
-    #: why the gateway cut the stream ("reason" key), if it did (revoked, grant removed, expired)
-    cut: dict = field(default_factory=dict, compare=False)
-
-    @property
-    def manager(self) -> str:
-        return self.access.subject
-
-
-def cert_hosts(der: bytes) -> frozenset[str]:
-    """IP and DNS names in a certificate's SAN: where its owner's endpoints may live."""
-    try:
-        san = x509.load_der_x509_certificate(der).extensions.get_extension_for_class(x509.SubjectAlternativeName)
-    except (ValueError, x509.ExtensionNotFound):
-        return frozenset()
-    ips = {str(ip) for ip in san.value.get_values_for_type(x509.IPAddress)}
-    return frozenset(ips | set(san.value.get_values_for_type(x509.DNSName)))
-
-
-def _take_stream_buffer(reader: asyncio.StreamReader) -> bytes:
-    """Bytes a StreamReader buffered but nobody read yet (handed to the pump)."""
-    buffer = getattr(reader, "_buffer", None)  # CPython's StreamReader keeps a bytearray here
-    if not buffer:
-        return b""
-    data = bytes(buffer)
-    buffer.clear()
-    return data
-
-
-async def _read_into(reader: asyncio.StreamReader, feed: Callable[[bytes], None], timeout: float) -> None:
-    data = await asyncio.wait_for(reader.read(READ_SIZE), timeout)
-    feed(data)
 
 
 async def read_xmlrpc(reader: asyncio.StreamReader, conn: XmlRpcConnection, timeout: float):
@@ -148,15 +101,18 @@ async def read_xmlrpc(reader: asyncio.StreamReader, conn: XmlRpcConnection, time
         event = conn.next_event()
         if event is not XMLRPC_NEED_DATA:
             return event
-        await _read_into(reader, conn.receive_data, timeout)
+        await read_into(reader, conn.receive_data, timeout)
 
 
 async def read_tcpros_header(
-    reader: asyncio.StreamReader, timeout: float, max_size: int, max_fields: int = 32
+    reader: asyncio.StreamReader, timeout: float, max_size: int, max_fields: int = 32, *, pending: bytes = b""
 ) -> tuple[ConnectionHeader, bytes]:
     """One TCPROS connection header and whatever bytes followed it (within
-    ``timeout`` overall; at most ``max_size`` bytes and ``max_fields`` fields)."""
+    ``timeout`` overall; at most ``max_size`` bytes and ``max_fields`` fields).
+    ``pending``: bytes already read from the stream (parsed first)."""
     conn = TCPROSConnection(max_header_size=max_size, max_header_fields=max_fields)
+    if pending:
+        conn.receive_data(pending)
     deadline = time.monotonic() + timeout
     while True:
         event = conn.next_event()
@@ -165,7 +121,7 @@ async def read_tcpros_header(
             return event, rest
         if event is not TCPROS_NEED_DATA:
             raise RemoteProtocolError("connection closed before its header")
-        await _read_into(reader, conn.receive_data, max(0.01, deadline - time.monotonic()))
+        await read_into(reader, conn.receive_data, max(0.01, deadline - time.monotonic()))
 
 
 def _ros_ok(response: Response | Fault) -> bool:
@@ -176,12 +132,12 @@ class XmlRpcTunnel:
     """XML-RPC calls over one tunnel stream to a peer interceptor (opened lazily,
     reopened once if the peer closed an idle keep-alive stream)."""
 
-    def __init__(self, owner: Interceptor, host: str, port: int, purpose: str, target: str) -> None:
+    def __init__(self, owner: Ros1Role, host: str, port: int, purpose: str, target: str) -> None:
         self._owner = owner
         self._address = (host, port)
         self._purpose = purpose
         self._target = target
-        self._stream: tuple[asyncio.StreamReader, asyncio.StreamWriter, Peer] | None = None
+        self._stream: Tunnel | None = None
         self._conn: XmlRpcConnection | None = None
         self._lock = asyncio.Lock()
 
@@ -192,10 +148,12 @@ class XmlRpcTunnel:
                 if fresh:
                     # The first request rides with the preamble: no extra round trip.
                     self._conn = XmlRpcConnection(Role.CLIENT, max_body_size=self._owner.cfg.limits.max_xmlrpc_body)
-                    self._stream = await self._owner.open_tunnel(
+                    self._stream = await self._owner.gw.open_tunnel(
                         *self._address, self._purpose, self._target, first=self._conn.send(request)
                     )
-                reader, writer, _peer = self._stream
+                    if self._stream.pending:
+                        self._conn.receive_data(self._stream.pending)
+                reader, writer = self._stream.reader, self._stream.writer
                 try:
                     if not fresh:
                         writer.write(self._conn.send(request))
@@ -212,7 +170,7 @@ class XmlRpcTunnel:
 
     async def close_locked(self) -> None:
         if self._stream is not None:
-            self._stream[1].close()
+            self._stream.writer.close()
             self._stream = None
 
     async def close(self) -> None:
@@ -225,7 +183,7 @@ class TunnelPool:
     every node-API call, and a TLS handshake per call would cost about 8 KB and
     10 ms; idle tunnels are kept (up to ``max_idle``) and reused."""
 
-    def __init__(self, owner: Interceptor, host: str, port: int, purpose: str, target: str, max_idle: int = 4):
+    def __init__(self, owner: Ros1Role, host: str, port: int, purpose: str, target: str, max_idle: int = 4):
         self._args = (owner, host, port, purpose, target)
         self._idle: list[XmlRpcTunnel] = []
         self._max_idle = max_idle
@@ -248,31 +206,14 @@ class TunnelPool:
             await self._idle.pop().close()
 
 
-class Interceptor:
-    """One host's interceptor. ``await start()``, then ``await stop()``."""
 
-    def __init__(self, cfg: InterceptorConfig) -> None:
-        self.cfg = cfg
-        self.metrics = Metrics()
-        self._server_ctx = server_context(cfg.tls)
-        self._client_ctx = client_context(cfg.tls, check_hostname=True)
-        self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
-        self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin)
-        self.verifier = PeerVerifier(
-            self.authz,
-            issuer=cfg.authz.issuer,
-            audience=cfg.authz.audience,
-            poll_interval=cfg.authz.revocation_poll_interval,
-            grace=cfg.authz.token_grace,
-            revocation_grace=cfg.authz.revocation_grace,
-            feed_wait=cfg.authz.feed_wait,
-        )
-        #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
-        #: where to show them our new token and fetch theirs.
-        self._peer_endpoints: dict[tuple[str, str], tuple[str, int]] = {}
-        #: the last token each peer endpoint we connected to showed us (need to know: ROS 2)
-        self._peer_tokens: dict[tuple[str, int], AccessToken] = {}
-        self._exchanges: set[tuple[str, int]] = set()
+
+class Ros1Role:
+    """The ROS 1 purposes and listeners of one interceptor (node role, master role, or both)."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        self.gw = gateway
+        cfg = gateway.cfg
         local_master = (
             f"http://{cfg.local_master.host}:{cfg.local_master.port}/" if cfg.local_master is not None else None
         )
@@ -288,295 +229,86 @@ class Interceptor:
             self.translator.add_master_uri(local_master)
         if "master" in cfg.roles and cfg.master.upstream:
             self.translator.add_master_uri(cfg.master.upstream)
-        self._own_cert_der = _read_cert_der(cfg.tls.cert_file)
-        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
-        #: per peer endpoint, which of our tokens it has seen: whole (master streams) or
-        #: narrowed for it (everything else); a token exchange refreshes each
-        self._views: dict[tuple[str, int], set[bool]] = {}
-        self._own_access: AccessToken | None = None
-        self._own_token: str | None = None
         self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
-        self._open_per_peer: dict[str, int] = {}
-        self._pending: dict[tuple[str, str], int] = {}  # unauthenticated streams per source / certificate
-        self._budgets: dict[str, MessageBudget] = {}
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
-        rate = cfg.limits.max_new_connections_per_second
-        self._new_conn_limiter = TokenBuckets(rate, 2 * rate)  # per peer manager
         self._servers: list[asyncio.AbstractServer] = []
-        self._public_server: asyncio.AbstractServer | None = None
-        self._tasks: list[asyncio.Task] = []
-        self._streams: set[asyncio.Future] = set()
-        self._metrics_runner: web.AppRunner | None = None
-        self._relay_sockets: list[socket.socket] = []
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
         self._relay_refs: dict[tuple[str, int], int] = {}  # master role: registrations behind each relay
-        self._started = False
         self._state_loaded = False
         self._save_pending = False
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         self._resubscribing: set[str] = set()
+        #: master role: the registrations rosmaster holds through us, as forwarded, so a
+        #: restarted rosmaster gets them replayed: (kind, node, name) -> (method, params)
+        self._registrations: dict[tuple[str, str, str], tuple[str, tuple]] = {}
+        self._registrations_full_logged = False
+        self._master_pid: int | None = None
+        gateway.serve("master", self._check_master_target, self._serve_master_stream)
+        gateway.serve("node", self._check_node_target, self._serve_node_stream)
+        gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
+        gateway.serve("service", self._check_tcpros_target, self._serve_tcpros_stream)
 
-    # ================================================================ life cycle
-    async def start(self, *, token_wait: float = 10.0) -> None:
+    @property
+    def cfg(self):
+        return self.gw.cfg
+
+    @property
+    def metrics(self):
+        return self.gw.metrics
+
+    @property
+    def verifier(self):
+        return self.gw.verifier
+
+    # ================================================================ life cycle (Role)
+    async def prepare(self) -> None:
         # Large reads are copied out of the pump's buffer: keep glibc from mmap-ing
         # (and page-faulting) each one (perf-baselines.md: +30 to 100 % on 1 MB frames).
         tune_malloc()
         self._load_state()
-        try:
-            await asyncio.wait_for(self._first_token(), token_wait)
-        except (asyncio.TimeoutError, TokenError) as exc:
-            log.error("no access token yet (%s): everything is refused until one arrives", exc)
-        self.verifier.listeners.append(self._on_feed)
-        self.verifier.stale_listeners.append(self._on_stale_peer_token)
-        self.keeper.listeners.append(self._on_own_token)
-        self._tasks.append(asyncio.create_task(self.keeper.run(), name="token-keeper"))
-        self._tasks.append(asyncio.create_task(self.verifier.run(), name="revocation-feed"))
-        self._public_server = await self._listen_public(self._server_ctx)
+
+    async def start(self) -> None:
         if "node" in self.cfg.roles:
             lm = self.cfg.local_master
             self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
-        if self.cfg.metrics is not None:
-            await self._start_metrics()
-        self._started = True
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
-        log.info(
-            "interceptor for manager %s up: roles %s, public %s%s",
-            self.cfg.manager,
-            ",".join(self.cfg.roles),
-            self.cfg.public,
-            f", local master {self.cfg.local_master}" if self.cfg.local_master else "",
-        )
+        if "master" in self.cfg.roles and self.cfg.master.upstream:
+            self.gw.spawn(self._watch_master(), "rosmaster-watch")
 
-    async def _first_token(self) -> None:
-        while True:
-            try:
-                await self.keeper.refresh()
-                await self.verifier.refresh_jwks()
-                feed = await self.authz.fetch_revocations()
-                if feed is not None:
-                    self.verifier.apply(feed)
-                self.verifier.last_feed_at = time.time()
-                self.own_access()
-                return
-            except TokenError as exc:
-                log.warning("waiting for the authorization server: %s", exc)
-                await asyncio.sleep(0.5)
-
-    async def _listen_public(self, ctx) -> asyncio.AbstractServer:
-        ctx.sslobject_class = self._counting_sslobject_class()
-        return await asyncio.start_server(
-            self._on_public, self.cfg.public.host, self.cfg.public.port, ssl=ctx, reuse_address=True,
-            ssl_handshake_timeout=self.cfg.limits.handshake_timeout, limit=READ_SIZE,
-        )
-
-    async def stop(self, grace: float = 5.0) -> None:
-        """Stop listening, let open streams finish for ``grace`` seconds, then cut them."""
-        servers = [s for s in (self._public_server, *self._servers) if s is not None]
-        for server in servers:
+    async def stopping(self) -> None:
+        for server in (*self._servers, *self._relay_servers.values()):
             server.close()
-        if self._streams:
-            await asyncio.wait(list(self._streams), timeout=grace)
-        for task in self._tasks:
-            task.cancel()
-        for stream in list(self._streams):
-            stream.cancel()
-        for server in servers:
+
+    async def stopped(self) -> None:
+        for server in self._servers:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(server.wait_closed(), 1)
         for pool in self._pools.values():
             await pool.close()
-        for sock in self._relay_sockets:
+        for sock in self._relay_socket_of.values():
             sock.close()
-        self._relay_sockets.clear()
-        if self._metrics_runner is not None:
-            await self._metrics_runner.cleanup()
-        await self.authz.close()
+        self._relay_socket_of.clear()
 
-    async def reload(self, cfg: InterceptorConfig) -> None:
-        """SIGHUP: new certificates, CRL and policy; open streams stay up. All or
-        nothing: the new TLS material is loaded and a token bound to the new
-        certificate fetched and verified before anything is swapped, so a failure (a
-        renewed certificate the registry does not know yet, the authorization server
-        down) keeps the old state everywhere (the caller catches and logs)."""
-        server_ctx = server_context(cfg.tls)
-        client_ctx = client_context(cfg.tls, check_hostname=True)
-        authz_ctx = client_context(cfg.tls, check_hostname=True)
-        own_der = _read_cert_der(cfg.tls.cert_file)
-        probe = AuthzClient(cfg.authz, authz_ctx)
-        try:
-            token = await probe.fetch_token()
-        finally:
-            await probe.close()
-        self.verifier.verify(token.token, own_der)  # bound to the new certificate, not revoked
-        old = self._public_server
-        if old is not None:
-            old.close()
-        try:
-            self._public_server = await self._listen_public(server_ctx)
-        except OSError:
-            self._public_server = await self._listen_public(self._server_ctx)
-            raise
-        self._server_ctx, self._client_ctx = server_ctx, client_ctx
-        self.cfg = cfg
-        # every holder of the certificate reads the new one: the authorization server
-        # binds the next token to it, and our own token is checked against it
-        self._own_cert_der = own_der
-        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(own_der))
-        await self.authz.use_ssl_context(authz_ctx)
-        self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
-        self._own_access = None
-        self.own_access()
-        log.info("reloaded certificates, CRL and policy")
+    def check_reload(self, cfg) -> None:
+        pass
 
-    def status(self) -> dict:
-        """What ``cryptoros status`` shows: who this interceptor is to the registry now
-        (token subject, grants, expiry), how fresh its view of revocations is
-        (feed, CRL), how long its certificate lasts, and its peers with open streams."""
-        now = time.time()
-        health, token = "ok", None
-        try:
-            access = self.own_access()
-            token = {"subject": access.subject, "jti": access.jti, "expires_in": round(access.expires_at - now),
-                     "grants": [[g.node, g.action, g.name, g.type] for g in access.grants]}
-            self._check_feed_age()
-        except (TokenError, PolicyDenied) as exc:
-            health = f"{exc.reason}: {exc.detail}"
-        cert = x509.load_der_x509_certificate(self._own_cert_der)
-        crl = self.cfg.tls.crl_file
-        last = self.verifier.last_feed_at
-        return {
-            "manager": self.cfg.manager, "roles": list(self.cfg.roles), "public": str(self.cfg.public),
-            "health": health, "token": token,
-            "certificate": {"subject": cert.subject.rfc4514_string(), "serial": format(cert.serial_number, "x"),
-                            "not_after": cert.not_valid_after_utc.isoformat(),
-                            "days_left": round((cert.not_valid_after_utc.timestamp() - now) / 86400, 1)},
-            "feed": {"age": None if last is None else round(now - last, 1),
-                     "revoked_tokens": len(self.verifier.revocations.revoked_jtis),
-                     "disabled_managers": sorted(self.verifier.revocations.disabled_subjects)},
-            "crl": None if crl is None else {"file": str(crl), "age": round(now - os.stat(crl).st_mtime, 1)
-                                             if os.path.exists(crl) else None},
-            "peers": self.verifier.streams_by_peer(),
-            "open_streams": len(self._streams),
-        }
+    def reloaded(self) -> None:
+        pass
 
-    async def _start_metrics(self) -> None:
-        app = web.Application()
+    # ================================================================ targets the gate checks
+    def _check_master_target(self, preamble: Preamble) -> None:
+        if "master" not in self.cfg.roles:
+            raise PolicyDenied("no_master_here", "this interceptor does not front a master")
 
-        async def metrics(_request: web.Request) -> web.Response:
-            if self.keeper.expires_at:
-                self.metrics.token_expires.set(self.keeper.expires_at)
-            return web.Response(body=self.metrics.render(), content_type="text/plain", charset="utf-8")
+    def _check_node_target(self, preamble: Preamble) -> LocalEndpoint:
+        return self.translator.resolve(KIND_XMLRPC, preamble.target)
 
-        async def healthz(_request: web.Request) -> web.Response:
-            try:
-                self.keeper.current()
-                self._check_feed_age()
-                self.own_access()  # our own token verifies now: not revoked, manager not disabled
-            except (TokenError, PolicyDenied) as exc:
-                return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
-            last = self.verifier.last_feed_at
-            return web.json_response({"status": "ok", "open_streams": len(self._streams),
-                                      "feed_age": None if last is None else round(time.time() - last, 1)})
+    def _check_tcpros_target(self, preamble: Preamble) -> LocalEndpoint:
+        return self.translator.resolve(KIND_TCPROS, preamble.target)
 
-        async def status(_request: web.Request) -> web.Response:
-            return web.json_response(self.status())
-
-        app.router.add_get("/metrics", metrics)
-        app.router.add_get("/healthz", healthz)
-        app.router.add_get("/status", status)
-        self._metrics_runner = web.AppRunner(app, access_log=None, handle_signals=False)
-        await self._metrics_runner.setup()
-        await web.TCPSite(self._metrics_runner, self.cfg.metrics.host, self.cfg.metrics.port).start()
-
-    # ================================================================ helpers
-    def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
-        """An SSLObject whose failed handshakes are counted and logged like every other
-        denial (asyncio itself only logs them in debug mode)."""
-        metrics = self.metrics
-
-        class CountingSSLObject(ssl.SSLObject):
-            def do_handshake(self) -> None:
-                try:
-                    super().do_handshake()
-                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
-                    raise
-                except ssl.SSLError as exc:
-                    reason = (exc.reason or type(exc).__name__).lower()
-                    metrics.denied.labels("tls", reason).inc()
-                    log.warning("DENY tls handshake: %s", exc)
-                    raise
-
-        return CountingSSLObject
-
-    def _on_feed(self, revocations) -> None:
-        """When the feed revokes our own token or disables our manager, drop the token
-        (nothing is allowed on it any more) and ask for a new one at once."""
-        own = self._own_access
-        serial = x509.load_der_x509_certificate(self._own_cert_der).serial_number
-        if serial in revocations.revoked_serials:
-            log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
-                      "renew it (cryptoros-certs renew, set-cert, SIGHUP)", serial)
-            self._own_access = None
-            self.keeper.invalidate()
-        elif own is not None and (own.jti in revocations.revoked_jtis or own.subject in revocations.disabled_subjects):
-            log.warning("our own access token was revoked; asking for a new one")
-            self._own_access = None
-            self.keeper.invalidate()
-        elif self._started:
-            self.keeper.wake()  # the registry changed: our grants may have (grants live)
-
-    # ---------------------------------------------------------------- token exchange
-    def _on_own_token(self) -> None:
-        """Show every peer we have streams to our new token (and take theirs)."""
-        for endpoint in set(self._peer_endpoints.values()):
-            self._exchange_soon(endpoint)
-
-    def _on_stale_peer_token(self, access: AccessToken) -> None:
-        """The feed revoked a peer's token: fetch its fresh one if we know where it is
-        (a peer that opened streams to us shows us its own)."""
-        endpoint = self._peer_endpoints.get((access.subject, access.thumbprint))
-        if endpoint is not None:
-            self._exchange_soon(endpoint)
-
-    def _exchange_soon(self, endpoint: tuple[str, int]) -> None:
-        if endpoint in self._exchanges or not self._started:
-            return
-        self._exchanges.add(endpoint)
-
-        async def exchange() -> None:
-            try:
-                for whole in sorted(self._views.get(endpoint, {False})):
-                    _reader, writer, _peer = await self.open_tunnel(*endpoint, "refresh", "", whole=whole)
-                    writer.close()
-            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
-                log.info("token exchange with %s:%d failed: %s", *endpoint, exc)
-            finally:
-                self._exchanges.discard(endpoint)
-
-        self._tasks.append(asyncio.ensure_future(exchange()))
-        self._tasks = [t for t in self._tasks if not t.done()]
-
-    def own_access(self) -> AccessToken:
-        """Our own token, verified like a peer's (it carries our grants)."""
-        token = self.keeper.current()
-        if self._own_access is None or self._own_token != token:
-            self._own_access = self.verifier.verify(token, self._own_cert_der)
-            self._own_token = token
-        return self._own_access
-
-    def _deny(self, kind: str, exc: CryptorosError, who: str) -> None:
-        reason = getattr(exc, "reason", type(exc).__name__)
-        self.metrics.denied.labels(kind, reason).inc()
-        log.warning("DENY %s from %s: %s", kind, who, exc)
-
-    def _track(self, coro: Awaitable) -> asyncio.Future:
-        future = asyncio.ensure_future(coro)
-        self._streams.add(future)
-        future.add_done_callback(self._streams.discard)
-        return future
 
     def _open_relay(self, target: Canonical, port: int = 0) -> tuple[str, int]:
         """Bind a loopback listener for ``target`` now (so its URI exists at once), on
@@ -593,14 +325,12 @@ class Interceptor:
             sock.bind(("127.0.0.1", 0))
         sock.listen(128)
         sock.setblocking(False)
-        self._relay_sockets.append(sock)
         handler = self._on_xmlrpc_relay if target.kind == KIND_XMLRPC else self._on_tcpros_relay
 
         host, port = sock.getsockname()[:2]
 
         async def serve() -> None:
             server = await asyncio.start_server(lambda r, w: handler(r, w, target), sock=sock, limit=READ_SIZE)
-            self._servers.append(server)
             if sock.fileno() < 0:  # released before it started
                 server.close()
             else:
@@ -621,7 +351,8 @@ class Interceptor:
         if path is None or not self._state_loaded:
             return
         data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
-                "owners": self._owners, "local_subscribers": self._local_subscribers}
+                "owners": self._owners, "local_subscribers": self._local_subscribers,
+                "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp")
@@ -655,6 +386,8 @@ class Interceptor:
             problems = self.translator.restore(data["translator"])
             self.topic_types.update({str(k): str(v) for k, v in data.get("topic_types", {}).items()})
             self._owners.update({str(k): [str(v[0]), int(v[1])] for k, v in data.get("owners", {}).items()})
+            for method, params in data.get("registrations", [])[:MAX_REGISTRATIONS]:
+                self._record_registration(str(method), tuple(str(p) for p in params))
             for topic, subscribers in data.get("local_subscribers", {}).items():
                 self._local_subscribers[str(topic)] = {str(n): str(api) for n, api in subscribers.items()}
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -673,194 +406,22 @@ class Interceptor:
             pool = self._pools[key] = TunnelPool(self, host, port, purpose, target)
         return pool
 
-    async def open_tunnel(
-        self, host: str, port: int, purpose: str, target: str, *, first: bytes = b"", whole: bool | None = None,
-    ) -> tuple[asyncio.StreamReader, asyncio.StreamWriter, Peer]:
-        """Mutual TLS to a peer interceptor, our token in the preamble, its token in
-        the reply (verified and bound to its certificate). ``first`` (a connection
-        header, an XML-RPC request) is sent right behind the preamble, saving a round
-        trip; the peer reads it only once our token passed.
-
-        The token shown is narrowed for the peer (its certificate the audience, only
-        the grants on names its manager holds too), except on master streams
-        (``whole``, by default for purpose ``master``): the master's interceptor judges
-        every registration, so it sees every grant."""
-        self.keeper.current()  # no token of our own: nothing is opened
-        whole = purpose == "master" if whole is None else whole
-        try:
-            reader, writer = await asyncio.wait_for(
-                asyncio.open_connection(
-                    host, port, ssl=self._client_ctx, server_hostname=host,
-                    local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
-                ),
-                self.cfg.limits.handshake_timeout,
-            )
-        except (OSError, asyncio.TimeoutError) as exc:
-            raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
-        try:
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
-            token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
-            self._views.setdefault((host, port), set()).add(whole)
-            writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
-            preamble_reader = PreambleReader(PreambleReply)
-            reply = None
-            while reply is None:
-                await _read_into(reader, preamble_reader.receive_data, self.cfg.limits.handshake_timeout)
-                event = preamble_reader.next_event()
-                reply = event if isinstance(event, PreambleReply) else None
-            if not reply.ok:
-                raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
-            access = await self.verifier.verify_fresh(reply.token, der)
-            self.verifier.note(access)
-            self._peer_endpoints[(access.subject, access.thumbprint)] = (host, port)
-            self._peer_tokens[(host, port)] = access
-            leftover = preamble_reader.trailing_data()
-            if leftover:
-                reader._buffer[:0] = leftover  # type: ignore[attr-defined]  # give back bytes read past the reply
-        except BaseException:
-            writer.close()
-            raise
-        self.metrics.connections.labels(purpose, "out").inc()
-        return reader, writer, Peer(access=access, hosts=cert_hosts(der))
-
-    # ================================================================ public side
-    async def _on_public(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        if task is not None:
-            self._streams.add(task)
-            task.add_done_callback(self._streams.discard)
-        peername = writer.get_extra_info("peername")
-        who = f"{peername[0]}:{peername[1]}" if peername else "?"
-        limits = self.cfg.limits
-        pending: list[tuple[str, str]] = []
-        try:
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
-            # Before the token is verified a stream is bounded per source address and
-            # per certificate, and its preamble has one deadline from accept.
-            for key, cap in (
-                (("source", peername[0] if peername else "?"), limits.max_pending_per_source),
-                (("certificate", hashlib.sha256(der).hexdigest()), limits.max_pending_per_certificate),
-            ):
-                if self._pending.get(key, 0) >= cap:
-                    raise PolicyDenied("pending_limit", f"{cap} unauthenticated streams from this {key[0]} already")
-                self._pending[key] = self._pending.get(key, 0) + 1
-                pending.append(key)
-            preamble_reader = PreambleReader(Preamble)
-            preamble = None
-            async with asyncio.timeout(limits.preamble_timeout):
-                while preamble is None:
-                    await _read_into(reader, preamble_reader.receive_data, limits.preamble_timeout)
-                    event = preamble_reader.next_event()
-                    preamble = event if isinstance(event, Preamble) else None
-            access = await self.verifier.verify_fresh(preamble.token, der)
-            self.verifier.note(access)
-            who = f"{access.subject}@{who}"
-            self._check_feed_age()
-            if preamble.purpose != "refresh":
-                self._check_purpose(preamble)
-            if not self._new_conn_limiter.allow(access.subject):
-                raise PolicyDenied("rate_limited", f"more than {self.cfg.limits.max_new_connections_per_second}/s new streams")
-            if self._open_per_peer.get(access.subject, 0) >= self.cfg.limits.max_connections_per_peer:
-                raise PolicyDenied("connection_limit", f"{self.cfg.limits.max_connections_per_peer} streams open")
-            own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
-        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
-            if isinstance(exc, CryptorosError):
-                self._deny("stream", exc, who)
-            else:
-                reason = "preamble_timeout" if isinstance(exc, asyncio.TimeoutError) else type(exc).__name__
-                self.metrics.denied.labels("stream", reason).inc()
-                log.warning("DENY stream from %s: %s", who, reason)
-            with contextlib.suppress(Exception):
-                writer.write(encode(PreambleReply(ok=False, error="denied")))
-                await asyncio.wait_for(writer.drain(), 1)
-            if isinstance(exc, asyncio.TimeoutError) or getattr(exc, "reason", "") == "pending_limit":
-                writer.transport.abort()  # no graceful TLS close for a peer that dribbles
-            else:
-                writer.close()
-            return
-        finally:
-            for key in pending:
-                left = self._pending[key] - 1
-                if left:
-                    self._pending[key] = left
-                else:
-                    del self._pending[key]
-        writer.write(encode(PreambleReply(ok=True, token=own_token)))
-        if preamble.purpose == "refresh":  # tokens shown both ways: nothing more to do
-            self.metrics.connections.labels("refresh", "in").inc()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.drain(), limits.handshake_timeout)
-            writer.close()
-            return
-        leftover = preamble_reader.trailing_data()
-        if leftover:
-            reader._buffer[:0] = leftover  # type: ignore[attr-defined]
-        purpose = preamble.purpose
-        self.metrics.connections.labels(purpose, "in").inc()
-        self.metrics.open_streams.labels(purpose).inc()
-        self._open_per_peer[access.subject] = self._open_per_peer.get(access.subject, 0) + 1
-
-        cut_by: dict[str, str] = {}
-
-        def cut(reason: str) -> None:
-            cut_by.setdefault("reason", reason)
-            self.metrics.cutoffs.inc()
-            writer.transport.abort()
-
-        unwatch = self.verifier.watch(access, cut)
-        peer = Peer(access=access, hosts=cert_hosts(der), watch=unwatch, cut=cut_by)
-        try:
-            if purpose == "master":
-                await self._serve_master_stream(reader, writer, peer)
-            elif purpose == "node":
-                await self._serve_node_stream(reader, writer, peer, preamble.target)
-            else:
-                await self._serve_tcpros_stream(reader, writer, peer, preamble.target, purpose)
-        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
-            if isinstance(exc, CryptorosError):
-                self._deny(purpose, exc, who)
-        except asyncio.CancelledError:
-            pass  # stop(): the grace period is over
-        finally:
-            unwatch()
-            self.metrics.open_streams.labels(purpose).dec()
-            self._open_per_peer[access.subject] -= 1
-            writer.close()
-
-    def _check_feed_age(self) -> None:
-        """Fail closed when the revocation feed is stale (a revoked peer could be let in)
-        or the authorization server refuses our certificate (revoked by the CA)."""
-        if self.verifier.refused:
-            raise PolicyDenied("authz_refused", "the authorization server refuses this interceptor's certificate "
-                                                "(HTTP 401: revoked by the CA?)")
-        last = self.verifier.last_feed_at
-        age = None if last is None else time.time() - last
-        if age is None or age > self.cfg.limits.max_feed_age:
-            raise PolicyDenied("feed_stale", f"revocation feed {'never read' if age is None else f'{age:.0f} s old'}"
-                                             f" (max_feed_age {self.cfg.limits.max_feed_age:.0f} s)")
-
-    def _check_purpose(self, preamble: Preamble) -> None:
-        if preamble.purpose == "master":
-            if "master" not in self.cfg.roles:
-                raise PolicyDenied("no_master_here", "this interceptor does not front a master")
-        elif preamble.purpose == "node":
-            self.translator.resolve(KIND_XMLRPC, preamble.target)
-        elif preamble.purpose in ("topic", "service"):
-            self.translator.resolve(KIND_TCPROS, preamble.target)
-        else:
-            raise PolicyDenied("bad_purpose", f"purpose {preamble.purpose} is not served by the ROS 1 role")
 
     async def _serve_xmlrpc(
         self,
         reader: asyncio.StreamReader,
         writer: asyncio.StreamWriter,
         handle: Callable[[Request], Awaitable[Response | Fault]],
+        pending: bytes = b"",
     ) -> None:
-        """Answer XML-RPC requests on a stream until it closes. A request that does not
-        parse (bad head, oversized declared body, bad XML) is answered with one ROS
-        error triple and the connection is cut without reading the rest."""
+        """Answer XML-RPC requests on a stream until it closes (``pending``: bytes
+        already read from it, parsed first). A request that does not parse (bad head,
+        oversized declared body, bad XML) is answered with one ROS error triple and the
+        connection is cut without reading the rest."""
         limits = self.cfg.limits
         conn = XmlRpcConnection(Role.SERVER, max_body_size=limits.max_xmlrpc_body, gzip_threshold=1400)
+        if pending:
+            conn.receive_data(pending)
         while True:
             try:
                 event = await read_xmlrpc(reader, conn, IDLE_TIMEOUT)
@@ -895,7 +456,7 @@ class Interceptor:
         try:
             calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
         except RemoteProtocolError as exc:
-            self._deny(kind, exc, who)
+            self.gw.deny(kind, exc, who)
             return Fault(code=-1, string=OPAQUE)
         results: list[Response | Fault | None] = [None] * len(calls)
         allowed: list[tuple[int, Request]] = []
@@ -904,7 +465,7 @@ class Interceptor:
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
-                self._deny(kind, exc, f"{who} {call.method}")
+                self.gw.deny(kind, exc, f"{who} {call.method}")
                 results[i] = Response(value=ros_error(OPAQUE))
         if allowed:
             multicall = request.method == MULTICALL
@@ -919,7 +480,7 @@ class Interceptor:
                 if unanswered:
                     log.warning("%s call from %s got no answer: %s", kind, who, exc or type(exc).__name__)
                 else:
-                    self._deny(kind, exc, who)
+                    self.gw.deny(kind, exc, who)
                 for i, _ in allowed:
                     results[i] = Response(value=ros_error(UNANSWERED if unanswered else OPAQUE))
         if request.method == MULTICALL:
@@ -942,6 +503,7 @@ class Interceptor:
     def _note_registration(self, call: Request, response: Response | Fault, manager: str) -> None:
         if not _ros_ok(response) or not call.params:
             return
+        self._record_registration(call.method, call.params)
         node = call.params[0]
         if call.method.startswith("register") or call.method == "subscribeParam":
             entry = self._owners.setdefault(node, [manager, 0])
@@ -957,6 +519,60 @@ class Interceptor:
                     del self._owners[node]
                 self._save_state_soon()
             self._count_relay_refs(call, -1)
+
+    def _record_registration(self, method: str, params: tuple) -> None:
+        """Keep (or drop) one registration as it was forwarded to rosmaster."""
+        key = _registration_key(method, params)
+        if key is None:
+            return
+        if method.startswith("register"):
+            if key not in self._registrations and len(self._registrations) >= MAX_REGISTRATIONS:
+                if not self._registrations_full_logged:
+                    self._registrations_full_logged = True
+                    log.warning("%d registrations kept for rosmaster replay: more are not kept "
+                                "(a restarted rosmaster will not learn them)", MAX_REGISTRATIONS)
+                return
+            self._registrations[key] = (method, tuple(params))
+        else:
+            self._registrations.pop(key, None)
+
+    async def _watch_master(self) -> None:
+        """Go past plain ROS: when rosmaster comes back with a new pid (restarted), every
+        registration it held through this interceptor is replayed, so the graph comes
+        back without restarting a node (rosmaster then tells subscribers their
+        publishers with ``publisherUpdate``, as at first)."""
+        while True:
+            try:
+                reply = await asyncio.wait_for(
+                    self._call_upstream_master(Request(method="getPid", params=("/cryptoros",))), MASTER_WATCH_TIMEOUT)
+                pid = reply.value[2] if _ros_ok(reply) and isinstance(reply.value[2], int) else None
+            except (CryptorosError, OSError, asyncio.TimeoutError):
+                pid = None
+            if pid is not None and pid != self._master_pid:
+                if self._master_pid is not None or self._state_loaded_registrations:
+                    await self._replay_registrations(pid)
+                self._master_pid = pid
+            await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    @property
+    def _state_loaded_registrations(self) -> bool:
+        """Registrations restored from the state directory: a rosmaster first seen after
+        an interceptor restart may be a new one too (replaying to the old one is harmless:
+        rosmaster takes a repeated registration as it is)."""
+        return bool(self._registrations)
+
+    async def _replay_registrations(self, pid: int) -> None:
+        calls = [Request(method=method, params=params) for method, params in self._registrations.values()]
+        calls.sort(key=lambda c: c.method != "registerService")  # services, then topics
+        failed = 0
+        for call in calls:
+            try:
+                reply = await self._call_upstream_master(call)
+                failed += not _ros_ok(reply)
+            except (CryptorosError, OSError, asyncio.TimeoutError):
+                failed += 1
+        log.warning("rosmaster (pid %d) is new: %d registrations replayed%s", pid, len(calls),
+                    f", {failed} failed" if failed else "")
 
     def _count_relay_refs(self, call: Request, delta: int) -> None:
         """Relays the master holds URIs of: one count per registration behind each;
@@ -984,7 +600,9 @@ class Interceptor:
             sock.close()
         log.debug("relay %s:%d released (no registration behind it)", *endpoint)
 
-    async def _serve_master_stream(self, reader, writer, peer: Peer) -> None:
+    async def _serve_master_stream(self, stream: InboundStream) -> None:
+        peer = stream.peer
+
         def to_local_from_peer(uri: str) -> str:
             target = Canonical.parse(uri)
             if target is None or target.host not in peer.hosts:
@@ -1019,7 +637,7 @@ class Interceptor:
         async def handle(request: Request) -> Response | Fault:
             return await self._decide_calls(request, decide, self._call_upstream_master, after, "master", peer.manager)
 
-        await self._serve_xmlrpc(reader, writer, handle)
+        await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
     async def _call_upstream_master(self, request: Request) -> Response | Fault:
         return await self._call_plain(self.cfg.master.upstream, request)
@@ -1043,8 +661,9 @@ class Interceptor:
             writer.close()
 
     # ---------------------------------------------------------------- node side
-    async def _serve_node_stream(self, reader, writer, peer: Peer, target: str) -> None:
-        endpoint = self.translator.resolve(KIND_XMLRPC, target)
+    async def _serve_node_stream(self, stream: InboundStream) -> None:
+        peer = stream.peer
+        endpoint = stream.resolved  # resolved once, by the gate's target check
 
         def decide(call: Request) -> Request:
             check_node_call(
@@ -1065,13 +684,14 @@ class Interceptor:
                 request, decide, lambda r: self._call_plain(endpoint.uri, r), after, "node", peer.manager
             )
 
-        await self._serve_xmlrpc(reader, writer, handle)
+        await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
-    async def _serve_tcpros_stream(self, reader, writer, peer: Peer, target: str, purpose: str) -> None:
-        endpoint = self.translator.resolve(KIND_TCPROS, target)
+    async def _serve_tcpros_stream(self, stream: InboundStream) -> None:
+        reader, writer, peer, purpose = stream.reader, stream.writer, stream.peer, stream.purpose
+        endpoint = stream.resolved  # resolved once, by the gate's target check
         limits = self.cfg.limits
         header, rest = await read_tcpros_header(
-            reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
+            reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields, pending=stream.pending
         )
         fields = header.as_dict()
 
@@ -1108,7 +728,7 @@ class Interceptor:
             local_writer.write(encode_header(canonical_header(header)))
             reply, reply_rest = await read_tcpros_header(local_reader, CALL_TIMEOUT, limits.max_header_size)
             reply_fields = reply.as_dict()
-            own = self.own_access()
+            own = self.gw.own_access()
             if purpose == "topic":
                 check_publisher_header(reply_fields, grants=own.grants, topic=fields["topic"])
             else:
@@ -1124,53 +744,15 @@ class Interceptor:
         writer.write(encode_header(canonical_header(reply)))
         if purpose == "topic":
             # A subscriber sends nothing after its header: whatever it sends is dropped.
-            await self._pump(reader, writer, local_reader, local_writer, left_pending=b"", right_pending=reply_rest,
+            await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=b"", right_pending=reply_rest,
                              left_discard=True)
         else:
             # Service requests from the peer: size-checked, and counted against its budget.
             name = fields["service"]
             frames = FrameCounter(max_size=limits.message_size_for(name), what=f"{peer.manager} {name}")
-            await self._pump(reader, writer, local_reader, local_writer, left_pending=rest, right_pending=reply_rest,
-                             left_budget=self._budget(peer), left_frames=frames,
-                             on_deny=lambda exc: self._deny(purpose, exc, peer.manager))
-
-    def _budget(self, peer: Peer) -> MessageBudget | None:
-        """The message budget of one peer (shared by all its streams), if limited."""
-        rate = self.cfg.limits.max_messages_per_second
-        if rate is None:
-            return None
-        budget = self._budgets.get(peer.manager)
-        if budget is None or budget.rate != rate:
-            budget = self._budgets[peer.manager] = MessageBudget(rate)
-        return budget
-
-    async def _pump(
-        self, left_reader, left_writer, right_reader, right_writer, *,
-        left_pending: bytes, right_pending: bytes,
-        left_budget: MessageBudget | None = None, left_frames: FrameCounter | None = None,
-        left_discard: bool = False, on_deny: Callable[[PolicyDenied], None] | None = None,
-    ) -> None:
-        """Hand both streams to the byte pump and wait until both sides closed. The
-        left side is toward the peer (bytes read there count as rx); ``*_pending`` are
-        bytes read past the header on each side, which go through the same checks."""
-        tx = self.metrics.bytes.labels("tx")
-        rx = self.metrics.bytes.labels("rx")
-        done = splice(
-            left_writer.transport,
-            right_writer.transport,
-            left_pending=left_pending + _take_stream_buffer(left_reader),
-            right_pending=right_pending + _take_stream_buffer(right_reader),
-            on_left_bytes=rx.inc,
-            on_right_bytes=tx.inc,
-            left_budget=left_budget,
-            left_frames=left_frames,
-            left_discard=left_discard,
-            on_deny=on_deny,
-        )
-        for transport in (left_writer.transport, right_writer.transport):
-            if not transport.is_closing() and not transport.is_reading():
-                transport.resume_reading()
-        await done
+            await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=rest, right_pending=reply_rest,
+                             left_budget=self.gw.budget(peer), left_frames=frames,
+                             on_deny=lambda exc: self.gw.deny(purpose, exc, peer.manager))
 
     # ---------------------------------------------------------------- local master
     async def _on_local_master(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -1178,7 +760,7 @@ class Interceptor:
         tunnel = self.pool(master.host, master.port, "master", "")
 
         def decide(call: Request) -> Request:
-            own = self.own_access()
+            own = self.gw.own_access()
             check_master_call(
                 call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
             )
@@ -1193,10 +775,13 @@ class Interceptor:
                     self._save_state()
             elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
                 self._note_local_subscriber(call)
-            response = _filtered_param_reply(call, response, self.own_access().grants)
+            response = _filtered_param_reply(call, response, self.gw.own_access().grants)
             return rewrite_response(call, response, uri=self.translator.to_local)
 
         async def handle(request: Request) -> Response | Fault:
+            # no token this instant (our manager re-enabled a moment ago): wait for one
+            # refresh attempt rather than refuse a node that starts now
+            await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
             return await self._decide_calls(request, decide, tunnel.call, after, "local-master", "local node")
 
         try:
@@ -1227,7 +812,7 @@ class Interceptor:
         connect by themselves, but not a connection the other side closed). ``via``
         is the publisher's interceptor: waited for (a token exchange, backing off up
         to a minute) before the subscribers are told."""
-        if topic not in self._local_subscribers or topic in self._resubscribing or not self._started:
+        if topic not in self._local_subscribers or topic in self._resubscribing or not self.gw.started:
             return
         self._resubscribing.add(topic)
 
@@ -1247,8 +832,7 @@ class Interceptor:
             finally:
                 self._resubscribing.discard(topic)
 
-        self._tasks.append(asyncio.ensure_future(nudge()))
-        self._tasks = [t for t in self._tasks if not t.done()]
+        self.gw.spawn(nudge())
 
     async def _wait_reachable(self, endpoint: tuple[str, int], patience: float = 60.0) -> None:
         """Until a token exchange with a peer interceptor succeeds (or ``patience`` ends)."""
@@ -1256,8 +840,7 @@ class Interceptor:
         backoff = 0.25
         while True:
             try:
-                _reader, writer, _peer = await self.open_tunnel(*endpoint, "refresh", "")
-                writer.close()
+                await self.gw.exchange_tokens(*endpoint)
                 return
             except (CryptorosError, OSError, asyncio.TimeoutError):
                 if time.monotonic() + backoff > deadline:
@@ -1305,7 +888,7 @@ class Interceptor:
 
     async def _on_tcpros_relay(self, reader, writer, target: Canonical) -> None:
         """A local subscriber or service client connects to a remote TCPROS server."""
-        self._track(self._tcpros_relay(reader, writer, target))
+        self.gw.track(self._tcpros_relay(reader, writer, target))
 
     async def _tcpros_relay(self, reader, writer, target: Canonical) -> None:
         limits = self.cfg.limits
@@ -1315,22 +898,22 @@ class Interceptor:
                 reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
             )
             fields = header.as_dict()
-            own = self.own_access()
+            own = self.gw.own_access()
             if "topic" in fields:
                 purpose = "topic"
-                if not own.grants.allows("subscribe", fields.get("callerid", ""), fields["topic"], fields.get("type", "")):
-                    raise PolicyDenied("not_granted", f"{fields.get('callerid')} may not subscribe {fields['topic']}")
+                check_local_subscriber_header(fields, grants=own.grants)
             elif "service" in fields:
                 purpose = "service"
                 client_types = check_service_client_header(fields, grants=own.grants)
             else:
                 raise PolicyDenied("malformed", "TCPROS header with neither topic nor service")
-            tunnel_reader, tunnel_writer, peer = await self.open_tunnel(
+            tunnel = await self.gw.open_tunnel(
                 target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest
             )
+            tunnel_reader, tunnel_writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
             unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
             reply, reply_rest = await read_tcpros_header(
-                tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields
+                tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields, pending=tunnel.pending
             )
             reply_fields = reply.as_dict()
 
@@ -1356,10 +939,10 @@ class Interceptor:
                     max_size=limits.message_size_for(name), service_response=purpose == "service",
                     what=f"{peer.manager} {name}",
                 )
-                budget = self._budget(peer) if purpose == "topic" else None
-                await self._pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
+                budget = self.gw.budget(peer) if purpose == "topic" else None
+                await self.gw.pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
                                  right_pending=b"", left_budget=budget, left_frames=frames,
-                                 on_deny=lambda exc: self._deny("relay", exc, str(target)))
+                                 on_deny=lambda exc: self.gw.deny("relay", exc, str(target)))
             finally:
                 unwatch()
                 self.metrics.open_streams.labels(purpose).dec()
@@ -1367,7 +950,7 @@ class Interceptor:
                     self._resubscribe_soon(fields["topic"], via=(target.host, target.port))
         except (CryptorosError, asyncio.TimeoutError, ConnectionError, OSError) as exc:
             if isinstance(exc, CryptorosError):
-                self._deny("relay", exc, str(target))
+                self.gw.deny("relay", exc, str(target))
                 with contextlib.suppress(Exception):
                     writer.write(encode_header({"error": OPAQUE}))
             if tunnel_writer is not None:
@@ -1380,6 +963,15 @@ _RELAY_URI_INDEX = {
     "registerPublisher": (3,), "registerSubscriber": (3,), "registerService": (2, 3), "subscribeParam": (1,),
     "unregisterPublisher": (2,), "unregisterSubscriber": (2,), "unregisterService": (2,), "unsubscribeParam": (1,),
 }
+
+
+def _registration_key(method: str, params: tuple) -> tuple[str, str, str] | None:
+    """Which registration a master call makes or releases: (kind, node, name)."""
+    kind = {"registerPublisher": "pub", "unregisterPublisher": "pub", "registerSubscriber": "sub",
+            "unregisterSubscriber": "sub", "registerService": "srv", "unregisterService": "srv"}.get(method)
+    if kind is None or len(params) < 2 or not all(isinstance(p, str) for p in params):
+        return None
+    return kind, params[0], params[1]
 
 
 def _local_endpoint(uri) -> tuple[str, int] | None:
@@ -1433,9 +1025,4 @@ def _md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-def _read_cert_der(path) -> bytes:
-    with open(path, "rb") as f:
-        return x509.load_pem_x509_certificate(f.read()).public_bytes(Encoding.DER)
-
-
-__all__ = ["Interceptor", "Peer", "XmlRpcTunnel", "cert_hosts", "read_tcpros_header", "read_xmlrpc"]
+__all__ = ["Ros1Role", "TunnelPool", "XmlRpcTunnel", "read_tcpros_header", "read_xmlrpc"]

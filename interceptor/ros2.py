@@ -1,11 +1,11 @@
 """The interceptor's ``ros2`` role: the asyncio edge between a robot's DDS domain and
 the other robots' interceptors.
 
-The ROS 1 :class:`~interceptor.ros1.Interceptor` already owns everything a role
-shares: the mutual-TLS public listener, the preamble, token verification bound to the
+The :class:`~interceptor.gateway.Gateway` owns everything a role shares: the
+mutual-TLS public listener, the preamble, token verification bound to the
 certificate, the revocation feed that cuts watched streams, reload, limits and
-metrics. :class:`Ros2Interceptor` adds one stream purpose (``ros2``) and a DDS bridge
-child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2 venv's python) over a local
+metrics. :class:`Ros2Role`, composed with it, serves one stream purpose (``ros2``)
+and runs a DDS bridge child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2 venv's python) over a local
 socket.
 
 Outbound (this robot's publishers and servers): the bridge reports the local graph;
@@ -45,7 +45,7 @@ from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
-from interceptor.ros1 import READ_SIZE, Interceptor, Peer
+from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, read_chunks
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
@@ -136,11 +136,12 @@ class Proxy:
     pending: set[int] = field(default_factory=set)
 
 
-class Ros2Interceptor(Interceptor):
-    """The interceptor with the ``ros2`` role (and whatever ROS 1 roles it also has)."""
+class Ros2Role:
+    """The ``ros2`` role of one interceptor: the DDS bridge and the ``ros2`` purpose."""
 
-    def __init__(self, cfg: InterceptorConfig) -> None:
-        super().__init__(cfg)
+    def __init__(self, gateway: Gateway) -> None:
+        self.gw = gateway
+        cfg = gateway.cfg
         if cfg.ros2 is None:
             raise CryptorosError("the ros2 role needs a [ros2] section")
         self._chans = itertools.count(1)
@@ -165,27 +166,43 @@ class Ros2Interceptor(Interceptor):
         self._stopping = False
         self.dropped = 0
         self._paused: asyncio.Task | None = None
+        gateway.serve("ros2", self._check_ros2_target, self._serve_ros2_stream)
+
+    @property
+    def cfg(self) -> InterceptorConfig:
+        return self.gw.cfg
+
+    @property
+    def metrics(self):
+        return self.gw.metrics
+
+    @property
+    def verifier(self):
+        return self.gw.verifier
 
     # ================================================================ life cycle
-    async def start(self, *, token_wait: float = 10.0) -> None:
+    async def prepare(self) -> None:
         await self._start_bridge()
-        await super().start(token_wait=token_wait)
-        self._tasks.append(asyncio.create_task(self._supervise(), name="ros2-bridge"))
-        self._tasks.append(asyncio.create_task(self._reconcile_loop(), name="ros2-reconcile"))
+
+    async def start(self) -> None:
+        self.gw.spawn(self._supervise(), "ros2-bridge")
+        self.gw.spawn(self._reconcile_loop(), "ros2-reconcile")
         log.info("ros2 role up: domain %d, peers %s", self.cfg.ros2.domain_id,
                  ", ".join(map(str, self.cfg.ros2.peers)) or "none")
 
-    async def stop(self, grace: float = 5.0) -> None:
+    async def stopping(self) -> None:
         self._stopping = True
         for out in list(self._outbound.values()):
             self._withdraw(out)
-        await super().stop(grace=grace)
+
+    async def stopped(self) -> None:
         await self._stop_bridge()
 
-    async def reload(self, cfg: InterceptorConfig) -> None:
+    def check_reload(self, cfg: InterceptorConfig) -> None:
         if cfg.ros2 is None or (cfg.ros2.domain_id, cfg.ros2.python) != (self.cfg.ros2.domain_id, self.cfg.ros2.python):
             raise CryptorosError("[ros2] domain_id and python cannot change on reload; restart the interceptor")
-        await super().reload(cfg)
+
+    def reloaded(self) -> None:
         self._noted.clear()
         self._reconcile()
 
@@ -338,7 +355,7 @@ class Ros2Interceptor(Interceptor):
             elif op == "refused_writer":  # a sample on a forwarded topic from a publisher under no grant
                 exc = PolicyDenied("not_granted", f"{body.get('node')} (writer {body.get('gid')}) may not publish "
                                    f"{body.get('topic')}: its samples are dropped")
-                self._deny("ros2_sample", exc, f"local domain {self.cfg.ros2.domain_id}")
+                self.gw.deny("ros2_sample", exc, f"local domain {self.cfg.ros2.domain_id}")
             elif op == "error":
                 log.error("DDS bridge: %s", body.get("detail"))
         else:
@@ -351,12 +368,12 @@ class Ros2Interceptor(Interceptor):
             if len(self._noted) >= MAX_NOTED:  # a process inventing names by the thousand: log again, never grow
                 self._noted.clear()
             self._noted.add(key)
-            self._deny(kind, exc, who)
+            self.gw.deny(kind, exc, who)
 
     def _desired(self) -> dict[tuple[str, str, str], Offer]:
         """What this robot may offer now, decided by :func:`cryptoros.policy.ros2.local_offer`."""
         try:
-            grants = self.own_access().grants
+            grants = self.gw.own_access().grants
         except TokenError:
             return {}
         me = f"local domain {self.cfg.ros2.domain_id}"
@@ -416,7 +433,7 @@ class Ros2Interceptor(Interceptor):
                 out.tasks.pop(endpoint).cancel()
         if self._inbound:
             try:
-                self.own_access()
+                self.gw.own_access()
             except TokenError:  # our own token is gone: nothing comes in either
                 for writer in list(self._inbound):
                     writer.transport.abort()
@@ -451,13 +468,14 @@ class Ros2Interceptor(Interceptor):
                     key = ("not_offered", endpoint, target.name)
                     if key not in self._noted:
                         self._noted.add(key)
-                        self._deny(f"ros2_{target.kind}_out", PolicyDenied(
+                        self.gw.deny(f"ros2_{target.kind}_out", PolicyDenied(
                             "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
                             f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}")
                     await asyncio.sleep(PEER_RECHECK)
                     continue
                 self._noted.discard(("not_offered", endpoint, target.name))
-                reader, writer, peer = await self.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
+                tunnel = await self.gw.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
+                reader, writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
             except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
                 key = ("unreachable", endpoint, target.name)
                 if key not in self._noted:
@@ -488,19 +506,21 @@ class Ros2Interceptor(Interceptor):
                 backoff = 0.25
                 try:
                     if target.kind == "topic":
+                        if tunnel.pending:
+                            raise RemoteProtocolError("the receiver of a topic stream sent data")
                         while await reader.read(READ_SIZE):
                             raise RemoteProtocolError("the receiver of a topic stream sent data")
                     else:
-                        await self._serve_calls(reader, writer, out, pending)
+                        await self._serve_calls(reader, writer, out, pending, first=tunnel.pending)
                 finally:
                     out.writers.pop(endpoint, None)
                     self.metrics.open_streams.labels("ros2").dec()
             except PolicyDenied as exc:
-                self._deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
+                self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
                 backoff = 5.0
             except (CryptorosError, ConnectionError, OSError) as exc:
                 if isinstance(exc, CryptorosError):
-                    self._deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
+                    self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
             finally:
                 unwatch()
                 writer.close()
@@ -514,7 +534,7 @@ class Ros2Interceptor(Interceptor):
         PEER_RECHECK; else one token exchange (purpose ``refresh``: tokens both ways, no
         target), shared by every stream waiting on that peer."""
         now = time.time()
-        known = self._peer_tokens.get((endpoint.host, endpoint.port))
+        known = self.gw.peer_token(endpoint.host, endpoint.port)
         if known is not None:
             known = self.verifier.freshest(known)
             fresh = known.expires_at > now + 5
@@ -524,20 +544,20 @@ class Ros2Interceptor(Interceptor):
         if task is None:
             async def exchange() -> AccessToken:
                 try:
-                    _reader, writer, peer = await self.open_tunnel(endpoint.host, endpoint.port, "refresh", "")
-                    writer.close()
+                    access = await self.gw.exchange_tokens(endpoint.host, endpoint.port)
                     self._peer_learnt[endpoint] = time.time()
-                    return peer.access
+                    return access
                 finally:
                     self._peer_lookups.pop(endpoint, None)
 
             task = self._peer_lookups[endpoint] = asyncio.ensure_future(exchange())
         return await asyncio.shield(task)
 
-    async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int]) -> None:
-        """Requests from the calling robot to a local server (through the bridge's client)."""
+    async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int], first: bytes = b"") -> None:
+        """Requests from the calling robot to a local server (through the bridge's client);
+        ``first``: bytes the peer sent behind its preamble reply."""
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_REQUEST}))
-        while data := await reader.read(READ_SIZE):
+        async for data in read_chunks(reader, READ_SIZE, first):
             decoder.feed(data)
             for _, rid, cdr in decoder.frames():
                 if len(pending) >= MAX_PENDING_CALLS:
@@ -550,19 +570,15 @@ class Ros2Interceptor(Interceptor):
                 self._link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
 
     # ================================================================ inbound
-    def _check_purpose(self, preamble: Preamble) -> None:
-        if preamble.purpose != "ros2":
-            return super()._check_purpose(preamble)
+    def _check_ros2_target(self, preamble: Preamble) -> None:
         StreamTarget.decode(preamble.target)  # malformed targets are refused before the reply
         if not self._bridge_ready.is_set():
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
 
-    async def _serve_tcpros_stream(self, reader, writer, peer: Peer, target: str, purpose: str) -> None:
-        if purpose != "ros2":
-            return await super()._serve_tcpros_stream(reader, writer, peer, target, purpose)
-        return await self._serve_ros2_stream(reader, writer, peer, StreamTarget.decode(target))
+    async def _serve_ros2_stream(self, stream: InboundStream) -> None:
+        reader, writer, peer = stream.reader, stream.writer, stream.peer
+        target = StreamTarget.decode(stream.target)
 
-    async def _serve_ros2_stream(self, reader, writer, peer: Peer, target: StreamTarget) -> None:
         def judge(grants) -> None:
             """The peer's grant for this stream (again on each fresher token it shows)."""
             if not grants.allows(target.action, target.node, target.name, target.type):
@@ -571,7 +587,7 @@ class Ros2Interceptor(Interceptor):
         judge(self.verifier.freshest(peer.access).grants)
         if peer.watch is not None:
             peer.watch.set_recheck(lambda fresh: judge(fresh.grants))
-        own = self.own_access()
+        own = self.gw.own_access()
         if not manager_may(own.grants, target.peer_action, target.name, target.type):
             raise PolicyDenied(
                 "not_granted_here", f"this robot's manager {own.subject} may not {target.peer_action} {target.name}"
@@ -583,13 +599,14 @@ class Ros2Interceptor(Interceptor):
         self._inbound.add(writer)
         try:
             if target.kind == "topic":
-                await self._republish(reader, peer, target, link, writer)
+                await self._republish(reader, peer, target, link, writer, stream.pending)
             else:
-                await self._offer_service(reader, writer, target, link)
+                await self._offer_service(reader, writer, target, link, stream.pending)
         finally:
             self._inbound.discard(writer)
 
-    async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer) -> None:
+    async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer,
+                         first: bytes = b"") -> None:
         key = (target.name, target.type)
         advert = self._adverts.get(key)
         if advert is None:
@@ -611,14 +628,14 @@ class Ros2Interceptor(Interceptor):
         except CdrError as exc:
             raise PolicyDenied("type_not_checkable", f"{target.type}: {exc}") from None
         refused = 0
-        budget = self._budget(peer)
+        budget = self.gw.budget(peer)
         rx = self.metrics.bytes.labels("rx")
         # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
         # an 80 KB image would cost a pause/resume per message. Topic streams read big.
         if getattr(reader, "_limit", None) is not None:
             reader._limit = max(reader._limit, TOPIC_READ_SIZE)
         try:
-            while data := await reader.read(TOPIC_READ_SIZE):
+            async for data in read_chunks(reader, TOPIC_READ_SIZE, first):
                 rx.inc(len(data))
                 try:
                     decoder.feed(data)
@@ -701,7 +718,7 @@ class Ros2Interceptor(Interceptor):
         return receiver_qos(target.qos, depth=settings.depth,
                             keep_for_late_joiners=settings.keeps_for_late_joiners(target.name))
 
-    async def _offer_service(self, reader, writer, target: StreamTarget, link: BridgeLink) -> None:
+    async def _offer_service(self, reader, writer, target: StreamTarget, link: BridgeLink, first: bytes = b"") -> None:
         if target.name in self._proxies:
             raise PolicyDenied("already_offered", f"{target.name} is already offered by another robot")
         proxy = Proxy(chan=next(self._chans), writer=writer)
@@ -711,7 +728,7 @@ class Ros2Interceptor(Interceptor):
         log.info("offering remote service %s [%s] on the local domain", target.name, target.type)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_RESPONSE}))
         try:
-            while data := await reader.read(READ_SIZE):
+            async for data in read_chunks(reader, READ_SIZE, first):
                 try:
                     decoder.feed(data)
                     frames = decoder.frames()
@@ -759,4 +776,4 @@ def _checked_runs(runs: list, check) -> tuple[list, list[str]]:
     return out, bad
 
 
-__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Interceptor"]
+__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Role"]

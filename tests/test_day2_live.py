@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import subprocess
 import time
 import urllib.error
 import urllib.request
@@ -20,6 +21,7 @@ import xmlrpc.client
 import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, wait_registered
+from cryptoros.lab.network import clean_env, stop
 from tests.support import running
 from tests.interceptor_harness import got, read_lines
 
@@ -147,6 +149,31 @@ def test_restarting_an_interceptor_needs_no_node_restart(tmp_path, restarted):
         assert sub.poll() is None and pub.poll() is None
         assert "state restored" in net.hosts[restarted].logs()
 
+
+def test_a_restarted_rosmaster_gets_the_registrations_replayed(tmp_path):
+    """Past plain ROS: rosmaster dies and a new one starts on the same port; the master's
+    interceptor replays every registration it forwarded, so a listener started after
+    the restart finds robot A's talker, with no node restarted."""
+    with talker_a_to_listener_b(tmp_path, seconds=90) as (net, sub, pub):
+        old = next(p for p in net.procs if "--core" in p.args)  # Debian's rosmaster
+        stop(old)
+        new = subprocess.Popen(old.args, env=clean_env(ROS_MASTER_URI=net.rosmaster_uri, ROS_IP="127.0.0.1",
+                                                         ROS_HOME=str(tmp_path)),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        net.procs.append(new)
+        deadline = time.monotonic() + 15
+        while "registrations replayed" not in net.hosts["master"].logs():
+            assert time.monotonic() < deadline, "no replay within 15 s:\n" + net.hosts["master"].logs()
+            time.sleep(0.2)
+        code, _, state = xmlrpc.client.ServerProxy(net.rosmaster_uri).getSystemState("/probe")
+        publishers = dict((topic, nodes) for topic, nodes in state[0])
+        assert code == 1 and "/talker_a" in publishers.get("/chatter", []), state
+        with running([SYS_PY, NODE, "sub", "/late_listener", "/chatter", "30"], env=net.ros_env("robot_b")) as late:
+            read_lines(late, "READY", 20)
+            assert got(read_lines(late, "GOT", 20)), "a listener started after the restart got nothing"
+        read_lines(sub, None, 0.2)
+        assert got(read_lines(sub, "GOT", 10)), "the old listener stopped receiving"
+        assert sub.poll() is None and pub.poll() is None
 
 def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_sighup(tmp_path):
     """Day 2, revocation without SIGHUP: robot B's certificate is revoked with the CA

@@ -241,3 +241,28 @@ def test_cryptoros_status_shows_token_grants_feed_certificate_and_peers(network)
     assert raw["peers"].get("robot_b", 0) >= 1  # robot B's topic stream into robot A
     down = run([script("cryptoros"), "status", "--url", "http://127.0.0.1:9/status"], timeout=30)
     assert down.returncode == 2 and "cannot read" in down.stderr and "Traceback" not in down.stderr
+
+
+def _healthz(network, name: str) -> int:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{network.hosts[name].metrics_port}/healthz", timeout=5) as r:
+            return r.status
+    except urllib.error.HTTPError as exc:
+        return exc.code
+
+
+def test_a_node_started_right_after_enable_manager_is_registered(network):
+    """Day 2: right after `enable-manager` the robot's interceptor may not hold its token
+    yet; a node starting in that moment waits for it (one refresh attempt) instead of
+    having its registration refused."""
+    assert network.cli("disable-manager", "robot_b").returncode == 0
+    deadline = time.monotonic() + 20
+    while _healthz(network, "robot_b") == 200:  # robot B's interceptor dropped its token
+        assert time.monotonic() < deadline, "robot B kept its token after disable-manager"
+        time.sleep(0.1)
+    assert network.cli("enable-manager", "robot_b").returncode == 0
+    with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "30"], env=network.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "5"],
+                     env=network.ros_env("robot_a")):
+            assert got(read_lines(sub, "GOT", 30)), "the listener started right after enable-manager got nothing"

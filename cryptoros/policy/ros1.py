@@ -308,6 +308,17 @@ def check_subscriber_header(
         raise _deny("not_granted", f"{caller} may not subscribe {topic} [{type_name}]")
 
 
+def check_local_subscriber_header(header: Mapping[str, str], *, grants: Grants) -> None:
+    """A local subscriber's TCPROS header, before its stream leaves this host toward a
+    remote publisher: its own node must be granted to subscribe the topic with that
+    type (the publisher's interceptor checks the rest against what it publishes)."""
+    caller, topic, type_name = header.get("callerid", ""), header.get("topic", ""), header.get("type", "")
+    if not (caller and topic and type_name):
+        raise _deny("malformed", "subscriber header lacks callerid, topic or type")
+    if not grants.allows("subscribe", caller, topic, type_name):
+        raise _deny("not_granted", f"{caller} may not subscribe {topic}")
+
+
 def check_publisher_header(header: Mapping[str, str], *, grants: Grants, topic: str, infrastructure: bool = True) -> None:
     """A publisher's reply header against the publisher's grants."""
     caller, type_name = header.get("callerid", ""), header.get("type", "")
@@ -367,6 +378,7 @@ __all__ = [
     "NODE_READ_ONLY",
     "DEFAULT_PARAM_READS",
     "NAME_BINDING",
+    "check_local_subscriber_header",
     "PARAM_READ",
     "check_master_call",
     "check_param_call",

@@ -1,0 +1,685 @@
+"""The gateway: what every role of an interceptor shares (the asyncio edge).
+
+One per process. It owns:
+
+- the **public listener** (mutual TLS, handshake deadline, failed handshakes counted),
+  and for every stream the sans-IO :class:`~interceptor.gate.StreamGate`: preamble
+  with its deadline, the peer's token verified and bound to its certificate, limits
+  (unauthenticated streams per source and certificate, new streams per second, open
+  streams per peer), the opaque reply; then the stream goes to the role registered for
+  its purpose, with the bytes that followed the preamble handed on explicitly;
+- **tokens**: our own (:class:`~interceptor.authz_client.TokenKeeper`), peers'
+  (:class:`~interceptor.authz_client.PeerVerifier`, which also keeps the registry of
+  live streams: which peer, which token, which grant covers each, and cuts them on
+  revocation, a removed grant or expiry plus grace), token exchange with peers;
+- **outbound tunnels** to peer interceptors (:meth:`Gateway.open_tunnel`);
+- the byte **pump** hand-off, per-peer message budgets, metrics, ``/healthz`` and
+  ``/status``;
+- **reload** through one certificate source: both TLS contexts, the authorization
+  client's context and the own-certificate binding are rebuilt from the same files,
+  all or nothing.
+
+Roles (:mod:`interceptor.ros1`, :mod:`interceptor.ros2`) are composed with it: each
+registers the purposes it serves (:meth:`Gateway.serve`) and the life-cycle hooks of
+:class:`Role`. Neither role knows the other.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import logging
+import os
+import ssl
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from aiohttp import web
+from cryptography import x509
+
+from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
+from cryptoros.pemfiles import cert_der
+from cryptoros.ratelimit import TokenBuckets
+from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
+from cryptoros.tokens import AccessToken, peer_audience
+from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
+from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
+from interceptor.config import InterceptorConfig
+from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem
+from interceptor.metrics import Metrics
+from interceptor.pump import FrameCounter, MessageBudget, splice
+
+log = logging.getLogger("cryptoros.interceptor")
+
+READ_SIZE = 65536
+
+
+@dataclass(frozen=True, slots=True)
+class Peer:
+    """A verified peer interceptor: the token it opened the stream with, the addresses
+    its certificate names, and the stream's registration with the verifier (which
+    re-judges it when the peer shows a fresher token)."""
+
+    access: AccessToken
+    hosts: frozenset[str]
+    watch: Any = field(default=None, compare=False)
+    #: why the gateway cut the stream ("reason" key), if it did (revoked, grant removed, expired)
+    cut: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def manager(self) -> str:
+        return self.access.subject
+
+
+@dataclass(frozen=True, slots=True)
+class Tunnel:
+    """A stream we opened to a peer interceptor, past its reply: ``pending`` holds the
+    bytes it sent behind the reply (the role reads them first)."""
+
+    reader: asyncio.StreamReader
+    writer: asyncio.StreamWriter
+    peer: Peer
+    pending: bytes = b""
+
+
+@dataclass(frozen=True, slots=True)
+class InboundStream:
+    """A stream the gate admitted, handed to the role serving its purpose: ``pending``
+    holds the bytes the peer sent behind its preamble."""
+
+    reader: asyncio.StreamReader
+    writer: asyncio.StreamWriter
+    peer: Peer
+    purpose: str
+    target: str
+    pending: bytes = b""
+    #: what the role's target check resolved the target to (checked before the reply)
+    resolved: Any = None
+
+
+class Role(Protocol):
+    """What a role does at each step of the gateway's life (all may do nothing)."""
+
+    async def prepare(self) -> None:
+        """Before the first token and the public listener (restore state, start a child)."""
+
+    async def start(self) -> None:
+        """Once the gateway is up (open the role's own listeners, start its tasks)."""
+
+    async def stopping(self) -> None:
+        """Stop taking new work; the gateway then drains and cuts open streams."""
+
+    async def stopped(self) -> None:
+        """Release what is left (pools, listeners, children)."""
+
+    def check_reload(self, cfg: InterceptorConfig) -> None:
+        """Raise CryptorosError if the role cannot take ``cfg`` without a restart."""
+
+    def reloaded(self) -> None:
+        """The gateway swapped to the new configuration."""
+
+
+def cert_hosts(der: bytes) -> frozenset[str]:
+    """IP and DNS names in a certificate's SAN: where its owner's endpoints may live."""
+    try:
+        san = x509.load_der_x509_certificate(der).extensions.get_extension_for_class(x509.SubjectAlternativeName)
+    except (ValueError, x509.ExtensionNotFound):
+        return frozenset()
+    ips = {str(ip) for ip in san.value.get_values_for_type(x509.IPAddress)}
+    return frozenset(ips | set(san.value.get_values_for_type(x509.DNSName)))
+
+
+def take_buffered(reader: asyncio.StreamReader) -> bytes:
+    """Bytes a StreamReader received but nobody read yet, when a stream leaves the
+    StreamReader for the pump (which takes the transport). The one place the edge reads
+    CPython's StreamReader internals: asyncio has no public "take what is buffered"."""
+    buffer = getattr(reader, "_buffer", None)
+    if not buffer:
+        return b""
+    data = bytes(buffer)
+    buffer.clear()
+    return data
+
+
+async def read_into(reader: asyncio.StreamReader, feed: Callable[[bytes], None], timeout: float) -> None:
+    """One read (within ``timeout``) handed to a sans-IO codec's ``receive_data``."""
+    data = await asyncio.wait_for(reader.read(READ_SIZE), timeout)
+    feed(data)
+
+
+async def read_chunks(reader: asyncio.StreamReader, size: int, first: bytes = b""):
+    """``first`` (bytes already read from the stream), then every read until EOF."""
+    if first:
+        yield first
+    while data := await reader.read(size):
+        yield data
+
+
+class Gateway:
+    """One host's interceptor: ``serve()`` purposes and ``add_role()`` roles, then
+    ``await start()``, then ``await stop()``."""
+
+    def __init__(self, cfg: InterceptorConfig) -> None:
+        self.cfg = cfg
+        self.metrics = Metrics()
+        self._server_ctx = server_context(cfg.tls)
+        self._client_ctx = client_context(cfg.tls, check_hostname=True)
+        self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
+        self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin)
+        self.verifier = PeerVerifier(
+            self.authz,
+            issuer=cfg.authz.issuer,
+            audience=cfg.authz.audience,
+            poll_interval=cfg.authz.revocation_poll_interval,
+            grace=cfg.authz.token_grace,
+            revocation_grace=cfg.authz.revocation_grace,
+            feed_wait=cfg.authz.feed_wait,
+        )
+        self._own_cert_der = cert_der(cfg.tls.cert_file)
+        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
+        self._own_access: AccessToken | None = None
+        self._own_token: str | None = None
+        #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
+        #: where to show them our new token and fetch theirs.
+        self._peer_endpoints: dict[tuple[str, str], tuple[str, int]] = {}
+        #: the last token each peer endpoint we connected to showed us
+        self._peer_tokens: dict[tuple[str, int], AccessToken] = {}
+        #: per peer endpoint, which of our tokens it has seen: whole (master streams) or
+        #: narrowed for it (everything else); a token exchange refreshes each
+        self._views: dict[tuple[str, int], set[bool]] = {}
+        self._exchanges: set[tuple[str, int]] = set()
+        self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
+        self._roles: list[Role] = []
+        self._open_per_peer: dict[str, int] = {}
+        self._pending = PendingStreams()
+        self._budgets: dict[str, MessageBudget] = {}
+        rate = cfg.limits.max_new_connections_per_second
+        self._new_stream_limiter = TokenBuckets(rate, 2 * rate)  # per peer manager
+        self._public_server: asyncio.AbstractServer | None = None
+        self._tasks: list[asyncio.Task] = []
+        self._streams: set[asyncio.Future] = set()
+        self._metrics_runner: web.AppRunner | None = None
+        self.started = False
+
+    # ================================================================ composition
+    def serve(self, purpose: str, check: TargetCheck, handler: Callable[[InboundStream], Awaitable[None]]) -> None:
+        """Streams of ``purpose`` go to ``handler`` once the gate admitted them;
+        ``check`` refuses a target the role does not serve before the reply."""
+        if purpose in self._purposes or purpose == REFRESH:
+            raise CryptorosError(f"purpose {purpose} is served twice")
+        self._purposes[purpose] = (check, handler)
+
+    def add_role(self, role: Role) -> None:
+        self._roles.append(role)
+
+    def spawn(self, coro: Awaitable, name: str | None = None) -> asyncio.Future:
+        """A background task of the gateway or a role, cancelled by :meth:`stop`."""
+        task = asyncio.ensure_future(coro)
+        if name and isinstance(task, asyncio.Task):
+            task.set_name(name)
+        self._tasks = [t for t in self._tasks if not t.done()]
+        self._tasks.append(task)
+        return task
+
+    def track(self, coro: Awaitable) -> asyncio.Future:
+        """A stream's task: waited for (``grace``) and then cut by :meth:`stop`."""
+        future = asyncio.ensure_future(coro)
+        self._streams.add(future)
+        future.add_done_callback(self._streams.discard)
+        return future
+
+    # ================================================================ life cycle
+    async def start(self, *, token_wait: float = 10.0) -> None:
+        for role in self._roles:
+            await role.prepare()
+        try:
+            await asyncio.wait_for(self._first_token(), token_wait)
+        except (asyncio.TimeoutError, TokenError) as exc:
+            log.error("no access token yet (%s): everything is refused until one arrives", exc)
+        self.verifier.listeners.append(self._on_feed)
+        self.verifier.stale_listeners.append(self._on_stale_peer_token)
+        self.keeper.listeners.append(self._on_own_token)
+        self.spawn(self.keeper.run(), "token-keeper")
+        self.spawn(self.verifier.run(), "revocation-feed")
+        self._public_server = await self._listen_public(self._server_ctx)
+        if self.cfg.metrics is not None:
+            await self._start_metrics()
+        self.started = True
+        for role in self._roles:
+            await role.start()
+        log.info(
+            "interceptor for manager %s up: roles %s, public %s%s",
+            self.cfg.manager,
+            ",".join(self.cfg.roles),
+            self.cfg.public,
+            f", local master {self.cfg.local_master}" if self.cfg.local_master else "",
+        )
+
+    async def _first_token(self) -> None:
+        while True:
+            try:
+                await self.keeper.refresh()
+                await self.verifier.refresh_jwks()
+                feed = await self.authz.fetch_revocations()
+                if feed is not None:
+                    self.verifier.apply(feed)
+                self.verifier.last_feed_at = time.time()
+                self.own_access()
+                return
+            except TokenError as exc:
+                log.warning("waiting for the authorization server: %s", exc)
+                await asyncio.sleep(0.5)
+
+    async def _listen_public(self, ctx) -> asyncio.AbstractServer:
+        ctx.sslobject_class = self._counting_sslobject_class()
+        return await asyncio.start_server(
+            self._on_public, self.cfg.public.host, self.cfg.public.port, ssl=ctx, reuse_address=True,
+            ssl_handshake_timeout=self.cfg.limits.handshake_timeout, limit=READ_SIZE,
+        )
+
+    async def stop(self, grace: float = 5.0) -> None:
+        """Stop listening, let open streams finish for ``grace`` seconds, then cut them."""
+        for role in self._roles:
+            await role.stopping()
+        server = self._public_server
+        if server is not None:
+            server.close()
+        if self._streams:
+            await asyncio.wait(list(self._streams), timeout=grace)
+        for task in self._tasks:
+            task.cancel()
+        for stream in list(self._streams):
+            stream.cancel()
+        if server is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(server.wait_closed(), 1)
+        for role in self._roles:
+            await role.stopped()
+        if self._metrics_runner is not None:
+            await self._metrics_runner.cleanup()
+        await self.authz.close()
+
+    async def reload(self, cfg: InterceptorConfig) -> None:
+        """SIGHUP: new certificates, CRL and policy; open streams stay up. All or
+        nothing: the new TLS material is loaded and a token bound to the new
+        certificate fetched and verified before anything is swapped, so a failure (a
+        renewed certificate the registry does not know yet, the authorization server
+        down) keeps the old state everywhere (the caller catches and logs)."""
+        for role in self._roles:
+            role.check_reload(cfg)
+        # one certificate source: every holder below is built from cfg.tls
+        server_ctx = server_context(cfg.tls)
+        client_ctx = client_context(cfg.tls, check_hostname=True)
+        authz_ctx = client_context(cfg.tls, check_hostname=True)
+        own_der = cert_der(cfg.tls.cert_file)
+        probe = AuthzClient(cfg.authz, authz_ctx)
+        try:
+            token = await probe.fetch_token()
+        finally:
+            await probe.close()
+        self.verifier.verify(token.token, own_der)  # bound to the new certificate, not revoked
+        old = self._public_server
+        if old is not None:
+            old.close()
+        try:
+            self._public_server = await self._listen_public(server_ctx)
+        except OSError:
+            self._public_server = await self._listen_public(self._server_ctx)
+            raise
+        self._server_ctx, self._client_ctx = server_ctx, client_ctx
+        self.cfg = cfg
+        # every holder of the certificate reads the new one: the authorization server
+        # binds the next token to it, and our own token is checked against it
+        self._own_cert_der = own_der
+        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(own_der))
+        await self.authz.use_ssl_context(authz_ctx)
+        self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
+        self._own_access = None
+        self.own_access()
+        for role in self._roles:
+            role.reloaded()
+        log.info("reloaded certificates, CRL and policy")
+
+    # ================================================================ health
+    def feed_problem(self) -> PolicyDenied | None:
+        return feed_problem(refused=self.verifier.refused, last_feed_at=self.verifier.last_feed_at,
+                            now=time.time(), max_age=self.cfg.limits.max_feed_age)
+
+    def check_feed_age(self) -> None:
+        problem = self.feed_problem()
+        if problem is not None:
+            raise problem
+
+    def status(self) -> dict:
+        """What ``cryptoros status`` shows: who this interceptor is to the registry now
+        (token subject, grants, expiry), how fresh its view of revocations is
+        (feed, CRL), how long its certificate lasts, and its peers with open streams."""
+        now = time.time()
+        health, token = "ok", None
+        try:
+            access = self.own_access()
+            token = {"subject": access.subject, "jti": access.jti, "expires_in": round(access.expires_at - now),
+                     "grants": [[g.node, g.action, g.name, g.type] for g in access.grants]}
+            self.check_feed_age()
+        except (TokenError, PolicyDenied) as exc:
+            health = f"{exc.reason}: {exc.detail}"
+        cert = x509.load_der_x509_certificate(self._own_cert_der)
+        crl = self.cfg.tls.crl_file
+        last = self.verifier.last_feed_at
+        return {
+            "manager": self.cfg.manager, "roles": list(self.cfg.roles), "public": str(self.cfg.public),
+            "health": health, "token": token,
+            "certificate": {"subject": cert.subject.rfc4514_string(), "serial": format(cert.serial_number, "x"),
+                            "not_after": cert.not_valid_after_utc.isoformat(),
+                            "days_left": round((cert.not_valid_after_utc.timestamp() - now) / 86400, 1)},
+            "feed": {"age": None if last is None else round(now - last, 1),
+                     "revoked_tokens": len(self.verifier.revocations.revoked_jtis),
+                     "disabled_managers": sorted(self.verifier.revocations.disabled_subjects)},
+            "crl": None if crl is None else {"file": str(crl), "age": round(now - os.stat(crl).st_mtime, 1)
+                                             if os.path.exists(crl) else None},
+            "peers": self.verifier.streams_by_peer(),
+            "open_streams": len(self._streams),
+        }
+
+    async def _start_metrics(self) -> None:
+        app = web.Application()
+
+        async def metrics(_request: web.Request) -> web.Response:
+            if self.keeper.expires_at:
+                self.metrics.token_expires.set(self.keeper.expires_at)
+            return web.Response(body=self.metrics.render(), content_type="text/plain", charset="utf-8")
+
+        async def healthz(_request: web.Request) -> web.Response:
+            try:
+                self.keeper.current()
+                self.check_feed_age()
+                self.own_access()  # our own token verifies now: not revoked, manager not disabled
+            except (TokenError, PolicyDenied) as exc:
+                return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
+            last = self.verifier.last_feed_at
+            return web.json_response({"status": "ok", "open_streams": len(self._streams),
+                                      "feed_age": None if last is None else round(time.time() - last, 1)})
+
+        async def status(_request: web.Request) -> web.Response:
+            return web.json_response(self.status())
+
+        app.router.add_get("/metrics", metrics)
+        app.router.add_get("/healthz", healthz)
+        app.router.add_get("/status", status)
+        self._metrics_runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        await self._metrics_runner.setup()
+        await web.TCPSite(self._metrics_runner, self.cfg.metrics.host, self.cfg.metrics.port).start()
+
+    def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
+        """An SSLObject whose failed handshakes are counted and logged like every other
+        denial (asyncio itself only logs them in debug mode)."""
+        metrics = self.metrics
+
+        class CountingSSLObject(ssl.SSLObject):
+            def do_handshake(self) -> None:
+                try:
+                    super().do_handshake()
+                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+                    raise
+                except ssl.SSLError as exc:
+                    reason = (exc.reason or type(exc).__name__).lower()
+                    metrics.denied.labels("tls", reason).inc()
+                    log.warning("DENY tls handshake: %s", exc)
+                    raise
+
+        return CountingSSLObject
+
+    # ================================================================ tokens
+    def _on_feed(self, revocations) -> None:
+        """When the feed revokes our own token or disables our manager, drop the token
+        (nothing is allowed on it any more) and ask for a new one at once."""
+        own = self._own_access
+        serial = x509.load_der_x509_certificate(self._own_cert_der).serial_number
+        if serial in revocations.revoked_serials:
+            log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
+                      "renew it (cryptoros-certs renew, set-cert, SIGHUP)", serial)
+            self._own_access = None
+            self.keeper.invalidate()
+        elif own is not None and (own.jti in revocations.revoked_jtis or own.subject in revocations.disabled_subjects):
+            log.warning("our own access token was revoked; asking for a new one")
+            self._own_access = None
+            self.keeper.invalidate()
+        elif self.started:
+            self.keeper.wake()  # the registry changed: our grants may have (grants live)
+
+    def _on_own_token(self) -> None:
+        """Show every peer we have streams to our new token (and take theirs)."""
+        for endpoint in set(self._peer_endpoints.values()):
+            self._exchange_soon(endpoint)
+
+    def _on_stale_peer_token(self, access: AccessToken) -> None:
+        """The feed revoked a peer's token: fetch its fresh one if we know where it is
+        (a peer that opened streams to us shows us its own)."""
+        endpoint = self._peer_endpoints.get((access.subject, access.thumbprint))
+        if endpoint is not None:
+            self._exchange_soon(endpoint)
+
+    def _exchange_soon(self, endpoint: tuple[str, int]) -> None:
+        if endpoint in self._exchanges or not self.started:
+            return
+        self._exchanges.add(endpoint)
+
+        async def exchange() -> None:
+            try:
+                for whole in sorted(self._views.get(endpoint, {False})):
+                    tunnel = await self.open_tunnel(*endpoint, REFRESH, "", whole=whole)
+                    tunnel.writer.close()
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                log.info("token exchange with %s:%d failed: %s", *endpoint, exc)
+            finally:
+                self._exchanges.discard(endpoint)
+
+        self.spawn(exchange())
+
+    def own_access(self) -> AccessToken:
+        """Our own token, verified like a peer's (it carries our grants)."""
+        token = self.keeper.current()
+        if self._own_access is None or self._own_token != token:
+            self._own_access = self.verifier.verify(token, self._own_cert_der)
+            self._own_token = token
+        return self._own_access
+
+    def peer_token(self, host: str, port: int) -> AccessToken | None:
+        """The last token the peer interceptor at ``host:port`` showed us, if any."""
+        return self._peer_tokens.get((host, port))
+
+    async def exchange_tokens(self, host: str, port: int) -> AccessToken:
+        """Show a peer interceptor our token and take its own (no stream kept)."""
+        tunnel = await self.open_tunnel(host, port, REFRESH, "")
+        tunnel.writer.close()
+        return tunnel.peer.access
+
+    def deny(self, kind: str, exc: CryptorosError, who: str) -> None:
+        reason = getattr(exc, "reason", type(exc).__name__)
+        self.metrics.denied.labels(kind, reason).inc()
+        log.warning("DENY %s from %s: %s", kind, who, exc)
+
+    # ================================================================ outbound
+    async def open_tunnel(
+        self, host: str, port: int, purpose: str, target: str, *, first: bytes = b"", whole: bool | None = None,
+    ) -> Tunnel:
+        """Mutual TLS to a peer interceptor, our token in the preamble, its token in
+        the reply (verified and bound to its certificate). ``first`` (a connection
+        header, an XML-RPC request) is sent right behind the preamble, saving a round
+        trip; the peer reads it only once our token passed.
+
+        The token shown is narrowed for the peer (its certificate the audience, only
+        the grants on names its manager holds too), except on master streams
+        (``whole``, by default for purpose ``master``): the master's interceptor judges
+        every registration, so it sees every grant."""
+        self.keeper.current()  # no token of our own: nothing is opened
+        whole = purpose == "master" if whole is None else whole
+        try:
+            reader, writer = await asyncio.wait_for(
+                asyncio.open_connection(
+                    host, port, ssl=self._client_ctx, server_hostname=host,
+                    local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
+                ),
+                self.cfg.limits.handshake_timeout,
+            )
+        except (OSError, asyncio.TimeoutError) as exc:
+            raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
+        try:
+            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
+            self._views.setdefault((host, port), set()).add(whole)
+            writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
+            preamble_reader = PreambleReader(PreambleReply)
+            reply = None
+            while reply is None:
+                await read_into(reader, preamble_reader.receive_data, self.cfg.limits.handshake_timeout)
+                event = preamble_reader.next_event()
+                reply = event if isinstance(event, PreambleReply) else None
+            if not reply.ok:
+                raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
+            access = await self.verifier.verify_fresh(reply.token, der)
+            self.verifier.note(access)
+            self._peer_endpoints[(access.subject, access.thumbprint)] = (host, port)
+            self._peer_tokens[(host, port)] = access
+            pending = preamble_reader.trailing_data()
+        except BaseException:
+            writer.close()
+            raise
+        self.metrics.connections.labels(purpose, "out").inc()
+        return Tunnel(reader, writer, Peer(access=access, hosts=cert_hosts(der)), pending)
+
+    # ================================================================ public side
+    async def _on_public(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._streams.add(task)
+            task.add_done_callback(self._streams.discard)
+        peername = writer.get_extra_info("peername")
+        who = f"{peername[0]}:{peername[1]}" if peername else "?"
+        limits = self.cfg.limits
+        entered: list[tuple[str, str]] = []
+        gate = StreamGate({purpose: check for purpose, (check, _serve) in self._purposes.items()})
+        try:
+            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            # Before the token is verified a stream is bounded per source address and
+            # per certificate, and its preamble has one deadline from accept.
+            for key, cap in (
+                (("source", peername[0] if peername else "?"), limits.max_pending_per_source),
+                (("certificate", hashlib.sha256(der).hexdigest()), limits.max_pending_per_certificate),
+            ):
+                self._pending.enter(key, cap, key[0])
+                entered.append(key)
+            async with asyncio.timeout(limits.preamble_timeout):
+                while (event := gate.next_event()) is NEED_DATA:
+                    await read_into(reader, gate.receive_data, limits.preamble_timeout)
+            access = await self.verifier.verify_fresh(event.preamble.token, der)
+            self.verifier.note(access)
+            who = f"{access.subject}@{who}"
+            admitted = gate.admit(
+                access, feed=self.feed_problem(), allow_new_stream=self._new_stream_limiter.allow,
+                open_streams=self._open_per_peer.get(access.subject, 0), max_streams=limits.max_connections_per_peer,
+            )
+            own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
+        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
+            if isinstance(exc, CryptorosError):
+                self.deny("stream", exc, who)
+            else:
+                reason = "preamble_timeout" if isinstance(exc, asyncio.TimeoutError) else type(exc).__name__
+                self.metrics.denied.labels("stream", reason).inc()
+                log.warning("DENY stream from %s: %s", who, reason)
+            with contextlib.suppress(Exception):
+                writer.write(gate.refuse())
+                await asyncio.wait_for(writer.drain(), 1)
+            if isinstance(exc, asyncio.TimeoutError) or getattr(exc, "reason", "") == "pending_limit":
+                writer.transport.abort()  # no graceful TLS close for a peer that dribbles
+            else:
+                writer.close()
+            return
+        finally:
+            for key in entered:
+                self._pending.leave(key)
+        writer.write(gate.accept(own_token))
+        purpose = admitted.purpose
+        if purpose == REFRESH:  # tokens shown both ways: nothing more to do
+            self.metrics.connections.labels(REFRESH, "in").inc()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(writer.drain(), limits.handshake_timeout)
+            writer.close()
+            return
+        self.metrics.connections.labels(purpose, "in").inc()
+        self.metrics.open_streams.labels(purpose).inc()
+        self._open_per_peer[access.subject] = self._open_per_peer.get(access.subject, 0) + 1
+
+        cut_by: dict[str, str] = {}
+
+        def cut(reason: str) -> None:
+            cut_by.setdefault("reason", reason)
+            self.metrics.cutoffs.inc()
+            writer.transport.abort()
+
+        unwatch = self.verifier.watch(access, cut)
+        peer = Peer(access=access, hosts=cert_hosts(der), watch=unwatch, cut=cut_by)
+        _check, serve = self._purposes[purpose]
+        try:
+            await serve(InboundStream(reader, writer, peer, purpose, admitted.target, gate.trailing_data,
+                                      admitted.resolved))
+        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
+            if isinstance(exc, CryptorosError):
+                self.deny(purpose, exc, who)
+        except asyncio.CancelledError:
+            pass  # stop(): the grace period is over
+        finally:
+            unwatch()
+            self.metrics.open_streams.labels(purpose).dec()
+            left = self._open_per_peer[access.subject] - 1
+            if left > 0:
+                self._open_per_peer[access.subject] = left
+            else:
+                del self._open_per_peer[access.subject]
+            writer.close()
+
+    # ================================================================ the pump
+    def budget(self, peer: Peer) -> MessageBudget | None:
+        """The message budget of one peer (shared by all its streams), if limited."""
+        rate = self.cfg.limits.max_messages_per_second
+        if rate is None:
+            return None
+        budget = self._budgets.get(peer.manager)
+        if budget is None or budget.rate != rate:
+            budget = self._budgets[peer.manager] = MessageBudget(rate)
+        return budget
+
+    async def pump(
+        self, left_reader, left_writer, right_reader, right_writer, *,
+        left_pending: bytes, right_pending: bytes,
+        left_budget: MessageBudget | None = None, left_frames: FrameCounter | None = None,
+        left_discard: bool = False, on_deny: Callable[[PolicyDenied], None] | None = None,
+    ) -> None:
+        """Hand both streams to the byte pump and wait until both sides closed. The
+        left side is toward the peer (bytes read there count as rx); ``*_pending`` are
+        bytes read past the header on each side, which go through the same checks."""
+        tx = self.metrics.bytes.labels("tx")
+        rx = self.metrics.bytes.labels("rx")
+        done = splice(
+            left_writer.transport,
+            right_writer.transport,
+            left_pending=left_pending + take_buffered(left_reader),
+            right_pending=right_pending + take_buffered(right_reader),
+            on_left_bytes=rx.inc,
+            on_right_bytes=tx.inc,
+            left_budget=left_budget,
+            left_frames=left_frames,
+            left_discard=left_discard,
+            on_deny=on_deny,
+        )
+        for transport in (left_writer.transport, right_writer.transport):
+            if not transport.is_closing() and not transport.is_reading():
+                transport.resume_reading()
+        await done
+
+
+__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts",
+           "read_chunks", "read_into", "take_buffered"]

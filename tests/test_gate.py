@@ -1,0 +1,165 @@
+"""The public listener's per-stream gate, with no sockets: preamble -> token ->
+admission -> reply, and the bytes behind the preamble handed on explicitly."""
+
+from __future__ import annotations
+
+import pytest
+
+from cryptoros.errors import LocalProtocolError, PolicyDenied, RemoteProtocolError
+from cryptoros.policy.ros1 import check_local_subscriber_header
+from cryptoros.tokens import AccessToken, Grant, Grants
+from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
+from interceptor.gate import REFRESH, PendingStreams, PreambleReceived, StreamGate, feed_problem
+
+def _access() -> AccessToken:
+    grants = Grants([Grant(node="/listener", action="subscribe", name="/chatter", type="std_msgs/String")])
+    return AccessToken(subject="alice", jti="j1", issued_at=0, expires_at=10**10, grants=grants, thumbprint="t",
+                       claims={})
+
+
+def _preamble(purpose: str = "topic", target: str = "7") -> bytes:
+    return encode(Preamble(token="header.payload.signature", purpose=purpose, target=target))
+
+
+def _gate(**purposes):
+    return StreamGate(purposes or {"topic": lambda preamble: ("endpoint", preamble.target)})
+
+
+def _admit(gate: StreamGate, **kw):
+    args = {"feed": None, "allow_new_stream": lambda _subject: True, "open_streams": 0, "max_streams": 8}
+    args.update(kw)
+    return gate.admit(_access(), **args)
+
+
+@pytest.mark.parametrize("how", ["whole", "byte by byte"])
+def test_a_preamble_with_trailing_data_is_admitted_and_the_rest_handed_on(how):
+    data = _preamble() + b"\x10\x00\x00\x00first header"
+    gate = _gate()
+    chunks = [data] if how == "whole" else [data[i:i + 1] for i in range(len(data))]
+    event = NEED_DATA
+    for chunk in chunks:
+        gate.receive_data(chunk)
+        event = gate.next_event()
+        if event is not NEED_DATA:
+            break
+    assert isinstance(event, PreambleReceived)
+    assert event.preamble.purpose == "topic"
+    admitted = _admit(gate)
+    assert (admitted.purpose, admitted.target, admitted.resolved) == ("topic", "7", ("endpoint", "7"))
+    reply = PreambleReader(PreambleReply)
+    reply.receive_data(gate.accept("our-token"))
+    assert reply.next_event() == PreambleReply(ok=True, token="our-token")
+    rest = b"".join(chunks)[len(_preamble()):] if how == "whole" else b""
+    handed = gate.trailing_data
+    if how == "whole":
+        assert handed == rest
+    else:  # fed byte by byte the event came at the preamble's last byte: the rest is still to come
+        assert handed == b""
+
+
+def test_an_incomplete_preamble_needs_data_and_garbage_is_a_remote_protocol_error():
+    gate = _gate()
+    gate.receive_data(_preamble()[:-1])
+    assert gate.next_event() is NEED_DATA
+    bad = _gate()
+    with pytest.raises(RemoteProtocolError):  # refused as soon as the head is seen
+        bad.receive_data(b"GET / HTTP/1.1\r\n\r\n" + b"x" * 64)
+        bad.next_event()
+
+
+@pytest.mark.parametrize(
+    "purpose, kw, reason",
+    [
+        ("ros2", {}, "bad_purpose"),  # no role registered it: fail closed
+        ("topic", {"feed": PolicyDenied("feed_stale", "old")}, "feed_stale"),
+        ("topic", {"allow_new_stream": lambda _s: False}, "rate_limited"),
+        ("topic", {"open_streams": 8}, "connection_limit"),
+    ],
+)
+def test_each_refusal_has_its_reason_and_nothing_is_handed_on(purpose, kw, reason):
+    gate = _gate()
+    gate.receive_data(_preamble(purpose=purpose))
+    assert isinstance(gate.next_event(), PreambleReceived)
+    with pytest.raises(PolicyDenied) as info:
+        _admit(gate, **kw)
+    assert info.value.reason == reason
+    reply = PreambleReader(PreambleReply)
+    reply.receive_data(gate.refuse())
+    assert reply.next_event() == PreambleReply(ok=False, error="denied")
+    with pytest.raises(LocalProtocolError):
+        gate.accept("token")  # a refused stream can never be accepted afterwards
+    with pytest.raises(LocalProtocolError):
+        gate.trailing_data
+
+
+def test_a_stale_feed_is_refused_before_the_target_is_even_looked_at():
+    looked = []
+    gate = StreamGate({"topic": looked.append})
+    gate.receive_data(_preamble())
+    gate.next_event()
+    with pytest.raises(PolicyDenied):
+        _admit(gate, feed=PolicyDenied("feed_stale", "old"))
+    assert looked == []
+
+
+def test_the_role_target_check_refuses_unknown_targets():
+    def check(preamble):
+        raise PolicyDenied("unknown_target", f"no exported endpoint {preamble.target}")
+
+    gate = StreamGate({"topic": check})
+    gate.receive_data(_preamble())
+    gate.next_event()
+    with pytest.raises(PolicyDenied) as info:
+        _admit(gate)
+    assert info.value.reason == "unknown_target"
+
+
+def test_refresh_needs_no_role_and_no_target():
+    gate = StreamGate({})
+    gate.receive_data(_preamble(purpose=REFRESH, target=""))
+    gate.next_event()
+    assert _admit(gate).purpose == REFRESH
+
+
+def test_the_gate_is_used_in_order():
+    gate = _gate()
+    with pytest.raises(LocalProtocolError):
+        _admit(gate)  # no preamble yet
+    gate.receive_data(_preamble())
+    gate.next_event()
+    with pytest.raises(LocalProtocolError):
+        gate.receive_data(b"more")  # past the preamble the bytes are the role's
+    with pytest.raises(LocalProtocolError):
+        gate.accept("t")  # not admitted yet
+
+
+def test_feed_problem_fails_closed():
+    assert feed_problem(refused=False, last_feed_at=100.0, now=110.0, max_age=30).__class__ is type(None)
+    assert feed_problem(refused=False, last_feed_at=None, now=110.0, max_age=30).reason == "feed_stale"
+    assert feed_problem(refused=False, last_feed_at=10.0, now=110.0, max_age=30).reason == "feed_stale"
+    assert feed_problem(refused=True, last_feed_at=100.0, now=110.0, max_age=30).reason == "authz_refused"
+
+
+def test_pending_streams_are_capped_per_key_and_released():
+    pending = PendingStreams()
+    pending.enter(("source", "10.0.0.1"), 2, "source")
+    pending.enter(("source", "10.0.0.1"), 2, "source")
+    with pytest.raises(PolicyDenied) as info:
+        pending.enter(("source", "10.0.0.1"), 2, "source")
+    assert info.value.reason == "pending_limit"
+    pending.enter(("source", "10.0.0.2"), 2, "source")  # another source is not held back
+    for _ in range(2):
+        pending.leave(("source", "10.0.0.1"))
+    pending.leave(("source", "10.0.0.2"))
+    assert len(pending) == 0  # nothing kept for keys with no stream: bounded
+
+
+def test_a_local_subscriber_is_checked_by_the_policy_before_its_stream_leaves():
+    grants = Grants([Grant(node="/listener", action="subscribe", name="/chatter", type="std_msgs/String")])
+    header = {"callerid": "/listener", "topic": "/chatter", "type": "std_msgs/String", "md5sum": "x"}
+    check_local_subscriber_header(header, grants=grants)
+    for changed, reason in (({"callerid": "/other"}, "not_granted"), ({"topic": "/secret"}, "not_granted"),
+                            ({"type": "std_msgs/Int32"}, "not_granted"), ({"type": ""}, "malformed")):
+        with pytest.raises(PolicyDenied) as info:
+            check_local_subscriber_header({**header, **changed}, grants=grants)
+        assert info.value.reason == reason
