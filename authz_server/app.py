@@ -233,7 +233,9 @@ class Metrics:
                                      "Creation time of the active signing key", registry=self.registry)
 
 
-class _Denied(Exception):
+class _Denied(CryptorosError):
+    """A refused /token request; answered once, in the handler, as an OAuth error."""
+
     def __init__(self, status: int, error: str, reason: str, manager: str | None = None) -> None:
         super().__init__(reason)
         self.status, self.error, self.reason, self.manager = status, error, reason, manager

@@ -31,7 +31,7 @@ from cryptography.hazmat.primitives.asymmetric import ec, ed448, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from cryptoros import passphrase as passphrases
-from cryptoros.errors import PKIError
+from cryptoros.errors import CryptorosError, PKIError
 
 from . import pki as pkimod
 from .pki import KEY_TYPES, KINDS, PKI, REASONS
@@ -42,13 +42,13 @@ ENV_CA_PASSPHRASE = "CRYPTOROS_CA_PASSPHRASE"
 ENV_DIR = "CRYPTOROS_PKI_DIR"
 
 
-class BadInput(click.ClickException):
+class BadInput(click.ClickException, CryptorosError):
     """Bad input from the user: one line on stderr, exit status 2."""
 
     exit_code = 2
 
 
-class Refused(click.ClickException):
+class Refused(click.ClickException, CryptorosError):
     """``verify`` refused a certificate: exit status 1."""
 
     exit_code = 1

@@ -39,6 +39,7 @@ from typing import Any, Callable
 import numpy as np
 
 from cryptoros.demo.attackers import ATTACKS, insider_host, target_of
+from cryptoros.errors import CryptorosError
 
 MASTER_ADDR = "127.0.0.10"
 STRANGER_ADDR = "127.0.0.66"
@@ -47,8 +48,8 @@ TEAM_TYPES = {"hello": "cryptoros_sim/Hello", "lsu": "cryptoros_sim/LinkStateUpd
               "recruit": "cryptoros_sim/RecruitPacket", "protocol": "cryptoros_sim/ProtocolPacket"}
 
 
-class DemoError(RuntimeError):
-    pass
+class DemoError(CryptorosError, RuntimeError):
+    """The demo could not run (a part did not come up, a step failed)."""
 
 
 @dataclass

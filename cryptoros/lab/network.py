@@ -35,12 +35,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from certs.pki import PKI
+from cryptoros.errors import CryptorosError
 
 HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
 SIGNING_PASSPHRASE = "bench-signing-passphrase"
 
 
-class NetworkError(RuntimeError):
+class NetworkError(CryptorosError, RuntimeError):
     """A part of the benchmark network did not come up."""
 
 

@@ -280,8 +280,8 @@ _FORMATS: dict[str, str] = {
 }
 
 
-class _NotFlat(Exception):
-    pass
+class _NotFlat(LocalProtocolError):
+    """A type is not flat: the generated struct serializer does not apply (caught here)."""
 
 
 def _leaves(name: str, st: Typestore, expr: str, out: list, depth: int = 0) -> str:
