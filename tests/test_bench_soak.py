@@ -26,6 +26,7 @@ def test_bench_soak_quick():
     procs = figures["processes"]
     assert set(procs) == {"master", "robot_a", "robot_b", "authz"}
     assert all(p["fds_start"] > 0 and p["fds_end"] > 0 and p["rss_kib_end"] > 0 for p in procs.values())
+    assert procs["robot_b"]["tcp_end"]["listen"] >= 2 and figures["stale_churn_registrations"] >= 0
     assert procs["master"]["pid_end"] != procs["master"]["pid_start"]  # it was restarted
     assert procs["authz"]["pid_end"] != procs["authz"]["pid_start"]
     assert procs["robot_a"]["pid_end"] == procs["robot_a"]["pid_start"]

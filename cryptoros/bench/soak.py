@@ -18,9 +18,11 @@ every interceptor with a ``state_dir``) and runs, for ``--seconds``:
 - the authorization server restarts two thirds of the way in.
 
 It prints progress lines while it runs, then per process (the three interceptors and
-the authorization server) open fds (``/proc/PID/fd``) and RSS at start and end, the
-messages lost on the watched stream and its longest gap; ``--json`` prints one JSON
-object instead (progress goes to stderr). Nothing is asserted.
+the authorization server) open fds (``/proc/PID/fd``) and RSS at start and end (and
+the TCP sockets among the fds at the end, listening and established), the messages
+lost on the watched stream and its longest gap, and how many stopped churn nodes
+rosmaster still lists; ``--json`` prints one JSON object instead (progress goes to
+stderr). Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -107,6 +109,28 @@ def usage(pid: int) -> tuple[int, int]:
         return fds, rss
     except OSError:
         return -1, -1
+
+
+def socket_states(pid: int) -> dict[str, int]:
+    """The TCP sockets among a process's fds, by state (listen, established, other)."""
+    names = {"0A": "listen", "01": "established"}
+    try:
+        inodes = set()
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            with contextlib.suppress(OSError):
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if link.startswith("socket:["):
+                    inodes.add(link[8:-1])
+        counts = {"listen": 0, "established": 0, "other": 0}
+        for table in ("tcp", "tcp6"):
+            with contextlib.suppress(OSError):
+                for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+                    fields = line.split()
+                    if len(fields) > 9 and fields[9] in inodes:
+                        counts[names.get(fields[3], "other")] += 1
+        return counts
+    except OSError:
+        return {}
 
 
 @dataclass
@@ -250,6 +274,20 @@ class Soak:
         self.note(f"authorization server restarted (listening again after {took:.1f} s)")
         return took
 
+    def stale_churn_nodes(self, within: float) -> list[str]:
+        """Churn nodes rosmaster still lists (all were stopped with SIGTERM, which
+        unregisters them), after waiting up to ``within`` seconds for them to go."""
+        import xmlrpc.client
+
+        deadline = time.monotonic() + within
+        while True:
+            with self.net.inside("master"):
+                state = xmlrpc.client.ServerProxy(self.net.rosmaster_uri).getSystemState("/soak")[2]
+            nodes = sorted({n for section in state for _name, ns in section for n in ns if n.startswith("/churn_")})
+            if not nodes or time.monotonic() > deadline:
+                return nodes
+            time.sleep(0.5)
+
     def processes(self) -> dict[str, int]:
         pids = {name: h.proc.pid for name, h in self.net.hosts.items() if h.proc is not None}
         pids["authz"] = self.net.authz_proc.pid
@@ -328,8 +366,12 @@ def _run(soak: Soak, seconds: float, hz: float, restart: str, say) -> dict:
     soak.reap(end, all_=True)
     if not soak.flip_granted:
         soak.flip()  # leave the registry as it was
+    stale = soak.stale_churn_nodes(within=10)
+    if stale:
+        say(f"rosmaster still lists {len(stale)} stopped churn nodes 10 s after the last stopped: {', '.join(stale[:5])}")
     pids_end = soak.processes()
     end_usage = {name: usage(pid) for name, pid in pids_end.items()}
+    end_sockets = {name: socket_states(pid) for name, pid in pids_end.items()}
     figures = stream_figures(listener.numbers("GOT"), talker.numbers("AT"), start, end)
     alive = talker.proc.poll() is None and listener.proc.poll() is None
     return {
@@ -340,10 +382,12 @@ def _run(soak: Soak, seconds: float, hz: float, restart: str, say) -> dict:
         "restart_times": restarts,
         "timeline": sorted(soak.timeline),
         "watched_stream": {**figures, "nodes_alive_at_end": alive},
+        "stale_churn_registrations": len(stale),
         "processes": {
             name: {"pid_start": pids_start[name], "pid_end": pids_end[name],
                    "fds_start": start_usage[name][0], "fds_end": end_usage[name][0],
-                   "rss_kib_start": start_usage[name][1], "rss_kib_end": end_usage[name][1]}
+                   "rss_kib_start": start_usage[name][1], "rss_kib_end": end_usage[name][1],
+                   "tcp_end": end_sockets[name]}
             for name in pids_start
         },
     }
@@ -380,12 +424,15 @@ def soak(seconds: float, hz: float, restart: str, as_json: bool, keep: bool) -> 
     click.echo(f"watched stream (granted throughout, {hz:g} Hz): received {s['received']}, expected {s['expected']}, "
                f"lost {s['lost']}, duplicates {s['duplicates']}, longest gap {s['longest_gap_s']:.2f} s "
                f"(at {s['longest_gap_at_s']:.0f} s)")
+    click.echo(f"stopped churn nodes rosmaster still lists: {result['stale_churn_registrations']}")
     click.echo("")
-    click.echo(f"{'process':12} {'fds start':>9} {'fds end':>8} {'RSS start MiB':>14} {'RSS end MiB':>12}  pid")
+    click.echo(f"{'process':12} {'fds start':>9} {'fds end':>8} {'RSS start MiB':>14} {'RSS end MiB':>12} "
+               f"{'TCP listen/estab end':>21}  pid")
     for name, p in result["processes"].items():
         pid = f"{p['pid_start']}" + (f" -> {p['pid_end']} (restarted)" if p["pid_end"] != p["pid_start"] else "")
+        tcp = p["tcp_end"]
         click.echo(f"{name:12} {p['fds_start']:>9} {p['fds_end']:>8} {p['rss_kib_start'] / 1024:>14.1f} "
-                   f"{p['rss_kib_end'] / 1024:>12.1f}  {pid}")
+                   f"{p['rss_kib_end'] / 1024:>12.1f} {tcp.get('listen', 0):>10}/{tcp.get('established', 0):<10}  {pid}")
 
 
 __all__ = ["run_soak", "soak", "stream_figures"]
