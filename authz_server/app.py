@@ -306,6 +306,12 @@ class AuthzService:
         key = await self.db(keymod.load_private, pem, encrypted, self.cfg.keys, kid)
         return _Signer(kid, key)
 
+    @property
+    def signing_kid(self) -> str | None:
+        """The ``kid`` of the key signing now (None before :meth:`start`), without a
+        database read (health checks, the start-up log)."""
+        return self._signer.kid if self._signer is not None else None
+
     async def signer(self) -> _Signer:
         """The active signing key, following rotations made by the admin CLI."""
         async def fetch():
@@ -608,8 +614,7 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         except Exception as exc:
             log.error("health check: database unreachable: %s", exc)
             return web.json_response({"status": "unavailable", "database": "unreachable"}, status=503)
-        signer = service._signer
-        return web.json_response({"status": "ok", "database": "ok", "kid": signer.kid if signer else None})
+        return web.json_response({"status": "ok", "database": "ok", "kid": service.signing_kid})
 
     async def prometheus(request: web.Request) -> web.Response:
         return web.Response(body=generate_latest(metrics.registry), headers={"Content-Type": CONTENT_TYPE_LATEST})

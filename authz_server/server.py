@@ -72,9 +72,9 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
             sites[0] = await _reload_tls(cfg, runner, sites[0], service)
 
         loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(reload()))
-        assert service._signer is not None
+        assert service.signing_kid is not None
         log.info("serving on https://%s:%d (issuer %s, audience %s, token lifetime %ds, signing key %s)",
-                 cfg.host, cfg.port, cfg.issuer, cfg.audience, cfg.token_lifetime, service._signer.kid)
+                 cfg.host, cfg.port, cfg.issuer, cfg.audience, cfg.token_lifetime, service.signing_kid)
         if ready is not None:
             ready.set()
         await stop.wait()

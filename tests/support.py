@@ -21,7 +21,8 @@ from pathlib import Path
 
 import pytest
 
-from cryptoros.lab.network import free_port  # noqa: F401  (one port picker for tests and the lab)
+# one port picker and one process stopper for tests, demo and bench alike
+from cryptoros.lab.processes import free_port, stop  # noqa: F401
 
 REPO = Path(__file__).resolve().parent.parent
 VENV_BIN = Path(sys.executable).parent
@@ -79,17 +80,6 @@ def run(args: Sequence[str], *, timeout: float = 60, check: bool = False, **kw) 
     if check and result.returncode != 0:
         raise AssertionError(f"{args} exited {result.returncode}\nstdout:\n{result.stdout}\nstderr:\n{result.stderr}")
     return result
-
-
-def stop(proc: subprocess.Popen, timeout: float = 5.0) -> None:
-    """SIGTERM then SIGKILL: every process a test starts is stopped in a finally."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=timeout)
 
 
 @contextlib.contextmanager

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import click
 
-from cryptoros.lab.network import free_port
+from cryptoros.lab.processes import free_port, stop
 
 SYS_PY = "/usr/bin/python3"
 TOPIC = "/bench"
@@ -207,16 +207,6 @@ def _wait_port(port: int, timeout: float = 15) -> None:
     raise click.ClickException(f"master did not listen on {port}")
 
 
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-
-
 def _run_pair(impl: str, mode: str, n: int, size: int, env: dict[str, str], master: str) -> dict:
     if impl == "rospy":
         cmd = [SYS_PY, "-c", ROSPY_WORKER]
@@ -247,8 +237,8 @@ def _run_pair(impl: str, mode: str, n: int, size: int, env: dict[str, str], mast
         return result
     finally:
         if send is not None:
-            _stop(send)
-        _stop(recv)
+            stop(send)
+        stop(recv)
 
 
 def _summarize(mode: str, n: int, r: dict) -> dict:
@@ -312,7 +302,7 @@ def ros1(n_small: int, n_latency: int, n_80k: int, n_1m: int, only: str | None, 
                 if not as_json:
                     click.echo(f"  {label:32s} {impl:6s} {results[label][impl]}", err=True)
     finally:
-        _stop(mproc)
+        stop(mproc)
         shutil.rmtree(home, ignore_errors=True)
     if as_json:
         click.echo(json.dumps({"master": master_name, "results": results}, indent=2))

@@ -24,25 +24,19 @@ import ssl
 import json
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from certs.pki import PKI
-from cryptoros.errors import CryptorosError
+from cryptoros.lab.processes import NetworkError, free_port, stop, wait_port
 
 HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
 SIGNING_PASSPHRASE = "bench-signing-passphrase"
-
-
-class NetworkError(CryptorosError, RuntimeError):
-    """A part of the benchmark network did not come up."""
 
 
 def tool(name: str) -> str:
@@ -54,30 +48,6 @@ def tool(name: str) -> str:
     if found is None:
         raise NetworkError(f"{name} is not installed (pip install the cryptoros package)")
     return found
-
-
-def free_port(host: str = "127.0.0.1", taken: set[int] | None = None) -> int:
-    """A port nothing listens on now; with ``taken``, also one not handed out before
-    (the kernel may give the same free port twice in a row, and two listeners of one
-    host picked that way would collide when they start), and it is added there."""
-    for _ in range(100):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind((host, 0))
-            port = s.getsockname()[1]
-        if taken is None:
-            return port
-        if port not in taken:
-            taken.add(port)
-            return port
-    raise NetworkError(f"no free port on {host} that was not handed out already")
-
-
-def log_tail(path: Path | None, lines: int = 12) -> str:
-    """The last lines of a child's log, for an error saying why it died."""
-    if path is None or not path.exists():
-        return ""
-    tail = path.read_text(errors="replace").splitlines()[-lines:]
-    return "\n".join(["", f"last lines of {path.name}:"] + [f"  {line}" for line in tail]) if tail else ""
 
 
 def open_stream(ctx: ssl.SSLContext, token: str, host: str, port: int, purpose: str, target: str = "") -> ssl.SSLSocket:
@@ -101,36 +71,6 @@ def open_stream(ctx: ssl.SSLContext, token: str, host: str, port: int, purpose: 
         sock.close()
         raise
     return sock
-
-
-def wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen | None = None, what: str = "",
-              log: Path | None = None) -> None:
-    """Bounded wait until something accepts on ``host:port`` (``log``: the child's
-    log, whose tail the error shows when it exits first)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc is not None and proc.poll() is not None:
-            raise NetworkError(f"{what or proc.args[0]} exited with {proc.returncode} before listening on "
-                               f"{host}:{port}{log_tail(log)}")
-        with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.5):
-            return
-        time.sleep(0.05)
-    raise NetworkError(f"{what or 'nothing'} listened on {host}:{port} within {timeout:.0f} s")
-
-
-def stop(proc: subprocess.Popen | None, timeout: float = 5.0) -> None:
-    """SIGTERM, then SIGKILL after ``timeout``: bounded."""
-    if proc is None or proc.poll() is not None:
-        return
-    with contextlib.suppress(ProcessLookupError):
-        proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        with contextlib.suppress(ProcessLookupError):
-            proc.kill()
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(timeout=timeout)
 
 
 def cpu_seconds(pid: int) -> float | None:
