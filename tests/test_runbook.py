@@ -213,6 +213,8 @@ def check_restart_authz(net, ctx, out):
 def check_restart_rosmaster(net, ctx, out):
     pid = pid_of(Path(ctx["run"]) / "rosmaster.pid")
     ctx["started"].append(pid)
+    # the new rosmaster holds the talker again: the master's interceptor replayed it
+    wait_registered(net, "/talker_a", timeout=15)
     _receives(ctx)
 
 
