@@ -30,7 +30,6 @@ import logging
 import os
 import socket
 import time
-import urllib.parse
 from collections.abc import Awaitable, Callable
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
@@ -53,6 +52,7 @@ from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import tune_malloc
 from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
 from cryptoros.ros1.tcpros import NEED_DATA as TCPROS_NEED_DATA
+from cryptoros.ros1.uri import UriError, host_port, split_uri
 from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, canonical_header, encode_header
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
@@ -644,13 +644,14 @@ class Ros1Role:
 
     async def _call_plain(self, uri: str, request: Request) -> Response | Fault:
         """One XML-RPC call to a local process (one connection per call)."""
-        host, port = _host_port(uri)
+        where = split_uri(uri, ("http",))
+        host, port = where.host, where.port
         reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port, limit=READ_SIZE), CALL_TIMEOUT)
         try:
             conn = XmlRpcConnection(Role.CLIENT, host=f"{host}:{port}", max_body_size=self.cfg.limits.max_xmlrpc_body)
             # The path is the one the node advertised, never one a peer wrote.
             outgoing = Request(method=request.method, params=request.params,
-                               path=request_path(urllib.parse.urlsplit(uri).path), keep_alive=False, accept_gzip=True)
+                               path=request_path(where.path), keep_alive=False, accept_gzip=True)
             writer.write(conn.send(outgoing))
             await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
             event = await read_xmlrpc(reader, conn, CALL_TIMEOUT)
@@ -975,12 +976,9 @@ def _registration_key(method: str, params: tuple) -> tuple[str, str, str] | None
 
 
 def _local_endpoint(uri) -> tuple[str, int] | None:
-    if not isinstance(uri, str):
-        return None
     try:
-        u = urllib.parse.urlsplit(uri)
-        return (u.hostname, u.port) if u.hostname and u.port else None
-    except ValueError:
+        return host_port(uri)
+    except UriError:
         return None
 
 
@@ -1008,12 +1006,6 @@ def _rewrite_param_api(call: Request, fn: Callable[[str], str]) -> Request:
     params = call.params[:index] + (fn(call.params[index]),) + call.params[index + 1 :]
     return Request(method=call.method, params=params, path=call.path, keep_alive=call.keep_alive,
                    accept_gzip=call.accept_gzip)
-
-
-def _host_port(uri: str) -> tuple[str, int]:
-    rest = uri.split("://", 1)[-1].split("/", 1)[0]
-    host, _, port = rest.rpartition(":")
-    return host, int(port)
 
 
 def _md5_or_none(type_name: str | None) -> str | None:
