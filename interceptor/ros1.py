@@ -265,7 +265,7 @@ class Ros1Role:
     # ================================================================ life cycle (Role)
     async def prepare(self) -> None:
         # Large reads are copied out of the pump's buffer: keep glibc from mmap-ing
-        # (and page-faulting) each one (perf-baselines.md: +30 to 100 % on 1 MB frames).
+        # (and page-faulting) each one (measured on 2 cores: +30 to 100 % on 1 MB frames).
         tune_malloc()
         self._load_state()
 

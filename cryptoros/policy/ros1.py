@@ -5,7 +5,7 @@ returns ``None`` to allow, or raises :class:`~cryptoros.errors.PolicyDenied` who
 ``reason`` is a short code for logs and metrics (``not_granted``, ``shutdown_dropped``
 ...). What the peer is told is decided elsewhere and stays opaque.
 
-What is checked (DESIGN.md, "Data flow (ROS 1)"):
+What is checked (docs/architecture.md, "How a stream travels"):
 
 - master calls: a method allowlist; ``register*`` only for the caller's own nodes
   and granted topics, services and types; ``unregister*`` only for the caller's own
@@ -54,7 +54,7 @@ MASTER_UNREGISTER = frozenset({"unregisterPublisher", "unregisterSubscriber", "u
 PARAM_READ = frozenset({"getParam", "hasParam", "searchParam", "subscribeParam", "unsubscribeParam"})
 PARAM_WRITE = frozenset({"setParam", "deleteParam"})
 #: Master calls that bind the caller's node name to its caller_api at rosmaster
-#: (``_register_node_api`` in rosmaster/registrations.py): a name another manager
+#: (``_register_node_api`` in ros_comm's rosmaster/registrations.py, upstream): a name another manager
 #: registered is refused, and the caller must be one of the manager's nodes.
 NAME_BINDING = MASTER_REGISTER | frozenset({"subscribeParam"})
 #: Parameters every node may read without a grant: what unmodified rospy and roscpp
