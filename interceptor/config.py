@@ -73,6 +73,7 @@ from typing import Any
 
 from cryptoros.errors import ConfigError
 from cryptoros.passphrase import PassphraseError, from_env, read_file
+from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.tls import TLSConfig
 
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
@@ -373,10 +374,11 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         if master.interceptor is None and "master" not in roles:
             raise ConfigError("the node role needs [master] interceptor (the master's interceptor host:port)")
     if "master" in roles:
-        upstream = urllib.parse.urlsplit(master.upstream) if isinstance(master.upstream, str) else None
-        if upstream is None or upstream.scheme != "http" or not upstream.hostname or upstream.port is None:
-            raise ConfigError(f"the master role needs [master] upstream = http://host:port, got {master.upstream!r}")
-        if not _is_loopback(upstream.hostname) and not unsafe_plaintext:
+        try:
+            upstream_host, _ = host_port(master.upstream, ("http",))
+        except UriError:
+            raise ConfigError(f"the master role needs [master] upstream = http://host:port, got {master.upstream!r}") from None
+        if not _is_loopback(upstream_host) and not unsafe_plaintext:
             raise ConfigError(
                 f"[master] upstream {master.upstream} is plaintext toward a non-loopback address; "
                 "set unsafe_plaintext_upstream = true to allow it"
