@@ -466,7 +466,10 @@ class Ros1Role:
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
                 self.gw.deny(kind, exc, f"{who} {call.method}")
-                results[i] = Response(value=ros_error(OPAQUE))
+                # rospy's set_param/delete_param ignore a [-1, ...] answer: a refused write is
+                # a fault, which raises in the node (rosparam reports it either way)
+                results[i] = (Fault(code=-1, string=OPAQUE) if call.method in PARAM_WRITE
+                              else Response(value=ros_error(OPAQUE)))
         if allowed:
             multicall = request.method == MULTICALL
             outgoing = make_multicall([c for _, c in allowed], like=request) if multicall else allowed[0][1]

@@ -92,8 +92,9 @@ def _narrowed_reads(network):
     assert local_b.getParam("/rospy_listener", "/rosdistro")[0] in (1, -1)  # set by roscore, not rosmaster --core
     assert local_b.setParam("/rospy_listener", "~rate", 5)[0] == 1
     assert local_b.getParam("/rospy_listener", "/rospy_listener/rate") == [1, "Parameter [/rospy_listener/rate]", 5]
-    # writes outside the caller's namespace are ROS errors, and nothing is written
-    assert local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned") == [-1, "denied by cryptoros", 0]
+    # writes outside the caller's namespace are faults (rospy's set_param raises), and nothing is written
+    with pytest.raises(xmlrpc.client.Fault, match="denied by cryptoros"):
+        local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned")
     with network.inside("master"):
         master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
         assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
@@ -118,3 +119,26 @@ def test_rosparam_set_get_and_list_work_with_a_grant(network):
     assert denied.returncode != 0
     with network.inside("master"):
         assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/o", "/secrets/db_password")[2] == "hunter2"
+
+
+SET_PARAM_NODE = """
+import sys, rospy
+rospy.init_node("rospy_listener", disable_signals=True)
+rospy.set_param("~rate", 5)
+print("OWN_OK", flush=True)
+try:
+    rospy.set_param(sys.argv[1], "pwned")
+    print("WROTE", flush=True)
+except Exception as exc:
+    print("REFUSED", type(exc).__name__, exc, flush=True)
+"""
+
+
+def test_a_denied_parameter_write_is_an_error_in_an_unmodified_rospy_node(network):
+    """rospy's set_param ignores a [-1, ...] answer: the refusal is a fault, so the node
+    sees an exception instead of a write that silently did not happen."""
+    result = run([SYS_PY, "-c", SET_PARAM_NODE, "/robot_a/api_key"], env=network.ros_env("robot_b"), timeout=60)
+    assert "OWN_OK" in result.stdout, result.stdout + result.stderr
+    assert "REFUSED" in result.stdout and "WROTE" not in result.stdout, result.stdout + result.stderr
+    with network.inside("master"):
+        assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
