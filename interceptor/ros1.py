@@ -245,6 +245,11 @@ class Ros1Role:
         self._registrations: dict[tuple[str, str, str], tuple[str, tuple]] = {}
         self._registrations_full_logged = False
         self._master_pid: int | None = None
+        #: node role: each local node's API export, and the exports (TCPROS servers,
+        #: service servers) that came from it: released when the node registers again
+        #: from new ports (restarted), so restarts do not use up export_limit
+        self._node_apis: dict[str, str] = {}
+        self._export_children: dict[str, set[str]] = {}
         gateway.serve("master", self._check_master_target, self._serve_master_stream)
         gateway.serve("node", self._check_node_target, self._serve_node_stream)
         gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
@@ -352,6 +357,8 @@ class Ros1Role:
             return
         data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
                 "owners": self._owners, "local_subscribers": self._local_subscribers,
+                "node_apis": self._node_apis,
+                "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
                 "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -390,6 +397,9 @@ class Ros1Role:
                 self._record_registration(str(method), tuple(str(p) for p in params))
             for topic, subscribers in data.get("local_subscribers", {}).items():
                 self._local_subscribers[str(topic)] = {str(n): str(api) for n, api in subscribers.items()}
+            self._node_apis.update({str(n): str(i) for n, i in data.get("node_apis", {}).items()})
+            for api, ids in data.get("export_children", {}).items():
+                self._export_children[str(api)] = {str(i) for i in ids}
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.error("state in %s not used (%s): nodes of this host may need a restart", path, exc)
             return
@@ -679,9 +689,16 @@ class Ros1Role:
             )
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
+        def tcpros_to_canonical(host: str, port: int) -> tuple[str, int]:
+            canonical, public_port = self.translator.tcpros_to_canonical(host, port)
+            child = self.translator.own_id(canonical)
+            if child is not None:  # this node's TCPROS server: released with its API
+                self._note_export_child(stream.target, child)
+            return canonical, public_port
+
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             response = redact_node_reply(call, response, MASTER)
-            return rewrite_response(call, response, tcpros=self.translator.tcpros_to_canonical)
+            return rewrite_response(call, response, tcpros=tcpros_to_canonical)
 
         async def handle(request: Request) -> Response | Fault:
             return await self._decide_calls(
@@ -779,6 +796,8 @@ class Ros1Role:
                     self._save_state()
             elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
                 self._note_local_subscriber(call)
+            if call.method in _LOCAL_REGISTRATIONS and _ros_ok(response):
+                self._note_local_node(call)
             response = _filtered_param_reply(call, response, self.gw.own_access().grants)
             return rewrite_response(call, response, uri=self.translator.to_local)
 
@@ -794,6 +813,40 @@ class Ros1Role:
             log.warning("local master connection dropped: %s", exc)
         finally:
             writer.close()
+
+    # ---------------------------------------------------------------- exports of restarted nodes
+    def _note_local_node(self, call: Request) -> None:
+        """A local node registered (call as forwarded: canonical URIs). A node that
+        registers from a new API export was restarted: its old exports are released."""
+        if len(call.params) < 4:
+            return
+        node, api_id = call.params[0], self.translator.own_id(call.params[3])
+        if api_id is None:
+            return
+        if call.method == "registerService":
+            service_id = self.translator.own_id(call.params[2])
+            if service_id is not None:
+                self._note_export_child(api_id, service_id)
+        previous = self._node_apis.get(node)
+        if previous == api_id:
+            return
+        if previous is not None:
+            self._release_node_exports(previous)
+        if len(self._node_apis) < self.translator.MAX_EXPORTS:
+            self._node_apis[node] = api_id
+        self._save_state_soon()
+
+    def _note_export_child(self, api_id: str, child: str) -> None:
+        children = self._export_children.setdefault(api_id, set())
+        if len(children) < 1024:  # a node's own servers; more is not remembered (kept, not released)
+            children.add(child)
+
+    def _release_node_exports(self, api_id: str) -> None:
+        released = [i for i in (*self._export_children.pop(api_id, ()), api_id) if self.translator.release(i)]
+        for node in [n for n, i in self._node_apis.items() if i == api_id]:
+            del self._node_apis[node]
+        if released:
+            log.info("released %d exports of a node that restarted (API export %s)", len(released), api_id)
 
     # ---------------------------------------------------------------- subscribers reconnect
     def _note_local_subscriber(self, call: Request) -> None:
@@ -961,6 +1014,9 @@ class Ros1Role:
                 tunnel_writer.close()
             writer.close()
 
+
+#: Local registrations whose caller_api (index 3) names the registering node's API.
+_LOCAL_REGISTRATIONS = frozenset({"registerPublisher", "registerSubscriber", "registerService"})
 
 #: Where the URIs of a master call sit that are relays at the master's interceptor.
 _RELAY_URI_INDEX = {

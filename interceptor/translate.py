@@ -111,6 +111,8 @@ class Translator:
         self._open_relay = open_relay
         self._exports: dict[str, LocalEndpoint] = {}
         self._export_ids: dict[tuple[str, str, int], str] = {}
+        #: ids are never reused: a peer holding a released id reaches nothing, never another endpoint
+        self._next_id = 1
         self._relays: dict[Canonical, tuple[str, int]] = {}
         self._relay_targets: dict[tuple[str, int], Canonical] = {}
         self._master_uris: set[str] = set()
@@ -127,13 +129,33 @@ class Translator:
         key = (kind, host, port)
         ident = self._export_ids.get(key)
         if ident is None:
-            if len(self._exports) >= self.MAX_EXPORTS:  # ids are stable for life: a local flood stops here
+            if len(self._exports) >= self.MAX_EXPORTS:  # a local flood stops here (released ids do not count)
                 raise PolicyDenied("export_limit", f"{self.MAX_EXPORTS} local endpoints exported already")
-            ident = str(len(self._exports) + 1)
+            ident = str(self._next_id)
+            self._next_id += 1
             self._export_ids[key] = ident
             self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=port, uri=uri)
             self._on_change()
         return Canonical(host=self.public_host, port=self.public_port, kind=kind, id=ident)
+
+    def release(self, ident: str) -> bool:
+        """Forget an export whose endpoint is gone (its node restarted on new ports):
+        new streams to its id are refused (``unknown_target``); the id is not reused."""
+        endpoint = self._exports.pop(ident, None)
+        if endpoint is None:
+            return False
+        self._export_ids.pop((endpoint.kind, endpoint.host, endpoint.port), None)
+        self._on_change()
+        return True
+
+    def own_id(self, text: str) -> str | None:
+        """The export id in one of our canonical names, else None."""
+        target = Canonical.parse(text) if isinstance(text, str) else None
+        return target.id if target is not None and self.owns(target) else None
+
+    @property
+    def export_count(self) -> int:
+        return len(self._exports)
 
     def resolve(self, kind: str, ident: str) -> LocalEndpoint:
         """The local endpoint behind one of our ids; unknown ids are refused."""
@@ -165,6 +187,7 @@ class Translator:
         """The export and relay tables as JSON-able data (see :meth:`restore`)."""
         return {
             "exports": {i: [e.kind, e.host, e.port, e.uri] for i, e in self._exports.items()},
+            "next_id": self._next_id,
             "relays": [[str(t), port] for t, (_h, port) in self._relays.items()],
         }
 
@@ -176,6 +199,10 @@ class Translator:
             if kind in _KIND_SCHEME and is_loopback(host) and ident.isdigit():
                 self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=int(port), uri=uri)
                 self._export_ids[(kind, host, int(port))] = ident
+                self._next_id = max(self._next_id, int(ident) + 1)
+        next_id = data.get("next_id")
+        if isinstance(next_id, int):
+            self._next_id = max(self._next_id, next_id)
         for text, port in data.get("relays", []):
             target = Canonical.parse(text)
             if target is None:

@@ -175,6 +175,28 @@ def test_a_restarted_rosmaster_gets_the_registrations_replayed(tmp_path):
         assert got(read_lines(sub, "GOT", 10)), "the old listener stopped receiving"
         assert sub.poll() is None and pub.poll() is None
 
+def test_a_node_restarting_on_new_ports_releases_its_old_exports(tmp_path):
+    """A node restart costs no export slot for good: when robot A's talker registers again
+    from new ports, its old node API and TCPROS server exports are released (else about
+    5,000 restarts would use up export_limit and refuse every new node on the host)."""
+    state = tmp_path / "state"
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"),
+                       extra={"robot_a": f'state_dir = "{state}"'}) as net:
+        counts = []
+        for _ in range(3):
+            with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"],
+                         env=net.ros_env("robot_a")) as pub:
+                read_lines(pub, "READY", 20)
+                wait_registered(net, "/talker_a")
+                with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "30"],
+                             env=net.ros_env("robot_b")) as sub:
+                    read_lines(sub, "READY", 20)
+                    assert got(read_lines(sub, "GOT", 20))  # the talker's TCPROS server was exported too
+            saved = json.loads(next(state.glob("*.state.json")).read_text())
+            counts.append(len(saved["translator"]["exports"]))
+        assert counts[0] >= 2 and counts[-1] == counts[0], counts
+        assert "released" in net.hosts["robot_a"].logs()
+
 def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_sighup(tmp_path):
     """Day 2, revocation without SIGHUP: robot B's certificate is revoked with the CA
     (a new CRL; no interceptor is signalled). The authorization server's feed lists the

@@ -45,3 +45,21 @@ def test_relays_toward_one_peer_are_capped():
         t.to_local("cryptoros://127.0.0.3:11400/x/3")
     assert capped.value.reason == "relay_limit"
     assert t.to_local("cryptoros://127.0.0.4:11400/x/1")  # another peer is not affected
+
+
+def test_released_exports_free_their_slot_and_their_id_is_never_reused(monkeypatch):
+    monkeypatch.setattr(Translator, "MAX_EXPORTS", 2)
+    t = _translator()
+    old = t.to_canonical("http://127.0.0.1:5000/")
+    t.to_canonical("http://127.0.0.1:5001/")
+    assert t.release(t.own_id(old)) and not t.release(t.own_id(old))
+    new = t.to_canonical("http://127.0.0.1:5002/")  # the freed slot, a fresh id
+    assert new.endswith("/x/3") and t.export_count == 2
+    with pytest.raises(PolicyDenied) as gone:  # a peer holding the old name reaches nothing
+        t.to_local(old)
+    assert gone.value.reason == "unknown_target"
+    monkeypatch.setattr(Translator, "MAX_EXPORTS", 3)
+    restored = _translator()
+    restored.restore(t.snapshot())
+    assert restored.to_canonical("http://127.0.0.1:5003/").endswith("/x/4")  # ids keep counting after a restart
+    assert restored.own_id("cryptoros://127.0.0.9:11400/x/1") is None  # another interceptor's name
