@@ -34,6 +34,7 @@ from pathlib import Path
 
 from certs.pki import PKI
 from cryptoros.lab.processes import NetworkError, free_port, stop, wait_port
+from cryptoros.ros1.uri import host_port
 
 HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
 SIGNING_PASSPHRASE = "bench-signing-passphrase"
@@ -359,8 +360,7 @@ def lab_network(
         ros_uri = ""
         if master.startswith("http://"):
             ros_uri = master.rstrip("/")
-            ros_host, _, ros_port_text = ros_uri[len("http://"):].partition(":")
-            ros_port = int(ros_port_text)
+            ros_host, ros_port = host_port(ros_uri, ("http",))
         elif master != "none":
             ros_host = "127.0.0.1"
             # picked here, used in the master's namespace (fresh: free there too)
