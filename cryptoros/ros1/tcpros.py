@@ -332,7 +332,7 @@ class FrameWalker:
         if self.prefix_size == 5:
             ok, size = _OK_U32.unpack_from(data, pos)
             if ok > 1:
-                raise RemoteProtocolError(f"{self.what}: service response ok byte is {ok}, not 0 or 1")
+                raise RemoteProtocolError(f"service response ok byte is {ok}, not 0 or 1 ({self.what})")
         else:
             (size,) = _U32.unpack_from(data, pos)
         if self.max_size is not None and size > self.max_size:
@@ -432,6 +432,7 @@ class TCPROSConnection:
         "_state",
         "their_header",
         "_walker",
+        "_response_walker",
     )
 
     def __init__(
@@ -453,6 +454,7 @@ class TCPROSConnection:
         self._state = _State.HEADER if expect_header else _State.FRAMES
         self.their_header: ConnectionHeader | None = None
         self._walker = FrameWalker(max_size=max_frame_size)
+        self._response_walker = FrameWalker(max_size=max_frame_size, service_response=True, what="response")
 
     # -- input
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
@@ -521,11 +523,8 @@ class TCPROSConnection:
             return Message(data=data)
         if len(buf) < 5:
             return NEED_DATA
-        ok, size = _OK_U32.unpack_from(buf, 0)
-        if ok > 1:
-            raise RemoteProtocolError(f"service response ok byte is {ok}, not 0 or 1")
-        if size > self.max_frame_size:
-            raise RemoteProtocolError(f"declared response length {size} exceeds the limit {self.max_frame_size}")
+        size = self._response_walker.read_prefix(buf, 0)
+        ok = buf[0]
         end = 5 + size
         if len(buf) < end:
             return NEED_DATA
