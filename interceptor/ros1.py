@@ -49,9 +49,9 @@ from cryptoros.policy.ros1 import (
     ros_error,
 )
 from cryptoros.ros1 import msgs
+from cryptoros.sansio import NEED_DATA
 from cryptoros.ros1.node import tune_malloc
 from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
-from cryptoros.ros1.tcpros import NEED_DATA as TCPROS_NEED_DATA
 from cryptoros.ros1.uri import UriError, host_port, split_uri
 from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, canonical_header, encode_header
 from cryptoros.ros1.xmlrpc import (
@@ -68,7 +68,6 @@ from cryptoros.ros1.xmlrpc import (
     request_path,
     split_multicall_response,
 )
-from cryptoros.ros1.xmlrpc import NEED_DATA as XMLRPC_NEED_DATA
 from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.pump import FrameCounter
@@ -99,7 +98,7 @@ async def read_xmlrpc(reader: asyncio.StreamReader, conn: XmlRpcConnection, time
     """The next XML-RPC event of ``conn``, reading from ``reader`` as needed."""
     while True:
         event = conn.next_event()
-        if event is not XMLRPC_NEED_DATA:
+        if event is not NEED_DATA:
             return event
         await read_into(reader, conn.receive_data, timeout)
 
@@ -119,7 +118,7 @@ async def read_tcpros_header(
         if isinstance(event, ConnectionHeader):
             rest, _eof = conn.trailing_data
             return event, rest
-        if event is not TCPROS_NEED_DATA:
+        if event is not NEED_DATA:
             raise RemoteProtocolError("connection closed before its header")
         await read_into(reader, conn.receive_data, max(0.01, deadline - time.monotonic()))
 
