@@ -12,7 +12,7 @@ reads, verifies the token (which may need the authorization server's JWKS), and 
 the facts in; the gate decides, in a fixed order, and says why with a reason code.
 :class:`PendingStreams` bounds the streams whose token is not verified yet, per source
 address and per certificate; :func:`feed_problem` is the fail-closed rule for a stale
-revocation feed. Both are plain state, tested without sockets (tests/test_gate.py).
+revocation feed. Both are plain state, tested without sockets (tests/unit/test_gate.py).
 """
 
 from __future__ import annotations

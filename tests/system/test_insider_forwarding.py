@@ -37,8 +37,8 @@ from tests.interceptor_harness import got, master_state, nodes_in_state, read_li
 
 pytestmark = [pytest.mark.ros1]
 
-ATTACK_NODES = Path(__file__).parent / "attack_nodes"
-ROS1_NODES = Path(__file__).parent / "ros1_nodes"
+ATTACK_NODES = Path(__file__).parents[1] / "attack_nodes"
+ROS1_NODES = Path(__file__).parents[1] / "ros1_nodes"
 STRING_MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"
 HIDDEN_SETPARAM = (
     b"<methodCall><methodName>setParam</methodName><params><param><value>/spy</value></param>"

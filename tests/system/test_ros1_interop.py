@@ -24,7 +24,7 @@ from tests.support import REPO, free_port, require, stop, wait_for_port
 
 pytestmark = [pytest.mark.ros1]
 
-NODES = Path(__file__).parent / "ros1_nodes"
+NODES = Path(__file__).parents[1] / "ros1_nodes"
 SYS_PY = "/usr/bin/python3"
 STRING_MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"
 

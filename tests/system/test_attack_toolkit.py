@@ -23,7 +23,7 @@ from tests.support import on_host, require, running
 
 pytestmark = pytest.mark.timeout(300)
 
-VICTIM = str(Path(__file__).parent / "attack_nodes" / "victim.py")
+VICTIM = str(Path(__file__).parents[1] / "attack_nodes" / "victim.py")
 CRYPTOROS = str(Path(sys.executable).parent / "cryptoros")
 
 POLICY = """\

@@ -21,7 +21,7 @@ from tests.ros2_support import ros2_python
 from cryptoros.demo.session import free_after
 from tests.support import processes_using
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 CLI = Path(os.environ.get("VIRTUAL_ENV", REPO / ".venv")) / "bin" / "cryptoros"
 pytestmark = [pytest.mark.timeout(420), pytest.mark.slow]
 

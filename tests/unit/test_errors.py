@@ -8,7 +8,7 @@ from pathlib import Path
 
 from cryptoros.errors import CryptorosError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("cryptoros", "certs", "authz_server")
 #: Outside CryptorosError on purpose: both modules also run in the rclpy bridge child
 #: (the ROS 2 venv's python), which imports framing.py on its own, without the cryptoros

@@ -21,7 +21,7 @@ import pytest
 from cryptoros.demo.session import free_after
 from tests.support import processes_using
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(420)
 
 
