@@ -35,7 +35,7 @@ import ssl
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 from aiohttp import web
 from cryptography import x509
@@ -100,8 +100,25 @@ class InboundStream:
     resolved: Any = None
 
 
-class Role(Protocol):
-    """What a role does at each step of the gateway's life (all may do nothing)."""
+class Role:
+    """A role composed with a :class:`Gateway`: what it does at each step of the
+    gateway's life (each hook may do nothing), and the gateway's configuration,
+    metrics and verifier as they are now (a reload swaps them in the gateway)."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        self.gw = gateway
+
+    @property
+    def cfg(self) -> InterceptorConfig:
+        return self.gw.cfg
+
+    @property
+    def metrics(self) -> Metrics:
+        return self.gw.metrics
+
+    @property
+    def verifier(self) -> PeerVerifier:
+        return self.gw.verifier
 
     async def prepare(self) -> None:
         """Before the first token and the public listener (restore state, start a child)."""

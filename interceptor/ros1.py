@@ -70,6 +70,7 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
+from interceptor.gateway import Role as GatewayRole
 from interceptor.pump import FrameCounter
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
 
@@ -207,11 +208,11 @@ class TunnelPool:
 
 
 
-class Ros1Role:
+class Ros1Role(GatewayRole):
     """The ROS 1 purposes and listeners of one interceptor (node role, master role, or both)."""
 
     def __init__(self, gateway: Gateway) -> None:
-        self.gw = gateway
+        super().__init__(gateway)
         cfg = gateway.cfg
         local_master = (
             f"http://{cfg.local_master.host}:{cfg.local_master.port}/" if cfg.local_master is not None else None
@@ -254,18 +255,6 @@ class Ros1Role:
         gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
         gateway.serve("service", self._check_tcpros_target, self._serve_tcpros_stream)
 
-    @property
-    def cfg(self):
-        return self.gw.cfg
-
-    @property
-    def metrics(self):
-        return self.gw.metrics
-
-    @property
-    def verifier(self):
-        return self.gw.verifier
-
     # ================================================================ life cycle (Role)
     async def prepare(self) -> None:
         # Large reads are copied out of the pump's buffer: keep glibc from mmap-ing
@@ -295,12 +284,6 @@ class Ros1Role:
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()
-
-    def check_reload(self, cfg) -> None:
-        pass
-
-    def reloaded(self) -> None:
-        pass
 
     # ================================================================ targets the gate checks
     def _check_master_target(self, preamble: Preamble) -> None:

@@ -45,7 +45,7 @@ from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
-from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, read_chunks
+from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
@@ -136,11 +136,11 @@ class Proxy:
     pending: set[int] = field(default_factory=set)
 
 
-class Ros2Role:
+class Ros2Role(Role):
     """The ``ros2`` role of one interceptor: the DDS bridge and the ``ros2`` purpose."""
 
     def __init__(self, gateway: Gateway) -> None:
-        self.gw = gateway
+        super().__init__(gateway)
         cfg = gateway.cfg
         if cfg.ros2 is None:
             raise CryptorosError("the ros2 role needs a [ros2] section")
@@ -167,18 +167,6 @@ class Ros2Role:
         self.dropped = 0
         self._paused: asyncio.Task | None = None
         gateway.serve("ros2", self._check_ros2_target, self._serve_ros2_stream)
-
-    @property
-    def cfg(self) -> InterceptorConfig:
-        return self.gw.cfg
-
-    @property
-    def metrics(self):
-        return self.gw.metrics
-
-    @property
-    def verifier(self):
-        return self.gw.verifier
 
     # ================================================================ life cycle
     async def prepare(self) -> None:
