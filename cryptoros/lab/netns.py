@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import re
 import shutil
 import subprocess
 import threading
@@ -39,6 +40,14 @@ def _ip(*args: str) -> None:
     result = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30)
     if result.returncode != 0:
         raise NetnsError(f"ip {' '.join(args)}: {result.stderr.strip() or result.stdout.strip()}")
+
+
+def _subnets_on_this_machine() -> set[int]:
+    """The N of every 10.77.N.0/24 an interface of this namespace holds already: another
+    process's lab (or one a killed run left behind) with the same subnet would take the
+    route, and this lab's hosts would not reach the gateway (timeouts, not refusals)."""
+    result = subprocess.run(["ip", "-4", "-o", "addr", "show"], capture_output=True, text=True, timeout=30)
+    return {int(m) for m in re.findall(r"\binet 10\.77\.(\d+)\.\d+/", result.stdout)}
 
 
 def netns_unavailable() -> str | None:
@@ -100,7 +109,11 @@ class NetnsLab:
         if self.subnet_index is None:
             # a subnet no other lab of this process uses, spread over 20..219 by prefix
             index = 20 + int(uuid.uuid5(uuid.NAMESPACE_DNS, self.prefix).hex[:4], 16) % 200
-            while index in _SUBNETS_IN_USE:
+            taken = _SUBNETS_IN_USE | _subnets_on_this_machine()  # no other lab of any process
+            if len(taken) >= 200:
+                raise NetnsError("every 10.77.N.0/24 (N 20..219) is in use: delete labs left behind "
+                                 "(ip netns list; ip link show type bridge)")
+            while index in taken:
                 index = 20 + (index - 19) % 200
             self.subnet_index = index
         _SUBNETS_IN_USE.add(self.subnet_index)

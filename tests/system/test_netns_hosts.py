@@ -49,6 +49,31 @@ def test_the_lab_isolates_loopbacks_and_cleans_up():
     assert not any(name in listed for name in names)
 
 
+def test_a_lab_left_behind_with_the_same_subnet_does_not_take_a_new_labs_route():
+    """A killed run can leave a bridge holding 10.77.N.1/24; a new lab whose name hashes
+    to the same N must pick another (the kernel would route the new hosts' replies to the
+    old bridge: timeouts, the failure fresh run 1 of this round saw)."""
+    import uuid
+
+    from cryptoros.lab import netns
+
+    separate_hosts()
+    with NetnsLab() as stale:
+        netns._SUBNETS_IN_USE.discard(stale.subnet_index)  # as if another process had made it
+        try:
+            same = next(p for p in (f"crq{i:04x}" for i in range(65536))
+                        if 20 + int(uuid.uuid5(uuid.NAMESPACE_DNS, p).hex[:4], 16) % 200 == stale.subnet_index)
+            with NetnsLab(prefix=same) as fresh:
+                assert fresh.subnet_index != stale.subnet_index
+                a = fresh.add_host("a")
+                server = socket.create_server((fresh.gateway, 0))
+                with a.inside():
+                    socket.create_connection(server.getsockname(), timeout=2).close()  # reaches its gateway
+                server.close()
+        finally:
+            netns._SUBNETS_IN_USE.add(stale.subnet_index)
+
+
 def master_state_ns(network) -> list:
     with network.inside("master"):
         return xmlrpc.client.ServerProxy(network.rosmaster_uri).getSystemState("/test")[2]
