@@ -77,8 +77,11 @@ def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv
 
 
 def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
+    # --scale 1: the mission needs minutes of wall time, so it is surely still running when
+    # interrupted (at the default scale it can reach its target before the SIGINT lands)
     proc = subprocess.Popen([str(venv / "bin" / "cryptoros"), "demo", "--mode", "protected", "--seconds", "60",
-                             "--workdir", str(tmp_path / "work")], cwd=tmp_path, env=_no_ros_env(venv),
+                             "--scale", "1", "--workdir", str(tmp_path / "work")], cwd=tmp_path,
+                            env=_no_ros_env(venv),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 90
