@@ -37,6 +37,8 @@ ATTACKS: dict[str, dict[str, Any]] = {
     "shutdown": {"seed": "-", "what": "XML-RPC shutdown of node /{t}", "target": -1, "as": "insider"},
     "hijack": {"seed": "-", "what": "node-name hijack of /{t} (register the same name)", "target": 1, "as": "insider"},
 }
+#: wall seconds the false-map claims wait after the other attacks start (see run)
+FALSE_MAP_ONSET = 4.0
 #: the attacks with a ROS 2 counterpart (``cryptoros demo --ros 2``, :mod:`cryptoros.demo.ros2_attackers`):
 #: ``shutdown`` and ``hijack`` are ROS 1 XML-RPC; ``map-erase`` is a man in the middle inside
 #: the victim's own DDS domain, which is that robot's trust zone
@@ -80,6 +82,14 @@ async def run(cfg: dict[str, Any], stop: asyncio.Event) -> dict[str, Any]:
         return await lib.flood(m, f"/{target}/cmd_vel", "geometry_msgs/Twist", lambda i: stop_cmd, rate=1000.0,
                                name="/flooder", **common)
     if kind == "false-map":
+        # The false "map explored" claim stops the whole team; it comes FALSE_MAP_ONSET s after
+        # the other attacks, so their effect on the robots' motion (a halted base, a spoofed
+        # pose) shows before the team stands still, however the processes' start-up races.
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(stop.wait(), FALSE_MAP_ONSET)
+        if stop.is_set():
+            return {"verb": "spoof-publish", "topic": "/team/map", "sent": 0, "interrupted": True}
+        common = {**common, "duration": max(0.5, dur - FALSE_MAP_ONSET)}
         t0 = time.time()
 
         def claim(i: int) -> Any:  # seed 000's impersonation: every cell free, exploration complete

@@ -93,7 +93,12 @@ def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
         children = [p for p in processes_using(venv) if not p.startswith(f"{proc.pid}:")]
         assert len(children) >= 5, children
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
+        try:
+            out, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate(timeout=10)
+            raise AssertionError("the demo did not exit within 60 s of SIGINT:\n" + out[-3000:]) from None
     finally:
         if proc.poll() is None:
             proc.kill()
