@@ -91,6 +91,10 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_
                        workdir=str(workdir) if workdir else None, netns=netns)
     console = Console(stderr=False)
     signal.signal(signal.SIGTERM, _sigterm)
+    # Ctrl-C stops every child even when the demo was started with SIGINT ignored (a shell
+    # starts background jobs so, and children inherit it: Python then never raises
+    # KeyboardInterrupt, and the demo ran on to its end)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     live = rep.LiveView(console)
     t0 = time.monotonic()
     result: dict[str, Any] | None = None
