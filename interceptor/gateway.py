@@ -41,7 +41,7 @@ from aiohttp import web
 from cryptography import x509
 
 from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
-from cryptoros.pemfiles import cert_der
+from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
 from cryptoros.tokens import AccessToken, peer_audience
@@ -55,6 +55,17 @@ from interceptor.pump import FrameCounter, MessageBudget, splice
 log = logging.getLogger("cryptoros.interceptor")
 
 READ_SIZE = 65536
+#: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
+#: used go first (a peer may name endpoints on many ports of its address over time)
+MAX_PEER_ENDPOINTS = 4096
+
+
+def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
+    """``table[key] = value`` as the most recent entry, keeping at most ``cap``."""
+    table.pop(key, None)
+    table[key] = value
+    while len(table) > cap:
+        del table[next(iter(table))]
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,6 +207,7 @@ class Gateway:
             feed_wait=cfg.authz.feed_wait,
         )
         self._own_cert_der = cert_der(cfg.tls.cert_file)
+        self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
         self._own_access: AccessToken | None = None
         self._own_token: str | None = None
@@ -209,6 +221,7 @@ class Gateway:
         self._views: dict[tuple[str, int], set[bool]] = {}
         self._exchanges: set[tuple[str, int]] = set()
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
+        self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
         self._open_per_peer: dict[str, int] = {}
         self._pending = PendingStreams()
@@ -228,6 +241,7 @@ class Gateway:
         if purpose in self._purposes or purpose == REFRESH:
             raise CryptorosError(f"purpose {purpose} is served twice")
         self._purposes[purpose] = (check, handler)
+        self._checks[purpose] = check
 
     def add_role(self, role: Role) -> None:
         self._roles.append(role)
@@ -351,6 +365,7 @@ class Gateway:
         # every holder of the certificate reads the new one: the authorization server
         # binds the next token to it, and our own token is checked against it
         self._own_cert_der = own_der
+        self._own_serial = cert_serial(own_der)
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(own_der))
         await self.authz.use_ssl_context(authz_ctx)
         self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
@@ -454,7 +469,7 @@ class Gateway:
         """When the feed revokes our own token or disables our manager, drop the token
         (nothing is allowed on it any more) and ask for a new one at once."""
         own = self._own_access
-        serial = x509.load_der_x509_certificate(self._own_cert_der).serial_number
+        serial = self._own_serial
         if serial in revocations.revoked_serials:
             log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
                       "renew it (cryptoros-certs renew, set-cert, SIGHUP)", serial)
@@ -547,7 +562,7 @@ class Gateway:
         try:
             der = peer_cert_der(writer.get_extra_info("ssl_object"))
             token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
-            self._views.setdefault((host, port), set()).add(whole)
+            _remember(self._views, (host, port), self._views.get((host, port), set()) | {whole})
             writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
             preamble_reader = PreambleReader(PreambleReply)
             reply = None
@@ -559,8 +574,8 @@ class Gateway:
                 raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
             access = await self.verifier.verify_fresh(reply.token, der)
             self.verifier.note(access)
-            self._peer_endpoints[(access.subject, access.thumbprint)] = (host, port)
-            self._peer_tokens[(host, port)] = access
+            _remember(self._peer_endpoints, (access.subject, access.thumbprint), (host, port))
+            _remember(self._peer_tokens, (host, port), access)
             pending = preamble_reader.trailing_data()
         except BaseException:
             writer.close()
@@ -578,7 +593,7 @@ class Gateway:
         who = f"{peername[0]}:{peername[1]}" if peername else "?"
         limits = self.cfg.limits
         entered: list[tuple[str, str]] = []
-        gate = StreamGate({purpose: check for purpose, (check, _serve) in self._purposes.items()})
+        gate = StreamGate(self._checks)
         try:
             der = peer_cert_der(writer.get_extra_info("ssl_object"))
             # Before the token is verified a stream is bounded per source address and

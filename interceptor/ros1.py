@@ -544,17 +544,12 @@ class Ros1Role(GatewayRole):
             except (CryptorosError, OSError, asyncio.TimeoutError):
                 pid = None
             if pid is not None and pid != self._master_pid:
-                if self._master_pid is not None or self._state_loaded_registrations:
+                # a new pid, or the first one seen after a restart of ours with registrations
+                # from state_dir (a repeated registration is harmless to rosmaster)
+                if self._master_pid is not None or self._registrations:
                     await self._replay_registrations(pid)
                 self._master_pid = pid
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
-
-    @property
-    def _state_loaded_registrations(self) -> bool:
-        """Registrations restored from the state directory: a rosmaster first seen after
-        an interceptor restart may be a new one too (replaying to the old one is harmless:
-        rosmaster takes a repeated registration as it is)."""
-        return bool(self._registrations)
 
     async def _replay_registrations(self, pid: int) -> None:
         calls = [Request(method=method, params=params) for method, params in self._registrations.values()]
