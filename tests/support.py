@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -22,6 +21,7 @@ from pathlib import Path
 import pytest
 
 # one port picker and one process stopper for tests, demo and bench alike
+from cryptoros.lab.capture import Capture  # noqa: F401
 from cryptoros.lab.processes import free_port, stop  # noqa: F401
 
 REPO = Path(__file__).resolve().parent.parent
@@ -91,48 +91,6 @@ def running(args: Sequence[str], **kw) -> Iterator[subprocess.Popen]:
         yield proc
     finally:
         stop(proc)
-
-
-class Capture:
-    """tcpdump on lo writing a pcap; stopped with SIGINT so it flushes."""
-
-    def __init__(self, path, bpf: str) -> None:
-        tcpdump = require("tcpdump")["tcpdump"]
-        self.path = path
-        self.proc = subprocess.Popen([tcpdump, "-i", "lo", "-U", "-s", "0", "-w", str(path), bpf],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        line = self.proc.stderr.readline()  # "listening on lo, ..."
-        if "listening" not in line:
-            self.proc.kill()
-            pytest.fail(f"tcpdump did not start: {line}")
-        self._wait_until_capturing(bpf)
-
-    def _wait_until_capturing(self, bpf: str) -> None:
-        """"listening" is printed before packets really flow into the file: send marker
-        packets on loopback until one shows up in the pcap."""
-        if bpf != "tcp":
-            time.sleep(1.0)  # the filtered capture cannot see a marker; plain one proved the delay
-            return
-        server = socket.create_server(("127.0.0.1", 0))
-        port = server.getsockname()[1]
-        deadline = time.monotonic() + 10
-        try:
-            while time.monotonic() < deadline:
-                with socket.create_connection(("127.0.0.1", port), timeout=2) as c:
-                    c.sendall(b"cryptoros-capture-marker")
-                server.accept()[0].close()
-                time.sleep(0.1)
-                if self.path.exists() and b"cryptoros-capture-marker" in self.path.read_bytes():
-                    return
-            pytest.fail("tcpdump never captured a marker packet")
-        finally:
-            server.close()
-
-    def stop(self) -> bytes:
-        time.sleep(0.5)
-        self.proc.send_signal(signal.SIGINT)
-        self.proc.wait(timeout=10)
-        return self.path.read_bytes()
 
 
 def client_hello(version: int, suites: list[int]) -> bytes:

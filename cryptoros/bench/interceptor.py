@@ -35,7 +35,6 @@ import json
 import os
 import queue
 import shutil
-import signal
 import statistics
 import struct
 import subprocess
@@ -49,6 +48,7 @@ from pathlib import Path
 
 import click
 
+from cryptoros.lab.capture import Capture, CaptureError, flows
 from cryptoros.lab.network import HOSTS, Network, NetworkError, lab_network, free_port, stop, wait_port
 from cryptoros.ros1.uri import host_port
 
@@ -422,71 +422,6 @@ async def _request_topic(uri: str, topic: str = "/bench_str") -> tuple[float, tu
     return elapsed, (reply[1], int(reply[2]))
 
 
-class Capture:
-    """tcpdump on ``lo`` into a pcap file, with a bounded start and stop."""
-
-    def __init__(self, path: Path, bpf: str) -> None:
-        self.path = path
-        binary = shutil.which("tcpdump")
-        if binary is None:
-            raise NetworkError("tcpdump is not installed")
-        self.err = path.with_suffix(".err")
-        self.proc = subprocess.Popen([binary, "-i", "lo", "-n", "-U", "--immediate-mode", "-s", "128", "-w", str(path), bpf],
-                                     stdout=subprocess.DEVNULL, stderr=self.err.open("w"))
-        deadline = time.monotonic() + 10
-        while "listening on" not in self.err.read_text():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                stop(self.proc)
-                raise NetworkError(f"tcpdump did not start: {self.err.read_text()[-300:]}")
-            time.sleep(0.02)
-
-    def stop(self) -> list[dict]:
-        time.sleep(0.3)  # the last ACKs
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        stop(self.proc)
-        return flows(self.path)
-
-
-def flows(path: Path) -> list[dict]:
-    """TCP flows of a pcap (Ethernet, Linux SLL or raw IPv4), in order of their first
-    packet: frame bytes (as Wireshark counts them), IP bytes and TCP payload bytes."""
-    data = path.read_bytes() if path.exists() else b""
-    if len(data) < 24:
-        return []
-    magic = data[:4]
-    endian = "<" if magic in (b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1") else ">"
-    linktype = struct.unpack(endian + "I", data[20:24])[0]
-    offset_link = {1: 14, 113: 16, 276: 20, 101: 0, 228: 0}.get(linktype)
-    if offset_link is None:
-        raise NetworkError(f"pcap link type {linktype} not understood")
-    table: dict[tuple, dict] = {}
-    pos = 24
-    while pos + 16 <= len(data):
-        _sec, _frac, incl, orig = struct.unpack(endian + "IIII", data[pos:pos + 16])
-        pkt = data[pos + 16: pos + 16 + incl]
-        pos += 16 + incl
-        ip = pkt[offset_link:]
-        if len(ip) < 20 or ip[0] >> 4 != 4 or ip[9] != 6:
-            continue
-        ihl = (ip[0] & 15) * 4
-        total = struct.unpack("!H", ip[2:4])[0]
-        tcp = ip[ihl:]
-        if len(tcp) < 20:
-            continue
-        sport, dport = struct.unpack("!HH", tcp[:4])
-        thl = (tcp[12] >> 4) * 4
-        src, dst = ip[12:16], ip[16:20]
-        key = tuple(sorted([(src, sport), (dst, dport)]))
-        flow = table.setdefault(key, {"frames": 0, "frame_bytes": 0, "ip_bytes": 0, "payload_bytes": 0,
-                                      "order": len(table)})
-        flow["frames"] += 1
-        flow["frame_bytes"] += orig
-        flow["ip_bytes"] += total
-        flow["payload_bytes"] += max(0, total - ihl - thl)
-    return sorted(table.values(), key=lambda f: f["order"])
-
-
 def _stats(samples: list[float]) -> dict:
     ms = sorted(s * 1e3 for s in samples)
     return {"median_ms": statistics.median(ms), "p90_ms": ms[min(len(ms) - 1, int(len(ms) * 0.9))], "n": len(ms)}
@@ -559,20 +494,22 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
                 out["plain"]["request_topic"] = _stats(rt)
                 out["plain"]["tcpros_connect"] = _stats(tc)
                 out["stunnel"]["tcpros_connect"] = _stats(st)
-                cap = Capture(workdir / "plain.pcap", f"tcp and host 127.0.0.1 and (port {xml_port} or port {port_text})")
+                cap = Capture(workdir / "plain.pcap", f"tcp and host 127.0.0.1 and (port {xml_port} or port {port_text})", snaplen=128)
                 try:
                     _, (host, port) = await _request_topic(uri)
                     await asyncio.sleep(0.1)
                     _, w = await _tcpros_probe(host, port)
                 finally:
-                    fl = await asyncio.to_thread(cap.stop)
+                    await asyncio.to_thread(cap.stop, 0.3)
+                    fl = flows(cap.path)
                 w.close()
                 out["plain"]["bytes"] = _bytes_entry(fl, ["request_topic", "tcpros"])
-                cap = Capture(workdir / "stunnel.pcap", f"tcp and port {server_port}")
+                cap = Capture(workdir / "stunnel.pcap", f"tcp and port {server_port}", snaplen=128)
                 try:
                     _, w = await _tcpros_probe("127.0.0.1", client_port)
                 finally:
-                    fl = await asyncio.to_thread(cap.stop)
+                    await asyncio.to_thread(cap.stop, 0.3)
+                    fl = flows(cap.path)
                 w.close()
                 out["stunnel"]["bytes"] = _bytes_entry(fl, ["tcpros"])
                 return out
@@ -611,13 +548,14 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
                 out["request_topic"] = _stats(rt)
                 out["tcpros_connect"] = _stats(tc)
                 await asyncio.sleep(0.3)
-                cap = Capture(workdir / "interceptor.pcap", f"tcp and host {HOSTS['robot_a']} and port {a_public}")
+                cap = Capture(workdir / "interceptor.pcap", f"tcp and host {HOSTS['robot_a']} and port {a_public}", snaplen=128)
                 try:
                     _, (host, port) = await _request_topic(relay)
                     await asyncio.sleep(0.1)
                     _, w = await _tcpros_probe(host, port)
                 finally:
-                    fl = await asyncio.to_thread(cap.stop)
+                    await asyncio.to_thread(cap.stop, 0.3)
+                    fl = flows(cap.path)
                 w.close()
                 out["bytes"] = _bytes_entry(fl, ["request_topic", "tcpros"])
                 with contextlib.suppress(Exception):
@@ -939,7 +877,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
             results["throughput"] = tp
             if counts:
                 results["paper"] = paper_experiment(net, counts, reps, workdir, progress)
-    except NetworkError as exc:
+    except (NetworkError, CaptureError) as exc:
         raise click.ClickException(f"{exc} (work directory {workdir})") from None
     finally:
         if keep:

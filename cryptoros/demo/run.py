@@ -329,7 +329,7 @@ class Mission:
         robots = self._start_robots(g)
         attackers: dict[str, subprocess.Popen] = {}
         armed: dict[str, subprocess.Popen] = {}
-        fired = False
+        fired, fired_at = False, 0.0
         timeline: list[list[float]] = []
         cpu0 = {n: _cpu_seconds(h.proc.pid) for n, h in g.interceptors.items() if h.proc}
         end_reason, mission_time, mission_wall = "", None, None
@@ -354,7 +354,7 @@ class Mission:
                 time.sleep(0.25)
                 wall = time.monotonic() - started
                 if wall >= opts.attack_delay and not fired:
-                    attackers, fired = self._fire_attacks(g, armed), True
+                    attackers, fired, fired_at = self._fire_attacks(g, armed), True, wall
                 st = self._read_status()
                 cov, _ = self.coverage(st)
                 sim_t = max((s.get("t", 0.0) for s in st.values()), default=0.0)
@@ -371,6 +371,9 @@ class Mission:
                     quiet_since = wall
                 if quiet_since is not None and wall - quiet_since >= 2.0:
                     end_reason = "robots_stopped"
+                    break
+                if fired and stalled(timeline, wall - fired_at):
+                    end_reason = "stalled"
                     break
                 if wall >= opts.seconds:
                     end_reason = "time_limit"
@@ -418,6 +421,23 @@ class Mission:
             "attack_reports": reports,
             "_final": final,
         }
+
+
+STALL_WINDOW_S = 8.0  # wall seconds without coverage progress that end a mission as "stalled"
+STALL_PROGRESS = 0.005  # progress below this share of the explorable cells is no progress
+ATTACKS_SETTLED_S = 6.0  # wall seconds after the attacks fire (the last one starts 4 s late)
+
+
+def stalled(timeline: list[list[float]], since_attacks: float) -> bool:
+    """The team has stopped making progress: every attack has been under way for a while
+    and coverage (the timeline's last column) grew by less than ``STALL_PROGRESS`` over the
+    last ``STALL_WINDOW_S`` wall seconds. Ends a mission the attacks have already decided
+    (a halted robot still counts as exploring, so "robots_stopped" never comes)."""
+    if since_attacks < ATTACKS_SETTLED_S + STALL_WINDOW_S or not timeline:
+        return False
+    _, now, cov_now = timeline[-1]
+    earlier = [row for row in timeline if row[1] <= now - STALL_WINDOW_S]
+    return bool(earlier) and cov_now - earlier[-1][2] < STALL_PROGRESS
 
 
 def _robot_summary(s: dict[str, Any]) -> dict[str, Any]:

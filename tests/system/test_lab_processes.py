@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -43,3 +44,30 @@ def test_wait_port_says_who_exited_first():
 
 def test_the_network_module_uses_the_same_helpers():
     assert network.free_port is free_port and network.stop is stop and network.NetworkError is NetworkError
+
+
+def test_capture_holds_the_last_packets_sent_before_stop(tmp_path):
+    """A short exchange, then an immediate stop: every payload byte is in the file (the
+    capture reads packets as they come, not in one-second blocks that SIGINT can cut)."""
+    from cryptoros.lab.capture import Capture, flows
+    from tests.support import require
+
+    require("tcpdump")
+    if os.geteuid() != 0:
+        pytest.skip("tcpdump on lo needs root")
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    capture = Capture(tmp_path / "c.pcap", f"tcp and port {port}")
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as client:
+            peer = server.accept()[0]
+            for i in range(5):
+                client.sendall(f"payload-{i};".encode())
+            peer.recv(4096)
+            peer.close()
+    finally:
+        server.close()
+        data = capture.stop()
+    assert all(f"payload-{i};".encode() in data for i in range(5)), capture.dropped
+    (flow,) = flows(capture.path)
+    assert flow["payload_bytes"] == len(b"payload-0;") * 5 and flow["frames"] >= 4
