@@ -33,7 +33,7 @@ import logging
 import os
 import ssl
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -231,6 +231,7 @@ class Gateway:
         self._public_server: asyncio.AbstractServer | None = None
         self._tasks: list[asyncio.Task] = []
         self._streams: set[asyncio.Future] = set()
+        self._cuttable: set[asyncio.Future] = set()  # streams with nothing in flight (see cuttable)
         self._metrics_runner: web.AppRunner | None = None
         self.started = False
 
@@ -261,6 +262,22 @@ class Gateway:
         self._streams.add(future)
         future.add_done_callback(self._streams.discard)
         return future
+
+    @contextlib.contextmanager
+    def cuttable(self) -> Iterator[None]:
+        """While inside, the current stream has nothing in flight that a stop could
+        break (an XML-RPC stream waiting for its next request, a topic stream, which
+        never ends by itself): :meth:`stop` cuts it at once instead of giving it the
+        grace period meant for requests under way."""
+        task = asyncio.current_task()
+        if task is None:
+            yield
+            return
+        self._cuttable.add(task)
+        try:
+            yield
+        finally:
+            self._cuttable.discard(task)
 
     # ================================================================ life cycle
     async def start(self, *, token_wait: float = 10.0) -> None:
@@ -312,14 +329,19 @@ class Gateway:
         )
 
     async def stop(self, grace: float = 5.0) -> None:
-        """Stop listening, let open streams finish for ``grace`` seconds, then cut them."""
+        """Stop listening, cut the streams with nothing in flight (:meth:`cuttable`), let
+        the others (a call, a service request under way) finish for ``grace`` seconds,
+        then cut them."""
         for role in self._roles:
             await role.stopping()
         server = self._public_server
         if server is not None:
             server.close()
-        if self._streams:
-            await asyncio.wait(list(self._streams), timeout=grace)
+        for stream in list(self._cuttable):  # nothing in flight: no grace to wait for
+            stream.cancel()
+        waiting = [s for s in self._streams if s not in self._cuttable]
+        if waiting:
+            await asyncio.wait(waiting, timeout=grace)
         for task in self._tasks:
             task.cancel()
         for stream in list(self._streams):
@@ -689,10 +711,12 @@ class Gateway:
         left_pending: bytes, right_pending: bytes,
         left_budget: MessageBudget | None = None, left_frames: FrameCounter | None = None,
         left_discard: bool = False, on_deny: Callable[[PolicyDenied], None] | None = None,
+        endless: bool = False,
     ) -> None:
         """Hand both streams to the byte pump and wait until both sides closed. The
         left side is toward the peer (bytes read there count as rx); ``*_pending`` are
-        bytes read past the header on each side, which go through the same checks."""
+        bytes read past the header on each side, which go through the same checks.
+        ``endless``: a topic stream, cut at once by :meth:`stop` (see :meth:`cuttable`)."""
         tx = self.metrics.bytes.labels("tx")
         rx = self.metrics.bytes.labels("rx")
         done = splice(
@@ -710,7 +734,11 @@ class Gateway:
         for transport in (left_writer.transport, right_writer.transport):
             if not transport.is_closing() and not transport.is_reading():
                 transport.resume_reading()
-        await done
+        if endless:
+            with self.cuttable():
+                await done
+        else:
+            await done
 
 
 __all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts",

@@ -416,6 +416,9 @@ class Ros1Role(GatewayRole):
             conn.receive_data(pending)
         while True:
             try:
+                if not conn.trailing_data.data:  # between requests: a stop need not wait for this stream
+                    with self.gw.cuttable():
+                        await read_into(reader, conn.receive_data, IDLE_TIMEOUT)
                 event = await read_xmlrpc(reader, conn, IDLE_TIMEOUT)
             except RemoteProtocolError:
                 writer.transport.pause_reading()
@@ -743,7 +746,7 @@ class Ros1Role(GatewayRole):
         if purpose == "topic":
             # A subscriber sends nothing after its header: whatever it sends is dropped.
             await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=b"", right_pending=reply_rest,
-                             left_discard=True)
+                               left_discard=True, endless=True)
         else:
             # Service requests from the peer: size-checked, and counted against its budget.
             name = fields["service"]
@@ -976,7 +979,8 @@ class Ros1Role(GatewayRole):
                 budget = self.gw.budget(peer) if purpose == "topic" else None
                 await self.gw.pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
                                  right_pending=b"", left_budget=budget, left_frames=frames,
-                                 on_deny=lambda exc: self.gw.deny("relay", exc, str(target)))
+                                 on_deny=lambda exc: self.gw.deny("relay", exc, str(target)),
+                                 endless=purpose == "topic")
             finally:
                 unwatch()
                 self.metrics.open_streams.labels(purpose).dec()

@@ -587,7 +587,8 @@ class Ros2Role(Role):
         self._inbound.add(writer)
         try:
             if target.kind == "topic":
-                await self._republish(reader, peer, target, link, writer, stream.pending)
+                with self.gw.cuttable():  # a topic stream never ends by itself: a stop cuts it at once
+                    await self._republish(reader, peer, target, link, writer, stream.pending)
             else:
                 await self._offer_service(reader, writer, target, link, stream.pending)
         finally:

@@ -1,7 +1,9 @@
 #!/usr/bin/python3
-"""rospy services: 'serve' offers /rospy_loggers (roscpp/GetLoggers) and prints READY;
+"""rospy services: 'serve [DELAY]' offers /rospy_loggers (roscpp/GetLoggers) and prints
+READY (each call prints CALLED, then waits DELAY seconds before it answers);
 'call NAME' calls our roscpp/GetLoggers service NAME and prints the loggers."""
 import sys
+import time
 
 import rospy
 from roscpp.msg import Logger
@@ -11,7 +13,11 @@ mode = sys.argv[1]
 if mode == "serve":
     rospy.init_node("rospy_server", disable_signals=True)
 
+    delay = float(sys.argv[2]) if len(sys.argv) > 2 else 0.0
+
     def handle(req):
+        print("CALLED", flush=True)
+        time.sleep(delay)
         return GetLoggersResponse(loggers=[Logger(name="rospy.server", level="debug"), Logger(name="x", level="warn")])
 
     rospy.Service("/rospy_loggers", GetLoggers, handle)

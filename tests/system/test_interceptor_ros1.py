@@ -83,6 +83,35 @@ def test_rospy_service_call_across_hosts(network):
     assert "rospy.server=debug,x=warn" in lines[-1]
 
 
+def test_sigterm_lets_a_call_under_way_finish_and_cuts_topic_streams_at_once(network):
+    """SIGTERM to robot A's interceptor while a service call is in flight through it and a
+    topic stream flows: the call gets its reply within the grace period (5 s), and the
+    interceptor exits as soon as the call is done, without waiting the grace out for the
+    topic stream, which never ends by itself."""
+    import signal
+
+    services = str(NODES / "services.py")
+    host = network.hosts["robot_a"]
+    try:
+        with running([SYS_PY, services, "serve", "1.5"], env=network.ros_env("robot_a")) as server, \
+                start_sub(network, "robot_b", "/listener_b") as sub:
+            read_lines(server, "READY", 20)
+            read_lines(sub, "READY", 20)
+            with start_pub(network, "robot_a", "/talker_a", 100000, hz=20):
+                read_lines(sub, "GOT secret-", 30)  # the topic stream is up
+                with running([SYS_PY, services, "call", "/rospy_loggers"], env=network.ros_env("robot_b")) as client:
+                    read_lines(server, "CALLED", 30)
+                    signalled = time.monotonic()
+                    host.proc.send_signal(signal.SIGTERM)
+                    assert host.proc.wait(timeout=15) == 0
+                    took = time.monotonic() - signalled
+                    lines = read_lines(client, "LOGGERS", 10)
+        assert "rospy.server=debug,x=warn" in lines[-1]  # the call under way was answered
+        assert took < 4.5, f"the interceptor waited {took:.1f} s: the grace period went to the topic stream"
+    finally:
+        network.start("robot_a")
+
+
 def test_nodes_shut_down_cleanly_and_the_master_is_empty_after(network):
     with start_sub(network, "robot_b", "/listener_b", seconds=4) as sub:
         read_lines(sub, "READY", 20)
