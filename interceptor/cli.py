@@ -1,8 +1,8 @@
 """``cryptoros-interceptor --config FILE``: run one host's interceptor.
 
 SIGHUP reloads certificates, CRL and policy without dropping open streams (a
-failed reload keeps the old state); SIGTERM and SIGINT stop accepting, let open
-streams drain for a grace period and exit 0. Configuration mistakes are one line on
+failed reload keeps the old state); SIGTERM and SIGINT stop accepting, cut the
+streams with nothing in flight, give calls under way a grace period and exit 0. Configuration mistakes are one line on
 stderr and exit status 2.
 """
 
@@ -69,7 +69,7 @@ async def _run(config_path: str, grace: float) -> None:
     loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(reload()))
     print(f"cryptoros-interceptor: ready (manager {cfg.manager}, public {cfg.public})", flush=True)
     await stop.wait()
-    log.info("stopping: draining open streams for up to %.0f s", grace)
+    log.info("stopping: calls under way get up to %.0f s to finish", grace)
     await interceptor.stop(grace=grace)
 
 
@@ -128,7 +128,7 @@ async def _preflight(cfg) -> list[str]:
 @click.option("--ros2-profile", "ros2_profile", type=click.Path(dir_okay=False, allow_dash=True),
               help="Write the Fast DDS profile that keeps a robot's ROS 2 nodes on loopback to this file "
                    "('-': standard output), then exit.")
-@click.option("--grace", default=5.0, show_default=True, help="Seconds open streams get to finish on SIGTERM.")
+@click.option("--grace", default=5.0, show_default=True, help="Seconds calls under way get to finish on SIGTERM (topic streams and idle connections are cut at once).")
 @click.option(
     "--log-level", default="info", show_default=True, type=click.Choice(["debug", "info", "warning", "error"])
 )
