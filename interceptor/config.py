@@ -57,6 +57,13 @@ Example::
     local = ["/tf", "/robot_a/*"]     # topics/services that never leave this robot (fnmatch
                                       # patterns): not offered, not logged as denials
 
+    [monitor]                         # the runtime monitor (docs/monitor.md)
+    model = "monitor-model.json"      # written by `cryptoros monitor train`
+    topics = ["/team/*", "/*/pose"]   # fnmatch patterns of the topics watched (default all)
+    action = "quarantine"             # "log" (default) or "quarantine" (cut and refuse the publisher)
+    quarantine_seconds = 30.0
+    fail_closed = false               # true: a stream the monitor cannot follow is cut
+
 Relative paths are relative to the configuration file's directory.
 """
 
@@ -72,9 +79,11 @@ from pathlib import Path
 from typing import Any
 
 from cryptoros.errors import ConfigError
+from cryptoros.monitor.model import MonitorModel
 from cryptoros.passphrase import PassphraseError, from_env, read_file
 from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.tls import TLSConfig
+from interceptor.monitor import MonitorSettings
 
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
 ROLES = ("node", "master", "ros2")
@@ -236,17 +245,20 @@ class InterceptorConfig:
     #: node owners are kept across restarts; None: nothing is kept, and a restart
     #: needs the host's nodes restarted too.
     state_dir: Path | None = None
+    #: The runtime monitor (interceptor/monitor.py); None: no monitor.
+    monitor: MonitorSettings | None = None
 
 
 _SECTIONS = {
     "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2",
-         "state_dir"},
+         "state_dir", "monitor"},
     "ros2": {f.name for f in fields(Ros2Settings)},
     "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
     "authz": {f.name for f in fields(AuthzSettings)},
     "listen": {"public", "local_master", "metrics"},
     "master": {"interceptor", "manager", "upstream"},
     "limits": {f.name for f in fields(Limits)},
+    "monitor": {f.name for f in fields(MonitorSettings)},
 }
 
 
@@ -418,7 +430,27 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         unsafe_plaintext_upstream=unsafe_plaintext,
         state_dir=_path(base, top["state_dir"], "state_dir") if "state_dir" in top else None,
         ros2=ros2,
+        monitor=_parse_monitor(_check_keys(top["monitor"], "monitor"), base) if "monitor" in top else None,
     )
+
+
+def _parse_monitor(raw: dict[str, Any], base: Path) -> MonitorSettings:
+    if "model" not in raw:
+        raise ConfigError("[monitor] model is required: the file `cryptoros monitor train` wrote")
+    topics = raw.get("topics", ["*"])
+    if not isinstance(topics, list) or not all(isinstance(p, str) for p in topics) or len(topics) > 256:
+        raise ConfigError("[monitor] topics must be a list of at most 256 topic patterns")
+    settings = MonitorSettings(
+        model=_path(base, raw["model"], "[monitor] model"),
+        topics=tuple(topics),
+        action=_typed(raw.get("action", "log"), str, "[monitor] action"),
+        quarantine_seconds=_typed(raw.get("quarantine_seconds", 30.0), float, "[monitor] quarantine_seconds"),
+        max_backlog_bytes=_typed(raw.get("max_backlog_bytes", 4 << 20), int, "[monitor] max_backlog_bytes"),
+        max_streams=_typed(raw.get("max_streams", 1024), int, "[monitor] max_streams"),
+        fail_closed=_typed(raw.get("fail_closed", False), bool, "[monitor] fail_closed"),
+    )
+    MonitorModel.load(settings.model)  # a model that does not load stops the start, with its reason
+    return settings
 
 
 def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:

@@ -50,6 +50,7 @@ from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
 from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem
 from interceptor.metrics import Metrics
+from interceptor.monitor import Monitor
 from interceptor.pump import FrameCounter, MessageBudget, splice
 
 log = logging.getLogger("cryptoros.interceptor")
@@ -193,6 +194,8 @@ class Gateway:
     def __init__(self, cfg: InterceptorConfig) -> None:
         self.cfg = cfg
         self.metrics = Metrics()
+        #: the runtime monitor ([monitor]); roles tap the streams it watches
+        self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny) if cfg.monitor is not None else None
         self._server_ctx = server_context(cfg.tls)
         self._client_ctx = client_context(cfg.tls, check_hostname=True)
         self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
@@ -711,7 +714,7 @@ class Gateway:
         left_pending: bytes, right_pending: bytes,
         left_budget: MessageBudget | None = None, left_frames: FrameCounter | None = None,
         left_discard: bool = False, on_deny: Callable[[PolicyDenied], None] | None = None,
-        endless: bool = False,
+        endless: bool = False, left_tap: Callable[[bytes], None] | None = None,
     ) -> None:
         """Hand both streams to the byte pump and wait until both sides closed. The
         left side is toward the peer (bytes read there count as rx); ``*_pending`` are
@@ -730,6 +733,7 @@ class Gateway:
             left_frames=left_frames,
             left_discard=left_discard,
             on_deny=on_deny,
+            left_tap=left_tap,
         )
         for transport in (left_writer.transport, right_writer.transport):
             if not transport.is_closing() and not transport.is_reading():

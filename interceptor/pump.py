@@ -103,7 +103,8 @@ class PumpProtocol(asyncio.BufferedProtocol):
     are counted and reading pauses while the peer is over its message rate (the
     sender then sees TCP backpressure). With ``discard``, what is read is dropped
     (a direction that carries nothing after the header). A frame over its limit
-    cuts both sides; ``on_deny`` hears why."""
+    cuts both sides; ``on_deny`` hears why. ``tap`` is handed every chunk forwarded
+    (its own copy; it must only queue it: the runtime monitor)."""
 
     def __init__(
         self,
@@ -114,8 +115,10 @@ class PumpProtocol(asyncio.BufferedProtocol):
         frames: FrameCounter | None = None,
         discard: bool = False,
         on_deny: Callable[[PolicyDenied], None] | None = None,
+        tap: Callable[[bytes], None] | None = None,
     ):
         self._buffer = bytearray(buffer_size)
+        self._tap = tap
         self._view = memoryview(self._buffer)
         self._on_bytes = on_bytes
         self._budget = budget
@@ -213,6 +216,8 @@ class PumpProtocol(asyncio.BufferedProtocol):
         peer.transport.write(data)
         if self._on_bytes is not None:
             self._on_bytes(len(data))
+        if self._tap is not None:
+            self._tap(data)
 
     def eof_received(self) -> bool:
         # TLS transports cannot half-close: close the other side once it has flushed.
@@ -250,6 +255,7 @@ def splice(
     right_frames: FrameCounter | None = None,
     left_discard: bool = False,
     on_deny: Callable[[PolicyDenied], None] | None = None,
+    left_tap: Callable[[bytes], None] | None = None,
 ) -> asyncio.Future[None]:
     """Relay ``left`` <-> ``right`` until both close.
 
@@ -259,9 +265,10 @@ def splice(
     the TCPROS frames read from that side; ``*_frames`` checks their declared sizes;
     ``left_discard`` drops what ``left`` sends (a subscriber sends nothing after its
     header). ``on_deny`` hears of a frame over its limit (both sides are then cut).
+    ``left_tap`` is handed every chunk forwarded from ``left`` (the runtime monitor).
     """
     a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget, frames=left_frames, discard=left_discard,
-                     on_deny=on_deny)
+                     on_deny=on_deny, tap=left_tap)
     b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget, frames=right_frames, on_deny=on_deny)
     a.attach(left, b)
     b.attach(right, a)

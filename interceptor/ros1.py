@@ -965,6 +965,14 @@ class Ros1Role(GatewayRole):
 
             judge(self.verifier.freshest(peer.access).grants)
             unwatch.set_recheck(lambda fresh: judge(fresh.grants))
+            monitor, watched, unregister = self.gw.monitor, None, None
+            if monitor is not None and purpose == "topic":
+                publisher = reply_fields["callerid"]
+                monitor.check_admission(peer.manager, publisher)
+                unregister = monitor.register(peer.manager, publisher, tunnel_writer.transport.abort)
+                watched = monitor.watch(manager=peer.manager, publisher=publisher, topic=fields["topic"],
+                                        typename=reply_fields.get("type") or fields["type"],
+                                        cut=tunnel_writer.transport.abort)
             writer.write(encode_header(canonical_header(reply)))
             self.metrics.open_streams.labels(purpose).inc()
             try:
@@ -980,8 +988,12 @@ class Ros1Role(GatewayRole):
                 await self.gw.pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
                                  right_pending=b"", left_budget=budget, left_frames=frames,
                                  on_deny=lambda exc: self.gw.deny("relay", exc, str(target)),
-                                 endless=purpose == "topic")
+                                 endless=purpose == "topic", left_tap=watched.feed if watched else None)
             finally:
+                if watched is not None:
+                    watched.close()
+                if unregister is not None:
+                    unregister()
                 unwatch()
                 self.metrics.open_streams.labels(purpose).dec()
                 if purpose == "topic":

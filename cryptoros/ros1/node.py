@@ -228,13 +228,16 @@ class Node:
         raw: bool = False,
         tcp_nodelay: bool = True,
         queue_size: int = 0,
+        with_publisher: bool = False,
     ) -> Subscriber:
         """Subscribe; ``typename='*'`` takes any type (raw bytes). ``queue_size`` bounds
-        the iterator's queue (0: unbounded; oldest dropped first)."""
+        the iterator's queue (0: unbounded; oldest dropped first). ``with_publisher``:
+        the callback also gets the sending publisher's connection header."""
         topic = _global(topic)
         if topic in self._subscribers:
             raise LocalProtocolError(f"{topic} is already subscribed by this node")
-        sub = Subscriber(self, topic, typename, callback=callback, raw=raw, tcp_nodelay=tcp_nodelay, queue_size=queue_size)
+        sub = Subscriber(self, topic, typename, callback=callback, raw=raw, tcp_nodelay=tcp_nodelay, queue_size=queue_size,
+                         with_publisher=with_publisher)
         self._subscribers[topic] = sub
         try:
             uris = await self.master("registerSubscriber", topic, sub.type, self.uri)

@@ -525,9 +525,12 @@ class Subscriber:
         raw: bool,
         tcp_nodelay: bool,
         queue_size: int,
+        with_publisher: bool = False,
     ) -> None:
         self.node = node
         self.topic = topic
+        #: the callback is called as ``callback(msg, publisher_header)`` (who sent it)
+        self.with_publisher = with_publisher
         self.type = "*" if typename == "*" else msgs.ros1_name(typename)
         self.md5sum = "*" if typename == "*" else msgs.md5sum(typename, node.store)
         self.definition = "" if typename == "*" else msgs.message_definition(typename, node.store)
@@ -567,9 +570,10 @@ class Subscriber:
                     log.info("bad message on %s from %s: %s", self.topic, link.uri, err)
         cb = self.callback
         if cb is not None:
+            header = link.header
             for item in items:
                 try:
-                    r = cb(item)
+                    r = cb(item, header) if self.with_publisher else cb(item)
                     if asyncio.iscoroutine(r):
                         self.node._spawn(r)
                 except Exception:

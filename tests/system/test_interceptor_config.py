@@ -175,3 +175,23 @@ def test_authz_url_may_list_replicas(material, tmp_path):
     with pytest.raises(ConfigError, match="list of them"):
         load(write(tmp_path, good(material, **{'url = "https://127.0.0.1:8443"':
                                                'url = ["https://127.0.0.1:8443", "http://127.0.0.9:8443"]'})))
+
+
+def test_a_monitor_whose_model_does_not_load_stops_the_start_with_one_line(material, tmp_path):
+    """[monitor] (docs/monitor.md): the model file is read and checked at start-up."""
+    from tests.support import run, script
+
+    model = tmp_path / "model.json"
+    for content, needle in (("{not json", "monitor model"), ('{"format": "other"}', "not a cryptoros-monitor-model"),
+                            (None, "monitor model not found")):
+        model.unlink(missing_ok=True)
+        if content is not None:
+            model.write_text(content)
+        path = write(tmp_path, good(material) + f'\n        [monitor]\n        model = "{model}"\n')
+        with pytest.raises(ConfigError, match=needle):
+            load(path)
+        cli = run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
+        assert cli.returncode == 2 and len(cli.stderr.strip().splitlines()) == 1 and needle in cli.stderr, cli.stderr
+    path = write(tmp_path, good(material) + '\n        [monitor]\n        model = "m.json"\n        colour = 1\n')
+    with pytest.raises(ConfigError, match="unknown key 'colour' in \\[monitor\\]"):
+        load(path)

@@ -1,0 +1,88 @@
+"""``cryptoros monitor``: fit the runtime monitor's model and measure it on recordings."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from cryptoros.errors import CryptorosError
+
+_BAGS = click.argument("bags", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+
+
+@click.group()
+def monitor() -> None:
+    """The runtime monitor: train its model on clean recordings, evaluate it on attacks.
+
+    Recordings are ROS 1 bags (`rosbag record`, or `cryptoros attack eavesdrop --bag`);
+    the interceptor loads the model named in its [monitor] section (docs/monitor.md)."""
+
+
+@monitor.command()
+@click.option("--master-uri", envvar="ROS_MASTER_URI", required=True,
+              help="The master to record through (default: $ROS_MASTER_URI, the host's interceptor).")
+@click.option("--topic", "topics", multiple=True, required=True, help="A topic to record (repeat).")
+@click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(0.1, 86400))
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path), help="Bag file to write.")
+def record(master_uri: str, topics: tuple[str, ...], seconds: float, out: Path) -> None:
+    """Record TOPICs into a ROS 1 bag, one connection per publisher (what train and eval read)."""
+    import asyncio
+
+    from cryptoros.monitor.record import record as run
+
+    click.echo(f"recording {', '.join(topics)} for {seconds:g} s into {out} ...", err=True)
+    try:
+        counts = asyncio.run(run(master_uri, list(topics), out, seconds=seconds))
+    except (CryptorosError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+    for key, n in sorted(counts.items()):
+        click.echo(f"{n:8d}  {key}")
+    click.echo(f"bag: {out}")
+
+
+@monitor.command()
+@_BAGS
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Model file to write (JSON).")
+@click.option("--quantile", default=0.999, show_default=True, type=click.FloatRange(0.5, 1.0),
+              help="Quantile of each feature over the clean messages that sets its limit.")
+@click.option("--margin", default=1.5, show_default=True, type=click.FloatRange(1.0, 100.0),
+              help="Factor on that quantile.")
+@click.option("--consecutive", default=3, show_default=True, type=click.IntRange(1, 1000),
+              help="Suspicious messages in a row that make an alert.")
+def train(bags: tuple[Path, ...], out: Path, quantile: float, margin: float, consecutive: int) -> None:
+    """Fit the model on BAGS, recordings of clean traffic only."""
+    from cryptoros.monitor.dataset import train as fit
+
+    try:
+        model = fit(bags, quantile=quantile, margin=margin, consecutive=consecutive)
+    except CryptorosError as exc:
+        raise click.ClickException(str(exc)) from None
+    model.save(out)
+    click.echo(f"model: {out} (trained on {', '.join(f'{n} {k}' for k, n in model.trained_on.items())} messages)")
+    for kind, limits in model.limits.items():
+        click.echo(f"  {kind:6s} " + ", ".join(f"{name} <= {value:g}" for name, value in limits.items()))
+
+
+@monitor.command(name="eval")
+@_BAGS
+@click.option("--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--attacker", "attackers", multiple=True, metavar="CALLERID",
+              help="A publisher whose messages are attacks (repeat); all others are clean.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON.")
+def evaluate(bags: tuple[Path, ...], model_path: Path, attackers: tuple[str, ...], as_json: bool) -> None:
+    """Score every message of BAGS as the interceptor would and compare with the labels."""
+    from cryptoros.monitor.dataset import evaluate as run
+    from cryptoros.monitor.model import MonitorModel
+
+    try:
+        figures = run(MonitorModel.load(model_path), bags, attackers).figures()
+    except CryptorosError as exc:
+        raise click.ClickException(str(exc)) from None
+    if as_json:
+        click.echo(json.dumps(figures, indent=1))
+        return
+    for key, value in figures.items():
+        click.echo(f"{key:26s} {value}")

@@ -1,0 +1,138 @@
+"""Recorded messages as the monitor sees them: rosbag files (ROS 1, as ``rosbag record``
+writes them) read with ``rosbags``, one feature row per message.
+
+A message's stream is (topic, publisher): the bag keeps the publisher's ``callerid``
+per connection. Its arrival time is the time the recorder stored with it. Labels for
+evaluation name the attacking publishers (``attackers``): each of their messages is
+an attack message, every other message a clean one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cryptoros.errors import ConfigError
+from cryptoros.monitor.features import StreamFeatures
+from cryptoros.monitor.model import AlertTracker, MonitorModel
+
+
+@dataclass(frozen=True)
+class Row:
+    topic: str
+    publisher: str
+    kind: str
+    at: float  # arrival, seconds (the recorder's clock)
+    values: tuple[float, ...]
+
+
+def rows_of(bags: Iterable[Path]) -> Iterator[Row]:
+    """Every message of the bags, in recording order per bag, as a feature row."""
+    from rosbags.rosbag1 import Reader, ReaderError
+
+    for bag in bags:
+        try:
+            reader = Reader(Path(bag))
+            reader.open()
+        except (ReaderError, OSError) as exc:
+            raise ConfigError(f"cannot read bag {bag}: {exc}") from None
+        try:
+            streams: dict[tuple[str, str], StreamFeatures] = {}
+            for conn, stamp_ns, raw in reader.messages():
+                publisher = getattr(conn.ext, "callerid", None) or "?"
+                key = (conn.topic, publisher)
+                features = streams.get(key)
+                if features is None:
+                    features = streams[key] = StreamFeatures(_ros1_type(conn.msgtype))
+                at = stamp_ns * 1e-9
+                yield Row(conn.topic, publisher, features.kind, at, features.observe(raw, at, at))
+        finally:
+            reader.close()
+
+
+def _ros1_type(msgtype: str) -> str:
+    return msgtype.replace("/msg/", "/")
+
+
+def train(bags: Iterable[Path], **options) -> MonitorModel:
+    """A model fitted on the messages of clean bags."""
+    by_kind: dict[str, list[tuple[float, ...]]] = {}
+    for row in rows_of(bags):
+        by_kind.setdefault(row.kind, []).append(row.values)
+    if not by_kind:
+        raise ConfigError("the bags hold no messages to train on")
+    return MonitorModel.fit(by_kind, **options)
+
+
+@dataclass
+class Evaluation:
+    messages: int = 0
+    attack_messages: int = 0
+    true_positives: int = 0
+    false_positives: int = 0
+    #: per attacking stream: seconds from its first message to its first alert (None: never)
+    delays: dict[str, float | None] = field(default_factory=dict)
+    #: per clean stream that alerted: its first alert's time
+    false_alarms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def clean_messages(self) -> int:
+        return self.messages - self.attack_messages
+
+    def figures(self) -> dict:
+        tp, fp = self.true_positives, self.false_positives
+        fn = self.attack_messages - tp
+        tn = self.clean_messages - fp
+        precision = tp / (tp + fp) if tp + fp else 0.0
+        recall = tp / (tp + fn) if tp + fn else 0.0
+        known = [d for d in self.delays.values() if d is not None]
+        return {
+            "messages": self.messages, "attack_messages": self.attack_messages,
+            "accuracy": round((tp + tn) / self.messages, 4) if self.messages else None,
+            "precision": round(precision, 4), "recall": round(recall, 4),
+            "f1": round(2 * precision * recall / (precision + recall), 4) if precision + recall else 0.0,
+            "false_positive_rate": round(fp / self.clean_messages, 5) if self.clean_messages else 0.0,
+            "attack_streams_detected": f"{len(known)} of {len(self.delays)}",
+            "median_delay_s": round(sorted(known)[len(known) // 2], 3) if known else None,
+            "delays_s": {k: (round(v, 3) if v is not None else None) for k, v in self.delays.items()},
+            "clean_streams_alerted": sorted(self.false_alarms),
+        }
+
+
+def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]) -> Evaluation:
+    """Score every message as the interceptor would (a message is flagged once its
+    stream's run of suspicious messages reached ``consecutive``, until it ends) and
+    compare with the labels (messages of ``attackers`` are attacks)."""
+    attackers = set(attackers)
+    result = Evaluation()
+    trackers: dict[tuple[str, str], AlertTracker] = {}
+    runs: dict[tuple[str, str], int] = {}
+    first_seen: dict[tuple[str, str], float] = {}
+    for row in rows_of(bags):
+        key = (row.topic, row.publisher)
+        name = f"{row.publisher} on {row.topic}"
+        tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
+        score = model.score(row.kind, row.values)
+        suspicious = score.value > 1.0 and math.isfinite(score.value)
+        alerted = tracker.update(suspicious)
+        runs[key] = runs.get(key, 0) + 1 if suspicious else 0
+        flagged = runs[key] >= model.consecutive
+        attack = row.publisher in attackers
+        result.messages += 1
+        first_seen.setdefault(key, row.at)
+        if attack:
+            result.attack_messages += 1
+            result.true_positives += flagged
+            result.delays.setdefault(name, None)
+            if alerted and result.delays[name] is None:
+                result.delays[name] = row.at - first_seen[key]
+        else:
+            result.false_positives += flagged
+            if alerted:
+                result.false_alarms.setdefault(name, row.at)
+    return result
+
+
+__all__ = ["Evaluation", "Row", "evaluate", "rows_of", "train"]

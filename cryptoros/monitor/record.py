@@ -1,0 +1,64 @@
+"""``cryptoros monitor record``: a recording the monitor can learn from.
+
+Subscribes to the named topics with their real types (a ``rosbag record`` subscribes
+with type ``*``, which a registry granting exact types refuses) and writes a ROS 1 bag
+with one connection per (topic, publisher): the publisher's ``callerid`` is what
+labels an attacker, and the arrival time stored with each message is what the rate
+features read. Runs as a normal node behind the host's interceptor and needs its
+subscribe grants.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from pathlib import Path
+from typing import Any
+
+from cryptoros.errors import CryptorosError, RemoteProtocolError
+from cryptoros.ros1 import msgs
+from cryptoros.ros1.node import Node, call
+
+
+async def record(master_uri: str, topics: list[str], out: Path, *, seconds: float, name: str = "/monitor_recorder",
+                 host: str = "127.0.0.1", timeout: float = 10.0) -> dict[str, Any]:
+    """Record ``topics`` for ``seconds``; returns messages per (topic, publisher)."""
+    from rosbags.rosbag1 import Writer
+
+    types = dict(await call(master_uri, "getTopicTypes", name, timeout=timeout))
+    missing = [t for t in topics if t not in types]
+    if missing:
+        raise RemoteProtocolError(f"the master knows no type for {', '.join(missing)} (nothing published yet?)")
+    out.unlink(missing_ok=True)
+    writer = Writer(out)
+    writer.open()
+    counts: dict[str, int] = {}
+    connections: dict[tuple[str, str], Any] = {}
+    node = Node(name, master_uri, host=host, api_timeout=timeout)
+    try:
+        await node.start()
+        for topic in topics:
+            typename = types[topic]
+
+            def on_message(data: bytes, header: dict[str, str] | None, topic: str = topic,
+                           typename: str = typename) -> None:
+                publisher = (header or {}).get("callerid", "?")
+                conn = connections.get((topic, publisher))
+                if conn is None:
+                    conn = connections[(topic, publisher)] = writer.add_connection(
+                        topic, msgs.store_name(typename), typestore=node.store, callerid=publisher)
+                writer.write(conn, time.time_ns(), bytes(data))
+                key = f"{publisher} on {topic}"
+                counts[key] = counts.get(key, 0) + 1
+
+            await node.subscribe(topic, typename, on_message, raw=True, with_publisher=True)
+        await asyncio.sleep(seconds)
+    finally:
+        with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):
+            await asyncio.wait_for(node.close(), timeout)
+        writer.close()
+    return counts
+
+
+__all__ = ["record"]

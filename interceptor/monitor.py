@@ -1,0 +1,239 @@
+"""The interceptor's runtime monitor (``[monitor]``): scores the messages a peer's
+publisher sends into this host and acts on alerts.
+
+The pump hands each chunk it forwards on a watched topic stream to
+:meth:`WatchedStream.feed`, which only queues it (the chunk is already a copy: the
+pump copies out of its read buffer) and schedules the scoring for later on the loop:
+forwarding never waits for decoding. The scoring splits the chunks into TCPROS frames,
+computes the message's features (:mod:`cryptoros.monitor.features`) and scores them
+with the model (:mod:`cryptoros.monitor.model`); ``consecutive`` suspicious messages in
+a row make an alert: a log line (``MONITOR alert``) and
+``cryptoros_monitor_alerts_total``; with ``action = "quarantine"`` the publisher's
+streams into this host are cut and new ones refused for ``quarantine_seconds``
+(counted as denials, reason ``quarantined``).
+
+A monitor that cannot keep up (a stream's queued bytes over ``max_backlog_bytes``) or
+cannot read a stream stops watching that stream and counts it; it blocks nothing
+unless ``fail_closed = true``, which cuts the stream instead.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import fnmatch
+import logging
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from prometheus_client import Counter, Histogram
+
+from cryptoros.errors import ConfigError, PolicyDenied
+from cryptoros.monitor.features import StreamFeatures
+from cryptoros.monitor.model import AlertTracker, MonitorModel
+from cryptoros.ros1.tcpros import FrameWalker
+
+log = logging.getLogger("cryptoros.interceptor.monitor")
+
+ACTIONS = ("log", "quarantine")
+#: publishers remembered in quarantine at once (the oldest leaves first)
+MAX_QUARANTINED = 4096
+
+
+@dataclass(frozen=True, kw_only=True)
+class MonitorSettings:
+    model: Path
+    #: fnmatch patterns of the topics watched
+    topics: tuple[str, ...] = ("*",)
+    action: str = "log"
+    quarantine_seconds: float = 30.0
+    #: bytes queued for scoring per stream before the monitor gives that stream up
+    max_backlog_bytes: int = 4 << 20
+    #: watched streams at once; more are let through unwatched (and counted)
+    max_streams: int = 1024
+    #: a stream the monitor gives up (backlog, malformed framing) is cut instead of let through
+    fail_closed: bool = False
+
+    def __post_init__(self) -> None:
+        if self.action not in ACTIONS:
+            raise ConfigError(f"[monitor] action must be one of {', '.join(ACTIONS)}, got {self.action!r}")
+        if not self.topics or any(not p.startswith(("/", "*")) or len(p) > 256 for p in self.topics):
+            raise ConfigError("[monitor] topics must be a non-empty list of topic patterns (/name, /team/*, *)")
+
+    def watches(self, topic: str) -> bool:
+        return any(fnmatch.fnmatchcase(topic, p) for p in self.topics)
+
+
+class MonitorMetrics:
+    def __init__(self, registry) -> None:
+        self.messages = Counter("cryptoros_monitor_messages_total", "Messages scored, by topic", ["topic"],
+                                registry=registry)
+        self.alerts = Counter("cryptoros_monitor_alerts_total", "Alerts, by topic and the feature that exceeded",
+                              ["topic", "feature"], registry=registry)
+        self.given_up = Counter("cryptoros_monitor_streams_given_up_total",
+                                "Streams the monitor stopped watching, by reason", ["reason"], registry=registry)
+        self.quarantined = Counter("cryptoros_monitor_quarantines_total", "Publishers put in quarantine",
+                                   registry=registry)
+        self.seconds = Histogram("cryptoros_monitor_score_seconds", "Time to score one message (decode + features "
+                                 "+ model)", buckets=(5e-6, 1e-5, 2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3, 1e-2),
+                                 registry=registry)
+
+
+class Monitor:
+    """One interceptor's monitor: the model, the quarantine list, the watched streams."""
+
+    def __init__(self, settings: MonitorSettings, registry, *,
+                 deny: Callable[[str, PolicyDenied, str], None] = lambda _k, _e, _w: None,
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
+        self.settings = settings
+        self.wall = wall  # arrival times: clock (rates, quarantine) and wall (the age of a stamp)
+        self.deny = deny
+        self.model = MonitorModel.load(settings.model)
+        self.metrics = MonitorMetrics(registry)
+        self.clock = clock
+        self._quarantine: OrderedDict[tuple[str, str], float] = OrderedDict()
+        self._streams: set[WatchedStream] = set()
+        #: every open topic stream into this host (watched or not), by (manager, publisher):
+        #: how to cut it when its publisher is quarantined
+        self._cuts: dict[tuple[str, str], set[Callable[[], None]]] = {}
+
+    def quarantined_for(self, manager: str, publisher: str) -> float:
+        """Seconds left of this publisher's quarantine (0: not quarantined)."""
+        until = self._quarantine.get((manager, publisher))
+        if until is None:
+            return 0.0
+        left = until - self.clock()
+        if left <= 0:
+            del self._quarantine[(manager, publisher)]
+            return 0.0
+        return left
+
+    def check_admission(self, manager: str, publisher: str) -> None:
+        """Refuse a new stream from a quarantined publisher (:class:`PolicyDenied`)."""
+        left = self.quarantined_for(manager, publisher)
+        if left > 0:
+            raise PolicyDenied("quarantined", f"{publisher} ({manager}) is quarantined by the monitor for "
+                                              f"{left:.0f} s more")
+
+    def register(self, manager: str, publisher: str, cut: Callable[[], None]) -> Callable[[], None]:
+        """Know how to cut one open stream from ``publisher``; returns the undo."""
+        key = (manager, publisher)
+        self._cuts.setdefault(key, set()).add(cut)
+
+        def unregister() -> None:
+            cuts = self._cuts.get(key)
+            if cuts is not None:
+                cuts.discard(cut)
+                if not cuts:
+                    del self._cuts[key]
+        return unregister
+
+    def watch(self, *, manager: str, publisher: str, topic: str, typename: str,
+              cut: Callable[[], None]) -> WatchedStream | None:
+        """A watched stream for the pump's tap, or None (topic not watched, or too many
+        streams watched: counted)."""
+        if not self.settings.watches(topic):
+            return None
+        if len(self._streams) >= self.settings.max_streams:
+            self.metrics.given_up.labels("max_streams").inc()
+            return None
+        stream = WatchedStream(self, manager, publisher, topic, typename, cut)
+        self._streams.add(stream)
+        return stream
+
+    def _alert(self, stream: WatchedStream, feature: str, score: float) -> None:
+        self.metrics.alerts.labels(stream.topic, feature).inc()
+        action = self.settings.action
+        log.warning("MONITOR alert: %s from %s (%s) on %s [%s]: %s at %.1fx its limit%s", action, stream.publisher,
+                    stream.manager, stream.topic, stream.typename, feature, score,
+                    f"; quarantined for {self.settings.quarantine_seconds:g} s" if action == "quarantine" else "")
+        if action == "quarantine":
+            key = (stream.manager, stream.publisher)
+            self._quarantine[key] = self.clock() + self.settings.quarantine_seconds
+            self._quarantine.move_to_end(key)
+            while len(self._quarantine) > MAX_QUARANTINED:
+                self._quarantine.popitem(last=False)
+            self.metrics.quarantined.inc()
+            self.deny("monitor", PolicyDenied("quarantined", f"{feature} at {score:.1f}x its limit on {stream.topic}; "
+                                              f"refused for {self.settings.quarantine_seconds:g} s"),
+                      f"{stream.publisher} ({stream.manager})")
+            for cut in list(self._cuts.get(key, ())):
+                cut()
+
+
+class WatchedStream:
+    """One publisher's topic stream into this host, as the monitor sees it."""
+
+    def __init__(self, monitor: Monitor, manager: str, publisher: str, topic: str, typename: str,
+                 cut: Callable[[], None]) -> None:
+        self.monitor, self.manager, self.publisher = monitor, manager, publisher
+        self.topic, self.typename, self.cut = topic, typename, cut
+        self.features = StreamFeatures(typename)
+        self.alerts = AlertTracker(monitor.model.consecutive)
+        self._walker = FrameWalker(what=f"monitor {topic}")
+        self._chunks: deque[tuple[bytes, float, float]] = deque()
+        self._backlog = 0
+        self._buffer = bytearray()
+        self._scheduled = False
+        self.closed = False
+
+    def feed(self, data: bytes) -> None:
+        """The pump's tap: queue a forwarded chunk (no copy, no parsing)."""
+        if self.closed:
+            return
+        self._chunks.append((data, self.monitor.clock(), self.monitor.wall()))
+        self._backlog += len(data)
+        if self._backlog > self.monitor.settings.max_backlog_bytes:
+            self._give_up("backlog")
+            return
+        if not self._scheduled:
+            self._scheduled = True
+            asyncio.get_running_loop().call_soon(self._score_queued)
+
+    def close(self) -> None:
+        self.closed = True
+        self._chunks.clear()
+        self._buffer.clear()
+        self.monitor._streams.discard(self)
+
+    def _give_up(self, reason: str) -> None:
+        self.monitor.metrics.given_up.labels(reason).inc()
+        log.warning("MONITOR gave up %s from %s (%s): %s%s", self.topic, self.publisher, self.manager, reason,
+                    "; stream cut (fail_closed)" if self.monitor.settings.fail_closed else "")
+        fail_closed = self.monitor.settings.fail_closed
+        self.close()
+        if fail_closed:
+            self.cut()
+
+    def _score_queued(self) -> None:
+        self._scheduled = False
+        monitor, metrics = self.monitor, self.monitor.metrics
+        model, kind = monitor.model, self.features.kind
+        messages = metrics.messages.labels(self.topic)
+        while self._chunks and not self.closed:
+            data, now, wall = self._chunks.popleft()
+            self._backlog -= len(data)
+            buffer = self._buffer
+            buffer += data
+            spans, stop, _pending, error = self._walker.split(buffer)
+            for start, end in spans:
+                t0 = time.perf_counter()
+                score = model.score(kind, self.features.observe(bytes(buffer[start:end]), now, wall))
+                metrics.seconds.observe(time.perf_counter() - t0)
+                messages.inc()
+                if self.alerts.update(score.value > 1.0):
+                    monitor._alert(self, score.feature, score.value)
+                    if self.closed:
+                        return
+            del buffer[:stop]
+            if error is not None:
+                self._give_up("malformed")
+                return
+            if len(buffer) > monitor.settings.max_backlog_bytes:  # one frame bigger than the backlog
+                self._give_up("backlog")
+                return
+
+
+__all__ = ["ACTIONS", "Monitor", "MonitorSettings", "WatchedStream"]

@@ -1,0 +1,103 @@
+"""The runtime monitor with real ROS 1 nodes: a model trained on a clean recording made
+with Debian's ``rosbag record``, then robot B's interceptor with ``[monitor] action =
+"quarantine"`` while robot A's nodes publish through it. Every publisher here holds a
+grant for ``/r0/pose`` (``/pose_*``): authorization lets all of them in; the monitor
+tells the misbehaving ones apart by what they send."""
+
+from __future__ import annotations
+
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from tests.interceptor_harness import DEFAULT_POLICY, NODE, SYS_PY, got, read_lines, robot_network
+from tests.support import run, running, script
+
+pytestmark = [pytest.mark.ros1, pytest.mark.timeout(240)]
+
+POSE_NODE = str(Path(NODE).parent / "pose.py")
+POLICY = DEFAULT_POLICY.replace(
+    "    - {{node: /talker_a, topic: /secret, type: std_msgs/String}}\n",
+    "    - {{node: /talker_a, topic: /secret, type: std_msgs/String}}\n"
+    "    - {{node: '/pose_*', topic: /r0/pose, type: geometry_msgs/PoseStamped}}\n",
+).replace(
+    "    - {{node: '*', topic: /chatter, type: std_msgs/String}}\n",
+    "    - {{node: '*', topic: /chatter, type: std_msgs/String}}\n"
+    "    - {{node: '*', topic: /r0/pose, type: geometry_msgs/PoseStamped}}\n",
+)
+
+
+def pose_pub(net, node: str, kind: str, hz: float, seconds: float):
+    return running([SYS_PY, POSE_NODE, "pub", node, kind, str(hz), str(seconds)], env=net.ros_env("robot_a"))
+
+
+def metrics(net, host: str) -> str:
+    url = f"http://127.0.0.1:{net.hosts[host].metrics_port}/metrics"
+    return urllib.request.urlopen(url, timeout=5).read().decode()
+
+
+def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_publishers(tmp_path):
+    with robot_network(tmp_path / "net", policy=POLICY) as net:
+        # 1. A clean recording, made on robot B through the interceptors.
+        bag = tmp_path / "clean.bag"
+        with pose_pub(net, "/pose_clean", "clean", 20, 12) as pub:
+            read_lines(pub, "READY", 20)
+            recorded = run([script("cryptoros"), "monitor", "record", "--topic", "/r0/pose", "--seconds", "8",
+                            "-o", str(bag)], env=net.ros_env("robot_b"), timeout=60)
+            read_lines(pub, "SENT", 40)
+        assert recorded.returncode == 0, recorded.stderr
+        assert "/pose_clean on /r0/pose" in recorded.stdout, recorded.stdout
+
+        # 2. The model. Margin 3: the suite's machine is shared and slower than a robot.
+        model = tmp_path / "model.json"
+        trained = run([script("cryptoros"), "monitor", "train", str(bag), "-o", str(model), "--margin", "3"],
+                      timeout=60)
+        assert trained.returncode == 0, trained.stderr
+        assert "pose" in trained.stdout and model.exists()
+        clean_eval = run([script("cryptoros"), "monitor", "eval", str(bag), "--model", str(model), "--json"],
+                         timeout=60)
+        assert clean_eval.returncode == 0, clean_eval.stderr
+        assert '"false_positive_rate": 0.0' in clean_eval.stdout, clean_eval.stdout
+
+        # 3. Robot B's interceptor with the monitor.
+        net.stop("robot_b")
+        config = net.hosts["robot_b"].config
+        config.write_text(config.read_text() + f'\n[monitor]\nmodel = "{model}"\ntopics = ["/r0/pose"]\n'
+                          'action = "quarantine"\nquarantine_seconds = 120.0\n')
+        net.start("robot_b")
+
+        # 4. Live: a clean pose publisher and a chatter stream, then a spoofer and a flooder,
+        # all granted.
+        with running([SYS_PY, POSE_NODE, "sub", "/pose_listener", "60"], env=net.ros_env("robot_b")) as listener, \
+                running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "60"], env=net.ros_env("robot_b")) as chat:
+            read_lines(listener, "READY", 20)
+            read_lines(chat, "READY", 20)
+            with pose_pub(net, "/pose_clean", "clean", 20, 40), \
+                    running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20"], env=net.ros_env("robot_a")):
+                before = read_lines(listener, None, 3.0)
+                assert sum("GOT /pose_clean" in line for line in before) >= 20
+                with pose_pub(net, "/pose_spoof", "spoof", 20, 5) as spoof:
+                    read_lines(spoof, "SENT", 30)
+                with pose_pub(net, "/pose_flood", "flood", 300, 3) as flood:
+                    read_lines(flood, "SENT", 30)
+                after = read_lines(listener, None, 3.0)
+                chatter = got(read_lines(chat, None, 2.0))
+            log = net.hosts["robot_b"].logs()
+            counted = metrics(net, "robot_b")
+
+    alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
+    assert any("/pose_spoof" in a and "speed_mps" in a for a in alerts), alerts
+    assert any("/pose_flood" in a and "rate_hz" in a for a in alerts), alerts
+    assert not any("/pose_clean" in a for a in alerts), alerts  # quiet on clean traffic
+    # the offenders were cut soon after their first messages: of the 100 spoofed poses,
+    # the listener saw a handful (the alert needs three in a row, plus what was in flight)
+    spoofed = sum("GOT /pose_spoof" in line for line in before + after)
+    assert spoofed < 30, spoofed
+    # only the offenders: the clean publisher and the chatter stream kept flowing
+    assert sum("GOT /pose_clean" in line for line in after) >= 20
+    assert len(chatter) >= 10
+    assert "DENY monitor from /pose_spoof (robot_a)" in log  # reported like a denial
+    assert 'cryptoros_interceptor_denied_total{kind="monitor",reason="quarantined"} 2.0' in counted, counted
+    assert 'cryptoros_monitor_alerts_total{feature="speed_mps",topic="/r0/pose"}' in counted
+    assert "cryptoros_monitor_score_seconds_count" in counted

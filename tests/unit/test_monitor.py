@@ -1,0 +1,269 @@
+"""The runtime monitor without sockets: features, the model and its file, the watched
+stream's alerts and quarantine, the [monitor] configuration."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from cryptoros.errors import ConfigError, PolicyDenied
+from cryptoros.monitor.features import FEATURES, StreamFeatures
+from cryptoros.monitor.model import FORMAT, AlertTracker, MonitorModel
+from cryptoros.ros1 import msgs
+from interceptor.monitor import Monitor, MonitorSettings
+
+POSE, SCAN, TWIST = "geometry_msgs/PoseStamped", "sensor_msgs/LaserScan", "geometry_msgs/Twist"
+
+
+def _time(t: float):
+    return msgs.msg_class("builtin_interfaces/msg/Time")(sec=int(t), nanosec=int((t % 1) * 1e9))
+
+
+def _header(t: float):
+    return msgs.msg_class("std_msgs/Header")(seq=0, stamp=_time(t), frame_id="map")
+
+
+def pose(x: float, y: float, t: float) -> bytes:
+    C = msgs.msg_class
+    body = C(POSE)(header=_header(t), pose=C("geometry_msgs/Pose")(
+        position=C("geometry_msgs/Point")(x=x, y=y, z=0.0),
+        orientation=C("geometry_msgs/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0)))
+    return msgs.serialize(body, POSE)
+
+
+def scan(ranges, t: float) -> bytes:
+    body = msgs.msg_class(SCAN)(header=_header(t), angle_min=0.0, angle_max=6.2, angle_increment=0.087,
+                                time_increment=0.0, scan_time=0.2, range_min=0.1, range_max=10.0,
+                                ranges=np.asarray(ranges, dtype=np.float32), intensities=np.zeros(0, np.float32))
+    return msgs.serialize(body, SCAN)
+
+
+def frame(body: bytes) -> bytes:
+    return struct.pack("<I", len(body)) + body
+
+
+def clean_poses(n: int, t0: float = 1000.0, hz: float = 20.0):
+    """(body, arrival) of a robot driving at 0.3 m/s."""
+    return [(pose(0.3 * i / hz, 1.0, t0 + i / hz), t0 + i / hz) for i in range(n)]
+
+
+def named(kind: str, values: tuple[float, ...]) -> dict[str, float]:
+    return dict(zip(FEATURES[kind], values))
+
+
+# ------------------------------------------------------------------ features
+
+
+def test_pose_features_show_a_jump_a_stamp_going_back_and_an_old_stamp():
+    f = StreamFeatures(POSE)
+    rows = [named("pose", f.observe(body, at, at)) for body, at in clean_poses(20)]
+    assert max(r["speed_mps"] for r in rows) == pytest.approx(0.3, rel=0.01)
+    assert max(r["rate_hz"] for r in rows) == 20 and all(r["malformed"] == 0 for r in rows)
+    jump = named("pose", f.observe(pose(25.0, -3.0, 1001.0), 1001.0, 1001.0))
+    assert jump["speed_mps"] > 100
+    replay = named("pose", f.observe(pose(25.0, -3.0, 990.0), 1001.05, 1001.05))
+    assert replay["stamp_back_s"] == pytest.approx(11.0) and replay["stamp_lag_s"] == pytest.approx(11.05)
+
+
+def test_scan_noise_is_rough_and_changes_from_scan_to_scan():
+    rng = np.random.default_rng(1)
+    wall = 2.0 + np.sin(np.linspace(0, 6, 72))  # a smooth room
+    f = StreamFeatures(SCAN)
+    smooth = [named("scan", f.observe(scan(wall, 10 + i * 0.2), 10 + i * 0.2, 10 + i * 0.2)) for i in range(5)]
+    noisy = [named("scan", f.observe(scan(rng.uniform(0.2, 9.0, 72), 11 + i * 0.2), 11 + i * 0.2, 11 + i * 0.2))
+             for i in range(5)]
+    assert max(r["roughness"] for r in smooth) < 0.1 < min(r["roughness"] for r in noisy)
+    assert max(r["scan_change"] for r in smooth) < 0.01 < min(r["scan_change"] for r in noisy)
+
+
+def test_a_body_that_does_not_decode_is_malformed_and_any_type_has_rate_and_size():
+    f = StreamFeatures(POSE)
+    assert named("pose", f.observe(b"\x01\x02", 1.0, 1.0))["malformed"] == 1.0
+    g = StreamFeatures("std_msgs/String")
+    assert g.kind == "any" and len(g.observe(b"abcd", 1.0, 1.0)) == len(FEATURES["any"])
+    assert named("any", g.observe(b"abcdefgh", 1.1, 1.1)) == {"rate_hz": 2.0, "size_change": 1.0, "malformed": 0.0}
+
+
+def test_twist_features_are_the_commanded_speeds():
+    C = msgs.msg_class
+    vec = C("geometry_msgs/Vector3")
+    body = msgs.serialize(C(TWIST)(linear=vec(x=-0.5, y=0.0, z=7.0), angular=vec(x=0.0, y=0.0, z=-1.5)), TWIST)
+    values = named("twist", StreamFeatures(TWIST).observe(body, 1.0, 1.0))
+    assert values["linear"] == 0.5 and values["angular"] == 1.5
+
+
+# ------------------------------------------------------------------ the model
+
+
+def fitted(consecutive: int = 3) -> MonitorModel:
+    f = StreamFeatures(POSE)
+    rows = [f.observe(body, at, at) for body, at in clean_poses(400)]
+    return MonitorModel.fit({"pose": rows}, consecutive=consecutive)
+
+
+def test_fit_sets_limits_above_clean_traffic_and_scores_excursions():
+    model = fitted()
+    limits = model.limits["pose"]
+    assert 0.3 < limits["speed_mps"] < 1.0 and limits["rate_hz"] > 20
+    assert "any" in model.limits and model.trained_on == {"pose": 400, "any": 400}
+    f = StreamFeatures(POSE)
+    clean = [model.score("pose", f.observe(body, at, at)).value for body, at in clean_poses(50, t0=5000.0)]
+    assert max(clean) < 1.0
+    jump = model.score("pose", f.observe(pose(40.0, 40.0, 5002.6), 5002.6, 5002.6))
+    assert jump.value > 10 and jump.feature == "speed_mps"
+
+
+def test_the_model_file_round_trips_and_bad_files_are_one_clear_error(tmp_path):
+    model = fitted()
+    path = tmp_path / "m.json"
+    model.save(path)
+    assert MonitorModel.load(path) == MonitorModel.from_json(json.loads(path.read_text()))
+    assert MonitorModel.load(path).limits == model.limits
+    bad = {
+        "not json": "{",
+        "other format": json.dumps({"format": "x", "limits": {}}),
+        "unknown kind": json.dumps({"format": FORMAT, "limits": {"lidar": {"rate_hz": 1}}}),
+        "unknown feature": json.dumps({"format": FORMAT, "limits": {"pose": {"colour": 1}}}),
+        "negative limit": json.dumps({"format": FORMAT, "limits": {"pose": {"rate_hz": -1}}}),
+        "infinite limit": '{"format": "%s", "limits": {"pose": {"rate_hz": Infinity}}}' % FORMAT,
+        "bad consecutive": json.dumps({"format": FORMAT, "limits": {"any": {"rate_hz": 5}}, "consecutive": 0}),
+    }
+    for what, text in bad.items():
+        path.write_text(text)
+        with pytest.raises(ConfigError):
+            MonitorModel.load(path)
+        assert what
+    with pytest.raises(ConfigError, match="not found"):
+        MonitorModel.load(tmp_path / "missing.json")
+
+
+def test_alerts_need_a_run_of_suspicious_messages_and_fire_once_per_run():
+    t = AlertTracker(3)
+    assert [t.update(s) for s in (True, True, False, True, True, True, True, False, True, True, True)] == \
+        [False, False, False, False, False, True, False, False, False, False, True]
+
+
+# ------------------------------------------------------------------ the watched stream
+
+
+class Clock:
+    """Arrival time for the monitor: both clocks the same, moved by the test."""
+
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def monitor_for(tmp_path, *, action="quarantine", clock=None, **extra) -> tuple[Monitor, list]:
+    from prometheus_client import CollectorRegistry
+
+    fitted().save(tmp_path / "m.json")
+    denials: list = []
+    settings = MonitorSettings(model=tmp_path / "m.json", action=action, quarantine_seconds=30.0, **extra)
+    kw = {"clock": clock, "wall": clock} if clock else {}
+    return Monitor(settings, CollectorRegistry(), deny=lambda k, e, w: denials.append((k, e.reason, w)), **kw), denials
+
+
+async def drain() -> None:
+    for _ in range(5):
+        await asyncio.sleep(0)
+
+
+async def test_a_spoofing_publisher_is_quarantined_and_only_it_is_cut(tmp_path):
+    clock = Clock()
+    monitor, denials = monitor_for(tmp_path, clock=clock)
+    cuts: list[str] = []
+    honest = monitor.watch(manager="robot_a", publisher="/base", topic="/r0/pose", typename=POSE,
+                           cut=lambda: cuts.append("honest"))
+    evil = monitor.watch(manager="robot_a", publisher="/evil", topic="/r0/pose", typename=POSE,
+                         cut=lambda: cuts.append("evil (monitor gave up)"))
+    monitor.register("robot_a", "/base", lambda: cuts.append("honest"))  # every topic stream is registered
+    monitor.register("robot_a", "/evil", lambda: cuts.append("evil"))
+    monitor.register("robot_a", "/evil", lambda: cuts.append("evil other topic"))  # an unwatched one too
+    for body, at in clean_poses(40):
+        clock.t = at
+        data = frame(body)
+        honest.feed(data[:9])  # frames split across reads
+        honest.feed(data[9:])
+        await drain()
+    assert cuts == [] and denials == []
+    rng = np.random.default_rng(3)
+    for i in range(5):
+        clock.t += 0.005
+        evil.feed(frame(pose(*rng.uniform(-50, 50, 2), clock.t)))
+    await drain()
+    assert sorted(cuts) == ["evil", "evil other topic"]
+    assert denials == [("monitor", "quarantined", "/evil (robot_a)")]
+    with pytest.raises(PolicyDenied, match="quarantined") as info:
+        monitor.check_admission("robot_a", "/evil")
+    assert info.value.reason == "quarantined"
+    monitor.check_admission("robot_a", "/base")  # the honest publisher is not refused
+    clock.t += 31.0
+    monitor.check_admission("robot_a", "/evil")  # quarantine over
+
+
+async def test_action_log_alerts_but_cuts_nothing(tmp_path):
+    clock = Clock()
+    monitor, denials = monitor_for(tmp_path, action="log", clock=clock)
+    cuts: list[str] = []
+    evil = monitor.watch(manager="m", publisher="/evil", topic="/r0/pose", typename=POSE, cut=lambda: cuts.append("x"))
+    for i in range(6):
+        clock.t = 1000 + i / 20
+        evil.feed(frame(pose(100.0 * (i % 2), 0.0, clock.t)))
+        await drain()
+    assert cuts == [] and denials == []
+    assert monitor.metrics.alerts.labels("/r0/pose", "speed_mps")._value.get() == 1
+    monitor.check_admission("m", "/evil")
+
+
+async def test_a_stream_it_cannot_follow_is_let_through_unless_fail_closed(tmp_path):
+    for fail_closed in (False, True):
+        monitor, _ = monitor_for(tmp_path, max_backlog_bytes=1000, fail_closed=fail_closed)
+        cuts: list[str] = []
+        big = monitor.watch(manager="m", publisher="/p", topic="/t", typename="std_msgs/String",
+                            cut=lambda: cuts.append("cut"))
+        big.feed(b"\x00" * 2000)  # more than the backlog before the loop scored anything
+        assert big.closed and cuts == (["cut"] if fail_closed else [])
+        # one frame larger than the backlog, arriving slowly: its partial body counts too
+        slow = monitor.watch(manager="m", publisher="/p", topic="/u", typename=POSE, cut=lambda: cuts.append("slow"))
+        cuts.clear()
+        slow.feed(struct.pack("<I", 5000) + b"x" * 500)
+        await drain()
+        assert not slow.closed
+        for _ in range(3):
+            slow.feed(b"x" * 300)
+            await drain()
+        assert slow.closed and cuts == (["slow"] if fail_closed else [])
+        assert monitor.metrics.given_up.labels("backlog")._value.get() == 2
+
+
+def test_unwatched_topics_and_the_stream_cap(tmp_path):
+    monitor, _ = monitor_for(tmp_path, topics=("/r*/pose",), max_streams=1)
+    assert monitor.watch(manager="m", publisher="/p", topic="/chatter", typename=POSE, cut=lambda: None) is None
+    assert monitor.watch(manager="m", publisher="/p", topic="/r0/pose", typename=POSE, cut=lambda: None) is not None
+    assert monitor.watch(manager="m", publisher="/q", topic="/r1/pose", typename=POSE, cut=lambda: None) is None
+
+
+# ------------------------------------------------------------------ configuration
+
+
+def test_monitor_settings_are_checked_at_start(tmp_path):
+    from interceptor.config import _parse_monitor
+
+    fitted().save(tmp_path / "m.json")
+    s = _parse_monitor({"model": "m.json", "action": "quarantine", "topics": ["/team/*"]}, tmp_path)
+    assert s.action == "quarantine" and s.watches("/team/map") and not s.watches("/r0/pose")
+    with pytest.raises(ConfigError, match="model is required"):
+        _parse_monitor({}, tmp_path)
+    with pytest.raises(ConfigError, match="action"):
+        _parse_monitor({"model": "m.json", "action": "shoot"}, tmp_path)
+    with pytest.raises(ConfigError, match="not found"):
+        _parse_monitor({"model": "nope.json"}, tmp_path)
+    with pytest.raises(ConfigError, match="topics"):
+        _parse_monitor({"model": "m.json", "topics": ["chatter"]}, tmp_path)
