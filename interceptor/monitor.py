@@ -40,6 +40,8 @@ log = logging.getLogger("cryptoros.interceptor.monitor")
 ACTIONS = ("log", "quarantine")
 #: publishers remembered in quarantine at once (the oldest leaves first)
 MAX_QUARANTINED = 4096
+#: seconds between two alert log lines of one stream (every alert is counted)
+ALERT_LOG_INTERVAL = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,6 +148,10 @@ class Monitor:
     def _alert(self, stream: WatchedStream, feature: str, score: float) -> None:
         self.metrics.alerts.labels(stream.topic, feature).inc()
         action = self.settings.action
+        now = self.clock()
+        if action == "log" and now - stream.logged_at < ALERT_LOG_INTERVAL:
+            return  # counted; a stream that alerts again and again is logged once a second
+        stream.logged_at = now
         log.warning("MONITOR alert: %s from %s (%s) on %s [%s]: %s at %.1fx its limit%s", action, stream.publisher,
                     stream.manager, stream.topic, stream.typename, feature, score,
                     f"; quarantined for {self.settings.quarantine_seconds:g} s" if action == "quarantine" else "")
@@ -178,6 +184,7 @@ class WatchedStream:
         self._buffer = bytearray()
         self._scheduled = False
         self.closed = False
+        self.logged_at = -ALERT_LOG_INTERVAL
 
     def feed(self, data: bytes) -> None:
         """The pump's tap: queue a forwarded chunk (no copy, no parsing)."""

@@ -222,6 +222,21 @@ async def test_action_log_alerts_but_cuts_nothing(tmp_path):
     monitor.check_admission("m", "/evil")
 
 
+async def test_an_alerting_stream_is_logged_once_a_second_and_counted_every_time(tmp_path, caplog):
+    clock = Clock()
+    monitor, _ = monitor_for(tmp_path, action="log", clock=clock)
+    evil = monitor.watch(manager="m", publisher="/evil", topic="/r0/pose", typename=POSE, cut=lambda: None)
+    x = 0.0
+    for i in range(80):  # three jumps, one calm message: an alert every four messages, 5 per second
+        clock.t = 1000 + i / 20
+        x = x if i % 4 == 3 else 100.0 - x
+        evil.feed(frame(pose(x, 0.0, clock.t)))
+        await drain()
+    alerts = monitor.metrics.alerts.labels("/r0/pose", "speed_mps")._value.get()
+    lines = [r for r in caplog.records if "MONITOR alert" in r.getMessage()]
+    assert alerts == 19 and len(lines) == 4, (alerts, len(lines))  # the first message has no step to judge
+
+
 async def test_a_stream_it_cannot_follow_is_let_through_unless_fail_closed(tmp_path):
     for fail_closed in (False, True):
         monitor, _ = monitor_for(tmp_path, max_backlog_bytes=1000, fail_closed=fail_closed)
