@@ -87,6 +87,9 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
             counted = metrics(net, "robot_b")
 
     alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
+    print("\n".join(["monitor live:", clean_eval.stdout, *alerts,
+                      f"spoofed poses the listener got: {sum('GOT /pose_spoof' in x for x in before + after)}",
+                      f"flood poses the listener got: {sum('GOT /pose_flood' in x for x in before + after)}"]))
     assert any("/pose_spoof" in a and "speed_mps" in a for a in alerts), alerts
     assert any("/pose_flood" in a and "rate_hz" in a for a in alerts), alerts
     assert not any("/pose_clean" in a for a in alerts), alerts  # quiet on clean traffic
@@ -100,4 +103,5 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
     assert "DENY monitor from /pose_spoof (robot_a)" in log  # reported like a denial
     assert 'cryptoros_interceptor_denied_total{kind="monitor",reason="quarantined"} 2.0' in counted, counted
     assert 'cryptoros_monitor_alerts_total{feature="speed_mps",topic="/r0/pose"}' in counted
+    assert 'cryptoros_interceptor_denied_total{kind="relay",reason="quarantined"}' in counted  # reconnections refused
     assert "cryptoros_monitor_score_seconds_count" in counted
