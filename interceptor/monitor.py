@@ -133,15 +133,17 @@ class Monitor:
         return unregister
 
     def watch(self, *, manager: str, publisher: str, topic: str, typename: str,
-              cut: Callable[[], None]) -> WatchedStream | None:
+              cut: Callable[[], None], codec: str = "ros1") -> WatchedStream | None:
         """A watched stream for the pump's tap, or None (topic not watched, or too many
-        streams watched: counted)."""
+        streams watched: counted). ``codec``: ``ros1`` (TCPROS frames, fed as byte
+        chunks with :meth:`WatchedStream.feed`) or ``cdr`` (ROS 2 samples, fed whole
+        with :meth:`WatchedStream.feed_messages`)."""
         if not self.settings.watches(topic):
             return None
         if len(self._streams) >= self.settings.max_streams:
             self.metrics.given_up.labels("max_streams").inc()
             return None
-        stream = WatchedStream(self, manager, publisher, topic, typename, cut)
+        stream = WatchedStream(self, manager, publisher, topic, typename, cut, codec)
         self._streams.add(stream)
         return stream
 
@@ -173,10 +175,10 @@ class WatchedStream:
     """One publisher's topic stream into this host, as the monitor sees it."""
 
     def __init__(self, monitor: Monitor, manager: str, publisher: str, topic: str, typename: str,
-                 cut: Callable[[], None]) -> None:
+                 cut: Callable[[], None], codec: str = "ros1") -> None:
         self.monitor, self.manager, self.publisher = monitor, manager, publisher
         self.topic, self.typename, self.cut = topic, typename, cut
-        self.features = StreamFeatures(typename)
+        self.features = StreamFeatures(typename, codec=codec)
         self.alerts = AlertTracker(monitor.model.consecutive)
         self._walker = FrameWalker(what=f"monitor {topic}")
         self._chunks: deque[tuple[bytes, float, float]] = deque()
@@ -187,10 +189,18 @@ class WatchedStream:
         self.logged_at = -ALERT_LOG_INTERVAL
 
     def feed(self, data: bytes) -> None:
-        """The pump's tap: queue a forwarded chunk (no copy, no parsing)."""
+        """The pump's tap: queue a forwarded chunk of TCPROS frames (no copy, no parsing)."""
+        self._queue(data, False)
+
+    def feed_messages(self, bodies: list[bytes]) -> None:
+        """Queue whole messages (the ROS 2 role's samples, already split)."""
+        for body in bodies:
+            self._queue(body, True)
+
+    def _queue(self, data: bytes, whole: bool) -> None:
         if self.closed:
             return
-        self._chunks.append((data, self.monitor.clock(), self.monitor.wall()))
+        self._chunks.append((data, self.monitor.clock(), self.monitor.wall(), whole))
         self._backlog += len(data)
         if self._backlog > self.monitor.settings.max_backlog_bytes:
             self._give_up("backlog")
@@ -220,20 +230,26 @@ class WatchedStream:
         model, kind = monitor.model, self.features.kind
         messages = metrics.messages.labels(self.topic)
         while self._chunks and not self.closed:
-            data, now, wall = self._chunks.popleft()
+            data, now, wall, whole = self._chunks.popleft()
             self._backlog -= len(data)
-            buffer = self._buffer
-            buffer += data
-            spans, stop, _pending, error = self._walker.split(buffer)
-            for start, end in spans:
+            if whole:
+                bodies, stop, error = [data], 0, None
+            else:
+                buffer = self._buffer
+                buffer += data
+                spans, stop, _pending, error = self._walker.split(buffer)
+                bodies = [bytes(buffer[start:end]) for start, end in spans]
+            for body in bodies:
                 t0 = time.perf_counter()
-                score = model.score(kind, self.features.observe(bytes(buffer[start:end]), now, wall))
+                score = model.score(kind, self.features.observe(body, now, wall))
                 metrics.seconds.observe(time.perf_counter() - t0)
                 messages.inc()
                 if self.alerts.update(score.value > 1.0):
                     monitor._alert(self, score.feature, score.value)
                     if self.closed:
                         return
+            if whole:
+                continue
             del buffer[:stop]
             if error is not None:
                 self._give_up("malformed")

@@ -46,6 +46,7 @@ from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint, InterceptorConfig
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks
+from interceptor.monitor import WatchedStream
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
@@ -583,19 +584,29 @@ class Ros2Role(Role):
         link = self._link
         if link is None or not self._bridge_ready.is_set():
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
+        monitor, watched, unregister = self.gw.monitor, None, None
+        if monitor is not None and target.kind == "topic":
+            monitor.check_admission(peer.manager, target.node)
+            unregister = monitor.register(peer.manager, target.node, writer.transport.abort)
+            watched = monitor.watch(manager=peer.manager, publisher=target.node, topic=target.name,
+                                    typename=target.type, cut=writer.transport.abort, codec="cdr")
         self.metrics.allowed.labels(f"ros2_{target.kind}").inc()
         self._inbound.add(writer)
         try:
             if target.kind == "topic":
                 with self.gw.cuttable():  # a topic stream never ends by itself: a stop cuts it at once
-                    await self._republish(reader, peer, target, link, writer, stream.pending)
+                    await self._republish(reader, peer, target, link, writer, stream.pending, watched)
             else:
                 await self._offer_service(reader, writer, target, link, stream.pending)
         finally:
             self._inbound.discard(writer)
+            if watched is not None:
+                watched.close()
+            if unregister is not None:
+                unregister()
 
     async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer,
-                         first: bytes = b"") -> None:
+                         first: bytes = b"", watched: WatchedStream | None = None) -> None:
         key = (target.name, target.type)
         advert = self._adverts.get(key)
         if advert is None:
@@ -659,6 +670,8 @@ class Ros2Role(Role):
                         self._kept[peer.manager] = held
                         kept = largest * kept_depth
                     mine.extend(p for run in runs for p in fr.payloads(run[3]))
+                if runs and watched is not None:  # the monitor queues them; it scores later
+                    watched.feed_messages([bytes(p) for run in runs for p in fr.payloads(run[3])])
                 if runs:
                     chan = advert[0]
                     blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]

@@ -54,7 +54,23 @@ MAX_RATE_SAMPLES = 4096
 
 
 def kind_of(typename: str) -> str:
-    return KIND_OF_TYPE.get(typename, "any")
+    """The kind of a ROS 1 (``pkg/Name``) or ROS 2 (``pkg/msg/Name``) type name."""
+    return KIND_OF_TYPE.get(typename.replace("/msg/", "/"), "any")
+
+
+def _cdr_decoder(typename: str, kind: str) -> Callable[[Any], Any]:
+    """A decoder of ROS 2 (CDR) samples giving what the kind's features read."""
+    from cryptoros.ros2.cdr import deserializer
+
+    decode = deserializer(typename)
+    if kind != "scan":
+        return decode
+
+    def scan(body: Any) -> tuple[float, float, float, np.ndarray]:
+        msg = decode(body)
+        return _stamp(msg), float(msg.range_min), float(msg.range_max), np.asarray(msg.ranges, dtype=np.float64)
+
+    return scan
 
 
 def _stamp(msg: Any) -> float:
@@ -94,11 +110,16 @@ class StreamFeatures:
 
     __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at")
 
-    def __init__(self, typename: str) -> None:
+    def __init__(self, typename: str, *, codec: str = "ros1") -> None:
+        """``codec``: how bodies are serialized, ``ros1`` (TCPROS) or ``cdr`` (ROS 2)."""
         self.kind = kind_of(typename)
         self.names = FEATURES[self.kind]
-        self._decode: Callable[[Any], Any] | None = (
-            _decode_scan if self.kind == "scan" else msgs.deserializer(typename) if self.kind != "any" else None)
+        self._decode: Callable[[Any], Any] | None = None
+        if self.kind != "any":
+            if codec == "cdr":
+                self._decode = _cdr_decoder(typename, self.kind)
+            else:
+                self._decode = _decode_scan if self.kind == "scan" else msgs.deserializer(typename)
         self._arrivals: deque[float] = deque(maxlen=MAX_RATE_SAMPLES)
         self._size: int | None = None
         self._prev: Any = None  # the previous message's content values (per kind)

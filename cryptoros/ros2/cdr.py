@@ -188,4 +188,22 @@ def checker_for(type_name: str) -> Callable[[bytes | bytearray | memoryview], No
     return check
 
 
-__all__ = ["CdrError", "checker_for"]
+@functools.lru_cache(maxsize=512)
+def deserializer(type_name: str) -> Callable[[bytes | bytearray | memoryview], object]:
+    """A decoder of ``type_name`` samples (``pkg/msg/Name``) into rosbags message
+    objects; malformed bytes raise :class:`CdrError`."""
+    typestore = _typestore()
+    if type_name not in typestore.fielddefs:
+        raise CdrError(f"no definition of {type_name}")
+    decode = typestore.deserialize_cdr
+
+    def run(sample: bytes | bytearray | memoryview) -> object:
+        try:
+            return decode(bytes(sample), type_name)
+        except Exception as err:  # rosbags raises several kinds on short or bad bytes
+            raise CdrError(f"malformed {type_name} sample: {err!r}") from err
+
+    return run
+
+
+__all__ = ["CdrError", "checker_for", "deserializer"]

@@ -6,6 +6,7 @@ tells the misbehaving ones apart by what they send."""
 
 from __future__ import annotations
 
+import time
 import urllib.request
 from pathlib import Path
 
@@ -105,3 +106,47 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
     assert 'cryptoros_monitor_alerts_total{feature="speed_mps",topic="/r0/pose"}' in counted
     assert 'cryptoros_interceptor_denied_total{kind="relay",reason="quarantined"}' in counted  # reconnections refused
     assert "cryptoros_monitor_score_seconds_count" in counted
+
+
+# ------------------------------------------------------------------ ROS 2: the ros2 role's monitor
+
+
+@pytest.mark.slow
+def test_the_ros2_role_quarantines_a_flooded_topic_stream_and_keeps_the_others(tmp_path):
+    """Robot A's rclpy talker holds the grants for /chatter and /twist; robot B's
+    interceptor (role ros2, [monitor] on /chatter, action quarantine) cuts robot A's
+    /chatter stream once it floods, and only that stream. In ROS 2 the receiver sees one
+    stream per topic from each peer (the sender's bridge merges its publishers), so a
+    quarantine names the peer's manager and the stream's node. The model is written
+    out here (a rate limit of 40 Hz): this test is about the role, not the fitting."""
+    from cryptoros.monitor.model import MonitorModel
+    from tests.ros2_support import collect, got, ros2_network
+
+    model = tmp_path / "model.json"
+    MonitorModel(limits={"any": {"rate_hz": 40.0, "size_change": 10.0, "malformed": 0.5}}).save(model)
+    monitor = (f'[monitor]\nmodel = "{model}"\ntopics = ["/chatter"]\naction = "quarantine"\n'
+               'quarantine_seconds = 120.0\n')
+    with ros2_network(tmp_path / "net", start=("robot_a", "robot_b"), extra={"robot_b": monitor}) as net:
+        with net.node("robot_b", "listener.py", "string", "/chatter", "60") as chatter, \
+                net.node("robot_b", "listener.py", "twist", "/twist", "60") as twist:
+            chatter.until("READY", 30)
+            twist.until("READY", 30)
+            with net.node("robot_a", "talker.py", "twist", "/twist", "100000", "10"):
+                collect(twist, 5, 40)
+                with net.node("robot_a", "talker.py", "string", "/chatter", "100000", "10"):
+                    collect(chatter, 10, 40)  # at 10 Hz: watched, no alert
+                    assert "MONITOR alert" not in net.robots["robot_b"].log.read_text()
+                with net.node("robot_a", "talker.py", "string", "/chatter", "100000", "400", "--offset", "1000"):
+                    deadline = time.monotonic() + 30
+                    while "MONITOR alert" not in net.robots["robot_b"].log.read_text():
+                        assert time.monotonic() < deadline, "no alert within 30 s of the flood"
+                        time.sleep(0.2)
+                    chatter.until(None, 1.5)  # what was in flight at the cut
+                    assert got(chatter.until(None, 3.0)) == []  # the flooded stream is cut and refused
+                    assert len(got(collect(twist, 10, 20))) >= 10  # robot A's other stream flows on
+            log = net.robots["robot_b"].log.read_text()
+            counted = net.metrics("robot_b")
+    alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
+    assert len(alerts) == 1 and "(robot_a) on /chatter" in alerts[0] and "rate_hz" in alerts[0], alerts
+    assert 'cryptoros_interceptor_denied_total{kind="monitor",reason="quarantined"} 1.0' in counted
+    assert 'cryptoros_interceptor_denied_total{kind="ros2",reason="quarantined"}' in counted  # reconnections
