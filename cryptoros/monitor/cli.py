@@ -32,9 +32,11 @@ def record(master_uri: str, topics: tuple[str, ...], seconds: float, out: Path) 
 
     from cryptoros.monitor.record import record as run
 
-    click.echo(f"recording {', '.join(topics)} for {seconds:g} s into {out} ...", err=True)
+    def ready() -> None:
+        click.echo(f"recording {', '.join(topics)} for {seconds:g} s into {out} ...", err=True)
+
     try:
-        counts = asyncio.run(run(master_uri, list(topics), out, seconds=seconds))
+        counts = asyncio.run(run(master_uri, list(topics), out, seconds=seconds, on_ready=ready))
     except (CryptorosError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     for key, n in sorted(counts.items()):

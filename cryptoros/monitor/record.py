@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +23,10 @@ from cryptoros.ros1.node import Node, call
 
 
 async def record(master_uri: str, topics: list[str], out: Path, *, seconds: float, name: str = "/monitor_recorder",
-                 host: str = "127.0.0.1", timeout: float = 10.0) -> dict[str, Any]:
-    """Record ``topics`` for ``seconds``; returns messages per (topic, publisher)."""
+                 host: str = "127.0.0.1", timeout: float = 10.0,
+                 on_ready: Callable[[], None] = lambda: None) -> dict[str, Any]:
+    """Record ``topics`` for ``seconds`` (counted once every subscription is registered:
+    then ``on_ready`` is called); returns messages per (topic, publisher)."""
     from rosbags.rosbag1 import Writer
 
     types = dict(await call(master_uri, "getTopicTypes", name, timeout=timeout))
@@ -53,6 +56,7 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
                 counts[key] = counts.get(key, 0) + 1
 
             await node.subscribe(topic, typename, on_message, raw=True, with_publisher=True)
+        on_ready()
         await asyncio.sleep(seconds)
     finally:
         with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):

@@ -6,6 +6,7 @@ tells the misbehaving ones apart by what they send."""
 
 from __future__ import annotations
 
+import json
 import time
 import urllib.request
 from pathlib import Path
@@ -22,6 +23,11 @@ POLICY = DEFAULT_POLICY.replace(
     "    - {{node: /talker_a, topic: /secret, type: std_msgs/String}}\n",
     "    - {{node: /talker_a, topic: /secret, type: std_msgs/String}}\n"
     "    - {{node: '/pose_*', topic: /r0/pose, type: geometry_msgs/PoseStamped}}\n",
+).replace(
+    "    subscribe:\n    - {{node: /victim, topic: /chatter, type: std_msgs/String}}\n",
+    "    subscribe:\n    - {{node: /victim, topic: /chatter, type: std_msgs/String}}\n"
+    "    - {{node: /monitor_recorder, topic: /r0/pose, type: geometry_msgs/PoseStamped}}\n",
+    1,  # robot A's list (robot B's comes second)
 ).replace(
     "    - {{node: '*', topic: /chatter, type: std_msgs/String}}\n",
     "    - {{node: '*', topic: /chatter, type: std_msgs/String}}\n"
@@ -78,17 +84,30 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
                     running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20"], env=net.ros_env("robot_a")):
                 before = read_lines(listener, None, 2.0)
                 assert sum("GOT /pose_clean" in line for line in before) >= 20
-                with pose_pub(net, "/pose_spoof", "spoof", 20, 3) as spoof:
-                    read_lines(spoof, "SENT", 30)
-                with pose_pub(net, "/pose_flood", "flood", 300, 2) as flood:
-                    read_lines(flood, "SENT", 30)
-                after = read_lines(listener, None, 2.0)
+                # robot A records what its publishers send, attacks included (local: no monitor there)
+                attacked = tmp_path / "attacked.bag"
+                with running([script("cryptoros"), "monitor", "record", "--topic", "/r0/pose", "--seconds", "9",
+                              "-o", str(attacked)], env=net.ros_env("robot_a")) as recorder:
+                    read_lines(recorder, "recording", 20)
+                    with pose_pub(net, "/pose_spoof", "spoof", 20, 3) as spoof:
+                        read_lines(spoof, "SENT", 30)
+                    with pose_pub(net, "/pose_flood", "flood", 300, 2) as flood:
+                        read_lines(flood, "SENT", 30)
+                    after = read_lines(listener, None, 2.0)
+                    assert "bag:" in read_lines(recorder, "bag:", 20)[-1]
                 chatter = got(read_lines(chat, None, 2.0))
             log = net.hosts["robot_b"].logs()
             counted = metrics(net, "robot_b")
 
+    # the same attacks, recorded on robot A and scored offline as the interceptor scores them
+    scored = run([script("cryptoros"), "monitor", "eval", str(attacked), "--model", str(model), "--attacker",
+                  "/pose_spoof", "--attacker", "/pose_flood", "--json"], timeout=60)
+    assert scored.returncode == 0, scored.stderr
+    figures = json.loads(scored.stdout)
+    assert figures["attack_streams_detected"] == "2 of 2", figures
+    assert figures["false_positive_rate"] <= 0.005 and figures["clean_streams_alerted"] == [], figures
     alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
-    print("\n".join(["monitor live:", clean_eval.stdout, *alerts,
+    print("\n".join(["monitor live:", clean_eval.stdout, scored.stdout, *alerts,
                       f"spoofed poses the listener got: {sum('GOT /pose_spoof' in x for x in before + after)}",
                       f"flood poses the listener got: {sum('GOT /pose_flood' in x for x in before + after)}"]))
     assert any("/pose_spoof" in a and "speed_mps" in a for a in alerts), alerts
