@@ -9,7 +9,6 @@ an attack message, every other message a clean one.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -115,7 +114,7 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
         name = f"{row.publisher} on {row.topic}"
         tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
         score = model.score(row.kind, row.values)
-        suspicious = score.value > 1.0 and math.isfinite(score.value)
+        suspicious = score.value > 1.0  # inf (NaN content) included, as in the interceptor
         alerted = tracker.update(suspicious)
         runs[key] = runs.get(key, 0) + 1 if suspicious else 0
         flagged = runs[key] >= model.consecutive

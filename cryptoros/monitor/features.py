@@ -11,8 +11,8 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
   ``size_change`` (relative change of the body size from the previous message);
 * ``pose`` (``geometry_msgs/PoseStamped``): ``speed_mps``, the speed the step from the
   previous position implies (a spoofed position jumps); ``stamp_back_s``, how far
-  the header stamp went back (a replay); ``stamp_lag_s``, how old the stamp is on
-  arrival (a replay of old messages);
+  the header stamp went back (a replay); ``stamp_lag_s``, how far the stamp is from
+  the arrival time (a replay of old messages, or a stamp made up ahead of the clock);
 * ``scan`` (``sensor_msgs/LaserScan``): ``roughness``, the mean step between
   neighbouring beams relative to the mean range (noise), ``scan_change``, the mean
   change from the previous scan relative to the mean range, and the two stamp
@@ -20,7 +20,9 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
 * ``twist`` (``geometry_msgs/Twist``): ``linear`` and ``angular``, ``|linear.x|`` and
   ``|angular.z|`` (a command no controller would send).
 
-A body that does not decode as its type scores as its own feature, ``malformed`` (1.0).
+A body that does not decode as its type scores as its own feature, ``malformed`` (1.0);
+a feature that comes out NaN or infinite (a pose at NaN) scores as infinitely over its
+limit (:mod:`cryptoros.monitor.model`).
 """
 
 from __future__ import annotations
@@ -149,7 +151,7 @@ class StreamFeatures:
     # -- per kind: the content features, and what the next message compares with
     def _stamps(self, stamp: float, prev_stamp: float | None, wall: float) -> tuple[float, float]:
         back = max(0.0, prev_stamp - stamp) if prev_stamp is not None else 0.0
-        return back, max(0.0, wall - stamp)
+        return back, abs(wall - stamp)  # old (a replay) or ahead of the clock (made up)
 
     def _pose(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         p = msg.pose.position

@@ -55,6 +55,8 @@ class MonitorModel:
             limit = limits.get(feature)
             if limit is None:
                 continue
+            if not math.isfinite(value):  # NaN or inf in a message is never clean (NaN compares false)
+                return Score(math.inf, feature)
             ratio = value / limit
             if ratio > worst:
                 worst, name = ratio, feature

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import struct
 
 import numpy as np
@@ -115,6 +116,17 @@ def test_fit_sets_limits_above_clean_traffic_and_scores_excursions():
     assert max(clean) < 1.0
     jump = model.score("pose", f.observe(pose(40.0, 40.0, 5002.6), 5002.6, 5002.6))
     assert jump.value > 10 and jump.feature == "speed_mps"
+
+
+def test_nan_or_infinite_content_is_never_clean_and_a_stamp_ahead_of_the_clock_shows():
+    model = fitted()
+    f = StreamFeatures(POSE)
+    for body, at in clean_poses(5, t0=7000.0):
+        f.observe(body, at, at)
+    nan = model.score("pose", f.observe(pose(math.nan, 1.0, 7000.3), 7000.3, 7000.3))
+    assert nan.value == math.inf and nan.feature == "speed_mps"
+    ahead = model.score("pose", f.observe(pose(1.0, 1.0, 7100.0), 7000.35, 7000.35))
+    assert ahead.value > 1 and named("pose", f.observe(pose(1.0, 1.0, 7200.0), 7000.4, 7000.4))["stamp_lag_s"] > 199
 
 
 def test_the_model_file_round_trips_and_bad_files_are_one_clear_error(tmp_path):
