@@ -245,6 +245,7 @@ def revoke(ctx: click.Context, manager: str, action: str, node: str, name: str, 
 #: The anonymous node names stock ROS 1 tools run under (ros_comm 1.15), as node patterns.
 TOOL_NODES = {
     "rostopic": "/rostopic_*",      # rostopic echo/hz/pub: init_node('rostopic', anonymous=True)
+    "rosbag": "/record_*",          # rosbag record: the node 'record' with a number (any type: '*')
     "rosparam": "/rosparam-*",      # rosgraph.Master('/rosparam-<pid>')
     "rosservice_probe": "/rosservice",  # the service type probe of rosservice call/info
     "rosservice": "/rosservice_*",  # rosservice call: init_node('rosservice', anonymous=True)
@@ -264,6 +265,7 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
     rows: list[tuple[str, str, str, str | None]] = []
     for value in topics:
         rows.append(("subscribe", TOOL_NODES["rostopic"], *_name_type(value, "--topic")))
+        rows.append(("subscribe", TOOL_NODES["rosbag"], *_name_type(value, "--topic")))
     for value in publish_topics:
         rows.append(("publish", TOOL_NODES["rostopic"], *_name_type(value, "--publish-topic")))
     for value in services:
@@ -278,7 +280,7 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
 @main.command("grant-tools")
 @click.argument("manager")
 @click.option("--topic", "topics", multiple=True, metavar="NAME:TYPE",
-              help="A topic rostopic echo/hz/bw may subscribe to (repeatable).")
+              help="A topic rostopic echo/hz/bw and rosbag record may subscribe to (repeatable).")
 @click.option("--publish-topic", "publish_topics", multiple=True, metavar="NAME:TYPE",
               help="A topic rostopic pub may publish (repeatable).")
 @click.option("--service", "services", multiple=True, metavar="NAME:TYPE",
@@ -293,7 +295,8 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
                 services: tuple[str, ...], param_namespaces: tuple[str, ...], params_read_only: bool,
                 no_params: bool, remove: bool) -> None:
     """Grant MANAGER's stock ROS 1 tools what they need, by the anonymous node names
-    they run under: rostopic as /rostopic_* (--topic, --publish-topic), rosparam as
+    they run under: rostopic as /rostopic_* and rosbag record as /record_* (--topic;
+    --publish-topic for rostopic pub), rosparam as
     /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
     /rosservice_* (--service). rosnode list/info/ping and rostopic list/info/type only
     read the graph and need no grant; rosnode kill is always refused. Idempotent: a

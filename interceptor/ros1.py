@@ -44,6 +44,7 @@ from cryptoros.policy.ros1 import (
     check_publisher_header,
     check_service_client_header,
     check_service_server_header,
+    check_subscribed_type,
     check_subscriber_header,
     filter_param_reply,
     ros_error,
@@ -953,6 +954,9 @@ class Ros1Role(GatewayRole):
                 tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields, pending=tunnel.pending
             )
             reply_fields = reply.as_dict()
+
+            if purpose == "topic" and "error" not in reply_fields:  # a subscriber of any type: what it gets
+                check_subscribed_type(fields, reply_fields.get("type", ""), grants=own.grants)
 
             def judge(grants) -> None:
                 """The publisher's (server's) side against its grants, again on each fresher token."""

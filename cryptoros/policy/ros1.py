@@ -48,6 +48,8 @@ MASTER_READ_ONLY = frozenset(
         "getPid",
     }
 )
+#: The type a subscriber names to take any type (rosbag record, topic_tools): ROS 1's ``*``.
+ANY_TYPE = "*"
 MASTER_REGISTER = frozenset({"registerPublisher", "registerSubscriber", "registerService"})
 MASTER_UNREGISTER = frozenset({"unregisterPublisher", "unregisterSubscriber", "unregisterService"})
 #: Parameter-server methods, by the access they need; the key is parameter 1.
@@ -236,6 +238,12 @@ def check_master_call(
         topic = _str_param(params, 1, method, "a topic")
         type_name = _str_param(params, 2, method, "a type")
         action = "publish" if method == "registerPublisher" else "subscribe"
+        if action == "subscribe" and type_name == ANY_TYPE:
+            # rosbag record, topic_tools: any type. Each connection is then judged by the type
+            # really published (check_subscriber_header, check_subscribed_type).
+            if not grants.types_for("subscribe", caller, topic):
+                raise _deny("not_granted", f"{manager}: {caller} may not subscribe {topic} (with any type)")
+            return
         if not _granted(grants, action, caller, topic, type_name, infrastructure):
             raise _deny("not_granted", f"{manager}: {caller} may not {action} {topic} [{type_name}]")
         return
@@ -300,6 +308,8 @@ def check_subscriber_header(
         raise _deny("malformed", "subscriber header lacks callerid, topic, type or md5sum")
     if published_type is None:
         raise _deny("unknown_topic", f"no local publisher of {topic}")
+    if type_name == ANY_TYPE and md5 == ANY_TYPE:  # a subscriber of any type gets what is published
+        type_name, md5 = published_type, published_md5 or md5
     if type_name != published_type:
         raise _deny("type_mismatch", f"{caller} asks {topic} as {type_name}, published as {published_type}")
     if published_md5 is not None and md5 != published_md5:
@@ -311,12 +321,27 @@ def check_subscriber_header(
 def check_local_subscriber_header(header: Mapping[str, str], *, grants: Grants) -> None:
     """A local subscriber's TCPROS header, before its stream leaves this host toward a
     remote publisher: its own node must be granted to subscribe the topic with that
-    type (the publisher's interceptor checks the rest against what it publishes)."""
+    type (the publisher's interceptor checks the rest against what it publishes). A
+    subscriber of any type (``*``) needs a grant for the topic with some type here and
+    :func:`check_subscribed_type` once the publisher has answered."""
     caller, topic, type_name = header.get("callerid", ""), header.get("topic", ""), header.get("type", "")
     if not (caller and topic and type_name):
         raise _deny("malformed", "subscriber header lacks callerid, topic or type")
+    if type_name == ANY_TYPE:
+        if not grants.types_for("subscribe", caller, topic):
+            raise _deny("not_granted", f"{caller} may not subscribe {topic}")
+        return
     if not grants.allows("subscribe", caller, topic, type_name):
         raise _deny("not_granted", f"{caller} may not subscribe {topic}")
+
+
+def check_subscribed_type(header: Mapping[str, str], published_type: str, *, grants: Grants) -> None:
+    """A local subscriber of any type, once the remote publisher answered: the type it
+    will receive must be one its node is granted (a subscriber of one type was checked
+    by :func:`check_local_subscriber_header` already)."""
+    caller, topic = header.get("callerid", ""), header.get("topic", "")
+    if header.get("type") == ANY_TYPE and not grants.allows("subscribe", caller, topic, published_type):
+        raise _deny("not_granted", f"{caller} may not subscribe {topic} [{published_type}]")
 
 
 def check_publisher_header(header: Mapping[str, str], *, grants: Grants, topic: str, infrastructure: bool = True) -> None:
@@ -370,6 +395,7 @@ def ros_error(message: str) -> list[Any]:
 
 
 __all__ = [
+    "ANY_TYPE",
     "ALWAYS_DROPPED",
     "FROM_MASTER_ONLY",
     "MASTER_READ_ONLY",
@@ -391,6 +417,7 @@ __all__ = [
     "check_publisher_header",
     "check_service_client_header",
     "check_service_server_header",
+    "check_subscribed_type",
     "check_subscriber_header",
     "infrastructure_allows",
     "ros_error",

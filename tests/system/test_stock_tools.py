@@ -5,7 +5,8 @@ master's interceptor and a rospy talker (and service) on robot A.
 Refused first (robot B holds no grant for the tools' anonymous node names), then
 ``cryptoros-authz grant-tools robot_b ...`` (no SIGHUP, no restart) and they work:
 ``rostopic echo -n 1 /chatter`` receives robot A's talker, ``rosparam set /x 1`` then
-``rosparam get /x``, ``rosservice call``, ``rosnode list`` and ``rosnode info``.
+``rosparam get /x``, ``rosservice call``, ``rosnode list`` and ``rosnode info``, and
+``rosbag record`` (which subscribes with type ``*``) records robot A's talker.
 ``grant-tools --remove`` takes them away again.
 """
 
@@ -68,7 +69,7 @@ def until_ok(net, *argv: str, within: float, timeout: float = 15) -> subprocess.
 
 
 def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
-    require("rostopic", "rosparam", "rosnode", "rosservice")
+    require("rostopic", "rosparam", "rosnode", "rosservice", "rosbag")
     with robot_network(tmp_path, policy=POLICY, start=("master", "robot_a", "robot_b")) as net, \
             running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "10", "120"],
                     env=net.ros_env("robot_a")) as pub, \
@@ -102,6 +103,16 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
 
         echo = tool(net, "rostopic", "echo", "-n", "1", "/chatter", timeout=30)
         assert echo.returncode == 0 and 'data: "secret-' in echo.stdout, echo
+
+        # rosbag record subscribes with type '*': judged by the type really published
+        bag = tmp_path / "chatter.bag"
+        recorded = tool(net, "rosbag", "record", "-O", str(bag), "--duration=3", "/chatter", timeout=30)
+        assert recorded.returncode == 0, recorded.stdout + recorded.stderr
+        from rosbags.rosbag1 import Reader
+
+        with Reader(bag) as reader:
+            topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        assert topics.get("/chatter", ("", 0))[0] == "std_msgs/msg/String" and topics["/chatter"][1] >= 10, topics
 
         call = until_ok(net, "rosservice", "call", "/rospy_loggers", within=10, timeout=20)
         assert "rospy.server" in call.stdout, call.stdout

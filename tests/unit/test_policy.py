@@ -149,3 +149,27 @@ def test_publisher_and_service_headers():
                   service="/add_two_ints", server_grants=ALICE, client_types=types) == "type_mismatch"
     assert denied(check_service_server_header, {"callerid": "/talker", "type": "rospy_tutorials/AddTwoInts"},
                   service="/add_two_ints", server_grants=ALICE, client_types=types) == "not_granted"
+
+
+# ------------------------------------------------------------------ subscribers of any type (rosbag record)
+
+
+def test_a_subscriber_of_any_type_needs_a_subscribe_grant_on_the_topic_and_gets_only_a_granted_type():
+    from cryptoros.policy.ros1 import ANY_TYPE, check_local_subscriber_header, check_subscribed_type
+
+    master("registerSubscriber", "/listener", "/chatter", ANY_TYPE, API)  # granted /chatter with some type
+    assert denied(master, "registerSubscriber", "/talker", "/chatter", ANY_TYPE, API) == "not_granted"
+    assert denied(master, "registerSubscriber", "/listener", "/secret", ANY_TYPE, API) == "not_granted"
+    # leaving the subscriber's host, then once the publisher answered with its type
+    wildcard = {"callerid": "/listener", "topic": "/chatter", "type": ANY_TYPE, "md5sum": ANY_TYPE}
+    check_local_subscriber_header(wildcard, grants=ALICE)
+    assert denied(check_local_subscriber_header, {**wildcard, "callerid": "/talker"}, grants=ALICE) == "not_granted"
+    check_subscribed_type(wildcard, STRING, grants=ALICE)
+    assert denied(check_subscribed_type, wildcard, "std_msgs/Int32", grants=ALICE) == "not_granted"
+    check_subscribed_type({**wildcard, "type": STRING}, "std_msgs/Int32", grants=ALICE)  # checked before, not here
+    # at the publisher's host: judged as a subscriber of the type really published
+    check_subscriber_header(wildcard, grants=ALICE, published_type=STRING, published_md5=MD5)
+    assert denied(check_subscriber_header, wildcard, grants=ALICE, published_type="std_msgs/Int32",
+                  published_md5="x") == "not_granted"
+    assert denied(check_subscriber_header, {**wildcard, "md5sum": "0" * 32}, grants=ALICE, published_type=STRING,
+                  published_md5=MD5) == "type_mismatch"  # '*' type with a real md5sum is not a wildcard
