@@ -40,7 +40,8 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, TokenError
+from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
@@ -366,6 +367,9 @@ class Gateway:
         down) keeps the old state everywhere (the caller catches and logs)."""
         for role in self._roles:
             role.check_reload(cfg)
+        if (cfg.monitor is None) != (self.monitor is None):
+            raise ConfigError("adding or removing [monitor] needs a restart of the interceptor")
+        monitor_model = MonitorModel.load(cfg.monitor.model) if cfg.monitor is not None else None
         # one certificate source: every holder below is built from cfg.tls
         server_ctx = server_context(cfg.tls)
         client_ctx = client_context(cfg.tls, check_hostname=True)
@@ -396,9 +400,11 @@ class Gateway:
         self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
         self._own_access = None
         self.own_access()
+        if self.monitor is not None and cfg.monitor is not None and monitor_model is not None:
+            self.monitor.reconfigure(cfg.monitor, monitor_model)  # a retrained model: scored with from now on
         for role in self._roles:
             role.reloaded()
-        log.info("reloaded certificates, CRL and policy")
+        log.info("reloaded certificates, CRL, policy%s", " and the monitor's model" if self.monitor else "")
 
     # ================================================================ health
     def feed_problem(self) -> PolicyDenied | None:

@@ -101,6 +101,13 @@ class Monitor:
         #: how to cut it when its publisher is quarantined
         self._cuts: dict[tuple[str, str], set[Callable[[], None]]] = {}
 
+    def reconfigure(self, settings: MonitorSettings, model: MonitorModel) -> None:
+        """SIGHUP: new settings and model (loaded and checked by the caller). Open streams
+        are scored with the new model from their next message; quarantines stay."""
+        self.settings, self.model = settings, model
+        for stream in self._streams:
+            stream.alerts.needed = model.consecutive
+
     def quarantined_for(self, manager: str, publisher: str) -> float:
         """Seconds left of this publisher's quarantine (0: not quarantined)."""
         until = self._quarantine.get((manager, publisher))

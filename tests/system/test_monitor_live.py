@@ -7,6 +7,7 @@ tells the misbehaving ones apart by what they send."""
 from __future__ import annotations
 
 import json
+import signal
 import time
 import urllib.request
 from pathlib import Path
@@ -130,6 +131,13 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
 # ------------------------------------------------------------------ ROS 2: the ros2 role's monitor
 
 
+def wait_for_line(log: Path, text: str, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while text not in log.read_text():
+        assert time.monotonic() < deadline, f"no {text!r} in {log} within {timeout} s"
+        time.sleep(0.1)
+
+
 @pytest.mark.slow
 def test_the_ros2_role_quarantines_a_flooded_topic_stream_and_keeps_the_others(tmp_path):
     """Robot A's rclpy talker holds the grants for /chatter and /twist; robot B's
@@ -165,6 +173,15 @@ def test_the_ros2_role_quarantines_a_flooded_topic_stream_and_keeps_the_others(t
                     assert len(got(collect(twist, 10, 20))) >= 10  # robot A's other stream flows on
             log = net.robots["robot_b"].log.read_text()
             counted = net.metrics("robot_b")
+            # SIGHUP with a model that does not load keeps the old state; a good one is taken
+            robot_b = net.robots["robot_b"]
+            model.write_text("{not json")
+            robot_b.proc.send_signal(signal.SIGHUP)
+            wait_for_line(robot_b.log, "reload failed, keeping the old state")
+            MonitorModel(limits={"any": {"rate_hz": 80.0}}, consecutive=5).save(model)
+            robot_b.proc.send_signal(signal.SIGHUP)
+            wait_for_line(robot_b.log, "and the monitor's model")
+            assert robot_b.proc.poll() is None
     alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
     assert len(alerts) == 1 and "(robot_a) on /chatter" in alerts[0] and "rate_hz" in alerts[0], alerts
     assert 'cryptoros_interceptor_denied_total{kind="monitor",reason="quarantined"} 1.0' in counted

@@ -294,3 +294,21 @@ def test_monitor_settings_are_checked_at_start(tmp_path):
         _parse_monitor({"model": "nope.json"}, tmp_path)
     with pytest.raises(ConfigError, match="topics"):
         _parse_monitor({"model": "m.json", "topics": ["chatter"]}, tmp_path)
+
+
+async def test_reconfigure_scores_open_streams_with_the_new_model_and_keeps_quarantines(tmp_path):
+    clock = Clock()
+    monitor, _ = monitor_for(tmp_path, clock=clock)
+    monitor.register("m", "/evil", lambda: None)
+    stream = monitor.watch(manager="m", publisher="/p", topic="/r0/pose", typename=POSE, cut=lambda: None)
+    monitor._alert(stream, "speed_mps", 9.0)  # quarantined under the old model
+    strict = MonitorModel(limits={"pose": {"speed_mps": 0.0001}}, consecutive=1)
+    monitor.reconfigure(MonitorSettings(model=tmp_path / "m.json", action="log"), strict)
+    assert stream.alerts.needed == 1 and monitor.settings.action == "log"
+    with pytest.raises(PolicyDenied):
+        monitor.check_admission("m", "/p")  # a quarantine outlives a reload
+    for i in range(2):
+        clock.t = 1000 + i / 20
+        stream.feed(frame(pose(0.01 * i, 0.0, clock.t)))
+        await drain()
+    assert monitor.metrics.alerts.labels("/r0/pose", "speed_mps")._value.get() == 2  # the old one and a new one
