@@ -251,6 +251,11 @@ class Ros1Role(GatewayRole):
         #: from new ports (restarted), so restarts do not use up export_limit
         self._node_apis: dict[str, str] = {}
         self._export_children: dict[str, set[str]] = {}
+        #: node role: what each local node has registered now ((kind, name): pub, sub, srv,
+        #: param); a node whose last registration goes (it shut down cleanly) has its
+        #: exports released, so nodes that come and go under new names (rostopic, rosbag)
+        #: do not use up export_limit either
+        self._node_registrations: dict[str, set[tuple[str, str]]] = {}
         gateway.serve("master", self._check_master_target, self._serve_master_stream)
         gateway.serve("node", self._check_node_target, self._serve_node_stream)
         gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
@@ -779,6 +784,8 @@ class Ros1Role(GatewayRole):
                 self._note_local_subscriber(call)
             if call.method in _LOCAL_REGISTRATIONS and _ros_ok(response):
                 self._note_local_node(call)
+            if _ros_ok(response):
+                self._track_local_registration(call)
             response = _filtered_param_reply(call, response, self.gw.own_access().grants)
             return rewrite_response(call, response, uri=self.translator.to_local)
 
@@ -817,17 +824,41 @@ class Ros1Role(GatewayRole):
             self._node_apis[node] = api_id
         self._save_state_soon()
 
+    def _track_local_registration(self, call: Request) -> None:
+        """Count a local node's registrations; when the last one is released (a clean
+        shutdown unregisters everything), its exports are released too."""
+        key = _registration_key(call.method, call.params) or _param_subscription_key(call.method, call.params)
+        if key is None:
+            return
+        kind, node, name = key
+        if call.method.startswith(("register", "subscribe")):
+            regs = self._node_registrations.setdefault(node, set())
+            if len(regs) < 4096 and len(self._node_registrations) <= self.translator.MAX_EXPORTS:
+                regs.add((kind, name))
+            return
+        regs = self._node_registrations.get(node)
+        if regs is None:
+            return
+        regs.discard((kind, name))
+        if regs:
+            return
+        del self._node_registrations[node]
+        api_id = self._node_apis.get(node)
+        if api_id is not None:
+            self._release_node_exports(api_id, why="unregistered everything")
+            self._save_state_soon()
+
     def _note_export_child(self, api_id: str, child: str) -> None:
         children = self._export_children.setdefault(api_id, set())
         if len(children) < 1024:  # a node's own servers; more is not remembered (kept, not released)
             children.add(child)
 
-    def _release_node_exports(self, api_id: str) -> None:
+    def _release_node_exports(self, api_id: str, why: str = "restarted") -> None:
         released = [i for i in (*self._export_children.pop(api_id, ()), api_id) if self.translator.release(i)]
         for node in [n for n, i in self._node_apis.items() if i == api_id]:
             del self._node_apis[node]
         if released:
-            log.info("released %d exports of a node that restarted (API export %s)", len(released), api_id)
+            log.info("released %d exports of a node that %s (API export %s)", len(released), why, api_id)
 
     # ---------------------------------------------------------------- subscribers reconnect
     def _note_local_subscriber(self, call: Request) -> None:
@@ -1029,6 +1060,15 @@ def _registration_key(method: str, params: tuple) -> tuple[str, str, str] | None
     if kind is None or len(params) < 2 or not all(isinstance(p, str) for p in params):
         return None
     return kind, params[0], params[1]
+
+
+def _param_subscription_key(method: str, params: tuple) -> tuple[str, str, str] | None:
+    """A parameter subscription made or released: ("param", node, key)."""
+    if method not in ("subscribeParam", "unsubscribeParam") or len(params) < 3:
+        return None
+    if not all(isinstance(p, str) for p in params[:3]):
+        return None
+    return "param", params[0], params[2]
 
 
 def _local_endpoint(uri) -> tuple[str, int] | None:

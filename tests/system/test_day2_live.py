@@ -197,6 +197,33 @@ def test_a_node_restarting_on_new_ports_releases_its_old_exports(tmp_path):
         assert counts[0] >= 2 and counts[-1] == counts[0], counts
         assert "released" in net.hosts["robot_a"].logs()
 
+def test_nodes_that_shut_down_cleanly_under_new_names_release_their_exports(tmp_path):
+    """Nodes that come and go under names never used again (rostopic, rosbag record and
+    scripts run anonymous nodes) unregister everything when they shut down cleanly: robot
+    A's interceptor then releases their exports, so the count returns to where it was
+    (else a cron job running rostopic every minute would use up export_limit in days)."""
+    state = tmp_path / "state"
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"),
+                       extra={"robot_a": f'state_dir = "{state}"'}) as net, \
+            running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "60"], env=net.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+
+        def exports() -> int:
+            files = list(state.glob("*.state.json"))
+            return len(json.loads(files[0].read_text())["translator"]["exports"]) if files else 0
+
+        baseline = exports()
+        for name in ("/talker_a", "/rospy_talker", "/roscpp_talker"):  # three names, each used once
+            with running([SYS_PY, NODE, "pub", name, "/chatter", "3", "20", "0.2"], env=net.ros_env("robot_a")) as pub:
+                read_lines(pub, "SENT 3", 20)
+                assert pub.wait(timeout=20) == 0  # exits by itself: rospy unregisters at exit
+            deadline = time.monotonic() + 10
+            while exports() != baseline:
+                assert time.monotonic() < deadline, f"{name}: {exports()} exports, {baseline} before it ran"
+                time.sleep(0.1)
+        assert net.hosts["robot_a"].logs().count("of a node that unregistered everything") == 3
+
+
 def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_sighup(tmp_path):
     """Day 2, revocation without SIGHUP: robot B's certificate is revoked with the CA
     (a new CRL; no interceptor is signalled). The authorization server's feed lists the
