@@ -42,6 +42,9 @@ ACTIONS = ("log", "quarantine")
 MAX_QUARANTINED = 4096
 #: seconds between two alert log lines of one stream (every alert is counted)
 ALERT_LOG_INTERVAL = 1.0
+#: messages one stream scores before it hands the event loop back (a backlog of small
+#: messages must not stall forwarding)
+MESSAGES_PER_TURN = 256
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -236,7 +239,12 @@ class WatchedStream:
         monitor, metrics = self.monitor, self.monitor.metrics
         model, kind = monitor.model, self.features.kind
         messages = metrics.messages.labels(self.topic)
+        scored = 0
         while self._chunks and not self.closed:
+            if scored >= MESSAGES_PER_TURN:  # let the loop forward others' bytes; go on after
+                self._scheduled = True
+                asyncio.get_running_loop().call_soon(self._score_queued)
+                return
             data, now, wall, whole = self._chunks.popleft()
             self._backlog -= len(data)
             if whole:
@@ -246,6 +254,7 @@ class WatchedStream:
                 buffer += data
                 spans, stop, _pending, error = self._walker.split(buffer)
                 bodies = [bytes(buffer[start:end]) for start, end in spans]
+            scored += len(bodies)
             for body in bodies:
                 t0 = time.perf_counter()
                 score = model.score(kind, self.features.observe(body, now, wall))

@@ -312,3 +312,17 @@ async def test_reconfigure_scores_open_streams_with_the_new_model_and_keeps_quar
         stream.feed(frame(pose(0.01 * i, 0.0, clock.t)))
         await drain()
     assert monitor.metrics.alerts.labels("/r0/pose", "speed_mps")._value.get() == 2  # the old one and a new one
+
+
+async def test_a_backlog_is_scored_in_turns_that_hand_the_loop_back(tmp_path):
+    from interceptor.monitor import MESSAGES_PER_TURN
+
+    monitor, _ = monitor_for(tmp_path, action="log")
+    stream = monitor.watch(manager="m", publisher="/p", topic="/t", typename="std_msgs/String", cut=lambda: None)
+    for i in range(3 * MESSAGES_PER_TURN):
+        stream.feed(frame(b"\x04\x00\x00\x00abcd"))
+    counted = monitor.metrics.messages.labels("/t")
+    await asyncio.sleep(0)  # one turn of the loop: one share of the backlog
+    assert counted._value.get() == MESSAGES_PER_TURN
+    await drain()
+    assert counted._value.get() == 3 * MESSAGES_PER_TURN
