@@ -383,6 +383,8 @@ class Ros1Role(GatewayRole):
             self._owners.update({str(k): [str(v[0]), int(v[1])] for k, v in data.get("owners", {}).items()})
             for method, params in data.get("registrations", [])[:MAX_REGISTRATIONS]:
                 self._record_registration(str(method), tuple(str(p) for p in params))
+            for method, params in self._registrations.values():  # the counts behind each restored relay
+                self._count_relay_refs(method, params, +1)
             for topic, subscribers in data.get("local_subscribers", {}).items():
                 self._local_subscribers[str(topic)] = {str(n): str(api) for n, api in subscribers.items()}
             self._node_apis.update({str(n): str(i) for n, i in data.get("node_apis", {}).items()})
@@ -512,7 +514,7 @@ class Ros1Role(GatewayRole):
         if call.method.startswith("register") or call.method == "subscribeParam":
             entry = self._owners.setdefault(node, [manager, 0])
             entry[1] += 1
-            self._count_relay_refs(call, +1)
+            self._count_relay_refs(call.method, call.params, +1)
             self._save_state_soon()
         elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
                 isinstance(response.value[2], int) and response.value[2] > 0:
@@ -522,7 +524,7 @@ class Ros1Role(GatewayRole):
                 if entry[1] <= 0:
                     del self._owners[node]
                 self._save_state_soon()
-            self._count_relay_refs(call, -1)
+            self._count_relay_refs(call.method, call.params, -1)
 
     def _record_registration(self, method: str, params: tuple) -> None:
         """Keep (or drop) one registration as it was forwarded to rosmaster."""
@@ -573,11 +575,11 @@ class Ros1Role(GatewayRole):
         log.warning("rosmaster (pid %d) is new: %d registrations replayed%s", pid, len(calls),
                     f", {failed} failed" if failed else "")
 
-    def _count_relay_refs(self, call: Request, delta: int) -> None:
+    def _count_relay_refs(self, method: str, params: tuple, delta: int) -> None:
         """Relays the master holds URIs of: one count per registration behind each;
         a relay whose last registration was released is closed (its fd freed)."""
-        for index in _RELAY_URI_INDEX.get(call.method, ()):
-            uri = call.params[index] if len(call.params) > index else None
+        for index in _RELAY_URI_INDEX.get(method, ()):
+            uri = params[index] if len(params) > index else None
             endpoint = _local_endpoint(uri)
             if endpoint is None or self.translator.relay_target(*endpoint) is None:
                 continue

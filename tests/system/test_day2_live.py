@@ -224,6 +224,56 @@ def test_nodes_that_shut_down_cleanly_under_new_names_release_their_exports(tmp_
         assert net.hosts["robot_a"].logs().count("of a node that unregistered everything") == 3
 
 
+#: A subscriber node of our own node client with two subscriptions; on a line on stdin it
+#: drops the second (one of the two registrations behind its relay at the master host).
+TWO_SUBSCRIPTIONS = """
+import asyncio, sys
+from cryptoros.ros1.node import Node
+
+async def main():
+    node = Node("/listener_x", sys.argv[1], host="127.0.0.1")
+    await node.start()
+    await node.subscribe("/chatter", "std_msgs/String", lambda m: print("GOT", m.data, flush=True))
+    await node.subscribe("/secret", "std_msgs/String", lambda m: None)
+    print("SUBSCRIBED", flush=True)
+    await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
+    await node.unsubscribe("/secret")
+    print("UNSUBSCRIBED", flush=True)
+    await asyncio.sleep(60)
+
+asyncio.run(main())
+"""
+
+
+def test_after_a_master_interceptor_restart_a_node_keeps_its_relay_until_its_last_registration(tmp_path):
+    """The master's interceptor counts the registrations behind each relay it holds for
+    rosmaster, and closes a relay when its last one goes. Restarted from its state, it
+    counts the restored registrations again: a subscriber that drops one of its two
+    subscriptions after the restart keeps its relay, so rosmaster still reaches it when a
+    publisher appears (before, the counts started at zero and the first unregister
+    closed the relay)."""
+    import sys
+
+    from tests.interceptor_harness import DEFAULT_POLICY
+
+    policy = DEFAULT_POLICY.replace(
+        "    - {{node: '*', topic: /chatter, type: std_msgs/String}}\n",
+        "    - {{node: '*', topic: /chatter, type: std_msgs/String}}\n"
+        "    - {{node: '*', topic: /secret, type: std_msgs/String}}\n")
+    with robot_network(tmp_path, policy=policy, extra={"master": f'state_dir = "{tmp_path / "state"}"'}) as net, \
+            running([sys.executable, "-c", TWO_SUBSCRIPTIONS, net.hosts["robot_b"].master_uri],
+                    env=net.ros_env("robot_b"), stdin=subprocess.PIPE) as listener:
+        read_lines(listener, "SUBSCRIBED", 20)
+        net.stop("master")
+        net.start("master")
+        assert "state restored" in net.hosts["master"].logs()
+        listener.stdin.write("\n")
+        listener.stdin.flush()
+        read_lines(listener, "UNSUBSCRIBED", 20)
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "1"], env=net.ros_env("robot_a")):
+            assert got(read_lines(listener, "GOT", 20)), "rosmaster no longer reaches the listener"
+
+
 def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_sighup(tmp_path):
     """Day 2, revocation without SIGHUP: robot B's certificate is revoked with the CA
     (a new CRL; no interceptor is signalled). The authorization server's feed lists the
