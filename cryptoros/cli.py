@@ -19,7 +19,12 @@ SUBCOMMANDS: dict[str, str] = {
     "demo": "cryptoros.demo.cli:demo",
     "attack": "cryptoros.attack.cli:attack",
     "status": "interceptor.status:status",
-    "monitor": "cryptoros.monitor.cli:monitor",
+}
+MONITOR_SUBCOMMANDS: dict[str, str] = {
+    "record": "cryptoros.monitor.cli:record",
+    "train": "cryptoros.monitor.cli:train",
+    "eval": "cryptoros.monitor.cli:evaluate",
+    "dataset": "cryptoros.demo.dataset:dataset",
 }
 
 
@@ -27,6 +32,15 @@ SUBCOMMANDS: dict[str, str] = {
 @click.version_option(package_name="cryptoros")
 def main() -> None:
     """cryptoros: secure ROS robot communication without touching robot code."""
+
+
+@main.group(cls=LazyGroup, subcommands=MONITOR_SUBCOMMANDS)
+def monitor() -> None:
+    """The runtime monitor: record labelled datasets, train its model on clean recordings,
+    evaluate it on attacks.
+
+    Recordings are ROS 1 bags (`monitor record`, `monitor dataset`); the interceptor
+    loads the model named in its [monitor] section (docs/monitor.md)."""
 
 
 if __name__ == "__main__":  # pragma: no cover

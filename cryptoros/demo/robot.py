@@ -40,6 +40,7 @@ from typing import Any, Callable
 import numpy as np
 
 from cryptoros.attack.lib import digest
+from cryptoros.demo.compromise import FLOOD_HZ, Compromise
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import Node
 from cryptoros.sim import packets as P
@@ -159,6 +160,8 @@ class DemoRobot:
         self.t0: float | None = None
         self.done_at_s: float | None = None
         self.pubs: dict[str, Any] = {}
+        #: a compromised robot (monitor datasets): set once the start time is known
+        self.compromise: Compromise | None = None
 
     # -- evidence -----------------------------------------------------------------------------
 
@@ -297,11 +300,16 @@ class DemoRobot:
             if self.robot is not None and self.robot.state != DEAD:
                 x, y = self.robot.pos
                 stamp = time.time()
-                raw = self.pose_bytes(i, stamp, x, y)
+                bad = self.compromise
+                px, py, pstamp = bad.pose(x, y, stamp) if bad is not None else (x, y, stamp)
+                raw = self.pose_bytes(i, pstamp, px, py)
                 self.base_published.add(digest(raw))
                 self._publish_raw(pose_pub, raw)
                 if i % 4 == 0:
-                    raw = self.scan_bytes(i, stamp, laser_ranges(self.world.occupied, self.robot.cell, self.robot.cfg.resolution))
+                    ranges = laser_ranges(self.world.occupied, self.robot.cell, self.robot.cfg.resolution)
+                    if bad is not None:
+                        ranges = bad.ranges(ranges, 0.12, 3.5)
+                    raw = self.scan_bytes(i, stamp, ranges)
                     self.base_published.add(digest(raw))
                     self._publish_raw(scan_pub, raw)
                 i += 1
@@ -430,6 +438,7 @@ class DemoRobot:
             await asyncio.sleep(0.01)
         self._start_robot(loop)
         drivers = asyncio.ensure_future(self._drivers(pose_pub, scan_pub))
+        flood = asyncio.ensure_future(self._flood()) if self._compromise_kind() == "cmd-flood" else None
         try:
             while not self.stop.is_set():
                 self.write_status()
@@ -437,9 +446,32 @@ class DemoRobot:
                     await asyncio.wait_for(self.stop.wait(), 0.5)
         finally:
             drivers.cancel()
+            if flood is not None:
+                flood.cancel()
+
+    def _compromise_kind(self) -> str | None:
+        return (self.cfg.get("compromise") or {}).get("kind")
+
+    async def _flood(self) -> None:
+        """A compromised explorer: stop commands at FLOOD_HZ on its own cmd_vel."""
+        bad = self.compromise
+        while bad is not None and not bad.active() and not self.stop.is_set():
+            await asyncio.sleep(0.05)
+        seq = 0
+        while not self.stop.is_set() and self.cmd_pub is not None:
+            seq += 1
+            raw = self.twist_bytes(0.0, 10_000_000 + seq, 0.0)
+            self.explorer_published.add(digest(raw))
+            self._publish_raw(self.cmd_pub, raw)
+            await asyncio.sleep(1.0 / FLOOD_HZ)
 
     def _start_robot(self, loop: asyncio.AbstractEventLoop) -> None:
         seed = int(self.cfg["seed"])
+        kind = self._compromise_kind()
+        if kind is not None:
+            height, width = self.world.shape
+            self.compromise = Compromise(kind, (self.t0 or time.time()) + float(self.cfg["compromise"]["onset"]),
+                                         seed, (width * 0.2, height * 0.2))
         rng = np.random.default_rng(seed * 1000 + self.index)
         managers, _, _ = make_managers([self.name], SecurityConfig(), seed, {self.name: rng})
         self.host = LiveHost(loop, self.t0 or time.time(), self.scale, self.world, Lidar(3.5 / 0.2), self.observed, self._broadcast)

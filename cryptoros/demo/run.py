@@ -69,6 +69,8 @@ class DemoOptions:
     workdir: str | None = None
     ros: int = 1  # 1: ROS 1 nodes (this module); 2: rclpy nodes (cryptoros.demo.ros2)
     netns: bool = False  # protected mode: every host in its own network namespace (root)
+    #: a compromised robot (monitor datasets): {"robot": "r0", "kind": ..., "onset": wall s after the start}
+    compromise: dict[str, Any] | None = None
 
 
 def robot_addr(i: int) -> str:
@@ -279,6 +281,8 @@ class Mission:
             cfg = {"name": r, "team": self.team, "seed": self.opts.seed, "width": self.opts.width, "height": self.opts.height,
                    "scale": self.opts.scale, "master_uri": g.robot_master[r], "ros_ip": g.robot_ip[r],
                    "status": str(self.dir / f"{r}.status.json"), "go": str(self.dir / "go.json"), "connect_timeout": 20}
+            if self.opts.compromise and self.opts.compromise.get("robot") == r:
+                cfg["compromise"] = self.opts.compromise
             path = self.dir / f"{r}.json"
             path.write_text(json.dumps(cfg))
             procs[r] = self.children.start(g.on_host(r, [sys.executable, "-m", "cryptoros.demo.robot", str(path)]),

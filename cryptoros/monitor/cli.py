@@ -1,4 +1,5 @@
-"""``cryptoros monitor``: fit the runtime monitor's model and measure it on recordings."""
+"""``cryptoros monitor record``, ``train`` and ``eval``: fit the runtime monitor's model and measure it on
+recordings (the group itself is in :mod:`cryptoros.cli`, beside ``dataset`` from the demo)."""
 
 from __future__ import annotations
 
@@ -12,15 +13,7 @@ from cryptoros.errors import CryptorosError
 _BAGS = click.argument("bags", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 
 
-@click.group()
-def monitor() -> None:
-    """The runtime monitor: train its model on clean recordings, evaluate it on attacks.
-
-    Recordings are ROS 1 bags (`rosbag record`, or `cryptoros attack eavesdrop --bag`);
-    the interceptor loads the model named in its [monitor] section (docs/monitor.md)."""
-
-
-@monitor.command()
+@click.command()
 @click.option("--master-uri", envvar="ROS_MASTER_URI", required=True,
               help="The master to record through (default: $ROS_MASTER_URI, the host's interceptor).")
 @click.option("--topic", "topics", multiple=True, required=True, help="A topic to record (repeat).")
@@ -35,8 +28,15 @@ def record(master_uri: str, topics: tuple[str, ...], seconds: float, out: Path) 
     def ready() -> None:
         click.echo(f"recording {', '.join(topics)} for {seconds:g} s into {out} ...", err=True)
 
+    async def main() -> dict:
+        import signal
+
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)  # the bag is closed, not lost
+        return await run(master_uri, list(topics), out, seconds=seconds, on_ready=ready, stop=stop)
+
     try:
-        counts = asyncio.run(run(master_uri, list(topics), out, seconds=seconds, on_ready=ready))
+        counts = asyncio.run(main())
     except (CryptorosError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     for key, n in sorted(counts.items()):
@@ -44,7 +44,7 @@ def record(master_uri: str, topics: tuple[str, ...], seconds: float, out: Path) 
     click.echo(f"bag: {out}")
 
 
-@monitor.command()
+@click.command()
 @_BAGS
 @click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Model file to write (JSON).")
@@ -68,7 +68,7 @@ def train(bags: tuple[Path, ...], out: Path, quantile: float, margin: float, con
         click.echo(f"  {kind:6s} " + ", ".join(f"{name} <= {value:g}" for name, value in limits.items()))
 
 
-@monitor.command(name="eval")
+@click.command(name="eval")
 @_BAGS
 @click.option("--model", "model_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--attacker", "attackers", multiple=True, metavar="CALLERID",

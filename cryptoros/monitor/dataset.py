@@ -9,6 +9,7 @@ an attack message, every other message a clean one.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,16 +66,45 @@ def train(bags: Iterable[Path], **options) -> MonitorModel:
     return MonitorModel.fit(by_kind, **options)
 
 
+@dataclass(frozen=True)
+class Label:
+    """Messages of ``publisher`` (on ``topic``; None: every topic) arriving at or after
+    ``onset`` are attack messages."""
+
+    publisher: str
+    topic: str | None = None
+    onset: float = 0.0
+
+    def covers(self, row: Row) -> bool:
+        return row.publisher == self.publisher and (self.topic is None or row.topic == self.topic) \
+            and row.at >= self.onset
+
+
+def labels_for(bag: Path) -> list[Label]:
+    """The labels written beside a bag (``<bag>.labels.json``: a list of publisher,
+    topic, onset), or none."""
+    path = Path(f"{bag}.labels.json")
+    if not path.exists():
+        return []
+    try:
+        raw = json.loads(path.read_text())
+        return [Label(str(x["publisher"]), x.get("topic"), float(x.get("onset", 0.0))) for x in raw["attacks"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"labels {path}: {exc}") from None
+
+
 @dataclass
 class Evaluation:
     messages: int = 0
     attack_messages: int = 0
     true_positives: int = 0
     false_positives: int = 0
-    #: per attacking stream: seconds from its first message to its first alert (None: never)
+    #: per attacking stream: seconds from its onset to its first alert (None: never)
     delays: dict[str, float | None] = field(default_factory=dict)
     #: per clean stream that alerted: its first alert's time
     false_alarms: dict[str, float] = field(default_factory=dict)
+    #: per run (bag): whether it holds an attack and whether anything in it alerted
+    runs: list[dict] = field(default_factory=list)
 
     @property
     def clean_messages(self) -> int:
@@ -86,52 +116,57 @@ class Evaluation:
         tn = self.clean_messages - fp
         precision = tp / (tp + fp) if tp + fp else 0.0
         recall = tp / (tp + fn) if tp + fn else 0.0
-        known = [d for d in self.delays.values() if d is not None]
+        known = sorted(d for d in self.delays.values() if d is not None)
+        right_runs = sum(r["attacked"] == r["flagged"] for r in self.runs)
         return {
             "messages": self.messages, "attack_messages": self.attack_messages,
             "accuracy": round((tp + tn) / self.messages, 4) if self.messages else None,
             "precision": round(precision, 4), "recall": round(recall, 4),
             "f1": round(2 * precision * recall / (precision + recall), 4) if precision + recall else 0.0,
             "false_positive_rate": round(fp / self.clean_messages, 5) if self.clean_messages else 0.0,
+            "runs": len(self.runs), "run_accuracy": round(right_runs / len(self.runs), 4) if self.runs else None,
             "attack_streams_detected": f"{len(known)} of {len(self.delays)}",
-            "median_delay_s": round(sorted(known)[len(known) // 2], 3) if known else None,
+            "median_delay_s": round(known[len(known) // 2], 3) if known else None,
             "delays_s": {k: (round(v, 3) if v is not None else None) for k, v in self.delays.items()},
             "clean_streams_alerted": sorted(self.false_alarms),
         }
 
 
-def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]) -> Evaluation:
+def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str] = ()) -> Evaluation:
     """Score every message as the interceptor would (a message is flagged once its
     stream's run of suspicious messages reached ``consecutive``, until it ends) and
-    compare with the labels (messages of ``attackers`` are attacks)."""
-    attackers = set(attackers)
+    compare with the labels: every message of ``attackers``, and what the labels file
+    beside each bag names (from its onset on)."""
     result = Evaluation()
-    trackers: dict[tuple[str, str], AlertTracker] = {}
-    runs: dict[tuple[str, str], int] = {}
-    first_seen: dict[tuple[str, str], float] = {}
-    for row in rows_of(bags):
-        key = (row.topic, row.publisher)
-        name = f"{row.publisher} on {row.topic}"
-        tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
-        score = model.score(row.kind, row.values)
-        suspicious = score.value > 1.0  # inf (NaN content) included, as in the interceptor
-        alerted = tracker.update(suspicious)
-        runs[key] = runs.get(key, 0) + 1 if suspicious else 0
-        flagged = runs[key] >= model.consecutive
-        attack = row.publisher in attackers
-        result.messages += 1
-        first_seen.setdefault(key, row.at)
-        if attack:
-            result.attack_messages += 1
-            result.true_positives += flagged
-            result.delays.setdefault(name, None)
-            if alerted and result.delays[name] is None:
-                result.delays[name] = row.at - first_seen[key]
-        else:
-            result.false_positives += flagged
-            if alerted:
-                result.false_alarms.setdefault(name, row.at)
+    everywhere = [Label(a) for a in attackers]
+    for bag in bags:
+        labels = everywhere + labels_for(Path(bag))
+        trackers: dict[tuple[str, str], AlertTracker] = {}
+        runs: dict[tuple[str, str], int] = {}
+        flagged_run = False
+        for row in rows_of([Path(bag)]):
+            key = (row.topic, row.publisher)
+            name = f"{Path(bag).parent.name}/{Path(bag).name}: {row.publisher} on {row.topic}"
+            tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
+            suspicious = model.score(row.kind, row.values).value > 1.0  # inf (NaN content) included
+            alerted = tracker.update(suspicious)
+            runs[key] = runs.get(key, 0) + 1 if suspicious else 0
+            flagged = runs[key] >= model.consecutive
+            flagged_run = flagged_run or alerted
+            label = next((lb for lb in labels if lb.covers(row)), None)
+            result.messages += 1
+            if label is not None:
+                result.attack_messages += 1
+                result.true_positives += flagged
+                result.delays.setdefault(name, None)
+                if alerted and result.delays[name] is None:
+                    result.delays[name] = row.at - label.onset
+            else:
+                result.false_positives += flagged
+                if alerted:
+                    result.false_alarms.setdefault(name, row.at)
+        result.runs.append({"bag": str(bag), "attacked": bool(labels), "flagged": flagged_run})
     return result
 
 
-__all__ = ["Evaluation", "Row", "evaluate", "rows_of", "train"]
+__all__ = ["Evaluation", "Label", "Row", "evaluate", "labels_for", "rows_of", "train"]

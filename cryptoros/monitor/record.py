@@ -24,9 +24,10 @@ from cryptoros.ros1.node import Node, call
 
 async def record(master_uri: str, topics: list[str], out: Path, *, seconds: float, name: str = "/monitor_recorder",
                  host: str = "127.0.0.1", timeout: float = 10.0,
-                 on_ready: Callable[[], None] = lambda: None) -> dict[str, Any]:
+                 on_ready: Callable[[], None] = lambda: None, stop: asyncio.Event | None = None) -> dict[str, Any]:
     """Record ``topics`` for ``seconds`` (counted once every subscription is registered:
-    then ``on_ready`` is called); returns messages per (topic, publisher)."""
+    then ``on_ready`` is called) or until ``stop`` is set; returns messages per (topic,
+    publisher). The bag is closed either way."""
     from rosbags.rosbag1 import Writer
 
     types = dict(await call(master_uri, "getTopicTypes", name, timeout=timeout))
@@ -57,7 +58,8 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
 
             await node.subscribe(topic, typename, on_message, raw=True, with_publisher=True)
         on_ready()
-        await asyncio.sleep(seconds)
+        with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
+            await asyncio.wait_for((stop or asyncio.Event()).wait(), seconds)
     finally:
         with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):
             await asyncio.wait_for(node.close(), timeout)

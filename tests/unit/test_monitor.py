@@ -326,3 +326,27 @@ async def test_a_backlog_is_scored_in_turns_that_hand_the_loop_back(tmp_path):
     assert counted._value.get() == MESSAGES_PER_TURN
     await drain()
     assert counted._value.get() == 3 * MESSAGES_PER_TURN
+
+
+# ------------------------------------------------------------------ the demo's compromised robot
+
+
+def test_a_compromised_robot_changes_what_it_publishes_from_its_onset_on():
+    from cryptoros.demo.compromise import DRIFT_M_PER_S, REPLAY_DELAY_S, Compromise
+
+    spoof = Compromise("spoof-pose", onset=100.0, seed=1, arena_m=(12.0, 12.0))
+    assert spoof.pose(1.0, 2.0, 99.0) == (1.0, 2.0, 99.0)  # before the onset: the truth
+    x, y, t = spoof.pose(1.0, 2.0, 100.5)
+    assert (x, y) != (1.0, 2.0) and 0 <= x <= 12 and 0 <= y <= 12 and t == 100.5
+    drift = Compromise("drift", onset=100.0, seed=1, arena_m=(12.0, 12.0))
+    assert drift.pose(1.0, 2.0, 110.0) == pytest.approx((1.0 + 10 * DRIFT_M_PER_S, 2.0, 110.0))
+    replay = Compromise("replay", onset=100.0, seed=1, arena_m=(12.0, 12.0))
+    for i in range(200):  # 20 Hz for 10 s, moving 0.01 m per message
+        out = replay.pose(0.01 * i, 0.0, 95.0 + i / 20)
+    assert out[2] == pytest.approx(95.0 + 199 / 20 - REPLAY_DELAY_S, abs=0.06) and out[0] < 0.01 * 199
+    noise = Compromise("scan-noise", onset=0.0, seed=1, arena_m=(12.0, 12.0))
+    ranges = np.full(72, 2.0, dtype=np.float32)
+    noisy = noise.ranges(ranges, 0.12, 3.5)
+    assert noisy.shape == ranges.shape and noisy.std() > 0.5 and noisy.min() >= 0.12 and noisy.max() <= 3.5
+    with pytest.raises(ValueError, match="unknown compromise"):
+        Compromise("teleport", onset=0.0, seed=1, arena_m=(1.0, 1.0))

@@ -1,0 +1,40 @@
+"""``cryptoros monitor dataset``: labelled runs of the demo's robots (real processes: the
+embedded master, the robots, ``cryptoros monitor record``), a model trained on the
+clean run, and every run scored by ``cryptoros monitor eval``. Robot r0 is compromised in
+the attacked runs: it republishes old poses (``replay``), or its laser scans turn to
+noise (``scan-noise``), through the grants it holds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests.support import run, script
+
+pytestmark = [pytest.mark.timeout(240)]
+
+
+def test_a_small_dataset_trains_a_model_that_flags_the_attacked_runs_and_not_the_clean_one(tmp_path):
+    out = tmp_path / "ds"
+    built = run([script("cryptoros"), "monitor", "dataset", "-o", str(out), "--seeds", "1", "--kinds",
+                 "replay,scan-noise", "--seconds", "8", "--onset", "3"], timeout=200)
+    assert built.returncode == 0, built.stdout + built.stderr
+    assert "[3/3] seed 1, scan-noise" in built.stderr  # progress
+    labels = {p.parent.name: json.loads(p.read_text()) for p in out.glob("*/run.bag.labels.json")}
+    assert labels["seed1-clean"]["attacks"] == []
+    (replay,) = labels["seed1-replay"]["attacks"]
+    assert replay["publisher"] == "/r0_base" and replay["topic"] == "/r0/pose"
+    assert replay["onset"] == pytest.approx(labels["seed1-replay"]["t0"] + 3)
+
+    model = tmp_path / "model.json"
+    trained = run([script("cryptoros"), "monitor", "train", str(out / "seed1-clean" / "run.bag"), "-o", str(model)])
+    assert trained.returncode == 0, trained.stderr
+    bags = [str(out / name / "run.bag") for name in ("seed1-clean", "seed1-replay", "seed1-scan-noise")]
+    scored = run([script("cryptoros"), "monitor", "eval", *bags, "--model", str(model), "--json"])
+    assert scored.returncode == 0, scored.stderr
+    figures = json.loads(scored.stdout)
+    print(json.dumps(figures, indent=1))
+    assert figures["runs"] == 3 and figures["run_accuracy"] == 1.0, figures  # clean quiet, both attacks caught
+    assert figures["attack_streams_detected"] == "2 of 2" and figures["clean_streams_alerted"] == [], figures
+    assert figures["false_positive_rate"] <= 0.005 and figures["median_delay_s"] < 1.0, figures
