@@ -13,6 +13,7 @@ from cryptoros.lazy import LazyGroup
 BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",
     "insider": "cryptoros.bench.insider:insider",
+    "monitor": "cryptoros.bench.monitor:monitor",
     "interceptor": "cryptoros.bench.interceptor:interceptor",
     "ros1": "cryptoros.bench.ros1:ros1",
     "ros2": "cryptoros.bench.ros2:ros2",

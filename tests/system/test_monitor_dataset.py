@@ -38,3 +38,12 @@ def test_a_small_dataset_trains_a_model_that_flags_the_attacked_runs_and_not_the
     assert figures["runs"] == 3 and figures["run_accuracy"] == 1.0, figures  # clean quiet, both attacks caught
     assert figures["attack_streams_detected"] == "2 of 2" and figures["clean_streams_alerted"] == [], figures
     assert figures["false_positive_rate"] <= 0.005 and figures["median_delay_s"] < 1.0, figures
+
+    # seed 001's LSTM beside ours, on the same runs (tiny: the figures are the bench's job)
+    bench = run([script("cryptoros"), "bench", "monitor", str(out), "--train-seeds", "1", "--eval-seeds", "1",
+                 "--epochs", "3", "--window", "20", "--json", str(tmp_path / "bench.json")], timeout=200)
+    assert bench.returncode == 0, bench.stdout + bench.stderr
+    assert "cryptoros monitor" in bench.stdout and "seed 001 LSTM" in bench.stdout
+    side = json.loads((tmp_path / "bench.json").read_text())
+    assert side["ours"]["messages"] == side["lstm"]["messages"] > 0  # the same messages scored
+    assert side["lstm"]["cpu_us_per_message"] > 0 and side["ours"]["cpu_us_per_message"] > 0

@@ -1,0 +1,98 @@
+"""``cryptoros bench monitor DATASET``: the runtime monitor against seed 001's LSTM, side
+by side in one run, on a dataset of ``cryptoros monitor dataset``.
+
+Both are trained on the runs of ``--train-seeds`` (ours on their clean runs only: it
+learns what normal looks like; the LSTM on all of them: it is a supervised classifier,
+as in the paper) and scored on every run of ``--eval-seeds``, on the messages of one
+robot (``--robot``, the compromised one: what seed 001's detector watches). Figures:
+per-message accuracy, precision, recall, F1, false positives among clean messages,
+per-run accuracy, median detection delay after the onset, and the CPU per message
+(ours: decode + features + score, message by message; the LSTM: its sliding window per
+message, batched). The issue's targets are printed beside them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from cryptoros.errors import CryptorosError
+
+#: (figure, target as text, test)
+TARGETS = [
+    ("accuracy", ">= 0.97", lambda v: v is not None and v >= 0.97),
+    ("f1", ">= 0.95", lambda v: v is not None and v >= 0.95),
+    ("run_accuracy", ">= 0.98", lambda v: v is not None and v >= 0.98),
+    ("false_positive_rate", "<= 0.005", lambda v: v is not None and v <= 0.005),
+    ("median_delay_s", "<= 0.5", lambda v: v is not None and v <= 0.5),
+    ("cpu_us_per_message", "<= 20", lambda v: v is not None and v <= 20),
+]
+
+
+def _bags(dataset: Path, seeds: list[int], clean_only: bool = False) -> list[Path]:
+    out = []
+    for seed in seeds:
+        pattern = f"seed{seed}-clean/run.bag" if clean_only else f"seed{seed}-*/run.bag"
+        out += sorted(dataset.glob(pattern))
+    return out
+
+
+def _seeds(text: str, option: str) -> list[int]:
+    try:
+        return [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: expected integers such as 1,2", param_hint=option) from None
+
+
+@click.command()
+@click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--train-seeds", default="1", show_default=True, help="Seeds whose runs train both detectors.")
+@click.option("--eval-seeds", default="2", show_default=True, help="Seeds whose runs score them (held out).")
+@click.option("--robot", default="r0", show_default=True, help="The robot whose messages are scored.")
+@click.option("--epochs", default=250, show_default=True, type=click.IntRange(1, 10000), help="LSTM epochs (paper: 250).")
+@click.option("--window", default=200, show_default=True, type=click.IntRange(10, 2000),
+              help="LSTM sequence length in messages (paper: 2,000 rows of a 20 s bag).")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the figures as JSON.")
+def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs: int, window: int,
+            json_path: Path | None) -> None:
+    """Our monitor against seed 001's LSTM on DATASET (from `cryptoros monitor dataset`)."""
+    from cryptoros.monitor.dataset import evaluate, scoring_cost_us, train
+    from cryptoros.monitor.lstm import LstmBaseline, evaluate_lstm, paper_rows
+
+    train_list, eval_list = _seeds(train_seeds, "--train-seeds"), _seeds(eval_seeds, "--eval-seeds")
+    clean, train_runs, eval_runs = (_bags(dataset, train_list, clean_only=True), _bags(dataset, train_list),
+                                    _bags(dataset, eval_list))
+    if not clean or not eval_runs:
+        raise click.ClickException(f"{dataset}: no clean run of seeds {train_seeds} or no run of seeds {eval_seeds}")
+    say = lambda m: click.echo(m, err=True)  # noqa: E731
+    prefix = f"/{robot}/"
+    try:
+        say(f"ours: trained on {len(clean)} clean run(s), scoring {len(eval_runs)} run(s) ...")
+        model = train(clean)
+        ours = evaluate(model, eval_runs, topic_prefix=prefix).figures()
+        ours["cpu_us_per_message"] = scoring_cost_us(model, eval_runs, prefix)["p50"]
+        say(f"seed 001's LSTM: {epochs} epochs on {len(train_runs)} run(s) (windows of {window}) ...")
+        lstm = LstmBaseline(window=window, epochs=epochs).fit(paper_rows(b, robot) for b in train_runs)
+        theirs = evaluate_lstm(lstm, [paper_rows(b, robot) for b in eval_runs])
+    except CryptorosError as exc:
+        raise click.ClickException(str(exc)) from None
+    rows = [("messages", None), ("attack_messages", None), ("precision", None), ("recall", None)] + \
+        [(name, (text, test)) for name, text, test in TARGETS] + [("attack_streams_detected", None)]
+    click.echo(f"{'figure':24s} {'cryptoros monitor':>18s} {'seed 001 LSTM':>15s}   target")
+    for name, target in rows:
+        line = f"{name:24s} {str(ours.get(name)):>18s} {str(theirs.get(name)):>15s}"
+        if target is not None:
+            text, test = target
+            line += f"   {text:9s} ours {'met' if test(ours.get(name)) else 'NOT met'}, " \
+                    f"LSTM {'met' if test(theirs.get(name)) else 'NOT met'}"
+        click.echo(line)
+    click.echo("delays after onset, ours: " + json.dumps(ours["delays_s"]))
+    click.echo("delays after onset, LSTM: " + json.dumps(theirs["delays_s"]))
+    click.echo(f"LSTM training: {theirs['train_cpu_s']} CPU s")
+    if json_path is not None:
+        json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "train_seeds": train_list,
+                                         "eval_seeds": eval_list, "robot": robot, "epochs": epochs,
+                                         "window": window}, indent=1))
