@@ -448,6 +448,7 @@ def _parse_monitor(raw: dict[str, Any], base: Path) -> MonitorSettings:
         max_backlog_bytes=_typed(raw.get("max_backlog_bytes", 4 << 20), int, "[monitor] max_backlog_bytes"),
         max_streams=_typed(raw.get("max_streams", 1024), int, "[monitor] max_streams"),
         fail_closed=_typed(raw.get("fail_closed", False), bool, "[monitor] fail_closed"),
+        manager_after=_typed(raw.get("manager_after", 3), int, "[monitor] manager_after"),
     )
     MonitorModel.load(settings.model)  # a model that does not load stops the start, with its reason
     return settings

@@ -40,6 +40,8 @@ log = logging.getLogger("cryptoros.interceptor.monitor")
 ACTIONS = ("log", "quarantine")
 #: publishers remembered in quarantine at once (the oldest leaves first)
 MAX_QUARANTINED = 4096
+#: the publisher name of a manager-wide quarantine
+WHOLE_MANAGER = "*"
 #: seconds between two alert log lines of one stream (every alert is counted)
 ALERT_LOG_INTERVAL = 1.0
 #: messages one stream scores before it hands the event loop back (a backlog of small
@@ -60,6 +62,10 @@ class MonitorSettings:
     max_streams: int = 1024
     #: a stream the monitor gives up (backlog, malformed framing) is cut instead of let through
     fail_closed: bool = False
+    #: this many publishers of one manager quarantined within quarantine_seconds put the
+    #: whole manager (every publisher it has or starts) in quarantine here: a compromised
+    #: robot whose grant names a pattern (/pose_*) cannot evade by renaming its node
+    manager_after: int = 3
 
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
@@ -112,13 +118,16 @@ class Monitor:
             stream.alerts.needed = model.consecutive
 
     def quarantined_for(self, manager: str, publisher: str) -> float:
-        """Seconds left of this publisher's quarantine (0: not quarantined)."""
-        until = self._quarantine.get((manager, publisher))
+        """Seconds left of this publisher's quarantine, or of its manager's (0: neither)."""
+        return max(self._left((manager, publisher)), self._left((manager, WHOLE_MANAGER)))
+
+    def _left(self, key: tuple[str, str]) -> float:
+        until = self._quarantine.get(key)
         if until is None:
             return 0.0
         left = until - self.clock()
         if left <= 0:
-            del self._quarantine[(manager, publisher)]
+            del self._quarantine[key]
             return 0.0
         return left
 
@@ -168,17 +177,33 @@ class Monitor:
                     stream.manager, stream.topic, stream.typename, feature, score,
                     f"; quarantined for {self.settings.quarantine_seconds:g} s" if action == "quarantine" else "")
         if action == "quarantine":
-            key = (stream.manager, stream.publisher)
-            self._quarantine[key] = self.clock() + self.settings.quarantine_seconds
-            self._quarantine.move_to_end(key)
-            while len(self._quarantine) > MAX_QUARANTINED:
-                self._quarantine.popitem(last=False)
-            self.metrics.quarantined.inc()
+            manager, until = stream.manager, self.clock() + self.settings.quarantine_seconds
+            self._put(manager, stream.publisher, until)
             self.deny("monitor", PolicyDenied("quarantined", f"{feature} at {score:.1f}x its limit on {stream.topic}; "
                                               f"refused for {self.settings.quarantine_seconds:g} s"),
-                      f"{stream.publisher} ({stream.manager})")
-            for cut in list(self._cuts.get(key, ())):
-                cut()
+                      f"{stream.publisher} ({manager})")
+            victims = [key for key in self._cuts if key == (manager, stream.publisher)]
+            now = self.clock()
+            others = {p for (m, p), u in self._quarantine.items() if m == manager and p != WHOLE_MANAGER and u > now}
+            if len(others) >= self.settings.manager_after and self._left((manager, WHOLE_MANAGER)) == 0:
+                self._put(manager, WHOLE_MANAGER, until)
+                log.warning("MONITOR quarantine of manager %s: %d of its publishers quarantined within %g s",
+                            manager, len(others), self.settings.quarantine_seconds)
+                self.deny("monitor", PolicyDenied("quarantined", f"{len(others)} publishers quarantined; the "
+                                                  f"manager is refused for {self.settings.quarantine_seconds:g} s"),
+                          f"every publisher of {manager}")
+                victims = [key for key in self._cuts if key[0] == manager]
+            for key in victims:
+                for cut in list(self._cuts.get(key, ())):
+                    cut()
+
+    def _put(self, manager: str, publisher: str, until: float) -> None:
+        key = (manager, publisher)
+        self._quarantine[key] = until
+        self._quarantine.move_to_end(key)
+        while len(self._quarantine) > MAX_QUARANTINED:
+            self._quarantine.popitem(last=False)
+        self.metrics.quarantined.inc()
 
 
 class WatchedStream:

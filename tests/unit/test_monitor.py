@@ -350,3 +350,29 @@ def test_a_compromised_robot_changes_what_it_publishes_from_its_onset_on():
     assert noisy.shape == ranges.shape and noisy.std() > 0.5 and noisy.min() >= 0.12 and noisy.max() <= 3.5
     with pytest.raises(ValueError, match="unknown compromise"):
         Compromise("teleport", onset=0.0, seed=1, arena_m=(1.0, 1.0))
+
+
+def test_a_manager_whose_publishers_keep_getting_quarantined_is_quarantined_whole(tmp_path):
+    """A compromised robot granted a node pattern (/pose_*) renames its node after each
+    quarantine: at the third, every publisher of that manager is cut and refused."""
+    clock = Clock()
+    monitor, denials = monitor_for(tmp_path, clock=clock)
+    cuts: list[str] = []
+    monitor.register("robot_a", "/honest", lambda: cuts.append("robot_a /honest"))
+    monitor.register("robot_c", "/other", lambda: cuts.append("robot_c /other"))
+    for name in ("/pose_1", "/pose_2"):
+        stream = monitor.watch(manager="robot_a", publisher=name, topic="/r0/pose", typename=POSE, cut=lambda: None)
+        monitor._alert(stream, "speed_mps", 50.0)
+        clock.t += 1
+    monitor.check_admission("robot_a", "/honest")  # two: still per publisher
+    assert cuts == []
+    stream = monitor.watch(manager="robot_a", publisher="/pose_3", topic="/r0/pose", typename=POSE, cut=lambda: None)
+    monitor._alert(stream, "speed_mps", 50.0)
+    assert cuts == ["robot_a /honest"]  # the third: the whole manager, and nothing of robot_c
+    for name in ("/honest", "/pose_4"):
+        with pytest.raises(PolicyDenied, match="quarantined"):
+            monitor.check_admission("robot_a", name)
+    monitor.check_admission("robot_c", "/other")
+    assert ("monitor", "quarantined", "every publisher of robot_a") in denials
+    clock.t += 31
+    monitor.check_admission("robot_a", "/pose_5")  # over after quarantine_seconds
