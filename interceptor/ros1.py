@@ -964,6 +964,7 @@ class Ros1Role(GatewayRole):
     async def _tcpros_relay(self, reader, writer, target: Canonical) -> None:
         limits = self.cfg.limits
         tunnel_writer = None
+        unwatch: Callable[[], None] = lambda: None  # noqa: E731  (until the peer's stream is watched)
         try:
             header, rest = await read_tcpros_header(
                 reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
@@ -1043,6 +1044,11 @@ class Ros1Role(GatewayRole):
             if tunnel_writer is not None:
                 tunnel_writer.close()
             writer.close()
+        finally:
+            # a stream refused after its peer's token was watched (a publisher header not
+            # granted, a quarantined publisher) must not stay in the verifier's watch list:
+            # a subscriber retries such a stream every few seconds, for as long as it runs
+            unwatch()
 
 
 #: Local registrations whose caller_api (index 3) names the registering node's API.

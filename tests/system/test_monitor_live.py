@@ -97,6 +97,8 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
                     after = read_lines(listener, None, 2.0)
                     assert "bag:" in read_lines(recorder, "bag:", 20)[-1]
                 chatter = got(read_lines(chat, None, 2.0))
+                status_url = f"http://127.0.0.1:{net.hosts['robot_b'].metrics_port}/status"
+                watched = json.loads(urllib.request.urlopen(status_url, timeout=5).read())["peers"]
             log = net.hosts["robot_b"].logs()
             counted = metrics(net, "robot_b")
 
@@ -110,7 +112,9 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
     alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
     print("\n".join(["monitor live:", clean_eval.stdout, scored.stdout, *alerts,
                       f"spoofed poses the listener got: {sum('GOT /pose_spoof' in x for x in before + after)}",
-                      f"flood poses the listener got: {sum('GOT /pose_flood' in x for x in before + after)}"]))
+                      f"flood poses the listener got: {sum('GOT /pose_flood' in x for x in before + after)}",
+                      f"robot B watches: {watched}",
+                      *[line for line in counted.splitlines() if "quarantined" in line]]))
     assert any("/pose_spoof" in a and "speed_mps" in a for a in alerts), alerts
     assert any("/pose_flood" in a and "rate_hz" in a for a in alerts), alerts
     assert not any("/pose_clean" in a for a in alerts), alerts  # quiet on clean traffic
@@ -125,6 +129,9 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
     assert 'cryptoros_interceptor_denied_total{kind="monitor",reason="quarantined"} 2.0' in counted, counted
     assert 'cryptoros_monitor_alerts_total{feature="speed_mps",topic="/r0/pose"}' in counted
     assert 'cryptoros_interceptor_denied_total{kind="relay",reason="quarantined"}' in counted  # reconnections refused
+    # refused reconnections leave nothing behind: robot B watches robot A's open streams only
+    # (the clean pose stream and the chatter stream; a refused one used to stay watched)
+    assert watched.get("robot_a") == 2, watched
     assert "cryptoros_monitor_score_seconds_count" in counted
 
 
