@@ -18,14 +18,14 @@ pytestmark = [pytest.mark.timeout(240)]
 def test_a_small_dataset_trains_a_model_that_flags_the_attacked_runs_and_not_the_clean_one(tmp_path):
     out = tmp_path / "ds"
     built = run([script("cryptoros"), "monitor", "dataset", "-o", str(out), "--seeds", "1", "--kinds",
-                 "replay,scan-noise", "--seconds", "8", "--onset", "3"], timeout=200)
+                 "replay,scan-noise", "--seconds", "6", "--onset", "2"], timeout=200)
     assert built.returncode == 0, built.stdout + built.stderr
     assert "[3/3] seed 1, scan-noise" in built.stderr  # progress
     labels = {p.parent.name: json.loads(p.read_text()) for p in out.glob("*/run.bag.labels.json")}
     assert labels["seed1-clean"]["attacks"] == []
     (replay,) = labels["seed1-replay"]["attacks"]
     assert replay["publisher"] == "/r0_base" and replay["topic"] == "/r0/pose"
-    assert replay["onset"] == pytest.approx(labels["seed1-replay"]["t0"] + 3)
+    assert replay["onset"] == pytest.approx(labels["seed1-replay"]["t0"] + 2)
 
     model = tmp_path / "model.json"
     trained = run([script("cryptoros"), "monitor", "train", str(out / "seed1-clean" / "run.bag"), "-o", str(model)])
