@@ -445,6 +445,7 @@ class Gateway:
                                              if os.path.exists(crl) else None},
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
+            "monitor": self.monitor.status() if self.monitor is not None else None,
         }
 
     async def _start_metrics(self) -> None:

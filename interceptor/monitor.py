@@ -131,6 +131,13 @@ class Monitor:
             return 0.0
         return left
 
+    def status(self) -> dict:
+        """What ``cryptoros status`` shows of the monitor: streams watched, quarantines."""
+        now = self.clock()
+        return {"action": self.settings.action, "watched_streams": len(self._streams),
+                "quarantined": [{"manager": m, "publisher": p, "seconds_left": round(u - now, 1)}
+                                for (m, p), u in self._quarantine.items() if u > now]}
+
     def check_admission(self, manager: str, publisher: str) -> None:
         """Refuse a new stream from a quarantined publisher (:class:`PolicyDenied`)."""
         left = self.quarantined_for(manager, publisher)

@@ -98,7 +98,8 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
                     assert "bag:" in read_lines(recorder, "bag:", 20)[-1]
                 chatter = got(read_lines(chat, None, 2.0))
                 status_url = f"http://127.0.0.1:{net.hosts['robot_b'].metrics_port}/status"
-                watched = json.loads(urllib.request.urlopen(status_url, timeout=5).read())["peers"]
+                shown = json.loads(urllib.request.urlopen(status_url, timeout=5).read())
+                watched = shown["peers"]
             log = net.hosts["robot_b"].logs()
             counted = metrics(net, "robot_b")
 
@@ -132,6 +133,8 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
     # refused reconnections leave nothing behind: robot B watches robot A's open streams only
     # (the clean pose stream and the chatter stream; a refused one used to stay watched)
     assert watched.get("robot_a") == 2, watched
+    # cryptoros status shows who is in quarantine, and for how long
+    assert {q["publisher"] for q in shown["monitor"]["quarantined"]} == {"/pose_spoof", "/pose_flood"}, shown
     assert "cryptoros_monitor_score_seconds_count" in counted
 
 

@@ -374,5 +374,15 @@ def test_a_manager_whose_publishers_keep_getting_quarantined_is_quarantined_whol
             monitor.check_admission("robot_a", name)
     monitor.check_admission("robot_c", "/other")
     assert ("monitor", "quarantined", "every publisher of robot_a") in denials
+    shown = monitor.status()
+    assert shown["action"] == "quarantine" and {q["publisher"] for q in shown["quarantined"]} == \
+        {"/pose_1", "/pose_2", "/pose_3", "*"}
+    from interceptor.status import render
+
+    lines = render({"manager": "robot_b", "roles": ["node"], "public": "127.0.0.3:1", "health": "ok", "token": None,
+                    "certificate": {"serial": "1", "not_after": "2030-01-01T00:00:00", "days_left": 1.0},
+                    "feed": {"age": 0.1, "revoked_tokens": 0, "disabled_managers": []}, "crl": None, "peers": {},
+                    "open_streams": 0, "monitor": shown})
+    assert any(line.startswith("monitor   quarantine") and "/pose_3 of robot_a" in line for line in lines), lines
     clock.t += 31
     monitor.check_admission("robot_a", "/pose_5")  # over after quarantine_seconds
