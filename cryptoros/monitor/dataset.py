@@ -113,24 +113,31 @@ class Evaluation:
 
     def figures(self) -> dict:
         tp, fp = self.true_positives, self.false_positives
-        fn = self.attack_messages - tp
-        tn = self.clean_messages - fp
-        precision = tp / (tp + fp) if tp + fp else 0.0
-        recall = tp / (tp + fn) if tp + fn else 0.0
-        known = sorted(d for d in self.delays.values() if d is not None)
-        right_runs = sum(r["attacked"] == r["flagged"] for r in self.runs)
-        return {
-            "messages": self.messages, "attack_messages": self.attack_messages,
-            "accuracy": round((tp + tn) / self.messages, 4) if self.messages else None,
-            "precision": round(precision, 4), "recall": round(recall, 4),
-            "f1": round(2 * precision * recall / (precision + recall), 4) if precision + recall else 0.0,
-            "false_positive_rate": round(fp / self.clean_messages, 5) if self.clean_messages else 0.0,
-            "runs": len(self.runs), "run_accuracy": round(right_runs / len(self.runs), 4) if self.runs else None,
-            "attack_streams_detected": f"{len(known)} of {len(self.delays)}",
-            "median_delay_s": round(known[len(known) // 2], 3) if known else None,
-            "delays_s": {k: (round(v, 3) if v is not None else None) for k, v in self.delays.items()},
-            "clean_streams_alerted": sorted(self.false_alarms),
-        }
+        return {**figures(tp, fp, self.attack_messages - tp, self.clean_messages - fp,
+                          right_runs=sum(r["attacked"] == r["flagged"] for r in self.runs), runs=len(self.runs),
+                          delays=self.delays),
+                "clean_streams_alerted": sorted(self.false_alarms)}
+
+
+def figures(tp: int, fp: int, fn: int, tn: int, *, right_runs: int, runs: int,
+            delays: dict[str, float | None]) -> dict:
+    """Per-message and per-run figures of a detector (ours, or the LSTM baseline's) from
+    its confusion counts, runs judged right and delays after onset per attacking stream."""
+    n = tp + fp + fn + tn
+    precision = tp / (tp + fp) if tp + fp else 0.0
+    recall = tp / (tp + fn) if tp + fn else 0.0
+    known = sorted(d for d in delays.values() if d is not None)
+    return {
+        "messages": n, "attack_messages": tp + fn,
+        "accuracy": round((tp + tn) / n, 4) if n else None,
+        "precision": round(precision, 4), "recall": round(recall, 4),
+        "f1": round(2 * precision * recall / (precision + recall), 4) if precision + recall else 0.0,
+        "false_positive_rate": round(fp / (fp + tn), 5) if fp + tn else 0.0,
+        "runs": runs, "run_accuracy": round(right_runs / runs, 4) if runs else None,
+        "attack_streams_detected": f"{len(known)} of {len(delays)}",
+        "median_delay_s": round(known[len(known) // 2], 3) if known else None,
+        "delays_s": {k: (round(v, 3) if v is not None else None) for k, v in delays.items()},
+    }
 
 
 def scoring_cost_us(model: MonitorModel, bags: Iterable[Path], topic_prefix: str = "") -> dict[str, float]:
@@ -198,4 +205,4 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
     return result
 
 
-__all__ = ["Evaluation", "Label", "Row", "evaluate", "labels_for", "rows_of", "scoring_cost_us", "train"]
+__all__ = ["Evaluation", "Label", "Row", "evaluate", "figures", "labels_for", "rows_of", "scoring_cost_us", "train"]

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from cryptoros.errors import ConfigError
-from cryptoros.monitor.dataset import labels_for
+from cryptoros.monitor.dataset import figures, labels_for
 
 ROW = 367
 RANGES = 360
@@ -198,23 +198,9 @@ def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence]) -> dict:
         if attacked:
             hits = np.nonzero(flags & (seq.at >= (seq.onset or 0.0)))[0]
             delays[seq.name] = float(seq.at[hits[0]] - seq.onset) if len(hits) and seq.onset is not None else None
-    n = tp + fp + fn + tn
-    precision = tp / (tp + fp) if tp + fp else 0.0
-    recall = tp / (tp + fn) if tp + fn else 0.0
-    known = sorted(d for d in delays.values() if d is not None)
-    return {
-        "messages": n, "attack_messages": tp + fn,
-        "accuracy": round((tp + tn) / n, 4) if n else None, "precision": round(precision, 4),
-        "recall": round(recall, 4),
-        "f1": round(2 * precision * recall / (precision + recall), 4) if precision + recall else 0.0,
-        "false_positive_rate": round(fp / (fp + tn), 5) if fp + tn else 0.0,
-        "runs": runs, "run_accuracy": round(runs_right / runs, 4) if runs else None,
-        "attack_streams_detected": f"{len(known)} of {len(delays)}",
-        "median_delay_s": round(known[len(known) // 2], 3) if known else None,
-        "delays_s": {k: (round(v, 3) if v is not None else None) for k, v in delays.items()},
-        "cpu_us_per_message": round(1e6 * (sum(cpu) / len(cpu)), 1) if cpu else None,
-        "train_cpu_s": round(model.train_seconds, 1),
-    }
+    return {**figures(tp, fp, fn, tn, right_runs=runs_right, runs=runs, delays=delays),
+            "cpu_us_per_message": round(1e6 * (sum(cpu) / len(cpu)), 1) if cpu else None,
+            "train_cpu_s": round(model.train_seconds, 1)}
 
 
 __all__ = ["LstmBaseline", "Sequence", "evaluate_lstm", "paper_rows", "windows"]
