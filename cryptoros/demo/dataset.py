@@ -2,15 +2,14 @@
 
 Each run is one plain-ROS mission of the demo's team (the embedded master, no
 interceptors: the messages are the same), recorded by ``cryptoros monitor record`` on
-every robot's ``pose``, ``scan`` and ``cmd_vel`` from before the start. A clean run has
+every robot's ``pose``, ``scan`` and ``cmd_vel`` and the team topics (``/team/*``, the
+simulator's own types: rate and size only) from before the start. A clean run has
 no compromise; an attacked run has robot ``r0`` compromised (:mod:`cryptoros.demo.
 compromise`): from ``onset`` seconds after the start, its own base or explorer misuses
 the grants it holds. Beside each ``run.bag`` a ``run.bag.labels.json`` names the
 compromised publisher, topic and onset (Unix time), and the run's seed and kind:
 ``cryptoros monitor train`` takes the clean runs, ``cryptoros monitor eval`` any runs
 (split by seed: train on some seeds' clean runs, evaluate on the others').
-
-Not recorded: the team topics (``/team/*``, the simulator's own message types).
 """
 
 from __future__ import annotations
@@ -26,6 +25,7 @@ from typing import Any
 import click
 
 from cryptoros.demo.compromise import COMPROMISES
+from cryptoros.demo.run import TEAM_TYPES as TEAM_TOPICS
 from cryptoros.demo.run import Children, DemoError, DemoOptions, Graph, Mission
 
 
@@ -37,7 +37,8 @@ class RecordingMission(Mission):
         self.bag = bag
 
     def _arm_attacks(self, g: Graph) -> dict[str, subprocess.Popen]:
-        topics = [f"/{r}/{t}" for r in self.team for t in ("pose", "scan", "cmd_vel")]
+        topics = [f"/{r}/{t}" for r in self.team for t in ("pose", "scan", "cmd_vel")] + \
+            [f"/team/{short}" for short in TEAM_TOPICS]
         cmd = [sys.executable, "-m", "cryptoros.cli", "monitor", "record", "--master-uri", g.robot_master[self.team[0]],
                "--seconds", str(self.opts.seconds + 60), "-o", str(self.bag)]
         for topic in topics:

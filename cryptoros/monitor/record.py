@@ -1,7 +1,8 @@
 """``cryptoros monitor record``: a recording the monitor can learn from.
 
-Subscribes to the named topics with their real types (a ``rosbag record`` subscribes
-with type ``*``, which a registry granting exact types refuses) and writes a ROS 1 bag
+Subscribes to the named topics with their real types (a registry may grant exact types
+only; a type this node does not know is taken as any type, ``*``, as ``rosbag record``
+does) and writes a ROS 1 bag
 with one connection per (topic, publisher): the publisher's ``callerid`` is what
 labels an attacker, and the arrival time stored with each message is what the rate
 features read. Runs as a normal node behind the host's interceptor and needs its
@@ -44,19 +45,28 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
         await node.start()
         for topic in topics:
             typename = types[topic]
+            known = _known(typename, node.store)
 
             def on_message(data: bytes, header: dict[str, str] | None, topic: str = topic,
-                           typename: str = typename) -> None:
-                publisher = (header or {}).get("callerid", "?")
+                           typename: str = typename, known: bool = known) -> None:
+                header = header or {}
+                publisher = header.get("callerid", "?")
                 conn = connections.get((topic, publisher))
                 if conn is None:
-                    conn = connections[(topic, publisher)] = writer.add_connection(
-                        topic, msgs.store_name(typename), typestore=node.store, callerid=publisher)
+                    if known:
+                        conn = writer.add_connection(topic, msgs.store_name(typename), typestore=node.store,
+                                                     callerid=publisher)
+                    else:  # a type of its own (the demo's team packets): its definition as the publisher sent it
+                        conn = writer.add_connection(topic, msgs.store_name(typename),
+                                                     msgdef=header.get("message_definition", ""),
+                                                     md5sum=header.get("md5sum", "*"), callerid=publisher)
+                    connections[(topic, publisher)] = conn
                 writer.write(conn, time.time_ns(), bytes(data))
                 key = f"{publisher} on {topic}"
                 counts[key] = counts.get(key, 0) + 1
 
-            await node.subscribe(topic, typename, on_message, raw=True, with_publisher=True)
+            # a type this node does not know is taken as any type ('*'), as rosbag record does
+            await node.subscribe(topic, typename if known else "*", on_message, raw=True, with_publisher=True)
         on_ready()
         with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
             await asyncio.wait_for((stop or asyncio.Event()).wait(), seconds)
@@ -65,6 +75,14 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
             await asyncio.wait_for(node.close(), timeout)
         writer.close()
     return counts
+
+
+def _known(typename: str, store: Any) -> bool:
+    try:
+        msgs.md5sum(typename, store)
+    except CryptorosError:
+        return False
+    return True
 
 
 __all__ = ["record"]
