@@ -11,7 +11,9 @@ every message the robot publishes after ``onset`` on the affected topics as an a
 * ``replay``: its base republishes its poses of five seconds ago, stamps included;
 * ``scan-noise``: its base publishes laser ranges of uniform noise (seed 001's noise);
 * ``cmd-flood``: its explorer adds stop commands at 200 Hz on its own ``cmd_vel``
-  (seed 001's DoS, with a valid grant).
+  (seed 001's DoS, with a valid grant);
+* ``false-map``: its explorer claims at 2 Hz on ``/team/map``, a topic it may publish,
+  that the whole map is free and explored (seed 000's false claim, from a team member).
 """
 
 from __future__ import annotations
@@ -28,10 +30,12 @@ COMPROMISES: dict[str, tuple[str, str]] = {
     "replay": ("pose", "base"),
     "scan-noise": ("scan", "base"),
     "cmd-flood": ("cmd_vel", "explorer"),
+    "false-map": ("/team/map", "explorer"),
 }
 REPLAY_DELAY_S = 5.0
 DRIFT_M_PER_S = 0.1
 FLOOD_HZ = 200.0
+FALSE_MAP_HZ = 2.0
 
 
 class Compromise:
@@ -68,4 +72,4 @@ class Compromise:
         return self.rng.uniform(low, high, len(ranges)).astype(np.float32)
 
 
-__all__ = ["COMPROMISES", "FLOOD_HZ", "Compromise"]
+__all__ = ["COMPROMISES", "FALSE_MAP_HZ", "FLOOD_HZ", "Compromise"]

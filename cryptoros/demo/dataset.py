@@ -78,8 +78,8 @@ def record_run(out: Path, *, seed: int, kind: str | None, seconds: float, onset:
     attacks = []
     if kind:
         topic, who = COMPROMISES[kind]
-        attacks.append({"publisher": "/r0_base" if who == "base" else "/r0", "topic": f"/r0/{topic}",
-                        "onset": t0 + onset, "kind": kind})
+        attacks.append({"publisher": "/r0_base" if who == "base" else "/r0",
+                        "topic": topic if topic.startswith("/") else f"/r0/{topic}", "onset": t0 + onset, "kind": kind})
     Path(f"{bag}.labels.json").write_text(json.dumps({"seed": seed, "kind": kind or "clean", "t0": t0,
                                                       "attacks": attacks}, indent=1))
     shutil.rmtree(work, ignore_errors=True)
@@ -102,7 +102,8 @@ def record_run(out: Path, *, seed: int, kind: str | None, seconds: float, onset:
 def dataset(out: Path, seeds: str, kinds: str, seconds: float, onset: float) -> None:
     """Record labelled runs of the demo's robots: a clean run per seed, and per seed one run
     per compromise of robot r0 (spoofed or drifting or replayed poses, noise scans, a stop
-    flood), each misusing grants the robot holds. Progress on stderr."""
+    flood, false "map explored" claims), each misusing grants the robot holds. Progress on
+    stderr."""
     try:
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
     except ValueError:

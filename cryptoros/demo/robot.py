@@ -40,7 +40,7 @@ from typing import Any, Callable
 import numpy as np
 
 from cryptoros.attack.lib import digest
-from cryptoros.demo.compromise import FLOOD_HZ, Compromise
+from cryptoros.demo.compromise import FALSE_MAP_HZ, FLOOD_HZ, Compromise
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import Node
 from cryptoros.sim import packets as P
@@ -438,7 +438,8 @@ class DemoRobot:
             await asyncio.sleep(0.01)
         self._start_robot(loop)
         drivers = asyncio.ensure_future(self._drivers(pose_pub, scan_pub))
-        flood = asyncio.ensure_future(self._flood()) if self._compromise_kind() == "cmd-flood" else None
+        misuse = {"cmd-flood": self._flood, "false-map": self._false_map}.get(self._compromise_kind() or "")
+        flood = asyncio.ensure_future(misuse()) if misuse is not None else None
         try:
             while not self.stop.is_set():
                 self.write_status()
@@ -451,6 +452,21 @@ class DemoRobot:
 
     def _compromise_kind(self) -> str | None:
         return (self.cfg.get("compromise") or {}).get("kind")
+
+    async def _false_map(self) -> None:
+        """A compromised explorer: "the whole map is free and explored" on /team/map, which it may publish."""
+        bad = self.compromise
+        while bad is not None and not bad.active() and not self.stop.is_set():
+            await asyncio.sleep(0.05)
+        height, width = self.world.shape
+        seq = 0
+        while not self.stop.is_set():
+            seq += 1
+            claim = P.make(P.MAP, source=self.name, seq=1_000_000 + seq, timestamp=self.host.now() if self.host else 0.0,
+                           position=P.Point(0.0, 0.0), goal=P.Point(0.0, 0.0), exploration_complete=True, origin_x=0,
+                           origin_y=0, width=width, height=height, data=np.zeros(width * height, dtype=np.int8))
+            self._broadcast(P.MAP, P.encode(claim, P.MAP))
+            await asyncio.sleep(1.0 / FALSE_MAP_HZ)
 
     async def _flood(self) -> None:
         """A compromised explorer: stop commands at FLOOD_HZ on its own cmd_vel."""
