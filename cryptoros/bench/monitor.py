@@ -56,8 +56,10 @@ def _seeds(text: str, option: str) -> list[int]:
               help="LSTM sequence length in messages (paper: 2,000 rows of a 20 s bag).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the figures as JSON.")
+@click.option("--plots", "plots_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also draw roc.png (both detectors) and delays.png (per attack) into this directory.")
 def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs: int, window: int,
-            json_path: Path | None) -> None:
+            json_path: Path | None, plots_dir: Path | None) -> None:
     """Our monitor against seed 001's LSTM on DATASET (from `cryptoros monitor dataset`)."""
     from cryptoros.monitor.dataset import evaluate, scoring_cost_us, train
     from cryptoros.monitor.lstm import LstmBaseline, evaluate_lstm, paper_rows
@@ -76,7 +78,11 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
         ours["cpu_us_per_message"] = scoring_cost_us(model, eval_runs, prefix)["p50"]
         say(f"seed 001's LSTM: {epochs} epochs on {len(train_runs)} run(s) (windows of {window}) ...")
         lstm = LstmBaseline(window=window, epochs=epochs).fit(paper_rows(b, robot) for b in train_runs)
-        theirs = evaluate_lstm(lstm, [paper_rows(b, robot) for b in eval_runs])
+        sequences = [paper_rows(b, robot) for b in eval_runs]
+        theirs = evaluate_lstm(lstm, sequences)
+        if plots_dir is not None:
+            say("ROC curves and delays ...")
+            _plots(plots_dir, model, lstm, eval_runs, sequences, prefix, ours, theirs)
     except CryptorosError as exc:
         raise click.ClickException(str(exc)) from None
     rows = [("messages", None), ("attack_messages", None), ("precision", None), ("recall", None)] + \
@@ -96,3 +102,59 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
         json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "train_seeds": train_list,
                                          "eval_seeds": eval_list, "robot": robot, "epochs": epochs,
                                          "window": window}, indent=1))
+
+
+def _plots(out: Path, model, lstm, eval_runs: list[Path], sequences, prefix: str, ours: dict, theirs: dict) -> None:
+    """roc.png: per-message true and false positive rates of both detectors as their
+    thresholds move (ours: a multiple of the fitted limits, 1 = as used; the LSTM: its
+    output), the operating points marked; delays.png: detection delay after onset per attack."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from cryptoros.monitor.dataset import roc_points
+    from cryptoros.monitor.lstm import lstm_roc_points
+
+    out.mkdir(parents=True, exist_ok=True)
+    ours_roc = roc_points(model, eval_runs, list(np.geomspace(0.05, 50, 40)), prefix)
+    lstm_roc = lstm_roc_points(lstm, sequences, list(np.linspace(0.0, 1.0, 41)))
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    for points, label, mark in ((ours_roc, "cryptoros monitor", "o"), (lstm_roc, "seed 001 LSTM", "s")):
+        pts = sorted((fpr, tpr) for _, fpr, tpr in points)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=mark, markersize=3, label=label)
+    ax.plot([ours["false_positive_rate"]], [ours["recall"]], "k*", markersize=12, label="ours as used (limits x1)")
+    ax.plot([theirs["false_positive_rate"]], [theirs["recall"]], "kX", markersize=10, label="LSTM as used (0.5)")
+    ax.set_xscale("symlog", linthresh=0.001)
+    ax.set_xlabel("false positive rate (clean messages flagged)")
+    ax.set_ylabel("true positive rate (attack messages flagged)")
+    ax.set_title("Per-message ROC, held-out runs")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "roc.png", dpi=120)
+    plt.close(fig)
+
+    kinds = sorted({k.split("/")[0].split("-", 1)[1] for k in ours["delays_s"]} |
+                   {k.split("-", 1)[1] for k in theirs["delays_s"]})
+
+    def delay(table: dict, kind: str) -> float:
+        value = next((v for k, v in table.items() if k.split("/")[0].endswith(kind)), None)
+        return np.nan if value is None else value
+
+    x = np.arange(len(kinds))
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.bar(x - 0.2, [delay(ours["delays_s"], k) for k in kinds], 0.4, label="cryptoros monitor")
+    ax.bar(x + 0.2, [delay(theirs["delays_s"], k) for k in kinds], 0.4, label="seed 001 LSTM")
+    for i, k in enumerate(kinds):
+        if np.isnan(delay(ours["delays_s"], k)):
+            ax.text(i - 0.2, 0.02, "never", rotation=90, ha="center", va="bottom", fontsize=8)
+    ax.axhline(0.5, color="k", linestyle=":", linewidth=1, label="target 0.5 s")
+    ax.set_xticks(x, kinds, rotation=20)
+    ax.set_ylabel("seconds after onset")
+    ax.set_title("Detection delay per attack")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "delays.png", dpi=120)
+    plt.close(fig)

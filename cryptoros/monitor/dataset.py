@@ -164,6 +164,38 @@ def scoring_cost_us(model: MonitorModel, bags: Iterable[Path], topic_prefix: str
     return {"p50": round(samples[len(samples) // 2] * 1e6, 1), "p99": round(samples[int(len(samples) * 0.99)] * 1e6, 1)}
 
 
+def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[float],
+               topic_prefix: str = "") -> list[tuple[float, float, float]]:
+    """(threshold, false positive rate, true positive rate) per message when a message is
+    suspicious above ``threshold`` times its limits (1 is the model as used), with the
+    model's run of ``consecutive`` suspicious messages before a message is flagged."""
+    scored: list[tuple[list[float], list[bool]]] = []  # per stream: scores and labels
+    for bag in bags:
+        labels = labels_for(Path(bag))
+        streams: dict[tuple[str, str], tuple[list[float], list[bool]]] = {}
+        for row in rows_of([Path(bag)]):
+            if not row.topic.startswith(topic_prefix):
+                continue
+            scores, attack = streams.setdefault((row.topic, row.publisher), ([], []))
+            scores.append(model.score(row.kind, row.values).value)
+            attack.append(any(lb.covers(row) for lb in labels))
+        scored += streams.values()
+    out = []
+    for threshold in thresholds:
+        tp = fp = positives = negatives = 0
+        for scores, attack in scored:
+            run = 0
+            for score, is_attack in zip(scores, attack):
+                run = run + 1 if score > threshold else 0
+                flagged = run >= model.consecutive
+                positives += is_attack
+                negatives += not is_attack
+                tp += flagged and is_attack
+                fp += flagged and not is_attack
+        out.append((threshold, fp / negatives if negatives else 0.0, tp / positives if positives else 0.0))
+    return out
+
+
 def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str] = (),
              topic_prefix: str = "") -> Evaluation:
     """Score every message as the interceptor would (a message is flagged once its
@@ -205,4 +237,4 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
     return result
 
 
-__all__ = ["Evaluation", "Label", "Row", "evaluate", "figures", "labels_for", "rows_of", "scoring_cost_us", "train"]
+__all__ = ["Evaluation", "Label", "Row", "evaluate", "figures", "labels_for", "roc_points", "rows_of", "scoring_cost_us", "train"]

@@ -161,11 +161,17 @@ class LstmBaseline:
         self._net = net
         return self
 
-    def flag_messages(self, seq: Sequence) -> tuple[np.ndarray, float]:
+    def flag_messages(self, seq: Sequence, threshold: float = 0.5) -> tuple[np.ndarray, float]:
         """Per message: attacked by the window ending with it (the first ``window - 1``
         messages have no full window: not flagged). And the CPU seconds per message."""
+        out, cpu = self.outputs(seq)
+        return out > threshold, cpu
+
+    def outputs(self, seq: Sequence) -> tuple[np.ndarray, float]:
+        """Per message, the network's output for the window ending with it (0 where no
+        full window), and the CPU seconds per message."""
         torch = _torch()
-        flags = np.zeros(len(seq.rows), dtype=bool)
+        flags = np.zeros(len(seq.rows), dtype=np.float32)
         if len(seq.rows) < self.window or self._net is None:
             return flags, 0.0
         x = np.lib.stride_tricks.sliding_window_view(seq.rows / self._scale, (self.window, ROW))[:, 0]
@@ -175,7 +181,7 @@ class LstmBaseline:
             for i in range(0, len(x), 256):
                 out.append(self._net(torch.from_numpy(np.ascontiguousarray(x[i:i + 256], dtype=np.float32))).numpy())
         cpu = (time.process_time() - start) / max(1, len(x))
-        flags[self.window - 1:] = np.concatenate(out) > 0.5
+        flags[self.window - 1:] = np.concatenate(out)
         return flags, cpu
 
 
@@ -203,4 +209,19 @@ def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence]) -> dict:
             "train_cpu_s": round(model.train_seconds, 1)}
 
 
-__all__ = ["LstmBaseline", "Sequence", "evaluate_lstm", "paper_rows", "windows"]
+def lstm_roc_points(model: LstmBaseline, sequences: list[Sequence],
+                    thresholds: Iterable[float]) -> list[tuple[float, float, float]]:
+    """(threshold, false positive rate, true positive rate) per message over the
+    network's output threshold."""
+    outputs = [(model.outputs(seq)[0], seq.attack) for seq in sequences]
+    points = []
+    for t in thresholds:
+        tp = sum(int(((o > t) & a).sum()) for o, a in outputs)
+        fp = sum(int(((o > t) & ~a).sum()) for o, a in outputs)
+        pos = sum(int(a.sum()) for _, a in outputs)
+        neg = sum(int((~a).sum()) for _, a in outputs)
+        points.append((t, fp / neg if neg else 0.0, tp / pos if pos else 0.0))
+    return points
+
+
+__all__ = ["LstmBaseline", "Sequence", "evaluate_lstm", "lstm_roc_points", "paper_rows", "windows"]
