@@ -41,9 +41,11 @@ def test_a_small_dataset_trains_a_model_that_flags_the_attacked_runs_and_not_the
 
     # seed 001's LSTM beside ours, on the same runs (tiny: the figures are the bench's job)
     bench = run([script("cryptoros"), "bench", "monitor", str(out), "--train-seeds", "1", "--eval-seeds", "1",
-                 "--epochs", "3", "--window", "20", "--json", str(tmp_path / "bench.json")], timeout=200)
+                 "--epochs", "3", "--window", "20", "--json", str(tmp_path / "bench.json"),
+                 "--plots", str(tmp_path / "plots")], timeout=200)
     assert bench.returncode == 0, bench.stdout + bench.stderr
     assert "cryptoros monitor" in bench.stdout and "seed 001 LSTM" in bench.stdout
     side = json.loads((tmp_path / "bench.json").read_text())
     assert side["ours"]["messages"] == side["lstm"]["messages"] > 0  # the same messages scored
     assert side["lstm"]["cpu_us_per_message"] > 0 and side["ours"]["cpu_us_per_message"] > 0
+    assert (tmp_path / "plots" / "roc.png").stat().st_size > 1000 and (tmp_path / "plots" / "delays.png").exists()
