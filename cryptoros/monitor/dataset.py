@@ -29,8 +29,9 @@ class Row:
     values: tuple[float, ...]
 
 
-def rows_of(bags: Iterable[Path]) -> Iterator[Row]:
-    """Every message of the bags, in recording order per bag, as a feature row."""
+def _messages(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[tuple[str, str, StreamFeatures, float, bytes]]:
+    """(topic, publisher, the stream's features, arrival, body) of every message of the
+    bags on ``topic_prefix``, in recording order per bag; one StreamFeatures per stream."""
     from rosbags.rosbag1 import Reader, ReaderError
 
     for bag in bags:
@@ -42,15 +43,22 @@ def rows_of(bags: Iterable[Path]) -> Iterator[Row]:
         try:
             streams: dict[tuple[str, str], StreamFeatures] = {}
             for conn, stamp_ns, raw in reader.messages():
+                if not conn.topic.startswith(topic_prefix):
+                    continue
                 publisher = getattr(conn.ext, "callerid", None) or "?"
                 key = (conn.topic, publisher)
                 features = streams.get(key)
                 if features is None:
                     features = streams[key] = StreamFeatures(_ros1_type(conn.msgtype))
-                at = stamp_ns * 1e-9
-                yield Row(conn.topic, publisher, features.kind, at, features.observe(raw, at, at))
+                yield conn.topic, publisher, features, stamp_ns * 1e-9, raw
         finally:
             reader.close()
+
+
+def rows_of(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[Row]:
+    """Every message of the bags, in recording order per bag, as a feature row."""
+    for topic, publisher, features, at, raw in _messages(bags, topic_prefix):
+        yield Row(topic, publisher, features.kind, at, features.observe(raw, at, at))
 
 
 def _ros1_type(msgtype: str) -> str:
@@ -143,21 +151,11 @@ def figures(tp: int, fp: int, fn: int, tn: int, *, right_runs: int, runs: int,
 def scoring_cost_us(model: MonitorModel, bags: Iterable[Path], topic_prefix: str = "") -> dict[str, float]:
     """Microseconds per message to decode, compute the features and score, measured
     message by message as the interceptor does it (p50 and p99)."""
-    from rosbags.rosbag1 import Reader
-
     samples: list[float] = []
-    for bag in bags:
-        streams: dict[tuple[str, str], StreamFeatures] = {}
-        with Reader(Path(bag)) as reader:
-            for conn, stamp_ns, raw in reader.messages():
-                if not conn.topic.startswith(topic_prefix):
-                    continue
-                key = (conn.topic, getattr(conn.ext, "callerid", None) or "?")
-                features = streams.get(key) or streams.setdefault(key, StreamFeatures(_ros1_type(conn.msgtype)))
-                at = stamp_ns * 1e-9
-                t0 = time.perf_counter()
-                model.score(features.kind, features.observe(raw, at, at))
-                samples.append(time.perf_counter() - t0)
+    for _topic, _publisher, features, at, raw in _messages(bags, topic_prefix):
+        t0 = time.perf_counter()
+        model.score(features.kind, features.observe(raw, at, at))
+        samples.append(time.perf_counter() - t0)
     samples.sort()
     if not samples:
         return {"p50": 0.0, "p99": 0.0}
@@ -173,9 +171,7 @@ def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[f
     for bag in bags:
         labels = labels_for(Path(bag))
         streams: dict[tuple[str, str], tuple[list[float], list[bool]]] = {}
-        for row in rows_of([Path(bag)]):
-            if not row.topic.startswith(topic_prefix):
-                continue
+        for row in rows_of([Path(bag)], topic_prefix):
             scores, attack = streams.setdefault((row.topic, row.publisher), ([], []))
             scores.append(model.score(row.kind, row.values).value)
             attack.append(any(lb.covers(row) for lb in labels))
@@ -184,10 +180,10 @@ def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[f
     for threshold in thresholds:
         tp = fp = positives = negatives = 0
         for scores, attack in scored:
-            run = 0
+            tracker = AlertTracker(model.consecutive)
             for score, is_attack in zip(scores, attack):
-                run = run + 1 if score > threshold else 0
-                flagged = run >= model.consecutive
+                tracker.update(score > threshold)
+                flagged = tracker.flagged
                 positives += is_attack
                 negatives += not is_attack
                 tp += flagged and is_attack
@@ -208,18 +204,14 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
     for bag in bags:
         labels = everywhere + labels_for(Path(bag))
         trackers: dict[tuple[str, str], AlertTracker] = {}
-        runs: dict[tuple[str, str], int] = {}
         flagged_run = False
-        for row in rows_of([Path(bag)]):
-            if not row.topic.startswith(topic_prefix):
-                continue
+        for row in rows_of([Path(bag)], topic_prefix):
             key = (row.topic, row.publisher)
             name = f"{Path(bag).parent.name}/{Path(bag).name}: {row.publisher} on {row.topic}"
             tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
             suspicious = model.score(row.kind, row.values).value > 1.0  # inf (NaN content) included
             alerted = tracker.update(suspicious)
-            runs[key] = runs.get(key, 0) + 1 if suspicious else 0
-            flagged = runs[key] >= model.consecutive
+            flagged = tracker.flagged
             flagged_run = flagged_run or alerted
             label = next((lb for lb in labels if lb.covers(row)), None)
             result.messages += 1

@@ -31,9 +31,10 @@ import math
 import struct
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
 from cryptoros.errors import CryptorosError, RemoteProtocolError
 from cryptoros.ros1 import msgs
@@ -69,6 +70,8 @@ def _cdr_decoder(typename: str, kind: str) -> Callable[[Any], Any]:
         return decode
 
     def scan(body: Any) -> tuple[float, float, float, np.ndarray]:
+        import numpy as np
+
         msg = decode(body)
         return _stamp(msg), float(msg.range_min), float(msg.range_max), np.asarray(msg.ranges, dtype=np.float64)
 
@@ -89,6 +92,7 @@ def _decode_scan(body: bytes | memoryview) -> tuple[float, float, float, np.ndar
     """What the scan features read of a ``sensor_msgs/LaserScan`` (ROS 1 serialization):
     the stamp, the valid range interval and the ranges; 10x quicker than decoding the
     whole message. Malformed bytes raise :class:`RemoteProtocolError`."""
+    import numpy as np  # here, not at import: an interceptor without scans to watch never loads it
     try:
         _seq, sec, nsec = _HEADER.unpack_from(body, 0)
         (frame_len,) = _U32.unpack_from(body, 12)
@@ -167,6 +171,8 @@ class StreamFeatures:
         return speed, back, lag
 
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
+        import numpy as np
+
         stamp, range_min, range_max, ranges = msg
         valid = (ranges >= range_min) & (ranges <= range_max)  # NaN compares false: invalid
         prev = self._prev

@@ -148,5 +148,10 @@ class AlertTracker:
         self._run = self._run + 1 if suspicious else 0
         return self._run == self.needed
 
+    @property
+    def flagged(self) -> bool:
+        """The last message is in a run of ``needed`` or more suspicious ones."""
+        return self._run >= self.needed
+
 
 __all__ = ["FORMAT", "AlertTracker", "MonitorModel", "Score"]
