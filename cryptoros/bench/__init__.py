@@ -12,6 +12,7 @@ from cryptoros.lazy import LazyGroup
 
 BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",
+    "ciphers": "cryptoros.bench.ciphers:ciphers",
     "insider": "cryptoros.bench.insider:insider",
     "monitor": "cryptoros.bench.monitor:monitor",
     "interceptor": "cryptoros.bench.interceptor:interceptor",
@@ -25,4 +26,4 @@ BENCHMARKS: dict[str, str] = {
 
 @click.group(cls=LazyGroup, subcommands=BENCHMARKS)
 def bench() -> None:
-    """Benchmarks: token issuing, ROS 1 transport, simulator scale."""
+    """Benchmarks: token issuing, ROS 1 transport, cipher costs, simulator scale."""
