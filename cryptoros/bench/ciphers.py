@@ -662,6 +662,11 @@ def build_report(raw: dict, messages: dict[str, bytes]) -> dict:
                         and next(s for s in MESSAGES if s.key == r["message"]).category == cat]
                 table2.setdefault(machine, {}).setdefault(cat, {})[cipher] = max(syms, key=order.__getitem__)
     report["table2"] = table2
+    report["table2_by_message"] = {
+        machine: {spec.key: {r["cipher"]: r[prof]["suitability"] for r in rows if r["message"] == spec.key}
+                  for spec in MESSAGES}
+        for prof, machine in (("normal", "powerful"), ("atom", "atom")) if prof in raw
+    }
     # the paper's workload (laser 10 Hz + image 30 fps, encrypt and decrypt on board): images
     # processed per second and battery time, per machine and cipher
     workload = {}
@@ -736,6 +741,13 @@ def table2_rows(report: dict) -> list[list[str]]:
     return out
 
 
+def table2_message_rows(report: dict) -> list[list[str]]:
+    labels = {s.key: s.label for s in MESSAGES}
+    return [[machine, f"{labels[key]} ({report['messages'][key]['rate_hz']:g} Hz)",
+             *(cells[c] for c in report["ciphers"])]
+            for machine, by in report.get("table2_by_message", {}).items() for key, cells in by.items()]
+
+
 def headline_rows(report: dict) -> list[list[str]]:
     """The paper's headlines beside ours: images/s on the Atom, battery time."""
     out = []
@@ -780,6 +792,8 @@ def render(report: dict, markdown: bool) -> None:
         ("Per message: encrypt + decrypt, one core, this machine and the Atom stand-in", TABLE_HEADERS, table_rows(report)),
         ("Table 2 rebuilt (✓ <= 25 % of a core at the real rate, ∅ <= 100 %, ⇌ cannot keep up); paper's in brackets",
          ["machine", "messages", *(cipher_label(c) for c in report["ciphers"])], table2_rows(report)),
+        ("The same verdicts per message type (the categories above take the worst of theirs)",
+         ["machine", "message", *(cipher_label(c) for c in report["ciphers"])], table2_message_rows(report)),
         ("The paper's headlines beside ours (paper's workload: LaserScan 10 Hz + image 30 fps)",
          ["figure", "paper (seed 002)", "ours"], headline_rows(report)),
     ]
@@ -815,7 +829,7 @@ def plots(report: dict, out: Path) -> list[Path]:
 
     out.mkdir(parents=True, exist_ok=True)
     ciphers = report["ciphers"]
-    fig, axes = plt.subplots(1, 2, figsize=(14, 5.2), gridspec_kw={"width_ratios": [3, 1.3]})
+    fig, axes = plt.subplots(1, 2, figsize=(14, 6.2), gridspec_kw={"width_ratios": [3, 1.3]})
     ax = axes[0]
     width = 0.8 / len(ciphers)
     cmap = plt.get_cmap("tab20")
@@ -834,20 +848,23 @@ def plots(report: dict, out: Path) -> list[Path]:
     ax.set_xticks(range(len(MESSAGES)), [f"{s.label}\n{len_b(report, s.key):,} B" for s in MESSAGES])
     ax.set_ylabel("messages/s, encrypt + decrypt on one core")
     ax.set_title("bars: this machine; black ticks: Atom stand-in; red dashes: the message's real rate", fontsize=9)
-    ax.legend(fontsize=6.5, ncol=2, loc="upper right")
+    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     ax = axes[1]
     names = list(PAPER_CIPHERS)
     atom = report["paper_workload"].get("atom", {})
     x = range(len(names))
-    ax.bar([i - 0.2 for i in x], [PAPER["atom_images_per_s_of_30"][n] for n in names], 0.4, color="grey",
-           label="paper, Atom D525")
-    ax.bar([i + 0.2 for i in x], [atom[PAPER_CIPHERS[n]]["images_per_s_two_nodes"] if atom else 0 for n in names], 0.4,
-           color="tab:blue", label="ours, Atom stand-in")
+    ax.bar([i - 0.27 for i in x], [PAPER["atom_images_per_s_of_30"][n] for n in names], 0.27, color="grey",
+           label="paper, Atom D525 (2 cores)")
+    ax.bar(list(x), [atom[PAPER_CIPHERS[n]]["images_per_s_two_nodes"] if atom else 0 for n in names], 0.27,
+           color="tab:blue", label="ours: encrypt, decrypt on a stand-in core each")
+    ax.bar([i + 0.27 for i in x], [atom[PAPER_CIPHERS[n]]["images_per_s_one_core"] if atom else 0 for n in names], 0.27,
+           color="tab:cyan", label="ours: both on one stand-in core")
     ax.axhline(30, color="red", linestyle="dashed", linewidth=1)
-    ax.set_xticks(list(x), names)
+    ax.set_xticks(list(x), [f"{n}\n({cipher_label(PAPER_CIPHERS[n]).split(' ')[0]})" for n in names])
+    ax.set_ylim(0, 36)
     ax.set_ylabel("images processed per second (of 30)")
     ax.set_title("the paper's headline: images on the Atom", fontsize=9)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     fig.suptitle("cryptoros bench ciphers: seed 002's cipher costs on real ROS 1 messages")
     fig.tight_layout()
     path = out / "ciphers.png"
@@ -954,10 +971,19 @@ def _negotiated(net) -> str:
 @click.option("--relay-messages", type=int, default=2000, show_default=True,
               help="Image-sized frames per relay row (LaserScan-sized: 10 times as many).")
 @click.option("--markdown", is_flag=True, help="Print the tables as Markdown (for docs/ciphers.md).")
+@click.option("--report", "report_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Measure nothing: print (and --plots) the figures of an earlier run's --json file.")
 def ciphers(quick: bool, json_path: Path | None, plots_dir: Path | None, atom_quota: float, no_atom: bool,
-            relay: bool | None, relay_messages: int, markdown: bool) -> None:
+            relay: bool | None, relay_messages: int, markdown: bool, report_path: Path | None) -> None:
     """Seed 002's cipher costs (3DES, Blowfish, AES, GCM, ChaCha20, TLS suites) on real ROS 1 messages."""
     started = time.monotonic()
+    if report_path is not None:
+        saved = json.loads(report_path.read_text())
+        if plots_dir:
+            plots(saved, plots_dir)
+        render(saved, markdown)
+        _footer(saved)
+        return
 
     def progress(message: str) -> None:
         click.echo(f"[{time.monotonic() - started:6.1f} s] {message}", err=True)
@@ -1009,8 +1035,13 @@ def ciphers(quick: bool, json_path: Path | None, plots_dir: Path | None, atom_qu
         for p in plots(report, plots_dir):
             progress(f"wrote {p}")
     render(report, markdown)
-    click.echo(f"\nAtom stand-in: {config.get('throttle', {}).get('description', 'not run')}; OpenSSL without "
-               f"AES-NI, PCLMULQDQ, AVX ({ATOM_IA32CAP}).\nEnergy model: {report['energy_model']}.")
+    _footer(report)
+
+
+def _footer(report: dict) -> None:
+    throttle = report["config"].get("throttle", {})
+    click.echo(f"\nAtom stand-in: {throttle.get('description', 'not run')}; OpenSSL without AES-NI, PCLMULQDQ, "
+               f"AVX ({throttle.get('openssl_ia32cap', ATOM_IA32CAP)}).\nEnergy model: {report['energy_model']}.")
 
 
 __all__ = ["ciphers", "build_messages", "build_report", "primitive", "expected_added", "energy_model"]

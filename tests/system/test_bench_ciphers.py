@@ -64,6 +64,7 @@ def test_bench_ciphers_quick(tmp_path):
         for category in ("simple", "complex"):
             assert set(report["table2"][machine][category]) == ciphers
             assert set(report["table2"][machine][category].values()) <= {"✓", "∅", "⇌"}
+            assert set(report["table2_by_message"][machine]) == MESSAGES
     workload = report["paper_workload"]
     for machine in ("powerful", "atom"):
         assert 0 < workload[machine]["3des-cbc"]["battery_h"] <= workload[machine]["plain"]["battery_h"]
