@@ -99,7 +99,8 @@ PAPER_CIPHERS = {"3DES": "3des-cbc", "AES": "aes192-cbc", "Blowfish": "blowfish-
 
 #: The Atom stand-in: one core's share. Assumption: an Atom D525 core (1.8 GHz, in-order
 #: Bonnell, 2010) runs single-threaded code about 8 times slower than one vCPU of this
-#: machine (PassMark single-thread ratings about 330 vs 2,600), so 1/8 of a core.
+#: machine, an AMD EPYC (our reading of published single-thread ratings: roughly 300 to
+#: 400 for the D525, 2,000 to 3,000 for a recent EPYC core), so 1/8 of a core.
 ATOM_QUOTA = 0.125
 #: cgroup / duty-cycle period (a short one, so a measuring window spans many periods)
 THROTTLE_PERIOD_US = 10_000
