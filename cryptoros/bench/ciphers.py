@@ -13,28 +13,30 @@ real ROS 1 wire bytes (serialized with :mod:`cryptoros.ros1.msgs`, rosbags):
   (random bytes stand in for the JPEG: a cipher's cost depends on the length only), a
   raw 640x480 rgb8 sensor_msgs/Image (921,600 B of pixels), and a sensor_msgs/PointCloud2
   of 65,536 points x 16 B (about 1 MB), each at a stated real rate;
-* ciphers (:data:`CIPHERS`, all from ``cryptography``): 3DES-CBC and Blowfish-CBC
+* ciphers (:data:`PRIMITIVES`, all from ``cryptography``): 3DES-CBC and Blowfish-CBC
   (``hazmat.decrepit``), the paper's AES (24-byte key: AES-192-CBC, no MAC), AES-128/256-CBC
   with HMAC-SHA256 (encrypt-then-MAC), AES-128-GCM, ChaCha20-Poly1305; and the TLS suites
   the interceptor allows (:mod:`cryptoros.tls`), one TLS record stream per message
   through a client/server pair of ``ssl`` objects built by the interceptor's own context
   factory (TLS 1.3 suites narrowed per run with an ``OPENSSL_CONF`` in the child, TLS 1.2
   by narrowing the interceptor's cipher list on the pinned-1.2 context);
-* per message and cipher: encrypt and decrypt microseconds (mean over a timed window,
-  fresh IV/nonce every message), bytes added (measured, and checked against IV +
+* per message and cipher: encrypt and decrypt microseconds (the median over a timed
+  window, fresh IV/nonce every message), bytes added (measured, and checked against IV +
   padding + MAC/tag for the primitives), the CPU share of one core at the message's
   real rate, messages per second one core sustains, whether that keeps up;
   ``decrypt(encrypt(m)) == m`` is checked for every timed message (a mismatch aborts);
-* the same on the Atom stand-in: the measuring child runs under a CPU quota (cgroup v2
-  ``cpu.max``, else cgroup v1 ``cpu.cfs_quota_us``, else a SIGSTOP/SIGCONT duty cycle;
-  which one is printed) of :data:`ATOM_QUOTA` of one core, with AES-NI, PCLMULQDQ and AVX
-  masked off in OpenSSL (``OPENSSL_ia32cap``): the D525 has none of them;
+* the same on the Atom stand-in (the mean there: the quota's stalls count): each
+  measuring child runs under its own CPU quota (cgroup v2 ``cpu.max``, else cgroup v1
+  ``cpu.cfs_quota_us``, else a SIGSTOP/SIGCONT duty cycle; which one is printed) of
+  :data:`ATOM_QUOTA` of one core, with AES-NI, PCLMULQDQ and AVX masked off in OpenSSL
+  (``OPENSSL_ia32cap``): the D525 has none of them;
 * an energy estimate (:func:`energy_model`: busy core-seconds x watts per busy core from
   the CPU's TDP; battery time from the paper's battery, its plain battery time and an
   assumed 11.1 V pack) and the paper's Table 2 rebuilt from our figures;
 * ``--relay``: the interceptor pair itself (:mod:`cryptoros.bench.interceptor`'s
   machinery): LaserScan- and image-sized frames relayed through two interceptors for
-  each allowed TLS 1.3 suite and TLS 1.2, messages per second and MB/s.
+  each allowed TLS 1.3 suite and TLS 1.2: messages per second, MB/s and the two
+  interceptors' CPU per message.
 """
 
 from __future__ import annotations
