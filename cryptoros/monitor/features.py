@@ -15,8 +15,11 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
   the arrival time (a replay of old messages, or a stamp made up ahead of the clock);
 * ``scan`` (``sensor_msgs/LaserScan``): ``roughness``, the mean step between
   neighbouring beams relative to the mean range (noise), ``scan_change``, the mean
-  change from the previous scan relative to the mean range, and the two stamp
-  features;
+  change from the previous scan relative to the mean range, ``geometry_change`` (1
+  when the scan's angles or range limits differ from the previous scan's: a driver
+  never changes them), and the two stamp features. A scan whose limits make no sense
+  (not finite, ``range_min >= range_max``, a zero angle step) is malformed: limits
+  that leave no beam valid must not hide the ranges from scoring;
 * ``twist`` (``geometry_msgs/Twist``): ``linear`` and ``angular``, ``|linear.x|`` and
   ``|angular.z|`` (a command no controller would send).
 
@@ -48,7 +51,7 @@ _COMMON = ("rate_hz", "size_change", "malformed")
 FEATURES: dict[str, tuple[str, ...]] = {
     "any": _COMMON,
     "pose": (*_COMMON, "speed_mps", "stamp_back_s", "stamp_lag_s"),
-    "scan": (*_COMMON, "roughness", "scan_change", "stamp_back_s", "stamp_lag_s"),
+    "scan": (*_COMMON, "roughness", "scan_change", "stamp_back_s", "stamp_lag_s", "geometry_change"),
     "twist": (*_COMMON, "linear", "angular"),
 }
 RATE_WINDOW_S = 1.0
@@ -69,13 +72,25 @@ def _cdr_decoder(typename: str, kind: str) -> Callable[[Any], Any]:
     if kind != "scan":
         return decode
 
-    def scan(body: Any) -> tuple[float, float, float, np.ndarray]:
+    def scan(body: Any) -> tuple[float, tuple[float, ...], np.ndarray]:
         import numpy as np
 
         msg = decode(body)
-        return _stamp(msg), float(msg.range_min), float(msg.range_max), np.asarray(msg.ranges, dtype=np.float64)
+        geometry = _checked_geometry(tuple(float(getattr(msg, f)) for f in _GEOMETRY))
+        return _stamp(msg), geometry, np.asarray(msg.ranges, dtype=np.float64)
 
     return scan
+
+
+#: the LaserScan fields a driver never changes between scans
+_GEOMETRY = ("angle_min", "angle_max", "angle_increment", "range_min", "range_max")
+
+
+def _checked_geometry(geometry: tuple[float, ...]) -> tuple[float, ...]:
+    _amin, _amax, step, range_min, range_max = geometry
+    if not all(math.isfinite(v) for v in geometry) or step == 0.0 or not 0.0 <= range_min < range_max:
+        raise RemoteProtocolError(f"LaserScan limits make no sense: {dict(zip(_GEOMETRY, geometry))}")
+    return geometry
 
 
 def _stamp(msg: Any) -> float:
@@ -88,10 +103,11 @@ _SCAN_FIELDS = struct.Struct("<7f")  # angle_min .. range_max
 _U32 = struct.Struct("<I")
 
 
-def _decode_scan(body: bytes | memoryview) -> tuple[float, float, float, np.ndarray]:
+def _decode_scan(body: bytes | memoryview) -> tuple[float, tuple[float, ...], np.ndarray]:
     """What the scan features read of a ``sensor_msgs/LaserScan`` (ROS 1 serialization):
-    the stamp, the valid range interval and the ranges; 10x quicker than decoding the
-    whole message. Malformed bytes raise :class:`RemoteProtocolError`."""
+    the stamp, the geometry (angles and range limits, checked) and the ranges; 10x
+    quicker than decoding the whole message. Malformed bytes raise
+    :class:`RemoteProtocolError`."""
     import numpy as np  # here, not at import: an interceptor without scans to watch never loads it
     try:
         _seq, sec, nsec = _HEADER.unpack_from(body, 0)
@@ -106,7 +122,8 @@ def _decode_scan(body: bytes | memoryview) -> tuple[float, float, float, np.ndar
         ranges = np.frombuffer(body, dtype="<f4", count=count, offset=pos).astype(np.float64)
     except struct.error as err:
         raise RemoteProtocolError(f"malformed LaserScan: {err}") from err
-    return sec + nsec * 1e-9, fields[5], fields[6], ranges
+    geometry = _checked_geometry((fields[0], fields[1], fields[2], fields[5], fields[6]))
+    return sec + nsec * 1e-9, geometry, ranges
 
 
 class StreamFeatures:
@@ -173,7 +190,8 @@ class StreamFeatures:
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         import numpy as np
 
-        stamp, range_min, range_max, ranges = msg
+        stamp, geometry, ranges = msg
+        range_min, range_max = geometry[3], geometry[4]
         valid = (ranges >= range_min) & (ranges <= range_max)  # NaN compares false: invalid
         prev = self._prev
         if valid.all():  # the common case, without NaN bookkeeping
@@ -195,8 +213,9 @@ class StreamFeatures:
         if not math.isfinite(change):
             change = 0.0
         back, lag = self._stamps(stamp, prev[1] if prev is not None else None, wall)
-        self._prev = (kept, stamp)
-        return rough, change, back, lag
+        moved = 1.0 if prev is not None and prev[2] != geometry else 0.0
+        self._prev = (kept, stamp, geometry)
+        return rough, change, back, lag, moved
 
     def _twist(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         return abs(float(msg.linear.x)), abs(float(msg.angular.z))

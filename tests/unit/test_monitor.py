@@ -36,9 +36,9 @@ def pose(x: float, y: float, t: float) -> bytes:
     return msgs.serialize(body, POSE)
 
 
-def scan(ranges, t: float) -> bytes:
-    body = msgs.msg_class(SCAN)(header=_header(t), angle_min=0.0, angle_max=6.2, angle_increment=0.087,
-                                time_increment=0.0, scan_time=0.2, range_min=0.1, range_max=10.0,
+def scan(ranges, t: float, range_min: float = 0.1, range_max: float = 10.0, angle_increment: float = 0.087) -> bytes:
+    body = msgs.msg_class(SCAN)(header=_header(t), angle_min=0.0, angle_max=6.2, angle_increment=angle_increment,
+                                time_increment=0.0, scan_time=0.2, range_min=range_min, range_max=range_max,
                                 ranges=np.asarray(ranges, dtype=np.float32), intensities=np.zeros(0, np.float32))
     return msgs.serialize(body, SCAN)
 
@@ -79,6 +79,23 @@ def test_scan_noise_is_rough_and_changes_from_scan_to_scan():
              for i in range(5)]
     assert max(r["roughness"] for r in smooth) < 0.1 < min(r["roughness"] for r in noisy)
     assert max(r["scan_change"] for r in smooth) < 0.01 < min(r["scan_change"] for r in noisy)
+
+
+def test_scan_limits_that_change_or_hide_every_beam_are_suspicious():
+    """seed 001's noise attack replaces every number of the scan, its range limits too:
+    limits that leave no beam valid must not hide the ranges from scoring (they scored
+    as a clean, empty scan), and a driver never changes its scan's geometry."""
+    f = StreamFeatures(SCAN)
+    steady = [named("scan", f.observe(scan(np.full(72, 2.0), 1000.0 + i / 5), 1000.0 + i / 5, 1000.0 + i / 5))
+              for i in range(3)]
+    assert all(v["geometry_change"] == 0.0 and v["malformed"] == 0.0 for v in steady)
+    moved = named("scan", f.observe(scan(np.full(72, 2.0), 1001.0, range_max=8.0), 1001.0, 1001.0))
+    assert moved["geometry_change"] == 1.0 and moved["malformed"] == 0.0
+    for bad in (scan(np.full(72, 2.0), 1001.2, range_min=5.0, range_max=1.0),
+                scan(np.full(72, 2.0), 1001.2, range_min=-3.0),
+                scan(np.full(72, 2.0), 1001.2, angle_increment=0.0),
+                scan(np.full(72, 2.0), 1001.2, range_max=float("nan"))):
+        assert named("scan", f.observe(bad, 1001.2, 1001.2))["malformed"] == 1.0
 
 
 def test_a_body_that_does_not_decode_is_malformed_and_any_type_has_rate_and_size():
