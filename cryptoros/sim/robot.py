@@ -71,6 +71,8 @@ class RobotConfig:
     frames_per_m: float = 2.0
     recruit_timeout: float = 1.5
     max_ttl: int = 6
+    offer_backoff: float = 0.3  # an OFFER waits uniform [0, this) s: idle robots hearing one request do not all answer at once
+    resume_after: float = 20.0  # a recharged robot idles at its base (recruitable) this long, then resumes (paper 5.2, incremental recruit)
 
 
 class Robot:
@@ -101,10 +103,13 @@ class Robot:
         self._belief_checked = -1
         self._pending_lsu = False
         self._last_lsu = -1e9
+        self._resume_pending = False
+        self.out_of_reach = False  # recharged, but the nearest frontier is beyond a full battery
         self.travelled_m = 0.0
         self.finished_at: float | None = None
         self.counters = {"rx": 0, "tx": 0, "rejected": 0, "forwarded": 0, "recruited": 0, "recruit_requests": 0,
-                         "returns_home": 0, "charges": 0, "false_done": 0}
+                         "returns_home": 0, "charges": 0, "resumed": 0, "false_done": 0,
+                         "offers_sent": 0, "offers_received": 0}
         self.rejected: dict[str, int] = {}
 
     # -- helpers -----------------------------------------------------------------------
@@ -121,6 +126,14 @@ class Robot:
 
     def alive(self) -> bool:
         return self.state != DEAD
+
+    @property
+    def active(self) -> bool:
+        """Doing or about to do something for the mission: moving, charging, waiting for
+        recruit offers, or idle at a base with a resumption scheduled."""
+        if self.state == DEAD:
+            return False
+        return self.state in (EXPLORE, HOME, RECRUITED, CHARGING) or bool(self.recruit.pending) or self._resume_pending
 
     def _sync(self) -> None:
         now = self.host.now()
@@ -327,7 +340,33 @@ class Robot:
     def _charged(self) -> None:
         self._sync()
         if self.state == CHARGING:
-            self.state = IDLE  # inactive at the base until recruited (paper 5.2)
+            # inactive at the base, where a recruit request may wake it (paper 5.2, general
+            # recruit); if none does within resume_after, it resumes by itself (paper 5.2,
+            # incremental recruit: a robot is resumed every pre-fixed amount of time)
+            self.state = IDLE
+            self._resume_pending = True
+            self.host.call_later(self.cfg.resume_after, self._resume)
+
+    def _resume(self) -> None:
+        self._sync()
+        self._resume_pending = False
+        self.out_of_reach = False
+        if self.state != IDLE:
+            return  # recruited meanwhile, or dead
+        path = self.explorer.plan_frontier(self.belief.known, self.cell)
+        if path is None:
+            self.state = DONE  # nothing left on its map; the HELLO timer re-checks on news
+            self.finished_at = self.host.now()
+            self._belief_checked = self.belief.version
+            return
+        if path and not self.home.can_reach(self.battery, self.cell, path[-1]):
+            self.out_of_reach = True  # a full battery cannot take it there and back: stay recruitable
+            return
+        self.counters["resumed"] += 1
+        self.state = EXPLORE
+        self.finished_at = None
+        self.path = []
+        self._schedule_step(0.0)
 
     def _go_home(self, now: float) -> None:
         self.counters["returns_home"] += 1
@@ -393,20 +432,34 @@ class Robot:
                 self.counters["forwarded"] += 1
                 self._send_later(fwd, P.RECRUIT)
             if consider and self._eligible(msg):
-                tc = self.to_cell(msg.target.x, msg.target.y)
-                d = math.hypot(tc[0] - self.cell[0], tc[1] - self.cell[1]) * self.cfg.resolution
-                offer = self.recruit.offer(msg, now, self.pos, self.battery.energy, self.state, d)
-                self._route(msg.recruit_originator, offer, P.RECRUIT, hint=msg.src_hop)
+                # random back-off, as a MAC would: two idle robots at one base hear the
+                # same request at the same instant, and answering at once collides
+                self.recruit.promise(msg)
+                delay = float(self.rng.random()) * self.cfg.offer_backoff
+                self.host.call_later(delay, lambda: self._send_offer(msg))
         elif msg.kind == OFFER:
             self.recruit.on_offer(msg, now)
+            self.counters["offers_received"] += 1
         elif msg.kind == CONFIRM and msg.dest_recruit_originator == self.name:
             if self.state in (IDLE, EXPLORE, DONE):
                 self.counters["recruited"] += 1
+                self.out_of_reach = False
                 self.state = RECRUITED
                 self.finished_at = None
                 self.target = self.to_cell(msg.target.x, msg.target.y)
                 self.path = []
                 self._schedule_step(0.0)
+
+    def _send_offer(self, req: Any) -> None:
+        self._sync()
+        if not self._eligible(req):  # state or battery changed during the back-off
+            return
+        now = self.host.now()
+        tc = self.to_cell(req.target.x, req.target.y)
+        d = math.hypot(tc[0] - self.cell[0], tc[1] - self.cell[1]) * self.cfg.resolution
+        offer = self.recruit.offer(req, now, self.pos, self.battery.energy, self.state, d)
+        self.counters["offers_sent"] += 1
+        self._route(req.recruit_originator, offer, P.RECRUIT, hint=req.src_hop)
 
     # -- routed unicast (ProtocolPacket) -----------------------------------------------
 

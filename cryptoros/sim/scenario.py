@@ -19,7 +19,7 @@ from cryptoros.sim import attacks as A
 from cryptoros.sim.battery import BatterySpec
 from cryptoros.sim.channel import Channel, Radio
 from cryptoros.sim.engine import Engine, SimHost
-from cryptoros.sim.robot import DEAD, DONE, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
+from cryptoros.sim.robot import DEAD, DONE, STATE_NAMES, Robot, RobotConfig
 from cryptoros.sim.security import SecurityConfig, make_managers
 from cryptoros.sim.world import FREE, OCC, UNKNOWN, Lidar, World, generate, load_map_server
 
@@ -154,13 +154,18 @@ class Mission:
         if self.task_time is None and cov >= self.cfg.coverage_target:
             self.task_time = now
             self.end_reason = "coverage_target"
-        active = any(r.state in (EXPLORE, HOME, RECRUITED) or r.recruit.pending for r in self.robots.values())
+        active = any(r.active for r in self.robots.values())
         if active:
             self._quiet_since = None
         elif self._quiet_since is None:
             self._quiet_since = now
         if self.task_time is None and self._quiet_since is not None and now - self._quiet_since >= 10.0:
-            self.end_reason = "robots_believe_done" if any(r.state == DONE for r in self.robots.values()) else "no_robot_active"
+            if any(r.state == DONE for r in self.robots.values()):
+                self.end_reason = "robots_believe_done"
+            elif any(r.out_of_reach for r in self.robots.values()):
+                self.end_reason = "frontier_out_of_reach"  # every frontier is beyond what a full battery can reach
+            else:
+                self.end_reason = "no_robot_active"
         if all(r.state == DEAD for r in self.robots.values()):
             self.end_reason = "all_batteries_empty"
         if not self.end_reason:
@@ -279,6 +284,8 @@ class Mission:
                 "requests": sum(r.counters["recruit_requests"] for r in self.robots.values()),
                 "recruited": sum(r.counters["recruited"] for r in self.robots.values()),
                 "returns_home": sum(r.counters["returns_home"] for r in self.robots.values()),
+                "charges": sum(r.counters["charges"] for r in self.robots.values()),
+                "resumed": sum(r.counters["resumed"] for r in self.robots.values()),
             },
             "robots": robots,
             "attack": attack,

@@ -298,3 +298,45 @@ def test_expanding_ring_reaches_k_hops_with_ttl_k_and_not_before(k):
     assert rk.counters["recruited"] == 1
     # a robot k hops away saw the request only in the ring with TTL k
     assert min(rk.recruit.seen_request_ttls("r0", 1)) == 1 and len(rk.recruit.seen_request_ttls("r0", 1)) == 1
+
+
+def _room_with_two_idle_robots_at_the_base(seed: int) -> Mission:
+    """r1 and r2 idle side by side at the base, r0 in range of both: one general recruit
+    request reaches both at the same instant."""
+    occ = np.ones((20, 40), dtype=bool)
+    occ[1:-1, 1:-1] = False
+    world = World(occ, 0.2, [(2, 2)])
+    cfg = SimConfig(robots=3, idle=3, seed=seed, range_m=6.0, max_time=120.0)
+    return Mission(cfg, world=world, starts=[(10, 20), (2, 3), (3, 2)])
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_two_idle_robots_in_range_both_offer_and_the_recruit_succeeds(seed):
+    mission = _room_with_two_idle_robots_at_the_base(seed)
+    for r in mission.robots.values():
+        r.start()
+    mission.engine.run_until(12.0)  # neighbours known
+    r0, r1, r2 = (mission.robots[n] for n in ("r0", "r1", "r2"))
+    r0._start_recruit((10, 30), dest="")  # general request: any robot idle at a base
+    mission.engine.run_until(20.0)
+    events = [e for _, e, _, _ in r0.recruit.log]
+    assert events.count("offer") == 2  # both idle robots got their offer through
+    assert "confirm" in events
+    assert r1.counters["offers_sent"] == 1 and r2.counters["offers_sent"] == 1
+    assert r1.counters["recruited"] + r2.counters["recruited"] == 1
+    assert not r0.recruit.pending
+
+
+def test_a_recharged_robot_resumes_exploring():
+    # one robot, a battery for about five minutes: out, home, charge, out again
+    m = Mission(SimConfig(robots=1, seed=3, battery_j=3000.0, max_time=600.0))
+    r = m.run()
+    c = r["robots"]["r0"]["counters"]
+    assert c["returns_home"] >= 1 and c["charges"] >= 1
+    assert c["resumed"] >= 1
+    assert r["outcome"]["end_reason"] != "no_robot_active"
+    # one full battery drives at most capacity / (traction + idle draw per metre) metres:
+    # anything beyond that was driven after a recharge
+    spec = m.robots["r0"].battery.spec
+    one_charge_m = spec.capacity_j / (spec.move_j_per_m + spec.idle_w / m.robots["r0"].cfg.speed)
+    assert r["robots"]["r0"]["travelled_m"] > one_charge_m
