@@ -111,16 +111,20 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
 
 @sim.command("sweep")
 @click.option("--robots", default="2,3,4", show_default=True, help="comma list of robot counts")
-@click.option("--scenarios", default="legacy,attack1,defended1,attack2,sha256-2,defended2,eavesdrop,defended3,secure", show_default=True)
+@click.option("--scenarios", default="legacy,attack1,defended1,attack2,sha256-2,defended2,eavesdrop,defended3,secure,secure-rsa,battery",
+              show_default=True, help="secure-rsa: full security with RSA key negotiation; battery: 3 kJ batteries and one idle robot "
+              "(returns home, recharges, recruits)")
 @click.option("--curves", default="secp192r1,secp256k1,secp384r1", show_default=True)
-@click.option("--seeds", default=3, show_default=True, help="seeds 1..N")
+@click.option("--seeds", default=10, show_default=True, help="seeds 1..N (error bars are Student's t 95% intervals: use >= 10)")
 @click.option("--out", default="sim-out/sweep", show_default=True, type=click.Path(file_okay=False))
 @click.option("--workers", default=0, help="processes (0: all cores)")
 @click.option("--size", default="100x100", show_default=True)
 @click.option("--max-time", default=900.0, show_default=True)
 @click.option("--prefix", default="sim-", show_default=True, help="figure file name prefix")
-def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, prefix) -> None:
-    """Run robots x scenarios x curves x seeds on all cores; write CSV and PNG plots."""
+@click.option("--maps/--no-maps", default=True, show_default=True, help="draw each scenario's map (first seed, most robots) into OUT/maps")
+def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, prefix, maps) -> None:
+    """Run robots x scenarios x curves x seeds on all cores; write sweep.csv (one row per
+    mission), paired.csv (scenario pairs compared seed by seed) and PNG figures."""
     from rich.progress import Progress
 
     from cryptoros.sim.sweep import SCENARIOS, figures, sweep
@@ -132,11 +136,22 @@ def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, pr
     w, h = (int(v) for v in size.lower().split("x"))
     extra = {"width": w, "height": h, "max_time": max_time}
     outp = Path(out)
+    if seeds < 2:
+        raise click.UsageError("--seeds must be at least 2 (intervals need a spread)")
+
+    def tick(i: int, n: int) -> None:
+        prog.update(task, completed=i, total=n)
+        if not prog.console.is_terminal and (i == n or i % max(1, n // 20) == 0):
+            click.echo(f"sweep: {i}/{n} missions", err=True)  # progress in logs too
+
     with Progress(transient=True) as prog:
         task = prog.add_task("sweep", total=None)
         rows = sweep(_csv(robots, int), scen, _csv(curves), list(range(1, seeds + 1)), outp, workers=workers or None, extra=extra,
-                     progress=lambda i, n: prog.update(task, completed=i, total=n))
+                     progress=tick, maps=maps)
     made = figures(rows, outp, prefix)
-    click.echo(f"{len(rows)} runs -> {outp / 'sweep.csv'}")
+    click.echo(f"{len(rows)} runs -> {outp / 'sweep.csv'}, seed-by-seed comparisons -> {outp / 'paired.csv'}")
+    if maps:
+        for m in sorted((outp / "maps").glob("*.png")):
+            click.echo(f"map: {m}")
     for m in made:
         click.echo(f"figure: {m}")

@@ -72,6 +72,7 @@ class RobotConfig:
     recruit_timeout: float = 1.5
     max_ttl: int = 6
     offer_backoff: float = 0.3  # an OFFER waits uniform [0, this) s: idle robots hearing one request do not all answer at once
+    min_buffer_free: float = 0.1  # a robot with less free frame buffer is not recruited (it must unload first)
     resume_after: float = 20.0  # a recharged robot idles at its base (recruitable) this long, then resumes (paper 5.2, incremental recruit)
 
 
@@ -139,8 +140,8 @@ class Robot:
         now = self.host.now()
         dt = now - self._last_t
         if dt > 0:
-            if self.state == CHARGING:
-                self.battery.charge(dt)
+            if self.state == CHARGING or (self.state == IDLE and self.home.at_base(self.cell)):
+                self.battery.charge(dt)  # a robot idle at a base stays on the charger
             else:
                 self.battery.elapse(dt)
             self._last_t = now
@@ -199,7 +200,7 @@ class Robot:
         now = self.host.now()
         changed = self.protocol.expire(now)
         self.security.expire(set(self.protocol.neighbours), now)
-        self.send(self.protocol.hello(now, self.pos, self.battery.energy, self.state), P.HELLO)
+        self.send(self.protocol.hello(now, self.pos, self.battery.energy, self.state, self.buffer.free_share), P.HELLO)
         for msg, typename in self.security.tick(now):
             self.send(msg, typename)
         if changed or self.protocol.neighbour_set_changed():
@@ -222,7 +223,7 @@ class Robot:
         self._last_lsu = self.host.now()
         self._sync()
         if self.state != DEAD:
-            self.send(self.protocol.lsu(self.host.now(), self.pos, self.battery.energy, self.state), P.LSU)
+            self.send(self.protocol.lsu(self.host.now(), self.pos, self.battery.energy, self.state, self.buffer.free_share), P.LSU)
 
     def _forward_lsu(self, fwd: Any) -> None:
         self._sync()
@@ -267,7 +268,8 @@ class Robot:
         if self.state not in (EXPLORE, HOME, RECRUITED):
             return
         now = self.host.now()
-        if self.state in (EXPLORE, RECRUITED) and self.home.must_return(self.battery, self.cell, self.cfg.resolution):
+        if self.state in (EXPLORE, RECRUITED) and (self.home.must_return(self.battery, self.cell, self.cfg.resolution) or self.buffer.full):
+            # low battery, or no room for more frames: unload and charge at a base (paper 4.2)
             self._go_home(now)
         if not self.path or (self.state == EXPLORE and not self.explorer.is_frontier(self.belief.known, self.goal)):
             if not self._replan(now):
@@ -380,7 +382,9 @@ class Robot:
     # -- recruiting ---------------------------------------------------------------------
 
     def _pick_candidate(self, target: tuple[int, int]) -> str:
-        """Specific recruit: idle at a base first, then nearest to the target."""
+        """Specific recruit: idle at a base first, then nearest to the target; only robots
+        with the energy to get there and back and room in their frame buffer to record it
+        (the link-state metrics of paper 5: residual energy, buffer space, distance)."""
         tx, ty = target[1] * self.cfg.resolution, target[0] * self.cfg.resolution
         best, key = "", None
         for n, info in sorted(self.protocol.known_robots().items()):
@@ -388,7 +392,7 @@ class Robot:
                 continue
             d = math.hypot(info.position[0] - tx, info.position[1] - ty)
             need = self.battery.cost_to_travel(d * 2 * self.home.detour, self.cfg.speed)
-            if info.energy <= need:
+            if info.energy <= need or info.buffer_free < self.cfg.min_buffer_free:
                 continue
             k = (info.state != IDLE, d)
             if key is None or k < key:
@@ -417,7 +421,7 @@ class Robot:
             self._route(val.dest_recruit_originator, self.recruit.confirm(val, now, self.pos), P.RECRUIT, hint=val.src_hop)
 
     def _eligible(self, req: Any) -> bool:
-        if self.state not in (IDLE, EXPLORE, DONE):
+        if self.state not in (IDLE, EXPLORE, DONE) or self.buffer.free_share < self.cfg.min_buffer_free:
             return False
         if req.dest_recruit_originator == self.name:
             pass
