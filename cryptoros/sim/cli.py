@@ -34,6 +34,8 @@ def sim() -> None:
 @click.option("--bases", default=1, show_default=True)
 @click.option("--idle", default=0, show_default=True, help="robots that start idle at a base (recruitable)")
 @click.option("--battery-j", default=0.0, help="battery capacity in J (default: TurtleBot3 Burger, ~72 kJ)")
+@click.option("--resume-after", default=20.0, show_default=True,
+              help="seconds a recharged robot stays idle (recruitable) at its base before it resumes exploring")
 @click.option("--range-m", default=6.0, show_default=True, help="radio range of the robots")
 @click.option("--loss", default=0.0, show_default=True, help="random loss probability per reception")
 @click.option("--target", default=0.95, show_default=True, help="coverage target that ends the task")
@@ -42,7 +44,7 @@ def sim() -> None:
 @click.option("--map-png", default=None, type=click.Path(dir_okay=False), help="draw truth beside each robot's belief")
 @click.option("--trace", default=None, type=click.Path(dir_okay=False), help="write the per-packet channel trace (JSON lines)")
 @click.option("--quiet", is_flag=True)
-def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, size, resolution, map_yaml, bases, idle, battery_j, range_m,
+def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, size, resolution, map_yaml, bases, idle, battery_j, resume_after, range_m,
             loss, target, max_time, json_path, map_png, trace, quiet) -> None:
     """Run one mission and print a summary."""
     from rich.console import Console
@@ -58,7 +60,7 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
             robots=robots, seed=seed, width=w, height=h, map_yaml=map_yaml, resolution=resolution, bases=bases,
             attacks=tuple(a for a in _csv(attack) if a != "none"), security=SecurityConfig.parse(security, curve=curve, crypto_cost=crypto_cost),
             plausibility=plausibility, coverage_target=target, max_time=max_time, range_m=range_m, loss=loss, idle=idle, battery_j=battery_j,
-            trace=bool(trace),
+            resume_after=resume_after, trace=bool(trace),
         )
         mission = Mission(cfg)
     except (ConfigError, ValueError) as err:
@@ -84,6 +86,8 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
         ("energy per robot (J)", f"{result['energy']['mean_per_robot_j']:.0f}"),
         ("crypto CPU (s, all robots)", f"{result['crypto']['cpu_s_total']:.3f}"),
         ("recruit requests / recruited", f"{result['recruit']['requests']} / {result['recruit']['recruited']}"),
+        ("returns home / charges / resumed", f"{result['recruit']['returns_home']} / {result['recruit']['charges']} / {result['recruit']['resumed']}"),
+        ("end reason", o["end_reason"]),
         ("wall time (s)", f"{result['wall']['seconds']:.2f}"),
     ]
     for a in result["attack"].values():

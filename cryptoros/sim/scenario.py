@@ -44,6 +44,7 @@ class SimConfig:
     loss: float = 0.0
     idle: int = 0  # robots that start idle at a base
     battery_j: float = 0.0  # 0: TurtleBot3 Burger capacity
+    resume_after: float = 20.0  # a recharged robot waits this long at its base (recruitable), then resumes
     recruit: bool = True
     share_period: float = 5.0
     hello_period: float = 1.0
@@ -111,7 +112,7 @@ class Mission:
                     managers[a]._priv = None
         spec = BatterySpec(capacity_j=cfg.battery_j) if cfg.battery_j > 0 else BatterySpec()
         rcfg = RobotConfig(resolution=w.resolution, hello_period=cfg.hello_period, lsu_period=cfg.lsu_period, share_period=cfg.share_period,
-                           recruit=cfg.recruit, plausibility=cfg.plausibility, battery=spec)
+                           recruit=cfg.recruit, plausibility=cfg.plausibility, battery=spec, resume_after=cfg.resume_after)
         per_base: dict[int, int] = {}
         for i, n in enumerate(names):
             b = i % len(w.bases)

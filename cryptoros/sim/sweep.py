@@ -185,6 +185,15 @@ def write_paired(rows: list[dict[str, Any]], path: Path) -> list[dict[str, Any]]
     return out
 
 
+SIGNED_SCENARIOS = ("defended1", "secure", "secure-rsa")
+
+
+def curve_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of Fig. 8, each labelled with its series: every (scenario, curve) pair
+    is its own series, so scenarios with different traffic are never averaged together."""
+    return [{**r, "series": f"{r['scenario']} {r['curve']}"} for r in rows if r["scenario"] in SIGNED_SCENARIOS]
+
+
 def figures(rows: list[dict[str, Any]], out: Path, prefix: str = "sim-") -> list[Path]:
     from cryptoros.sim import plots
 
@@ -214,8 +223,7 @@ def figures(rows: list[dict[str, Any]], out: Path, prefix: str = "sim-") -> list
         n_max = max(r["robots"] for r in rows)
         made.append(plots.energy_bars([r for r in one_curve if r["robots"] == n_max], out / f"{prefix}energy.png",
                                       title=f"Team energy by component, {n_max} robots ({base_curve} where signed)"))
-    # Fig. 8: every (scenario, curve) is its own series; scenarios are never pooled
-    curved = [{**r, "series": f"{r['scenario']} {r['curve']}"} for r in rows if r["scenario"] in ("secure", "secure-rsa", "defended1")]
+    curved = curve_rows(rows)
     if len({r["curve"] for r in curved}) > 1:
         made.append(plots.line_plot(curved, "robots", "task_time_s", "series", out / f"{prefix}task-time-curves.png",
                                     title="Task time by ECC curve, signed traffic (Fig. 8)", ylabel="seconds"))

@@ -373,3 +373,15 @@ def test_t_interval_uses_students_t_not_1_96():
     m, h, n = aggregate(rows, "v", ("s",))[("x",)]
     sd = float(np.std([r["v"] for r in rows], ddof=1))
     assert n == 10 and h == pytest.approx(2.2621571627409915 * sd / 10 ** 0.5)  # t(0.975, 9 d.f.)
+
+
+def test_fig8_keeps_each_scenario_its_own_series():
+    from cryptoros.sim.plots import aggregate
+    from cryptoros.sim.sweep import curve_rows
+
+    rows = [{"scenario": s, "curve": c, "robots": 2, "seed": k, "task_time_s": t + k}
+            for s, t in (("secure", 100.0), ("defended1", 300.0)) for c in ("secp192r1", "secp384r1") for k in (1, 2, 3)]
+    rows.append({"scenario": "legacy", "curve": "secp192r1", "robots": 2, "seed": 1, "task_time_s": 5.0})
+    agg = aggregate(curve_rows(rows), "task_time_s", ("series", "robots"))
+    assert set(agg) == {("secure secp192r1", 2), ("secure secp384r1", 2), ("defended1 secp192r1", 2), ("defended1 secp384r1", 2)}
+    assert agg[("secure secp192r1", 2)][0] == 102.0 and agg[("defended1 secp384r1", 2)][0] == 302.0
