@@ -15,12 +15,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
 
 from cryptoros.sim.world import OCC, UNKNOWN  # noqa: E402
 
 
 def map_png(mission: Any, path: str | Path) -> Path:
-    """Truth, then each robot's belief; unexplored (unknown) cells hatched."""
+    """Truth, then each robot's belief. Hatched: on the truth, explorable cells no robot
+    ever scanned (paper Fig. 5's unexplored area); on a belief, cells the robot does not
+    know. A robot fooled by a false map believes cells known that nobody scanned."""
     robots = list(mission.robots.values())
     n = 1 + len(robots)
     cols = min(n, 5)
@@ -28,18 +31,20 @@ def map_png(mission: Any, path: str | Path) -> Path:
     fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 3 * rows), squeeze=False)
     cmap = ListedColormap(["#ffffff", "#303030"])
     truth = mission.world.occupied.astype(int)
-    panels = [("ground truth", truth, None)] + [(f"{r.name} ({r.belief.known.__ne__(UNKNOWN).mean():.0%} known)", (r.belief.known == OCC).astype(int), r.belief.known == UNKNOWN) for r in robots]
+    unscanned = mission.world.explorable() & ~mission.observed
+    panels = [(f"ground truth (team scanned {mission.coverage():.0%})", truth, unscanned)] + [(f"{r.name} ({r.belief.known.__ne__(UNKNOWN).mean():.0%} known)", (r.belief.known == OCC).astype(int), r.belief.known == UNKNOWN) for r in robots]
     for ax in axes.flat:
         ax.axis("off")
     for ax, (title, img, unknown) in zip(axes.flat, panels):
         ax.imshow(img, cmap=cmap, vmin=0, vmax=1, interpolation="nearest")
+        ax.add_patch(Rectangle((-0.5, -0.5), img.shape[1], img.shape[0], fill=False, lw=0.6, ec="#999999", clip_on=False))  # the grid's edge
         if unknown is not None and unknown.any():
             ax.contourf(unknown.astype(float), levels=[0.5, 1.5], colors="none", hatches=["////"])
             ax.contour(unknown.astype(float), levels=[0.5], colors="#888888", linewidths=0.4)
         for b in mission.world.bases:
             ax.plot(b[1], b[0], "s", color="tab:green", ms=5)
         for r in robots:
-            ax.plot(r.cell[1], r.cell[0], "o", ms=3, color="tab:red" if unknown is None or r.name not in title else "tab:blue")
+            ax.plot(r.cell[1], r.cell[0], "o", ms=3, color="tab:blue" if title.startswith(f"{r.name} ") else "tab:red")
         ax.set_title(title, fontsize=8)
     fig.suptitle(f"{mission.world.name}: attacks={','.join(mission.cfg.attacks) or 'none'} security={mission.cfg.security.label}", fontsize=9)
     fig.tight_layout()

@@ -46,6 +46,9 @@ SCENARIO_CONFIG: dict[str, dict[str, Any]] = {
     "battery": {"battery_j": 3000.0, "idle": 1},
 }
 
+#: Scenarios whose frames are signed: they run once per curve (paper Fig. 8).
+SIGNED_SCENARIOS = ("defended1", "secure", "secure-rsa")
+
 #: Scenario pairs compared seed by seed in paired.csv: (baseline, treatment).
 PAIRS = [("legacy", "attack1"), ("attack1", "defended1"), ("legacy", "attack2"), ("attack2", "sha256-2"), ("attack2", "defended2"),
          ("legacy", "defended2"), ("legacy", "secure"), ("secure", "secure-rsa"), ("legacy", "battery")]
@@ -156,6 +159,19 @@ def paired(rows: list[dict[str, Any]], pairs: list[tuple[str, str]] = PAIRS, met
         return next(iter(runs.values())) if len(runs) == 1 else None  # a scenario that signs nothing ran once
 
     out = []
+
+    def compare(base: str, treat: str, n: Any, curve: str, matched: list[tuple[dict[str, Any], dict[str, Any]]]) -> None:
+        for m in metrics:
+            a = [float(x[m]) for x, _ in matched]
+            b = [float(y[m]) for _, y in matched]
+            d = [y - x for x, y in zip(a, b)]
+            mean, half = t_interval(d)
+            p = float(stats.ttest_rel(b, a).pvalue) if any(d) else 1.0
+            out.append({"baseline": base, "treatment": treat, "robots": n, "curve": curve, "metric": m, "n": len(d),
+                        "mean_baseline": round(sum(a) / len(a), 4), "mean_treatment": round(sum(b) / len(b), 4),
+                        "mean_diff": round(mean, 4), "ci95_low": round(mean - half, 4), "ci95_high": round(mean + half, 4),
+                        "p_value": round(p, 6) if p == p else ""})
+
     for base, treat in pairs:
         for n in sorted({r["robots"] for r in rows}):
             for curve in curves:
@@ -163,16 +179,15 @@ def paired(rows: list[dict[str, Any]], pairs: list[tuple[str, str]] = PAIRS, met
                 matched = [(a, b) for a, b in matched if a is not None and b is not None]
                 if len(matched) < 2 or all(a["curve"] != curve and b["curve"] != curve for a, b in matched):
                     continue  # neither side signs: its one row per robot count is under its own curve
-                for m in metrics:
-                    a = [float(x[m]) for x, _ in matched]
-                    b = [float(y[m]) for _, y in matched]
-                    d = [y - x for x, y in zip(a, b)]
-                    mean, half = t_interval(d)
-                    p = float(stats.ttest_rel(b, a).pvalue) if any(d) else 1.0
-                    out.append({"baseline": base, "treatment": treat, "robots": n, "curve": curve, "metric": m, "n": len(d),
-                                "mean_baseline": round(sum(a) / len(a), 4), "mean_treatment": round(sum(b) / len(b), 4),
-                                "mean_diff": round(mean, 4), "ci95_low": round(mean - half, 4), "ci95_high": round(mean + half, 4),
-                                "p_value": round(p, 6) if p == p else ""})
+                compare(base, treat, n, curve, matched)
+    # Fig. 8 seed by seed: each signed scenario under each curve against its first curve
+    for scen in SIGNED_SCENARIOS:
+        for n in sorted({r["robots"] for r in rows}):
+            for curve in curves[1:]:
+                matched = [(by.get((scen, n, s), {}).get(curves[0]), by.get((scen, n, s), {}).get(curve)) for s in seeds]
+                matched = [(a, b) for a, b in matched if a is not None and b is not None]
+                if len(matched) >= 2:
+                    compare(f"{scen} {curves[0]}", f"{scen} {curve}", n, curve, matched)
     return out
 
 
@@ -183,9 +198,6 @@ def write_paired(rows: list[dict[str, Any]], path: Path) -> list[dict[str, Any]]
         w.writeheader()
         w.writerows(out)
     return out
-
-
-SIGNED_SCENARIOS = ("defended1", "secure", "secure-rsa")
 
 
 def curve_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
