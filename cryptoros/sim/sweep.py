@@ -248,7 +248,7 @@ def figures(rows: list[dict[str, Any]], out: Path, prefix: str = "sim-") -> list
             for col in ("returns_home", "charges", "recruit_requests", "recruit_successes"):
                 rc.append({**r, "series": col, "v": r[col]})
         made.append(plots.line_plot(rc, "robots", "v", "series", out / f"{prefix}battery-recruit.png",
-                                    title="Battery scenario: returns home, charges, recruit requests and successes", ylabel="count per mission"))
+                                    title="Battery scenario (3 kJ, one robot idle at the base)", ylabel="count per mission"))
     eav = sel("eavesdrop", "defended3")
     if eav:
         made.append(plots.bar_plot(eav, "scenario", "eaves_map_share", out / f"{prefix}eavesdropper.png",
