@@ -74,7 +74,7 @@ class Attacker:
 
     def hello(self) -> None:
         self.hello_seq += 1
-        self.send(P.make(P.HELLO, source=self.name, seq=self.hello_seq, timestamp=self.host.now(), position=P.Point(*self.pos), residual_energy=50000.0, state=1), P.HELLO)
+        self.send(P.make(P.HELLO, source=self.name, seq=self.hello_seq, timestamp=self.host.now(), position=P.Point(*self.pos), residual_energy=50000.0, buffer_free=1.0, state=1), P.HELLO)
 
     def open(self, frame: P.Frame) -> tuple[Any, str]:
         msg, typename, _, replies = self.security.open(frame, self.host.now())

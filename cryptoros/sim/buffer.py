@@ -24,6 +24,11 @@ class FrameBuffer:
         self.dropped += max(0, new - room)
 
     @property
+    def free_share(self) -> float:
+        """Free space as a share of the capacity (what HELLOs and LSUs advertise)."""
+        return max(0.0, 1.0 - self.frames / self.capacity)
+
+    @property
     def full(self) -> bool:
         return self.frames >= self.capacity
 

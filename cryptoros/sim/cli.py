@@ -34,6 +34,8 @@ def sim() -> None:
 @click.option("--bases", default=1, show_default=True)
 @click.option("--idle", default=0, show_default=True, help="robots that start idle at a base (recruitable)")
 @click.option("--battery-j", default=0.0, help="battery capacity in J (default: TurtleBot3 Burger, ~72 kJ)")
+@click.option("--resume-after", default=20.0, show_default=True,
+              help="seconds a recharged robot stays idle (recruitable) at its base before it resumes exploring")
 @click.option("--range-m", default=6.0, show_default=True, help="radio range of the robots")
 @click.option("--loss", default=0.0, show_default=True, help="random loss probability per reception")
 @click.option("--target", default=0.95, show_default=True, help="coverage target that ends the task")
@@ -42,7 +44,7 @@ def sim() -> None:
 @click.option("--map-png", default=None, type=click.Path(dir_okay=False), help="draw truth beside each robot's belief")
 @click.option("--trace", default=None, type=click.Path(dir_okay=False), help="write the per-packet channel trace (JSON lines)")
 @click.option("--quiet", is_flag=True)
-def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, size, resolution, map_yaml, bases, idle, battery_j, range_m,
+def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, size, resolution, map_yaml, bases, idle, battery_j, resume_after, range_m,
             loss, target, max_time, json_path, map_png, trace, quiet) -> None:
     """Run one mission and print a summary."""
     from rich.console import Console
@@ -58,7 +60,7 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
             robots=robots, seed=seed, width=w, height=h, map_yaml=map_yaml, resolution=resolution, bases=bases,
             attacks=tuple(a for a in _csv(attack) if a != "none"), security=SecurityConfig.parse(security, curve=curve, crypto_cost=crypto_cost),
             plausibility=plausibility, coverage_target=target, max_time=max_time, range_m=range_m, loss=loss, idle=idle, battery_j=battery_j,
-            trace=bool(trace),
+            resume_after=resume_after, trace=bool(trace),
         )
         mission = Mission(cfg)
     except (ConfigError, ValueError) as err:
@@ -84,6 +86,8 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
         ("energy per robot (J)", f"{result['energy']['mean_per_robot_j']:.0f}"),
         ("crypto CPU (s, all robots)", f"{result['crypto']['cpu_s_total']:.3f}"),
         ("recruit requests / recruited", f"{result['recruit']['requests']} / {result['recruit']['recruited']}"),
+        ("returns home / charges / resumed", f"{result['recruit']['returns_home']} / {result['recruit']['charges']} / {result['recruit']['resumed']}"),
+        ("end reason", o["end_reason"]),
         ("wall time (s)", f"{result['wall']['seconds']:.2f}"),
     ]
     for a in result["attack"].values():
@@ -111,16 +115,20 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
 
 @sim.command("sweep")
 @click.option("--robots", default="2,3,4", show_default=True, help="comma list of robot counts")
-@click.option("--scenarios", default="legacy,attack1,defended1,attack2,sha256-2,defended2,eavesdrop,defended3,secure", show_default=True)
+@click.option("--scenarios", default="legacy,attack1,defended1,attack2,sha256-2,defended2,eavesdrop,defended3,secure,secure-rsa,battery",
+              show_default=True, help="secure-rsa: full security with RSA key negotiation; battery: 3 kJ batteries and one idle robot "
+              "(returns home, recharges, recruits)")
 @click.option("--curves", default="secp192r1,secp256k1,secp384r1", show_default=True)
-@click.option("--seeds", default=3, show_default=True, help="seeds 1..N")
+@click.option("--seeds", default=10, show_default=True, help="seeds 1..N (error bars are Student's t 95% intervals: use >= 10)")
 @click.option("--out", default="sim-out/sweep", show_default=True, type=click.Path(file_okay=False))
 @click.option("--workers", default=0, help="processes (0: all cores)")
 @click.option("--size", default="100x100", show_default=True)
 @click.option("--max-time", default=900.0, show_default=True)
 @click.option("--prefix", default="sim-", show_default=True, help="figure file name prefix")
-def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, prefix) -> None:
-    """Run robots x scenarios x curves x seeds on all cores; write CSV and PNG plots."""
+@click.option("--maps/--no-maps", default=True, show_default=True, help="draw each scenario's map (first seed, most robots) into OUT/maps")
+def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, prefix, maps) -> None:
+    """Run robots x scenarios x curves x seeds on all cores; write sweep.csv (one row per
+    mission), paired.csv (scenario pairs compared seed by seed) and PNG figures."""
     from rich.progress import Progress
 
     from cryptoros.sim.sweep import SCENARIOS, figures, sweep
@@ -132,11 +140,22 @@ def sweep_cmd(robots, scenarios, curves, seeds, out, workers, size, max_time, pr
     w, h = (int(v) for v in size.lower().split("x"))
     extra = {"width": w, "height": h, "max_time": max_time}
     outp = Path(out)
+    if seeds < 2:
+        raise click.UsageError("--seeds must be at least 2 (intervals need a spread)")
+
+    def tick(i: int, n: int) -> None:
+        prog.update(task, completed=i, total=n)
+        if not prog.console.is_terminal and (i == n or i % max(1, n // 20) == 0):
+            click.echo(f"sweep: {i}/{n} missions", err=True)  # progress in logs too
+
     with Progress(transient=True) as prog:
         task = prog.add_task("sweep", total=None)
         rows = sweep(_csv(robots, int), scen, _csv(curves), list(range(1, seeds + 1)), outp, workers=workers or None, extra=extra,
-                     progress=lambda i, n: prog.update(task, completed=i, total=n))
+                     progress=tick, maps=maps)
     made = figures(rows, outp, prefix)
-    click.echo(f"{len(rows)} runs -> {outp / 'sweep.csv'}")
+    click.echo(f"{len(rows)} runs -> {outp / 'sweep.csv'}, seed-by-seed comparisons -> {outp / 'paired.csv'}")
+    if maps:
+        for m in sorted((outp / "maps").glob("*.png")):
+            click.echo(f"map: {m}")
     for m in made:
         click.echo(f"figure: {m}")

@@ -3,11 +3,13 @@
 Sans-IO: methods take ``now`` and decoded messages and return messages to send; the
 robot decides when to call them. HELLOs are one hop and periodic; a neighbour not
 heard for ``hold`` seconds is gone. An LSU carries the origin's position, residual
-energy, timestamp, sequence number and neighbour list; it is sent periodically and
-when the neighbour set changes, and flooded with a TTL (each robot forwards a given
-``(origin, seq)`` once). Routes are Dijkstra on the topology with the paper's
-min-hop metric; residual energy is the feasibility test: a robot below
-``min_relay_energy`` is never used as a relay.
+energy, free buffer space, timestamp, sequence number and neighbour list; it is sent
+periodically and when the neighbour set changes, and flooded with a TTL (each robot
+forwards a given ``(origin, seq)`` once). Routes are Dijkstra on the topology with the
+paper's min-hop metric; residual energy and buffer space are feasibility tests: a
+robot below ``min_relay_energy`` is never used as a relay, and the recruiter skips
+candidates without the energy to reach the target or the buffer space to record it
+(the robot's ``_pick_candidate``; paper 5: residual energy, buffer space and distance).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ class NodeInfo:
     stamp: float
     seq: int = 0
     neighbours: tuple[str, ...] = ()
+    buffer_free: float = 1.0  # free share of the frame buffer
 
 
 def dijkstra(adj: dict[str, set[str]], source: str, *, allowed_relay=lambda n: True) -> tuple[dict[str, int], dict[str, str]]:
@@ -73,16 +76,18 @@ class Protocol:
 
     # -- HELLO -----------------------------------------------------------------------
 
-    def hello(self, now: float, pos: tuple[float, float], energy: float, state: int) -> Any:
+    def hello(self, now: float, pos: tuple[float, float], energy: float, state: int, buffer_free: float = 1.0) -> Any:
         self.hello_seq += 1
-        return P.make(P.HELLO, source=self.me, seq=self.hello_seq, timestamp=now, position=P.Point(*pos), residual_energy=energy, state=state)
+        return P.make(P.HELLO, source=self.me, seq=self.hello_seq, timestamp=now, position=P.Point(*pos), residual_energy=energy,
+                      buffer_free=buffer_free, state=state)
 
     def on_hello(self, msg: Any, now: float) -> bool:
         """Record a neighbour; True when the neighbour set changed."""
         if msg.source == self.me:
             return False
         new = msg.source not in self.neighbours
-        self.neighbours[msg.source] = NodeInfo((msg.position.x, msg.position.y), float(msg.residual_energy), int(msg.state), now, int(msg.seq))
+        self.neighbours[msg.source] = NodeInfo((msg.position.x, msg.position.y), float(msg.residual_energy), int(msg.state), now, int(msg.seq),
+                                             buffer_free=float(msg.buffer_free))
         if new:
             self._routes = None
         return new
@@ -106,12 +111,12 @@ class Protocol:
 
     # -- LSU -------------------------------------------------------------------------
 
-    def lsu(self, now: float, pos: tuple[float, float], energy: float, state: int) -> Any:
+    def lsu(self, now: float, pos: tuple[float, float], energy: float, state: int, buffer_free: float = 1.0) -> Any:
         self.lsu_seq += 1
         self.seen_lsu[self.me] = self.lsu_seq
         return P.make(
             P.LSU, origin=self.me, sender=self.me, seq=self.lsu_seq, timestamp=now, ttl=self.lsu_ttl,
-            position=P.Point(*pos), residual_energy=energy, state=state, neighbours=sorted(self.neighbours),
+            position=P.Point(*pos), residual_energy=energy, buffer_free=buffer_free, state=state, neighbours=sorted(self.neighbours),
         )
 
     def still_worth_forwarding(self, fwd: Any) -> bool:
@@ -127,7 +132,8 @@ class Protocol:
             self.duplicates[key] = self.duplicates.get(key, 0) + 1
             return None
         self.seen_lsu[msg.origin] = int(msg.seq)
-        self.topology[msg.origin] = NodeInfo((msg.position.x, msg.position.y), float(msg.residual_energy), int(msg.state), now, int(msg.seq), tuple(msg.neighbours))
+        self.topology[msg.origin] = NodeInfo((msg.position.x, msg.position.y), float(msg.residual_energy), int(msg.state), now, int(msg.seq), tuple(msg.neighbours),
+                                            buffer_free=float(msg.buffer_free))
         self._routes = None
         if msg.ttl > 1:
             return P.replace(msg, ttl=msg.ttl - 1, sender=self.me)

@@ -104,6 +104,11 @@ class Recruit:
         consider = (msg.recruit_originator, int(msg.request_id)) not in self.offered and (not msg.dest_recruit_originator or msg.dest_recruit_originator == self.me)
         return consider, fwd
 
+    def promise(self, req: Any) -> None:
+        """This robot will offer (after its back-off): later rings of the same request
+        must not schedule a second offer."""
+        self.offered.add((req.recruit_originator, int(req.request_id)))
+
     def offer(self, req: Any, now: float, pos: tuple[float, float], energy: float, state: int, distance: float) -> Any:
         self.offered.add((req.recruit_originator, int(req.request_id)))
         return P.make(

@@ -71,6 +71,9 @@ class RobotConfig:
     frames_per_m: float = 2.0
     recruit_timeout: float = 1.5
     max_ttl: int = 6
+    offer_backoff: float = 0.3  # an OFFER waits uniform [0, this) s: idle robots hearing one request do not all answer at once
+    min_buffer_free: float = 0.1  # a robot with less free frame buffer is not recruited (it must unload first)
+    resume_after: float = 20.0  # a recharged robot idles at its base (recruitable) this long, then resumes (paper 5.2, incremental recruit)
 
 
 class Robot:
@@ -101,10 +104,13 @@ class Robot:
         self._belief_checked = -1
         self._pending_lsu = False
         self._last_lsu = -1e9
+        self._resume_pending = False
+        self.out_of_reach = False  # recharged, but the nearest frontier is beyond a full battery
         self.travelled_m = 0.0
         self.finished_at: float | None = None
         self.counters = {"rx": 0, "tx": 0, "rejected": 0, "forwarded": 0, "recruited": 0, "recruit_requests": 0,
-                         "returns_home": 0, "charges": 0, "false_done": 0}
+                         "returns_home": 0, "charges": 0, "resumed": 0, "false_done": 0,
+                         "offers_sent": 0, "offers_received": 0}
         self.rejected: dict[str, int] = {}
 
     # -- helpers -----------------------------------------------------------------------
@@ -122,12 +128,20 @@ class Robot:
     def alive(self) -> bool:
         return self.state != DEAD
 
+    @property
+    def active(self) -> bool:
+        """Doing or about to do something for the mission: moving, charging, waiting for
+        recruit offers, or idle at a base with a resumption scheduled."""
+        if self.state == DEAD:
+            return False
+        return self.state in (EXPLORE, HOME, RECRUITED, CHARGING) or bool(self.recruit.pending) or self._resume_pending
+
     def _sync(self) -> None:
         now = self.host.now()
         dt = now - self._last_t
         if dt > 0:
-            if self.state == CHARGING:
-                self.battery.charge(dt)
+            if self.state == CHARGING or (self.state == IDLE and self.home.at_base(self.cell)):
+                self.battery.charge(dt)  # a robot idle at a base stays on the charger
             else:
                 self.battery.elapse(dt)
             self._last_t = now
@@ -186,7 +200,7 @@ class Robot:
         now = self.host.now()
         changed = self.protocol.expire(now)
         self.security.expire(set(self.protocol.neighbours), now)
-        self.send(self.protocol.hello(now, self.pos, self.battery.energy, self.state), P.HELLO)
+        self.send(self.protocol.hello(now, self.pos, self.battery.energy, self.state, self.buffer.free_share), P.HELLO)
         for msg, typename in self.security.tick(now):
             self.send(msg, typename)
         if changed or self.protocol.neighbour_set_changed():
@@ -209,7 +223,7 @@ class Robot:
         self._last_lsu = self.host.now()
         self._sync()
         if self.state != DEAD:
-            self.send(self.protocol.lsu(self.host.now(), self.pos, self.battery.energy, self.state), P.LSU)
+            self.send(self.protocol.lsu(self.host.now(), self.pos, self.battery.energy, self.state, self.buffer.free_share), P.LSU)
 
     def _forward_lsu(self, fwd: Any) -> None:
         self._sync()
@@ -254,7 +268,8 @@ class Robot:
         if self.state not in (EXPLORE, HOME, RECRUITED):
             return
         now = self.host.now()
-        if self.state in (EXPLORE, RECRUITED) and self.home.must_return(self.battery, self.cell, self.cfg.resolution):
+        if self.state in (EXPLORE, RECRUITED) and (self.home.must_return(self.battery, self.cell, self.cfg.resolution) or self.buffer.full):
+            # low battery, or no room for more frames: unload and charge at a base (paper 4.2)
             self._go_home(now)
         if not self.path or (self.state == EXPLORE and not self.explorer.is_frontier(self.belief.known, self.goal)):
             if not self._replan(now):
@@ -327,7 +342,33 @@ class Robot:
     def _charged(self) -> None:
         self._sync()
         if self.state == CHARGING:
-            self.state = IDLE  # inactive at the base until recruited (paper 5.2)
+            # inactive at the base, where a recruit request may wake it (paper 5.2, general
+            # recruit); if none does within resume_after, it resumes by itself (paper 5.2,
+            # incremental recruit: a robot is resumed every pre-fixed amount of time)
+            self.state = IDLE
+            self._resume_pending = True
+            self.host.call_later(self.cfg.resume_after, self._resume)
+
+    def _resume(self) -> None:
+        self._sync()
+        self._resume_pending = False
+        self.out_of_reach = False
+        if self.state != IDLE:
+            return  # recruited meanwhile, or dead
+        path = self.explorer.plan_frontier(self.belief.known, self.cell)
+        if path is None:
+            self.state = DONE  # nothing left on its map; the HELLO timer re-checks on news
+            self.finished_at = self.host.now()
+            self._belief_checked = self.belief.version
+            return
+        if path and not self.home.can_reach(self.battery, self.cell, path[-1]):
+            self.out_of_reach = True  # a full battery cannot take it there and back: stay recruitable
+            return
+        self.counters["resumed"] += 1
+        self.state = EXPLORE
+        self.finished_at = None
+        self.path = []
+        self._schedule_step(0.0)
 
     def _go_home(self, now: float) -> None:
         self.counters["returns_home"] += 1
@@ -341,7 +382,9 @@ class Robot:
     # -- recruiting ---------------------------------------------------------------------
 
     def _pick_candidate(self, target: tuple[int, int]) -> str:
-        """Specific recruit: idle at a base first, then nearest to the target."""
+        """Specific recruit: idle at a base first, then nearest to the target; only robots
+        with the energy to get there and back and room in their frame buffer to record it
+        (the link-state metrics of paper 5: residual energy, buffer space, distance)."""
         tx, ty = target[1] * self.cfg.resolution, target[0] * self.cfg.resolution
         best, key = "", None
         for n, info in sorted(self.protocol.known_robots().items()):
@@ -349,7 +392,7 @@ class Robot:
                 continue
             d = math.hypot(info.position[0] - tx, info.position[1] - ty)
             need = self.battery.cost_to_travel(d * 2 * self.home.detour, self.cfg.speed)
-            if info.energy <= need:
+            if info.energy <= need or info.buffer_free < self.cfg.min_buffer_free:
                 continue
             k = (info.state != IDLE, d)
             if key is None or k < key:
@@ -378,7 +421,7 @@ class Robot:
             self._route(val.dest_recruit_originator, self.recruit.confirm(val, now, self.pos), P.RECRUIT, hint=val.src_hop)
 
     def _eligible(self, req: Any) -> bool:
-        if self.state not in (IDLE, EXPLORE, DONE):
+        if self.state not in (IDLE, EXPLORE, DONE) or self.buffer.free_share < self.cfg.min_buffer_free:
             return False
         if req.dest_recruit_originator == self.name:
             pass
@@ -393,20 +436,34 @@ class Robot:
                 self.counters["forwarded"] += 1
                 self._send_later(fwd, P.RECRUIT)
             if consider and self._eligible(msg):
-                tc = self.to_cell(msg.target.x, msg.target.y)
-                d = math.hypot(tc[0] - self.cell[0], tc[1] - self.cell[1]) * self.cfg.resolution
-                offer = self.recruit.offer(msg, now, self.pos, self.battery.energy, self.state, d)
-                self._route(msg.recruit_originator, offer, P.RECRUIT, hint=msg.src_hop)
+                # random back-off, as a MAC would: two idle robots at one base hear the
+                # same request at the same instant, and answering at once collides
+                self.recruit.promise(msg)
+                delay = float(self.rng.random()) * self.cfg.offer_backoff
+                self.host.call_later(delay, lambda: self._send_offer(msg))
         elif msg.kind == OFFER:
             self.recruit.on_offer(msg, now)
+            self.counters["offers_received"] += 1
         elif msg.kind == CONFIRM and msg.dest_recruit_originator == self.name:
             if self.state in (IDLE, EXPLORE, DONE):
                 self.counters["recruited"] += 1
+                self.out_of_reach = False
                 self.state = RECRUITED
                 self.finished_at = None
                 self.target = self.to_cell(msg.target.x, msg.target.y)
                 self.path = []
                 self._schedule_step(0.0)
+
+    def _send_offer(self, req: Any) -> None:
+        self._sync()
+        if not self._eligible(req):  # state or battery changed during the back-off
+            return
+        now = self.host.now()
+        tc = self.to_cell(req.target.x, req.target.y)
+        d = math.hypot(tc[0] - self.cell[0], tc[1] - self.cell[1]) * self.cfg.resolution
+        offer = self.recruit.offer(req, now, self.pos, self.battery.energy, self.state, d)
+        self.counters["offers_sent"] += 1
+        self._route(req.recruit_originator, offer, P.RECRUIT, hint=req.src_hop)
 
     # -- routed unicast (ProtocolPacket) -----------------------------------------------
 

@@ -19,7 +19,7 @@ from cryptoros.sim import attacks as A
 from cryptoros.sim.battery import BatterySpec
 from cryptoros.sim.channel import Channel, Radio
 from cryptoros.sim.engine import Engine, SimHost
-from cryptoros.sim.robot import DEAD, DONE, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
+from cryptoros.sim.robot import DEAD, DONE, STATE_NAMES, Robot, RobotConfig
 from cryptoros.sim.security import SecurityConfig, make_managers
 from cryptoros.sim.world import FREE, OCC, UNKNOWN, Lidar, World, generate, load_map_server
 
@@ -44,6 +44,7 @@ class SimConfig:
     loss: float = 0.0
     idle: int = 0  # robots that start idle at a base
     battery_j: float = 0.0  # 0: TurtleBot3 Burger capacity
+    resume_after: float = 20.0  # a recharged robot waits this long at its base (recruitable), then resumes
     recruit: bool = True
     share_period: float = 5.0
     hello_period: float = 1.0
@@ -111,7 +112,7 @@ class Mission:
                     managers[a]._priv = None
         spec = BatterySpec(capacity_j=cfg.battery_j) if cfg.battery_j > 0 else BatterySpec()
         rcfg = RobotConfig(resolution=w.resolution, hello_period=cfg.hello_period, lsu_period=cfg.lsu_period, share_period=cfg.share_period,
-                           recruit=cfg.recruit, plausibility=cfg.plausibility, battery=spec)
+                           recruit=cfg.recruit, plausibility=cfg.plausibility, battery=spec, resume_after=cfg.resume_after)
         per_base: dict[int, int] = {}
         for i, n in enumerate(names):
             b = i % len(w.bases)
@@ -154,13 +155,18 @@ class Mission:
         if self.task_time is None and cov >= self.cfg.coverage_target:
             self.task_time = now
             self.end_reason = "coverage_target"
-        active = any(r.state in (EXPLORE, HOME, RECRUITED) or r.recruit.pending for r in self.robots.values())
+        active = any(r.active for r in self.robots.values())
         if active:
             self._quiet_since = None
         elif self._quiet_since is None:
             self._quiet_since = now
         if self.task_time is None and self._quiet_since is not None and now - self._quiet_since >= 10.0:
-            self.end_reason = "robots_believe_done" if any(r.state == DONE for r in self.robots.values()) else "no_robot_active"
+            if any(r.state == DONE for r in self.robots.values()):
+                self.end_reason = "robots_believe_done"
+            elif any(r.out_of_reach for r in self.robots.values()):
+                self.end_reason = "frontier_out_of_reach"  # every frontier is beyond what a full battery can reach
+            else:
+                self.end_reason = "no_robot_active"
         if all(r.state == DEAD for r in self.robots.values()):
             self.end_reason = "all_batteries_empty"
         if not self.end_reason:
@@ -279,6 +285,8 @@ class Mission:
                 "requests": sum(r.counters["recruit_requests"] for r in self.robots.values()),
                 "recruited": sum(r.counters["recruited"] for r in self.robots.values()),
                 "returns_home": sum(r.counters["returns_home"] for r in self.robots.values()),
+                "charges": sum(r.counters["charges"] for r in self.robots.values()),
+                "resumed": sum(r.counters["resumed"] for r in self.robots.values()),
             },
             "robots": robots,
             "attack": attack,

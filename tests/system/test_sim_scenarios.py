@@ -139,3 +139,22 @@ def test_cli_run_writes_json_and_map(tmp_path):
     assert png.stat().st_size > 1000 and png.read_bytes()[:4] == b"\x89PNG"
     bad = run_cmd([str(VENV_BIN / "cryptoros"), "sim", "run", "--attack", "nonsense"], timeout=60)
     assert bad.returncode != 0
+
+
+def test_battery_sweep_scenario_reports_returns_and_recruits_in_the_csv(tmp_path):
+    import csv
+
+    from cryptoros.sim.sweep import sweep
+
+    sweep([3], ["legacy", "battery"], ["secp256k1"], [1, 2], tmp_path, workers=1, extra={"max_time": 600.0})
+    rows = list(csv.DictReader(open(tmp_path / "sweep.csv")))
+    battery = [r for r in rows if r["scenario"] == "battery"]
+    assert len(battery) == 2
+    for r in battery:
+        assert int(r["returns_home"]) > 0 and int(r["charges"]) > 0
+        assert int(r["recruit_requests"]) > 0
+    assert sum(int(r["recruit_successes"]) for r in battery) > 0
+    assert all(int(r["returns_home"]) == 0 for r in rows if r["scenario"] == "legacy")
+    paired = list(csv.DictReader(open(tmp_path / "paired.csv")))
+    assert any(p["baseline"] == "legacy" and p["treatment"] == "battery" and p["metric"] == "coverage" and p["n"] == "2" for p in paired)
+    assert (tmp_path / "maps" / "map-battery-3robots-seed1.png").read_bytes()[:4] == b"\x89PNG"

@@ -149,7 +149,7 @@ def test_protocol_builds_topology_from_lsus():
     a, b = Protocol("a"), Protocol("b")
     hb = b.hello(0.0, (1.0, 0.0), 100.0, 1)
     assert a.on_hello(P.decode(P.encode(hb, P.HELLO), P.HELLO), 0.1)
-    lsu = P.make(P.LSU, origin="c", sender="b", seq=1, timestamp=0.0, ttl=3, position=P.Point(), residual_energy=5.0, state=1, neighbours=["b"])
+    lsu = P.make(P.LSU, origin="c", sender="b", seq=1, timestamp=0.0, ttl=3, position=P.Point(), residual_energy=5.0, buffer_free=1.0, state=1, neighbours=["b"])
     fwd = a.on_lsu(lsu, 0.2)
     assert fwd is not None and fwd.ttl == 2 and fwd.sender == "a"
     assert a.on_lsu(lsu, 0.3) is None  # each (origin, seq) once
@@ -202,10 +202,10 @@ def test_channel_range_delay_and_loss():
 def test_packets_round_trip_with_real_ros1_sizes():
     for typename in P.ALL_TYPES:
         assert len(P.md5sum(typename)) == 32
-    m = P.make(P.HELLO, source="r1", seq=3, timestamp=1.5, position=P.Point(1, 2), residual_energy=10.0, state=1)
+    m = P.make(P.HELLO, source="r1", seq=3, timestamp=1.5, position=P.Point(1, 2), residual_energy=10.0, buffer_free=0.5, state=1)
     data = P.encode(m, P.HELLO)
-    # string: 4-byte length + 2, uint32, float64, Point (3 float64), float32, uint8
-    assert len(data) == 4 + 2 + 4 + 8 + 24 + 4 + 1
+    # string: 4-byte length + 2, uint32, float64, Point (3 float64), float32 x 2, uint8
+    assert len(data) == 4 + 2 + 4 + 8 + 24 + 4 + 4 + 1
     assert P.decode(data, P.HELLO) == m
 
 
@@ -237,7 +237,7 @@ def _exchange_keys(m):
 def test_security_round_trip(spec):
     cfg, m = _pair(spec)
     _exchange_keys(m)
-    hello = m["a"].seal(P.make(P.HELLO, source="a", seq=1, timestamp=0.2, position=P.Point(), residual_energy=1.0, state=1), P.HELLO, 0.2)
+    hello = m["a"].seal(P.make(P.HELLO, source="a", seq=1, timestamp=0.2, position=P.Point(), residual_energy=1.0, buffer_free=1.0, state=1), P.HELLO, 0.2)
     msg, typename, why, _ = m["b"].open(P.Frame("a", *hello), 0.3)
     assert why == "" and typename == P.HELLO and msg.source == "a"
     assert m["b"].take_cpu() > 0
@@ -249,7 +249,7 @@ def test_security_round_trip(spec):
 def test_tampering_is_detected(spec, reason):
     cfg, m = _pair(spec)
     _exchange_keys(m)
-    typename, data = m["a"].seal(P.make(P.HELLO, source="a", seq=1, timestamp=0.2, position=P.Point(), residual_energy=1.0, state=1), P.HELLO, 0.2)
+    typename, data = m["a"].seal(P.make(P.HELLO, source="a", seq=1, timestamp=0.2, position=P.Point(), residual_energy=1.0, buffer_free=1.0, state=1), P.HELLO, 0.2)
     f = P.decode(data, P.SECURE)
     payload = bytearray(bytes(f.payload))
     payload[-1] ^= 1
@@ -260,7 +260,7 @@ def test_tampering_is_detected(spec, reason):
 def test_reflected_frame_fails_with_per_direction_keys():
     cfg, m = _pair("hmac,aes")
     _exchange_keys(m)
-    typename, data = m["a"].seal(P.make(P.HELLO, source="a", seq=1, timestamp=0.2, position=P.Point(), residual_energy=1.0, state=1), P.HELLO, 0.2)
+    typename, data = m["a"].seal(P.make(P.HELLO, source="a", seq=1, timestamp=0.2, position=P.Point(), residual_energy=1.0, buffer_free=1.0, state=1), P.HELLO, 0.2)
     f = P.decode(data, P.SECURE)
     reflected = P.encode(P.replace(f, sender="b"), P.SECURE)  # sent back as if from b
     assert m["a"].open(P.Frame("x", typename, reflected), 0.3)[2] == "bad_mac"
@@ -298,3 +298,90 @@ def test_expanding_ring_reaches_k_hops_with_ttl_k_and_not_before(k):
     assert rk.counters["recruited"] == 1
     # a robot k hops away saw the request only in the ring with TTL k
     assert min(rk.recruit.seen_request_ttls("r0", 1)) == 1 and len(rk.recruit.seen_request_ttls("r0", 1)) == 1
+
+
+def _room_with_two_idle_robots_at_the_base(seed: int) -> Mission:
+    """r1 and r2 idle side by side at the base, r0 in range of both: one general recruit
+    request reaches both at the same instant."""
+    occ = np.ones((20, 40), dtype=bool)
+    occ[1:-1, 1:-1] = False
+    world = World(occ, 0.2, [(2, 2)])
+    cfg = SimConfig(robots=3, idle=3, seed=seed, range_m=6.0, max_time=120.0)
+    return Mission(cfg, world=world, starts=[(10, 20), (2, 3), (3, 2)])
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_two_idle_robots_in_range_both_offer_and_the_recruit_succeeds(seed):
+    mission = _room_with_two_idle_robots_at_the_base(seed)
+    for r in mission.robots.values():
+        r.start()
+    mission.engine.run_until(12.0)  # neighbours known
+    r0, r1, r2 = (mission.robots[n] for n in ("r0", "r1", "r2"))
+    r0._start_recruit((10, 30), dest="")  # general request: any robot idle at a base
+    mission.engine.run_until(20.0)
+    events = [e for _, e, _, _ in r0.recruit.log]
+    assert events.count("offer") == 2  # both idle robots got their offer through
+    assert "confirm" in events
+    assert r1.counters["offers_sent"] == 1 and r2.counters["offers_sent"] == 1
+    assert r1.counters["recruited"] + r2.counters["recruited"] == 1
+    assert not r0.recruit.pending
+
+
+def test_a_recharged_robot_resumes_exploring():
+    # one robot, a battery for about five minutes: out, home, charge, out again
+    m = Mission(SimConfig(robots=1, seed=3, battery_j=3000.0, max_time=600.0))
+    r = m.run()
+    c = r["robots"]["r0"]["counters"]
+    assert c["returns_home"] >= 1 and c["charges"] >= 1
+    assert c["resumed"] >= 1
+    assert r["outcome"]["end_reason"] != "no_robot_active"
+    # one full battery drives at most capacity / (traction + idle draw per metre) metres:
+    # anything beyond that was driven after a recharge
+    spec = m.robots["r0"].battery.spec
+    one_charge_m = spec.capacity_j / (spec.move_j_per_m + spec.idle_w / m.robots["r0"].cfg.speed)
+    assert r["robots"]["r0"]["travelled_m"] > one_charge_m
+
+
+def test_buffer_space_travels_in_the_link_state_and_a_full_buffer_is_not_recruited():
+    a, b, c = Protocol("a"), Protocol("b"), Protocol("c")
+    b.on_hello(a.hello(0.0, (0.0, 0.0), 100.0, IDLE, buffer_free=0.0), 0.0)
+    c.on_lsu(b.lsu(0.1, (1.0, 0.0), 100.0, IDLE, buffer_free=0.25), 0.1)
+    assert b.known_robots()["a"].buffer_free == 0.0
+    assert c.known_robots()["b"].buffer_free == pytest.approx(0.25)
+    # a recruiter with two idle candidates in range: the nearer one's buffer is full
+    mission = _room_with_two_idle_robots_at_the_base(1)
+    r0, r1, r2 = (mission.robots[n] for n in ("r0", "r1", "r2"))
+    r1.buffer.frames = r1.buffer.capacity  # r1 (nearer to the target) has no room left
+    for r in mission.robots.values():
+        r.start()
+    mission.engine.run_until(12.0)
+    assert r0.protocol.known_robots()["r1"].buffer_free == 0.0
+    assert r0._pick_candidate((2, 4)) == "r2"
+    r1.buffer.unload()
+    mission.engine.run_until(14.0)
+    assert r0._pick_candidate((2, 4)) == "r1"
+
+
+def test_t_interval_uses_students_t_not_1_96():
+    from cryptoros.sim.plots import aggregate, t_interval
+
+    mean, half = t_interval([1.0, 2.0, 3.0])
+    assert mean == 2.0
+    assert half == pytest.approx(4.302652729749464 * 1.0 / 3 ** 0.5)  # t(0.975, 2 d.f.)
+    assert half > 2 * 1.96 / 3 ** 0.5
+    rows = [{"s": "x", "v": v} for v in (10.0, 12.0, 11.0, 13.0, 9.0, 10.0, 12.0, 11.0, 13.0, 9.0)]
+    m, h, n = aggregate(rows, "v", ("s",))[("x",)]
+    sd = float(np.std([r["v"] for r in rows], ddof=1))
+    assert n == 10 and h == pytest.approx(2.2621571627409915 * sd / 10 ** 0.5)  # t(0.975, 9 d.f.)
+
+
+def test_fig8_keeps_each_scenario_its_own_series():
+    from cryptoros.sim.plots import aggregate
+    from cryptoros.sim.sweep import curve_rows
+
+    rows = [{"scenario": s, "curve": c, "robots": 2, "seed": k, "task_time_s": t + k}
+            for s, t in (("secure", 100.0), ("defended1", 300.0)) for c in ("secp192r1", "secp384r1") for k in (1, 2, 3)]
+    rows.append({"scenario": "legacy", "curve": "secp192r1", "robots": 2, "seed": 1, "task_time_s": 5.0})
+    agg = aggregate(curve_rows(rows), "task_time_s", ("series", "robots"))
+    assert set(agg) == {("secure secp192r1", 2), ("secure secp384r1", 2), ("defended1 secp192r1", 2), ("defended1 secp384r1", 2)}
+    assert agg[("secure secp192r1", 2)][0] == 102.0 and agg[("defended1 secp384r1", 2)][0] == 302.0
