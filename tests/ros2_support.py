@@ -10,6 +10,7 @@ unmodified rclpy scripts (tests/ros2_nodes) run by the ROS 2 venv's python, whic
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import functools
 import os
 import queue
@@ -73,9 +74,12 @@ managers:
 def ros2_python() -> Path:
     """The ROS 2 venv's python, created by scripts/ros2-venv on first use."""
     venv = Path(os.environ.get("CRYPTOROS_ROS2_VENV", REPO / ".ros2-venv"))
+    lock = Path(f"{venv}.lock")
     try:
-        result = subprocess.run([str(REPO / "scripts" / "ros2-venv"), str(venv)], capture_output=True, text=True,
-                                timeout=600)
+        with lock.open("w") as held:  # one worker creates it; the other waits, then finds it made
+            fcntl.flock(held, fcntl.LOCK_EX)
+            result = subprocess.run([str(REPO / "scripts" / "ros2-venv"), str(venv)], capture_output=True, text=True,
+                                    timeout=600)
     except subprocess.TimeoutExpired:
         result = None
     if result is None or result.returncode != 0:
@@ -84,8 +88,14 @@ def ros2_python() -> Path:
 
 
 def fresh_domains(count: int) -> list[int]:
-    """Domain ids in 0..101 unlikely to collide with another test session."""
-    base = (os.getpid() * 7) % (102 - count)
+    """Domain ids in 0..101 unlikely to collide with another test session; each xdist
+    worker (``gwN``) draws from its own part of the range, so two workers never share one."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    span = 102 // workers
+    low = (index % workers) * span
+    base = low + (os.getpid() * 7) % max(1, span - count)
     return [base + i for i in range(count)]
 
 

@@ -29,8 +29,13 @@ def _sigterm(_sig: int, _frame: Any) -> None:
                    f"(ROS 2: {', '.join(ROS2_ATTACKS)}).")
 @click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(5, 3600),
               help="Wall-clock budget of one mission (the demo runs two).")
-@click.option("--mode", "mode", type=click.Choice(["both", "plain", "protected"]), default="both", show_default=True,
-              help="Plain ROS, protected by cryptoros, or both side by side.")
+@click.option("--mode", "mode", type=click.Choice(["all", "both", "plain", "protected", "monitored"]), default="all",
+              show_default=True,
+              help="plain ROS, protected (cryptoros' interceptors), monitored (the interceptors with the runtime monitor, "
+                   "trained first on a clean calibration mission); 'both' is plain and protected, 'all' the three "
+                   "(ROS 2: plain and protected).")
+@click.option("--isolate", is_flag=True,
+              help="Each attack in its own missions, so that their effects do not mix (a mission per attack and mode).")
 @click.option("--master-uri", default=None, help="Use this running ROS master (e.g. a real rosmaster) instead of the embedded one.")
 @click.option("--keep", is_flag=True, help="Keep the work directory (PKI, database, logs, statuses).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -46,14 +51,16 @@ def _sigterm(_sig: int, _frame: Any) -> None:
 @click.option("--netns", is_flag=True,
               help="Protected mode on separate hosts: each robot, the master and the stranger in its own network "
                    "namespace, as robots on a LAN (needs root).")
-def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_uri: str | None, keep: bool, json_path: Path | None,
-         out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None, netns: bool) -> None:
+def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, isolate: bool, master_uri: str | None, keep: bool,
+         json_path: Path | None, out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None, netns: bool) -> None:
     """A live robot team under attack: plain ROS, then behind cryptoros interceptors.
 
     Starts a throwaway PKI, the authorization server, a ROS master and one robot
     process per robot (the simulator's exploration robots as live ROS nodes), runs the
     attacks of seed papers 000 and 001 against the live graph as separate processes,
-    and prints what reached the robots in each mode.
+    and prints what reached the robots in each mode. The held-* attacks misuse grants
+    their attacker holds: the interceptors let them through, the runtime monitor
+    (mode "monitored") cuts them.
 
     With --ros 2 the robots are rclpy nodes (ROS 2 Jazzy): plain, all on one DDS domain;
     protected, each on its own localhost-only domain behind its interceptor's ros2 role.
@@ -73,7 +80,7 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_
         chosen = tuple(a.strip() for a in attacks.split(",") if a.strip())
         bad = [a for a in chosen if a not in known]
         if bad:
-            hint = " (shutdown, hijack and map-erase have no ROS 2 counterpart: docs/demo.md)" if ros == "2" else ""
+            hint = " (shutdown, hijack, map-erase and held-* have no ROS 2 counterpart: docs/demo.md)" if ros == "2" else ""
             raise click.BadParameter(f"unknown attack {bad[0]!r}; one of {', '.join(known)}{hint}", param_hint="--attacks")
     if ros == "2" and master_uri:
         raise click.BadParameter("ROS 2 has no master", param_hint="--master-uri")
@@ -85,10 +92,14 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, master_
             raise click.ClickException(f"--netns: {reason}")
         if ros == "2" or master_uri:
             raise click.BadParameter("runs the ROS 1 demo with its embedded master", param_hint="--netns")
-    modes = ("plain", "protected") if mode == "both" else (mode,)
+    if ros == "2" and mode == "monitored":
+        raise click.BadParameter("the monitored demo runs ROS 1 (the ROS 2 role's monitor: docs/monitor.md)",
+                                 param_hint="--mode")
+    modes = {"both": ("plain", "protected"), "all": ("plain", "protected") if ros == "2" else ("plain", "protected", "monitored")
+             }.get(mode, (mode,))
     opts = DemoOptions(robots=robots, attacks=chosen, seconds=seconds, modes=modes, master_uri=master_uri, keep=keep,
                        seed=seed, width=size, height=size, scale=scale, ros=int(ros),
-                       workdir=str(workdir) if workdir else None, netns=netns)
+                       workdir=str(workdir) if workdir else None, netns=netns, isolate=isolate)
     console = Console(stderr=False)
     signal.signal(signal.SIGTERM, _sigterm)
     # Ctrl-C stops every child even when the demo was started with SIGINT ignored (a shell

@@ -12,7 +12,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-MODE_LABEL = {"plain": "plain ROS", "protected": "cryptoros"}
+MODE_LABEL = {"plain": "plain ROS", "protected": "cryptoros", "monitored": "cryptoros + monitor"}
 
 
 class LiveView:
@@ -66,6 +66,20 @@ def _yes(ok: bool | None) -> str:
     return "[red]SUCCEEDED[/red]" if ok else "[green]blocked[/green]"
 
 
+def _verdict(cell: dict[str, Any]) -> str:
+    """One attack in one mode: the verdict, and in an isolated run its mission's coverage."""
+    out = _yes(cell["succeeded"])
+    if cell.get("cut_after_s") is not None:  # the monitor quarantined it: how long it had
+        out = f"{out}, [yellow]cut after {cell['cut_after_s']:.1f} s[/yellow]"
+    if "coverage" in cell:
+        out += f" ({cell['coverage']:.0%})"
+    return out
+
+
+def _modes(result: dict[str, Any]) -> list[str]:
+    return list(result["config"]["modes"])
+
+
 def _kb(n: float) -> str:
     return f"{n / 1024:.0f} KiB" if n < 10 * 1024 * 1024 else f"{n / 1048576:.1f} MiB"
 
@@ -75,22 +89,31 @@ def ros_label(result: dict[str, Any]) -> str:
 
 
 def table(result: dict[str, Any]) -> Table:
-    modes = list(result["modes"])
+    modes = _modes(result)
+    isolated = "isolated" in result
     t = Table(title=f"cryptoros demo, {ros_label(result)}: {result['config']['robots']} robots, same mission, "
-                    f"plain ROS vs cryptoros")
+                    f"{' vs '.join(MODE_LABEL[m] for m in modes)}"
+                    + (" (each attack in its own missions; coverage of that mission)" if isolated else ""))
     t.add_column("")
     for m in modes:
         t.add_column(MODE_LABEL[m])
+    if isolated:
+        for k, a in result["attacks"].items():
+            t.add_row(f"{k} (seed {a['seed']})", *[_verdict(a[m]) if m in a else "-" for m in modes])
+        return t
     rows: list[tuple[str, list[str]]] = []
     R = result["modes"]
     rows.append(("coverage reached", [f"{R[m]['coverage']:.1%} (target {R[m]['coverage_target']:.0%})" for m in modes]))
     rows.append(("mission time", [f"{R[m]['mission_time_sim_s']:.0f} s sim / {R[m]['mission_time_wall_s']:.1f} s wall"
                                   if R[m]["target_reached"] else f"not reached ({R[m]['end_reason']})" for m in modes]))
     for k, a in result["attacks"].items():
-        rows.append((f"{k} (seed {a['seed']})", [_yes(a[m]["succeeded"]) if m in a else "-" for m in modes]))
+        rows.append((f"{k} (seed {a['seed']})", [_verdict(a[m]) if m in a else "-" for m in modes]))
     rows.append(("messages tx / rx", [f"{R[m]['messages']['tx']} / {R[m]['messages']['rx']}" for m in modes]))
     rows.append(("bytes tx / rx", [f"{_kb(R[m]['messages']['tx_bytes'])} / {_kb(R[m]['messages']['rx_bytes'])}" for m in modes]))
     rows.append(("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes]))
+    if "monitored" in modes:
+        rows.append(("monitor alerts / quarantines", [f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']}"
+                                                      if m == "monitored" else "-" for m in modes]))
     rows.append(("interceptor CPU", [f"{R[m]['interceptors']['cpu_s_total']:.1f} s ({R[m]['interceptors']['cpu_share_of_one_core']:.0%}"
                                      f" of a core), {_kb(R[m]['interceptors']['bytes_relayed'])} relayed"
                                      if R[m]["interceptors"]["cpu_s"] else "-" for m in modes]))
@@ -102,15 +125,16 @@ def table(result: dict[str, Any]) -> Table:
 
 def summary_lines(result: dict[str, Any]) -> Text:
     out = Text()
-    if "protected" in result["modes"]:
-        out.append("Attackers in protected mode:\n", style="bold")
+    modes = _modes(result)
+    if "protected" in modes or "monitored" in modes:
+        out.append("Attackers behind the interceptors:\n", style="bold")
         for k, a in result["attacks"].items():
-            out.append(f"  {k:11s} {a['what']}: {a['protected_attacker']}\n")
+            out.append(f"  {k:15s} {a['what']}: {a['protected_attacker']}\n")
     out.append("Evidence (from the victims' side):\n", style="bold")
     for k, a in result["attacks"].items():
-        for m in result["modes"]:
+        for m in modes:
             if m in a:
-                out.append(f"  {k:11s} {MODE_LABEL[m]:10s} {a[m]['evidence']}\n")
+                out.append(f"  {k:15s} {MODE_LABEL[m]:19s} {a[m]['evidence']}\n")
     return out
 
 
@@ -168,10 +192,33 @@ def _figures(result: dict[str, Any], out: Path) -> list[tuple[str, str]]:
     return figs
 
 
+def _md_verdict(cell: dict[str, Any]) -> str:
+    out = "**succeeded**" if cell["succeeded"] else "blocked"
+    if cell.get("cut_after_s") is not None:
+        out += f", cut after {cell['cut_after_s']:.1f} s"
+    return out
+
+
+def _mission_rows(R: dict[str, Any], modes: list[str], result: dict[str, Any], row: Any) -> None:
+    row("coverage reached", [f"{R[m]['coverage']:.1%}" for m in modes])
+    row("mission time", [f"{R[m]['mission_time_sim_s']:.0f} s simulated, {R[m]['mission_time_wall_s']:.1f} s wall"
+                         if R[m]["target_reached"] else f"target not reached ({R[m]['end_reason']})" for m in modes])
+    for k, a in result["attacks"].items():
+        row(f"{k} (seed {a['seed']})", [_md_verdict(a[m]) if m in a else "-" for m in modes])
+    row("messages tx / rx", [f"{R[m]['messages']['tx']} / {R[m]['messages']['rx']}" for m in modes])
+    row("bytes tx / rx", [f"{_kb(R[m]['messages']['tx_bytes'])} / {_kb(R[m]['messages']['rx_bytes'])}" for m in modes])
+    row("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes])
+    row("interceptor CPU", [f"{R[m]['interceptors']['cpu_s_total']:.1f} s" if R[m]["interceptors"]["cpu_s"] else "-" for m in modes])
+    if "monitored" in modes:
+        row("monitor alerts / quarantines", [f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']}"
+                                             if m == "monitored" else "-" for m in modes])
+
+
 def write_report(result: dict[str, Any], out: Path) -> Path:
     figs = _figures(result, out)
-    modes = list(result["modes"])
+    modes = _modes(result)
     R = result["modes"]
+    isolated = "isolated" in result
     lines = ["# cryptoros demo report", "",
              f"{result['config']['robots']} exploration robots (seed {result['config']['seed']}, "
              f"{result['config']['width']}x{result['config']['height']} cells of 0.2 m), live {ros_label(result)} on loopback, "
@@ -181,15 +228,12 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
     def row(name: str, vals: list[str]) -> None:
         lines.append(f"| {name} | " + " | ".join(vals) + " |")
 
-    row("coverage reached", [f"{R[m]['coverage']:.1%}" for m in modes])
-    row("mission time", [f"{R[m]['mission_time_sim_s']:.0f} s simulated, {R[m]['mission_time_wall_s']:.1f} s wall"
-                         if R[m]["target_reached"] else f"target not reached ({R[m]['end_reason']})" for m in modes])
-    for k, a in result["attacks"].items():
-        row(f"{k} (seed {a['seed']})", [("**succeeded**" if a[m]["succeeded"] else "blocked") if m in a else "-" for m in modes])
-    row("messages tx / rx", [f"{R[m]['messages']['tx']} / {R[m]['messages']['rx']}" for m in modes])
-    row("bytes tx / rx", [f"{_kb(R[m]['messages']['tx_bytes'])} / {_kb(R[m]['messages']['rx_bytes'])}" for m in modes])
-    row("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes])
-    row("interceptor CPU", [f"{R[m]['interceptors']['cpu_s_total']:.1f} s" if R[m]["interceptors"]["cpu_s"] else "-" for m in modes])
+    if isolated:
+        lines.insert(-2, "Each attack ran in its own missions (`--isolate`); in brackets, that mission's coverage.\n")
+        for k, a in result["attacks"].items():
+            row(f"{k} (seed {a['seed']})", [_md_verdict(a[m]) + f" ({a[m]['coverage']:.0%})" if m in a else "-" for m in modes])
+    else:
+        _mission_rows(R, modes, result, row)
     lines += ["", "## Attacks", "", "| attack | what | attacker in protected mode | " + " | ".join(f"evidence ({MODE_LABEL[m]})" for m in modes) + " |",
               "|---|---|---|" + "---|" * len(modes)]
     for k, a in result["attacks"].items():

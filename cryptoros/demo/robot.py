@@ -44,7 +44,7 @@ from cryptoros.demo.compromise import FALSE_MAP_HZ, FLOOD_HZ, Compromise
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.node import Node
 from cryptoros.sim import packets as P
-from cryptoros.sim.robot import DEAD, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
+from cryptoros.sim.robot import DEAD, DONE, EXPLORE, HOME, RECRUITED, STATE_NAMES, Robot, RobotConfig
 from cryptoros.sim.security import SecurityConfig, make_managers
 from cryptoros.sim.world import OCC, Lidar, generate
 
@@ -152,7 +152,12 @@ class DemoRobot:
             "cmd_received": 0, "cmd_foreign": 0, "cmd_foreign_stop": 0,
             "map_received": 0, "map_from_non_team": 0, "map_erased": 0,
             "shutdown_calls": 0, "shutdown_reasons": [], "shut_down_at": None,
+            "pose_replayed": 0, "map_complete_claims": 0,
+            #: key -> publisher -> {n, first, last (Unix time), effect}: the foreign (or replayed)
+            #: messages of that key
+            "by_publisher": {},
         }
+        self._poses_seen: set[str] = set()
         self.robot: Robot | None = None
         self.host: LiveHost | None = None
         self.stop = asyncio.Event()
@@ -197,6 +202,8 @@ class DemoRobot:
             m = frame.decode()
             if m is not None:
                 self.stats["map_received"] += 1
+                if m.exploration_complete and m.source != self.name:
+                    self.stats["map_complete_claims"] += 1
                 if m.source not in self.team:
                     self.stats["map_from_non_team"] += 1
                     self.received.setdefault("map_non_team", []).append(digest(data))
@@ -206,7 +213,31 @@ class DemoRobot:
 
     # -- drivers (base) and their consumers --------------------------------------------------
 
-    def _on_pose(self, data: bytes) -> None:
+    def _foreign(self, key: str, publisher: str, effect: float = 0.0, *, worst: bool = False) -> None:
+        """A foreign message of ``key`` from ``publisher`` (its callerid; "" where the
+        transport does not say): when such messages came, per publisher, and their
+        ``effect`` (summed, or the ``worst`` one), so that attacks on one topic are told apart."""
+        now = round(time.time(), 3)
+        table = self.stats["by_publisher"].setdefault(key, {})
+        entry = table.get(publisher)
+        if entry is None:
+            if len(table) >= 64:  # bounded: the 64 first publishers are enough evidence
+                return
+            entry = table[publisher] = {"n": 0, "first": now, "last": now, "effect": 0.0}
+        entry["n"] += 1
+        entry["last"] = now
+        entry["effect"] = round(max(entry["effect"], effect) if worst else entry["effect"] + effect, 3)
+
+    def _on_pose(self, data: bytes, header: dict[str, str] | None = None) -> None:
+        publisher = (header or {}).get("callerid", "")
+        seen = digest(data)
+        if seen in self._poses_seen:  # a second copy of a pose already received: a replay
+            self.stats["pose_replayed"] += 1
+            self._foreign("pose_replayed", publisher, self._pose_error(data), worst=True)
+            return
+        if len(self._poses_seen) > 200_000:
+            self._poses_seen.clear()
+        self._poses_seen.add(seen)
         h = self._received("pose", data)
         if h is None:
             return
@@ -214,13 +245,19 @@ class DemoRobot:
         if h in self.base_published:
             return
         self.stats["pose_foreign"] += 1
+        self._foreign("pose", publisher, self._pose_error(data), worst=True)
+
+    def _pose_error(self, data: bytes) -> float:
+        """How far a foreign pose puts the robot from where it is."""
+        err = 0.0
         with contextlib.suppress(Exception):
             px, py = self.read_pose(data)
             x, y = self.robot.pos if self.robot else (0.0, 0.0)
             err = math.hypot(px - x, py - y)
             self.stats["pose_max_error_m"] = round(max(self.stats["pose_max_error_m"], err), 3)
+        return err
 
-    def _on_scan(self, data: bytes) -> None:
+    def _on_scan(self, data: bytes, header: dict[str, str] | None = None) -> None:
         h = self._received("scan", data)
         if h is None:
             return
@@ -228,6 +265,7 @@ class DemoRobot:
         if h in self.base_published or self.robot is None:
             return
         self.stats["scan_foreign"] += 1
+        cells = 0
         try:  # the robot believes its scan: phantom obstacles where the noise says so
             angle_min, angle_increment, ranges = self.read_scan(data)
             ranges = np.asarray(ranges, dtype=float)[:SCAN_BEAMS]
@@ -241,11 +279,13 @@ class DemoRobot:
             flat = rows[ok] * W + cols[ok]
             if flat.size:
                 self.robot.belief.observe(flat, np.ones(flat.size, dtype=bool))
-                self.stats["scan_cells_corrupted"] += int(flat.size)
+                cells = int(flat.size)
+                self.stats["scan_cells_corrupted"] += cells
         except Exception:
             log.debug("unreadable scan", exc_info=True)
+        self._foreign("scan", (header or {}).get("callerid", ""), cells)
 
-    def _on_cmd(self, data: bytes) -> None:
+    def _on_cmd(self, data: bytes, header: dict[str, str] | None = None) -> None:
         h = self._received("cmd_vel", data)
         if h is None:
             return
@@ -253,10 +293,13 @@ class DemoRobot:
         if h in self.explorer_published:
             return
         self.stats["cmd_foreign"] += 1
+        stop = 0
         with contextlib.suppress(Exception):
             if abs(self.read_twist_speed(data)) < 1e-6 and self.host is not None:
                 self.stats["cmd_foreign_stop"] += 1
                 self.host.halted_until = max(self.host.halted_until, self.host.loop.time() + HALT_S)
+                stop = 1
+        self._foreign("cmd_vel", (header or {}).get("callerid", ""), stop)
 
     # -- message codec (ROS 1 here; the ROS 2 robot overrides these six) --------------------------
 
@@ -345,6 +388,9 @@ class DemoRobot:
             "travelled_m": round(r.travelled_m, 2) if r else 0.0,
             "final": final,
         }
+        if r is not None and r.state == DONE and self.done_at_s is None:
+            self.done_at_s = round(time.time(), 3)  # when it stopped exploring, believing the map explored
+        out["done_at"] = self.done_at_s
         if r is not None:
             known = r.belief.known
             out["belief"] = base64.b64encode(np.packbits(known != -1)).decode()
@@ -398,10 +444,10 @@ class DemoRobot:
             tasks.append(asyncio.ensure_future(self._watch_shutdown(base)))
             pose_pub = await base.advertise(f"/{self.name}/pose", POSE)
             scan_pub = await base.advertise(f"/{self.name}/scan", SCAN)
-            await base.subscribe(f"/{self.name}/cmd_vel", TWIST, self._on_cmd, raw=True)
+            await base.subscribe(f"/{self.name}/cmd_vel", TWIST, self._on_cmd, raw=True, with_publisher=True)
             self.cmd_pub = await explorer.advertise(f"/{self.name}/cmd_vel", TWIST)
-            await explorer.subscribe(f"/{self.name}/pose", POSE, self._on_pose, raw=True)
-            await explorer.subscribe(f"/{self.name}/scan", SCAN, self._on_scan, raw=True)
+            await explorer.subscribe(f"/{self.name}/pose", POSE, self._on_pose, raw=True, with_publisher=True)
+            await explorer.subscribe(f"/{self.name}/scan", SCAN, self._on_scan, raw=True, with_publisher=True)
             for typename, topic in TEAM_TOPICS.items():
                 self.pubs[typename] = await explorer.advertise(topic, typename)
             subs = []

@@ -10,8 +10,14 @@ host        address         what runs there
 ==========  ==============  ===================================================
 master      127.0.0.10      the ROS master (protected: behind its interceptor)
 rN          127.0.0.(11+N)  robot N's nodes ``/rN`` and ``/rN_base``
+ops         127.0.0.40      the operations host (only with a ``held-*`` attack): its
+                            manager may publish r0's pose, scan and cmd_vel
 stranger    127.0.0.66      attackers without certificate or token
 ==========  ==============  ===================================================
+
+Three modes: ``plain`` ROS, ``protected`` (the interceptors) and ``monitored`` (the
+interceptors with the runtime monitor, ``[monitor] action = "quarantine"``, its model
+trained on a clean calibration mission recorded before: :mod:`cryptoros.demo.session`).
 
 In protected mode an attack runs either as a *stranger* (a machine on the network
 without a certificate: it can only reach the interceptors' public TLS ports) or as an
@@ -38,10 +44,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cryptoros.demo.attackers import ATTACKS, insider_host, target_of
+from cryptoros.demo.attackers import ATTACKS, FALSE_MAP_ONSET, HELD_ATTACKS, OPS_HOST, insider_host, target_of
 from cryptoros.errors import CryptorosError
 
 MASTER_ADDR = "127.0.0.10"
+OPS_ADDR = "127.0.0.40"
 STRANGER_ADDR = "127.0.0.66"
 ALL_ATTACKS = tuple(ATTACKS)
 TEAM_TYPES = {"hello": "cryptoros_sim/Hello", "lsu": "cryptoros_sim/LinkStateUpdate", "map": "cryptoros_sim/MapUpdate",
@@ -71,14 +78,41 @@ class DemoOptions:
     netns: bool = False  # protected mode: every host in its own network namespace (root)
     #: a compromised robot (monitor datasets): {"robot": "r0", "kind": ..., "onset": wall s after the start}
     compromise: dict[str, Any] | None = None
+    #: the runtime monitor's model (mode "monitored"; written by the calibration mission)
+    monitor_model: str | None = None
+    #: each attack in its own missions (effects do not mix)
+    isolate: bool = False
+
+    def needs_ops(self) -> bool:
+        return any(ATTACKS[k]["as"] == "holder" for k in self.attacks if k in ATTACKS)
+
+    def compromised(self) -> dict[str, dict[str, Any]]:
+        """robot -> its compromise: the dataset's, and held-false-map's (robot r1's explorer)."""
+        out = {}
+        if self.compromise:
+            out[self.compromise["robot"]] = self.compromise
+        if "held-false-map" in self.attacks:
+            robot = target_of("held-false-map", self.robots)
+            out[robot] = {"robot": robot, "kind": "false-map", "onset": self.attack_delay + FALSE_MAP_ONSET}
+        return out
 
 
 def robot_addr(i: int) -> str:
     return f"127.0.0.{11 + i}"
 
 
-def policy(n: int) -> str:
+def policy(n: int, ops: bool = False) -> str:
     lines = ["version: 1", "managers:", "- name: master", "  fingerprint_sha256: {master}"]
+    if ops:  # the operations host: a motion-capture bridge, a scan filter, a teleop console
+        lines += [f"- name: {OPS_HOST}", f"  fingerprint_sha256: {{{OPS_HOST}}}", "  grants:", "    publish:"]
+        for i in range(n):
+            lines += [f"    - {{{{node: '/mocap_*', topic: /r{i}/pose, type: geometry_msgs/PoseStamped}}}}",
+                      f"    - {{{{node: /scan_filter, topic: /r{i}/scan, type: sensor_msgs/LaserScan}}}}",
+                      f"    - {{{{node: /teleop, topic: /r{i}/cmd_vel, type: geometry_msgs/Twist}}}}"]
+        lines.append("    subscribe:")
+        for i in range(n):
+            lines += [f"    - {{{{node: '/mocap_*', topic: /r{i}/pose, type: geometry_msgs/PoseStamped}}}}",
+                      f"    - {{{{node: /scan_filter, topic: /r{i}/scan, type: sensor_msgs/LaserScan}}}}"]
     for i in range(n):
         r = f"r{i}"
         lines += [f"- name: {r}", f"  fingerprint_sha256: {{{r}}}", "  grants:", "    publish:"]
@@ -154,7 +188,7 @@ def _rss_mb(pid: int) -> float:
 
 def scrape(port: int) -> dict[str, Any]:
     """Denials by reason and bytes relayed from one interceptor's ``/metrics``."""
-    out: dict[str, Any] = {"denied": {}, "bytes": 0.0, "allowed": 0.0}
+    out: dict[str, Any] = {"denied": {}, "bytes": 0.0, "allowed": 0.0, "monitor_alerts": 0.0, "monitor_quarantines": 0.0}
     try:
         text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=3).read().decode()
     except OSError:
@@ -168,7 +202,16 @@ def scrape(port: int) -> dict[str, Any]:
             out["bytes"] += float(line.rsplit(" ", 1)[1])
         elif line.startswith("cryptoros_interceptor_allowed_total{"):
             out["allowed"] += float(line.rsplit(" ", 1)[1])
+        elif line.startswith("cryptoros_monitor_alerts_total{"):
+            out["monitor_alerts"] += float(line.rsplit(" ", 1)[1])
+        elif line.startswith("cryptoros_monitor_quarantines_total"):
+            out["monitor_quarantines"] += float(line.rsplit(" ", 1)[1])
     return out
+
+
+def monitor_section(model: str) -> str:
+    """The ``[monitor]`` of every robot's interceptor in the monitored mode."""
+    return f'\n[monitor]\nmodel = "{model}"\naction = "quarantine"\nquarantine_seconds = 600.0\n'
 
 
 # ----------------------------------------------------------------------------- one mission
@@ -204,6 +247,7 @@ class Mission:
 
         self.world = make_world({"seed": opts.seed, "width": opts.width, "height": opts.height})
         self.explorable = self.world.explorable()
+        self.t0 = 0.0  # Unix time of the start
         self.n_explorable = int(self.explorable.sum())
 
     # -- graphs ---------------------------------------------------------------------------------
@@ -230,8 +274,8 @@ class Mission:
             ports = [(MASTER_ADDR, port)]
         try:
             yield Graph(robot_master={r: uri for r in self.team}, robot_ip={r: robot_addr(i) for i, r in enumerate(self.team)},
-                        stranger_master=uri, insider_master={r: uri for r in self.team},
-                        insider_ip={r: robot_addr(i) for i, r in enumerate(self.team)}, ports=ports)
+                        stranger_master=uri, insider_master={r: uri for r in [*self.team, OPS_HOST]},
+                        insider_ip={**{r: robot_addr(i) for i, r in enumerate(self.team)}, OPS_HOST: OPS_ADDR}, ports=ports)
         finally:
             if ports:
                 self.children.terminate([p])
@@ -240,9 +284,18 @@ class Mission:
         from cryptoros.lab.network import lab_network
 
         hosts = {"master": MASTER_ADDR, **{r: robot_addr(i) for i, r in enumerate(self.team)}}
-        with lab_network(self.dir / "net", policy(len(self.team)), hosts=hosts,
+        ops = self.opts.needs_ops()
+        if ops:
+            hosts[OPS_HOST] = OPS_ADDR
+        extra = {}
+        if self.mode == "monitored":
+            if not self.opts.monitor_model:
+                raise DemoError("the monitored mode needs a monitor model (the calibration mission writes one)")
+            section = monitor_section(self.opts.monitor_model)
+            extra = {r: section for r in self.team}
+        with lab_network(self.dir / "net", policy(len(self.team), ops=ops), hosts=hosts,
                            master=self.opts.master_uri or "embedded", metrics=True, new_session=True,
-                           netns=self.opts.netns) as net:
+                           netns=self.opts.netns, extra=extra) as net:
             ports = []
             for h in net.hosts.values():
                 ports.append((h.address, h.public_port))
@@ -258,11 +311,12 @@ class Mission:
                 return net.argv(host, argv)
 
             master = net.hosts["master"]
+            insiders = [*self.team, OPS_HOST] if ops else self.team
             yield Graph(robot_master={r: net.hosts[r].master_uri for r in self.team},
                         robot_ip={r: "127.0.0.1" for r in self.team},
                         stranger_master=f"http://{master.address}:{master.public_port}/",
-                        insider_master={r: net.hosts[r].master_uri for r in self.team},
-                        insider_ip={r: "127.0.0.1" for r in self.team}, interceptors=net.hosts, ports=ports,
+                        insider_master={r: net.hosts[r].master_uri for r in insiders},
+                        insider_ip={r: "127.0.0.1" for r in insiders}, interceptors=net.hosts, ports=ports,
                         on_host=on_host, stranger_ip=stranger.address if stranger is not None else STRANGER_ADDR)
 
     # -- run ---------------------------------------------------------------------------------
@@ -281,8 +335,9 @@ class Mission:
             cfg = {"name": r, "team": self.team, "seed": self.opts.seed, "width": self.opts.width, "height": self.opts.height,
                    "scale": self.opts.scale, "master_uri": g.robot_master[r], "ros_ip": g.robot_ip[r],
                    "status": str(self.dir / f"{r}.status.json"), "go": str(self.dir / "go.json"), "connect_timeout": 20}
-            if self.opts.compromise and self.opts.compromise.get("robot") == r:
-                cfg["compromise"] = self.opts.compromise
+            compromise = self.opts.compromised().get(r)
+            if compromise:
+                cfg["compromise"] = compromise
             path = self.dir / f"{r}.json"
             path.write_text(json.dumps(cfg))
             procs[r] = self.children.start(g.on_host(r, [sys.executable, "-m", "cryptoros.demo.robot", str(path)]),
@@ -291,7 +346,7 @@ class Mission:
 
     def _start_attack(self, kind: str, g: Graph) -> subprocess.Popen:
         n = len(self.team)
-        who = ATTACKS[kind]["as"] if self.mode == "protected" else ATTACKS[kind]["as"]
+        who = ATTACKS[kind]["as"]
         if who == "stranger":
             master, ip, host = g.stranger_master, g.stranger_ip, None
         else:
@@ -312,7 +367,7 @@ class Mission:
 
     def _fire_attacks(self, g: Graph, armed: dict[str, subprocess.Popen]) -> dict[str, subprocess.Popen]:
         """At ``attack_delay``: every attack under way."""
-        return armed or {k: self._start_attack(k, g) for k in self.opts.attacks}
+        return armed or {k: self._start_attack(k, g) for k in self.opts.attacks if ATTACKS[k]["as"] != "compromised"}
 
     def _read_status(self) -> dict[str, dict[str, Any]]:
         out = {}
@@ -352,6 +407,7 @@ class Mission:
             armed = self._arm_attacks(g)
             t0 = time.time() + 0.3
             (self.dir / "go.json").write_text(json.dumps({"t0": t0}))
+            self.t0 = t0
             started = time.monotonic() + 0.3
             quiet_since = None
             while True:
@@ -411,6 +467,7 @@ class Mission:
             "mission_time_sim_s": round(mission_time, 1) if mission_time is not None else None,
             "mission_time_wall_s": round(mission_wall, 2) if mission_wall is not None else None,
             "wall_s": round(wall_total, 2),
+            "t0": self.t0,
             "timeline": timeline,
             "robots": {r: _robot_summary(s) for r, s in final.items()},
             "messages": {"tx": sum(s["stats"]["tx_messages"] for s in final.values()),
@@ -418,6 +475,8 @@ class Mission:
                          "tx_bytes": sum(s["stats"]["tx_bytes"] for s in final.values()),
                          "rx_bytes": sum(s["stats"]["rx_bytes"] for s in final.values())},
             "denials": _sum_denials(metrics),
+            "monitor": {"alerts": int(sum(m["monitor_alerts"] for m in metrics.values())),
+                        "quarantines": int(sum(m["monitor_quarantines"] for m in metrics.values()))},
             "interceptors": {"cpu_s": cpu, "cpu_s_total": round(sum(cpu.values()), 3),
                              "cpu_share_of_one_core": round(sum(cpu.values()) / max(1e-9, wall_total), 3),
                              "rss_mb": rss, "bytes_relayed": int(sum(m["bytes"] for m in metrics.values())),
@@ -479,14 +538,15 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
         rep = mode["attack_reports"].get(k, {})
         ok, ev = False, ""
         if k == "spoof-pose":
-            c = stats[t]["pose_foreign"]
-            ok, ev = c > 0, f"{t} received {c} spoofed poses (max error {stats[t]['pose_max_error_m']} m)"
+            got = from_publisher(stats[t], "pose", ATTACKS[k]["node"])
+            ok, ev = got["n"] > 0, f"{t} received {got['n']} spoofed poses (max error {got['effect']} m)"
         elif k == "scan-noise":
-            c, phantom = stats[t]["scan_foreign"], stats[t]["scan_cells_corrupted"]
-            ok, ev = phantom > 0, f"{t} received {c} noise scans ({phantom} phantom cells in its map)"
+            got = from_publisher(stats[t], "scan", ATTACKS[k]["node"])
+            ok, ev = got["effect"] > 0, f"{t} received {got['n']} noise scans ({got['effect']:.0f} phantom cells in its map)"
         elif k == "cmd-flood":
-            c, halted = stats[t]["cmd_foreign"], final[t].get("halted_s") or 0.0
-            ok, ev = halted > 0, f"{t} received {c} foreign stop commands, halted {halted} s"  # judged by effect
+            got, halted = from_publisher(stats[t], "cmd_vel", ATTACKS[k]["node"]), final[t].get("halted_s") or 0.0
+            ok = halted > 0 and got["effect"] > 0  # judged by effect: it halted the base
+            ev = f"{t} received {got['n']} foreign stop commands, halted {halted} s"
         elif k == "false-map":
             c = sum(s["map_from_non_team"] for s in stats.values())
             done = sum(1 for s in final.values() if s.get("state") == "done")
@@ -509,10 +569,72 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
         elif k == "hijack":
             reasons = [x for x in stats[t]["shutdown_reasons"] if "same name" in x]
             ok, ev = bool(reasons), (f"{t} was shut down by the master: {reasons[0]}" if reasons else f"{t} kept its name")
+        elif k in HELD_ATTACKS:
+            out[k] = _judge_held(k, t, final, mode)
+            continue
         if not ok and rep.get("refused"):
             ev += f"; attacker: {rep['refused']}"
         out[k] = {"succeeded": ok, "evidence": ev}
     return out
+
+
+#: a held-grant attack "succeeded" when its victim was fed for longer than this (wall s)
+HELD_EXPOSURE_S = 1.0
+#: ... or, for noise scans, when more than this many were believed (``consecutive`` pass
+#: before any alert)
+HELD_SCANS_BELIEVED = 5
+
+
+def _judge_held(k: str, t: str | None, final: dict[str, Any], mode: dict[str, Any]) -> dict[str, Any]:
+    """A misuse of a held grant, judged by its effect on the victim: how long it was fed
+    false poses or halted, how many noise scans it marked into its map, whether the team
+    stopped believing the map explored."""
+    if k == "held-false-map":
+        liar = t
+        claims = sum(s["stats"].get("map_complete_claims", 0) for r, s in final.items() if r != liar)
+        fooled = {}
+        for r, s in final.items():
+            if r != liar and s.get("done_at") is not None:
+                cov = coverage_at(mode["timeline"], s["done_at"] - mode["t0"])
+                if cov < mode["coverage_target"]:
+                    fooled[r] = cov
+        if fooled:
+            return {"succeeded": True, "evidence": f"{', '.join(sorted(fooled))} stopped exploring at "
+                    f"{min(fooled.values()):.0%} coverage, believing {liar}'s claims ({claims} received)"}
+        return {"succeeded": False, "evidence": f"no robot stopped before the target ({claims} claims received)"}
+    st = final[t]["stats"]
+    key = {"held-scan-noise": "scan", "held-cmd-flood": "cmd_vel", "held-replay": "pose_replayed"}.get(k, "pose")
+    got = from_publisher(st, key, ATTACKS[k]["node"])
+    n, last = got["n"], got["last"]
+    window = round(last - got["first"], 2)
+    out: dict[str, Any] = {}
+    cut = ""
+    if window and mode["monitor"]["quarantines"] and last < mode["t0"] + mode["wall_s"] - 2.0:
+        cut = f"; cut by the monitor {window} s after its first message"
+        out["cut_after_s"] = window
+    if k == "held-cmd-flood":  # every stop command holds the base HALT_S: a stream of them, the whole window
+        return {**out, "succeeded": got["effect"] > 0 and window > HELD_EXPOSURE_S,
+                "evidence": f"{t} obeyed {got['effect']:.0f} stop commands over {window} s{cut}"}
+    if k == "held-scan-noise":
+        return {**out, "succeeded": n > HELD_SCANS_BELIEVED,
+                "evidence": f"{t} believed {n} noise scans over {window} s ({got['effect']:.0f} phantom cells in its map){cut}"}
+    what = "replayed" if k == "held-replay" else "false"
+    return {**out, "succeeded": window > HELD_EXPOSURE_S,
+            "evidence": f"{t} was fed {n} {what} poses over {window} s (up to {got['effect']:.1f} m off){cut}"}
+
+
+def from_publisher(stats: dict[str, Any], key: str, node: str) -> dict[str, Any]:
+    """What one publisher's foreign messages of ``key`` did to a robot (the robot's
+    ``by_publisher`` evidence). Where the transport does not name publishers (ROS 2),
+    every foreign message is counted under "" and taken as this publisher's."""
+    table = stats.get("by_publisher", {}).get(key, {})
+    return table.get(node) or table.get("") or {"n": 0, "first": 0.0, "last": 0.0, "effect": 0.0}
+
+
+def coverage_at(timeline: list[list[float]], wall: float) -> float:
+    """The team's coverage ``wall`` seconds into the mission (the timeline's last row before)."""
+    before = [row[2] for row in timeline if row[1] <= wall]
+    return before[-1] if before else 0.0
 
 
 # ----------------------------------------------------------------------------- the whole demo
@@ -521,6 +643,10 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
 def attacker_role(kind: str, n: int) -> str:
     if ATTACKS[kind]["as"] == "stranger":
         return "stranger (no certificate, no token)"
+    if ATTACKS[kind]["as"] == "holder":
+        return f"{ATTACKS[kind]['node']} on the operations host (its manager holds the grant it misuses)"
+    if ATTACKS[kind]["as"] == "compromised":
+        return f"robot {target_of(kind, n)}'s own explorer (granted /team/map)"
     what = {"spoof-pose": f"/{target_of(kind, n)}/pose", "map-erase": "/team/map as /mitm",
             "shutdown": f"shutdown of /{target_of(kind, n)}", "hijack": f"the name /{target_of(kind, n)}"}.get(kind, kind)
     return f"insider on {insider_host(kind, n)}'s host (manager has no grant for {what})"

@@ -6,6 +6,7 @@ Kept apart from both missions so neither imports the other's module back.
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import tempfile
 from dataclasses import asdict
@@ -32,34 +33,75 @@ def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lam
     for a in opts.attacks:
         if a not in known:
             raise DemoError(f"unknown attack {a!r} for ROS {opts.ros}; one of {', '.join(known)}")
+    if "monitored" in opts.modes and opts.ros != 1:
+        raise DemoError("the monitored mode runs the ROS 1 demo (the ROS 2 role's monitor: docs/monitor.md)")
     workdir = Path(opts.workdir) if opts.workdir else Path(tempfile.mkdtemp(prefix="cryptoros-demo-"))
     workdir.mkdir(parents=True, exist_ok=True)
     children = Children()
     result: dict[str, Any] = {"config": {**asdict(opts), "attacks": list(opts.attacks), "modes": list(opts.modes)},
                               "workdir": str(workdir), "modes": {}, "attacks": {}}
+    missions: list[dict[str, Any]] = []  # every mission's result, for the clean-up checks
     try:
-        for mode in opts.modes:
-            note(f"{mode}: starting {'the master' if mode == 'plain' else 'PKI, authorization server, master and interceptors'}"
-                 f" and {opts.robots} robots")
-            m = mission_class(opts, mode, workdir, children, progress)
-            res = m.run()
-            res["judged"] = judge(res, opts.attacks, opts.robots)
-            result["modes"][mode] = res
-        for k in opts.attacks:
-            entry = {"seed": ATTACKS[k]["seed"],
-                     "what": what.get(k, ATTACKS[k]["what"]).format(t=target_of(k, opts.robots) or ""),
-                     "protected_attacker": role(k, opts.robots)}
-            for mode, res in result["modes"].items():
-                entry[mode] = res["judged"][k]
-            result["attacks"][k] = entry
+        if "monitored" in opts.modes and not opts.monitor_model:
+            opts = dataclasses.replace(opts, monitor_model=calibrate(opts, workdir / "calibration", children, note))
+            result["calibration"] = {"model": opts.monitor_model, "seconds": CALIBRATION_S}
+        plans = [(k, dataclasses.replace(opts, attacks=(k,))) for k in opts.attacks] if opts.isolate else [(None, opts)]
+        for name, plan in plans:
+            here = workdir / name if name else workdir
+            modes: dict[str, Any] = {}
+            for mode in opts.modes:
+                note(f"{mode}{f' ({name} alone)' if name else ''}: starting "
+                     f"{'the master' if mode == 'plain' else 'PKI, authorization server, master and interceptors'}"
+                     f" and {opts.robots} robots")
+                res = mission_class(plan, mode, here, children, progress).run()
+                res["judged"] = judge(res, plan.attacks, opts.robots)
+                modes[mode] = res
+                missions.append(res)
+            if name:
+                result.setdefault("isolated", {})[name] = modes
+            else:
+                result["modes"] = modes
+            for k in plan.attacks:
+                entry = {"seed": ATTACKS[k]["seed"],
+                         "what": what.get(k, ATTACKS[k]["what"]).format(t=target_of(k, opts.robots) or ""),
+                         "protected_attacker": role(k, opts.robots)}
+                for mode, res in modes.items():
+                    entry[mode] = res["judged"][k]
+                    if name:
+                        entry[mode] = {**entry[mode], "coverage": res["coverage"], "end_reason": res["end_reason"]}
+                result["attacks"][k] = entry
     finally:
         children.kill_all()
-    for res in result["modes"].values():
+    for res in missions:
         res.pop("_final", None)
     result["children_started"] = len(children.procs)
     result["leftover_children"] = [p.pid for p in children.procs if p.poll() is None]
-    result["ports_still_open"] = [list(p) for res in result["modes"].values() for p in free_after(res.get("ports", []))]
+    result["ports_still_open"] = [list(p) for res in missions for p in free_after(res.get("ports", []))]
     return result
+
+
+#: wall seconds of the clean mission the monitor's model is trained on
+CALIBRATION_S = 12.0
+
+
+def calibrate(opts: DemoOptions, workdir: Path, children: Children, note: Callable[[str], None]) -> str:
+    """A clean plain mission of the same team, recorded through ``cryptoros monitor record``,
+    and the monitor's model trained on it: what an operator does before enabling the
+    monitor (``docs/monitor.md``). Returns the model's path."""
+    from cryptoros.demo.dataset import RecordingMission
+    from cryptoros.monitor.dataset import train
+
+    note(f"calibration: a clean {CALIBRATION_S:g} s plain mission recorded to train the monitor's model")
+    clean = dataclasses.replace(opts, attacks=(), modes=("plain",), seconds=CALIBRATION_S, coverage_target=1.01,
+                                compromise=None, isolate=False)
+    bag = workdir / "clean.bag"
+    workdir.mkdir(parents=True, exist_ok=True)
+    RecordingMission(clean, "plain", workdir, children, lambda _e: None, bag=bag).run()
+    model = train([bag])
+    path = workdir / "monitor-model.json"
+    model.save(path)
+    note(f"calibration: model trained on {sum(model.trained_on.values())} clean messages ({path})")
+    return str(path)
 
 
 def free_after(ports: list[tuple[str, int]]) -> list[tuple[str, int]]:

@@ -44,36 +44,79 @@ def _no_ros_env(venv: Path | None) -> dict[str, str]:
     return env
 
 
+CLASSIC = {"spoof-pose", "scan-noise", "cmd-flood", "false-map", "map-erase", "eavesdrop", "shutdown", "hijack"}
+HELD = {"held-spoof-pose", "held-replay", "held-drift", "held-scan-noise", "held-cmd-flood", "held-false-map"}
+
+
 def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv, tmp_path):
+    """The README's demo: plain ROS, the interceptors, the interceptors with the runtime
+    monitor (its model trained on a clean calibration mission first). Strangers and
+    insiders without a grant are blocked by the interceptors; attackers misusing a grant
+    they hold pass the interceptors (honestly: they hold it) and the monitor cuts them."""
     out = tmp_path / "out.json"
     # A generous budget: a mission ends as soon as its target is reached (about 12 s on
     # a quiet machine), but the robots run in wall time and a loaded CI machine is slower.
     r = subprocess.run([str(venv / "bin" / "cryptoros"), "demo", "--seconds", "45", "--json", str(out),
                         "--out", str(tmp_path / "report")],
-                       cwd=tmp_path, env=_no_ros_env(venv), capture_output=True, text=True, timeout=300)
+                       cwd=tmp_path, env=_no_ros_env(venv), capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    assert "Report:" in r.stdout and "plain ROS" in r.stdout and "cryptoros" in r.stdout
+    assert "Report:" in r.stdout and "plain ROS" in r.stdout and "cryptoros + monitor" in r.stdout
     result = json.loads(out.read_text())
-    assert set(result["attacks"]) == {"spoof-pose", "scan-noise", "cmd-flood", "false-map", "map-erase", "eavesdrop",
-                                      "shutdown", "hijack"}
-    for name, a in result["attacks"].items():
+    assert set(result["attacks"]) == CLASSIC | HELD
+    assert Path(result["calibration"]["model"]).name == "monitor-model.json"
+    for name in CLASSIC:
+        a = result["attacks"][name]
         assert a["plain"]["succeeded"] is True, (name, a["plain"]["evidence"])
         assert a["protected"]["succeeded"] is False, (name, a["protected"]["evidence"])
+        assert a["monitored"]["succeeded"] is False, (name, a["monitored"]["evidence"])
         assert a["protected_attacker"].startswith(("stranger", "insider"))
-    protected = result["modes"]["protected"]
-    assert protected["target_reached"] is True, protected["coverage"]
-    assert protected["coverage"] >= protected["coverage_target"]
-    assert result["modes"]["plain"]["coverage"] < protected["coverage"]
-    assert protected["denials"], "the interceptors counted no denial"
-    assert protected["interceptors"]["cpu_s_total"] > 0
+    for name in HELD - {"held-false-map"}:  # (the false map needs robots free to stop: plain ROS's are halted or dead)
+        a = result["attacks"][name]
+        assert a["plain"]["succeeded"] is True, (name, a["plain"]["evidence"])
+        assert a["protected"]["succeeded"] is True, (name, a["protected"]["evidence"])
+    for name in ("held-spoof-pose", "held-replay", "held-scan-noise", "held-cmd-flood"):
+        a = result["attacks"][name]
+        assert a["monitored"]["succeeded"] is False, (name, a["monitored"]["evidence"])
+    assert result["attacks"]["held-false-map"]["protected"]["succeeded"] is True
+    monitored = result["modes"]["monitored"]
+    assert monitored["monitor"]["quarantines"] >= 1 and monitored["denials"].get("quarantined", 0) >= 1
+    assert result["attacks"]["held-cmd-flood"]["monitored"]["cut_after_s"] < 2.0
+    assert result["modes"]["plain"]["coverage"] < min(result["modes"][m]["coverage"] for m in ("protected", "monitored"))
+    for mode in ("protected", "monitored"):
+        assert result["modes"][mode]["denials"], f"the interceptors counted no denial ({mode})"
+        assert result["modes"][mode]["interceptors"]["cpu_s_total"] > 0
     report = Path(result["report"])
     assert report.exists() and (report.parent / "coverage_over_time.png").exists()
     assert (report.parent / "coverage_maps.png").exists()
+    assert "cryptoros + monitor" in report.read_text()
     # hygiene: nothing left running, every port free, the throwaway work directory gone
     assert result["leftover_children"] == [] and result["ports_still_open"] == []
     assert processes_using(venv) == []
     assert free_after([p for m in result["modes"].values() for p in m["ports"]]) == []
     assert not Path(result["workdir"]).exists()
+
+
+def test_demo_isolate_runs_each_attack_in_its_own_missions(tmp_path):
+    """`--isolate`: a mission per attack and mode, so that effects do not mix; each
+    attack is judged from its own mission."""
+    from tests.support import script
+
+    out = tmp_path / "out.json"
+    r = subprocess.run([script("cryptoros"), "demo", "--mode", "plain", "--isolate", "--seconds", "6",
+                        "--attacks", "held-cmd-flood,shutdown", "--json", str(out), "--keep",
+                        "--workdir", str(tmp_path / "work"), "--out", str(tmp_path / "report")],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=200)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert set(result["isolated"]) == {"held-cmd-flood", "shutdown"} and result["modes"] == {}
+    for name in ("held-cmd-flood", "shutdown"):
+        assert (tmp_path / "work" / name / "plain" / "r0.status.json").exists()
+        assert result["attacks"][name]["plain"]["succeeded"] is True, result["attacks"][name]
+        assert 0 < result["attacks"][name]["plain"]["coverage"] <= 1
+    # the flood halted r0 in its own mission; the shutdown's mission had no flood
+    assert result["isolated"]["shutdown"]["plain"]["robots"]["r0"]["halted_s"] == 0
+    assert result["isolated"]["held-cmd-flood"]["plain"]["robots"]["r0"]["halted_s"] > 1
+    assert "held-cmd-flood" in (tmp_path / "report" / "report.md").read_text()
 
 
 def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
