@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(420)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # one per test worker, however the tests are scheduled
 def venv(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("fresh") / "venv"
     subprocess.run(["python3", "-m", "venv", str(root)],

@@ -124,7 +124,7 @@ def test_master_host_walkthrough(tmp_path):
                 assert len(lines) == 3, out
                 assert any("cryptoros-authz serve" in line for line in lines)
                 assert any("rosmaster --core" in line for line in lines)
-                assert any("cryptoros-interceptor --config master.toml" in line for line in lines)
+                assert any("cryptoros-interceptor --config master.toml" in line for line in lines), out
     finally:
         for pidfile in ("interceptor.pid", "rosmaster.pid", "authz.pid"):
             if (work / pidfile).exists():
