@@ -82,12 +82,12 @@ from cryptoros.errors import ConfigError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.passphrase import PassphraseError, from_env, read_file
 from cryptoros.ros1.uri import UriError, host_port
+from cryptoros.ros2 import default_ros2_python
 from cryptoros.tls import TLSConfig
 from interceptor.monitor import MonitorSettings
 
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
 ROLES = ("node", "master", "ros2")
-ROS2_PYTHON_ENV = "CRYPTOROS_ROS2_PYTHON"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -219,13 +219,6 @@ class Ros2Settings:
 
     def keeps_for_late_joiners(self, name: str) -> bool:
         return any(fnmatch.fnmatchcase(name, pattern) for pattern in self.transient_local)
-
-
-def default_ros2_python() -> Path:
-    """``$CRYPTOROS_ROS2_PYTHON``, else the venv ``scripts/ros2-venv`` creates."""
-    if os.environ.get(ROS2_PYTHON_ENV):
-        return Path(os.environ[ROS2_PYTHON_ENV])
-    return Path(__file__).resolve().parent.parent / ".ros2-venv" / "bin" / "python"
 
 
 @dataclass(frozen=True, kw_only=True)

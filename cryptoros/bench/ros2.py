@@ -28,7 +28,7 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.network import NetworkError, lab_network, clean_env, cpu_seconds, stop
-from interceptor.config import default_ros2_python
+from cryptoros.ros2 import default_ros2_python
 
 NODE = Path(__file__).resolve().parent.parent / "ros2" / "bench_node.py"
 HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}

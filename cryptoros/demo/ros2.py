@@ -62,7 +62,7 @@ def policy(n: int) -> str:
 @functools.cache
 def ros2_python() -> Path:
     """The ROS 2 venv's python, checked once to import what the robots need (one clear error)."""
-    from interceptor.config import default_ros2_python
+    from cryptoros.ros2 import default_ros2_python
 
     python = default_ros2_python()
     if not python.exists():

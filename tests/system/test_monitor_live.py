@@ -196,3 +196,55 @@ def test_the_ros2_role_quarantines_a_flooded_topic_stream_and_keeps_the_others(t
     assert len(alerts) == 1 and "(robot_a) on /chatter" in alerts[0] and "rate_hz" in alerts[0], alerts
     assert 'cryptoros_interceptor_denied_total{kind="monitor",reason="quarantined"} 1.0' in counted
     assert 'cryptoros_interceptor_denied_total{kind="ros2",reason="quarantined"}' in counted  # reconnections
+
+
+@pytest.mark.slow
+def test_ros2_traffic_is_recorded_per_publisher_node_and_trains_a_model_that_flags_a_flood(tmp_path):
+    """`cryptoros monitor record --ros 2`: unmodified rclpy talkers on a robot's domain,
+    recorded by an rclpy node of the ROS 2 venv into a ROS 1 bag (one connection per
+    publisher node, samples converted to the ROS 1 serialization): a clean recording
+    trains a model, and in a second recording the node that floods is flagged, the other
+    not."""
+    from rosbags.rosbag1 import Reader
+
+    from cryptoros.ros1 import msgs
+    from tests.ros2_support import NODES, fresh_domains, ros2_env, ros2_python
+
+    python = ros2_python()
+    domain = fresh_domains(1)[0]
+    env = {**ros2_env(domain), "CRYPTOROS_ROS2_PYTHON": str(python)}
+    cryptoros = script("cryptoros")
+
+    def talker(*args: str):
+        return running([str(python), str(NODES / "talker.py"), *args], env=ros2_env(domain), cwd=str(NODES))
+
+    def record(out: Path) -> str:
+        r = run([cryptoros, "monitor", "record", "--ros", "2", "--topic", "/r0/cmd_vel", "--topic", "/r0/scan",
+                 "--seconds", "4", "-o", str(out)], env=env, timeout=90)
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+        return r.stdout
+
+    clean, flooded = tmp_path / "clean.bag", tmp_path / "flooded.bag"
+    with talker("scan", "/r0/scan", "100000", "5", "--node", "base"), \
+            talker("twist", "/r0/cmd_vel", "100000", "20", "--node", "teleop"):
+        out = record(clean)
+    assert "/teleop on /r0/cmd_vel" in out and "/base on /r0/scan" in out, out
+    with Reader(clean) as bag:
+        streams = {(c.topic, c.ext.callerid, c.msgtype) for c in bag.connections}
+        assert streams == {("/r0/cmd_vel", "/teleop", "geometry_msgs/msg/Twist"),
+                           ("/r0/scan", "/base", "sensor_msgs/msg/LaserScan")}, streams
+        twists = [msgs.deserialize(raw, "geometry_msgs/Twist") for c, _t, raw in bag.messages()
+                  if c.topic == "/r0/cmd_vel"]
+    assert len(twists) >= 40  # 20 Hz for 4 s, in the ROS 1 serialization
+    model = tmp_path / "model.json"
+    r = run([cryptoros, "monitor", "train", str(clean), "-o", str(model)], timeout=60)
+    assert r.returncode == 0 and "twist" in r.stdout and "scan" in r.stdout, r.stdout + r.stderr
+    with talker("scan", "/r0/scan", "100000", "5", "--node", "base"), \
+            talker("twist", "/r0/cmd_vel", "100000", "300", "--node", "teleop"):
+        record(flooded)
+    r = run([cryptoros, "monitor", "eval", str(flooded), "--model", str(model), "--attacker", "/teleop", "--json"],
+            timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    figures = json.loads(r.stdout)
+    assert figures["recall"] > 0.5 and figures["false_positive_rate"] == 0, figures  # /base's scans: never flagged
+    assert figures["clean_streams_alerted"] == [], figures
