@@ -55,7 +55,6 @@ def test_bench_interceptor_quick(tmp_path):
     for transport in ("plain", "interceptor", "stunnel"):
         assert bringup[transport]["received"] == [50], (transport, bringup[transport])
         assert bringup[transport]["median_ms"] > 0
-    assert "50 subscribers at once" in result.stdout
 
     (paper,) = report["paper"]
     assert paper["messages"] == 30
