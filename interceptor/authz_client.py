@@ -9,6 +9,9 @@
   nothing new is allowed without one.
 - :class:`PeerVerifier` verifies the tokens other interceptors present, with the
   JWKS and the revocation feed it polls every ``revocation_poll_interval`` seconds.
+  A token seen before is not decoded again (a bounded cache by the token's SHA-256,
+  emptied when the keys or the feed change); its expiry, its binding to the stream's
+  certificate and the feed are checked on every stream.
   Open streams register with :meth:`PeerVerifier.watch`; when the feed revokes their
   token or disables their manager, their ``on_revoked`` callback closes them.
 
@@ -45,7 +48,7 @@ from dataclasses import dataclass
 import aiohttp
 from cryptoros import pemfiles
 from cryptoros.errors import PKIError, TokenError
-from cryptoros.tokens import AccessToken, KeySet, Revocations, peer_audience, verify_access_token
+from cryptoros.tokens import AccessToken, KeySet, Revocations, VerifiedTokenCache, peer_audience
 from interceptor.config import AuthzSettings
 
 log = logging.getLogger("cryptoros.interceptor.authz")
@@ -171,10 +174,13 @@ class AuthzClient:
             revoked_serials = frozenset(int(str(n), 16) for n in serials)
         except (TypeError, ValueError):
             raise AuthzUnavailable("revocation feed: revoked_serials are not hex serials") from None
+        serial = body.get("serial")
+        if serial is not None and (not isinstance(serial, int) or isinstance(serial, bool)):
+            raise AuthzUnavailable("revocation feed: serial is not an integer")
         self._feed_etag = resp_headers.get("ETag")
         return Revocations(
             revoked_jtis=frozenset(str(j) for j in jtis), disabled_subjects=frozenset(str(m) for m in managers),
-            revoked_serials=revoked_serials,
+            revoked_serials=revoked_serials, serial=serial,
         )
 
 
@@ -360,6 +366,8 @@ class PeerVerifier:
     """Verifies peer tokens; cuts off open streams on revocation."""
 
     JWKS_REFRESH_INTERVAL = 60.0
+    #: tokens whose decode is kept (:class:`~cryptoros.tokens.VerifiedTokenCache`)
+    TOKEN_CACHE_SIZE = 4096
     #: certificates whose serials are remembered (for CA revocations in the feed)
     MAX_CERTIFICATES = 4096
     UNKNOWN_KID_COOLDOWN = 5.0
@@ -375,8 +383,11 @@ class PeerVerifier:
         revocation_grace: float = 3.0,
         clock: Clock = time.time,
         feed_wait: float = 0.0,
+        token_cache_size: int = TOKEN_CACHE_SIZE,
     ) -> None:
         self._client = client
+        #: decoded tokens by their SHA-256; emptied when the keys, the audiences or the feed change
+        self.token_cache = VerifiedTokenCache(token_cache_size)
         self.issuer = issuer
         self.audience = audience
         #: seconds a feed request may be held by the server (long-poll); 0: plain polling
@@ -405,8 +416,12 @@ class PeerVerifier:
     def verify(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
         """Verify with the keys and revocations known now; TokenError on any failure.
         The audience is the deployment's (a whole token) or :attr:`own_audience` (a
-        token narrowed for this interceptor); one narrowed for another peer is refused."""
-        access = verify_access_token(
+        token narrowed for this interceptor); one narrowed for another peer is refused.
+
+        A token verified before is not decoded again (:attr:`token_cache`: signature
+        and claims); its time, its binding to ``peer_cert_der`` and the feed are
+        checked on every call."""
+        access = self.token_cache.verify(
             token,
             keys=self.keys,
             issuer=self.issuer,

@@ -224,6 +224,8 @@ class Gateway:
         #: narrowed for it (everything else); a token exchange refreshes each
         self._views: dict[tuple[str, int], set[bool]] = {}
         self._exchanges: set[tuple[str, int]] = set()
+        #: streams being opened per peer endpoint (see _opening_slot); entries live while in use
+        self._opening: dict[tuple[str, int], list] = {}
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -581,6 +583,39 @@ class Gateway:
         every registration, so it sees every grant."""
         self.keeper.current()  # no token of our own: nothing is opened
         whole = purpose == "master" if whole is None else whole
+        async with self._opening_slot(host, port):
+            return await self._open_tunnel(host, port, purpose, target, first=first, whole=whole)
+
+    @contextlib.asynccontextmanager
+    async def _opening_slot(self, host: str, port: int):
+        """At most ``max_pending_per_certificate`` streams to one peer endpoint between
+        connect and its verified reply: the peer refuses more unauthenticated streams
+        from one certificate than that (``pending_limit``), so a burst (a robot's
+        bring-up: dozens of nodes subscribing at once) waits its turn here instead of
+        being refused there. The wait is bounded by the handshake timeout."""
+        endpoint = (host, port)
+        slot = self._opening.get(endpoint)
+        if slot is None:
+            slot = self._opening[endpoint] = [asyncio.Semaphore(self.cfg.limits.max_pending_per_certificate), 0]
+        slot[1] += 1
+        try:
+            try:
+                await asyncio.wait_for(slot[0].acquire(), self.cfg.limits.handshake_timeout)
+            except asyncio.TimeoutError:
+                raise PolicyDenied("peer_busy", f"{host}:{port}: no free slot to open a stream within "
+                                                f"{self.cfg.limits.handshake_timeout:g} s") from None
+            try:
+                yield
+            finally:
+                slot[0].release()
+        finally:
+            slot[1] -= 1
+            if slot[1] == 0 and self._opening.get(endpoint) is slot:
+                del self._opening[endpoint]
+
+    async def _open_tunnel(
+        self, host: str, port: int, purpose: str, target: str, *, first: bytes, whole: bool,
+    ) -> Tunnel:
         try:
             reader, writer = await asyncio.wait_for(
                 asyncio.open_connection(

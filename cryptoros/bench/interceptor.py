@@ -22,7 +22,9 @@ Rows: one-way latency at 1 kHz (p50/p99; the sender stamps CLOCK_MONOTONIC into 
 std_msgs/String), small std_msgs/String throughput (sender unthrottled), MB/s for
 sensor_msgs/Image of 80 KB and 1 MB, TCPROS connection set-up time (connect to the
 publisher's header reply: TLS handshake + token check on the interceptor and stunnel
-rows) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), and the
+rows) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), a robot's
+bring-up (50 subscribers starting at once against a latched publisher: time until all
+received its message, median of a few runs), and the
 paper's own experiment (section IV: N std_msgs/String at 10 Hz, the listener timed
 from launch to exit as with ``time``, with and without interceptors).
 """
@@ -110,7 +112,9 @@ def _policy() -> str:
 def _our_worker() -> None:
     """Entry point of our talker/listener processes; the same protocol as
     ``ros1_nodes/rospy_worker.py`` (argv: ROLE), plus ROLE ``idle``: advertise
-    /bench_str, print ``URI <xmlrpc uri> <tcpros port>`` and wait for ``quit``."""
+    /bench_str, print ``URI <xmlrpc uri> <tcpros port>`` and wait for ``quit``, and ROLE
+    ``latched``: the same with /bench_str latched and one message published (every new
+    subscriber receives it at once: the bring-up row)."""
     from cryptoros.bench.ros1 import publish_workload, record_message
     from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
 
@@ -200,7 +204,15 @@ def _our_worker() -> None:
             async for _ in lines():
                 pass
 
-    asyncio.run({"listen": listen, "talk": talk, "idle": idle}[role]())
+    async def latched() -> None:
+        async with Node("/bench_latched", tcpros_port=int(os.environ.get("BENCH_TCPROS_PORT", "0"))) as node:
+            pub = await node.advertise("/bench_str", "std_msgs/String", latch=True)
+            pub.publish(node.msg("std_msgs/String", data="bring-up"))
+            out(f"URI {node.uri} {node.tcpros_port}")
+            async for _ in lines():
+                pass
+
+    asyncio.run({"listen": listen, "talk": talk, "idle": idle, "latched": latched}[role]())
 
 
 # ============================================================ processes
@@ -571,6 +583,108 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
     return result
 
 
+# ============================================================ bring-up: many subscribers at once
+
+
+def _via_node(via: tuple[str, int]):
+    """Our node client whose TCPROS connections go to ``via`` (the stunnel client's
+    accept port) whatever requestTopic answers: the stunnel chain, as BENCH_VIA does
+    for the worker processes, but for these nodes only."""
+    from cryptoros.ros1.node import Node
+
+    class ViaNode(Node):
+        async def call_api(self, uri, method, *params):
+            reply = await super().call_api(uri, method, *params)
+            if method == "requestTopic" and isinstance(reply, list) and len(reply) == 3:
+                reply = [reply[0], via[0], via[1]]
+            return reply
+
+    return ViaNode
+
+
+async def _bringup_once(master_uri: str, count: int, tag: str, via: tuple[str, int] | None = None,
+                        timeout: float = 60.0) -> dict:
+    """``count`` subscriber nodes of our node client start at once in this process, each
+    registering with ``master_uri`` and subscribing to the latched /bench_str: seconds
+    from the start until each received the latched message (registerSubscriber,
+    requestTopic, TCPROS connection, the message)."""
+    from cryptoros.ros1.node import Node
+
+    cls = Node if via is None else _via_node(via)
+    nodes: list = []
+    received: list[float | None] = [None] * count
+    t0 = time.perf_counter()
+
+    async def one(i: int) -> None:
+        got = asyncio.Event()
+
+        def on_msg(_msg, i=i) -> None:
+            if received[i] is None:
+                received[i] = time.perf_counter() - t0
+            got.set()
+
+        node = cls(f"/bench_bringup_{tag}_{i}", master_uri)
+        nodes.append(node)
+        await node.start()
+        await node.subscribe("/bench_str", "std_msgs/String", on_msg)
+        await got.wait()
+
+    outcomes = await asyncio.gather(*(asyncio.wait_for(one(i), timeout) for i in range(count)), return_exceptions=True)
+    await asyncio.gather(*(node.close() for node in nodes), return_exceptions=True)
+    times = [t for t in received if t is not None]
+    errors = sorted({f"{type(o).__name__}: {o}"[:200] for o in outcomes if isinstance(o, BaseException)})
+    return {"all_s": max(times) if len(times) == count else None, "first_s": min(times) if times else None,
+            "received": len(times), "errors": errors}
+
+
+def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress: Callable[[str], None]) -> dict:
+    """A robot's bring-up: ``count`` subscribers connect at once to one latched publisher
+    (our node client), time until all received its message, per transport, ``runs``
+    times (median reported). Plain and stunnel take turns on one talker registered with
+    rosmaster (stunnel: TCPROS through the chain, XML-RPC plain, as in the throughput
+    rows); interceptor: the talker on A, the subscribers registering through B."""
+    result: dict = {"subscribers": count, "runs": runs}
+    raw: dict[str, list[dict]] = {t: [] for t in TRANSPORTS}
+    talker_port = free_port()
+    pub = Proc("latched talker (plain)", _worker_cmd("ours", "latched"),
+               net.ros_env(None, BENCH_TCPROS_PORT=str(talker_port)), workdir / "latched-plain.log")
+    try:
+        pub.expect("URI ", 30)
+        with stunnel_chain(net, talker_port, workdir, "bringup") as (client_port, _server_port):
+            for run in range(runs):
+                for transport in (("plain", "stunnel") if run % 2 == 0 else ("stunnel", "plain")):
+                    via = ("127.0.0.1", client_port) if transport == "stunnel" else None
+                    raw[transport].append(asyncio.run(_bringup_once(net.rosmaster_uri, count, f"{transport}{run}", via)))
+                    progress(f"bring-up {transport:11s} run {run + 1}: {_bringup_short(raw[transport][-1], count)}")
+    finally:
+        pub.close()
+    pub = Proc("latched talker (A)", _worker_cmd("ours", "latched"), net.ros_env("robot_a"), workdir / "latched-a.log")
+    try:
+        pub.expect("URI ", 30)
+        for run in range(runs):
+            raw["interceptor"].append(asyncio.run(_bringup_once(net.hosts["robot_b"].master_uri, count, f"icpt{run}")))
+            progress(f"bring-up interceptor run {run + 1}: {_bringup_short(raw['interceptor'][-1], count)}")
+            time.sleep(2.0)  # the new-stream budget per peer (50/s, burst 100) refills between runs
+    finally:
+        pub.close()
+    for transport, rows in raw.items():
+        complete = [r["all_s"] * 1e3 for r in rows if r["all_s"] is not None]
+        result[transport] = {
+            "all_ms": [None if r["all_s"] is None else r["all_s"] * 1e3 for r in rows],
+            "first_ms": [None if r["first_s"] is None else r["first_s"] * 1e3 for r in rows],
+            "received": [r["received"] for r in rows],
+            "median_ms": statistics.median(complete) if complete else None,
+            "errors": sorted({e for r in rows for e in r["errors"]}),
+        }
+    return result
+
+
+def _bringup_short(r: dict, count: int) -> str:
+    if r["all_s"] is not None:
+        return f"all {count} received after {r['all_s'] * 1e3:,.0f} ms (first {r['first_s'] * 1e3:,.0f} ms)"
+    return f"{r['received']}/{count} received; {'; '.join(r['errors'][:2])}"
+
+
 # ============================================================ the paper's experiment
 
 
@@ -751,6 +865,19 @@ def table_rows(report: dict) -> list[list[str]]:
             cells = [(_fmt(v[t], "{:,} B") + (f" ({pay[t]:,} payload)" if pay[t] is not None else "")) for t in TRANSPORTS]
             rows.append([label, "probe", *cells, _fmt(_ratio(v["interceptor"], v["stunnel"]), "{:.2f}x"),
                          _fmt(_ratio(v["interceptor"], v["plain"]), "{:.2f}x")])
+        bringup = report.get("bringup")
+        if bringup:
+            v = {t: bringup.get(t, {}).get("median_ms") for t in TRANSPORTS}
+            n, runs = bringup["subscribers"], bringup["runs"]
+
+            def cell(t: str) -> str:
+                got = bringup.get(t, {}).get("received", [])
+                short = [g for g in got if g != n]
+                return _fmt(v[t], "{:,.0f} ms") + (f" ({min(short)}/{n} received)" if short else "")
+
+            rows.append([f"{n} subscribers at once: until all receive (median of {runs})", "ours",
+                         *(cell(t) for t in TRANSPORTS), _fmt(_ratio(v["interceptor"], v["stunnel"]), "{:.2f}x"),
+                         _fmt(_ratio(v["interceptor"], v["plain"]), "{:.2f}x")])
         tok = setup.get("token_bytes")
         if tok:
             rows.append(["access token per preamble (A / B)", "probe", "-",
@@ -825,12 +952,17 @@ def _target_value(t: dict) -> str:
               help="Comma-separated N for the paper's experiment (default 100,250,500; --quick: 100; 0: skip).")
 @click.option("--paper-repeat", type=int, default=None, help="Repetitions per N and variant (default 4; --quick: 1).")
 @click.option("--setup-probes", type=int, default=None, help="Connection set-ups timed per transport (default 20).")
+@click.option("--bringup-subscribers", type=click.IntRange(1, 500), default=50, show_default=True,
+              help="Subscribers connecting at once in the bring-up row.")
+@click.option("--bringup-runs", type=click.IntRange(0, 50), default=None,
+              help="Bring-ups per transport, median reported (default 3; --quick: 1; 0: skip).")
 @click.option("--only", type=click.Choice(IMPLS), default=None, help="Run one node client only.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write the results here.")
 @click.option("--markdown", is_flag=True, help="Print the tables as Markdown (for the README).")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
 def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
-                setup_probes: int | None, only: str | None, json_path: str | None, markdown: bool, keep: bool) -> None:
+                setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None, only: str | None,
+                json_path: str | None, markdown: bool, keep: bool) -> None:
     """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
     if not Path(SYS_PY).exists() or subprocess.run([SYS_PY, "-c", "import rospy"], capture_output=True).returncode:
         raise click.ClickException("rospy is not installed for /usr/bin/python3 (scripts/install-system-parts)")
@@ -845,6 +977,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
         counts = [int(x) for x in paper_counts.split(",") if int(x) > 0]
     reps = paper_repeat or (1 if quick else 4)
     probes = setup_probes or (5 if quick else 20)
+    bringups = bringup_runs if bringup_runs is not None else (1 if quick else 3)
     scale = 0.2 if quick else 1.0
 
     def n(default: int) -> int:
@@ -864,12 +997,16 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
 
     workdir = Path(tempfile.mkdtemp(prefix="cryptoros-bench-icpt-"))
     results: dict = {"config": {"messages": {m.key: m.n for m in modes}, "paper_counts": counts, "paper_repeat": reps,
-                                "setup_probes": probes, "cpus": os.cpu_count()}}
+                                "setup_probes": probes, "bringup": {"subscribers": bringup_subscribers,
+                                                                    "runs": bringups},
+                                "cpus": os.cpu_count()}}
     try:
         with lab_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
                                                             ("stunnel_b", "127.0.0.1")], progress=progress) as net:
             progress("network up")
             results["setup"] = measure_setup(net, probes, workdir, progress)
+            if bringups:
+                results["bringup"] = measure_bringup(net, bringup_subscribers, bringups, workdir, progress)
             tp: dict = {}
             for impl in impls:
                 for transport in TRANSPORTS:
@@ -901,6 +1038,8 @@ def _legend() -> str:
         "the two hosts (frames as Wireshark counts them, TCP payload in brackets); the TCPROS row is from connect\n"
         "to the publisher's header reply (no message yet); a subscription adds the requestTopic call. stunnel's\n"
         "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates).\n"
+        "bring-up: N subscriber nodes of our node client start at once in one process (register, requestTopic,\n"
+        "TCPROS) against a latched publisher; time from the start until the last one received its message.\n"
         "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."
     )
 

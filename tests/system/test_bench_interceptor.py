@@ -1,8 +1,8 @@
 """Smoke test of ``cryptoros bench interceptor`` in its quickest mode.
 
 Runs the whole benchmark (network, rospy and our node client over plain ROS,
-interceptors and stunnel4, set-up probes with tcpdump, the paper's experiment with
-few messages) and checks that the JSON holds every row with positive numbers. Speed
+interceptors and stunnel4, set-up probes with tcpdump, a bring-up of 50 subscribers
+at once, the paper's experiment with few messages) and checks that the JSON holds every row with positive numbers. Speed
 is never asserted here.
 """
 
@@ -49,6 +49,12 @@ def test_bench_interceptor_quick(tmp_path):
         assert setup[transport]["bytes"]["request_topic"]["frame_bytes"] > 0
     # TLS and tokens cost bytes: the tunnelled set-up is bigger than the plain one
     assert setup["interceptor"]["bytes"]["tcpros"]["frame_bytes"] > setup["plain"]["bytes"]["tcpros"]["frame_bytes"]
+
+    bringup = report["bringup"]  # 50 subscribers at once; --quick: one run per transport
+    assert (bringup["subscribers"], bringup["runs"]) == (50, 1)
+    for transport in ("plain", "interceptor", "stunnel"):
+        assert bringup[transport]["received"] == [50], (transport, bringup[transport])
+        assert bringup[transport]["median_ms"] > 0
 
     (paper,) = report["paper"]
     assert paper["messages"] == 30

@@ -106,6 +106,38 @@ async def test_open_stream_cut_off_within_5s(team, tmp_path, how):
             await bob_client.close()
 
 
+async def test_a_cached_token_revoked_through_the_feed_is_refused_on_the_next_stream(team, tmp_path):
+    """The verified-token cache (PeerVerifier.token_cache) holds alice's token; the
+    operator revokes it with the CLI; once the daemon's feed says so, the next stream
+    showing that token is refused, though its decode was cached."""
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        alice = client_for(daemon, "alice")
+        keeper = TokenKeeper(alice, refresh_margin=60)
+        await keeper.refresh()
+        bob_client, verifier = verifier_for(daemon, poll=0.3)
+        poller = asyncio.create_task(verifier.run())
+        try:
+            await asyncio.wait_for(verifier.ready.wait(), timeout=10)
+            token, der = keeper.current(), der_of(team.pki, "alice")
+            access = verifier.verify(token, der)
+            assert verifier.verify(token, der) is access
+            assert verifier.token_cache.hits == 1 and len(verifier.token_cache) == 1
+            result = await asyncio.to_thread(daemon.cli, "revoke-token", access.jti)
+            assert result.returncode == 0, result.stderr
+            deadline = time.monotonic() + 5
+            while access.jti not in verifier.revocations.revoked_jtis:
+                assert time.monotonic() < deadline, "the feed did not report the revocation within 5 s"
+                await asyncio.sleep(0.05)
+            with pytest.raises(TokenError) as info:
+                verifier.verify(token, der)
+            assert info.value.reason == "revoked"
+            assert len(verifier.token_cache) == 0
+        finally:
+            poller.cancel()
+            await alice.close()
+            await bob_client.close()
+
+
 async def test_daemon_down_cached_token_works_until_it_expires(team, tmp_path):
     with running_daemon(team.pki, team.db, tmp_path, extra=("--token-lifetime", "10")) as daemon:
         alice = client_for(daemon, "alice")

@@ -1,0 +1,56 @@
+"""A robot's bring-up through the interceptors: dozens of subscriber nodes on robot B
+start at once against one latched publisher on robot A, and every one receives its
+message. Robot B's interceptor opens at most ``max_pending_per_certificate`` streams to
+one peer endpoint at a time (the peer refuses more unauthenticated streams from one
+certificate with ``pending_limit``), so the burst waits its turn instead of being
+refused: before, 7 of 50 subscribers of ``cryptoros bench interceptor``'s bring-up
+row failed to register."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from cryptoros.ros1.node import Node
+from tests.interceptor_harness import STRING, denials, robot_network
+
+pytestmark = [pytest.mark.ros1]
+
+SUBSCRIBERS = 30  # more than the 8 pending streams per certificate and 16 per source a peer admits
+
+
+@pytest.mark.timeout(120)
+def test_subscribers_starting_at_once_all_receive_and_none_is_refused(tmp_path):
+    with robot_network(tmp_path) as net:
+
+        async def bring_up() -> list[str]:
+            async with Node("/talker_a", net.hosts["robot_a"].master_uri) as talker:
+                pub = await talker.advertise("/chatter", STRING, latch=True)
+                pub.publish(talker.msg(STRING, data="bring-up"))
+                received: dict[int, str] = {}
+                nodes = [Node(f"/burst_{i}", net.hosts["robot_b"].master_uri) for i in range(SUBSCRIBERS)]
+
+                async def one(i: int) -> None:
+                    got = asyncio.Event()
+
+                    def on_msg(msg, i=i) -> None:
+                        received[i] = msg.data
+                        got.set()
+
+                    await nodes[i].start()
+                    await nodes[i].subscribe("/chatter", STRING, on_msg)
+                    await got.wait()
+
+                try:
+                    outcomes = await asyncio.gather(*(asyncio.wait_for(one(i), 30) for i in range(SUBSCRIBERS)),
+                                                    return_exceptions=True)
+                finally:
+                    await asyncio.gather(*(n.close() for n in nodes), return_exceptions=True)
+                errors = [repr(o) for o in outcomes if isinstance(o, BaseException)]
+                assert not errors, errors[:3]
+                return [received[i] for i in range(SUBSCRIBERS)]
+
+        assert asyncio.run(bring_up()) == ["bring-up"] * SUBSCRIBERS
+        for host in ("robot_a", "master"):
+            assert "pending_limit" not in denials(net, host), denials(net, host)[-2000:]
