@@ -10,21 +10,6 @@ from tests.support import require, run
 
 pytest_plugins = ["tests.pki_fixtures"]
 
-#: Modules whose tests run one after another on one xdist worker (``--dist loadgroup``,
-#: scripts/test): whole missions, benchmarks and rate or deadline checks that must not
-#: share the two cores with another of their kind. The other tests fill the other worker.
-HEAVY_MODULES = {
-    "test_demo", "test_ros2_demo", "test_runbook", "test_bench_ros2", "test_bench_interceptor", "test_bench_soak",
-    "test_monitor_dataset", "test_monitor_live", "test_stock_tools", "test_ros2", "test_ros2_hardening",
-    "test_interceptor_operations", "test_day2_live",
-}
-
-
-def pytest_collection_modifyitems(config, items) -> None:
-    for item in items:
-        if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in HEAVY_MODULES:
-            item.add_marker(pytest.mark.xdist_group("heavy"))
-
 ROS1_NODES = Path(__file__).parent / "ros1_nodes"
 
 
