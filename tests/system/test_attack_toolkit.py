@@ -66,16 +66,22 @@ def attack(env: dict[str, str], *args: str, timeout: float = 60) -> tuple[str, d
     return r.stdout, json.loads(out.read_text())
 
 
-def victim_run(victim_env: dict[str, str], attacks: list[tuple[dict[str, str], list[str]]], seconds: float = 240):
+def victim_run(victim_env: dict[str, str], attacks: list[tuple[dict[str, str], list[str]]], seconds: float = 240,
+               *, shut_down_expected: bool = False):
     """Start the victim, run the attacks one after the other, then close the victim's
     stdin (it ends there: however slow a cold machine starts each attack, every attack
-    meets a running victim); return its output lines."""
+    meets a running victim); return its output lines. With ``shut_down_expected`` the
+    victim is first given time (bounded) to end by itself: rospy runs its shutdown after
+    the call has been answered, so closing stdin at once could end it first."""
     with running([SYS_PY, VICTIM, str(seconds), "--until-stdin-closes"], env=victim_env,
                  stdin=subprocess.PIPE) as victim:
         first = victim.stdout.readline()
         assert first.strip() == "READY", first
         time.sleep(1.0)
         reports = [attack(env, *args) for env, args in attacks]
+        deadline = time.monotonic() + 20
+        while shut_down_expected and victim.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
         out, _ = victim.communicate(timeout=60)
     return [first, *out.splitlines()], reports
 
@@ -104,7 +110,7 @@ def attacks_for(env_insider: dict[str, str], env_stranger: dict[str, str]) -> li
 
 def test_unprotected_victim_sees_spoof_noise_flood_and_shutdown(network):
     env = network.ros_env(None)
-    lines, reports = victim_run(env, attacks_for(env, env))
+    lines, reports = victim_run(env, attacks_for(env, env), shut_down_expected=True)
     c = counts(lines)
     assert c["pose"] > 0, lines
     assert c["scan"] > 0, lines
