@@ -16,7 +16,7 @@ pytest_plugins = ["tests.pki_fixtures"]
 HEAVY_MODULES = {
     "test_demo", "test_ros2_demo", "test_runbook", "test_bench_ros2", "test_bench_interceptor", "test_bench_soak",
     "test_monitor_dataset", "test_monitor_live", "test_stock_tools", "test_ros2", "test_ros2_hardening",
-    "test_interceptor_operations", "test_day2_live",
+    "test_interceptor_operations", "test_day2_live", "test_bench_fleet",
 }
 
 

@@ -250,9 +250,10 @@ def _clients(fleet: Fleet, timeout: float) -> list[Client]:
     return out
 
 
-async def _token_loop(c: Client, until: float, *, interval: float = 0.0) -> None:
+async def _token_loop(c: Client, until: float, *, interval: float = 0.0, delay: float = 0.0) -> None:
     from cryptoros.errors import TokenError
 
+    await asyncio.sleep(delay)
     while (start := time.monotonic()) < until:
         try:
             token = await c.authz.fetch_token()
@@ -538,7 +539,9 @@ async def _failover(fleet: Fleet, clients: list[Client], plan: Plan, changed: as
         async with _following(clients, plan.feed_wait, changed):
             start = time.monotonic()
             until = start + plan.failover_s
-            loops = [asyncio.ensure_future(_token_loop(c, until, interval=1.0)) for c in clients]
+            # once a second each, spread over the second (not 200 requests at once)
+            loops = [asyncio.ensure_future(_token_loop(c, until, interval=1.0, delay=i / len(clients)))
+                     for i, c in enumerate(clients)]
             try:
                 await asyncio.sleep(plan.failover_s / 3)
                 switched_before = len(switches)
@@ -632,7 +635,8 @@ def _report(result: dict) -> None:
     iv, fo = result["idle_vs_polling"], result["failover"]
     echo = click.echo
     echo(f"cryptoros bench fleet: {cfg['clients']} interceptors (mutual TLS, EC P-256), {cfg['replicas']} "
-         f"cryptoros-authz replicas, registry {cfg['database']}, {cfg['cpus']} CPUs shared by all")
+         f"cryptoros-authz replicas, registry {cfg['database']}, {cfg['cpus']} CPUs shared by all "
+         f"(load average {cfg['loadavg_before'][0]:g} before, {cfg['loadavg_after'][0]:g} after)")
     if cfg["database"] != "postgresql":
         echo("!!! NOT PostgreSQL: the replicas share a SQLite file; not a fleet deployment's figures !!!")
     echo("")
@@ -675,22 +679,29 @@ def _report(result: dict) -> None:
               help="The replicas' CPU with no client, subtracted for the net idle/polling figures.")
 @click.option("--token-seconds", type=click.FloatRange(1, 600), default=20.0, show_default=True)
 @click.option("--revocations", type=click.IntRange(1, 100), default=5, show_default=True)
-@click.option("--feed-wait", type=click.FloatRange(1, 55), default=55.0, show_default=True,
-              help="Long-poll wait (?wait=) of the clients.")
+@click.option("--feed-wait", type=click.FloatRange(1, 55), default=None, show_default="the interceptor's "
+              "[authz] feed_wait default", help="Long-poll wait (?wait=) of the clients (the server allows 55 s).")
 @click.option("--idle-seconds", type=click.FloatRange(1, 3600), default=120.0, show_default=True)
 @click.option("--poll-seconds", type=click.FloatRange(1, 3600), default=30.0, show_default=True)
 @click.option("--failover-seconds", type=click.FloatRange(3, 600), default=15.0, show_default=True)
 @click.option("--quick", is_flag=True, help="20 clients and short phases (the test's run).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write every figure to this file.")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, PKI) and print its path.")
-def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: float, revocations: int, feed_wait: float, idle_seconds: float,
+def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: float, revocations: int,
+          feed_wait: float | None, idle_seconds: float,
           poll_seconds: float, failover_seconds: float, quick: bool, json_path: str | None,
           keep: bool) -> None:
     """A fleet of interceptors against authz replicas: tokens, revocation propagation,
     idle cost of long-polls vs polling, failover."""
+    if feed_wait is None:
+        import dataclasses
+
+        from interceptor.config import AuthzSettings
+
+        feed_wait = next(f.default for f in dataclasses.fields(AuthzSettings) if f.name == "feed_wait")
     if quick:
         plan = Plan(clients=min(clients, 20), replicas=replicas, baseline_s=1.0, token_s=2.0, revocations=2,
-                    feed_wait=3.0, idle_s=3.0, poll_s=2.0, failover_s=5.0)
+                    feed_wait=3.0, idle_s=4.0, poll_s=3.0, failover_s=5.0)
     else:
         plan = Plan(clients=clients, replicas=replicas, baseline_s=baseline_seconds, token_s=token_seconds,
                     revocations=revocations, feed_wait=feed_wait, idle_s=idle_seconds, poll_s=poll_seconds,
@@ -705,6 +716,7 @@ def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: f
     client_log.addHandler(logging.NullHandler())
     workdir = Path(tempfile.mkdtemp(prefix="cryptoros-bench-fleet-"))
     started = time.monotonic()
+    load_before = os.getloadavg()
     try:
         with _fleet(workdir, plan.clients, plan.replicas) as the_fleet:
             try:
@@ -717,7 +729,10 @@ def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: f
             result["config"] = {"clients": plan.clients, "replicas": plan.replicas, "database": the_fleet.backend,
                                 "cpus": os.cpu_count(), "quick": quick, "urls": the_fleet.urls,
                                 "phases": {k: v for k, v in plan.__dict__.items() if k not in ("clients", "replicas")},
-                                "setup_seconds": the_fleet.setup_seconds}
+                                "setup_seconds": the_fleet.setup_seconds,
+                                # other work on the machine shares the cores: say how busy it was
+                                "loadavg_before": [round(x, 2) for x in load_before],
+                                "loadavg_after": [round(x, 2) for x in os.getloadavg()]}
             failed = [log.name for proc, log in zip(the_fleet.procs[1:], the_fleet.logs[1:]) if proc.poll() is not None]
             if failed:
                 raise NetworkError(f"a surviving replica exited during the run: {failed}")
