@@ -46,15 +46,18 @@ def test_bench_fleet_quick(tmp_path):
     assert all(r["seen_by"] == n for r in prop["rounds"])
     assert prop["p50_ms"] is not None and prop["p50_ms"] <= prop["p99_ms"] <= prop["max_ms"]
 
-    for phase in ("baseline", "idle", "polling"):
+    for phase in ("baseline", "idle", "polling", "held_polls"):
         window = figures[phase]
         assert window["seconds"] > 0 and len(window["replica_cpu_s"]) == 2
         assert all(cpu >= 0 for cpu in window["replica_cpu_s"]) and window["postgres_cpu_s"] is not None
     # held long-polls: one request per client per wait (3 s, in a 4 s window); polling:
     # one per client per second (in a 3 s window)
     assert n <= figures["idle"]["feed_requests"] < figures["polling"]["feed_requests"]
+    assert figures["held_polls"]["feed_requests"] >= n  # wait=1 s: about one per client per second
     ratio = figures["idle_vs_polling"]
     assert ratio["polling_per_client_per_min_s_gross"] > 0 and ratio["ratio_gross"] is not None
+    assert ratio["idle_requests_per_client_per_min"] < ratio["polling_requests_per_client_per_min"]
+    assert ratio["cpu_ms_per_poll"] is not None and ratio["cpu_ms_per_held_long_poll"] is not None
 
     fo = figures["failover"]
     assert fo["killed_replica"] == cfg["urls"][0] and fo["killed_at_s"] > 0
@@ -62,6 +65,7 @@ def test_bench_fleet_quick(tmp_path):
     assert fo["switch_log_lines_before_kill"] == 0 and fo["switch_log_lines"] >= fo["affected_clients"]
     assert fo["requests_after_kill"] > 0 and fo["requests_after_kill_ok"] == fo["requests_after_kill"]
     assert fo["recovery_max_ms"] is not None and fo["recovery_max_ms"] > 0
+    assert fo["latency_before_kill_p50_ms"] is not None and fo["latency_survivor_alone_p50_ms"] is not None
     after = fo["revocation_after_kill"]
     assert after["seen_by"] == n  # the survivor carried the feed to every client
 
