@@ -14,10 +14,13 @@ would spread them). Phases, in order:
    tokens issued per replica from its /metrics);
 3. propagation: every client holds a long-poll of ``/revocations`` (``If-None-Match``,
    ``?wait=``); a token is revoked with ``cryptoros-authz revoke-token`` and the time
-   from the command's exit until each client holds a feed naming it is taken; repeated;
+   from its commit until each client holds a feed naming it is taken; repeated;
 4. idle: the clients only hold their long-polls; the replicas' CPU from /proc;
 5. polling: the same clients poll the feed once a second, no wait; the replicas' CPU;
-6. failover: every client asks for a token once a second and holds a long-poll; the
+6. held polls: the same clients long-poll with a 1 s wait, so that the CPU of one held
+   long-poll can be told from the replicas' baseline (the idle phase's few requests
+   cannot): the idle target is judged per request (:func:`_idle_ratio`);
+7. failover: every client asks for a token once a second and holds a long-poll; the
    first replica is killed (SIGKILL); failed requests and each affected client's time
    to its first token from another replica are counted, and a revocation made after
    the kill must reach every client.
