@@ -393,6 +393,7 @@ class Plan:
     poll_s: float
     failover_s: float
     dense_s: float = 20.0
+    failover_interval: float = 1.0
     request_timeout: float = 15.0
     propagation_timeout: float = 30.0
 
@@ -558,7 +559,7 @@ def _idle_ratio(result: dict, clients: int) -> dict:
 
 async def _failover(fleet: Fleet, clients: list[Client], plan: Plan, changed: asyncio.Event,
                     revoked: set[str]) -> dict:
-    """Tokens once a second and held long-polls; the first replica is SIGKILLed a third
+    """Tokens every ``failover_interval`` and held long-polls; the first replica is SIGKILLed a third
     of the way in; a token is revoked 2 s after the kill and must reach every client."""
     switches: list[str] = []
 
@@ -571,7 +572,8 @@ async def _failover(fleet: Fleet, clients: list[Client], plan: Plan, changed: as
     authz_log = logging.getLogger("cryptoros.interceptor.authz")
     authz_log.addHandler(handler)
     victim = 0
-    _progress(f"failover: tokens at 1 Hz per client and held long-polls for {plan.failover_s:g} s; "
+    _progress(f"failover: a token every {plan.failover_interval:g} s per client and held long-polls for "
+              f"{plan.failover_s:g} s; "
               f"replica {fleet.urls[victim]} is killed after {plan.failover_s / 3:.1f} s")
     for c in clients:
         c.requests.clear()
@@ -580,8 +582,9 @@ async def _failover(fleet: Fleet, clients: list[Client], plan: Plan, changed: as
         async with _following(clients, plan.feed_wait, changed):
             start = time.monotonic()
             until = start + plan.failover_s
-            # once a second each, spread over the second (not 200 requests at once)
-            loops = [asyncio.ensure_future(_token_loop(c, until, interval=1.0, delay=i / len(clients)))
+            # one every interval each, spread over the interval (not 200 requests at once)
+            every = plan.failover_interval
+            loops = [asyncio.ensure_future(_token_loop(c, until, interval=every, delay=every * i / len(clients)))
                      for i, c in enumerate(clients)]
             try:
                 await asyncio.sleep(plan.failover_s / 3)
@@ -624,7 +627,7 @@ async def _failover(fleet: Fleet, clients: list[Client], plan: Plan, changed: as
     survivor = [e - s for s, e, ok in requests if ok and s >= start + 2 * plan.failover_s / 3]
     return {
         "killed_replica": fleet.urls[victim], "killed_at_s": round(killed_at - start, 2),
-        "seconds": plan.failover_s, "token_requests": len(requests), "failed_requests": len(failed),
+        "seconds": plan.failover_s, "token_interval_s": plan.failover_interval, "token_requests": len(requests), "failed_requests": len(failed),
         "first_errors": [e for c in clients for e in c.errors][:5],
         "in_flight_at_kill": len(spanning), "in_flight_at_kill_ok": sum(1 for r in spanning if r[2]),
         "requests_after_kill": len(after), "requests_after_kill_ok": sum(1 for r in after if r[2]),
@@ -719,7 +722,8 @@ def _report(result: dict) -> None:
          f"clients recovered, p50 {fo['recovery_p50_ms']} ms, max {fo['recovery_max_ms']} ms; "
          f"revocation after the kill seen by {rev.get('seen_by')}/{cfg['clients']}")
     echo(f"  (recovery: each affected client's first token after the kill, from the kill or that request's start; "
-         f"token latency p50/p99 at 1 Hz per client: {fo['latency_before_kill_p50_ms']}/"
+         f"token latency p50/p99, one token every {fo['token_interval_s']:g} s per client: "
+         f"{fo['latency_before_kill_p50_ms']}/"
          f"{fo['latency_before_kill_p99_ms']} ms on both replicas, {fo['latency_survivor_alone_p50_ms']}/"
          f"{fo['latency_survivor_alone_p99_ms']} ms on the survivor alone)")
     echo("")
@@ -743,12 +747,14 @@ def _report(result: dict) -> None:
 @click.option("--idle-seconds", type=click.FloatRange(1, 3600), default=120.0, show_default=True)
 @click.option("--poll-seconds", type=click.FloatRange(1, 3600), default=30.0, show_default=True)
 @click.option("--failover-seconds", type=click.FloatRange(3, 600), default=15.0, show_default=True)
+@click.option("--failover-interval", type=click.FloatRange(0.1, 60), default=1.0, show_default=True,
+              help="Seconds between one client's token requests in the failover phase.")
 @click.option("--quick", is_flag=True, help="20 clients and short phases (the test's run).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write every figure to this file.")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, PKI) and print its path.")
 def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: float, revocations: int,
           feed_wait: float | None, idle_seconds: float,
-          poll_seconds: float, failover_seconds: float, quick: bool, json_path: str | None,
+          poll_seconds: float, failover_seconds: float, failover_interval: float, quick: bool, json_path: str | None,
           keep: bool) -> None:
     """A fleet of interceptors against authz replicas: tokens, revocation propagation,
     idle cost of long-polls vs polling, failover."""
@@ -760,11 +766,12 @@ def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: f
         feed_wait = next(f.default for f in dataclasses.fields(AuthzSettings) if f.name == "feed_wait")
     if quick:
         plan = Plan(clients=min(clients, 20), replicas=replicas, baseline_s=1.0, token_s=2.0, revocations=2,
-                    feed_wait=3.0, idle_s=4.0, poll_s=3.0, failover_s=5.0, dense_s=3.0)
+                    feed_wait=3.0, idle_s=4.0, poll_s=3.0, failover_s=5.0, dense_s=3.0,
+                    failover_interval=failover_interval)
     else:
         plan = Plan(clients=clients, replicas=replicas, baseline_s=baseline_seconds, token_s=token_seconds,
                     revocations=revocations, feed_wait=feed_wait, idle_s=idle_seconds, poll_s=poll_seconds,
-                    failover_s=failover_seconds)
+                    failover_s=failover_seconds, failover_interval=failover_interval)
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     want = min(hard, max(soft, 8 * plan.clients + 256))
     if want > soft:
