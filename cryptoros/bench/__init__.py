@@ -12,6 +12,7 @@ from cryptoros.lazy import LazyGroup
 
 BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",
+    "fleet": "cryptoros.bench.fleet:fleet",
     "ciphers": "cryptoros.bench.ciphers:ciphers",
     "insider": "cryptoros.bench.insider:insider",
     "monitor": "cryptoros.bench.monitor:monitor",
@@ -26,4 +27,4 @@ BENCHMARKS: dict[str, str] = {
 
 @click.group(cls=LazyGroup, subcommands=BENCHMARKS)
 def bench() -> None:
-    """Benchmarks: token issuing, ROS 1 transport, cipher costs, simulator scale."""
+    """Benchmarks: token issuing, a fleet against authz replicas, ROS 1 transport, cipher costs, simulator scale."""
