@@ -289,8 +289,11 @@ def test_disabled_manager_is_refused_and_listed_in_the_feed(daemon):
         assert time.monotonic() < deadline
         time.sleep(0.2)
     assert (status, body) == (403, {"error": "access_denied"})
-    feed = daemon.get_json("/revocations")
-    assert "carol" in feed["disabled_managers"]
+    # the feed has its own cache (cache_seconds): the refusal can come before the feed lists it
+    deadline = time.monotonic() + 5
+    while "carol" not in (feed := daemon.get_json("/revocations"))["disabled_managers"]:
+        assert time.monotonic() < deadline, feed
+        time.sleep(0.2)
     assert claims_of(live)["jti"] in feed["revoked_jtis"]
     rows = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--manager", "carol")).splitlines()]
     assert rows[-1]["event"] == "denied" and rows[-1]["reason"] == "manager_disabled"
