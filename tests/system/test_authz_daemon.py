@@ -223,7 +223,9 @@ def test_a_long_poll_of_the_feed_answers_as_soon_as_it_changes(daemon):
     ok(daemon.cli("revoke-token", jti))
     waiter.join(timeout=25)
     assert answer["status"] == 200 and jti in json.loads(answer["raw"])["revoked_jtis"]
-    assert answer["at"] - revoked_at < 3.0  # the CLI's own start-up included
+    # answered on the change, not at the end of its 20 s wait (the CLI's own start-up
+    # included, which a busy machine can stretch to seconds)
+    assert answer["at"] - revoked_at < 12.0
 
 
 def test_two_hundred_concurrent_token_requests_all_succeed_and_verify(daemon):
