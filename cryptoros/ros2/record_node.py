@@ -34,6 +34,12 @@ from cryptoros.ros2.rawtake import RawTaker
 DEPTH = 1000
 #: publishers named per topic at most (the rest are recorded under their GID)
 MAX_WRITERS = 1024
+#: seconds between two graph look-ups of a writer not in the graph yet
+LOOKUP_RETRY_S = 0.2
+#: a writer's samples are held this long for discovery to name it (then written under its GID)
+HOLD_S = 3.0
+#: samples held per unnamed writer at most
+HOLD_MAX = 20_000
 
 
 def _message_class(typename: str) -> type:
@@ -57,6 +63,9 @@ class Recorder:
         self.writer = Writer(out)
         self.connections: dict[tuple[str, str], object] = {}
         self.writers: dict[tuple[str, bytes], str] = {}
+        self._unnamed_until: dict[tuple[str, bytes], float] = {}
+        #: samples of writers discovery has not named yet: (topic, gid) -> [(arrival ns, ROS 1 bytes)]
+        self._held: dict[tuple[str, bytes], list[tuple[int, bytes]]] = {}
         self.counts: dict[str, int] = {}
         self.errors = 0
         self.taker = RawTaker(self.data.context)
@@ -79,37 +88,73 @@ class Recorder:
                                  "(is this the robot's domain?)")
             time.sleep(0.1)
 
-    def _publisher(self, topic: str, gid: bytes) -> str:
-        """The node that owns the writer ``gid`` (looked up in the graph once per writer)."""
+    def _publisher(self, topic: str, gid: bytes) -> str | None:
+        """The node that owns the writer ``gid``, looked up in the graph (again every
+        LOOKUP_RETRY_S while it is not there: a writer's first samples can arrive before
+        discovery names it); None while unnamed."""
         key = (topic, gid)
         name = self.writers.get(key)
-        if name is None:
-            name = f"gid:{gid.hex()[:16]}"
-            for info in self.node.get_publishers_info_by_topic(topic):
-                if bytes(info.endpoint_gid)[: len(gid)] == gid:
-                    name = _node_name(info.node_namespace, info.node_name)
-                    break
-            if len(self.writers) < MAX_WRITERS:
-                self.writers[key] = name
-        return name
+        if name is not None:
+            return name
+        now = time.monotonic()
+        if self._unnamed_until.get(key, 0.0) > now:
+            return None
+        for info in self.node.get_publishers_info_by_topic(topic):
+            # the writer can be discovered before its node: "_NODE_NAME_UNKNOWN_" until then
+            if bytes(info.endpoint_gid)[: len(gid)] == gid and not info.node_name.startswith("_NODE_NAME_UNKNOWN_"):
+                name = _node_name(info.node_namespace, info.node_name)
+                if len(self.writers) < MAX_WRITERS:
+                    self.writers[key] = name
+                self._unnamed_until.pop(key, None)
+                return name
+        if len(self._unnamed_until) < MAX_WRITERS:
+            self._unnamed_until[key] = now + LOOKUP_RETRY_S
+        return None
+
+    def _write(self, topic: str, publisher: str, arrival_ns: int, ros1: bytes) -> None:
+        conn = self.connections.get((topic, publisher))
+        if conn is None:
+            conn = self.writer.add_connection(topic, self.types[topic], typestore=self.store, callerid=publisher)
+            self.connections[(topic, publisher)] = conn
+        self.writer.write(conn, arrival_ns, ros1)
+        label = f"{publisher} on {topic}"
+        self.counts[label] = self.counts.get(label, 0) + 1
+
+    def _release(self, *, everything: bool = False) -> None:
+        """Write the held samples of writers named since, and (or at the end, all of them)
+        of writers still unnamed after HOLD_S, under their GID."""
+        now = time.time_ns()
+        for key in list(self._held):
+            topic, gid = key
+            name = self._publisher(topic, gid)
+            if name is None and not everything and now - self._held[key][0][0] < HOLD_S * 1e9:
+                continue
+            if name is None:
+                name = f"gid:{gid.hex()[:16]}"
+                if len(self.writers) < MAX_WRITERS:
+                    self.writers[key] = name  # given up on: recorded under its GID from now on
+            for arrival_ns, ros1 in self._held.pop(key):
+                self._write(topic, name, arrival_ns, ros1)
 
     def on_batch(self, batch: list[tuple[object, bytes, bytes]]) -> None:
         now = time.time_ns()
-        for topic, cdr, gid in batch:
-            typename = self.types[str(topic)]
-            publisher = self._publisher(str(topic), gid)
+        for topic_key, cdr, gid in batch:
+            topic = str(topic_key)
             try:
-                ros1 = self.store.cdr_to_ros1(bytes(cdr), typename)
+                ros1 = self.store.cdr_to_ros1(bytes(cdr), self.types[topic])
             except Exception:  # a sample that does not decode as its type: not recorded, counted
                 self.errors += 1
                 continue
-            conn = self.connections.get((str(topic), publisher))
-            if conn is None:
-                conn = self.writer.add_connection(str(topic), typename, typestore=self.store, callerid=publisher)
-                self.connections[(str(topic), publisher)] = conn
-            self.writer.write(conn, now, ros1)
-            label = f"{publisher} on {topic}"
-            self.counts[label] = self.counts.get(label, 0) + 1
+            held = self._held.get((topic, gid))
+            publisher = self._publisher(topic, gid) if held is None else None
+            if publisher is not None:
+                self._write(topic, publisher, now, ros1)
+            elif held is not None and len(held) >= HOLD_MAX:
+                self._write(topic, f"gid:{gid.hex()[:16]}", now, ros1)
+            else:
+                self._held.setdefault((topic, gid), []).append((now, ros1))
+        if self._held:
+            self._release()
 
     def run(self, seconds: float, stop: threading.Event) -> None:
         self.writer.open()
@@ -121,6 +166,7 @@ class Recorder:
         finally:
             self.taker.stop()
             thread.join(timeout=10)
+            self._release(everything=True)
             self.writer.close()
 
 
