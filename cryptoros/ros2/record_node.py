@@ -38,7 +38,7 @@ MAX_WRITERS = 1024
 LOOKUP_RETRY_S = 0.2
 #: a writer's samples are held this long for discovery to name it (then written under its GID)
 HOLD_S = 3.0
-#: samples held per unnamed writer at most
+#: samples held per unnamed writer at most (and at most MAX_WRITERS writers held at once)
 HOLD_MAX = 20_000
 
 
@@ -149,8 +149,8 @@ class Recorder:
             publisher = self._publisher(topic, gid) if held is None else None
             if publisher is not None:
                 self._write(topic, publisher, now, ros1)
-            elif held is not None and len(held) >= HOLD_MAX:
-                self._write(topic, f"gid:{gid.hex()[:16]}", now, ros1)
+            elif (held is not None and len(held) >= HOLD_MAX) or (held is None and len(self._held) >= MAX_WRITERS):
+                self._write(topic, f"gid:{gid.hex()[:16]}", now, ros1)  # bounded: no more held
             else:
                 self._held.setdefault((topic, gid), []).append((now, ros1))
         if self._held:
