@@ -31,7 +31,7 @@ from pathlib import Path
 from prometheus_client import Counter, Histogram
 
 from cryptoros.errors import ConfigError, PolicyDenied
-from cryptoros.monitor.features import StreamFeatures
+from cryptoros.monitor.features import Crosscheck, StreamFeatures
 from cryptoros.monitor.model import AlertTracker, MonitorModel
 from cryptoros.ros1.tcpros import FrameWalker
 
@@ -40,6 +40,8 @@ log = logging.getLogger("cryptoros.interceptor.monitor")
 ACTIONS = ("log", "quarantine")
 #: publishers remembered in quarantine at once (the oldest leaves first)
 MAX_QUARANTINED = 4096
+#: peer managers whose cross-stream state is kept (least recently used dropped first)
+MAX_CROSSCHECK_MANAGERS = 1024
 #: the publisher name of a manager-wide quarantine
 WHOLE_MANAGER = "*"
 #: seconds between two alert log lines of one stream (every alert is counted)
@@ -109,6 +111,9 @@ class Monitor:
         #: every open topic stream into this host (watched or not), by (manager, publisher):
         #: how to cut it when its publisher is quarantined
         self._cuts: dict[tuple[str, str], set[Callable[[], None]]] = {}
+        #: per peer manager, what its streams tell about each other (a robot's beacons
+        #: against its poses): one manager's messages never score another's streams
+        self._crosschecks: OrderedDict[str, Crosscheck] = OrderedDict()
 
     def reconfigure(self, settings: MonitorSettings, model: MonitorModel) -> None:
         """SIGHUP: new settings and model (loaded and checked by the caller). Open streams
@@ -173,6 +178,17 @@ class Monitor:
         self._streams.add(stream)
         return stream
 
+    def crosscheck_of(self, manager: str) -> Crosscheck:
+        """The manager's cross-stream state (least recently used dropped past a bound)."""
+        check = self._crosschecks.get(manager)
+        if check is None:
+            check = self._crosschecks[manager] = Crosscheck()
+            while len(self._crosschecks) > MAX_CROSSCHECK_MANAGERS:
+                self._crosschecks.popitem(last=False)
+        else:
+            self._crosschecks.move_to_end(manager)
+        return check
+
     def _alert(self, stream: WatchedStream, feature: str, score: float) -> None:
         self.metrics.alerts.labels(stream.topic, feature).inc()
         action = self.settings.action
@@ -220,7 +236,7 @@ class WatchedStream:
                  cut: Callable[[], None], codec: str = "ros1") -> None:
         self.monitor, self.manager, self.publisher = monitor, manager, publisher
         self.topic, self.typename, self.cut = topic, typename, cut
-        self.features = StreamFeatures(typename, codec=codec)
+        self.features = StreamFeatures(typename, codec=codec, topic=topic, crosscheck=monitor.crosscheck_of(manager))
         self.alerts = AlertTracker(monitor.model.consecutive)
         self._walker = FrameWalker(what=f"monitor {topic}")
         self._chunks: deque[tuple[bytes, float, float]] = deque()

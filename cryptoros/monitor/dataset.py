@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cryptoros.errors import ConfigError
-from cryptoros.monitor.features import StreamFeatures
+from cryptoros.monitor.features import Crosscheck, StreamFeatures
 from cryptoros.monitor.model import AlertTracker, MonitorModel
 
 
@@ -42,6 +42,7 @@ def _messages(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[tuple[st
             raise ConfigError(f"cannot read bag {bag}: {exc}") from None
         try:
             streams: dict[tuple[str, str], StreamFeatures] = {}
+            crosscheck = Crosscheck()  # a recording is one trust domain
             for conn, stamp_ns, raw in reader.messages():
                 if not conn.topic.startswith(topic_prefix):
                     continue
@@ -49,7 +50,8 @@ def _messages(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[tuple[st
                 key = (conn.topic, publisher)
                 features = streams.get(key)
                 if features is None:
-                    features = streams[key] = StreamFeatures(_ros1_type(conn.msgtype))
+                    features = streams[key] = StreamFeatures(_ros1_type(conn.msgtype), topic=conn.topic,
+                                                                    crosscheck=crosscheck)
                 yield conn.topic, publisher, features, stamp_ns * 1e-9, raw
         finally:
             reader.close()

@@ -21,7 +21,26 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
   (not finite, ``range_min >= range_max``, a zero angle step) is malformed: limits
   that leave no beam valid must not hide the ranges from scoring;
 * ``twist`` (``geometry_msgs/Twist``): ``linear`` and ``angular``, ``|linear.x|`` and
-  ``|angular.z|`` (a command no controller would send).
+  ``|angular.z|`` (a command no controller would send);
+* ``beacon`` (the demo team's ``cryptoros_sim/Hello``, a robot's position beacon to its
+  team, 8 a second): the common features; each beacon is also the reference the robot's
+  pose stream is checked against (below);
+* ``team_map`` (the demo team's ``cryptoros_sim/MapUpdate``, a robot's own observations
+  shared with its team): ``unseen_claim``, the share of the cells the update claims known
+  that lie out of sensor reach of every position this stream has reported (what the
+  sender cannot have seen: a false "explored" claim), held at its highest for
+  :data:`CLAIM_HOLD_S` (one false claim between honest updates keeps the stream flagged).
+
+**Across streams** (:class:`Crosscheck`, one per trust domain: in the interceptor one per
+peer manager, so one robot cannot frame another; in a recording one per bag): a pose on
+``/<robot>/...`` gets ``beacon_gap_m``, the distance between where the robot's own beacons
+(``source == <robot>``) put it and where its pose stream put it at the beacon's arrival
+(its latest pose, if of the last :data:`BEACON_MATCH_S`), the latest gap held for
+:data:`GAP_HOLD_S`. A pose drifting slowly away from the truth looks like motion on its
+own (0.1 m/s is a twentieth of a demo robot's speed); against the beacons the robot's
+explorer sends its team, it grows without bound. Which of the two is lying the gap cannot
+tell: the pose stream is the one scored, so a robot whose beacons lie has its pose stream
+flagged (the disagreement is alerted either way).
 
 A body that does not decode as its type scores as its own feature, ``malformed`` (1.0);
 a feature that comes out NaN or infinite (a pose at NaN) scores as infinitely over its
@@ -32,7 +51,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -46,22 +65,90 @@ KIND_OF_TYPE = {
     "geometry_msgs/PoseStamped": "pose",
     "sensor_msgs/LaserScan": "scan",
     "geometry_msgs/Twist": "twist",
+    "cryptoros_sim/Hello": "beacon",
+    "cryptoros_sim/MapUpdate": "team_map",
 }
+#: kinds whose types exist only in ROS 1 (the demo team's own messages)
+_ROS1_ONLY = frozenset({"beacon", "team_map"})
 _COMMON = ("rate_hz", "size_change", "malformed")
 FEATURES: dict[str, tuple[str, ...]] = {
     "any": _COMMON,
     "pose": (*_COMMON, "speed_mps", "stamp_back_s", "stamp_lag_s"),
     "scan": (*_COMMON, "roughness", "scan_change", "stamp_back_s", "stamp_lag_s", "geometry_change"),
     "twist": (*_COMMON, "linear", "angular"),
+    "beacon": _COMMON,
+    "team_map": (*_COMMON, "unseen_claim"),
 }
+# appended last, so a model fitted before it was added still lines up (and ignores it)
+FEATURES["pose"] = (*FEATURES["pose"], "beacon_gap_m")
 RATE_WINDOW_S = 1.0
 #: arrival times kept for the rate (a flood faster than this per second reads as this)
 MAX_RATE_SAMPLES = 4096
 
 
-def kind_of(typename: str) -> str:
+def kind_of(typename: str, codec: str = "ros1") -> str:
     """The kind of a ROS 1 (``pkg/Name``) or ROS 2 (``pkg/msg/Name``) type name."""
-    return KIND_OF_TYPE.get(typename.replace("/msg/", "/"), "any")
+    kind = KIND_OF_TYPE.get(typename.replace("/msg/", "/"), "any")
+    return "any" if codec == "cdr" and kind in _ROS1_ONLY else kind
+
+
+#: how far a demo robot's lidar reaches, plus what it can travel between two map updates
+#: and the coarse grid's rounding (the team map has no resolution field: the simulator's)
+SENSOR_REACH_M = 3.5 + 2.5
+TEAM_MAP_RESOLUTION_M = 0.2
+#: the coarse grid of reachable places (metres per cell) and its bound per stream
+REACH_CELL_M = 1.0
+MAX_REACH_CELLS = 1 << 16
+#: a team map bigger than this is not checked: malformed (the demo's is 10,000 cells)
+MAX_TEAM_MAP_CELLS = 1 << 22
+CLAIM_HOLD_S = 5.0
+BEACON_MATCH_S = 0.4
+GAP_HOLD_S = 1.0
+#: robots one cross-check follows (least recently heard of dropped first)
+MAX_CROSSCHECK_ROBOTS = 1024
+
+
+class Crosscheck:
+    """What one trust domain's streams tell about each other: per robot, its latest pose
+    (from its pose stream) and the gap its latest beacon found. Bounded: at most
+    :data:`MAX_CROSSCHECK_ROBOTS` robots (the least recently heard of dropped first)."""
+
+    __slots__ = ("_robots",)
+
+    def __init__(self) -> None:
+        #: robot -> [latest pose's arrival, x, y, gap, the gap's arrival]
+        self._robots: OrderedDict[str, list[float]] = OrderedDict()
+
+    def pose(self, robot: str, now: float, x: float, y: float) -> float:
+        """A pose of ``robot`` arriving at ``now``; returns its current beacon gap (0 when
+        no beacon of the last :data:`GAP_HOLD_S` found one)."""
+        entry = self._robots.get(robot)
+        if entry is None:
+            entry = self._robots[robot] = [now, x, y, 0.0, -math.inf]
+            while len(self._robots) > MAX_CROSSCHECK_ROBOTS:
+                self._robots.popitem(last=False)
+        else:
+            self._robots.move_to_end(robot)
+            entry[0], entry[1], entry[2] = now, x, y
+        return entry[3] if now - entry[4] <= GAP_HOLD_S else 0.0
+
+    def beacon(self, robot: str, now: float, x: float, y: float) -> None:
+        """``robot``'s beacon puts it at (x, y) at ``now``: the gap to its latest pose, if
+        that arrived in the last :data:`BEACON_MATCH_S` (else no gap is known)."""
+        entry = self._robots.get(robot)
+        if entry is not None and now - BEACON_MATCH_S <= entry[0] <= now:
+            entry[3], entry[4] = math.hypot(entry[1] - x, entry[2] - y), now
+
+
+_REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
+_REACH_DISK = tuple((dx, dy) for dx in range(-_REACH_RADIUS, _REACH_RADIUS + 1)
+                    for dy in range(-_REACH_RADIUS, _REACH_RADIUS + 1) if dx * dx + dy * dy <= _REACH_RADIUS ** 2)
+
+
+def robot_of(topic: str) -> str:
+    """The robot a topic belongs to: its first namespace (``/r0/pose`` -> ``r0``)."""
+    parts = topic.strip("/").split("/")
+    return parts[0] if len(parts) > 1 else ""
 
 
 def _cdr_decoder(typename: str, kind: str) -> Callable[[Any], Any]:
@@ -126,23 +213,78 @@ def _decode_scan(body: bytes | memoryview) -> tuple[float, tuple[float, ...], np
     return sec + nsec * 1e-9, geometry, ranges
 
 
+_BEACON_HEAD = struct.Struct("<Id3d")  # seq, timestamp, position
+_MAP_TAIL = struct.Struct("<3d?iiHHI")  # goal, exploration_complete, origin x/y, width, height, len(data)
+
+
+def _source_and_position(body: bytes | memoryview) -> tuple[str, float, float, int]:
+    """(source, position x, y, offset after the position) of a team packet that starts
+    ``string source, uint32 seq, float64 timestamp, geometry_msgs/Point position``."""
+    try:
+        (n,) = _U32.unpack_from(body, 0)
+        if n > 256:
+            raise RemoteProtocolError(f"team packet source of {n} bytes")
+        source = bytes(body[4:4 + n]).decode()
+        _seq, _ts, x, y, _z = _BEACON_HEAD.unpack_from(body, 4 + n)
+    except (struct.error, UnicodeDecodeError) as err:
+        raise RemoteProtocolError(f"malformed team packet: {err}") from err
+    if len(source) != n or not (math.isfinite(x) and math.isfinite(y)):
+        raise RemoteProtocolError("team packet source or position makes no sense")
+    return source, x, y, 4 + n + _BEACON_HEAD.size
+
+
+def _decode_beacon(body: bytes | memoryview) -> tuple[str, float, float]:
+    """What the beacon features read of a ``cryptoros_sim/Hello``: source and position."""
+    return _source_and_position(body)[:3]
+
+
+def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, np.ndarray]:
+    """What the team-map features read of a ``cryptoros_sim/MapUpdate``: the sender's
+    position, the patch's origin (cells) and its cells as a (height, width) array."""
+    import numpy as np
+
+    _source, x, y, pos = _source_and_position(body)
+    try:
+        *_goal, _complete, origin_x, origin_y, width, height, count = _MAP_TAIL.unpack_from(body, pos)
+    except struct.error as err:
+        raise RemoteProtocolError(f"malformed MapUpdate: {err}") from err
+    pos += _MAP_TAIL.size
+    if count != width * height or count > MAX_TEAM_MAP_CELLS or pos + count > len(body):
+        raise RemoteProtocolError(f"MapUpdate of {width}x{height} cells carries {count} (or too many to check)")
+    cells = np.frombuffer(body, dtype=np.int8, count=count, offset=pos).reshape(height, width)
+    return x, y, origin_x, origin_y, cells
+
+
+_DECODERS: dict[str, Callable[[Any], Any]] = {"scan": _decode_scan, "beacon": _decode_beacon,
+                                              "team_map": _decode_team_map}
+
+
 class StreamFeatures:
     """The features of one (publisher, topic) stream; keeps only what the next
     message's features need (the previous message's values and a bounded window of
     arrival times)."""
 
-    __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at")
+    __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at", "_robot", "_crosscheck",
+                 "_reach", "_visited", "_claims")
 
-    def __init__(self, typename: str, *, codec: str = "ros1") -> None:
-        """``codec``: how bodies are serialized, ``ros1`` (TCPROS) or ``cdr`` (ROS 2)."""
-        self.kind = kind_of(typename)
+    def __init__(self, typename: str, *, codec: str = "ros1", topic: str = "",
+                 crosscheck: Crosscheck | None = None) -> None:
+        """``codec``: how bodies are serialized, ``ros1`` (TCPROS) or ``cdr`` (ROS 2).
+        ``topic`` and ``crosscheck``: the stream's topic and its trust domain's
+        :class:`Crosscheck` (none: no checks across streams)."""
+        self.kind = kind_of(typename, codec)
         self.names = FEATURES[self.kind]
         self._decode: Callable[[Any], Any] | None = None
         if self.kind != "any":
             if codec == "cdr":
                 self._decode = _cdr_decoder(typename, self.kind)
             else:
-                self._decode = _decode_scan if self.kind == "scan" else msgs.deserializer(typename)
+                self._decode = _DECODERS.get(self.kind) or msgs.deserializer(typename)
+        self._robot = robot_of(topic)
+        self._crosscheck = crosscheck
+        self._reach: set[tuple[int, int]] = set()  # team_map: coarse cells in reach of a reported position
+        self._visited: set[tuple[int, int]] = set()  # team_map: coarse cells of the reported positions
+        self._claims: deque[tuple[float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen share)
         self._arrivals: deque[float] = deque(maxlen=MAX_RATE_SAMPLES)
         self._size: int | None = None
         self._prev: Any = None  # the previous message's content values (per kind)
@@ -185,7 +327,47 @@ class StreamFeatures:
             speed = math.hypot(x - px, y - py) / max(dt, 1e-3)
         back, lag = self._stamps(stamp, prev[2] if prev is not None else None, wall)
         self._prev = (x, y, stamp)
-        return speed, back, lag
+        gap = 0.0
+        if self._crosscheck is not None and self._robot and math.isfinite(x) and math.isfinite(y):
+            gap = self._crosscheck.pose(self._robot, now, x, y)
+        return speed, back, lag, gap
+
+    def _beacon(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
+        source, x, y = msg
+        if self._crosscheck is not None:
+            self._crosscheck.beacon(source, now, x, y)
+        return ()
+
+    def _team_map(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
+        import numpy as np
+
+        x, y, origin_x, origin_y, cells = msg
+        self._note_reach(x, y)
+        rows, cols = np.nonzero(cells != -1)
+        unseen = 0.0
+        if rows.size:
+            cx = np.floor((cols + origin_x) * (TEAM_MAP_RESOLUTION_M / REACH_CELL_M)).astype(np.int64)
+            cy = np.floor((rows + origin_y) * (TEAM_MAP_RESOLUTION_M / REACH_CELL_M)).astype(np.int64)
+            places, counts = np.unique(np.stack([cx, cy]), axis=1, return_counts=True)
+            reach = self._reach
+            out = sum(int(n) for px, py, n in zip(places[0].tolist(), places[1].tolist(), counts)
+                      if (px, py) not in reach)
+            unseen = out / rows.size
+        claims = self._claims
+        claims.append((now, unseen))
+        while claims and claims[0][0] < now - CLAIM_HOLD_S:
+            claims.popleft()
+        return (max(v for _, v in claims),)
+
+    def _note_reach(self, x: float, y: float) -> None:
+        """Every coarse cell within sensor reach of (x, y) is one the sender can have seen."""
+        place = (math.floor(x / REACH_CELL_M), math.floor(y / REACH_CELL_M))
+        if place in self._visited or len(self._reach) >= MAX_REACH_CELLS:
+            return  # a full table adds nothing: later claims beyond it score as unseen
+        self._visited.add(place)
+        cx, cy = place
+        self._reach.update((cx + dx, cy + dy) for dx, dy in _REACH_DISK)
+
 
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         import numpy as np
@@ -221,4 +403,4 @@ class StreamFeatures:
         return abs(float(msg.linear.x)), abs(float(msg.angular.z))
 
 
-__all__ = ["FEATURES", "KIND_OF_TYPE", "StreamFeatures", "kind_of"]
+__all__ = ["FEATURES", "KIND_OF_TYPE", "Crosscheck", "StreamFeatures", "kind_of", "robot_of"]

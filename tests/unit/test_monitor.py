@@ -403,3 +403,117 @@ def test_a_manager_whose_publishers_keep_getting_quarantined_is_quarantined_whol
     assert any(line.startswith("monitor   quarantine") and "/pose_3 of robot_a" in line for line in lines), lines
     clock.t += 31
     monitor.check_admission("robot_a", "/pose_5")  # over after quarantine_seconds
+
+
+# ------------------------------------------------------------------ across streams, team packets
+
+HELLO, MAP = "cryptoros_sim/Hello", "cryptoros_sim/MapUpdate"
+
+
+def beacon(source: str, x: float, y: float, t: float) -> bytes:
+    from cryptoros.sim import packets as P
+
+    return P.encode(P.make(HELLO, source=source, seq=1, timestamp=t, position=P.Point(x, y), residual_energy=1.0,
+                           buffer_free=1.0, state=0), HELLO)
+
+
+def team_map(x: float, y: float, origin: tuple[int, int], cells: np.ndarray, *, count: int | None = None) -> bytes:
+    from cryptoros.sim import packets as P
+
+    h, w = cells.shape
+    body = P.encode(P.make(MAP, source="r0", seq=1, timestamp=0.0, position=P.Point(x, y), goal=P.Point(x, y),
+                           exploration_complete=False, origin_x=origin[0], origin_y=origin[1], width=w, height=h,
+                           data=cells.reshape(-1).astype(np.int8)), MAP)
+    if count is not None:  # a length field that lies about the cells
+        body = body[:-(h * w) - 4] + struct.pack("<I", count) + body[-(h * w):]
+    return body
+
+
+def drive(crosscheck, *, drift_from: float | None, seconds: float = 10.0, robot: str = "r0",
+          beacons_to=None) -> list[tuple[float, float]]:
+    """A robot at 0.3 m/s: its pose stream (drifting by 0.1 m/s from ``drift_from``) and its
+    beacons (8 a second, the truth, into ``beacons_to`` or the same cross-check); returns
+    (t, beacon_gap_m) per pose."""
+    poses = StreamFeatures(POSE, topic=f"/{robot}/pose", crosscheck=crosscheck)
+    hello = StreamFeatures(HELLO, topic="/team/hello", crosscheck=beacons_to or crosscheck)
+    out = []
+    for i in range(int(seconds * 40)):  # 40 ticks a second: a pose every other, a beacon every fifth
+        t = 1000.0 + i / 40
+        truth = 0.3 * (t - 1000.0)
+        if i % 5 == 0:
+            hello.observe(beacon(robot, truth, 1.0, t), t, t)
+        if i % 2 == 0:
+            x = truth + (0.1 * (t - 1000.0 - drift_from) if drift_from is not None and t - 1000.0 >= drift_from else 0.0)
+            out.append((t - 1000.0, named("pose", poses.observe(pose(x, 1.0, t), t, t))["beacon_gap_m"]))
+    return out
+
+
+def test_a_pose_drifting_away_from_the_robots_own_beacons_shows_a_growing_gap():
+    from cryptoros.monitor.features import Crosscheck
+
+    clean = drive(Crosscheck(), drift_from=None)
+    assert max(g for _, g in clean) <= 0.1  # a beacon is matched with the pose nearest in time
+    drifting = drive(Crosscheck(), drift_from=4.0)
+    assert max(g for t, g in drifting if t < 4.0) <= 0.1
+    late = [g for t, g in drifting if t >= 9.0]
+    assert min(late) > 0.45  # 0.1 m/s for 5 s, less the 0.4 s of poses a beacon is matched against
+    # another manager's beacons (another trust domain) say nothing about this robot's pose
+    elsewhere = drive(Crosscheck(), drift_from=4.0, beacons_to=Crosscheck())
+    assert max(g for _, g in elsewhere) == 0.0
+    # beacons of another robot name are not this robot's reference
+    other = Crosscheck()
+    drive(other, drift_from=None, robot="r1")
+    assert named("pose", StreamFeatures(POSE, topic="/r0/pose", crosscheck=other).observe(
+        pose(50.0, 50.0, 1010.0), 1010.0, 1010.0))["beacon_gap_m"] == 0.0
+
+
+def test_a_team_map_claiming_cells_its_sender_cannot_have_seen():
+    f = StreamFeatures(MAP, topic="/team/map")
+    assert f.kind == "team_map"
+    unseen = []
+    for i in range(10):  # honest: cells within 3 m (15 cells) of a robot driving along y = 5 m
+        x = 2.0 + 0.5 * i
+        col = int(x / 0.2)
+        patch = np.zeros((30, 30), dtype=np.int8)
+        patch[:5] = 100  # a wall
+        unseen.append(named("team_map", f.observe(team_map(x, 5.0, (col - 15, 10), patch), 1000.0 + i, 1000.0 + i)))
+    assert all(u["unseen_claim"] == 0.0 and u["malformed"] == 0.0 for u in unseen)
+    false = named("team_map", f.observe(team_map(0.0, 0.0, (0, 0), np.zeros((100, 100), np.int8)), 1010.5, 1010.5))
+    assert false["unseen_claim"] > 0.5  # a 20 m x 20 m map "explored" from a path along 2..7 m
+    honest = named("team_map", f.observe(team_map(7.0, 5.0, (20, 10), np.zeros((30, 30), np.int8)), 1011.0, 1011.0))
+    assert honest["unseen_claim"] == false["unseen_claim"]  # held: the honest update between false ones stays flagged
+    later = named("team_map", f.observe(team_map(7.0, 5.0, (20, 10), np.zeros((30, 30), np.int8)), 1016.0, 1016.0))
+    assert later["unseen_claim"] == 0.0
+    bad = named("team_map", f.observe(team_map(7.0, 5.0, (20, 10), np.zeros((30, 30), np.int8), count=10**6),
+                                      1017.0, 1017.0))
+    assert bad["malformed"] == 1.0
+    # the team types are ROS 1's own: in the ROS 2 role they are any type
+    from cryptoros.monitor.features import kind_of
+    assert kind_of(MAP, "cdr") == "any" and kind_of(HELLO) == "beacon"
+
+
+async def test_the_monitor_checks_a_robots_pose_against_beacons_of_its_own_manager_only(tmp_path):
+    clock = Clock()
+    monitor, denials = monitor_for(tmp_path, clock=clock)
+    cuts: list[str] = []
+    pose_stream = monitor.watch(manager="robot_a", publisher="/base", topic="/r0/pose", typename=POSE,
+                                cut=lambda: cuts.append("base"))
+    framing = monitor.watch(manager="robot_b", publisher="/liar", topic="/team/hello", typename=HELLO,
+                            cut=lambda: cuts.append("liar"))
+    own = monitor.watch(manager="robot_a", publisher="/explorer", topic="/team/hello", typename=HELLO,
+                        cut=lambda: cuts.append("explorer"))
+    monitor.register("robot_a", "/base", lambda: cuts.append("base"))
+    for i in range(40):
+        clock.t = 1000 + i / 20
+        framing.feed(frame(beacon("r0", 40.0, 40.0, clock.t)))  # robot b says r0 is elsewhere
+        pose_stream.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
+        await drain()
+    assert cuts == [] and denials == []  # another manager cannot frame robot a's pose
+    for i in range(40, 80):
+        clock.t = 1000 + i / 20
+        own.feed(frame(beacon("r0", 0.3 * i / 20 - 3.0, 1.0, clock.t)))  # its own explorer disagrees by 3 m
+        await drain()
+        pose_stream.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
+        await drain()
+    assert cuts == ["base"] and denials == [("monitor", "quarantined", "/base (robot_a)")]
+    assert monitor.metrics.alerts.labels("/r0/pose", "beacon_gap_m")._value.get() == 1
