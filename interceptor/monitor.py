@@ -31,7 +31,7 @@ from pathlib import Path
 from prometheus_client import Counter, Histogram
 
 from cryptoros.errors import ConfigError, PolicyDenied
-from cryptoros.monitor.features import Crosscheck, StreamFeatures
+from cryptoros.monitor.features import Crosscheck, StreamFeatures, kind_of
 from cryptoros.monitor.model import AlertTracker, MonitorModel
 from cryptoros.ros1.tcpros import FrameWalker
 
@@ -40,8 +40,6 @@ log = logging.getLogger("cryptoros.interceptor.monitor")
 ACTIONS = ("log", "quarantine")
 #: publishers remembered in quarantine at once (the oldest leaves first)
 MAX_QUARANTINED = 4096
-#: peer managers whose cross-stream state is kept (least recently used dropped first)
-MAX_CROSSCHECK_MANAGERS = 1024
 #: the publisher name of a manager-wide quarantine
 WHOLE_MANAGER = "*"
 #: seconds between two alert log lines of one stream (every alert is counted)
@@ -111,9 +109,8 @@ class Monitor:
         #: every open topic stream into this host (watched or not), by (manager, publisher):
         #: how to cut it when its publisher is quarantined
         self._cuts: dict[tuple[str, str], set[Callable[[], None]]] = {}
-        #: per peer manager, what its streams tell about each other (a robot's beacons
-        #: against its poses): one manager's messages never score another's streams
-        self._crosschecks: OrderedDict[str, Crosscheck] = OrderedDict()
+        #: what the streams tell about each other (a robot's beacons against its poses)
+        self.crosscheck = Crosscheck()
 
     def reconfigure(self, settings: MonitorSettings, model: MonitorModel) -> None:
         """SIGHUP: new settings and model (loaded and checked by the caller). Open streams
@@ -178,16 +175,15 @@ class Monitor:
         self._streams.add(stream)
         return stream
 
-    def crosscheck_of(self, manager: str) -> Crosscheck:
-        """The manager's cross-stream state (least recently used dropped past a bound)."""
-        check = self._crosschecks.get(manager)
-        if check is None:
-            check = self._crosschecks[manager] = Crosscheck()
-            while len(self._crosschecks) > MAX_CROSSCHECK_MANAGERS:
-                self._crosschecks.popitem(last=False)
-        else:
-            self._crosschecks.move_to_end(manager)
-        return check
+    def watch_reference(self, *, manager: str, publisher: str, topic: str, typename: str) -> WatchedStream | None:
+        """A stream this host's own node sends out (``manager`` is this interceptor's),
+        tapped only for what other streams are checked against: its robot's beacons.
+        Never scored, never cut; None for every other kind, or past the stream cap."""
+        if kind_of(typename) != "beacon" or len(self._streams) >= self.settings.max_streams:
+            return None
+        stream = WatchedStream(self, manager, publisher, topic, typename, lambda: None, reference=True)
+        self._streams.add(stream)
+        return stream
 
     def _alert(self, stream: WatchedStream, feature: str, score: float) -> None:
         self.metrics.alerts.labels(stream.topic, feature).inc()
@@ -233,10 +229,12 @@ class WatchedStream:
     """One publisher's topic stream into this host, as the monitor sees it."""
 
     def __init__(self, monitor: Monitor, manager: str, publisher: str, topic: str, typename: str,
-                 cut: Callable[[], None], codec: str = "ros1") -> None:
+                 cut: Callable[[], None], codec: str = "ros1", *, reference: bool = False) -> None:
         self.monitor, self.manager, self.publisher = monitor, manager, publisher
         self.topic, self.typename, self.cut = topic, typename, cut
-        self.features = StreamFeatures(typename, codec=codec, topic=topic, crosscheck=monitor.crosscheck_of(manager))
+        self.reference = reference  # this host's own beacons: read, never scored
+        self.features = StreamFeatures(typename, codec=codec, topic=topic, crosscheck=monitor.crosscheck,
+                                       beacon_from=manager)
         self.alerts = AlertTracker(monitor.model.consecutive)
         self._walker = FrameWalker(what=f"monitor {topic}")
         self._chunks: deque[tuple[bytes, float, float]] = deque()
@@ -304,6 +302,9 @@ class WatchedStream:
                 bodies = [bytes(buffer[start:end]) for start, end in spans]
             scored += len(bodies)
             for body in bodies:
+                if self.reference:
+                    self.features.observe(body, now, wall)
+                    continue
                 t0 = time.perf_counter()
                 score = model.score(kind, self.features.observe(body, now, wall))
                 metrics.seconds.observe(time.perf_counter() - t0)

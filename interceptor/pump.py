@@ -256,6 +256,7 @@ def splice(
     left_discard: bool = False,
     on_deny: Callable[[PolicyDenied], None] | None = None,
     left_tap: Callable[[bytes], None] | None = None,
+    right_tap: Callable[[bytes], None] | None = None,
 ) -> asyncio.Future[None]:
     """Relay ``left`` <-> ``right`` until both close.
 
@@ -265,11 +266,13 @@ def splice(
     the TCPROS frames read from that side; ``*_frames`` checks their declared sizes;
     ``left_discard`` drops what ``left`` sends (a subscriber sends nothing after its
     header). ``on_deny`` hears of a frame over its limit (both sides are then cut).
-    ``left_tap`` is handed every chunk forwarded from ``left`` (the runtime monitor).
+    ``left_tap`` is handed every chunk forwarded from ``left`` (the runtime monitor);
+    ``right_tap`` likewise from ``right`` (the monitor's reading of this host's own beacons).
     """
     a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget, frames=left_frames, discard=left_discard,
                      on_deny=on_deny, tap=left_tap)
-    b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget, frames=right_frames, on_deny=on_deny)
+    b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget, frames=right_frames, on_deny=on_deny,
+                     tap=right_tap)
     a.attach(left, b)
     b.attach(right, a)
     left.set_protocol(a)

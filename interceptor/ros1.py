@@ -753,8 +753,19 @@ class Ros1Role(GatewayRole):
         writer.write(encode_header(canonical_header(reply)))
         if purpose == "topic":
             # A subscriber sends nothing after its header: whatever it sends is dropped.
-            await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=b"", right_pending=reply_rest,
-                               left_discard=True, endless=True)
+            # The monitor reads this host's own beacons (what its peers' poses are checked against).
+            monitor = self.gw.monitor
+            reference = monitor.watch_reference(
+                manager=self.cfg.manager, publisher=reply_fields.get("callerid", "?"), topic=fields["topic"],
+                typename=reply_fields.get("type", ""),
+            ) if monitor is not None else None
+            try:
+                await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=b"",
+                                   right_pending=reply_rest, left_discard=True, endless=True,
+                                   right_tap=reference.feed if reference is not None else None)
+            finally:
+                if reference is not None:
+                    reference.close()
         else:
             # Service requests from the peer: size-checked, and counted against its budget.
             name = fields["service"]

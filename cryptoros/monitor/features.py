@@ -31,12 +31,13 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
   sender cannot have seen: a false "explored" claim), held at its highest for
   :data:`CLAIM_HOLD_S` (one false claim between honest updates keeps the stream flagged).
 
-**Across streams** (:class:`Crosscheck`, one per trust domain: in the interceptor one per
-peer manager, so one robot cannot frame another; in a recording one per bag): a pose on
+**Across streams** (:class:`Crosscheck`, one per interceptor or per recording): a pose on
 ``/<robot>/...`` gets ``beacon_gap_m``, the distance between where the robot's own beacons
-(``source == <robot>``) put it and where its pose stream put it at the beacon's arrival
+(``source == <robot>``) put it and where the pose stream put it at the beacon's arrival
 (its latest pose, if of the last :data:`BEACON_MATCH_S`), the latest gap held for
-:data:`GAP_HOLD_S`. A pose drifting slowly away from the truth looks like motion on its
+:data:`GAP_HOLD_S`. A beacon is the robot's own word only when the manager it comes from
+is that robot (``beacon_from``: in the interceptor the peer's manager, or this host's own
+for the beacons its own nodes send out): another robot cannot frame it. A pose drifting slowly away from the truth looks like motion on its
 own (0.1 m/s is a twentieth of a demo robot's speed); against the beacons the robot's
 explorer sends its team, it grows without bound. Which of the two is lying the gap cannot
 tell: the pose stream is the one scored, so a robot whose beacons lie has its pose stream
@@ -104,40 +105,49 @@ MAX_TEAM_MAP_CELLS = 1 << 22
 CLAIM_HOLD_S = 5.0
 BEACON_MATCH_S = 0.4
 GAP_HOLD_S = 1.0
-#: robots one cross-check follows (least recently heard of dropped first)
+#: robots one cross-check follows, and pose streams per robot (least recently heard of dropped first)
 MAX_CROSSCHECK_ROBOTS = 1024
+MAX_POSE_STREAMS = 16
 
 
 class Crosscheck:
-    """What one trust domain's streams tell about each other: per robot, its latest pose
-    (from its pose stream) and the gap its latest beacon found. Bounded: at most
-    :data:`MAX_CROSSCHECK_ROBOTS` robots (the least recently heard of dropped first)."""
+    """What streams tell about each other: per robot, the latest pose of each stream that
+    publishes its pose, and the gap the robot's latest beacon found to it. Bounded: at
+    most :data:`MAX_CROSSCHECK_ROBOTS` robots and :data:`MAX_POSE_STREAMS` pose streams
+    each (the least recently heard of dropped first)."""
 
     __slots__ = ("_robots",)
 
     def __init__(self) -> None:
-        #: robot -> [latest pose's arrival, x, y, gap, the gap's arrival]
-        self._robots: OrderedDict[str, list[float]] = OrderedDict()
+        #: robot -> pose stream -> [its latest pose's arrival, x, y, gap, the gap's arrival]
+        self._robots: OrderedDict[str, OrderedDict[object, list[float]]] = OrderedDict()
 
-    def pose(self, robot: str, now: float, x: float, y: float) -> float:
-        """A pose of ``robot`` arriving at ``now``; returns its current beacon gap (0 when
-        no beacon of the last :data:`GAP_HOLD_S` found one)."""
-        entry = self._robots.get(robot)
-        if entry is None:
-            entry = self._robots[robot] = [now, x, y, 0.0, -math.inf]
+    def pose(self, robot: str, stream: object, now: float, x: float, y: float) -> float:
+        """A pose of ``robot`` from ``stream`` arriving at ``now``; returns that stream's
+        beacon gap (0 when no beacon of the last :data:`GAP_HOLD_S` found one)."""
+        streams = self._robots.get(robot)
+        if streams is None:
+            streams = self._robots[robot] = OrderedDict()
             while len(self._robots) > MAX_CROSSCHECK_ROBOTS:
                 self._robots.popitem(last=False)
         else:
             self._robots.move_to_end(robot)
+        entry = streams.get(stream)
+        if entry is None:
+            entry = streams[stream] = [now, x, y, 0.0, -math.inf]
+            while len(streams) > MAX_POSE_STREAMS:
+                streams.popitem(last=False)
+        else:
+            streams.move_to_end(stream)
             entry[0], entry[1], entry[2] = now, x, y
         return entry[3] if now - entry[4] <= GAP_HOLD_S else 0.0
 
     def beacon(self, robot: str, now: float, x: float, y: float) -> None:
-        """``robot``'s beacon puts it at (x, y) at ``now``: the gap to its latest pose, if
-        that arrived in the last :data:`BEACON_MATCH_S` (else no gap is known)."""
-        entry = self._robots.get(robot)
-        if entry is not None and now - BEACON_MATCH_S <= entry[0] <= now:
-            entry[3], entry[4] = math.hypot(entry[1] - x, entry[2] - y), now
+        """``robot``'s beacon puts it at (x, y) at ``now``: per pose stream, the gap to its
+        latest pose, if that arrived in the last :data:`BEACON_MATCH_S`."""
+        for entry in self._robots.get(robot, {}).values():
+            if now - BEACON_MATCH_S <= entry[0] <= now:
+                entry[3], entry[4] = math.hypot(entry[1] - x, entry[2] - y), now
 
 
 _REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
@@ -265,13 +275,15 @@ class StreamFeatures:
     arrival times)."""
 
     __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at", "_robot", "_crosscheck",
-                 "_reach", "_visited", "_claims")
+                 "_beacon_from", "_reach", "_visited", "_claims")
 
     def __init__(self, typename: str, *, codec: str = "ros1", topic: str = "",
-                 crosscheck: Crosscheck | None = None) -> None:
+                 crosscheck: Crosscheck | None = None, beacon_from: str | None = None) -> None:
         """``codec``: how bodies are serialized, ``ros1`` (TCPROS) or ``cdr`` (ROS 2).
-        ``topic`` and ``crosscheck``: the stream's topic and its trust domain's
-        :class:`Crosscheck` (none: no checks across streams)."""
+        ``topic`` and ``crosscheck``: the stream's topic and the :class:`Crosscheck` it
+        shares with the other streams (none: no checks across streams).
+        ``beacon_from``: the manager the stream comes from; its beacons count only for
+        the robot of that name (None: a recording, every beacon counts)."""
         self.kind = kind_of(typename, codec)
         self.names = FEATURES[self.kind]
         self._decode: Callable[[Any], Any] | None = None
@@ -282,6 +294,7 @@ class StreamFeatures:
                 self._decode = _DECODERS.get(self.kind) or msgs.deserializer(typename)
         self._robot = robot_of(topic)
         self._crosscheck = crosscheck
+        self._beacon_from = beacon_from
         self._reach: set[tuple[int, int]] = set()  # team_map: coarse cells in reach of a reported position
         self._visited: set[tuple[int, int]] = set()  # team_map: coarse cells of the reported positions
         self._claims: deque[tuple[float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen share)
@@ -329,12 +342,12 @@ class StreamFeatures:
         self._prev = (x, y, stamp)
         gap = 0.0
         if self._crosscheck is not None and self._robot and math.isfinite(x) and math.isfinite(y):
-            gap = self._crosscheck.pose(self._robot, now, x, y)
+            gap = self._crosscheck.pose(self._robot, self, now, x, y)
         return speed, back, lag, gap
 
     def _beacon(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         source, x, y = msg
-        if self._crosscheck is not None:
+        if self._crosscheck is not None and self._beacon_from in (None, source):
             self._crosscheck.beacon(source, now, x, y)
         return ()
 

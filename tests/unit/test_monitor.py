@@ -430,11 +430,13 @@ def team_map(x: float, y: float, origin: tuple[int, int], cells: np.ndarray, *, 
 
 
 def drive(crosscheck, *, drift_from: float | None, seconds: float = 10.0, robot: str = "r0",
-          beacons_to=None) -> list[tuple[float, float]]:
+          beacons_to=None, honest_too: list | None = None) -> list[tuple[float, float]]:
     """A robot at 0.3 m/s: its pose stream (drifting by 0.1 m/s from ``drift_from``) and its
     beacons (8 a second, the truth, into ``beacons_to`` or the same cross-check); returns
-    (t, beacon_gap_m) per pose."""
+    (t, beacon_gap_m) per pose. ``honest_too``: a second, honest pose stream of the robot
+    runs beside, its gaps appended there."""
     poses = StreamFeatures(POSE, topic=f"/{robot}/pose", crosscheck=crosscheck)
+    honest = StreamFeatures(POSE, topic=f"/{robot}/pose", crosscheck=crosscheck)
     hello = StreamFeatures(HELLO, topic="/team/hello", crosscheck=beacons_to or crosscheck)
     out = []
     for i in range(int(seconds * 40)):  # 40 ticks a second: a pose every other, a beacon every fifth
@@ -445,6 +447,8 @@ def drive(crosscheck, *, drift_from: float | None, seconds: float = 10.0, robot:
         if i % 2 == 0:
             x = truth + (0.1 * (t - 1000.0 - drift_from) if drift_from is not None and t - 1000.0 >= drift_from else 0.0)
             out.append((t - 1000.0, named("pose", poses.observe(pose(x, 1.0, t), t, t))["beacon_gap_m"]))
+            if honest_too is not None:
+                honest_too.append(named("pose", honest.observe(pose(truth, 1.0, t), t, t))["beacon_gap_m"])
     return out
 
 
@@ -453,8 +457,10 @@ def test_a_pose_drifting_away_from_the_robots_own_beacons_shows_a_growing_gap():
 
     clean = drive(Crosscheck(), drift_from=None)
     assert max(g for _, g in clean) <= 0.1  # a beacon is matched with the pose nearest in time
-    drifting = drive(Crosscheck(), drift_from=4.0)
+    beside: list[float] = []
+    drifting = drive(Crosscheck(), drift_from=4.0, honest_too=beside)
     assert max(g for t, g in drifting if t < 4.0) <= 0.1
+    assert max(beside) <= 0.1  # the robot's honest pose stream beside the drifting one is not blamed
     late = [g for t, g in drifting if t >= 9.0]
     assert min(late) > 0.45  # 0.1 m/s for 5 s, less the 0.4 s of poses a beacon is matched against
     # another manager's beacons (another trust domain) say nothing about this robot's pose
@@ -492,28 +498,33 @@ def test_a_team_map_claiming_cells_its_sender_cannot_have_seen():
     assert kind_of(MAP, "cdr") == "any" and kind_of(HELLO) == "beacon"
 
 
-async def test_the_monitor_checks_a_robots_pose_against_beacons_of_its_own_manager_only(tmp_path):
+async def test_the_monitor_checks_a_pose_against_the_robots_own_beacons_only(tmp_path):
+    """A motion-capture bridge on an operations host (manager ``ops``) publishes robot r0's
+    pose into r0's host; r0's own explorer sends its beacons out through the same
+    interceptor (a reference stream: read, never scored). Robot r1 claiming to be r0 in its
+    beacons changes nothing: a beacon counts only from the manager of its robot's name."""
     clock = Clock()
     monitor, denials = monitor_for(tmp_path, clock=clock)
     cuts: list[str] = []
-    pose_stream = monitor.watch(manager="robot_a", publisher="/base", topic="/r0/pose", typename=POSE,
-                                cut=lambda: cuts.append("base"))
-    framing = monitor.watch(manager="robot_b", publisher="/liar", topic="/team/hello", typename=HELLO,
-                            cut=lambda: cuts.append("liar"))
-    own = monitor.watch(manager="robot_a", publisher="/explorer", topic="/team/hello", typename=HELLO,
-                        cut=lambda: cuts.append("explorer"))
-    monitor.register("robot_a", "/base", lambda: cuts.append("base"))
+    mocap = monitor.watch(manager="ops", publisher="/mocap", topic="/r0/pose", typename=POSE,
+                          cut=lambda: cuts.append("mocap"))
+    framing = monitor.watch(manager="r1", publisher="/r1", topic="/team/hello", typename=HELLO,
+                            cut=lambda: cuts.append("r1"))
+    own = monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO)
+    assert monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/map", typename=MAP) is None
+    monitor.register("ops", "/mocap", lambda: cuts.append("mocap"))
     for i in range(40):
         clock.t = 1000 + i / 20
-        framing.feed(frame(beacon("r0", 40.0, 40.0, clock.t)))  # robot b says r0 is elsewhere
-        pose_stream.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
+        framing.feed(frame(beacon("r0", 40.0, 40.0, clock.t)))  # robot r1 says r0 is elsewhere
+        mocap.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
         await drain()
-    assert cuts == [] and denials == []  # another manager cannot frame robot a's pose
+    assert cuts == [] and denials == []  # another robot cannot frame r0's pose
     for i in range(40, 80):
         clock.t = 1000 + i / 20
-        own.feed(frame(beacon("r0", 0.3 * i / 20 - 3.0, 1.0, clock.t)))  # its own explorer disagrees by 3 m
+        own.feed(frame(beacon("r0", 0.3 * i / 20 - 3.0, 1.0, clock.t)))  # r0 itself is 3 m from the bridge's pose
         await drain()
-        pose_stream.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
+        mocap.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
         await drain()
-    assert cuts == ["base"] and denials == [("monitor", "quarantined", "/base (robot_a)")]
+    assert cuts == ["mocap"] and denials == [("monitor", "quarantined", "/mocap (ops)")]
     assert monitor.metrics.alerts.labels("/r0/pose", "beacon_gap_m")._value.get() == 1
+    assert monitor.metrics.alerts.labels("/team/hello", "rate_hz")._value.get() == 0  # the reference is not scored
