@@ -4,7 +4,8 @@ by side in one run, on a dataset of ``cryptoros monitor dataset``.
 Both are trained on the runs of ``--train-seeds`` (ours on their clean runs only: it
 learns what normal looks like; the LSTM on all of them: it is a supervised classifier,
 as in the paper) and scored on every run of ``--eval-seeds``, on the messages of one
-robot (``--robot``, the compromised one: what seed 001's detector watches). Figures:
+robot (``--robot``, the compromised one: what seed 001's detector watches; ours also
+reads the robot's team packets, which the paper's rows have no place for). Figures:
 per-message accuracy, precision, recall, F1, false positives among clean messages,
 per-run accuracy, median detection delay after the onset, and the CPU per message
 (ours: decode + features + score, message by message; the LSTM: its sliding window per
@@ -70,19 +71,18 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
     if not clean or not eval_runs:
         raise click.ClickException(f"{dataset}: no clean run of seeds {train_seeds} or no run of seeds {eval_seeds}")
     say = lambda m: click.echo(m, err=True)  # noqa: E731
-    prefix = f"/{robot}/"
     try:
         say(f"ours: trained on {len(clean)} clean run(s), scoring {len(eval_runs)} run(s) ...")
         model = train(clean)
-        ours = evaluate(model, eval_runs, topic_prefix=prefix).figures()
-        ours["cpu_us_per_message"] = scoring_cost_us(model, eval_runs, prefix)["p50"]
+        ours = evaluate(model, eval_runs, robot=robot).figures()
+        ours["cpu_us_per_message"] = scoring_cost_us(model, eval_runs, robot)["p50"]
         say(f"seed 001's LSTM: {epochs} epochs on {len(train_runs)} run(s) (windows of {window}) ...")
         lstm = LstmBaseline(window=window, epochs=epochs).fit(paper_rows(b, robot) for b in train_runs)
         sequences = [paper_rows(b, robot) for b in eval_runs]
         theirs = evaluate_lstm(lstm, sequences)
         if plots_dir is not None:
             say("ROC curves and delays ...")
-            _plots(plots_dir, model, lstm, eval_runs, sequences, prefix, ours, theirs)
+            _plots(plots_dir, model, lstm, eval_runs, sequences, robot, ours, theirs)
     except CryptorosError as exc:
         raise click.ClickException(str(exc)) from None
     rows = [("messages", None), ("attack_messages", None), ("precision", None), ("recall", None)] + \
@@ -104,7 +104,7 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
                                          "window": window}, indent=1))
 
 
-def _plots(out: Path, model, lstm, eval_runs: list[Path], sequences, prefix: str, ours: dict, theirs: dict) -> None:
+def _plots(out: Path, model, lstm, eval_runs: list[Path], sequences, robot: str, ours: dict, theirs: dict) -> None:
     """roc.png: per-message true and false positive rates of both detectors as their
     thresholds move (ours: a multiple of the fitted limits, 1 = as used; the LSTM: its
     output), the operating points marked; delays.png: detection delay after onset per attack."""
@@ -118,7 +118,7 @@ def _plots(out: Path, model, lstm, eval_runs: list[Path], sequences, prefix: str
     from cryptoros.monitor.lstm import lstm_roc_points
 
     out.mkdir(parents=True, exist_ok=True)
-    ours_roc = roc_points(model, eval_runs, list(np.geomspace(0.05, 50, 40)), prefix)
+    ours_roc = roc_points(model, eval_runs, list(np.geomspace(0.05, 50, 40)), robot)
     lstm_roc = lstm_roc_points(lstm, sequences, list(np.linspace(0.0, 1.0, 41)))
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
     for points, label, mark in ((ours_roc, "cryptoros monitor", "o"), (lstm_roc, "seed 001 LSTM", "s")):

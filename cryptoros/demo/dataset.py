@@ -29,6 +29,10 @@ from cryptoros.demo.run import TEAM_TYPES as TEAM_TOPICS
 from cryptoros.demo.run import Children, DemoError, DemoOptions, Graph, Mission
 
 
+#: tries of one run before the dataset fails (a mission that ends at once is run again)
+ATTEMPTS = 2
+
+
 class RecordingMission(Mission):
     """A plain mission with ``cryptoros monitor record`` running from before the start."""
 
@@ -67,14 +71,23 @@ def record_run(out: Path, *, seed: int, kind: str | None, seconds: float, onset:
     opts = DemoOptions(attacks=(), seconds=seconds, modes=("plain",), seed=seed, compromise=compromise,
                        coverage_target=1.01)  # run the whole budget: every run as long as the others
     work = out / "work"
-    children = Children()
     bag = out / "run.bag"
-    try:
-        mission = RecordingMission(opts, "plain", work, children, lambda _p: None, bag=bag)
-        result = mission.run()
-        t0 = float(json.loads((mission.dir / "go.json").read_text())["t0"])
-    finally:
-        children.kill_all()
+    for attempt in range(1, ATTEMPTS + 1):
+        children = Children()
+        try:
+            mission = RecordingMission(opts, "plain", work, children, lambda _p: None, bag=bag)
+            result = mission.run()
+            t0 = float(json.loads((mission.dir / "go.json").read_text())["t0"])
+        finally:
+            children.kill_all()
+        if result["wall_s"] >= 0.5 * seconds:
+            break
+        # a mission that ended at once recorded nothing worth labelling: never a silent empty run
+        why = f"the mission ended after {result['wall_s']:.1f} s of {seconds:g} ({result.get('end_reason', '?')})"
+        if attempt == ATTEMPTS:
+            raise DemoError(f"{out.name}: {why}, {ATTEMPTS} times; logs in {work}")
+        say(f"  {out.name}: {why}; recording it again")
+        shutil.rmtree(work, ignore_errors=True)
     attacks = []
     if kind:
         topic, who = COMPROMISES[kind]

@@ -29,9 +29,18 @@ class Row:
     values: tuple[float, ...]
 
 
-def _messages(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[tuple[str, str, StreamFeatures, float, bytes]]:
+def of_robot(robot: str, topic: str, publisher: str) -> bool:
+    """A message of ``robot`` (``r0``): on its topics (``/r0/...``) or sent by its nodes
+    (``/r0``, ``/r0_base``), its team packets included. An empty name: every message."""
+    return not robot or topic.startswith(f"/{robot}/") or publisher == f"/{robot}" \
+        or publisher.startswith(f"/{robot}_")
+
+
+def _messages(bags: Iterable[Path], robot: str = "") -> Iterator[tuple[str, str, StreamFeatures, float, bytes]]:
     """(topic, publisher, the stream's features, arrival, body) of every message of the
-    bags on ``topic_prefix``, in recording order per bag; one StreamFeatures per stream."""
+    bags that is ``robot``'s (:func:`of_robot`), in recording order per bag; one
+    StreamFeatures per stream. The other messages are observed here, not yielded: what
+    the streams tell about each other (a robot's beacons) needs every one of them."""
     from rosbags.rosbag1 import Reader, ReaderError
 
     for bag in bags:
@@ -42,24 +51,26 @@ def _messages(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[tuple[st
             raise ConfigError(f"cannot read bag {bag}: {exc}") from None
         try:
             streams: dict[tuple[str, str], StreamFeatures] = {}
-            crosscheck = Crosscheck()  # a recording is one trust domain
+            crosscheck = Crosscheck()  # one per recording, as one per interceptor
             for conn, stamp_ns, raw in reader.messages():
-                if not conn.topic.startswith(topic_prefix):
-                    continue
                 publisher = getattr(conn.ext, "callerid", None) or "?"
                 key = (conn.topic, publisher)
                 features = streams.get(key)
                 if features is None:
                     features = streams[key] = StreamFeatures(_ros1_type(conn.msgtype), topic=conn.topic,
-                                                                    crosscheck=crosscheck)
+                                                             crosscheck=crosscheck)
+                if not of_robot(robot, conn.topic, publisher):
+                    features.observe(raw, stamp_ns * 1e-9, stamp_ns * 1e-9)
+                    continue
                 yield conn.topic, publisher, features, stamp_ns * 1e-9, raw
         finally:
             reader.close()
 
 
-def rows_of(bags: Iterable[Path], topic_prefix: str = "") -> Iterator[Row]:
-    """Every message of the bags, in recording order per bag, as a feature row."""
-    for topic, publisher, features, at, raw in _messages(bags, topic_prefix):
+def rows_of(bags: Iterable[Path], robot: str = "") -> Iterator[Row]:
+    """Every message of the bags (of ``robot``: :func:`of_robot`), in recording order
+    per bag, as a feature row."""
+    for topic, publisher, features, at, raw in _messages(bags, robot):
         yield Row(topic, publisher, features.kind, at, features.observe(raw, at, at))
 
 
@@ -150,11 +161,11 @@ def figures(tp: int, fp: int, fn: int, tn: int, *, right_runs: int, runs: int,
     }
 
 
-def scoring_cost_us(model: MonitorModel, bags: Iterable[Path], topic_prefix: str = "") -> dict[str, float]:
+def scoring_cost_us(model: MonitorModel, bags: Iterable[Path], robot: str = "") -> dict[str, float]:
     """Microseconds per message to decode, compute the features and score, measured
     message by message as the interceptor does it (p50 and p99)."""
     samples: list[float] = []
-    for _topic, _publisher, features, at, raw in _messages(bags, topic_prefix):
+    for _topic, _publisher, features, at, raw in _messages(bags, robot):
         t0 = time.perf_counter()
         model.score(features.kind, features.observe(raw, at, at))
         samples.append(time.perf_counter() - t0)
@@ -165,7 +176,7 @@ def scoring_cost_us(model: MonitorModel, bags: Iterable[Path], topic_prefix: str
 
 
 def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[float],
-               topic_prefix: str = "") -> list[tuple[float, float, float]]:
+               robot: str = "") -> list[tuple[float, float, float]]:
     """(threshold, false positive rate, true positive rate) per message when a message is
     suspicious above ``threshold`` times its limits (1 is the model as used), with the
     model's run of ``consecutive`` suspicious messages before a message is flagged."""
@@ -173,7 +184,7 @@ def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[f
     for bag in bags:
         labels = labels_for(Path(bag))
         streams: dict[tuple[str, str], tuple[list[float], list[bool]]] = {}
-        for row in rows_of([Path(bag)], topic_prefix):
+        for row in rows_of([Path(bag)], robot):
             scores, attack = streams.setdefault((row.topic, row.publisher), ([], []))
             scores.append(model.score(row.kind, row.values).value)
             attack.append(any(lb.covers(row) for lb in labels))
@@ -195,19 +206,19 @@ def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[f
 
 
 def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str] = (),
-             topic_prefix: str = "") -> Evaluation:
+             robot: str = "") -> Evaluation:
     """Score every message as the interceptor would (a message is flagged once its
     stream's run of suspicious messages reached ``consecutive``, until it ends) and
     compare with the labels: every message of ``attackers``, and what the labels file
-    beside each bag names (from its onset on). ``topic_prefix``: only those topics
-    (``/r0/``: one robot's, as seed 001's detector sees it)."""
+    beside each bag names (from its onset on). ``robot``: only that robot's messages
+    (:func:`of_robot`; seed 001's detector watches one robot's)."""
     result = Evaluation()
     everywhere = [Label(a) for a in attackers]
     for bag in bags:
         labels = everywhere + labels_for(Path(bag))
         trackers: dict[tuple[str, str], AlertTracker] = {}
         flagged_run = False
-        for row in rows_of([Path(bag)], topic_prefix):
+        for row in rows_of([Path(bag)], robot):
             key = (row.topic, row.publisher)
             name = f"{Path(bag).parent.name}/{Path(bag).name}: {row.publisher} on {row.topic}"
             tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
@@ -231,4 +242,5 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
     return result
 
 
-__all__ = ["Evaluation", "Label", "Row", "evaluate", "figures", "labels_for", "roc_points", "rows_of", "scoring_cost_us", "train"]
+__all__ = ["Evaluation", "Label", "Row", "evaluate", "figures", "labels_for", "of_robot", "roc_points", "rows_of",
+           "scoring_cost_us", "train"]

@@ -46,6 +46,16 @@ def test_a_small_dataset_trains_a_model_that_flags_the_attacked_runs_and_not_the
     assert bench.returncode == 0, bench.stdout + bench.stderr
     assert "cryptoros monitor" in bench.stdout and "seed 001 LSTM" in bench.stdout
     side = json.loads((tmp_path / "bench.json").read_text())
-    assert side["ours"]["messages"] == side["lstm"]["messages"] > 0  # the same messages scored
+    # the same robot's messages: the LSTM's rows are its pose, scan and cmd_vel (the paper's);
+    # ours also reads its team packets (the false-map claims, the beacons)
+    from rosbags.rosbag1 import Reader
+
+    own = team = 0
+    for bag in sorted(out.glob("seed1-*/run.bag")):
+        with Reader(bag) as reader:
+            for conn, _t, _raw in reader.messages():
+                own += conn.topic.startswith("/r0/")
+                team += conn.topic.startswith("/team/") and conn.ext.callerid == "/r0"
+    assert side["lstm"]["messages"] == own > 0 and side["ours"]["messages"] == own + team and team > 0
     assert side["lstm"]["cpu_us_per_message"] > 0 and side["ours"]["cpu_us_per_message"] > 0
     assert (tmp_path / "plots" / "roc.png").stat().st_size > 1000 and (tmp_path / "plots" / "delays.png").exists()
