@@ -309,7 +309,7 @@ class WatchedStream:
                 score = model.score(kind, self.features.observe(body, now, wall))
                 metrics.seconds.observe(time.perf_counter() - t0)
                 messages.inc()
-                if self.alerts.update(score.value > 1.0):
+                if self.alerts.update(score.value > 1.0, model.is_severe(score)):
                     monitor._alert(self, score.feature, score.value)
                     if self.closed:
                         return

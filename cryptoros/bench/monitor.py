@@ -21,6 +21,8 @@ import click
 
 from cryptoros.errors import CryptorosError
 
+#: the false-positive rate the LSTM's threshold is raised to (the issue's target)
+MATCHED_FPR = 0.005
 #: (figure, target as text, test)
 TARGETS = [
     ("accuracy", ">= 0.97", lambda v: v is not None and v >= 0.97),
@@ -63,7 +65,7 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
             json_path: Path | None, plots_dir: Path | None) -> None:
     """Our monitor against seed 001's LSTM on DATASET (from `cryptoros monitor dataset`)."""
     from cryptoros.monitor.dataset import evaluate, scoring_cost_us, train
-    from cryptoros.monitor.lstm import LstmBaseline, evaluate_lstm, paper_rows
+    from cryptoros.monitor.lstm import LstmBaseline, evaluate_lstm, paper_rows, threshold_for
 
     train_list, eval_list = _seeds(train_seeds, "--train-seeds"), _seeds(eval_seeds, "--eval-seeds")
     clean, train_runs, eval_runs = (_bags(dataset, train_list, clean_only=True), _bags(dataset, train_list),
@@ -79,7 +81,11 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
         say(f"seed 001's LSTM: {epochs} epochs on {len(train_runs)} run(s) (windows of {window}) ...")
         lstm = LstmBaseline(window=window, epochs=epochs).fit(paper_rows(b, robot) for b in train_runs)
         sequences = [paper_rows(b, robot) for b in eval_runs]
-        theirs = evaluate_lstm(lstm, sequences)
+        outputs = [lstm.outputs(seq) for seq in sequences]
+        theirs = evaluate_lstm(lstm, sequences, outputs=outputs)
+        # the LSTM's threshold raised until it flags no more clean messages than the target
+        # allows: detectors compared at the same false-positive rate, not only as published
+        matched = evaluate_lstm(lstm, sequences, threshold_for(sequences, outputs, MATCHED_FPR), outputs)
         if plots_dir is not None:
             say("ROC curves and delays ...")
             _plots(plots_dir, model, lstm, eval_runs, sequences, robot, ours, theirs)
@@ -87,19 +93,24 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
         raise click.ClickException(str(exc)) from None
     rows = [("messages", None), ("attack_messages", None), ("precision", None), ("recall", None)] + \
         [(name, (text, test)) for name, text, test in TARGETS] + [("attack_streams_detected", None)]
-    click.echo(f"{'figure':24s} {'cryptoros monitor':>18s} {'seed 001 LSTM':>15s}   target")
+    click.echo(f"{'figure':24s} {'cryptoros monitor':>18s} {'seed 001 LSTM':>15s} {'LSTM <=0.5% FP':>15s}   target")
     for name, target in rows:
-        line = f"{name:24s} {str(ours.get(name)):>18s} {str(theirs.get(name)):>15s}"
+        line = f"{name:24s} {str(ours.get(name)):>18s} {str(theirs.get(name)):>15s} {str(matched.get(name)):>15s}"
         if target is not None:
             text, test = target
             line += f"   {text:9s} ours {'met' if test(ours.get(name)) else 'NOT met'}, " \
-                    f"LSTM {'met' if test(theirs.get(name)) else 'NOT met'}"
+                    f"LSTM {'met' if test(theirs.get(name)) else 'NOT met'}, " \
+                    f"LSTM <=0.5% FP {'met' if test(matched.get(name)) else 'NOT met'}"
         click.echo(line)
+    click.echo(f"LSTM output thresholds: {theirs['threshold']} (the paper's), {matched['threshold']} (at most "
+               f"{MATCHED_FPR:.1%} of the scored clean messages flagged: chosen on the held-out runs themselves, "
+               f"an oracle in the LSTM's favour)")
     click.echo("delays after onset, ours: " + json.dumps(ours["delays_s"]))
     click.echo("delays after onset, LSTM: " + json.dumps(theirs["delays_s"]))
+    click.echo("delays after onset, LSTM <=0.5% FP: " + json.dumps(matched["delays_s"]))
     click.echo(f"LSTM training: {theirs['train_cpu_s']} CPU s")
     if json_path is not None:
-        json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "train_seeds": train_list,
+        json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "lstm_matched": matched, "train_seeds": train_list,
                                          "eval_seeds": eval_list, "robot": robot, "epochs": epochs,
                                          "window": window}, indent=1))
 

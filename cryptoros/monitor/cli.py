@@ -116,12 +116,14 @@ def _record_ros2(topics: tuple[str, ...], seconds: float, out: Path, domain: int
               help="Factor on that quantile.")
 @click.option("--consecutive", default=3, show_default=True, type=click.IntRange(1, 1000),
               help="Suspicious messages in a row that make an alert.")
-def train(bags: tuple[Path, ...], out: Path, quantile: float, margin: float, consecutive: int) -> None:
+@click.option("--severe", default=5.0, show_default=True, type=float,
+              help="A message this many times over its limit makes an alert alone (0: never alone).")
+def train(bags: tuple[Path, ...], out: Path, quantile: float, margin: float, consecutive: int, severe: float) -> None:
     """Fit the model on BAGS, recordings of clean traffic only."""
     from cryptoros.monitor.dataset import train as fit
 
     try:
-        model = fit(bags, quantile=quantile, margin=margin, consecutive=consecutive)
+        model = fit(bags, quantile=quantile, margin=margin, consecutive=consecutive, severe=severe)
     except CryptorosError as exc:
         raise click.ClickException(str(exc)) from None
     model.save(out)

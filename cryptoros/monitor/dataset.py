@@ -195,7 +195,7 @@ def roc_points(model: MonitorModel, bags: Iterable[Path], thresholds: Iterable[f
         for scores, attack in scored:
             tracker = AlertTracker(model.consecutive)
             for score, is_attack in zip(scores, attack):
-                tracker.update(score > threshold)
+                tracker.update(score > threshold, bool(model.severe) and score >= model.severe * threshold)
                 flagged = tracker.flagged
                 positives += is_attack
                 negatives += not is_attack
@@ -222,8 +222,8 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
             key = (row.topic, row.publisher)
             name = f"{Path(bag).parent.name}/{Path(bag).name}: {row.publisher} on {row.topic}"
             tracker = trackers.setdefault(key, AlertTracker(model.consecutive))
-            suspicious = model.score(row.kind, row.values).value > 1.0  # inf (NaN content) included
-            alerted = tracker.update(suspicious)
+            score = model.score(row.kind, row.values)
+            alerted = tracker.update(score.value > 1.0, model.is_severe(score))  # inf (NaN content) included
             flagged = tracker.flagged
             flagged_run = flagged_run or alerted
             label = next((lb for lb in labels if lb.covers(row)), None)

@@ -185,14 +185,17 @@ class LstmBaseline:
         return flags, cpu
 
 
-def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence]) -> dict:
-    """The baseline's figures, in the shape of ``Evaluation.figures()``."""
+def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence], threshold: float = 0.5,
+                  outputs: list[tuple[np.ndarray, float]] | None = None) -> dict:
+    """The baseline's figures at an output ``threshold`` (the paper's 0.5), in the shape
+    of ``Evaluation.figures()``. ``outputs``: the network's, per sequence, if computed."""
     tp = fp = fn = tn = 0
     runs_right = runs = 0
     delays: dict[str, float | None] = {}
     cpu = []
-    for seq in sequences:
-        flags, per_message = model.flag_messages(seq)
+    sequences = list(sequences)
+    for seq, (out, per_message) in zip(sequences, outputs or [model.outputs(seq) for seq in sequences]):
+        flags = out > threshold
         cpu.append(per_message)
         tp += int((flags & seq.attack).sum())
         fp += int((flags & ~seq.attack).sum())
@@ -206,7 +209,18 @@ def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence]) -> dict:
             delays[seq.name] = float(seq.at[hits[0]] - seq.onset) if len(hits) and seq.onset is not None else None
     return {**figures(tp, fp, fn, tn, right_runs=runs_right, runs=runs, delays=delays),
             "cpu_us_per_message": round(1e6 * (sum(cpu) / len(cpu)), 1) if cpu else None,
-            "train_cpu_s": round(model.train_seconds, 1)}
+            "train_cpu_s": round(model.train_seconds, 1), "threshold": round(threshold, 6)}
+
+
+def threshold_for(sequences: list[Sequence], outputs: list[tuple[np.ndarray, float]], max_fpr: float) -> float:
+    """The lowest output threshold at which the network flags at most ``max_fpr`` of the
+    clean messages (to compare detectors at the same false-positive rate)."""
+    clean = np.concatenate([out[~seq.attack] for seq, (out, _) in zip(sequences, outputs)] or [np.zeros(0)])
+    if not clean.size:
+        return 0.5
+    allowed = int(np.floor(max_fpr * clean.size))
+    ranked = np.sort(clean)[::-1]  # a threshold at the (allowed+1)-th highest clean output flags `allowed` of them
+    return float(np.nextafter(ranked[allowed], np.inf)) if allowed < ranked.size else 0.0
 
 
 def lstm_roc_points(model: LstmBaseline, sequences: list[Sequence],
@@ -224,4 +238,4 @@ def lstm_roc_points(model: LstmBaseline, sequences: list[Sequence],
     return points
 
 
-__all__ = ["LstmBaseline", "Sequence", "evaluate_lstm", "lstm_roc_points", "paper_rows", "windows"]
+__all__ = ["LstmBaseline", "Sequence", "evaluate_lstm", "lstm_roc_points", "paper_rows", "threshold_for", "windows"]

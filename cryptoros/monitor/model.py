@@ -5,7 +5,9 @@ the clean messages times ``margin``, plus a small absolute floor so a feature th
 always zero when clean (a stamp that never goes back) still needs a real excursion.
 A message's score is its worst feature's value over that feature's limit; above 1 the
 message is suspicious, and ``consecutive`` suspicious messages in a row from one
-publisher on one topic raise an alert. Why limits and not a classifier trained on
+publisher on one topic raise an alert; so does one message ``severe`` times over
+(a claim far out of what clean traffic ever shows needs no second one: a false map is
+believed at the first). Why limits and not a classifier trained on
 attacks: the attacks a compromised robot will try are not the ones recorded, and a
 limit learned from normal traffic flags any excursion of a feature, whatever caused
 it; the recorded attacks measure it (``cryptoros monitor eval``).
@@ -44,6 +46,8 @@ class MonitorModel:
     #: kind -> feature -> upper limit
     limits: Mapping[str, Mapping[str, float]]
     consecutive: int = 3
+    #: a message this many times over its limit alerts on its own (0: never alone)
+    severe: float = 5.0
     quantile: float = 0.999
     margin: float = 1.5
     #: what the model was fitted on (messages per kind), for ``cryptoros monitor eval``
@@ -63,13 +67,17 @@ class MonitorModel:
                 worst, name = ratio, feature
         return Score(worst, name)
 
+    def is_severe(self, score: Score, threshold: float = 1.0) -> bool:
+        """``score`` alone is enough for an alert (limits multiplied by ``threshold``)."""
+        return bool(self.severe) and score.value >= self.severe * threshold
+
     # -- fitting
     @classmethod
     def fit(cls, rows: Mapping[str, Iterable[tuple[float, ...]]], *, quantile: float = 0.999, margin: float = 1.5,
-            consecutive: int = 3) -> MonitorModel:
+            consecutive: int = 3, severe: float = 5.0) -> MonitorModel:
         """Limits from clean messages' features, per kind (``rows[kind]``)."""
-        if not 0.5 <= quantile <= 1.0 or margin < 1.0 or consecutive < 1:
-            raise ConfigError("quantile must be in 0.5..1, margin >= 1, consecutive >= 1")
+        if not 0.5 <= quantile <= 1.0 or margin < 1.0 or consecutive < 1 or not (severe == 0 or 1 < severe <= 1000):
+            raise ConfigError("quantile must be in 0.5..1, margin >= 1, consecutive >= 1, severe 0 (off) or in 1..1000")
         tables = {kind: list(kind_rows) for kind, kind_rows in rows.items()}
         if "any" not in tables:  # every type is watched at least for rate and size
             tables["any"] = [row[:len(FEATURES["any"])] for table in tables.values() for row in table]
@@ -84,11 +92,12 @@ class MonitorModel:
                 column = sorted(row[i] for row in table)
                 q = column[min(len(column) - 1, math.ceil(quantile * len(column)) - 1)]
                 limits[kind][name] = round(q * margin + FLOORS.get(name, 0.05), 6)
-        return cls(limits=limits, consecutive=consecutive, quantile=quantile, margin=margin, trained_on=counts)
+        return cls(limits=limits, consecutive=consecutive, severe=severe, quantile=quantile, margin=margin,
+                   trained_on=counts)
 
     # -- the file
     def to_json(self) -> dict:
-        return {"format": FORMAT, "consecutive": self.consecutive, "quantile": self.quantile, "margin": self.margin,
+        return {"format": FORMAT, "consecutive": self.consecutive, "severe": self.severe, "quantile": self.quantile, "margin": self.margin,
                 "trained_on": dict(self.trained_on), "limits": {k: dict(v) for k, v in self.limits.items()}}
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -129,14 +138,18 @@ class MonitorModel:
         consecutive = raw.get("consecutive", 3)
         if isinstance(consecutive, bool) or not isinstance(consecutive, int) or not 1 <= consecutive <= 1000:
             raise ConfigError(f"{where}: consecutive must be an integer in 1..1000")
+        severe = raw.get("severe", 5.0)
+        if isinstance(severe, bool) or not isinstance(severe, (int, float)) or not (severe == 0 or 1 < severe <= 1000):
+            raise ConfigError(f"{where}: severe must be 0 (off) or a number in 1..1000")
         trained = raw.get("trained_on", {})
-        return cls(limits=limits, consecutive=consecutive, quantile=float(raw.get("quantile", 0.999)),
+        return cls(limits=limits, consecutive=consecutive, severe=float(severe), quantile=float(raw.get("quantile", 0.999)),
                    margin=float(raw.get("margin", 1.5)),
                    trained_on=trained if isinstance(trained, dict) else {})
 
 
 class AlertTracker:
-    """Consecutive suspicious messages per stream -> an alert (once per run of them)."""
+    """Consecutive suspicious messages per stream -> an alert (once per run of them); a
+    severe message completes the run at once."""
 
     __slots__ = ("needed", "_run")
 
@@ -144,9 +157,13 @@ class AlertTracker:
         self.needed = needed
         self._run = 0
 
-    def update(self, suspicious: bool) -> bool:
-        """True exactly when the run of suspicious messages reaches ``needed``."""
-        self._run = self._run + 1 if suspicious else 0
+    def update(self, suspicious: bool, severe: bool = False) -> bool:
+        """True exactly when the run of suspicious messages reaches ``needed`` (a severe
+        message reaches it at once)."""
+        if severe and self._run < self.needed:
+            self._run = self.needed
+            return True
+        self._run = self._run + 1 if suspicious or severe else 0
         return self._run == self.needed
 
     @property

@@ -176,6 +176,47 @@ def test_alerts_need_a_run_of_suspicious_messages_and_fire_once_per_run():
         [False, False, False, False, False, True, False, False, False, False, True]
 
 
+def test_a_severe_message_alerts_alone_once_and_the_model_keeps_the_setting(tmp_path):
+    t = AlertTracker(3)
+    # a severe message completes the run at once; the run goes on without a second alert
+    assert [t.update(s, v) for s, v in ((True, False), (True, True), (True, False), (False, False), (True, True))] == \
+        [False, True, False, False, True]
+    model = fitted()
+    assert model.severe == 5.0
+    assert model.is_severe(model.score("pose", (1.0, 0.0, 0.0, 1000.0, 0.0, 0.0, 0.0)))
+    assert not model.is_severe(model.score("pose", (1.0, 0.0, 0.0, 0.4, 0.0, 0.0, 0.0)))
+    model.save(tmp_path / "m.json")
+    assert MonitorModel.load(tmp_path / "m.json").severe == 5.0
+    raw = json.loads((tmp_path / "m.json").read_text())
+    for bad in (0.5, -1, True, "5"):
+        (tmp_path / "bad.json").write_text(json.dumps({**raw, "severe": bad}))
+        with pytest.raises(ConfigError, match="severe"):
+            MonitorModel.load(tmp_path / "bad.json")
+    del raw["severe"]  # a model written before the setting: the default
+    (tmp_path / "old.json").write_text(json.dumps(raw))
+    assert MonitorModel.load(tmp_path / "old.json").severe == 5.0
+    off = MonitorModel.fit({"pose": [(1.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0)]}, severe=0)
+    assert not off.is_severe(off.score("pose", (1.0, 0.0, 0.0, 1e9, 0.0, 0.0, 0.0)))
+
+
+def test_the_lstm_threshold_for_a_false_positive_rate_flags_at_most_that_share_of_clean_messages():
+    from cryptoros.monitor.lstm import Sequence, threshold_for
+
+    rng = np.random.default_rng(0)
+    seqs, outputs = [], []
+    for _ in range(3):
+        attack = rng.random(400) < 0.3
+        out = np.where(attack, rng.uniform(0.3, 1.0, 400), rng.uniform(0.0, 0.95, 400)).astype(np.float32)
+        seqs.append(Sequence(np.zeros((400, 1), np.float32), attack, np.arange(400.0), 0.0, "s"))
+        outputs.append((out, 0.0))
+    clean = np.concatenate([o[~s.attack] for s, (o, _) in zip(seqs, outputs)])
+    for fpr in (0.0, 0.005, 0.1):
+        t = threshold_for(seqs, outputs, fpr)
+        assert (clean > t).sum() <= fpr * clean.size
+        below = clean[clean <= t]  # the lowest such threshold: one clean output lower and more are flagged
+        assert below.size == 0 or (clean >= below.max()).sum() > fpr * clean.size
+
+
 # ------------------------------------------------------------------ the watched stream
 
 
@@ -263,7 +304,8 @@ async def test_an_alerting_stream_is_logged_once_a_second_and_counted_every_time
         await drain()
     alerts = monitor.metrics.alerts.labels("/r0/pose", "speed_mps")._value.get()
     lines = [r for r in caplog.records if "MONITOR alert" in r.getMessage()]
-    assert alerts == 19 and len(lines) == 4, (alerts, len(lines))  # the first message has no step to judge
+    # 100 m in 0.05 s is severe: each run of jumps alerts at its first (the very first message has no step)
+    assert alerts == 20 and len(lines) == 4, (alerts, len(lines))
 
 
 async def test_a_stream_it_cannot_follow_is_let_through_unless_fail_closed(tmp_path):
