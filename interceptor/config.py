@@ -433,9 +433,13 @@ def _parse_monitor(raw: dict[str, Any], base: Path) -> MonitorSettings:
     topics = raw.get("topics", ["*"])
     if not isinstance(topics, list) or not all(isinstance(p, str) for p in topics) or len(topics) > 256:
         raise ConfigError("[monitor] topics must be a list of at most 256 topic patterns")
+    gate = raw.get("gate", [])
+    if not isinstance(gate, list) or not all(isinstance(p, str) for p in gate) or len(gate) > 256:
+        raise ConfigError("[monitor] gate must be a list of at most 256 topic patterns")
     settings = MonitorSettings(
         model=_path(base, raw["model"], "[monitor] model"),
         topics=tuple(topics),
+        gate=tuple(gate),
         action=_typed(raw.get("action", "log"), str, "[monitor] action"),
         quarantine_seconds=_typed(raw.get("quarantine_seconds", 30.0), float, "[monitor] quarantine_seconds"),
         max_backlog_bytes=_typed(raw.get("max_backlog_bytes", 4 << 20), int, "[monitor] max_backlog_bytes"),

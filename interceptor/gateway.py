@@ -757,7 +757,7 @@ class Gateway:
         left_budget: MessageBudget | None = None, left_frames: FrameCounter | None = None,
         left_discard: bool = False, on_deny: Callable[[PolicyDenied], None] | None = None,
         endless: bool = False, left_tap: Callable[[bytes], None] | None = None,
-        right_tap: Callable[[bytes], None] | None = None,
+        right_tap: Callable[[bytes], None] | None = None, left_gate: Callable[[bytes], bool] | None = None,
     ) -> None:
         """Hand both streams to the byte pump and wait until both sides closed. The
         left side is toward the peer (bytes read there count as rx); ``*_pending`` are
@@ -778,6 +778,7 @@ class Gateway:
             on_deny=on_deny,
             left_tap=left_tap,
             right_tap=right_tap,
+            left_gate=left_gate,
         )
         for transport in (left_writer.transport, right_writer.transport):
             if not transport.is_closing() and not transport.is_reading():

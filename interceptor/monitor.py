@@ -66,15 +66,24 @@ class MonitorSettings:
     #: whole manager (every publisher it has or starts) in quarantine here: a compromised
     #: robot whose grant names a pattern (/pose_*) cannot evade by renaming its node
     manager_after: int = 3
+    #: fnmatch patterns of topics whose messages are scored before they are forwarded
+    #: (ROS 1): a suspicious one is dropped. For topics where one message does the harm
+    #: (a false "map explored" is believed at once); the scoring is then on the hot path
+    gate: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
             raise ConfigError(f"[monitor] action must be one of {', '.join(ACTIONS)}, got {self.action!r}")
         if not self.topics or any(not p.startswith(("/", "*")) or len(p) > 256 for p in self.topics):
             raise ConfigError("[monitor] topics must be a non-empty list of topic patterns (/name, /team/*, *)")
+        if any(not p.startswith(("/", "*")) or len(p) > 256 for p in self.gate):
+            raise ConfigError("[monitor] gate must be a list of topic patterns (/team/map, /team/*)")
 
     def watches(self, topic: str) -> bool:
-        return any(fnmatch.fnmatchcase(topic, p) for p in self.topics)
+        return self.gates(topic) or any(fnmatch.fnmatchcase(topic, p) for p in self.topics)
+
+    def gates(self, topic: str) -> bool:
+        return any(fnmatch.fnmatchcase(topic, p) for p in self.gate)
 
 
 class MonitorMetrics:
@@ -87,6 +96,8 @@ class MonitorMetrics:
                                 "Streams the monitor stopped watching, by reason", ["reason"], registry=registry)
         self.quarantined = Counter("cryptoros_monitor_quarantines_total", "Publishers put in quarantine",
                                    registry=registry)
+        self.dropped = Counter("cryptoros_monitor_dropped_total", "Messages of gated topics dropped as "
+                               "suspicious before they were forwarded, by topic", ["topic"], registry=registry)
         self.seconds = Histogram("cryptoros_monitor_score_seconds", "Time to score one message (decode + features "
                                  "+ model)", buckets=(5e-6, 1e-5, 2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3, 1e-2),
                                  registry=registry)
@@ -280,11 +291,37 @@ class WatchedStream:
         if fail_closed:
             self.cut()
 
+    def gate(self, body: bytes) -> bool:
+        """A gated topic's message, scored before it is forwarded: False drops it (it
+        is suspicious, or the stream is already cut). Scoring errors drop it too."""
+        if self.closed:
+            return False
+        monitor = self.monitor
+        try:
+            suspicious = self._score(body, monitor.clock(), monitor.wall(), monitor.metrics.messages.labels(self.topic))
+        except Exception:  # noqa: BLE001 - a gate that cannot decide denies
+            log.exception("MONITOR gate on %s from %s failed: message dropped", self.topic, self.publisher)
+            suspicious = True
+        if suspicious:
+            monitor.metrics.dropped.labels(self.topic).inc()
+        return not suspicious
+
+    def _score(self, body: bytes, now: float, wall: float, messages) -> bool:
+        """Score one message (features, model, alert): whether it is suspicious."""
+        monitor = self.monitor
+        model = monitor.model
+        t0 = time.perf_counter()
+        score = model.score(self.features.kind, self.features.observe(body, now, wall))
+        monitor.metrics.seconds.observe(time.perf_counter() - t0)
+        messages.inc()
+        if self.alerts.update(score.value > 1.0, model.is_severe(score)):
+            monitor._alert(self, score.feature, score.value)
+        return score.value > 1.0
+
     def _score_queued(self) -> None:
         self._scheduled = False
-        monitor, metrics = self.monitor, self.monitor.metrics
-        model, kind = monitor.model, self.features.kind
-        messages = metrics.messages.labels(self.topic)
+        monitor = self.monitor
+        messages = monitor.metrics.messages.labels(self.topic)
         scored = 0
         while self._chunks and not self.closed:
             if scored >= MESSAGES_PER_TURN:  # let the loop forward others' bytes; go on after
@@ -305,14 +342,9 @@ class WatchedStream:
                 if self.reference:
                     self.features.observe(body, now, wall)
                     continue
-                t0 = time.perf_counter()
-                score = model.score(kind, self.features.observe(body, now, wall))
-                metrics.seconds.observe(time.perf_counter() - t0)
-                messages.inc()
-                if self.alerts.update(score.value > 1.0, model.is_severe(score)):
-                    monitor._alert(self, score.feature, score.value)
-                    if self.closed:
-                        return
+                self._score(body, now, wall, messages)
+                if self.closed:
+                    return
             if whole:
                 continue
             del buffer[:stop]

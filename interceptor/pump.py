@@ -104,7 +104,10 @@ class PumpProtocol(asyncio.BufferedProtocol):
     sender then sees TCP backpressure). With ``discard``, what is read is dropped
     (a direction that carries nothing after the header). A frame over its limit
     cuts both sides; ``on_deny`` hears why. ``tap`` is handed every chunk forwarded
-    (its own copy; it must only queue it: the runtime monitor)."""
+    (its own copy; it must only queue it: the runtime monitor). ``gate`` is asked about
+    every whole TCPROS frame's body before the frame goes on, and drops it by returning
+    False (the monitor's gated topics; the frame sizes are checked before, so what is
+    held for it is at most one frame)."""
 
     def __init__(
         self,
@@ -116,9 +119,12 @@ class PumpProtocol(asyncio.BufferedProtocol):
         discard: bool = False,
         on_deny: Callable[[PolicyDenied], None] | None = None,
         tap: Callable[[bytes], None] | None = None,
+        gate: Callable[[bytes], bool] | None = None,
     ):
         self._buffer = bytearray(buffer_size)
         self._tap = tap
+        self._gate = gate
+        self._gate_buffer = bytearray()  # a frame still arriving, held until the gate has seen all of it
         self._view = memoryview(self._buffer)
         self._on_bytes = on_bytes
         self._budget = budget
@@ -213,11 +219,32 @@ class PumpProtocol(asyncio.BufferedProtocol):
         peer = self.peer
         if peer is None or peer.transport is None or peer.transport.is_closing():
             return
+        if self._gate is not None:
+            data = self._gated(data)
+            if not data:
+                return
         peer.transport.write(data)
         if self._on_bytes is not None:
             self._on_bytes(len(data))
         if self._tap is not None:
             self._tap(data)
+
+    def _gated(self, data: bytes) -> bytes:
+        """The whole frames of what arrived (with what was held) that the gate lets
+        through; a frame still arriving is held."""
+        held = self._gate_buffer
+        held += data
+        out = bytearray()
+        pos = 0
+        while len(held) - pos >= 4:
+            end = pos + 4 + int.from_bytes(held[pos:pos + 4], "little")
+            if end > len(held):
+                break
+            if self._gate(bytes(held[pos + 4:end])):
+                out += held[pos:end]
+            pos = end
+        del held[:pos]
+        return bytes(out)
 
     def eof_received(self) -> bool:
         # TLS transports cannot half-close: close the other side once it has flushed.
@@ -257,6 +284,7 @@ def splice(
     on_deny: Callable[[PolicyDenied], None] | None = None,
     left_tap: Callable[[bytes], None] | None = None,
     right_tap: Callable[[bytes], None] | None = None,
+    left_gate: Callable[[bytes], bool] | None = None,
 ) -> asyncio.Future[None]:
     """Relay ``left`` <-> ``right`` until both close.
 
@@ -267,10 +295,13 @@ def splice(
     ``left_discard`` drops what ``left`` sends (a subscriber sends nothing after its
     header). ``on_deny`` hears of a frame over its limit (both sides are then cut).
     ``left_tap`` is handed every chunk forwarded from ``left`` (the runtime monitor);
-    ``right_tap`` likewise from ``right`` (the monitor's reading of this host's own beacons).
+    ``right_tap`` likewise from ``right`` (the monitor's reading of this host's own beacons);
+    ``left_gate`` decides on each whole frame from ``left`` before it goes on.
     """
+    if left_gate is not None and left_frames is None:
+        raise ValueError("a gate needs the frame sizes checked (left_frames)")
     a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget, frames=left_frames, discard=left_discard,
-                     on_deny=on_deny, tap=left_tap)
+                     on_deny=on_deny, tap=left_tap, gate=left_gate)
     b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget, frames=right_frames, on_deny=on_deny,
                      tap=right_tap)
     a.attach(left, b)

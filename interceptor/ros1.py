@@ -31,6 +31,7 @@ import os
 import socket
 import time
 from collections.abc import Awaitable, Callable
+from typing import Any
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
@@ -1022,6 +1023,9 @@ class Ros1Role(GatewayRole):
                 watched = monitor.watch(manager=peer.manager, publisher=publisher, topic=fields["topic"],
                                         typename=reply_fields.get("type") or fields["type"],
                                         cut=tunnel_writer.transport.abort)
+                if watched is None and monitor.settings.gates(fields["topic"]):  # never unscored
+                    raise PolicyDenied("monitor_busy", f"{fields['topic']} is gated by the monitor, which "
+                                                       "watches as many streams as it may")
             writer.write(encode_header(canonical_header(reply)))
             self.metrics.open_streams.labels(purpose).inc()
             try:
@@ -1037,7 +1041,8 @@ class Ros1Role(GatewayRole):
                 await self.gw.pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
                                  right_pending=b"", left_budget=budget, left_frames=frames,
                                  on_deny=lambda exc: self.gw.deny("relay", exc, str(target)),
-                                 endless=purpose == "topic", left_tap=watched.feed if watched else None)
+                                 endless=purpose == "topic",
+                                 **_monitor_hooks(watched, monitor is not None and monitor.settings.gates(name)))
             finally:
                 if watched is not None:
                     watched.close()
@@ -1060,6 +1065,14 @@ class Ros1Role(GatewayRole):
             # granted, a quarantined publisher) must not stay in the verifier's watch list:
             # a subscriber retries such a stream every few seconds, for as long as it runs
             unwatch()
+
+
+def _monitor_hooks(watched: Any, gated: bool) -> dict[str, Any]:
+    """How the pump hands a peer's messages to the monitor: a gated topic's are scored
+    before they go on (``left_gate``), every other watched one's are queued after."""
+    if watched is None:
+        return {}
+    return {"left_gate": watched.gate} if gated else {"left_tap": watched.feed}
 
 
 #: Local registrations whose caller_api (index 3) names the registering node's API.

@@ -353,6 +353,11 @@ def test_monitor_settings_are_checked_at_start(tmp_path):
         _parse_monitor({"model": "nope.json"}, tmp_path)
     with pytest.raises(ConfigError, match="topics"):
         _parse_monitor({"model": "m.json", "topics": ["chatter"]}, tmp_path)
+    gated = _parse_monitor({"model": "m.json", "topics": ["/r0/*"], "gate": ["/team/map"]}, tmp_path)
+    assert gated.gates("/team/map") and gated.watches("/team/map") and not gated.gates("/r0/pose")
+    for bad in (["map"], "/team/map", [1]):
+        with pytest.raises(ConfigError, match="gate"):
+            _parse_monitor({"model": "m.json", "gate": bad}, tmp_path)
 
 
 async def test_reconfigure_scores_open_streams_with_the_new_model_and_keeps_quarantines(tmp_path):
@@ -570,3 +575,34 @@ async def test_the_monitor_checks_a_pose_against_the_robots_own_beacons_only(tmp
     assert cuts == ["mocap"] and denials == [("monitor", "quarantined", "/mocap (ops)")]
     assert monitor.metrics.alerts.labels("/r0/pose", "beacon_gap_m")._value.get() == 1
     assert monitor.metrics.alerts.labels("/team/hello", "rate_hz")._value.get() == 0  # the reference is not scored
+
+
+async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quarantines_its_sender(tmp_path):
+    """The team map is gated: each update is scored as it arrives. An honest one goes on; the
+    first false "explored" claim is dropped (it is severe: its sender is quarantined at once)."""
+    clock = Clock()
+    honest = [team_map(2.0 + 0.5 * i, 5.0, (int((2.0 + 0.5 * i) / 0.2) - 15, 10), np.zeros((30, 30), np.int8))
+              for i in range(6)]
+    clean = StreamFeatures(MAP, topic="/team/map")
+    model = MonitorModel.fit({"team_map": [clean.observe(body, 1000.0 + i, 1000.0 + i) for i, body in enumerate(honest)],
+                              "pose": [(1.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0)]})
+    model.save(tmp_path / "m.json")
+    from prometheus_client import CollectorRegistry
+
+    denials: list = []
+    monitor = Monitor(MonitorSettings(model=tmp_path / "m.json", action="quarantine", gate=("/team/map",)),
+                      CollectorRegistry(), deny=lambda k, e, w: denials.append((k, e.reason, w)), clock=clock, wall=clock)
+    cuts: list[str] = []
+    stream = monitor.watch(manager="r1", publisher="/r1", topic="/team/map", typename=MAP, cut=lambda: cuts.append("r1"))
+    monitor.register("r1", "/r1", lambda: cuts.append("r1"))
+    passed = []
+    for i, body in enumerate(honest):
+        clock.t = 1000.0 + i
+        passed.append(stream.gate(body))
+    assert passed == [True] * 6 and cuts == []
+    clock.t += 0.5
+    assert stream.gate(team_map(0.0, 0.0, (0, 0), np.zeros((100, 100), np.int8))) is False
+    assert cuts == ["r1"] and denials == [("monitor", "quarantined", "/r1 (r1)")]
+    assert monitor.metrics.dropped.labels("/team/map")._value.get() == 1
+    stream.close()  # what the cut does to the stream in the relay
+    assert stream.gate(honest[0]) is False  # a cut stream lets nothing more through

@@ -214,3 +214,73 @@ async def budget_limits_a_flood():
     writer.transport.abort()
     relay.close()
     sink.close()
+
+
+def test_a_gate_sees_whole_frames_and_drops_what_it_refuses(run_loop):
+    """Frames written in pieces that split anywhere reach the gate whole; refused ones
+    never reach the other side, the rest arrive byte-exact and in order."""
+    run_loop(gate_drops_refused_frames())
+
+
+async def gate_drops_refused_frames():
+    from interceptor.pump import FrameCounter
+
+    loop = asyncio.get_running_loop()
+    received = bytearray()
+    enough = asyncio.Event()
+    seen: list[bytes] = []
+
+    def frame(body: bytes) -> bytes:
+        return len(body).to_bytes(4, "little") + body
+
+    bodies = [b"good %d " % i * (i % 7 + 1) for i in range(40)]
+    bodies[3] = b"bad: a false map"
+    bodies[17] = b"bad"
+    expected = b"".join(frame(b) for b in bodies if not b.startswith(b"bad"))
+
+    class Sink(asyncio.Protocol):
+        def data_received(self, data):
+            received.extend(data)
+            if len(received) >= len(expected):
+                enough.set()
+
+    all_seen = asyncio.Event()
+
+    def gate(body: bytes) -> bool:
+        seen.append(body)
+        if len(seen) == len(bodies) + 1:
+            all_seen.set()
+        return not body.startswith(b"bad")
+
+    sink = await loop.create_server(Sink, "127.0.0.1", 0)
+
+    class Splicer(asyncio.Protocol):
+        def connection_made(self, transport):
+            self.early = bytearray()
+
+            async def go():
+                up, _ = await loop.create_connection(asyncio.Protocol, "127.0.0.1", sink.sockets[0].getsockname()[1])
+                splice(transport, up, left_pending=bytes(self.early), left_frames=FrameCounter(max_size=1000),
+                       left_gate=gate)
+            asyncio.ensure_future(go())
+
+        def data_received(self, data):
+            self.early.extend(data)
+
+    relay = await loop.create_server(Splicer, "127.0.0.1", 0)
+    _reader, writer = await asyncio.open_connection("127.0.0.1", relay.sockets[0].getsockname()[1])
+    stream = b"".join(frame(b) for b in bodies)
+    for start in range(0, len(stream), 7):  # pieces that split length fields and bodies
+        writer.write(stream[start:start + 7])
+        await writer.drain()
+    await asyncio.wait_for(enough.wait(), 10)
+    writer.write(frame(b"bad again"))  # refused at the end too: nothing more arrives
+    await writer.drain()
+    await asyncio.wait_for(all_seen.wait(), 10)
+    assert bytes(received) == expected
+    assert seen == bodies + [b"bad again"]
+    with pytest.raises(ValueError, match="frame sizes"):
+        splice(writer.transport, writer.transport, left_gate=gate)
+    writer.transport.abort()
+    relay.close()
+    sink.close()
