@@ -112,8 +112,9 @@ def table(result: dict[str, Any]) -> Table:
     rows.append(("bytes tx / rx", [f"{_kb(R[m]['messages']['tx_bytes'])} / {_kb(R[m]['messages']['rx_bytes'])}" for m in modes]))
     rows.append(("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes]))
     if "monitored" in modes:
-        rows.append(("monitor alerts / quarantines", [f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']}"
-                                                      if m == "monitored" else "-" for m in modes]))
+        rows.append(("monitor alerts / quarantines / dropped", [
+            f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']} / {R[m]['monitor'].get('dropped', 0)}"
+            if m == "monitored" else "-" for m in modes]))
     rows.append(("interceptor CPU", [f"{R[m]['interceptors']['cpu_s_total']:.1f} s ({R[m]['interceptors']['cpu_share_of_one_core']:.0%}"
                                      f" of a core), {_kb(R[m]['interceptors']['bytes_relayed'])} relayed"
                                      if R[m]["interceptors"]["cpu_s"] else "-" for m in modes]))
@@ -210,8 +211,9 @@ def _mission_rows(R: dict[str, Any], modes: list[str], result: dict[str, Any], r
     row("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes])
     row("interceptor CPU", [f"{R[m]['interceptors']['cpu_s_total']:.1f} s" if R[m]["interceptors"]["cpu_s"] else "-" for m in modes])
     if "monitored" in modes:
-        row("monitor alerts / quarantines", [f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']}"
-                                             if m == "monitored" else "-" for m in modes])
+        row("monitor alerts / quarantines / dropped", [
+            f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']} / {R[m]['monitor'].get('dropped', 0)}"
+            if m == "monitored" else "-" for m in modes])
 
 
 def write_report(result: dict[str, Any], out: Path) -> Path:

@@ -188,7 +188,8 @@ def _rss_mb(pid: int) -> float:
 
 def scrape(port: int) -> dict[str, Any]:
     """Denials by reason and bytes relayed from one interceptor's ``/metrics``."""
-    out: dict[str, Any] = {"denied": {}, "bytes": 0.0, "allowed": 0.0, "monitor_alerts": 0.0, "monitor_quarantines": 0.0}
+    out: dict[str, Any] = {"denied": {}, "bytes": 0.0, "allowed": 0.0, "monitor_alerts": 0.0, "monitor_quarantines": 0.0,
+                           "monitor_dropped": 0.0}
     try:
         text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=3).read().decode()
     except OSError:
@@ -206,12 +207,16 @@ def scrape(port: int) -> dict[str, Any]:
             out["monitor_alerts"] += float(line.rsplit(" ", 1)[1])
         elif line.startswith("cryptoros_monitor_quarantines_total"):
             out["monitor_quarantines"] += float(line.rsplit(" ", 1)[1])
+        elif line.startswith("cryptoros_monitor_dropped_total{"):
+            out["monitor_dropped"] += float(line.rsplit(" ", 1)[1])
     return out
 
 
 def monitor_section(model: str) -> str:
-    """The ``[monitor]`` of every robot's interceptor in the monitored mode."""
-    return f'\n[monitor]\nmodel = "{model}"\naction = "quarantine"\nquarantine_seconds = 600.0\n'
+    """The ``[monitor]`` of every robot's interceptor in the monitored mode: every topic
+    watched, the team map gated (a false "explored" claim is believed at its first)."""
+    return (f'\n[monitor]\nmodel = "{model}"\naction = "quarantine"\nquarantine_seconds = 600.0\n'
+            'gate = ["/team/map"]\n')
 
 
 # ----------------------------------------------------------------------------- one mission
@@ -476,7 +481,8 @@ class Mission:
                          "rx_bytes": sum(s["stats"]["rx_bytes"] for s in final.values())},
             "denials": _sum_denials(metrics),
             "monitor": {"alerts": int(sum(m["monitor_alerts"] for m in metrics.values())),
-                        "quarantines": int(sum(m["monitor_quarantines"] for m in metrics.values()))},
+                        "quarantines": int(sum(m["monitor_quarantines"] for m in metrics.values())),
+                        "dropped": int(sum(m["monitor_dropped"] for m in metrics.values()))},
             "interceptors": {"cpu_s": cpu, "cpu_s_total": round(sum(cpu.values()), 3),
                              "cpu_share_of_one_core": round(sum(cpu.values()) / max(1e-9, wall_total), 3),
                              "rss_mb": rss, "bytes_relayed": int(sum(m["bytes"] for m in metrics.values())),

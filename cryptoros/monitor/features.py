@@ -33,8 +33,8 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
 
 **Across streams** (:class:`Crosscheck`, one per interceptor or per recording): a pose on
 ``/<robot>/...`` gets ``beacon_gap_m``, the distance between where the robot's own beacons
-(``source == <robot>``) put it and where the pose stream put it at the beacon's arrival
-(its latest pose, if of the last :data:`BEACON_MATCH_S`), the latest gap held for
+(``source == <robot>``) put it and where the pose stream put it when the beacon arrived
+(the nearer of its poses just before and just after), the latest gap held for
 :data:`GAP_HOLD_S`. A beacon is the robot's own word only when the manager it comes from
 is that robot (``beacon_from``: in the interceptor the peer's manager, or this host's own
 for the beacons its own nodes send out): another robot cannot frame it. A pose drifting slowly away from the truth looks like motion on its
@@ -110,17 +110,32 @@ MAX_CROSSCHECK_ROBOTS = 1024
 MAX_POSE_STREAMS = 16
 
 
+class _PoseTrack:
+    """One pose stream of a robot, as the cross-check follows it."""
+
+    __slots__ = ("at", "x", "y", "gap", "gap_at", "beacon")
+
+    def __init__(self, at: float, x: float, y: float) -> None:
+        self.at, self.x, self.y = at, x, y
+        self.gap, self.gap_at = 0.0, -math.inf
+        #: a beacon waiting for the pose after it: (x, y, arrival, distance to the pose before)
+        self.beacon: tuple[float, float, float, float] | None = None
+
+
 class Crosscheck:
-    """What streams tell about each other: per robot, the latest pose of each stream that
-    publishes its pose, and the gap the robot's latest beacon found to it. Bounded: at
-    most :data:`MAX_CROSSCHECK_ROBOTS` robots and :data:`MAX_POSE_STREAMS` pose streams
-    each (the least recently heard of dropped first)."""
+    """What streams tell about each other: per robot, each stream that publishes its pose,
+    and the gap the robot's beacons find to it. Bounded: at most
+    :data:`MAX_CROSSCHECK_ROBOTS` robots and :data:`MAX_POSE_STREAMS` pose streams each
+    (the least recently heard of dropped first).
+
+    A beacon is matched with the poses on either side of it in time (the robot may have
+    moved between its pose and its beacon: either may be the one it was at); the gap is
+    the nearer of the two."""
 
     __slots__ = ("_robots",)
 
     def __init__(self) -> None:
-        #: robot -> pose stream -> [its latest pose's arrival, x, y, gap, the gap's arrival]
-        self._robots: OrderedDict[str, OrderedDict[object, list[float]]] = OrderedDict()
+        self._robots: OrderedDict[str, OrderedDict[object, _PoseTrack]] = OrderedDict()
 
     def pose(self, robot: str, stream: object, now: float, x: float, y: float) -> float:
         """A pose of ``robot`` from ``stream`` arriving at ``now``; returns that stream's
@@ -132,22 +147,27 @@ class Crosscheck:
                 self._robots.popitem(last=False)
         else:
             self._robots.move_to_end(robot)
-        entry = streams.get(stream)
-        if entry is None:
-            entry = streams[stream] = [now, x, y, 0.0, -math.inf]
+        track = streams.get(stream)
+        if track is None:
+            track = streams[stream] = _PoseTrack(now, x, y)
             while len(streams) > MAX_POSE_STREAMS:
                 streams.popitem(last=False)
         else:
             streams.move_to_end(stream)
-            entry[0], entry[1], entry[2] = now, x, y
-        return entry[3] if now - entry[4] <= GAP_HOLD_S else 0.0
+            track.at, track.x, track.y = now, x, y
+            if track.beacon is not None:
+                bx, by, b_at, before = track.beacon
+                track.beacon = None
+                if now - b_at <= BEACON_MATCH_S:
+                    track.gap, track.gap_at = min(before, math.hypot(x - bx, y - by)), now
+        return track.gap if now - track.gap_at <= GAP_HOLD_S else 0.0
 
     def beacon(self, robot: str, now: float, x: float, y: float) -> None:
-        """``robot``'s beacon puts it at (x, y) at ``now``: per pose stream, the gap to its
-        latest pose, if that arrived in the last :data:`BEACON_MATCH_S`."""
-        for entry in self._robots.get(robot, {}).values():
-            if now - BEACON_MATCH_S <= entry[0] <= now:
-                entry[3], entry[4] = math.hypot(entry[1] - x, entry[2] - y), now
+        """``robot``'s beacon puts it at (x, y) at ``now``: per pose stream whose latest
+        pose arrived in the last :data:`BEACON_MATCH_S`, the gap is known at its next pose."""
+        for track in self._robots.get(robot, {}).values():
+            if now - BEACON_MATCH_S <= track.at <= now:
+                track.beacon = (x, y, now, math.hypot(track.x - x, track.y - y))
 
 
 _REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
