@@ -28,7 +28,10 @@ Kinds and what they show (seed 001's attacks and the demo's insiders):
 * ``team_map`` (the demo team's ``cryptoros_sim/MapUpdate``, a robot's own observations
   shared with its team): ``unseen_claim``, the share of the cells the update claims known
   that lie out of sensor reach of every position this stream has reported (what the
-  sender cannot have seen: a false "explored" claim), held at its highest for
+  sender cannot have seen: a false "explored" claim), and ``walls_erased``, the share of
+  the walls this stream claimed before that the update calls free (a robot's own
+  observations only grow: a wall it saw stays a wall; an arena small enough for the liar
+  to have seen it all still has walls), both held at their highest for
   :data:`CLAIM_HOLD_S` (one false claim between honest updates keeps the stream flagged).
 
 **Across streams** (:class:`Crosscheck`, one per interceptor or per recording): a pose on
@@ -78,7 +81,7 @@ FEATURES: dict[str, tuple[str, ...]] = {
     "scan": (*_COMMON, "roughness", "scan_change", "stamp_back_s", "stamp_lag_s", "geometry_change"),
     "twist": (*_COMMON, "linear", "angular"),
     "beacon": _COMMON,
-    "team_map": (*_COMMON, "unseen_claim"),
+    "team_map": (*_COMMON, "unseen_claim", "walls_erased"),
 }
 # appended last, so a model fitted before it was added still lines up (and ignores it)
 FEATURES["pose"] = (*FEATURES["pose"], "beacon_gap_m")
@@ -100,6 +103,8 @@ TEAM_MAP_RESOLUTION_M = 0.2
 #: the coarse grid of reachable places (metres per cell) and its bound per stream
 REACH_CELL_M = 1.0
 MAX_REACH_CELLS = 1 << 16
+#: wall cells remembered per team-map stream (the demo's arena has a few hundred)
+MAX_WALL_CELLS = 1 << 16
 #: a team map bigger than this is not checked: malformed (the demo's is 10,000 cells)
 MAX_TEAM_MAP_CELLS = 1 << 22
 CLAIM_HOLD_S = 5.0
@@ -295,7 +300,7 @@ class StreamFeatures:
     arrival times)."""
 
     __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at", "_robot", "_crosscheck",
-                 "_beacon_from", "_reach", "_visited", "_claims")
+                 "_beacon_from", "_reach", "_visited", "_claims", "_walls")
 
     def __init__(self, typename: str, *, codec: str = "ros1", topic: str = "",
                  crosscheck: Crosscheck | None = None, beacon_from: str | None = None) -> None:
@@ -317,7 +322,8 @@ class StreamFeatures:
         self._beacon_from = beacon_from
         self._reach: set[tuple[int, int]] = set()  # team_map: coarse cells in reach of a reported position
         self._visited: set[tuple[int, int]] = set()  # team_map: coarse cells of the reported positions
-        self._claims: deque[tuple[float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen share)
+        self._claims: deque[tuple[float, float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen, erased)
+        self._walls: set[tuple[int, int]] = set()  # team_map: cells this stream claimed occupied
         self._arrivals: deque[float] = deque(maxlen=MAX_RATE_SAMPLES)
         self._size: int | None = None
         self._prev: Any = None  # the previous message's content values (per kind)
@@ -386,11 +392,34 @@ class StreamFeatures:
             out = sum(int(n) for px, py, n in zip(places[0].tolist(), places[1].tolist(), counts)
                       if (px, py) not in reach)
             unseen = out / rows.size
+        erased = self._walls_erased(origin_x, origin_y, cells)
         claims = self._claims
-        claims.append((now, unseen))
+        claims.append((now, unseen, erased))
         while claims and claims[0][0] < now - CLAIM_HOLD_S:
             claims.popleft()
-        return (max(v for _, v in claims),)
+        return max(c[1] for c in claims), max(c[2] for c in claims)
+
+    def _walls_erased(self, origin_x: int, origin_y: int, cells: np.ndarray) -> float:
+        """The share of the walls this stream claimed before (within this update's patch)
+        that this update calls free: a robot's own observations only grow, and a wall it
+        saw stays a wall. Remembers this update's walls (at most :data:`MAX_WALL_CELLS`)."""
+        import numpy as np
+
+        rows, cols = np.nonzero(cells == 0)
+        walls = self._walls
+        erased = 0.0
+        if walls and rows.size:
+            h, w = cells.shape
+            before = [(r - origin_y, c - origin_x) for r, c in walls
+                      if origin_y <= r < origin_y + h and origin_x <= c < origin_x + w]
+            if before:
+                rr, cc = np.asarray(before).T
+                erased = float(np.count_nonzero(cells[rr, cc] == 0)) / len(before)
+        wr, wc = np.nonzero(cells > 0)
+        room = MAX_WALL_CELLS - len(walls)
+        if room > 0:
+            walls.update(zip((wr[:room] + origin_y).tolist(), (wc[:room] + origin_x).tolist()))
+        return erased
 
     def _note_reach(self, x: float, y: float) -> None:
         """Every coarse cell within sensor reach of (x, y) is one the sender can have seen."""

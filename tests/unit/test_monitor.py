@@ -530,13 +530,21 @@ def test_a_team_map_claiming_cells_its_sender_cannot_have_seen():
         patch = np.zeros((30, 30), dtype=np.int8)
         patch[:5] = 100  # a wall
         unseen.append(named("team_map", f.observe(team_map(x, 5.0, (col - 15, 10), patch), 1000.0 + i, 1000.0 + i)))
-    assert all(u["unseen_claim"] == 0.0 and u["malformed"] == 0.0 for u in unseen)
+    assert all(u["unseen_claim"] == 0.0 and u["walls_erased"] == 0.0 and u["malformed"] == 0.0 for u in unseen)
     false = named("team_map", f.observe(team_map(0.0, 0.0, (0, 0), np.zeros((100, 100), np.int8)), 1010.5, 1010.5))
     assert false["unseen_claim"] > 0.5  # a 20 m x 20 m map "explored" from a path along 2..7 m
+    assert false["walls_erased"] == 1.0  # and the wall it reported before is now free
     honest = named("team_map", f.observe(team_map(7.0, 5.0, (20, 10), np.zeros((30, 30), np.int8)), 1011.0, 1011.0))
     assert honest["unseen_claim"] == false["unseen_claim"]  # held: the honest update between false ones stays flagged
     later = named("team_map", f.observe(team_map(7.0, 5.0, (20, 10), np.zeros((30, 30), np.int8)), 1016.0, 1016.0))
     assert later["unseen_claim"] == 0.0
+    # a liar that had seen the whole arena still erases walls: an update that frees a seen wall
+    near = StreamFeatures(MAP, topic="/team/map")
+    walled = np.zeros((30, 30), np.int8)
+    walled[:, 0] = 100
+    assert named("team_map", near.observe(team_map(3.0, 3.0, (0, 0), walled), 1000.0, 1000.0))["walls_erased"] == 0.0
+    erasing = named("team_map", near.observe(team_map(3.0, 3.0, (0, 0), np.zeros((30, 30), np.int8)), 1001.0, 1001.0))
+    assert erasing["unseen_claim"] == 0.0 and erasing["walls_erased"] == 1.0
     bad = named("team_map", f.observe(team_map(7.0, 5.0, (20, 10), np.zeros((30, 30), np.int8), count=10**6),
                                       1017.0, 1017.0))
     assert bad["malformed"] == 1.0
