@@ -115,6 +115,8 @@ def table(result: dict[str, Any]) -> Table:
         rows.append(("monitor alerts / quarantines / dropped", [
             f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']} / {R[m]['monitor'].get('dropped', 0)}"
             if m == "monitored" else "-" for m in modes]))
+        rows.append(("monitor's share of interceptor CPU", [_monitor_share(R[m]) if m == "monitored" else "-"
+                                                           for m in modes]))
     rows.append(("interceptor CPU", [f"{R[m]['interceptors']['cpu_s_total']:.1f} s ({R[m]['interceptors']['cpu_share_of_one_core']:.0%}"
                                      f" of a core), {_kb(R[m]['interceptors']['bytes_relayed'])} relayed"
                                      if R[m]["interceptors"]["cpu_s"] else "-" for m in modes]))
@@ -214,6 +216,7 @@ def _mission_rows(R: dict[str, Any], modes: list[str], result: dict[str, Any], r
         row("monitor alerts / quarantines / dropped", [
             f"{R[m]['monitor']['alerts']} / {R[m]['monitor']['quarantines']} / {R[m]['monitor'].get('dropped', 0)}"
             if m == "monitored" else "-" for m in modes])
+        row("monitor's share of interceptor CPU", [_monitor_share(R[m]) if m == "monitored" else "-" for m in modes])
 
 
 def write_report(result: dict[str, Any], out: Path) -> Path:
@@ -253,3 +256,9 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
     report = out / "report.md"
     report.write_text("\n".join(lines) + "\n")
     return report
+
+
+def _monitor_share(mode: dict[str, Any]) -> str:
+    """The monitor's busy time over the interceptors' CPU in one mode."""
+    busy, cpu = mode["monitor"].get("busy_s", 0.0), mode["interceptors"]["cpu_s_total"]
+    return f"{busy:.2f} s of {cpu:.1f} s ({busy / cpu:.1%})" if cpu else "-"

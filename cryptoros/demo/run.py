@@ -189,7 +189,7 @@ def _rss_mb(pid: int) -> float:
 def scrape(port: int) -> dict[str, Any]:
     """Denials by reason and bytes relayed from one interceptor's ``/metrics``."""
     out: dict[str, Any] = {"denied": {}, "bytes": 0.0, "allowed": 0.0, "monitor_alerts": 0.0, "monitor_quarantines": 0.0,
-                           "monitor_dropped": 0.0}
+                           "monitor_dropped": 0.0, "monitor_busy_s": 0.0}
     try:
         text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=3).read().decode()
     except OSError:
@@ -209,6 +209,8 @@ def scrape(port: int) -> dict[str, Any]:
             out["monitor_quarantines"] += float(line.rsplit(" ", 1)[1])
         elif line.startswith("cryptoros_monitor_dropped_total{"):
             out["monitor_dropped"] += float(line.rsplit(" ", 1)[1])
+        elif line.startswith("cryptoros_monitor_busy_seconds_total "):
+            out["monitor_busy_s"] += float(line.rsplit(" ", 1)[1])
     return out
 
 
@@ -482,7 +484,9 @@ class Mission:
             "denials": _sum_denials(metrics),
             "monitor": {"alerts": int(sum(m["monitor_alerts"] for m in metrics.values())),
                         "quarantines": int(sum(m["monitor_quarantines"] for m in metrics.values())),
-                        "dropped": int(sum(m["monitor_dropped"] for m in metrics.values()))},
+                        "dropped": int(sum(m["monitor_dropped"] for m in metrics.values())),
+                        # the monitor's time on the interceptors' event loops: its share of their CPU
+                        "busy_s": round(sum(m["monitor_busy_s"] for m in metrics.values()), 3)},
             "interceptors": {"cpu_s": cpu, "cpu_s_total": round(sum(cpu.values()), 3),
                              "cpu_share_of_one_core": round(sum(cpu.values()) / max(1e-9, wall_total), 3),
                              "rss_mb": rss, "bytes_relayed": int(sum(m["bytes"] for m in metrics.values())),

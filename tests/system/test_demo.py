@@ -78,6 +78,11 @@ def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv
         a = result["attacks"][name]
         assert a["monitored"]["succeeded"] is False, (name, a["monitored"]["evidence"])
     assert result["attacks"]["held-false-map"]["protected"]["succeeded"] is True
+    # the team map is gated: the first false claim is dropped before any robot believes it
+    false_map = result["attacks"]["held-false-map"]["monitored"]
+    assert false_map["succeeded"] is False, false_map["evidence"]
+    assert result["modes"]["monitored"]["monitor"]["dropped"] >= 1
+    assert result["attacks"]["held-drift"]["monitored"].get("cut_after_s") is not None  # against r0's beacons
     monitored = result["modes"]["monitored"]
     assert monitored["monitor"]["quarantines"] >= 1 and monitored["denials"].get("quarantined", 0) >= 1
     assert result["attacks"]["held-cmd-flood"]["monitored"]["cut_after_s"] < 2.0
