@@ -124,6 +124,25 @@ def test_demo_isolate_runs_each_attack_in_its_own_missions(tmp_path):
     assert "held-cmd-flood" in (tmp_path / "report" / "report.md").read_text()
 
 
+def test_demo_monitor_stays_quiet_on_a_clean_mission(tmp_path):
+    """Trained on its calibration mission, the monitor watches a whole clean mission (every
+    topic, the team map gated) without one alert or one dropped message, and says what it
+    cost."""
+    from tests.support import script
+
+    out = tmp_path / "out.json"
+    r = subprocess.run([script("cryptoros"), "demo", "--mode", "monitored", "--attacks", "none", "--seconds", "15",
+                        "--json", str(out), "--out", str(tmp_path / "report")],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    monitored = json.loads(out.read_text())["modes"]["monitored"]
+    assert monitored["monitor"]["alerts"] == 0 and monitored["monitor"]["quarantines"] == 0, monitored["monitor"]
+    assert monitored["monitor"]["dropped"] == 0 and monitored["denials"] == {}
+    assert monitored["coverage"] > 0.3
+    assert 0 < monitored["monitor"]["busy_s"] < monitored["interceptors"]["cpu_s_total"]
+    assert "monitor's share of interceptor CPU" in r.stdout
+
+
 def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
     # --scale 1: the mission needs minutes of wall time, so it is surely still running when
     # interrupted (at the default scale it can reach its target before the SIGINT lands)
