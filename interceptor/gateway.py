@@ -44,7 +44,16 @@ from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, TokenErr
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
-from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
+from cryptoros.tls import (
+    FullHandshakes,
+    PeerCertificateCheck,
+    SessionCache,
+    cert_thumbprint_s256,
+    client_context,
+    offering,
+    peer_cert_der,
+    server_context,
+)
 from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
@@ -197,8 +206,8 @@ class Gateway:
         self.metrics = Metrics()
         #: the runtime monitor ([monitor]); roles tap the streams it watches
         self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny) if cfg.monitor is not None else None
-        self._server_ctx = server_context(cfg.tls)
-        self._client_ctx = client_context(cfg.tls, check_hostname=True)
+        self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = (
+            self._tls_state(cfg))
         self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
         self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin)
         self.verifier = PeerVerifier(
@@ -361,6 +370,31 @@ class Gateway:
             await self._metrics_runner.cleanup()
         await self.authz.close()
 
+    @staticmethod
+    def _tls_state(cfg: InterceptorConfig):
+        """Everything TLS between interceptors, built from one configuration: both
+        contexts, the client's kept sessions (for that client context only), the
+        server's record of full handshakes and the per-stream certificate check (the
+        CRL as loaded with the contexts). A new server context draws new ticket keys,
+        so a reload makes every earlier session worthless."""
+        lifetime = cfg.limits.tls_session_lifetime
+        client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
+        return (server_context(cfg.tls, tickets=1 if lifetime > 0 else 0), client_ctx,
+                SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
+                PeerCertificateCheck(cfg.tls.crl_file))
+
+    def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
+        """The peer's certificate, checked on every stream (resumed or not): validity
+        period and CRL here, the revocation feed with its token. Returns its DER."""
+        der = peer_cert_der(ssl_object)
+        resumed = bool(ssl_object.session_reused)
+        self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
+        self.metrics.stream_checks.labels("certificate").inc()
+        self._cert_check.check(der)
+        if direction == "in":
+            self._full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+        return der
+
     async def reload(self, cfg: InterceptorConfig) -> None:
         """SIGHUP: new certificates, CRL and policy; open streams stay up. All or
         nothing: the new TLS material is loaded and a token bound to the new
@@ -373,8 +407,8 @@ class Gateway:
             raise ConfigError("adding or removing [monitor] needs a restart of the interceptor")
         monitor_model = MonitorModel.load(cfg.monitor.model) if cfg.monitor is not None else None
         # one certificate source: every holder below is built from cfg.tls
-        server_ctx = server_context(cfg.tls)
-        client_ctx = client_context(cfg.tls, check_hostname=True)
+        tls_state = self._tls_state(cfg)
+        server_ctx = tls_state[0]
         authz_ctx = client_context(cfg.tls, check_hostname=True)
         own_der = cert_der(cfg.tls.cert_file)
         probe = AuthzClient(cfg.authz, authz_ctx)
@@ -391,7 +425,7 @@ class Gateway:
         except OSError:
             self._public_server = await self._listen_public(self._server_ctx)
             raise
-        self._server_ctx, self._client_ctx = server_ctx, client_ctx
+        self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = tls_state
         self.cfg = cfg
         # every holder of the certificate reads the new one: the authorization server
         # binds the next token to it, and our own token is checked against it
@@ -616,18 +650,24 @@ class Gateway:
     async def _open_tunnel(
         self, host: str, port: int, purpose: str, target: str, *, first: bytes, whole: bool,
     ) -> Tunnel:
+        sessions = self._sessions
+        offer = sessions.get((host, port))
         try:
-            reader, writer = await asyncio.wait_for(
-                asyncio.open_connection(
-                    host, port, ssl=self._client_ctx, server_hostname=host,
-                    local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
-                ),
-                self.cfg.limits.handshake_timeout,
-            )
+            with offering(self._client_ctx, offer):
+                reader, writer = await asyncio.wait_for(
+                    asyncio.open_connection(
+                        host, port, ssl=self._client_ctx, server_hostname=host,
+                        local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
+                    ),
+                    self.cfg.limits.handshake_timeout,
+                )
         except (OSError, asyncio.TimeoutError) as exc:
+            if offer is not None:
+                sessions.forget((host, port))
             raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
+        ssl_object = writer.get_extra_info("ssl_object")
         try:
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            der = self._check_peer_certificate(ssl_object, "out")
             token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
             _remember(self._views, (host, port), self._views.get((host, port), set()) | {whole})
             writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
@@ -638,9 +678,13 @@ class Gateway:
                 event = preamble_reader.next_event()
                 reply = event if isinstance(event, PreambleReply) else None
             if not reply.ok:
+                if ssl_object.session_reused:  # e.g. too old for the peer: the next one in full
+                    sessions.forget((host, port))
                 raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
+            self.metrics.stream_checks.labels("token").inc()
             access = await self.verifier.verify_fresh(reply.token, der)
             self.verifier.note(access)
+            sessions.put((host, port), ssl_object, offer)  # the ticket came before the reply
             _remember(self._peer_endpoints, (access.subject, access.thumbprint), (host, port))
             _remember(self._peer_tokens, (host, port), access)
             pending = preamble_reader.trailing_data()
@@ -662,7 +706,7 @@ class Gateway:
         entered: list[tuple[str, str]] = []
         gate = StreamGate(self._checks)
         try:
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            der = self._check_peer_certificate(writer.get_extra_info("ssl_object"), "in")
             # Before the token is verified a stream is bounded per source address and
             # per certificate, and its preamble has one deadline from accept.
             for key, cap in (
@@ -674,6 +718,7 @@ class Gateway:
             async with asyncio.timeout(limits.preamble_timeout):
                 while (event := gate.next_event()) is NEED_DATA:
                     await read_into(reader, gate.receive_data, limits.preamble_timeout)
+            self.metrics.stream_checks.labels("token").inc()
             access = await self.verifier.verify_fresh(event.preamble.token, der)
             self.verifier.note(access)
             who = f"{access.subject}@{who}"
