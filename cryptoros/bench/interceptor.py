@@ -885,6 +885,8 @@ def build_report(results: dict) -> dict:
     tp = results.get("throughput", {})
     targets = []
     for impl in IMPLS:
+        if impl not in tp:  # --no-throughput, --only
+            continue
         by = {t: tp.get(impl, {}).get(t, {}) for t in TRANSPORTS}
         for key, metric, label in (("small", "msg_per_s", "small messages"), ("image80k", "mb_per_s", "80 KB images"),
                                    ("image1m", "mb_per_s", "1 MB images")):
