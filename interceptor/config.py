@@ -44,6 +44,7 @@ Example::
     max_pending_per_certificate = 8   # ... and per client certificate
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
+    spare_connections = true          # one connection kept ready per peer after a stream
 
     [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
     "/camera/points" = 67108864
@@ -193,6 +194,10 @@ class Limits:
     #: stream makes a full handshake. The peer's certificate (validity, CRL) and token
     #: are checked on every stream, resumed or not. At most 7200 (OpenSSL's ticket life).
     tls_session_lifetime: float = 300.0
+    #: After a stream to a peer, have one spare connection to it ready (TLS done, no
+    #: preamble: the next stream skips the handshake's wait; its preamble, token and
+    #: certificate checks run when it is used). Unused, it carries a token exchange.
+    spare_connections: bool = True
 
     def message_size_for(self, name: str) -> int:
         """The max_message_size of one topic or service."""
@@ -405,6 +410,9 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         if not pattern.startswith("/") or len(pattern) > 256:
             raise ConfigError(f"[limits.message_size] {pattern!r}: a topic or service pattern starts with /")
         sizes.append((pattern, _typed(size, int, f"[limits.message_size] {pattern!r}")))
+    spare = limits_raw.pop("spare_connections", Limits.spare_connections)
+    if not isinstance(spare, bool):
+        raise ConfigError(f"[limits] spare_connections must be true or false, got {spare!r}")
     lifetime = limits_raw.pop("tls_session_lifetime", Limits.tls_session_lifetime)
     if isinstance(lifetime, bool) or not isinstance(lifetime, (int, float)) or not 0 <= lifetime <= 7200:
         raise ConfigError(f"[limits] tls_session_lifetime must be seconds from 0 (off) to 7200, got {lifetime!r}")
@@ -412,6 +420,7 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
     limits = Limits(
         message_size=tuple(sizes),
         tls_session_lifetime=float(lifetime),
+        spare_connections=spare,
         **{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()},
     )
 

@@ -40,7 +40,7 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
@@ -66,6 +66,10 @@ from interceptor.pump import FrameCounter, MessageBudget, splice
 log = logging.getLogger("cryptoros.interceptor")
 
 READ_SIZE = 65536
+#: a spare connection to a peer (TLS done, no preamble yet) is used within this share of
+#: the preamble timeout or turned into a token exchange: the peer's preamble deadline
+#: counts from its accept (and refuses a stream that waits longer)
+SPARE_AGE = 0.4
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
@@ -105,6 +109,19 @@ class Tunnel:
     writer: asyncio.StreamWriter
     peer: Peer
     pending: bytes = b""
+
+
+@dataclass(frozen=True, slots=True)
+class _Connected:
+    """A TLS connection to a peer interceptor, before its preamble: the session it
+    offered (if any) and, for a spare, the future its user completes once the peer's
+    reply is verified (the spare's opening slot is held until then)."""
+
+    reader: asyncio.StreamReader
+    writer: asyncio.StreamWriter
+    ssl_object: Any
+    offer: Any
+    used: asyncio.Future | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,6 +252,10 @@ class Gateway:
         self._exchanges: set[tuple[str, int]] = set()
         #: streams being opened per peer endpoint (see _opening_slot); entries live while in use
         self._opening: dict[tuple[str, int], list] = {}
+        #: at most one spare connection per peer endpoint, made after a stream to it
+        #: (see _keep_spare); endpoints whose spare is being made or waits
+        self._spares: dict[tuple[str, int], _Connected] = {}
+        self._spare_makers: dict[tuple[str, int], asyncio.Future] = {}
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -357,6 +378,7 @@ class Gateway:
         waiting = [s for s in self._streams if s not in self._cuttable]
         if waiting:
             await asyncio.wait(waiting, timeout=grace)
+        self._drop_spares()
         for task in self._tasks:
             task.cancel()
         for stream in list(self._streams):
@@ -426,6 +448,7 @@ class Gateway:
             self._public_server = await self._listen_public(self._server_ctx)
             raise
         self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = tls_state
+        self._drop_spares()  # made with the old certificate: a token bound to the new one fails on them
         self.cfg = cfg
         # every holder of the certificate reads the new one: the authorization server
         # binds the next token to it, and our own token is checked against it
@@ -617,8 +640,88 @@ class Gateway:
         every registration, so it sees every grant."""
         self.keeper.current()  # no token of our own: nothing is opened
         whole = purpose == "master" if whole is None else whole
+        endpoint = (host, port)
+        spare = self._take_spare(endpoint)
+        if spare is not None:
+            log.debug("%s stream to %s:%d over a spare connection", purpose, host, port)
+            try:
+                tunnel = await self._tunnel_over(spare, host, port, purpose, target, first=first, whole=whole)
+            except (ConnectionError, RemoteProtocolError, ssl.SSLError) as exc:
+                log.info("spare connection to %s:%d was gone (%s): opening a fresh one", host, port, exc)
+                tunnel = None  # the peer closed it before a byte of this stream was read
+            finally:
+                if not spare.used.done():
+                    spare.used.set_result(None)
+            if tunnel is not None:
+                self.metrics.spares.labels("used").inc()
+                self._want_spare(endpoint, purpose)
+                return tunnel
         async with self._opening_slot(host, port):
-            return await self._open_tunnel(host, port, purpose, target, first=first, whole=whole)
+            tunnel = await self._tunnel_over(await self._connect(host, port), host, port, purpose, target,
+                                             first=first, whole=whole)
+        self._want_spare(endpoint, purpose)
+        return tunnel
+
+    # ---------------------------------------------------------------- spare connections
+    def _take_spare(self, endpoint: tuple[str, int]) -> _Connected | None:
+        spare = self._spares.pop(endpoint, None)
+        if spare is None:
+            return None
+        self._spare_makers.pop(endpoint, None)  # its maker is done: the next stream may want another
+        if spare.writer.is_closing() or spare.reader.at_eof():
+            spare.writer.close()
+            spare.used.set_result(None)
+            return None
+        return spare
+
+    def _want_spare(self, endpoint: tuple[str, int], purpose: str) -> None:
+        """After a stream to ``endpoint``, have one more connection to it ready (TLS
+        done, no preamble): the next stream skips the handshake's wait. Its preamble,
+        token check and every other per-stream check run when it is used; unused for
+        ``SPARE_AGE`` x the preamble timeout, it carries a token exchange and closes, so
+        a burst costs one extra connection and an idle peer none."""
+        if (purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections
+                or endpoint in self._spares or endpoint in self._spare_makers):
+            return
+        self._spare_makers[endpoint] = self.spawn(self._keep_spare(endpoint))
+
+    async def _keep_spare(self, endpoint: tuple[str, int]) -> None:
+        host, port = endpoint
+        spare: _Connected | None = None
+        try:
+            async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
+                connected = await self._connect(host, port)
+                spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
+                                   asyncio.get_running_loop().create_future())
+                self._spares[endpoint] = spare
+                log.debug("spare connection to %s:%d ready", host, port)
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(spare.used), SPARE_AGE * self.cfg.limits.preamble_timeout)
+                if self._spares.get(endpoint) is spare:  # unused: show the peer our token and close
+                    log.debug("spare connection to %s:%d unused: a token exchange", host, port)
+                    del self._spares[endpoint]
+                    self.metrics.spares.labels("expired").inc()
+                    tunnel = await self._tunnel_over(spare, host, port, REFRESH, "", first=b"", whole=False)
+                    tunnel.writer.close()
+                else:  # taken: its user holds the slot until the peer's reply is verified
+                    await asyncio.wait_for(asyncio.shield(spare.used), self.cfg.limits.handshake_timeout)
+        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            log.info("spare connection to %s:%d: %s", host, port, exc)
+        except Exception:
+            log.exception("spare connection to %s:%d", host, port)
+        finally:
+            if self._spare_makers.get(endpoint) is asyncio.current_task():
+                del self._spare_makers[endpoint]
+            if spare is not None and self._spares.get(endpoint) is spare:
+                del self._spares[endpoint]
+                spare.writer.close()
+
+    def _drop_spares(self) -> None:
+        for spare in self._spares.values():
+            spare.writer.close()
+            if not spare.used.done():
+                spare.used.set_result(None)
+        self._spares.clear()
 
     @contextlib.asynccontextmanager
     async def _opening_slot(self, host: str, port: int):
@@ -647,9 +750,8 @@ class Gateway:
             if slot[1] == 0 and self._opening.get(endpoint) is slot:
                 del self._opening[endpoint]
 
-    async def _open_tunnel(
-        self, host: str, port: int, purpose: str, target: str, *, first: bytes, whole: bool,
-    ) -> Tunnel:
+    async def _connect(self, host: str, port: int) -> _Connected:
+        """Mutual TLS to a peer interceptor, resuming the session kept for it if any."""
         sessions = self._sessions
         offer = sessions.get((host, port))
         try:
@@ -665,7 +767,15 @@ class Gateway:
             if offer is not None:
                 sessions.forget((host, port))
             raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
-        ssl_object = writer.get_extra_info("ssl_object")
+        return _Connected(reader, writer, writer.get_extra_info("ssl_object"), offer)
+
+    async def _tunnel_over(
+        self, connected: _Connected, host: str, port: int, purpose: str, target: str, *, first: bytes, whole: bool,
+    ) -> Tunnel:
+        """Our token in the preamble (``first`` right behind it), the peer's reply and
+        its token verified and bound to its certificate, checked again on this stream."""
+        reader, writer, ssl_object, offer = connected.reader, connected.writer, connected.ssl_object, connected.offer
+        sessions = self._sessions
         try:
             der = self._check_peer_certificate(ssl_object, "out")
             token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))

@@ -56,6 +56,13 @@ class Metrics:
             ["check"],
             registry=self.registry,
         )
+        self.spares = Counter(
+            "cryptoros_interceptor_spare_connections_total",
+            "Spare connections to peers (TLS done before a stream needs one), by outcome "
+            "(used: a stream's preamble went over it; expired: it carried a token exchange)",
+            ["outcome"],
+            registry=self.registry,
+        )
         self.reloads = Counter(
             "cryptoros_interceptor_reloads_total", "SIGHUP reloads, by result", ["result"], registry=self.registry
         )

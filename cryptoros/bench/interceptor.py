@@ -649,13 +649,16 @@ def interceptor_checks(net: Network, hosts: tuple[str, ...] = ("robot_a", "robot
             text = reply.read().decode()
         for line in text.splitlines():
             for family, label in (("cryptoros_interceptor_tls_handshakes_total{", "kind"),
-                                  ("cryptoros_interceptor_stream_checks_total{", "check")):
+                                  ("cryptoros_interceptor_stream_checks_total{", "check"),
+                                  ("cryptoros_interceptor_spare_connections_total{", "outcome")):
                 if line.startswith(family):
                     labels, value = line[len(family):].split("} ")
                     fields = dict(part.split("=", 1) for part in labels.split(","))
                     key = fields[label].strip('"')
                     if family.startswith("cryptoros_interceptor_tls"):
                         key = f"{fields['direction'].strip(chr(34))}_{key}"
+                    elif family.startswith("cryptoros_interceptor_spare"):
+                        key = f"spare_{key}"
                     totals[key] = totals.get(key, 0.0) + float(value)
     return totals
 
@@ -671,7 +674,8 @@ def describe_checks(delta: dict[str, int]) -> str:
     return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed; "
             f"peer certificate (validity + CRL) checked {delta.get('certificate', 0)} times, "
             f"token (signature or cache, time, cnf binding, feed incl. revoked serials) {delta.get('token', 0)} times "
-            "(both ends of each stream)")
+            f"(both ends of each stream); spare connections used {delta.get('spare_used', 0)}, "
+            f"expired into a token exchange {delta.get('spare_expired', 0)}")
 
 
 # ============================================================ bring-up: many subscribers at once
@@ -1006,7 +1010,9 @@ HEADERS = ["measure", "nodes", "plain", "interceptor", "stunnel", "interceptor/s
 
 def checks_lines(report: dict) -> list[str]:
     """Which checks ran on the interceptor rows (from the interceptors' own counters)."""
-    lines = [f"interceptors' TLS session lifetime: {report.get('config', {}).get('tls_session_lifetime', 'default')}"]
+    config = report.get("config", {})
+    lines = [f"interceptors: TLS session lifetime {config.get('tls_session_lifetime', 'default')}, "
+             f"spare connections {'on' if config.get('spare_connections', True) else 'off'}"]
     for key, label in (("setup", "set-up probes"), ("bringup", "bring-up")):
         checks = (report.get(key) or {}).get("interceptor", {}).get("checks")
         if checks:
@@ -1076,6 +1082,8 @@ def _target_value(t: dict) -> str:
               help="Bring-ups per transport, median reported (default 3; --quick: 1; 0: skip).")
 @click.option("--only", type=click.Choice(IMPLS), default=None, help="Run one node client only.")
 @click.option("--no-throughput", is_flag=True, help="Skip the latency and throughput rows.")
+@click.option("--no-spares", is_flag=True, help="The interceptors keep no spare connection to a peer "
+                                                "([limits] spare_connections = false).")
 @click.option("--tls-session-lifetime", type=click.FloatRange(0, 7200), default=None,
               help="The interceptors' [limits] tls_session_lifetime (0: a full TLS handshake on every stream; "
                    "default: the interceptor's, 300 s).")
@@ -1084,7 +1092,7 @@ def _target_value(t: dict) -> str:
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
 def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
                 setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None, only: str | None,
-                no_throughput: bool, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
+                no_throughput: bool, no_spares: bool, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
                 keep: bool) -> None:
     """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
     if not Path(SYS_PY).exists() or subprocess.run([SYS_PY, "-c", "import rospy"], capture_output=True).returncode:
@@ -1125,12 +1133,17 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
                                 "cpus": os.cpu_count(),
                                 "tls_session_lifetime": ("300 s (default)" if tls_session_lifetime is None else
                                                          f"{tls_session_lifetime:g} s" if tls_session_lifetime else
-                                                         "0 (off: a full handshake on every stream)")}}
+                                                         "0 (off: a full handshake on every stream)"),
+                                "spare_connections": not no_spares}}
     try:
-        limits = None if tls_session_lifetime is None else {"tls_session_lifetime": tls_session_lifetime}
+        limits: dict[str, float | bool] = {}
+        if tls_session_lifetime is not None:
+            limits["tls_session_lifetime"] = tls_session_lifetime
+        if no_spares:
+            limits["spare_connections"] = False
         with lab_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
                                                             ("stunnel_b", "127.0.0.1")], progress=progress,
-                         metrics=True, limits=limits) as net:
+                         metrics=True, limits=limits or None) as net:
             progress("network up")
             results["setup"] = measure_setup(net, probes, workdir, progress)
             if bringups:

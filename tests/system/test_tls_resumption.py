@@ -266,15 +266,20 @@ def network(tmp_path_factory):
         yield net
 
 
-def handshakes(network, host: str) -> dict[tuple[str, str], float]:
+def counters(network, host: str, family: str) -> dict[tuple[str, ...], float]:
+    """One counter family of ``host``'s interceptor, by its label values."""
     text = urllib.request.urlopen(f"http://127.0.0.1:{network.hosts[host].metrics_port}/metrics", timeout=5).read()
     out = {}
     for line in text.decode().splitlines():
-        if line.startswith("cryptoros_interceptor_tls_handshakes_total{"):
+        if line.startswith(f"cryptoros_interceptor_{family}_total{{"):
             labels, value = line.split("} ")
             fields = dict(part.split("=") for part in labels.split("{", 1)[1].split(","))
-            out[(fields["direction"].strip('"'), fields["kind"].strip('"'))] = float(value)
+            out[tuple(v.strip('"') for _k, v in sorted(fields.items()))] = float(value)
     return out
+
+
+def handshakes(network, host: str) -> dict[tuple[str, str], float]:
+    return counters(network, host, "tls_handshakes")  # (direction, kind)
 
 
 def flow(network) -> list[str]:
@@ -358,3 +363,21 @@ def test_a_revoked_certificate_is_refused_on_a_resumed_stream_and_after_a_reload
         assert a.proc.poll() is None
 
     asyncio.run(main())
+
+
+@pytest.mark.ros1
+def test_spare_connections_are_used_or_carry_a_token_exchange_and_are_no_denial(network):
+    """After a stream to A, B keeps one spare connection to A (TLS done, no preamble).
+    The next stream (or a token exchange) goes over it; left unused for 0.4 x the
+    preamble timeout (2 s) it carries a token exchange and closes. Either way A logs no
+    denial for it (no preamble timeout), and streams keep working."""
+    denials_before = [line for line in network.hosts["robot_a"].logs().splitlines() if "DENY" in line]
+    spares_before = sum(counters(network, "robot_b", "spare_connections").values())
+    assert flow(network)
+    time.sleep(2 * 0.4 * 5.0 + 1.0)  # past the spare's age: nothing is left waiting at A
+    spares_after = counters(network, "robot_b", "spare_connections")
+    assert sum(spares_after.values()) >= spares_before + 1, spares_after
+    assert "spare connection to 127.0.0.2" in network.hosts["robot_b"].logs()
+    denials_after = [line for line in network.hosts["robot_a"].logs().splitlines() if "DENY" in line]
+    assert denials_after == denials_before
+    assert flow(network)
