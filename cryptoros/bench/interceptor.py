@@ -22,11 +22,17 @@ Rows: one-way latency at 1 kHz (p50/p99; the sender stamps CLOCK_MONOTONIC into 
 std_msgs/String), small std_msgs/String throughput (sender unthrottled), MB/s for
 sensor_msgs/Image of 80 KB and 1 MB, TCPROS connection set-up time (connect to the
 publisher's header reply: TLS handshake + token check on the interceptor and stunnel
-rows) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), a robot's
+rows), a non-persistent service call (connect + header + request + reply, the common
+case of ROS service clients) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), a robot's
 bring-up (50 subscribers starting at once against a latched publisher: time until all
 received its message, median of a few runs), and the
 paper's own experiment (section IV: N std_msgs/String at 10 Hz, the listener timed
 from launch to exit as with ``time``, with and without interceptors).
+
+Which checks ran on the interceptor rows is printed from the interceptors' own
+counters (/metrics): streams accepted with a full or a resumed TLS handshake, peer
+certificate checks (validity, CRL) and token checks, spare connections used.
+``--tls-session-lifetime 0 --no-spares`` gives a full handshake on every stream.
 """
 
 from __future__ import annotations
@@ -1178,7 +1184,9 @@ def _legend() -> str:
         "in-process subscriber against an idle publisher of our node client; bytes counted by tcpdump on lo between\n"
         "the two hosts (frames as Wireshark counts them, TCP payload in brackets); the TCPROS row is from connect\n"
         "to the publisher's header reply (no message yet); a subscription adds the requestTopic call. stunnel's\n"
-        "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates).\n"
+        "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates); so\n"
+        "do the interceptors (unless --tls-session-lifetime 0), and they keep a spare connection per peer\n"
+        "(unless --no-spares): the lines above the table say which handshakes and checks ran.\n"
         "bring-up: N subscriber nodes of our node client start at once in one process (register, requestTopic,\n"
         "TCPROS) against a latched publisher; time from the start until the last one received its message.\n"
         "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."
