@@ -68,7 +68,7 @@ def test_bench_interceptor_quick(tmp_path):
     # the set-ups after the first to a peer resumed (counted by the interceptors themselves)
     checks = setup["interceptor"]["checks"]
     accepted = checks.get("in_full", 0) + checks.get("in_resumed", 0)
-    assert checks.get("in_resumed", 0) >= 1 and checks.get("spare_used", 0) >= 1, checks
+    assert checks.get("in_resumed", 0) >= 1, checks
     assert checks["certificate"] >= 2 * accepted and checks["token"] >= 2 * accepted, checks
     assert "resumed" in result.stdout and "peer certificate (validity + CRL) checked" in result.stdout
 

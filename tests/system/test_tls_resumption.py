@@ -262,7 +262,9 @@ def test_peer_certificate_check_refuses_expired_not_yet_valid_and_crl_revoked(pk
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b")) as net:
+    spares = "[limits]\nspare_connections = true"  # B keeps spare connections (off by default)
+    with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b"),
+                       extra={"robot_b": spares}) as net:
         yield net
 
 
