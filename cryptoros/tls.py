@@ -12,18 +12,27 @@ forward-secret AEAD suites only:
 - mutual authentication: a server context *requires* a client certificate chaining to
   the configured CA; a client context verifies the server the same way;
 - when a CRL file is configured, the peer's leaf certificate is checked against it,
-  and a CA with no CRL then fails verification (fail closed).
+  and a CA with no CRL then fails verification (fail closed);
+- TLS 1.3 session resumption is opt-in (``server_context(tickets=1)``, a
+  :class:`ResumingContext` client and a :class:`SessionCache`). A resumed handshake
+  does not verify the peer's chain, CRL or validity period again, so whoever resumes
+  must run :class:`PeerCertificateCheck` on every stream, resumed or not.
 
 ``python -m cryptoros.tls`` prints the suites that result on this machine.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import hashlib
 import ssl
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from cryptoros.errors import ConfigError, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, TokenError
 from cryptoros import pemfiles
 
 #: The paper's cipher configuration string (seed 003, Eq. 5), kept for reference.
@@ -58,8 +67,8 @@ class TLSConfig:
                 raise ConfigError(f"TLS {label.replace('_', ' ')} not found: {path}")
 
 
-def _base_context(protocol: int, cfg: TLSConfig) -> ssl.SSLContext:
-    ctx = ssl.SSLContext(protocol)
+def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl.SSLContext) -> ssl.SSLContext:
+    ctx = cls(protocol)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
     if cfg.pin_tls12:
         ctx.maximum_version = ssl.TLSVersion.TLSv1_2
@@ -82,26 +91,202 @@ def _no_password() -> bytes:
     raise ConfigError("the TLS private key is encrypted and no passphrase was given")
 
 
-def server_context(cfg: TLSConfig) -> ssl.SSLContext:
+def server_context(cfg: TLSConfig, *, tickets: int = 0) -> ssl.SSLContext:
     """A server context that requires and verifies a client certificate.
 
-    It sends no TLS 1.3 session tickets: asyncio clients cannot use them, and each
-    carries the client certificate (about 1.7 KB per connection, measured)."""
+    By default it sends no TLS 1.3 session tickets: most clients (aiohttp, asyncio's
+    ``open_connection``) cannot use them, and each carries the client certificate
+    (about 1.7 KB per connection, measured). ``tickets=1`` is for peers that resume
+    (interceptors): the ticket is encrypted with a key this context drew at random, so
+    a new context (a reload) makes every earlier ticket worthless. OpenSSL accepts a
+    ticket for 7,200 s; a shorter lifetime is the caller's to enforce on every resumed
+    stream (:class:`FullHandshakes`)."""
     ctx = _base_context(ssl.PROTOCOL_TLS_SERVER, cfg)
-    ctx.num_tickets = 0
+    ctx.num_tickets = tickets
     return ctx
 
 
-def client_context(cfg: TLSConfig, *, check_hostname: bool = True) -> ssl.SSLContext:
+def client_context(cfg: TLSConfig, *, check_hostname: bool = True, resumable: bool = False) -> ssl.SSLContext:
     """A client context that presents our certificate and verifies the server's.
 
     ``check_hostname=False`` is for peers addressed by an identity other than their
     host name (interceptors check the peer's identity URI themselves); the chain is
-    verified against the CA either way.
+    verified against the CA either way. ``resumable=True`` gives a
+    :class:`ResumingContext` (offer a session with :func:`offering`).
     """
-    ctx = _base_context(ssl.PROTOCOL_TLS_CLIENT, cfg)
+    ctx = _base_context(ssl.PROTOCOL_TLS_CLIENT, cfg, ResumingContext if resumable else ssl.SSLContext)
     ctx.check_hostname = check_hostname
     return ctx
+
+
+# ---------------------------------------------------------------- session resumption
+
+#: (context, session) the next connect of this task offers, see :func:`offering`
+_OFFERED: contextvars.ContextVar[tuple[ssl.SSLContext, ssl.SSLSession] | None] = contextvars.ContextVar(
+    "cryptoros_tls_session", default=None)
+
+
+class ResumingContext(ssl.SSLContext):
+    """A client context that offers the session set by :func:`offering` around a connect.
+
+    asyncio's ``open_connection``/``create_connection`` take no ``session=``, but both
+    asyncio's and uvloop's SSL transport build their ``SSLObject`` with
+    ``context.wrap_bio(...)`` inside the connecting task (its context variables
+    visible), so the session travels in a context variable to this ``wrap_bio``. A
+    session is offered only to the context it was kept for (OpenSSL refuses others)."""
+
+    def wrap_bio(self, incoming, outgoing, server_side=False, server_hostname=None, session=None):
+        offered = _OFFERED.get()
+        if session is None and not server_side and offered is not None and offered[0] is self:
+            session = offered[1]
+        return super().wrap_bio(incoming, outgoing, server_side=server_side, server_hostname=server_hostname,
+                                session=session)
+
+
+@contextlib.contextmanager
+def offering(ctx: ssl.SSLContext, offer: Offer | ssl.SSLSession | None) -> Iterator[None]:
+    """Connects this task makes with ``ctx`` inside the block offer ``offer``'s session."""
+    session = offer.session if isinstance(offer, Offer) else offer
+    token = _OFFERED.set(None if session is None else (ctx, session))
+    try:
+        yield
+    finally:
+        _OFFERED.reset(token)
+
+
+#: the most seconds OpenSSL accepts a ticket (its default session timeout for TLS)
+MAX_SESSION_LIFETIME = 7200.0
+#: what the server allows past ``lifetime`` (the client's chain starts before the
+#: server notes the full handshake; both measure on their own monotonic clocks)
+LIFETIME_SLACK = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class Offer:
+    """A session kept for a peer endpoint and when the full handshake it descends from
+    was made (monotonic seconds)."""
+
+    session: ssl.SSLSession
+    origin: float
+
+
+class SessionCache:
+    """Client side: the last TLS session per peer endpoint, for one client context;
+    bounded in entries and in age. The age counts from the full handshake a session
+    descends from (each resumed handshake hands out a new ticket, whose own ``time`` is
+    new), so the client makes a full handshake with every peer at least every
+    ``lifetime`` seconds. Sans-IO: ``now`` is ``time.monotonic()`` unless given."""
+
+    def __init__(self, ctx: ssl.SSLContext, *, lifetime: float, max_entries: int = 1024) -> None:
+        self.ctx = ctx
+        self.lifetime = lifetime
+        self.max_entries = max_entries
+        self._offers: dict[tuple[str, int], Offer] = {}
+
+    def get(self, endpoint: tuple[str, int], now: float | None = None) -> Offer | None:
+        """The session to offer ``endpoint``, if one is young enough."""
+        offer = self._offers.get(endpoint)
+        if offer is None:
+            return None
+        if (time.monotonic() if now is None else now) - offer.origin >= self.lifetime:
+            del self._offers[endpoint]
+            return None
+        return offer
+
+    def put(self, endpoint: tuple[str, int], ssl_object: ssl.SSLObject | ssl.SSLSocket | None,
+            offered: Offer | None, now: float | None = None) -> None:
+        """Keep the session of a connection to ``endpoint``, made after offering
+        ``offered``. Call it after the first read (a TLS 1.3 ticket arrives after the
+        handshake); a connection without a ticket keeps nothing."""
+        if self.lifetime <= 0 or ssl_object is None or ssl_object.context is not self.ctx:
+            return
+        session = ssl_object.session
+        if session is None or not session.has_ticket or ssl_object.version() != "TLSv1.3":
+            return  # TLS 1.2 resumes without a fresh key exchange: never offered
+        reused = offered is not None and ssl_object.session_reused
+        origin = offered.origin if reused else (time.monotonic() if now is None else now)
+        self._offers.pop(endpoint, None)
+        self._offers[endpoint] = Offer(session, origin)
+        while len(self._offers) > self.max_entries:
+            del self._offers[next(iter(self._offers))]
+
+    def forget(self, endpoint: tuple[str, int]) -> None:
+        self._offers.pop(endpoint, None)
+
+    def __len__(self) -> int:
+        return len(self._offers)
+
+
+class FullHandshakes:
+    """Server side: when each client certificate last made a full handshake (its chain
+    and the CRL verified by OpenSSL), so a resumed stream whose certificate has not done
+    so for ``lifetime`` (+ :data:`LIFETIME_SLACK`) seconds is refused
+    (``session_too_old``): tickets live 7,200 s in OpenSSL, which Python cannot lower.
+    Bounded; a certificate forgotten must handshake in full again. Sans-IO."""
+
+    def __init__(self, lifetime: float, *, max_entries: int = 4096) -> None:
+        self.lifetime = lifetime
+        self.max_entries = max_entries
+        self._last: dict[bytes, float] = {}
+
+    def admit(self, der: bytes, *, resumed: bool, version: str | None = "TLSv1.3", now: float | None = None) -> None:
+        """Note a full handshake; refuse a resumed one that is too old, or not TLS 1.3
+        (a TLS 1.2 resumption has no fresh key exchange: no forward secrecy)."""
+        current = time.monotonic() if now is None else now
+        key = hashlib.sha256(der).digest()
+        if not resumed:
+            self._last.pop(key, None)
+            self._last[key] = current
+            while len(self._last) > self.max_entries:
+                del self._last[next(iter(self._last))]
+            return
+        if version != "TLSv1.3":
+            raise TokenError("session_not_tls13", f"a resumed {version} session (only TLS 1.3 resumes)")
+        last = self._last.get(key)
+        if self.lifetime <= 0 or last is None or current - last >= self.lifetime + LIFETIME_SLACK:
+            raise TokenError("session_too_old", "a resumed TLS session older than the session lifetime")
+
+
+class PeerCertificateCheck:
+    """What a full handshake checked of the peer's certificate and a resumed one does
+    not: its validity period and the configured CRL. Run on every stream, resumed or
+    not (the chain itself was verified by the full handshake the session descends
+    from, with the same CA: a reload draws new ticket keys). Raises TokenError
+    (``certificate_expired``, ``certificate_not_yet_valid``, ``certificate_revoked``).
+    Each certificate is parsed once (bounded cache by SHA-256)."""
+
+    MAX_CERTIFICATES = 4096
+
+    def __init__(self, crl_file: Path | None) -> None:
+        self.revoked: frozenset[int] = frozenset()
+        if crl_file is not None:
+            try:
+                crl = pemfiles.load_crl(crl_file)
+            except CryptorosError as exc:
+                raise ConfigError(f"cannot load the CRL {crl_file}: {exc}") from exc
+            self.revoked = frozenset(entry.serial_number for entry in crl)
+        self._seen: dict[bytes, tuple[int, float, float]] = {}
+
+    def check(self, der: bytes, now: float | None = None) -> None:
+        key = hashlib.sha256(der).digest()
+        facts = self._seen.get(key)
+        if facts is None:
+            try:
+                cert = pemfiles.parse_certificate(der)
+            except CryptorosError as exc:
+                raise TokenError("bad_peer_certificate", str(exc)) from exc
+            facts = (cert.serial_number, cert.not_valid_before_utc.timestamp(), cert.not_valid_after_utc.timestamp())
+            if len(self._seen) >= self.MAX_CERTIFICATES:
+                del self._seen[next(iter(self._seen))]
+            self._seen[key] = facts
+        serial, not_before, not_after = facts
+        current = time.time() if now is None else now
+        if current > not_after:
+            raise TokenError("certificate_expired", f"the peer's certificate (serial {serial:x}) expired")
+        if current < not_before:
+            raise TokenError("certificate_not_yet_valid", f"the peer's certificate (serial {serial:x}) is not valid yet")
+        if serial in self.revoked:
+            raise TokenError("certificate_revoked", f"the peer's certificate (serial {serial:x}) is on the CRL")
 
 
 def peer_cert_der(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> bytes:

@@ -43,6 +43,8 @@ Example::
     max_pending_per_source = 16       # unauthenticated streams per source address
     max_pending_per_certificate = 8   # ... and per client certificate
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
+    tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
+    spare_connections = false         # true: one connection kept ready per peer after a stream
 
     [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
     "/camera/points" = 67108864
@@ -186,6 +188,18 @@ class Limits:
     #: Calls in one ``system.multicall``; fields in one TCPROS connection header.
     max_multicall: int = 256
     max_header_fields: int = 32
+    #: TLS 1.3 session resumption between interceptors: a session (and every session
+    #: resumed from it) is offered for at most this many seconds after the full
+    #: handshake it descends from, and a peer that resumes later is refused; 0: every
+    #: stream makes a full handshake. The peer's certificate (validity, CRL) and token
+    #: are checked on every stream, resumed or not. At most 7200 (OpenSSL's ticket life).
+    tls_session_lifetime: float = 300.0
+    #: After a stream to a peer, have one spare connection to it ready (TLS done, no
+    #: preamble: the next stream skips the handshake's round trip; its preamble, token
+    #: and certificate checks run when it is used). Unused, it carries a token exchange.
+    #: Off by default: on loopback it gained nothing measurable over resumption alone
+    #: (README, issue 16); a link with a real round-trip time is where it would pay.
+    spare_connections: bool = False
 
     def message_size_for(self, name: str) -> int:
         """The max_message_size of one topic or service."""
@@ -398,9 +412,17 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         if not pattern.startswith("/") or len(pattern) > 256:
             raise ConfigError(f"[limits.message_size] {pattern!r}: a topic or service pattern starts with /")
         sizes.append((pattern, _typed(size, int, f"[limits.message_size] {pattern!r}")))
+    spare = limits_raw.pop("spare_connections", Limits.spare_connections)
+    if not isinstance(spare, bool):
+        raise ConfigError(f"[limits] spare_connections must be true or false, got {spare!r}")
+    lifetime = limits_raw.pop("tls_session_lifetime", Limits.tls_session_lifetime)
+    if isinstance(lifetime, bool) or not isinstance(lifetime, (int, float)) or not 0 <= lifetime <= 7200:
+        raise ConfigError(f"[limits] tls_session_lifetime must be seconds from 0 (off) to 7200, got {lifetime!r}")
     limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
     limits = Limits(
         message_size=tuple(sizes),
+        tls_session_lifetime=float(lifetime),
+        spare_connections=spare,
         **{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()},
     )
 

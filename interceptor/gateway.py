@@ -40,11 +40,20 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
-from cryptoros.tls import cert_thumbprint_s256, client_context, peer_cert_der, server_context
+from cryptoros.tls import (
+    FullHandshakes,
+    PeerCertificateCheck,
+    SessionCache,
+    cert_thumbprint_s256,
+    client_context,
+    offering,
+    peer_cert_der,
+    server_context,
+)
 from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
@@ -57,6 +66,10 @@ from interceptor.pump import FrameCounter, MessageBudget, splice
 log = logging.getLogger("cryptoros.interceptor")
 
 READ_SIZE = 65536
+#: a spare connection to a peer (TLS done, no preamble yet) is used within this share of
+#: the preamble timeout or turned into a token exchange: the peer's preamble deadline
+#: counts from its accept (and refuses a stream that waits longer)
+SPARE_AGE = 0.4
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
@@ -96,6 +109,19 @@ class Tunnel:
     writer: asyncio.StreamWriter
     peer: Peer
     pending: bytes = b""
+
+
+@dataclass(frozen=True, slots=True)
+class _Connected:
+    """A TLS connection to a peer interceptor, before its preamble: the session it
+    offered (if any) and, for a spare, the future its user completes once the peer's
+    reply is verified (the spare's opening slot is held until then)."""
+
+    reader: asyncio.StreamReader
+    writer: asyncio.StreamWriter
+    ssl_object: Any
+    offer: Any
+    used: asyncio.Future | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,8 +223,8 @@ class Gateway:
         self.metrics = Metrics()
         #: the runtime monitor ([monitor]); roles tap the streams it watches
         self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny) if cfg.monitor is not None else None
-        self._server_ctx = server_context(cfg.tls)
-        self._client_ctx = client_context(cfg.tls, check_hostname=True)
+        self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = (
+            self._tls_state(cfg))
         self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
         self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin)
         self.verifier = PeerVerifier(
@@ -226,6 +252,10 @@ class Gateway:
         self._exchanges: set[tuple[str, int]] = set()
         #: streams being opened per peer endpoint (see _opening_slot); entries live while in use
         self._opening: dict[tuple[str, int], list] = {}
+        #: at most one spare connection per peer endpoint, made after a stream to it
+        #: (see _keep_spare); endpoints whose spare is being made or waits
+        self._spares: dict[tuple[str, int], _Connected] = {}
+        self._spare_makers: dict[tuple[str, int], asyncio.Future] = {}
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -348,6 +378,7 @@ class Gateway:
         waiting = [s for s in self._streams if s not in self._cuttable]
         if waiting:
             await asyncio.wait(waiting, timeout=grace)
+        self._drop_spares()
         for task in self._tasks:
             task.cancel()
         for stream in list(self._streams):
@@ -361,6 +392,31 @@ class Gateway:
             await self._metrics_runner.cleanup()
         await self.authz.close()
 
+    @staticmethod
+    def _tls_state(cfg: InterceptorConfig):
+        """Everything TLS between interceptors, built from one configuration: both
+        contexts, the client's kept sessions (for that client context only), the
+        server's record of full handshakes and the per-stream certificate check (the
+        CRL as loaded with the contexts). A new server context draws new ticket keys,
+        so a reload makes every earlier session worthless."""
+        lifetime = cfg.limits.tls_session_lifetime
+        client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
+        return (server_context(cfg.tls, tickets=1 if lifetime > 0 else 0), client_ctx,
+                SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
+                PeerCertificateCheck(cfg.tls.crl_file))
+
+    def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
+        """The peer's certificate, checked on every stream (resumed or not): validity
+        period and CRL here, the revocation feed with its token. Returns its DER."""
+        der = peer_cert_der(ssl_object)
+        resumed = bool(ssl_object.session_reused)
+        self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
+        self.metrics.stream_checks.labels("certificate").inc()
+        self._cert_check.check(der)
+        if direction == "in":
+            self._full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+        return der
+
     async def reload(self, cfg: InterceptorConfig) -> None:
         """SIGHUP: new certificates, CRL and policy; open streams stay up. All or
         nothing: the new TLS material is loaded and a token bound to the new
@@ -373,8 +429,8 @@ class Gateway:
             raise ConfigError("adding or removing [monitor] needs a restart of the interceptor")
         monitor_model = MonitorModel.load(cfg.monitor.model) if cfg.monitor is not None else None
         # one certificate source: every holder below is built from cfg.tls
-        server_ctx = server_context(cfg.tls)
-        client_ctx = client_context(cfg.tls, check_hostname=True)
+        tls_state = self._tls_state(cfg)
+        server_ctx = tls_state[0]
         authz_ctx = client_context(cfg.tls, check_hostname=True)
         own_der = cert_der(cfg.tls.cert_file)
         probe = AuthzClient(cfg.authz, authz_ctx)
@@ -391,7 +447,8 @@ class Gateway:
         except OSError:
             self._public_server = await self._listen_public(self._server_ctx)
             raise
-        self._server_ctx, self._client_ctx = server_ctx, client_ctx
+        self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = tls_state
+        self._drop_spares()  # made with the old certificate: a token bound to the new one fails on them
         self.cfg = cfg
         # every holder of the certificate reads the new one: the authorization server
         # binds the next token to it, and our own token is checked against it
@@ -583,8 +640,88 @@ class Gateway:
         every registration, so it sees every grant."""
         self.keeper.current()  # no token of our own: nothing is opened
         whole = purpose == "master" if whole is None else whole
+        endpoint = (host, port)
+        spare = self._take_spare(endpoint)
+        if spare is not None:
+            log.debug("%s stream to %s:%d over a spare connection", purpose, host, port)
+            try:
+                tunnel = await self._tunnel_over(spare, host, port, purpose, target, first=first, whole=whole)
+            except (ConnectionError, RemoteProtocolError, ssl.SSLError) as exc:
+                log.info("spare connection to %s:%d was gone (%s): opening a fresh one", host, port, exc)
+                tunnel = None  # the peer closed it before a byte of this stream was read
+            finally:
+                if not spare.used.done():
+                    spare.used.set_result(None)
+            if tunnel is not None:
+                self.metrics.spares.labels("used").inc()
+                self._want_spare(endpoint, purpose)
+                return tunnel
         async with self._opening_slot(host, port):
-            return await self._open_tunnel(host, port, purpose, target, first=first, whole=whole)
+            tunnel = await self._tunnel_over(await self._connect(host, port), host, port, purpose, target,
+                                             first=first, whole=whole)
+        self._want_spare(endpoint, purpose)
+        return tunnel
+
+    # ---------------------------------------------------------------- spare connections
+    def _take_spare(self, endpoint: tuple[str, int]) -> _Connected | None:
+        spare = self._spares.pop(endpoint, None)
+        if spare is None:
+            return None
+        self._spare_makers.pop(endpoint, None)  # its maker is done: the next stream may want another
+        if spare.writer.is_closing() or spare.reader.at_eof():
+            spare.writer.close()
+            spare.used.set_result(None)
+            return None
+        return spare
+
+    def _want_spare(self, endpoint: tuple[str, int], purpose: str) -> None:
+        """After a stream to ``endpoint``, have one more connection to it ready (TLS
+        done, no preamble): the next stream skips the handshake's wait. Its preamble,
+        token check and every other per-stream check run when it is used; unused for
+        ``SPARE_AGE`` x the preamble timeout, it carries a token exchange and closes, so
+        a burst costs one extra connection and an idle peer none."""
+        if (purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections
+                or endpoint in self._spares or endpoint in self._spare_makers):
+            return
+        self._spare_makers[endpoint] = self.spawn(self._keep_spare(endpoint))
+
+    async def _keep_spare(self, endpoint: tuple[str, int]) -> None:
+        host, port = endpoint
+        spare: _Connected | None = None
+        try:
+            async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
+                connected = await self._connect(host, port)
+                spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
+                                   asyncio.get_running_loop().create_future())
+                self._spares[endpoint] = spare
+                log.debug("spare connection to %s:%d ready", host, port)
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(spare.used), SPARE_AGE * self.cfg.limits.preamble_timeout)
+                if self._spares.get(endpoint) is spare:  # unused: show the peer our token and close
+                    log.debug("spare connection to %s:%d unused: a token exchange", host, port)
+                    del self._spares[endpoint]
+                    self.metrics.spares.labels("expired").inc()
+                    tunnel = await self._tunnel_over(spare, host, port, REFRESH, "", first=b"", whole=False)
+                    tunnel.writer.close()
+                else:  # taken: its user holds the slot until the peer's reply is verified
+                    await asyncio.wait_for(asyncio.shield(spare.used), self.cfg.limits.handshake_timeout)
+        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            log.info("spare connection to %s:%d: %s", host, port, exc)
+        except Exception:
+            log.exception("spare connection to %s:%d", host, port)
+        finally:
+            if self._spare_makers.get(endpoint) is asyncio.current_task():
+                del self._spare_makers[endpoint]
+            if spare is not None and self._spares.get(endpoint) is spare:
+                del self._spares[endpoint]
+                spare.writer.close()
+
+    def _drop_spares(self) -> None:
+        for spare in self._spares.values():
+            spare.writer.close()
+            if not spare.used.done():
+                spare.used.set_result(None)
+        self._spares.clear()
 
     @contextlib.asynccontextmanager
     async def _opening_slot(self, host: str, port: int):
@@ -613,21 +750,34 @@ class Gateway:
             if slot[1] == 0 and self._opening.get(endpoint) is slot:
                 del self._opening[endpoint]
 
-    async def _open_tunnel(
-        self, host: str, port: int, purpose: str, target: str, *, first: bytes, whole: bool,
-    ) -> Tunnel:
+    async def _connect(self, host: str, port: int) -> _Connected:
+        """Mutual TLS to a peer interceptor, resuming the session kept for it if any."""
+        sessions = self._sessions
+        offer = sessions.get((host, port))
         try:
-            reader, writer = await asyncio.wait_for(
-                asyncio.open_connection(
-                    host, port, ssl=self._client_ctx, server_hostname=host,
-                    local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
-                ),
-                self.cfg.limits.handshake_timeout,
-            )
+            with offering(self._client_ctx, offer):
+                reader, writer = await asyncio.wait_for(
+                    asyncio.open_connection(
+                        host, port, ssl=self._client_ctx, server_hostname=host,
+                        local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
+                    ),
+                    self.cfg.limits.handshake_timeout,
+                )
         except (OSError, asyncio.TimeoutError) as exc:
+            if offer is not None:
+                sessions.forget((host, port))
             raise PolicyDenied("peer_unreachable", f"{host}:{port}: {exc}") from exc
+        return _Connected(reader, writer, writer.get_extra_info("ssl_object"), offer)
+
+    async def _tunnel_over(
+        self, connected: _Connected, host: str, port: int, purpose: str, target: str, *, first: bytes, whole: bool,
+    ) -> Tunnel:
+        """Our token in the preamble (``first`` right behind it), the peer's reply and
+        its token verified and bound to its certificate, checked again on this stream."""
+        reader, writer, ssl_object, offer = connected.reader, connected.writer, connected.ssl_object, connected.offer
+        sessions = self._sessions
         try:
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            der = self._check_peer_certificate(ssl_object, "out")
             token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
             _remember(self._views, (host, port), self._views.get((host, port), set()) | {whole})
             writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
@@ -638,9 +788,13 @@ class Gateway:
                 event = preamble_reader.next_event()
                 reply = event if isinstance(event, PreambleReply) else None
             if not reply.ok:
+                if ssl_object.session_reused:  # e.g. too old for the peer: the next one in full
+                    sessions.forget((host, port))
                 raise PolicyDenied("peer_refused", f"{host}:{port} refused the {purpose} stream")
+            self.metrics.stream_checks.labels("token").inc()
             access = await self.verifier.verify_fresh(reply.token, der)
             self.verifier.note(access)
+            sessions.put((host, port), ssl_object, offer)  # the ticket came before the reply
             _remember(self._peer_endpoints, (access.subject, access.thumbprint), (host, port))
             _remember(self._peer_tokens, (host, port), access)
             pending = preamble_reader.trailing_data()
@@ -662,7 +816,7 @@ class Gateway:
         entered: list[tuple[str, str]] = []
         gate = StreamGate(self._checks)
         try:
-            der = peer_cert_der(writer.get_extra_info("ssl_object"))
+            der = self._check_peer_certificate(writer.get_extra_info("ssl_object"), "in")
             # Before the token is verified a stream is bounded per source address and
             # per certificate, and its preamble has one deadline from accept.
             for key, cap in (
@@ -674,6 +828,7 @@ class Gateway:
             async with asyncio.timeout(limits.preamble_timeout):
                 while (event := gate.next_event()) is NEED_DATA:
                     await read_into(reader, gate.receive_data, limits.preamble_timeout)
+            self.metrics.stream_checks.labels("token").inc()
             access = await self.verifier.verify_fresh(event.preamble.token, der)
             self.verifier.note(access)
             who = f"{access.subject}@{who}"

@@ -42,6 +42,27 @@ class Metrics:
             "Unix time at which this interceptor's own access token expires",
             registry=self.registry,
         )
+        self.handshakes = Counter(
+            "cryptoros_interceptor_tls_handshakes_total",
+            "TLS handshakes between interceptors that completed, by direction and kind "
+            "(full: chain and CRL verified by OpenSSL; resumed: a session ticket)",
+            ["direction", "kind"],
+            registry=self.registry,
+        )
+        self.stream_checks = Counter(
+            "cryptoros_interceptor_stream_checks_total",
+            "Checks run per stream between interceptors, resumed or not (certificate: validity "
+            "and CRL; token: signature or cache, time, binding, revocation feed), passed or not",
+            ["check"],
+            registry=self.registry,
+        )
+        self.spares = Counter(
+            "cryptoros_interceptor_spare_connections_total",
+            "Spare connections to peers (TLS done before a stream needs one), by outcome "
+            "(used: a stream's preamble went over it; expired: it carried a token exchange)",
+            ["outcome"],
+            registry=self.registry,
+        )
         self.reloads = Counter(
             "cryptoros_interceptor_reloads_total", "SIGHUP reloads, by result", ["result"], registry=self.registry
         )

@@ -22,11 +22,18 @@ Rows: one-way latency at 1 kHz (p50/p99; the sender stamps CLOCK_MONOTONIC into 
 std_msgs/String), small std_msgs/String throughput (sender unthrottled), MB/s for
 sensor_msgs/Image of 80 KB and 1 MB, TCPROS connection set-up time (connect to the
 publisher's header reply: TLS handshake + token check on the interceptor and stunnel
-rows) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), a robot's
+rows), a non-persistent service call (connect + header + request + reply, the common
+case of ROS service clients) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), a robot's
 bring-up (50 subscribers starting at once against a latched publisher: time until all
 received its message, median of a few runs), and the
 paper's own experiment (section IV: N std_msgs/String at 10 Hz, the listener timed
 from launch to exit as with ``time``, with and without interceptors).
+
+Which checks ran on the interceptor rows is printed from the interceptors' own
+counters (/metrics): streams accepted with a full or a resumed TLS handshake, peer
+certificate checks (validity, CRL) and token checks, spare connections used.
+``--tls-session-lifetime 0`` gives a full handshake on every stream; ``--spares`` turns
+the interceptors' spare connections on.
 """
 
 from __future__ import annotations
@@ -77,6 +84,8 @@ managers:
     - {{{{node: '*', topic: /bench_str, type: std_msgs/String}}}}
     - {{{{node: '*', topic: /bench_img, type: sensor_msgs/Image}}}}
     - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
+    serve:
+    - {{{{node: '*', service: /bench_srv, type: std_srvs/Trigger}}}}
 - name: robot_b
   fingerprint_sha256: {{robot_b}}
   grants:
@@ -85,6 +94,8 @@ managers:
     subscribe:
     - {{{{node: '*', topic: /bench_str, type: std_msgs/String}}}}
     - {{{{node: '*', topic: /bench_img, type: sensor_msgs/Image}}}}
+    call:
+    - {{{{node: '*', service: /bench_srv, type: std_srvs/Trigger}}}}
 - name: robot_c
   fingerprint_sha256: {{robot_c}}
   grants:
@@ -116,6 +127,7 @@ def _our_worker() -> None:
     ``latched``: the same with /bench_str latched and one message published (every new
     subscriber receives it at once: the bring-up row)."""
     from cryptoros.bench.ros1 import publish_workload, record_message
+    from cryptoros.ros1 import msgs
     from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
 
     role = sys.argv[1]
@@ -200,6 +212,9 @@ def _our_worker() -> None:
     async def idle() -> None:
         async with Node("/bench_idle", tcpros_port=int(os.environ.get("BENCH_TCPROS_PORT", "0"))) as node:
             await node.advertise("/bench_str", "std_msgs/String")
+            trigger = msgs.service_type("std_srvs/Trigger", node.store)
+            await node.advertise_service("/bench_srv", "std_srvs/Trigger",
+                                         lambda _req: trigger.response_class()(success=True, message="ok"))
             out(f"URI {node.uri} {node.tcpros_port}")
             async for _ in lines():
                 pass
@@ -423,6 +438,33 @@ async def _tcpros_probe(host: str, port: int, topic: str = "/bench_str") -> tupl
     return elapsed, writer
 
 
+async def _service_probe(host: str, port: int, service: str = "/bench_srv") -> float:
+    """One non-persistent service call as a ROS client makes it: connect, header, the
+    server's header, the request (std_srvs/Trigger), the response: seconds."""
+    from cryptoros.ros1 import msgs
+    from cryptoros.ros1.tcpros import encode_frame, encode_header
+
+    srv = msgs.service_type("std_srvs/Trigger")
+    header = encode_header({"callerid": "/bench_probe", "md5sum": srv.md5sum, "persistent": "0", "service": service})
+    t0 = time.perf_counter()
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), 10)
+    try:
+        writer.write(header)
+        (length,) = struct.unpack("<I", await asyncio.wait_for(reader.readexactly(4), 10))
+        body = await asyncio.wait_for(reader.readexactly(length), 10)
+        if b"error=" in body:
+            raise NetworkError(f"service server refused the probe: {body[:200]!r}")
+        writer.write(encode_frame(b""))
+        ok, length = struct.unpack("<BI", await asyncio.wait_for(reader.readexactly(5), 10))
+        await asyncio.wait_for(reader.readexactly(length), 10)
+        elapsed = time.perf_counter() - t0
+    finally:
+        writer.close()
+    if ok != 1:
+        raise NetworkError("the service call failed")
+    return elapsed
+
+
 async def _request_topic(uri: str, topic: str = "/bench_str") -> tuple[float, tuple[str, int]]:
     from cryptoros.ros1.node import call
 
@@ -492,7 +534,7 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
 
             async def plain_and_stunnel() -> dict:
                 out: dict = {"plain": {}, "stunnel": {}}
-                rt, tc, st = [], [], []
+                rt, tc, st, sc, ssc = [], [], [], [], []
                 for _ in range(reps):
                     t, (host, port) = await _request_topic(uri)
                     rt.append(t)
@@ -502,10 +544,14 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
                     t, w = await _tcpros_probe("127.0.0.1", client_port)
                     st.append(t)
                     w.close()
+                    sc.append(await _service_probe(host, port))
+                    ssc.append(await _service_probe("127.0.0.1", client_port))
                     await asyncio.sleep(0.02)
                 out["plain"]["request_topic"] = _stats(rt)
                 out["plain"]["tcpros_connect"] = _stats(tc)
+                out["plain"]["service_call"] = _stats(sc)
                 out["stunnel"]["tcpros_connect"] = _stats(st)
+                out["stunnel"]["service_call"] = _stats(ssc)
                 cap = Capture(workdir / "plain.pcap", f"tcp and host 127.0.0.1 and (port {xml_port} or port {port_text})", snaplen=128)
                 try:
                     _, (host, port) = await _request_topic(uri)
@@ -531,8 +577,10 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
         idle.close()
     progress(f"set-up plain:   requestTopic {result['plain']['request_topic']['median_ms']:.2f} ms, "
              f"TCPROS {result['plain']['tcpros_connect']['median_ms']:.2f} ms, "
+             f"service call {result['plain']['service_call']['median_ms']:.2f} ms, "
              f"{result['plain']['bytes']['total']['frame_bytes']:,} B")
     progress(f"set-up stunnel: TCPROS {result['stunnel']['tcpros_connect']['median_ms']:.2f} ms, "
+             f"service call {result['stunnel']['service_call']['median_ms']:.2f} ms, "
              f"{result['stunnel']['bytes']['total']['frame_bytes']:,} B")
     # -------- interceptor: idle talker on A, probe on B
     idle = Proc("idle talker (A)", _worker_cmd("ours", "idle"), net.ros_env("robot_a"), workdir / "idle-icpt.log")
@@ -549,16 +597,21 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
                 if not pubs:
                     raise NetworkError("no publisher of /bench_str reached B's interceptor")
                 relay = pubs[0]
-                rt, tc = [], []
+                service_host, service_port = host_port(await node.master("lookupService", "/bench_srv"), ("rosrpc",))
+                before = interceptor_checks(net)
+                rt, tc, sc = [], [], []
                 for _ in range(reps):
                     t, (host, port) = await _request_topic(relay)
                     rt.append(t)
                     t, w = await _tcpros_probe(host, port)
                     tc.append(t)
                     w.close()
+                    sc.append(await _service_probe(service_host, int(service_port)))
                     await asyncio.sleep(0.05)  # keep below the per-peer new-stream rate limit
                 out["request_topic"] = _stats(rt)
                 out["tcpros_connect"] = _stats(tc)
+                out["service_call"] = _stats(sc)
+                out["checks"] = checks_delta(before, interceptor_checks(net))
                 await asyncio.sleep(0.3)
                 cap = Capture(workdir / "interceptor.pcap", f"tcp and host {HOSTS['robot_a']} and port {a_public}", snaplen=128)
                 try:
@@ -579,8 +632,57 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
         idle.close()
     progress(f"set-up interceptor: requestTopic {result['interceptor']['request_topic']['median_ms']:.2f} ms, "
              f"TCPROS {result['interceptor']['tcpros_connect']['median_ms']:.2f} ms, "
+             f"service call {result['interceptor']['service_call']['median_ms']:.2f} ms, "
              f"{result['interceptor']['bytes']['total']['frame_bytes']:,} B")
+    progress(f"set-up interceptor checks: {describe_checks(result['interceptor']['checks'])}")
     return result
+
+
+# ============================================================ which checks ran
+
+
+def interceptor_checks(net: Network, hosts: tuple[str, ...] = ("robot_a", "robot_b")) -> dict[str, float]:
+    """The interceptors' counters of TLS handshakes (full, resumed) and per-stream checks
+    (certificate: validity and CRL; token: signature or cache, time, binding, feed),
+    summed over ``hosts`` and both directions, read from their /metrics."""
+    import urllib.request
+
+    totals: dict[str, float] = {}
+    for name in hosts:
+        port = net.hosts[name].metrics_port
+        if port is None:
+            continue
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as reply:
+            text = reply.read().decode()
+        for line in text.splitlines():
+            for family, label in (("cryptoros_interceptor_tls_handshakes_total{", "kind"),
+                                  ("cryptoros_interceptor_stream_checks_total{", "check"),
+                                  ("cryptoros_interceptor_spare_connections_total{", "outcome")):
+                if line.startswith(family):
+                    labels, value = line[len(family):].split("} ")
+                    fields = dict(part.split("=", 1) for part in labels.split(","))
+                    key = fields[label].strip('"')
+                    if family.startswith("cryptoros_interceptor_tls"):
+                        key = f"{fields['direction'].strip(chr(34))}_{key}"
+                    elif family.startswith("cryptoros_interceptor_spare"):
+                        key = f"spare_{key}"
+                    totals[key] = totals.get(key, 0.0) + float(value)
+    return totals
+
+
+def checks_delta(before: dict[str, float], after: dict[str, float]) -> dict[str, int]:
+    return {k: int(after.get(k, 0) - before.get(k, 0)) for k in sorted(set(before) | set(after))
+            if after.get(k, 0) - before.get(k, 0)}
+
+
+def describe_checks(delta: dict[str, int]) -> str:
+    """One line: handshakes accepted (full, resumed) and the checks every stream got."""
+    full, resumed = delta.get("in_full", 0), delta.get("in_resumed", 0)
+    return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed; "
+            f"peer certificate (validity + CRL) checked {delta.get('certificate', 0)} times, "
+            f"token (signature or cache, time, cnf binding, feed incl. revoked serials) {delta.get('token', 0)} times "
+            f"(both ends of each stream); spare connections used {delta.get('spare_used', 0)}, "
+            f"expired into a token exchange {delta.get('spare_expired', 0)}")
 
 
 # ============================================================ bring-up: many subscribers at once
@@ -659,6 +761,7 @@ def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress
     finally:
         pub.close()
     pub = Proc("latched talker (A)", _worker_cmd("ours", "latched"), net.ros_env("robot_a"), workdir / "latched-a.log")
+    checks_before = interceptor_checks(net)
     try:
         pub.expect("URI ", 30)
         for run in range(runs):
@@ -676,6 +779,8 @@ def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress
             "median_ms": statistics.median(complete) if complete else None,
             "errors": sorted({e for r in rows for e in r["errors"]}),
         }
+    result["interceptor"]["checks"] = checks_delta(checks_before, interceptor_checks(net))
+    progress(f"bring-up interceptor checks: {describe_checks(result['interceptor']['checks'])}")
     return result
 
 
@@ -791,6 +896,8 @@ def build_report(results: dict) -> dict:
     tp = results.get("throughput", {})
     targets = []
     for impl in IMPLS:
+        if impl not in tp:  # --no-throughput, --only
+            continue
         by = {t: tp.get(impl, {}).get(t, {}) for t in TRANSPORTS}
         for key, metric, label in (("small", "msg_per_s", "small messages"), ("image80k", "mb_per_s", "80 KB images"),
                                    ("image1m", "mb_per_s", "1 MB images")):
@@ -812,6 +919,12 @@ def build_report(results: dict) -> dict:
         if plain_b is not None and icpt_b is not None:
             targets.append({"target": "set-up bytes added per TCPROS connection <= half the paper's (6,000 B)",
                             "measured": icpt_b - plain_b, "limit": limit, "unit": "B", "met": icpt_b - plain_b <= limit})
+        for what, label in (("tcpros_connect", "TCPROS connection set-up median <= stunnel's"),
+                            ("service_call", "service call (connect + request + reply) median <= stunnel's")):
+            icpt = setup["interceptor"].get(what, {}).get("median_ms")
+            stun = setup["stunnel"].get(what, {}).get("median_ms")
+            if icpt is not None and stun is not None:
+                targets.append({"target": label, "measured": icpt, "limit": stun, "unit": "ms", "met": icpt <= stun})
         plain_t = setup["plain"]["bytes"]["total"]["frame_bytes"]
         icpt_t = setup["interceptor"]["bytes"]["total"]["frame_bytes"]
         targets.append({"target": "set-up bytes added per subscription (requestTopic + TCPROS) <= 6,000 B",
@@ -853,6 +966,7 @@ def table_rows(report: dict) -> list[list[str]]:
     setup = report.get("setup")
     if setup:
         for what, label in (("tcpros_connect", "TCPROS connection set-up (median)"),
+                            ("service_call", "service call: connect + request + reply (median)"),
                             ("request_topic", "requestTopic call (median)")):
             v = {t: setup.get(t, {}).get(what, {}).get("median_ms") for t in TRANSPORTS}
             rows.append([label, "probe", *(_fmt(v[t], "{:.2f} ms") for t in TRANSPORTS),
@@ -901,8 +1015,22 @@ def table_rows(report: dict) -> list[list[str]]:
 HEADERS = ["measure", "nodes", "plain", "interceptor", "stunnel", "interceptor/stunnel", "interceptor/plain"]
 
 
+def checks_lines(report: dict) -> list[str]:
+    """Which checks ran on the interceptor rows (from the interceptors' own counters)."""
+    config = report.get("config", {})
+    lines = [f"interceptors: TLS session lifetime {config.get('tls_session_lifetime', 'default')}, "
+             f"spare connections {'on' if config.get('spare_connections') else 'off'}"]
+    for key, label in (("setup", "set-up probes"), ("bringup", "bring-up")):
+        checks = (report.get(key) or {}).get("interceptor", {}).get("checks")
+        if checks:
+            lines.append(f"checks, {label}: {describe_checks(checks)}")
+    return lines
+
+
 def render(report: dict, markdown: bool) -> None:
     rows = table_rows(report)
+    for line in checks_lines(report):
+        click.echo(line)
     if markdown:
         click.echo("| " + " | ".join(HEADERS) + " |")
         click.echo("|---|---|" + "---:|" * (len(HEADERS) - 2))
@@ -935,9 +1063,12 @@ def _target_value(t: dict) -> str:
     m = t.get("measured")
     if m is None:
         return "-"
-    text = {"x": f"{m:.2f}x", "us": f"{m:+,.0f} us", "B": f"{m:+,.0f} B", "%": f"{m:+.2f} %"}[t["unit"]]
+    text = {"x": f"{m:.2f}x", "us": f"{m:+,.0f} us", "B": f"{m:+,.0f} B", "%": f"{m:+.2f} %",
+            "ms": f"{m:.2f} ms"}[t["unit"]]
     if "limit" in t and t["unit"] == "us":
         text += f" (stunnel {t['limit']:+,.0f} us)"
+    if "limit" in t and t["unit"] == "ms":
+        text += f" (stunnel {t['limit']:.2f} ms)"
     return text
 
 
@@ -957,12 +1088,19 @@ def _target_value(t: dict) -> str:
 @click.option("--bringup-runs", type=click.IntRange(0, 50), default=None,
               help="Bring-ups per transport, median reported (default 3; --quick: 1; 0: skip).")
 @click.option("--only", type=click.Choice(IMPLS), default=None, help="Run one node client only.")
+@click.option("--no-throughput", is_flag=True, help="Skip the latency and throughput rows.")
+@click.option("--spares", is_flag=True, help="The interceptors keep a spare connection per peer "
+                                             "([limits] spare_connections = true).")
+@click.option("--tls-session-lifetime", type=click.FloatRange(0, 7200), default=None,
+              help="The interceptors' [limits] tls_session_lifetime (0: a full TLS handshake on every stream; "
+                   "default: the interceptor's, 300 s).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write the results here.")
 @click.option("--markdown", is_flag=True, help="Print the tables as Markdown (for the README).")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
 def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
                 setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None, only: str | None,
-                json_path: str | None, markdown: bool, keep: bool) -> None:
+                no_throughput: bool, spares: bool, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
+                keep: bool) -> None:
     """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
     if not Path(SYS_PY).exists() or subprocess.run([SYS_PY, "-c", "import rospy"], capture_output=True).returncode:
         raise click.ClickException("rospy is not installed for /usr/bin/python3 (scripts/install-system-parts)")
@@ -999,16 +1137,26 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
     results: dict = {"config": {"messages": {m.key: m.n for m in modes}, "paper_counts": counts, "paper_repeat": reps,
                                 "setup_probes": probes, "bringup": {"subscribers": bringup_subscribers,
                                                                     "runs": bringups},
-                                "cpus": os.cpu_count()}}
+                                "cpus": os.cpu_count(),
+                                "tls_session_lifetime": ("300 s (default)" if tls_session_lifetime is None else
+                                                         f"{tls_session_lifetime:g} s" if tls_session_lifetime else
+                                                         "0 (off: a full handshake on every stream)"),
+                                "spare_connections": spares}}
     try:
+        limits: dict[str, float | bool] = {}
+        if tls_session_lifetime is not None:
+            limits["tls_session_lifetime"] = tls_session_lifetime
+        if spares:
+            limits["spare_connections"] = True
         with lab_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
-                                                            ("stunnel_b", "127.0.0.1")], progress=progress) as net:
+                                                            ("stunnel_b", "127.0.0.1")], progress=progress,
+                         metrics=True, limits=limits or None) as net:
             progress("network up")
             results["setup"] = measure_setup(net, probes, workdir, progress)
             if bringups:
                 results["bringup"] = measure_bringup(net, bringup_subscribers, bringups, workdir, progress)
             tp: dict = {}
-            for impl in impls:
+            for impl in impls if not no_throughput else ():
                 for transport in TRANSPORTS:
                     tp.setdefault(impl, {})[transport] = run_pair(net, impl, transport, modes, workdir, progress)
             results["throughput"] = tp
@@ -1037,7 +1185,9 @@ def _legend() -> str:
         "in-process subscriber against an idle publisher of our node client; bytes counted by tcpdump on lo between\n"
         "the two hosts (frames as Wireshark counts them, TCP payload in brackets); the TCPROS row is from connect\n"
         "to the publisher's header reply (no message yet); a subscription adds the requestTopic call. stunnel's\n"
-        "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates).\n"
+        "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates); so\n"
+        "do the interceptors (unless --tls-session-lifetime 0), which keep a spare connection per peer with\n"
+        "--spares: the lines above the table say which handshakes and checks ran.\n"
         "bring-up: N subscriber nodes of our node client start at once in one process (register, requestTopic,\n"
         "TCPROS) against a latched publisher; time from the start until the last one received its message.\n"
         "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."

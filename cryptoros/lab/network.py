@@ -200,7 +200,7 @@ class Network:
 
 def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str | None,
-    authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float] | None = None,
+    authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float | bool] | None = None,
     roles: Sequence[str] = ("node",), extra: str = "", poll_interval: float | None = None,
     ros2: tuple[int, Sequence[str], Path | None, Sequence[str], int] | None = None,
 ) -> str:
@@ -234,7 +234,7 @@ def _interceptor_config(
                   "graph_interval = 0.25", *([f'python = "{python}"'] if python else [])]
     if limits:
         lines.append("[limits]")
-        lines += [f"{k} = {v}" for k, v in limits.items()]
+        lines += [f"{k} = {str(v).lower() if isinstance(v, bool) else v}" for k, v in limits.items()]
     return "\n".join(lines) + "\n"
 
 
@@ -250,7 +250,7 @@ def lab_network(
     master: str = "rosmaster",
     metrics: bool = False,
     new_session: bool = False,
-    limits: dict[str, float] | None = None,
+    limits: dict[str, float | bool] | None = None,
     roles: dict[str, Sequence[str]] | None = None,
     extra: dict[str, str] | None = None,
     start: Sequence[str] | None = None,

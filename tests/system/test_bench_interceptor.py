@@ -44,6 +44,7 @@ def test_bench_interceptor_quick(tmp_path):
         assert setup[transport]["tcpros_connect"]["median_ms"] > 0
         assert setup[transport]["bytes"]["tcpros"]["frame_bytes"] > 0
         assert setup[transport]["bytes"]["tcpros"]["payload_bytes"] > 0
+        assert setup[transport]["service_call"]["median_ms"] > 0
     for transport in ("plain", "interceptor"):
         assert setup[transport]["request_topic"]["median_ms"] > 0
         assert setup[transport]["bytes"]["request_topic"]["frame_bytes"] > 0
@@ -62,6 +63,14 @@ def test_bench_interceptor_quick(tmp_path):
         assert paper[variant]["mean_s"] > 3.0, paper  # 30 messages at 10 Hz
         assert not paper[variant]["errors"], paper
     assert paper["overhead_pct"] is not None
+
+    # which checks ran on the interceptor rows: every stream's certificate and token, and
+    # the set-ups after the first to a peer resumed (counted by the interceptors themselves)
+    checks = setup["interceptor"]["checks"]
+    accepted = checks.get("in_full", 0) + checks.get("in_resumed", 0)
+    assert checks.get("in_resumed", 0) >= 1, checks
+    assert checks["certificate"] >= 2 * accepted and checks["token"] >= 2 * accepted, checks
+    assert "resumed" in result.stdout and "peer certificate (validity + CRL) checked" in result.stdout
 
     assert report["targets"] and all(isinstance(t["met"], bool) for t in report["targets"])
     assert "interceptor/stunnel" in result.stdout
