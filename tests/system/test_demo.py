@@ -82,7 +82,8 @@ def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv
     false_map = result["attacks"]["held-false-map"]["monitored"]
     assert false_map["succeeded"] is False, false_map["evidence"]
     assert result["modes"]["monitored"]["monitor"]["dropped"] >= 1
-    assert result["attacks"]["held-drift"]["monitored"].get("cut_after_s") is not None  # against r0's beacons
+    drift = result["attacks"]["held-drift"]["monitored"]  # against r0's beacons, or cut with its manager's other nodes
+    assert drift["succeeded"] is False or drift.get("cut_after_s") is not None, drift["evidence"]
     monitored = result["modes"]["monitored"]
     assert monitored["monitor"]["quarantines"] >= 1 and monitored["denials"].get("quarantined", 0) >= 1
     assert result["attacks"]["held-cmd-flood"]["monitored"]["cut_after_s"] < 2.0
