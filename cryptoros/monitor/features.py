@@ -180,6 +180,17 @@ _REACH_DISK = tuple((dx, dy) for dx in range(-_REACH_RADIUS, _REACH_RADIUS + 1)
                     for dy in range(-_REACH_RADIUS, _REACH_RADIUS + 1) if dx * dx + dy * dy <= _REACH_RADIUS ** 2)
 
 
+#: cell keys of the team map: (row + offset) * span + (column + offset), rows and columns
+#: within +-2**20 of 0 (the decoder refuses maps beyond)
+_CELL_OFFSET = 1 << 20
+_CELL_SPAN = 1 << 22
+
+
+def _place_key(cx: Any, cy: Any) -> Any:
+    """One integer per coarse place (numpy arrays or ints alike)."""
+    return (cx + (1 << 30)) * (1 << 31) + (cy + (1 << 30))
+
+
 def robot_of(topic: str) -> str:
     """The robot a topic belongs to: its first namespace (``/r0/pose`` -> ``r0``)."""
     parts = topic.strip("/").split("/")
@@ -286,6 +297,9 @@ def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, 
     pos += _MAP_TAIL.size
     if count != width * height or count > MAX_TEAM_MAP_CELLS or pos + count > len(body):
         raise RemoteProtocolError(f"MapUpdate of {width}x{height} cells carries {count} (or too many to check)")
+    if not (abs(origin_x) < _CELL_OFFSET - width and abs(origin_y) < _CELL_OFFSET - height
+            and abs(x) < 1e5 and abs(y) < 1e5):
+        raise RemoteProtocolError("MapUpdate origin or position out of range")
     cells = np.frombuffer(body, dtype=np.int8, count=count, offset=pos).reshape(height, width)
     return x, y, origin_x, origin_y, cells
 
@@ -320,10 +334,10 @@ class StreamFeatures:
         self._robot = robot_of(topic)
         self._crosscheck = crosscheck
         self._beacon_from = beacon_from
-        self._reach: set[tuple[int, int]] = set()  # team_map: coarse cells in reach of a reported position
+        self._reach: set[int] = set()  # team_map: coarse cells in reach of a reported position (_place_key)
         self._visited: set[tuple[int, int]] = set()  # team_map: coarse cells of the reported positions
         self._claims: deque[tuple[float, float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen, erased)
-        self._walls: set[tuple[int, int]] = set()  # team_map: cells this stream claimed occupied
+        self._walls: np.ndarray | None = None  # team_map: cells this stream claimed occupied (sorted keys)
         self._arrivals: deque[float] = deque(maxlen=MAX_RATE_SAMPLES)
         self._size: int | None = None
         self._prev: Any = None  # the previous message's content values (per kind)
@@ -385,13 +399,12 @@ class StreamFeatures:
         rows, cols = np.nonzero(cells != -1)
         unseen = 0.0
         if rows.size:
-            cx = np.floor((cols + origin_x) * (TEAM_MAP_RESOLUTION_M / REACH_CELL_M)).astype(np.int64)
-            cy = np.floor((rows + origin_y) * (TEAM_MAP_RESOLUTION_M / REACH_CELL_M)).astype(np.int64)
-            places, counts = np.unique(np.stack([cx, cy]), axis=1, return_counts=True)
+            scale = TEAM_MAP_RESOLUTION_M / REACH_CELL_M
+            places = _place_key(np.floor((cols + origin_x) * scale).astype(np.int64),
+                                np.floor((rows + origin_y) * scale).astype(np.int64))
+            keys, counts = np.unique(places, return_counts=True)
             reach = self._reach
-            out = sum(int(n) for px, py, n in zip(places[0].tolist(), places[1].tolist(), counts)
-                      if (px, py) not in reach)
-            unseen = out / rows.size
+            unseen = sum(n for k, n in zip(keys.tolist(), counts.tolist()) if k not in reach) / rows.size
         erased = self._walls_erased(origin_x, origin_y, cells)
         claims = self._claims
         claims.append((now, unseen, erased))
@@ -405,20 +418,18 @@ class StreamFeatures:
         saw stays a wall. Remembers this update's walls (at most :data:`MAX_WALL_CELLS`)."""
         import numpy as np
 
-        rows, cols = np.nonzero(cells == 0)
-        walls = self._walls
+        h, w = cells.shape
         erased = 0.0
-        if walls and rows.size:
-            h, w = cells.shape
-            before = [(r - origin_y, c - origin_x) for r, c in walls
-                      if origin_y <= r < origin_y + h and origin_x <= c < origin_x + w]
-            if before:
-                rr, cc = np.asarray(before).T
-                erased = float(np.count_nonzero(cells[rr, cc] == 0)) / len(before)
-        wr, wc = np.nonzero(cells > 0)
-        room = MAX_WALL_CELLS - len(walls)
-        if room > 0:
-            walls.update(zip((wr[:room] + origin_y).tolist(), (wc[:room] + origin_x).tolist()))
+        walls = self._walls if self._walls is not None else np.zeros(0, dtype=np.int64)
+        if walls.size:
+            r, c = walls // _CELL_SPAN - _CELL_OFFSET - origin_y, walls % _CELL_SPAN - _CELL_OFFSET - origin_x
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            if inside.any():
+                erased = float(np.count_nonzero(cells[r[inside], c[inside]] == 0)) / int(np.count_nonzero(inside))
+        if walls.size < MAX_WALL_CELLS:
+            wr, wc = np.nonzero(cells > 0)
+            seen = (wr.astype(np.int64) + origin_y + _CELL_OFFSET) * _CELL_SPAN + (wc + origin_x + _CELL_OFFSET)
+            self._walls = np.union1d(walls, seen)[:MAX_WALL_CELLS]
         return erased
 
     def _note_reach(self, x: float, y: float) -> None:
@@ -428,8 +439,7 @@ class StreamFeatures:
             return  # a full table adds nothing: later claims beyond it score as unseen
         self._visited.add(place)
         cx, cy = place
-        self._reach.update((cx + dx, cy + dy) for dx, dy in _REACH_DISK)
-
+        self._reach.update(int(_place_key(cx + dx, cy + dy)) for dx, dy in _REACH_DISK)
 
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         import numpy as np
