@@ -98,8 +98,9 @@ class MonitorMetrics:
                                    registry=registry)
         self.dropped = Counter("cryptoros_monitor_dropped_total", "Messages of gated topics dropped as "
                                "suspicious before they were forwarded, by topic", ["topic"], registry=registry)
-        self.busy = Counter("cryptoros_monitor_busy_seconds_total", "Seconds the monitor held the event loop "
-                            "(queueing, splitting, decoding, scoring, alerting): its share of the interceptor's CPU",
+        self.busy = Counter("cryptoros_monitor_busy_seconds_total", "CPU seconds the monitor spent on the event "
+                            "loop's thread (queueing, splitting, decoding, scoring, alerting): its share of the "
+                            "interceptor's CPU",
                             registry=registry)
         self.seconds = Histogram("cryptoros_monitor_score_seconds", "Time to score one message (decode + features "
                                  "+ model)", buckets=(5e-6, 1e-5, 2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3, 1e-2),
@@ -270,11 +271,11 @@ class WatchedStream:
     def _queue(self, data: bytes, whole: bool) -> None:
         if self.closed:
             return
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         try:
             self._queue_timed(data, whole)
         finally:
-            self.monitor.metrics.busy.inc(time.perf_counter() - t0)
+            self.monitor.metrics.busy.inc(time.thread_time() - t0)
 
     def _queue_timed(self, data: bytes, whole: bool) -> None:
         self._chunks.append((data, self.monitor.clock(), self.monitor.wall(), whole))
@@ -306,11 +307,11 @@ class WatchedStream:
         is suspicious, or the stream is already cut). Scoring errors drop it too."""
         if self.closed:
             return False
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         try:
             return self._gate_timed(body)
         finally:
-            self.monitor.metrics.busy.inc(time.perf_counter() - t0)
+            self.monitor.metrics.busy.inc(time.thread_time() - t0)
 
     def _gate_timed(self, body: bytes) -> bool:
         monitor = self.monitor
@@ -336,11 +337,11 @@ class WatchedStream:
         return score.value > 1.0
 
     def _score_queued(self) -> None:
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         try:
             self._score_queued_timed()
         finally:
-            self.monitor.metrics.busy.inc(time.perf_counter() - t0)
+            self.monitor.metrics.busy.inc(time.thread_time() - t0)
 
     def _score_queued_timed(self) -> None:
         self._scheduled = False
