@@ -53,6 +53,8 @@ limit (:mod:`cryptoros.monitor.model`).
 
 from __future__ import annotations
 
+import functools
+import importlib
 import math
 import struct
 from collections import OrderedDict, deque
@@ -103,8 +105,13 @@ TEAM_MAP_RESOLUTION_M = 0.2
 #: the coarse grid of reachable places (metres per cell) and its bound per stream
 REACH_CELL_M = 1.0
 MAX_REACH_CELLS = 1 << 16
-#: wall cells remembered per team-map stream (the demo's arena has a few hundred)
-MAX_WALL_CELLS = 1 << 16
+#: reported places remembered per team-map stream
+MAX_VISITED = 1 << 14
+#: cells of the grid of walls kept per team-map stream (a 100 m x 100 m area at 0.2 m;
+#: the demo's arena is 60 x 60 cells)
+MAX_WALL_CELLS = 1 << 18
+#: team-map origins beyond this many cells from 0 are malformed
+_MAX_ORIGIN = 1 << 20
 #: a team map bigger than this is not checked: malformed (the demo's is 10,000 cells)
 MAX_TEAM_MAP_CELLS = 1 << 22
 CLAIM_HOLD_S = 5.0
@@ -113,6 +120,68 @@ GAP_HOLD_S = 1.0
 #: robots one cross-check follows, and pose streams per robot (least recently heard of dropped first)
 MAX_CROSSCHECK_ROBOTS = 1024
 MAX_POSE_STREAMS = 16
+
+
+class _Grid:
+    """A boolean grid over integer (row, column) places that grows to cover what is
+    marked, up to ``limit`` cells (a mark that would pass it is dropped: bounded)."""
+
+    __slots__ = ("cells", "row0", "col0", "limit")
+
+    def __init__(self, limit: int) -> None:
+        self.cells: np.ndarray | None = None
+        self.row0 = self.col0 = 0
+        self.limit = limit
+
+    def lookup(self, row0: int, col0: int, h: int, w: int) -> np.ndarray:
+        """The (h, w) window at (row0, col0); False where the grid does not reach."""
+        import numpy as np
+
+        out = np.zeros((h, w), dtype=bool)
+        if self.cells is None:
+            return out
+        H, W = self.cells.shape
+        r0, c0 = max(row0, self.row0), max(col0, self.col0)
+        r1, c1 = min(row0 + h, self.row0 + H), min(col0 + w, self.col0 + W)
+        if r0 < r1 and c0 < c1:
+            out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = \
+                self.cells[r0 - self.row0:r1 - self.row0, c0 - self.col0:c1 - self.col0]
+        return out
+
+    def mark(self, row0: int, col0: int, mask: np.ndarray) -> None:
+        """OR ``mask`` into the grid at (row0, col0), growing it first if it does not
+        cover the mask (by a quarter more than needed, so not on every step)."""
+        import numpy as np
+
+        h, w = mask.shape
+        if self.cells is not None:
+            H, W = self.cells.shape
+            covered = (self.row0 <= row0 and self.col0 <= col0 and row0 + h <= self.row0 + H
+                       and col0 + w <= self.col0 + W)
+        if self.cells is None or not covered:
+            r0, c0, r1, c1 = row0, col0, row0 + h, col0 + w
+            if self.cells is not None:
+                r0, c0 = min(r0, self.row0), min(c0, self.col0)
+                r1, c1 = max(r1, self.row0 + H), max(c1, self.col0 + W)
+            pad_r, pad_c = (r1 - r0) // 4, (c1 - c0) // 4
+            if (r1 - r0 + 2 * pad_r) * (c1 - c0 + 2 * pad_c) <= self.limit:
+                r0, r1, c0, c1 = r0 - pad_r, r1 + pad_r, c0 - pad_c, c1 + pad_c
+            elif (r1 - r0) * (c1 - c0) > self.limit:
+                return  # bounded: a mark that would pass the limit is dropped
+            grown = np.zeros((r1 - r0, c1 - c0), dtype=bool)
+            if self.cells is not None:
+                grown[self.row0 - r0:self.row0 - r0 + H, self.col0 - c0:self.col0 - c0 + W] = self.cells
+            self.cells, self.row0, self.col0 = grown, r0, c0
+        self.cells[row0 - self.row0:row0 - self.row0 + h, col0 - self.col0:col0 - self.col0 + w] |= mask
+
+
+@functools.cache
+def _reach_disk() -> np.ndarray:
+    """The coarse places within sensor reach of a place, as a square mask around it."""
+    import numpy as np
+
+    side = np.arange(-_REACH_RADIUS, _REACH_RADIUS + 1)
+    return side[:, None] ** 2 + side[None, :] ** 2 <= _REACH_RADIUS ** 2
 
 
 class _PoseTrack:
@@ -176,19 +245,13 @@ class Crosscheck:
 
 
 _REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
-_REACH_DISK = tuple((dx, dy) for dx in range(-_REACH_RADIUS, _REACH_RADIUS + 1)
-                    for dy in range(-_REACH_RADIUS, _REACH_RADIUS + 1) if dx * dx + dy * dy <= _REACH_RADIUS ** 2)
 
-
-#: cell keys of the team map: (row + offset) * span + (column + offset), rows and columns
-#: within +-2**20 of 0 (the decoder refuses maps beyond)
-_CELL_OFFSET = 1 << 20
-_CELL_SPAN = 1 << 22
-
-
-def _place_key(cx: Any, cy: Any) -> Any:
-    """One integer per coarse place (numpy arrays or ints alike)."""
-    return (cx + (1 << 30)) * (1 << 31) + (cy + (1 << 30))
+def warm_up() -> None:
+    """Load what scoring needs (numpy, the decoders of the known ROS 1 types) now."""
+    importlib.import_module("numpy")
+    for typename, kind in KIND_OF_TYPE.items():
+        if kind not in _DECODERS:
+            msgs.deserializer(typename)
 
 
 def robot_of(topic: str) -> str:
@@ -297,7 +360,7 @@ def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, 
     pos += _MAP_TAIL.size
     if count != width * height or count > MAX_TEAM_MAP_CELLS or pos + count > len(body):
         raise RemoteProtocolError(f"MapUpdate of {width}x{height} cells carries {count} (or too many to check)")
-    if not (abs(origin_x) < _CELL_OFFSET - width and abs(origin_y) < _CELL_OFFSET - height
+    if not (abs(origin_x) < _MAX_ORIGIN - width and abs(origin_y) < _MAX_ORIGIN - height
             and abs(x) < 1e5 and abs(y) < 1e5):
         raise RemoteProtocolError("MapUpdate origin or position out of range")
     cells = np.frombuffer(body, dtype=np.int8, count=count, offset=pos).reshape(height, width)
@@ -334,10 +397,10 @@ class StreamFeatures:
         self._robot = robot_of(topic)
         self._crosscheck = crosscheck
         self._beacon_from = beacon_from
-        self._reach: set[int] = set()  # team_map: coarse cells in reach of a reported position (_place_key)
-        self._visited: set[tuple[int, int]] = set()  # team_map: coarse cells of the reported positions
+        self._reach = _Grid(MAX_REACH_CELLS)  # team_map: coarse places in reach of a reported position
+        self._visited: set[tuple[int, int]] = set()  # team_map: coarse places of the reported positions
         self._claims: deque[tuple[float, float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen, erased)
-        self._walls: np.ndarray | None = None  # team_map: cells this stream claimed occupied (sorted keys)
+        self._walls = _Grid(MAX_WALL_CELLS)  # team_map: cells this stream claimed occupied
         self._arrivals: deque[float] = deque(maxlen=MAX_RATE_SAMPLES)
         self._size: int | None = None
         self._prev: Any = None  # the previous message's content values (per kind)
@@ -396,15 +459,21 @@ class StreamFeatures:
 
         x, y, origin_x, origin_y, cells = msg
         self._note_reach(x, y)
-        rows, cols = np.nonzero(cells != -1)
         unseen = 0.0
-        if rows.size:
+        known = cells != -1
+        total = int(np.count_nonzero(known))
+        if total:
+            # known cells counted per coarse place (consecutive places: a small grid), then
+            # looked up in the grid of places in reach (outside it: out of reach)
             scale = TEAM_MAP_RESOLUTION_M / REACH_CELL_M
-            places = _place_key(np.floor((cols + origin_x) * scale).astype(np.int64),
-                                np.floor((rows + origin_y) * scale).astype(np.int64))
-            keys, counts = np.unique(places, return_counts=True)
-            reach = self._reach
-            unseen = sum(n for k, n in zip(keys.tolist(), counts.tolist()) if k not in reach) / rows.size
+            h, w = cells.shape
+            row_place = np.floor((np.arange(h) + origin_y) * scale).astype(np.int64)
+            col_place = np.floor((np.arange(w) + origin_x) * scale).astype(np.int64)
+            row_starts = np.flatnonzero(np.diff(row_place, prepend=row_place[0] - 1))
+            col_starts = np.flatnonzero(np.diff(col_place, prepend=col_place[0] - 1))
+            counts = np.add.reduceat(np.add.reduceat(known, row_starts, axis=0, dtype=np.int64), col_starts, axis=1)
+            in_reach = self._reach.lookup(int(row_place[0]), int(col_place[0]), *counts.shape)
+            unseen = int(counts[~in_reach].sum()) / total
         erased = self._walls_erased(origin_x, origin_y, cells)
         claims = self._claims
         claims.append((now, unseen, erased))
@@ -415,31 +484,26 @@ class StreamFeatures:
     def _walls_erased(self, origin_x: int, origin_y: int, cells: np.ndarray) -> float:
         """The share of the walls this stream claimed before (within this update's patch)
         that this update calls free: a robot's own observations only grow, and a wall it
-        saw stays a wall. Remembers this update's walls (at most :data:`MAX_WALL_CELLS`)."""
+        saw stays a wall. Remembers this update's walls (a grid of at most
+        :data:`MAX_WALL_CELLS`: beyond it, walls are not remembered)."""
         import numpy as np
 
         h, w = cells.shape
         erased = 0.0
-        walls = self._walls if self._walls is not None else np.zeros(0, dtype=np.int64)
-        if walls.size:
-            r, c = walls // _CELL_SPAN - _CELL_OFFSET - origin_y, walls % _CELL_SPAN - _CELL_OFFSET - origin_x
-            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-            if inside.any():
-                erased = float(np.count_nonzero(cells[r[inside], c[inside]] == 0)) / int(np.count_nonzero(inside))
-        if walls.size < MAX_WALL_CELLS:
-            wr, wc = np.nonzero(cells > 0)
-            seen = (wr.astype(np.int64) + origin_y + _CELL_OFFSET) * _CELL_SPAN + (wc + origin_x + _CELL_OFFSET)
-            self._walls = np.union1d(walls, seen)[:MAX_WALL_CELLS]
+        before = self._walls.lookup(origin_y, origin_x, h, w)
+        n = int(np.count_nonzero(before))
+        if n:
+            erased = int(np.count_nonzero(before & (cells == 0))) / n
+        self._walls.mark(origin_y, origin_x, cells > 0)
         return erased
 
     def _note_reach(self, x: float, y: float) -> None:
-        """Every coarse cell within sensor reach of (x, y) is one the sender can have seen."""
-        place = (math.floor(x / REACH_CELL_M), math.floor(y / REACH_CELL_M))
-        if place in self._visited or len(self._reach) >= MAX_REACH_CELLS:
-            return  # a full table adds nothing: later claims beyond it score as unseen
+        """Every coarse place within sensor reach of (x, y) is one the sender can have seen."""
+        place = (math.floor(y / REACH_CELL_M), math.floor(x / REACH_CELL_M))  # (row, column)
+        if place in self._visited or len(self._visited) >= MAX_VISITED:
+            return
         self._visited.add(place)
-        cx, cy = place
-        self._reach.update(int(_place_key(cx + dx, cy + dy)) for dx, dy in _REACH_DISK)
+        self._reach.mark(place[0] - _REACH_RADIUS, place[1] - _REACH_RADIUS, _reach_disk())
 
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         import numpy as np
@@ -475,4 +539,4 @@ class StreamFeatures:
         return abs(float(msg.linear.x)), abs(float(msg.angular.z))
 
 
-__all__ = ["FEATURES", "KIND_OF_TYPE", "Crosscheck", "StreamFeatures", "kind_of", "robot_of"]
+__all__ = ["FEATURES", "KIND_OF_TYPE", "Crosscheck", "StreamFeatures", "kind_of", "robot_of", "warm_up"]

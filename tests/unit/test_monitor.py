@@ -614,3 +614,24 @@ async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quar
     assert monitor.metrics.dropped.labels("/team/map")._value.get() == 1
     stream.close()  # what the cut does to the stream in the relay
     assert stream.gate(honest[0]) is False  # a cut stream lets nothing more through
+
+
+def test_a_team_map_stream_keeps_bounded_grids_whatever_it_claims():
+    """What a team-map stream remembers (places in reach, walls) grows with what it
+    reports, never past its bounds: a claim far away or huge costs no memory."""
+    from cryptoros.monitor import features as F
+
+    f = StreamFeatures(MAP, topic="/team/map")
+    walled = np.full((40, 40), 100, np.int8)
+    f.observe(team_map(3.0, 3.0, (0, 0), walled), 1000.0, 1000.0)
+    for i in range(1, 51):  # walls claimed all over a 400 km line: only what fits the bound is kept
+        far = named("team_map", f.observe(team_map(3.0, 3.0, (i * 20_000, 0), walled), 1001.0 + i, 1001.0 + i))
+        assert far["unseen_claim"] == 1.0  # nobody at (3, 3) saw cells 4 km away
+    assert f._walls.cells.size <= F.MAX_WALL_CELLS and f._reach.cells.size <= F.MAX_REACH_CELLS
+    for i in range(200):  # positions reported all over: the places in reach stay bounded too
+        f.observe(team_map(i * 1000.0, 0.0, (0, 0), np.zeros((1, 1), np.int8)), 1100.0 + i, 1100.0 + i)
+    assert f._reach.cells.size <= F.MAX_REACH_CELLS and len(f._visited) <= F.MAX_VISITED
+    huge = named("team_map", f.observe(team_map(3.0, 3.0, (0, 0), np.zeros((2100, 2100), np.int8)), 1400.0, 1400.0))
+    assert huge["malformed"] == 1.0  # too many cells to check: malformed, not checked at a cost
+    far_off = named("team_map", f.observe(team_map(3.0, 3.0, (2 ** 21, 0), walled), 1401.0, 1401.0))
+    assert far_off["malformed"] == 1.0
