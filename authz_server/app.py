@@ -65,8 +65,8 @@ T = TypeVar("T")
 MAX_BODY = 16 * 1024
 #: how often each replica reads the feed from the registry (long-polls wake on a change)
 FEED_WATCH_INTERVAL = 0.25
-#: the longest a long-poll of the feed may wait (``/revocations?wait=``)
-MAX_FEED_WAIT = 55.0
+#: the longest ``?wait=`` a client may ask for; it is held at most ``max_feed_wait`` (config)
+MAX_FEED_WAIT = 3600.0
 #: long-polls held at once, per client certificate and per replica (more are answered at once)
 MAX_HELD_PER_CLIENT = 4
 MAX_HELD = 10_000
@@ -450,12 +450,16 @@ class AuthzService:
                 if failing:
                     log.warning("the registry answers again: the feed is watched")
                 failing = False
-            except Exception as exc:  # the database is down: serve what was last read
+            except Exception as exc:  # the database is down: the feed is read per request (and fails)
                 self._version = None
                 if not failing:
                     log.error("cannot read the revocation feed from the registry: %s", exc)
                 failing = True
                 self._latest = None
+                # held long-polls answer now (503 unless the registry answers them), not
+                # after their wait: their clients try another replica meanwhile
+                event, self._feed_changed = self._feed_changed, asyncio.Event()
+                event.set()
             await asyncio.sleep(FEED_WATCH_INTERVAL)
 
     def _note_serial(self, serial: int) -> None:
@@ -626,13 +630,16 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
 
     async def revocations(request: web.Request) -> web.Response:
         """The feed; ``?wait=S`` (at most MAX_FEED_WAIT) with a current ``If-None-Match``
-        is a long-poll: the answer comes when the feed changes, or 304 after S seconds."""
+        is a long-poll: the answer comes when the feed changes, when this replica can no
+        longer read the registry (503), or 304 after S seconds, held at most
+        ``max_feed_wait`` (a client asking longer simply asks again sooner)."""
         try:
             wait = float(request.query.get("wait", "0"))
         except ValueError:
             return _oauth_error(400, "invalid_request")
         if not 0 <= wait <= MAX_FEED_WAIT:
             return _oauth_error(400, "invalid_request")
+        wait = min(wait, service.cfg.max_feed_wait)
         stable, etag = await service.current_feed()
         if wait and etag in _if_none_match(request):
             der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)

@@ -70,6 +70,17 @@ def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
         del table[next(iter(table))]
 
 
+def held_feed_wait(feed_wait: float, *, request_timeout: float, max_feed_age: float) -> float:
+    """How long a long-poll of the feed may be held: ``feed_wait``, but short enough that
+    its answer comes before the feed counts as stale (``max_feed_age``; the answer
+    may take ``request_timeout`` more); 0 (plain polling) when nothing is left."""
+    held = min(feed_wait, max_feed_age - request_timeout - 1.0)
+    if held < feed_wait:
+        log.warning("[authz] feed_wait %g s exceeds [limits] max_feed_age %g s less request_timeout %g s and 1 s: "
+                    "the feed's long-polls are held %g s", feed_wait, max_feed_age, request_timeout, max(0.0, held))
+    return max(0.0, held)
+
+
 @dataclass(frozen=True, slots=True)
 class Peer:
     """A verified peer interceptor: the token it opened the stream with, the addresses
@@ -208,7 +219,8 @@ class Gateway:
             poll_interval=cfg.authz.revocation_poll_interval,
             grace=cfg.authz.token_grace,
             revocation_grace=cfg.authz.revocation_grace,
-            feed_wait=cfg.authz.feed_wait,
+            feed_wait=held_feed_wait(cfg.authz.feed_wait, request_timeout=cfg.authz.request_timeout,
+                                     max_feed_age=cfg.limits.max_feed_age),
         )
         self._own_cert_der = cert_der(cfg.tls.cert_file)
         self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed

@@ -205,7 +205,8 @@ def test_a_long_poll_of_the_feed_answers_as_soon_as_it_changes(daemon):
     started = time.monotonic()
     status, _ = daemon.request("GET", "/revocations?wait=1.5", cert=cert, key=key, headers={"If-None-Match": etag})
     assert status == 304 and 1.4 <= time.monotonic() - started < 5
-    assert daemon.request("GET", "/revocations?wait=99", cert=cert, key=key)[0] == 400
+    for bad in ("3601", "-1", "nan", "inf", "soon"):
+        assert daemon.request("GET", f"/revocations?wait={bad}", cert=cert, key=key)[0] == 400, bad
     _, body = daemon.token("bob")
     jti = claims_of(body["access_token"])["jti"]
     answer: dict = {}
@@ -419,3 +420,20 @@ def test_an_insider_cannot_hold_more_than_four_long_polls(daemon):
     for t in holders:
         t.join(timeout=15)
     assert len(done) == 4
+
+
+def test_a_long_poll_is_held_at_most_the_replicas_max_feed_wait(tmp_path):
+    """A client may ask for a longer wait than the replica holds (``max_feed_wait``, a
+    config key): it gets its 304 when the replica's maximum is up, and asks again."""
+    from tests.authz_support import running_daemon
+
+    team = build_team(tmp_path)
+    config = tmp_path / "authz.toml"
+    config.write_text("max_feed_wait = 1.0\n")
+    with running_daemon(team.pki, team.db, tmp_path, extra=("--config", str(config))) as d:
+        cert, key = d.cert_of("alice")
+        d.request("GET", "/revocations", cert=cert, key=key)
+        etag = d.last_headers["ETag"]
+        # 600 s asked, held 1 s: answered well within this request's 10 s socket timeout
+        status, _ = d.request("GET", "/revocations?wait=600", cert=cert, key=key, headers={"If-None-Match": etag})
+        assert status == 304
