@@ -21,7 +21,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
-from sqlalchemy import Engine, delete, func, or_, select, update
+from sqlalchemy import Engine, delete, func, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -535,14 +535,16 @@ class Registry:
 
     # ------------------------------------------------------------------ audit
     def record(self, entries: Iterable[AuditEntry]) -> None:
+        """Store audit rows in one transaction (one INSERT of many rows: no ORM objects,
+        this is the daemon's per-token write)."""
         rows = [
-            AuditLog(at=e.at, event=e.event, manager=e.manager, cert_fingerprint=e.cert_fingerprint,
-                     remote=e.remote, reason=e.reason[:256], jti=e.jti, kid=e.kid, expires_at=e.expires_at)
+            {"at": e.at, "event": e.event, "manager": e.manager, "cert_fingerprint": e.cert_fingerprint,
+             "remote": e.remote, "reason": e.reason[:256], "jti": e.jti, "kid": e.kid, "expires_at": e.expires_at}
             for e in entries
         ]
         if rows:
             with self._session.begin() as s:
-                s.add_all(rows)
+                s.execute(insert(AuditLog), rows)
 
     def prune_audit(self, *, keep_days: float, max_rows: int, now: float | None = None) -> int:
         """Bound the audit log: delete rows older than ``keep_days`` and, beyond
