@@ -12,8 +12,8 @@ Needs root (network namespaces; CI runs as root); without root it skips and says
 
 from __future__ import annotations
 
+import contextlib
 import json
-import os
 import queue
 import shutil
 import signal
@@ -185,5 +185,5 @@ def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_ki
                 stop(proc, timeout=10)
             if netns_etc is not None and netns_etc.exists():
                 shutil.rmtree(netns_etc)
-                if not os.listdir(netns_etc.parent):
+                with contextlib.suppress(OSError):  # another run's namespace may have one there now
                     netns_etc.parent.rmdir()
