@@ -49,7 +49,7 @@ from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
-from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem
+from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor
 from interceptor.pump import FrameCounter, MessageBudget, splice
@@ -68,17 +68,6 @@ def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
     table[key] = value
     while len(table) > cap:
         del table[next(iter(table))]
-
-
-def held_feed_wait(feed_wait: float, *, request_timeout: float, max_feed_age: float) -> float:
-    """How long a long-poll of the feed may be held: ``feed_wait``, but short enough that
-    its answer comes before the feed counts as stale (``max_feed_age``; the answer
-    may take ``request_timeout`` more); 0 (plain polling) when nothing is left."""
-    held = min(feed_wait, max_feed_age - request_timeout - 1.0)
-    if held < feed_wait:
-        log.warning("[authz] feed_wait %g s exceeds [limits] max_feed_age %g s less request_timeout %g s and 1 s: "
-                    "the feed's long-polls are held %g s", feed_wait, max_feed_age, request_timeout, max(0.0, held))
-    return max(0.0, held)
 
 
 @dataclass(frozen=True, slots=True)
@@ -222,6 +211,10 @@ class Gateway:
             feed_wait=held_feed_wait(cfg.authz.feed_wait, request_timeout=cfg.authz.request_timeout,
                                      max_feed_age=cfg.limits.max_feed_age),
         )
+        if self.verifier.feed_wait < cfg.authz.feed_wait:
+            log.warning("[authz] feed_wait %g s is over [limits] max_feed_age %g s less request_timeout %g s "
+                        "and 1 s: the feed's long-polls are held %g s", cfg.authz.feed_wait,
+                        cfg.limits.max_feed_age, cfg.authz.request_timeout, self.verifier.feed_wait)
         self._own_cert_der = cert_der(cfg.tls.cert_file)
         self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
