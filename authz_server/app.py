@@ -40,6 +40,7 @@ from typing import Any, TypeVar
 from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from sqlalchemy.exc import SQLAlchemyError
 
 from authz_server import keys as keymod
 from authz_server.config import ServeConfig
@@ -612,8 +613,8 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
             return _oauth_error(401, "invalid_client")
         except web.HTTPException:
             raise
-        except CryptorosError as exc:
-            log.error("%s %s failed: %s", request.method, request.path, exc)
+        except (CryptorosError, SQLAlchemyError) as exc:  # the registry cannot be read: try another replica
+            log.error("%s %s failed: %s", request.method, request.path, str(exc).splitlines()[0] if str(exc) else exc)
             return _oauth_error(503, "temporarily_unavailable")
         except Exception:
             log.exception("%s %s failed", request.method, request.path)

@@ -104,8 +104,9 @@ class AuthzClient:
 
     async def _json(self, method: str, path: str, **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
         """One request to the replica in use; one that does not answer (connection
-        refused, reset, TLS failure, timeout) hands the request to the next, which is
-        then used from now on. Any HTTP answer is an answer: no failover on a 4xx."""
+        refused, reset, TLS failure, timeout) or answers 5xx (it cannot serve now) hands
+        the request to the next, which is then used from now on. Any other HTTP answer
+        is an answer: no failover on a 4xx."""
         bases = self.settings.urls or (self.settings.url,)
         failures = []
         tries = [(self._current + k) % len(bases) for k in range(len(bases))]
@@ -115,6 +116,9 @@ class AuthzClient:
             url = bases[index] + path
             try:
                 async with self._http().request(method, url, **kw) as resp:
+                    if resp.status >= 500 and tries:  # this replica cannot serve now (its database?)
+                        failures.append(f"{method} {url}: HTTP {resp.status}")
+                        continue
                     if resp.status == 304:
                         answer = resp.status, None, resp.headers
                     else:
