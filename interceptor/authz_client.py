@@ -86,7 +86,7 @@ class AuthzClient:
         if self._session is None or self._session.closed:
             self._session = aiohttp.ClientSession(
                 connector=aiohttp.TCPConnector(ssl=self._ssl, limit=4, resolver=_SpreadResolver(self._spread),
-                                               socket_factory=_keepalive_socket),
+                                               use_dns_cache=False, socket_factory=_keepalive_socket),
                 timeout=aiohttp.ClientTimeout(total=self.settings.request_timeout),
             )
         return self._session
@@ -111,13 +111,24 @@ class AuthzClient:
         failures = []
         tries = [(self._current + k) % len(bases) for k in range(len(bases))]
         retried = set()
+        fresh = False
         while tries:
+            if fresh:
+                await self._next_address()
+                fresh = False
             index = tries.pop(0)
             url = bases[index] + path
             try:
                 async with self._http().request(method, url, **kw) as resp:
-                    if resp.status >= 500 and tries:  # this replica cannot serve now (its database?)
+                    if resp.status >= 500 and (tries or index not in retried):
+                        # this replica cannot serve now (its database?): the next url; with
+                        # none left, once more on new connections to the next address of the
+                        # url's name (one name, an address per replica)
                         failures.append(f"{method} {url}: HTTP {resp.status}")
+                        if not tries:
+                            retried.add(index)
+                            tries.insert(0, index)
+                            fresh = True
                         continue
                     if resp.status == 304:
                         answer = resp.status, None, resp.headers
@@ -142,6 +153,15 @@ class AuthzClient:
             return answer
         raise AuthzUnavailable("; ".join(failures) if len(failures) == 1 else
                                f"no authorization server answers ({len(failures)} tried): " + "; ".join(failures))
+
+    async def _next_address(self) -> None:
+        """New connections from now on, starting with the next address of each url's
+        name: the kept ones (to a replica that answered 5xx) are closed, requests held
+        on them included (their callers ask again)."""
+        self._spread += 1
+        old, self._session = self._session, None
+        if old is not None:
+            await old.close()
 
     async def fetch_token(self, *, clock: Clock = time.time, resource: str | None = None) -> OwnToken:
         """Our token; with ``resource`` (RFC 8707) one for that peer only, narrowed to

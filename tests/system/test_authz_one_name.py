@@ -20,6 +20,8 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from cryptoros.lab.netns import NetnsLab
@@ -121,13 +123,28 @@ class _Client:
             self.lines.put(answer)  # another kind's answer: keep it for its reader
 
 
-def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_killed(tmp_path):
+@dataclass
+class _OneName:
+    """Two replicas on their own hosts behind NAME, and a client on a third."""
+
+    hosts: dict
+    replicas: dict[str, subprocess.Popen]
+    start: Callable[[str], None]
+    client: _Client
+    by_address: dict[str, str]
+
+
+@contextlib.contextmanager
+def _one_name(tmp_path: Path, team, dbs: dict[str, str]) -> Iterator[_OneName]:
+    """Replicas ``authz1`` and ``authz2`` (registries ``dbs``) at one port on their own
+    hosts, NAME resolving to both on the client's host; everything stopped and deleted
+    in a ``finally`` (the namespaces, and /etc/netns/<ns> this made)."""
     separate_hosts()
-    team = build_team(tmp_path)  # one registry (SQLite: every host sees the same file)
     server = team.pki.issue("authz-fleet", kind="server", sans=(f"DNS:{NAME}",))
     pass_file = tmp_path / "signing.pass"
     pass_file.write_text(PASSPHRASE + "\n")
-    ok(authz("rotate-key", "--key-passphrase-file", str(pass_file), db=team.db))  # one key, before any replica
+    for db in set(dbs.values()):  # one key per registry, before any replica
+        ok(authz("rotate-key", "--key-passphrase-file", str(pass_file), db=db))
     port = free_port()
     replicas: dict[str, subprocess.Popen] = {}
     client: _Client | None = None
@@ -144,7 +161,7 @@ def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_ki
                 host = hosts[name]
                 log = (tmp_path / f"{name}.log").open("a")
                 replicas[name] = subprocess.Popen(host.argv([
-                    script("cryptoros-authz"), "--db", team.db, "serve", "--host", host.address, "--port", str(port),
+                    script("cryptoros-authz"), "--db", dbs[name], "serve", "--host", host.address, "--port", str(port),
                     "--ca", str(team.pki.ca_cert), "--cert", str(server.cert_path), "--key", str(server.key_path),
                     "--crl", str(team.pki.crl), "--key-passphrase-file", str(pass_file)]),
                     stdout=log, stderr=subprocess.STDOUT)
@@ -155,28 +172,7 @@ def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_ki
             cert, key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
             client = _Client(hosts["robot"].argv([sys.executable, "-c", CLIENT, f"https://{NAME}:{port}",
                                                   str(team.pki.ca_cert), str(cert), str(key)]))
-            first = client.ask("token")
-            assert first["ok"], first
-            assert client.ask("feed")["ok"]
-
-            by_address = {hosts[name].address: name for name in replicas}
-            killed = []
-            for _round in range(2):
-                holding = client.ask("hold", "holding")  # a long-poll, held by the replica the client uses
-                assert len(holding["peers"]) == 1, holding
-                victim = by_address[holding["peers"][0]]
-                killed.append(victim)
-                replicas[victim].send_signal(signal.SIGKILL)
-                replicas[victim].wait(timeout=10)
-                tokens = [client.ask("token") for _ in range(3)]
-                assert all(t["ok"] for t in tokens), tokens  # no request failed: the other address answered
-                assert all(victim not in (by_address[a] for a in t["peers"]) for t in tokens), tokens
-                revoked = _jti(tokens[0]["token"])
-                ok(authz("revoke-token", revoked, db=team.db))
-                held = client.next("hold")
-                assert held["ok"] and revoked in held["revoked"], held  # the feed, through the survivor
-                start(victim)  # back, before the other one goes
-            assert killed == ["authz1", "authz2"] or killed == ["authz2", "authz1"], killed  # each held it once
+            yield _OneName(hosts, replicas, start, client, {hosts[n].address: n for n in ("authz1", "authz2")})
         finally:
             if client is not None:
                 client.proc.stdin.close()
@@ -187,3 +183,50 @@ def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_ki
                 shutil.rmtree(netns_etc)
                 with contextlib.suppress(OSError):  # another run's namespace may have one there now
                     netns_etc.parent.rmdir()
+
+
+def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_killed(tmp_path):
+    team = build_team(tmp_path)  # one registry (SQLite: every host sees the same file)
+    with _one_name(tmp_path, team, {"authz1": team.db, "authz2": team.db}) as fleet:
+        client, by_address = fleet.client, fleet.by_address
+        first = client.ask("token")
+        assert first["ok"], first
+        assert client.ask("feed")["ok"]
+        killed = []
+        for _round in range(2):
+            holding = client.ask("hold", "holding")  # a long-poll, held by the replica the client uses
+            assert len(holding["peers"]) == 1, holding
+            victim = by_address[holding["peers"][0]]
+            killed.append(victim)
+            fleet.replicas[victim].send_signal(signal.SIGKILL)
+            fleet.replicas[victim].wait(timeout=10)
+            tokens = [client.ask("token") for _ in range(3)]
+            assert all(t["ok"] for t in tokens), tokens  # no request failed: the other address answered
+            assert all(victim not in (by_address[a] for a in t["peers"]) for t in tokens), tokens
+            revoked = _jti(tokens[0]["token"])
+            ok(authz("revoke-token", revoked, db=team.db))
+            held = client.next("hold")
+            assert held["ok"] and revoked in held["revoked"], held  # the feed, through the survivor
+            fleet.start(victim)  # back, before the other one goes
+        assert sorted(killed) == ["authz1", "authz2"], killed  # each held it once
+
+
+def test_a_replica_behind_one_name_that_answers_503_is_left_for_the_next_address(tmp_path):
+    """A replica that is up but cannot read its registry answers 503 on its kept
+    connection; with one url there is no next url, so the client opens new connections
+    starting with the name's next address."""
+    team = build_team(tmp_path)
+    dbs = {"authz1": f"sqlite:///{tmp_path / 'registry1.db'}", "authz2": f"sqlite:///{tmp_path / 'registry2.db'}"}
+    for db in dbs.values():  # two registries with one policy: only the one that breaks differs
+        ok(authz("import", str(tmp_path / "policy.yaml"), db=db))
+    with _one_name(tmp_path, team, dbs) as fleet:
+        first = fleet.client.ask("token")
+        assert first["ok"] and len(first["peers"]) == 1, first
+        victim = fleet.by_address[first["peers"][0]]
+        registry = Path(dbs[victim].removeprefix("sqlite:///"))
+        with registry.open("r+b") as fh:  # no longer a database: every read fails (503)
+            fh.write(b"\0" * 4096)
+        after = fleet.client.ask("token")
+        assert after["ok"], after
+        assert [fleet.by_address[a] for a in after["peers"]] != [victim], after
+        assert fleet.replicas[victim].poll() is None  # it was up all along
