@@ -19,8 +19,9 @@ CA never gets past the handshake):
 Database calls run in a small thread pool, never on the event loop; the JWKS and the
 feed are cached for ``cache_seconds`` (one lookup in flight per key); a manager's
 grants are kept until the registry's version moves (:meth:`AuthzService.manager_for`),
-so a token costs no database read but its audit row. Audit rows are written by group commit: each request waits until its row is
-stored, and all rows that arrive meanwhile share one transaction.
+so a token costs no database read but its audit row. Audit rows are written by group
+commit: each request waits until its row is stored, and all rows that arrive
+meanwhile share one transaction.
 """
 
 from __future__ import annotations
