@@ -16,10 +16,12 @@ CA never gets past the handshake):
   monotonic serial and an ``ETag`` so polls are cheap.
 - ``GET /healthz`` and ``GET /metrics`` (Prometheus text format).
 
-Database calls run in a small thread pool, never on the event loop; manager grants,
-the JWKS and the feed are cached for ``cache_seconds`` (one lookup in flight per
-key). Audit rows are written by group commit: each request waits until its row is
-stored, and all rows that arrive meanwhile share one transaction.
+Database calls run in a small thread pool, never on the event loop; the JWKS and the
+feed are cached for ``cache_seconds`` (one lookup in flight per key); a manager's
+grants are kept until the registry's version moves (:meth:`AuthzService.manager_for`),
+so a token costs no database read but its audit row. Audit rows are written by group
+commit: each request waits until its row is stored, and all rows that arrive
+meanwhile share one transaction.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from typing import Any, TypeVar
 from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from sqlalchemy.exc import SQLAlchemyError
 
 from authz_server import keys as keymod
 from authz_server.config import ServeConfig
@@ -64,20 +67,26 @@ T = TypeVar("T")
 MAX_BODY = 16 * 1024
 #: how often each replica reads the feed from the registry (long-polls wake on a change)
 FEED_WATCH_INTERVAL = 0.25
-#: the longest a long-poll of the feed may wait (``/revocations?wait=``)
-MAX_FEED_WAIT = 55.0
+#: the longest ``?wait=`` a client may ask for; it is held at most ``max_feed_wait`` (config)
+MAX_FEED_WAIT = 3600.0
 #: long-polls held at once, per client certificate and per replica (more are answered at once)
 MAX_HELD_PER_CLIENT = 4
 MAX_HELD = 10_000
 
 
 class _Cache:
-    """Values by key for ``ttl`` seconds, with one computation in flight per key."""
+    """Values by key for ``ttl`` seconds, with one computation in flight per key.
+
+    :meth:`clear` drops every value, and every computation in flight as well: one that
+    started before the clear may have read what the clear is about, so its result goes
+    to the callers already waiting on it and is not stored, and a caller that comes
+    after the clear starts its own."""
 
     def __init__(self, ttl: float) -> None:
         self.ttl = ttl
         self._values: dict[Any, tuple[float, Any]] = {}
         self._inflight: dict[Any, asyncio.Future] = {}
+        self._generation = 0
 
     async def get(self, key: Any, compute: Callable[[], Awaitable[T]]) -> T:
         now = time.monotonic()
@@ -89,6 +98,7 @@ class _Cache:
             return await asyncio.shield(pending)
         fut: asyncio.Future = asyncio.get_running_loop().create_future()
         self._inflight[key] = fut
+        generation = self._generation
         try:
             value = await compute()
         except BaseException as exc:
@@ -97,16 +107,19 @@ class _Cache:
             raise
         else:
             fut.set_result(value)
-            if self.ttl > 0:
+            if self.ttl > 0 and generation == self._generation:
                 self._values[key] = (time.monotonic() + self.ttl, value)
-                if len(self._values) > 10_000:
+                if len(self._values) > 100_000:
                     self._values.clear()
             return value
         finally:
-            del self._inflight[key]
+            if self._inflight.get(key) is fut:
+                del self._inflight[key]
 
     def clear(self) -> None:
         self._values.clear()
+        self._inflight.clear()
+        self._generation += 1
 
 
 class _AuditWriter:
@@ -248,8 +261,15 @@ class AuthzService:
         self.cfg = cfg
         self.registry = registry
         self.executor = ThreadPoolExecutor(max_workers=cfg.db_threads, thread_name_prefix="authz-db")
+        # the feed watcher's own thread: its read, which keeps the caches valid, never
+        # queues behind the requests' (a flood would otherwise age it past cache_seconds)
+        self._watch_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="authz-watch")
         self.metrics = Metrics()
-        self._managers = _Cache(cfg.cache_seconds)
+        # a manager's grants by certificate fingerprint, kept while the registry's version
+        # is unchanged (manager_for); the version is read by the feed watcher
+        self._managers = _Cache(float("inf"))
+        self._managers_version: int | None = None
+        self._version: tuple[int, float] | None = None  # (registry version, monotonic time its read began)
         self._feed_serial: int | None = None
         self._shared = _Cache(cfg.cache_seconds)
         self._signer: _Signer | None = None
@@ -301,6 +321,7 @@ class AuthzService:
                 task.cancel()
         await self.audit.close()
         self.executor.shutdown(wait=True)
+        self._watch_executor.shutdown(wait=True)
 
     async def _load_signer(self, kid: str, pem: bytes, encrypted: bool) -> _Signer:
         key = await self.db(keymod.load_private, pem, encrypted, self.cfg.keys, kid)
@@ -330,6 +351,18 @@ class AuthzService:
 
     # ------------------------------------------------------------------ cached reads
     async def manager_for(self, fingerprint: str) -> tuple[ManagerInfo | None, Grants]:
+        """The manager of a certificate and its grants: from the database once, then
+        from memory for as long as the registry's version (a counter every change to a
+        manager, certificate or grant bumps, in the same transaction) is the one the
+        feed watcher read less than ``cache_seconds`` ago. A change is thus seen within
+        one watcher interval (``FEED_WATCH_INTERVAL``), never later than
+        ``cache_seconds`` after its commit; while the watcher cannot read the registry,
+        nothing is served from memory."""
+        version = self._fresh_version()
+        if version is None or version != self._managers_version:
+            self._managers.clear()
+            self._managers_version = version
+
         async def fetch():
             info = await self.db(self.registry.lookup_fingerprint, fingerprint)
             grants = Grants(Grant(node=g.node, action=g.action, name=g.name, type=g.type)
@@ -337,6 +370,12 @@ class AuthzService:
             return info, grants
 
         return await self._managers.get(fingerprint, fetch)
+
+    def _fresh_version(self) -> int | None:
+        if self._version is None or self.cfg.cache_seconds <= 0:
+            return None
+        version, read_at = self._version
+        return version if time.monotonic() - read_at < self.cfg.cache_seconds else None
 
     async def jwks(self) -> dict:
         async def fetch():
@@ -399,7 +438,10 @@ class AuthzService:
         failing = False
         while True:
             try:
-                feed = await self.db(self.registry.revocation_feed, now=time.time())
+                began = time.monotonic()
+                feed = await asyncio.get_running_loop().run_in_executor(
+                    self._watch_executor, functools.partial(self.registry.revocation_feed, now=time.time()))
+                self._version = (feed.registry_version, began)
                 self._note_serial(feed.serial)
                 latest = self._stable(feed)
                 changed = self._latest is not None and latest[1] != self._latest[1]
@@ -410,11 +452,16 @@ class AuthzService:
                 if failing:
                     log.warning("the registry answers again: the feed is watched")
                 failing = False
-            except Exception as exc:  # the database is down: serve what was last read
+            except Exception as exc:  # the database is down: the feed is read per request (and fails)
+                self._version = None
                 if not failing:
                     log.error("cannot read the revocation feed from the registry: %s", exc)
                 failing = True
                 self._latest = None
+                # held long-polls answer now (503 unless the registry answers them), not
+                # after their wait: their clients try another replica meanwhile
+                event, self._feed_changed = self._feed_changed, asyncio.Event()
+                event.set()
             await asyncio.sleep(FEED_WATCH_INTERVAL)
 
     def _note_serial(self, serial: int) -> None:
@@ -567,8 +614,8 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
             return _oauth_error(401, "invalid_client")
         except web.HTTPException:
             raise
-        except CryptorosError as exc:
-            log.error("%s %s failed: %s", request.method, request.path, exc)
+        except (CryptorosError, SQLAlchemyError) as exc:  # the registry cannot be read: try another replica
+            log.error("%s %s failed: %s", request.method, request.path, str(exc).splitlines()[0] if str(exc) else exc)
             return _oauth_error(503, "temporarily_unavailable")
         except Exception:
             log.exception("%s %s failed", request.method, request.path)
@@ -585,13 +632,16 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
 
     async def revocations(request: web.Request) -> web.Response:
         """The feed; ``?wait=S`` (at most MAX_FEED_WAIT) with a current ``If-None-Match``
-        is a long-poll: the answer comes when the feed changes, or 304 after S seconds."""
+        is a long-poll: the answer comes when the feed changes, when this replica can no
+        longer read the registry (503), or 304 after S seconds, held at most
+        ``max_feed_wait`` (a client asking longer simply asks again sooner)."""
         try:
             wait = float(request.query.get("wait", "0"))
         except ValueError:
             return _oauth_error(400, "invalid_request")
         if not 0 <= wait <= MAX_FEED_WAIT:
             return _oauth_error(400, "invalid_request")
+        wait = min(wait, service.cfg.max_feed_wait)
         stable, etag = await service.current_feed()
         if wait and etag in _if_none_match(request):
             der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)

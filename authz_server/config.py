@@ -24,6 +24,7 @@ DEFAULT_ISSUER = "cryptoros-authz"
 DEFAULT_AUDIENCE = "cryptoros"
 DEFAULT_LIFETIME = 300
 MIN_LIFETIME, MAX_LIFETIME = 10, 24 * 3600
+MAX_FEED_WAIT_LIMIT = 900.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -49,6 +50,9 @@ class ServeConfig:
     #: the audit log keeps rows this many days, and at most audit_max_rows (pruned hourly)
     audit_keep_days: float = 90.0
     audit_max_rows: int = 1_000_000
+    #: the longest this replica holds a long-poll of the feed (``/revocations?wait=``); a
+    #: longer wait is held this long. Any proxy in front must allow a request this long.
+    max_feed_wait: float = 300.0
 
     def __post_init__(self) -> None:
         try:
@@ -78,6 +82,9 @@ class ServeConfig:
         if not (1 <= self.audit_keep_days <= 36_500 and 1_000 <= self.audit_max_rows <= 1_000_000_000):
             raise ConfigError(f"invalid audit_keep_days/audit_max_rows {self.audit_keep_days!r}/"
                               f"{self.audit_max_rows!r}: expected 1..36500 days and 1000..1e9 rows")
+
+        if not (1 <= self.max_feed_wait <= MAX_FEED_WAIT_LIMIT):
+            raise ConfigError(f"invalid max_feed_wait {self.max_feed_wait!r}: expected 1..{MAX_FEED_WAIT_LIMIT:g} seconds")
 
     def probe_endpoint(self) -> tuple[str, int]:
         """The probe's (host, port); it must be on loopback: it answers without a certificate."""
@@ -116,6 +123,7 @@ CONFIG_KEYS = {
     "token_burst": int,
     "audit_keep_days": float,
     "audit_max_rows": int,
+    "max_feed_wait": float,
 }
 
 

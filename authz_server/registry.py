@@ -21,7 +21,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
-from sqlalchemy import Engine, delete, func, or_, select, update
+from sqlalchemy import Engine, delete, func, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -51,6 +51,9 @@ _MANAGER_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,127}$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 POLICY_VERSION = 1
 REVOCATION_SERIAL = "revocation_serial"
+#: bumped by every change to a manager, its certificate or its grants: a replica keeps a
+#: manager's grants cached for as long as this has not moved (the feed watcher reads it)
+REGISTRY_VERSION = "registry_version"
 
 
 def _now() -> datetime:
@@ -131,6 +134,8 @@ class RevocationFeed:
     serial: int
     revoked_jtis: tuple[str, ...]
     disabled_managers: tuple[str, ...]
+    #: the registry's REGISTRY_VERSION when this was read (not served: the replicas' own)
+    registry_version: int = 0
 
 
 @dataclass(frozen=True)
@@ -178,12 +183,17 @@ class Registry:
             raise RegistryError(f"unknown manager {name!r}")
         return m
 
-    def _bump_serial(self, s: Session) -> None:
-        row = s.get(RegistryState, REVOCATION_SERIAL, with_for_update=True)
+    def _bump_serial(self, s: Session, key: str = REVOCATION_SERIAL) -> None:
+        row = s.get(RegistryState, key, with_for_update=True)
         if row is None:
-            s.add(RegistryState(key=REVOCATION_SERIAL, value=1))
+            s.add(RegistryState(key=key, value=1))
         else:
             row.value = row.value + 1
+
+    def _managers_changed(self, s: Session) -> None:
+        """A manager, its certificate or its grants changed in this transaction: every
+        replica's cached lookups are dropped once its feed watcher reads the new version."""
+        self._bump_serial(s, REGISTRY_VERSION)
 
     def _revoke_outstanding(self, s: Session, manager: str, reason: str) -> int:
         """Revoke every unexpired token issued to ``manager``; return how many."""
@@ -217,6 +227,7 @@ class Registry:
                 self._check_fp_free(s, fp, name)
             m = Manager(name=name, cert_fingerprint=fp, enabled=enabled, created_at=_now())
             s.add(m)
+            self._managers_changed(s)  # a replica may have cached its certificate as unknown
             if not enabled:
                 self._bump_serial(s)
             s.flush()
@@ -236,6 +247,7 @@ class Registry:
             if m.cert_fingerprint == fp:
                 return 0
             m.cert_fingerprint = fp
+            self._managers_changed(s)
             return self._revoke_outstanding(s, name, "certificate replaced")
 
     def set_enabled(self, name: str, enabled: bool) -> bool:
@@ -246,6 +258,7 @@ class Registry:
                 return False
             m.enabled = enabled
             self._bump_serial(s)
+            self._managers_changed(s)
             if not enabled:
                 self._revoke_outstanding(s, name, "manager disabled")
             return True
@@ -255,6 +268,7 @@ class Registry:
             m = self._manager(s, name)
             self._revoke_outstanding(s, name, "manager removed")
             s.delete(m)
+            self._managers_changed(s)
 
     def list_managers(self) -> list[ManagerInfo]:
         with self._session() as s:
@@ -288,6 +302,7 @@ class Registry:
             added = self._add_grant(s, m, g)
             if added:
                 self._bump_serial(s)  # the feed changes: interceptors fetch tokens with the new grant
+                self._managers_changed(s)
             return added
 
     def _add_grant(self, s: Session, m: Manager, g: GrantRow) -> bool:
@@ -326,6 +341,7 @@ class Registry:
             if not removed:
                 raise RegistryError(f"manager {manager!r} has no {action} grant for {node} on {name}"
                                     + (f" with type {type_}" if type_ else ""))
+            self._managers_changed(s)
             self._revoke_outstanding(s, manager, f"{action} grant revoked")
             return removed
 
@@ -428,6 +444,8 @@ class Registry:
                     for g in sorted(w.grants - have):
                         self._add_grant(s, m, g)
                         stats["grants_added"] += 1
+                if any(stats.values()):
+                    self._managers_changed(s)
         except IntegrityError as exc:  # pragma: no cover - guarded by the checks above
             raise RegistryError(f"policy conflicts with the registry: {exc.orig}") from exc
         return stats
@@ -506,22 +524,27 @@ class Registry:
 
     def revocation_feed(self, *, now: float) -> RevocationFeed:
         with self._session() as s:
-            serial = s.scalar(select(RegistryState.value).where(RegistryState.key == REVOCATION_SERIAL)) or 0
+            counters = {key: value for key, value in s.execute(
+                select(RegistryState.key, RegistryState.value)
+                .where(RegistryState.key.in_((REVOCATION_SERIAL, REGISTRY_VERSION))))}
+            serial = counters.get(REVOCATION_SERIAL) or 0
             jtis = tuple(s.scalars(select(RevokedToken.jti).where(RevokedToken.expires_at > int(now))
                                    .order_by(RevokedToken.jti)))
             disabled = tuple(s.scalars(select(Manager.name).where(Manager.enabled.is_(False)).order_by(Manager.name)))
-            return RevocationFeed(serial, jtis, disabled)
+            return RevocationFeed(serial, jtis, disabled, counters.get(REGISTRY_VERSION) or 0)
 
     # ------------------------------------------------------------------ audit
     def record(self, entries: Iterable[AuditEntry]) -> None:
+        """Store audit rows in one transaction (one INSERT of many rows: no ORM objects,
+        this is the daemon's per-token write)."""
         rows = [
-            AuditLog(at=e.at, event=e.event, manager=e.manager, cert_fingerprint=e.cert_fingerprint,
-                     remote=e.remote, reason=e.reason[:256], jti=e.jti, kid=e.kid, expires_at=e.expires_at)
+            {"at": e.at, "event": e.event, "manager": e.manager, "cert_fingerprint": e.cert_fingerprint,
+             "remote": e.remote, "reason": e.reason[:256], "jti": e.jti, "kid": e.kid, "expires_at": e.expires_at}
             for e in entries
         ]
         if rows:
             with self._session.begin() as s:
-                s.add_all(rows)
+                s.execute(insert(AuditLog), rows)
 
     def prune_audit(self, *, keep_days: float, max_rows: int, now: float | None = None) -> int:
         """Bound the audit log: delete rows older than ``keep_days`` and, beyond

@@ -40,6 +40,8 @@ import asyncio
 import contextlib
 import errno
 import logging
+import random
+import socket
 import ssl
 import time
 from collections.abc import Callable
@@ -78,11 +80,13 @@ class AuthzClient:
         self._session: aiohttp.ClientSession | None = None
         self._feed_etag: str | None = None
         self._current = 0  # the replica in use (settings.urls)
+        self._spread = random.randrange(1 << 16)  # which address of a name this client tries first
 
     def _http(self) -> aiohttp.ClientSession:
         if self._session is None or self._session.closed:
             self._session = aiohttp.ClientSession(
-                connector=aiohttp.TCPConnector(ssl=self._ssl, limit=4),
+                connector=aiohttp.TCPConnector(ssl=self._ssl, limit=4, resolver=_SpreadResolver(self._spread),
+                                               use_dns_cache=False, socket_factory=_keepalive_socket),
                 timeout=aiohttp.ClientTimeout(total=self.settings.request_timeout),
             )
         return self._session
@@ -100,15 +104,32 @@ class AuthzClient:
 
     async def _json(self, method: str, path: str, **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
         """One request to the replica in use; one that does not answer (connection
-        refused, reset, TLS failure, timeout) hands the request to the next, which is
-        then used from now on. Any HTTP answer is an answer: no failover on a 4xx."""
+        refused, reset, TLS failure, timeout) or answers 5xx (it cannot serve now) hands
+        the request to the next, which is then used from now on. Any other HTTP answer
+        is an answer: no failover on a 4xx."""
         bases = self.settings.urls or (self.settings.url,)
         failures = []
-        for attempt in range(len(bases)):
-            index = (self._current + attempt) % len(bases)
+        tries = [(self._current + k) % len(bases) for k in range(len(bases))]
+        retried = set()
+        fresh = False
+        while tries:
+            if fresh:
+                await self._next_address()
+                fresh = False
+            index = tries.pop(0)
             url = bases[index] + path
             try:
                 async with self._http().request(method, url, **kw) as resp:
+                    if resp.status >= 500 and (tries or index not in retried):
+                        # this replica cannot serve now (its database?): the next url; with
+                        # none left, once more on new connections to the next address of the
+                        # url's name (one name, an address per replica)
+                        failures.append(f"{method} {url}: HTTP {resp.status}")
+                        if not tries:
+                            retried.add(index)
+                            tries.insert(0, index)
+                            fresh = True
+                        continue
                     if resp.status == 304:
                         answer = resp.status, None, resp.headers
                     else:
@@ -118,6 +139,11 @@ class AuthzClient:
                         answer = resp.status, body, resp.headers
             except (aiohttp.ClientConnectionError, asyncio.TimeoutError, ssl.SSLError, OSError) as exc:
                 failures.append(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}")
+                if _lost_connection(exc) and index not in retried:
+                    # a kept connection died under the request (its replica went away): once
+                    # more on a new one, which tries every address the url's name has
+                    retried.add(index)
+                    tries.insert(0, index)
                 continue
             except (aiohttp.ClientError, ValueError) as exc:
                 raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}") from exc
@@ -127,6 +153,15 @@ class AuthzClient:
             return answer
         raise AuthzUnavailable("; ".join(failures) if len(failures) == 1 else
                                f"no authorization server answers ({len(failures)} tried): " + "; ".join(failures))
+
+    async def _next_address(self) -> None:
+        """New connections from now on, starting with the next address of each url's
+        name: the kept ones (to a replica that answered 5xx) are closed, requests held
+        on them included (their callers ask again)."""
+        self._spread += 1
+        old, self._session = self._session, None
+        if old is not None:
+            await old.close()
 
     async def fetch_token(self, *, clock: Clock = time.time, resource: str | None = None) -> OwnToken:
         """Our token; with ``resource`` (RFC 8707) one for that peer only, narrowed to
@@ -182,6 +217,44 @@ class AuthzClient:
             revoked_jtis=frozenset(str(j) for j in jtis), disabled_subjects=frozenset(str(m) for m in managers),
             revoked_serials=revoked_serials, serial=serial,
         )
+
+
+def _lost_connection(exc: BaseException) -> bool:
+    """The request failed on a connection that was open (not in connecting to it)."""
+    return isinstance(exc, (aiohttp.ServerDisconnectedError, aiohttp.ClientOSError)) and \
+        not isinstance(exc, aiohttp.ClientConnectorError)
+
+
+class _SpreadResolver(aiohttp.ThreadedResolver):
+    """Every address the system resolver (getaddrinfo: /etc/hosts, DNS) gives for a name;
+    the connector tries them in turn until one connects, so one name with an address
+    per replica fails over on a new connection. The list is rotated by this client's
+    own offset: a fleet given one name spreads over its addresses, as round-robin DNS
+    would, even where the resolver returns them in one order."""
+
+    def __init__(self, offset: int) -> None:
+        super().__init__()
+        self._offset = offset
+
+    async def resolve(self, host: str, port: int = 0, family: socket.AddressFamily = socket.AF_INET):
+        hosts = await super().resolve(host, port, family)
+        if len(hosts) > 1:
+            k = self._offset % len(hosts)
+            hosts = hosts[k:] + hosts[:k]
+        return hosts
+
+
+def _keepalive_socket(addr_info) -> socket.socket:
+    """A TCP socket with keepalive probes after 10 s idle, every 5 s, 3 unanswered:
+    a replica whose host is gone is noticed about 25 s into a held long-poll, not at
+    its end."""
+    family, type_, proto, _name, _addr = addr_info
+    sock = socket.socket(family=family, type=type_, proto=proto)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for option, value in (("TCP_KEEPIDLE", 10), ("TCP_KEEPINTVL", 5), ("TCP_KEEPCNT", 3)):
+        if hasattr(socket, option):
+            sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, option), value)
+    return sock
 
 
 def _hint(exc: BaseException) -> str:

@@ -138,7 +138,9 @@ class AuthzSettings:
     revocation_poll_interval: float = 1.0
     #: the server holds a feed request up to this long and answers at once on a change
     #: (long-poll: changes arrive within a fraction of a second, one request per this
-    #: many seconds when nothing changes); 0 polls every revocation_poll_interval
+    #: many seconds when nothing changes); 0 polls every revocation_poll_interval. A
+    #: hold is kept under [limits] max_feed_age - request_timeout (the feed would look
+    #: stale meanwhile) and under the server's max_feed_wait (it answers then)
     feed_wait: float = 25.0
     request_timeout: float = 5.0
     #: A stream is cut this long after its peer's freshest token expired.
@@ -363,7 +365,7 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         },
     )
 
-    for name, low, high in (("revocation_poll_interval", 0.05, 60.0), ("feed_wait", 0.0, 55.0),
+    for name, low, high in (("revocation_poll_interval", 0.05, 60.0), ("feed_wait", 0.0, 600.0),
                             ("request_timeout", 0.1, 120.0)):
         value = getattr(authz, name)
         if not low <= value <= high:

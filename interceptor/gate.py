@@ -161,6 +161,14 @@ def feed_problem(*, refused: bool, last_feed_at: float | None, now: float, max_a
     return None
 
 
+
+def held_feed_wait(feed_wait: float, *, request_timeout: float, max_feed_age: float) -> float:
+    """How long a long-poll of the feed may be held: ``feed_wait``, but short enough for
+    its answer (which may take ``request_timeout`` more, and a second of slack) to come
+    before the feed counts as stale (``max_feed_age``); 0, plain polling, when nothing
+    is left."""
+    return max(0.0, min(feed_wait, max_feed_age - request_timeout - 1.0))
+
 class PendingStreams:
     """Streams whose token is not verified yet, counted per key (a source address, a
     certificate): a peer that dribbles its preamble holds at most ``cap`` of them."""

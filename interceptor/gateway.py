@@ -58,7 +58,7 @@ from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
-from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem
+from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor
 from interceptor.pump import FrameCounter, MessageBudget, splice
@@ -234,8 +234,13 @@ class Gateway:
             poll_interval=cfg.authz.revocation_poll_interval,
             grace=cfg.authz.token_grace,
             revocation_grace=cfg.authz.revocation_grace,
-            feed_wait=cfg.authz.feed_wait,
+            feed_wait=held_feed_wait(cfg.authz.feed_wait, request_timeout=cfg.authz.request_timeout,
+                                     max_feed_age=cfg.limits.max_feed_age),
         )
+        if self.verifier.feed_wait < cfg.authz.feed_wait:
+            log.warning("[authz] feed_wait %g s is over [limits] max_feed_age %g s less request_timeout %g s "
+                        "and 1 s: the feed's long-polls are held %g s", cfg.authz.feed_wait,
+                        cfg.limits.max_feed_age, cfg.authz.request_timeout, self.verifier.feed_wait)
         self._own_cert_der = cert_der(cfg.tls.cert_file)
         self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))

@@ -141,7 +141,7 @@ def _policy(managers: list[tuple[str, str]]) -> str:
 
 
 @contextlib.contextmanager
-def _fleet(workdir: Path, clients: int, replicas: int) -> Iterator[Fleet]:
+def _fleet(workdir: Path, clients: int, replicas: int, feed_wait: float) -> Iterator[Fleet]:
     """PKI, registry, PostgreSQL (or the SQLite fallback) and the replicas; everything
     is stopped in a ``finally``."""
     from certs.pki import PKI
@@ -197,7 +197,7 @@ def _fleet(workdir: Path, clients: int, replicas: int) -> Iterator[Fleet]:
             f'key = "{server_cert.key_path}"', f'crl = "{pki.crl_path}"', f'signing_key_passphrase_file = "{pass_file}"',
             # the token loop is synthetic (an interceptor asks every few minutes): the
             # per-certificate limit (20/s) is raised so it measures issuing, not 429s
-            "token_rate = 1000.0", "token_burst = 10000", "",
+            "token_rate = 1000.0", "token_burst = 10000", f"max_feed_wait = {max(300.0, feed_wait):g}", "",
         ]))
         t0 = time.monotonic()
         _progress(f"starting {replicas} cryptoros-authz serve replicas")
@@ -742,8 +742,9 @@ def _report(result: dict) -> None:
               help="The replicas' CPU with no client, subtracted for the net idle/polling figures.")
 @click.option("--token-seconds", type=click.FloatRange(1, 600), default=20.0, show_default=True)
 @click.option("--revocations", type=click.IntRange(1, 100), default=5, show_default=True)
-@click.option("--feed-wait", type=click.FloatRange(1, 55), default=None, show_default="the interceptor's "
-              "[authz] feed_wait default", help="Long-poll wait (?wait=) of the clients (the server allows 55 s).")
+@click.option("--feed-wait", type=click.FloatRange(1, 600), default=None, show_default="the interceptor's "
+              "[authz] feed_wait default", help="Long-poll wait (?wait=) of the clients (the replicas' max_feed_wait "
+              "is set to at least this).")
 @click.option("--idle-seconds", type=click.FloatRange(1, 3600), default=120.0, show_default=True)
 @click.option("--poll-seconds", type=click.FloatRange(1, 3600), default=30.0, show_default=True)
 @click.option("--failover-seconds", type=click.FloatRange(3, 600), default=15.0, show_default=True)
@@ -784,7 +785,7 @@ def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: f
     started = time.monotonic()
     load_before = os.getloadavg()
     try:
-        with _fleet(workdir, plan.clients, plan.replicas) as the_fleet:
+        with _fleet(workdir, plan.clients, plan.replicas, plan.feed_wait) as the_fleet:
             try:
                 import uvloop  # type: ignore[import-not-found]
 

@@ -222,6 +222,37 @@ def test_daemon_on_postgresql(team, postgres_url):
     assert "issued manager=alice" in audit and "reason=unknown_certificate" in audit
 
 
+def test_a_held_long_poll_answers_when_the_replica_loses_its_database(team, postgres_url):
+    """A long-poll held by a replica that can no longer read the registry is answered
+    then (503: its client tries another replica), not at the end of its wait: the
+    database is dropped (connections terminated) under a 60 s hold, and the answer comes
+    within the request's 10 s socket timeout."""
+    import threading
+
+    import psycopg
+
+    policy = team.workdir / "policy.yaml"
+    ok(authz("import", str(policy), db=postgres_url))
+    d = AuthzDaemon(pki=team.pki, db=postgres_url, workdir=team.workdir)
+    try:
+        d.start()
+        cert, key = d.cert_of("alice")
+        d.request("GET", "/revocations", cert=cert, key=key)
+        etag = d.last_headers["ETag"]
+        answer: list = []
+        holder = threading.Thread(target=lambda: answer.append(d.request(
+            "GET", "/revocations?wait=60", cert=cert, key=key, headers={"If-None-Match": etag})))
+        holder.start()
+        time.sleep(1.0)  # the request is held
+        server, _, name = postgres_url.replace("postgresql+psycopg://", "postgresql://").rpartition("/")
+        with psycopg.connect(f"{server}/postgres", autocommit=True, connect_timeout=10) as conn:
+            conn.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
+        holder.join(timeout=30)
+        assert answer and answer[0][0] == 503, answer  # not a 304 after 60 s, nor the socket's timeout
+    finally:
+        d.stop()
+
+
 def test_serve_from_a_toml_config_with_short_tokens_and_env_passphrase(team, tmp_path):
     import json
     import os

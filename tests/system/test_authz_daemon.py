@@ -205,7 +205,8 @@ def test_a_long_poll_of_the_feed_answers_as_soon_as_it_changes(daemon):
     started = time.monotonic()
     status, _ = daemon.request("GET", "/revocations?wait=1.5", cert=cert, key=key, headers={"If-None-Match": etag})
     assert status == 304 and 1.4 <= time.monotonic() - started < 5
-    assert daemon.request("GET", "/revocations?wait=99", cert=cert, key=key)[0] == 400
+    for bad in ("3601", "-1", "nan", "inf", "soon"):
+        assert daemon.request("GET", f"/revocations?wait={bad}", cert=cert, key=key)[0] == 400, bad
     _, body = daemon.token("bob")
     jti = claims_of(body["access_token"])["jti"]
     answer: dict = {}
@@ -302,6 +303,37 @@ def test_disabled_manager_is_refused_and_listed_in_the_feed(daemon):
     ok(daemon.cli("enable-manager", "carol"))
 
 
+def _until(daemon, name: str, wanted: tuple[int, dict], bound: float = 10.0) -> None:
+    """Ask for tokens until the answer is ``wanted`` (a bound for a slow machine, not a
+    timing claim: the change reaches the replica within one feed-watcher interval)."""
+    deadline = time.monotonic() + bound
+    while (got := daemon.token(name)) != wanted:
+        assert time.monotonic() < deadline, got
+        time.sleep(0.1)
+
+
+def test_registry_changes_that_revoke_no_token_reach_the_next_token_request(daemon):
+    """The daemon keeps a manager's grants in memory until the registry's version moves.
+    Changes that revoke no token (so the revocation serial stays) move it too: a
+    certificate it has refused as unknown, registered meanwhile, gets tokens; a manager
+    that holds no token, moved to a new certificate, is refused on the old one."""
+    pki = daemon.team.pki
+    frank = pki.issue("frank")
+    assert daemon.token("frank") == (401, {"error": "invalid_client"})  # now known as unknown
+    ok(daemon.cli("add-manager", "frank", "--fingerprint", frank.fingerprint_sha256))
+    deadline = time.monotonic() + 10
+    while (status := daemon.token("frank")[0]) != 200:
+        assert status == 401 and time.monotonic() < deadline, status
+        time.sleep(0.1)
+
+    erin_old, erin_new = pki.issue("erin"), pki.issue("erin_new")
+    ok(daemon.cli("add-manager", "erin", "--fingerprint", erin_old.fingerprint_sha256, "--disabled"))
+    _until(daemon, "erin", (403, {"error": "access_denied"}))  # erin's old certificate, known: no token issued
+    ok(daemon.cli("set-cert", "erin", "--fingerprint", erin_new.fingerprint_sha256))
+    _until(daemon, "erin", (401, {"error": "invalid_client"}))  # the old certificate is nobody's now
+    assert daemon.token("erin_new") == (403, {"error": "access_denied"})  # the new one is erin's, still disabled
+
+
 def test_certificate_revoked_while_running_is_refused_within_seconds(daemon):
     # a manager registered and working...
     daemon.team.pki.issue("dave")
@@ -388,3 +420,20 @@ def test_an_insider_cannot_hold_more_than_four_long_polls(daemon):
     for t in holders:
         t.join(timeout=15)
     assert len(done) == 4
+
+
+def test_a_long_poll_is_held_at_most_the_replicas_max_feed_wait(tmp_path):
+    """A client may ask for a longer wait than the replica holds (``max_feed_wait``, a
+    config key): it gets its 304 when the replica's maximum is up, and asks again."""
+    from tests.authz_support import running_daemon
+
+    team = build_team(tmp_path)
+    config = tmp_path / "authz.toml"
+    config.write_text("max_feed_wait = 1.0\n")
+    with running_daemon(team.pki, team.db, tmp_path, extra=("--config", str(config))) as d:
+        cert, key = d.cert_of("alice")
+        d.request("GET", "/revocations", cert=cert, key=key)
+        etag = d.last_headers["ETag"]
+        # 600 s asked, held 1 s: answered well within this request's 10 s socket timeout
+        status, _ = d.request("GET", "/revocations?wait=600", cert=cert, key=key, headers={"If-None-Match": etag})
+        assert status == 304

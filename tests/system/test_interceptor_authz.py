@@ -279,3 +279,30 @@ async def test_replicas_on_postgresql_and_the_client_fails_over_when_one_dies(tm
             assert switched == [f"authorization server {first.base} does not answer; using {second.base}"]
         finally:
             await client.close()
+
+
+async def test_a_replica_that_answers_5xx_hands_the_request_to_the_next(tmp_path, postgres_url):
+    """A replica that cannot read its registry answers 503 (it is alive: no connection
+    error to fail over on); the client takes that as "not now" and asks the next url,
+    which is then used. A 4xx stays an answer (the other tests)."""
+    import psycopg
+
+    from tests.authz_support import authz, ok
+
+    team = build_team(tmp_path, db=postgres_url)
+    other_db = f"sqlite:///{tmp_path / 'other.db'}"  # the second replica's registry: the same policy
+    ok(authz("import", str(tmp_path / "policy.yaml"), db=other_db))
+    with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, other_db, tmp_path) as second:
+        alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
+        ctx = client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert, key_file=alice_key))
+        client = AuthzClient(AuthzSettings(url=first.base, urls=(first.base, second.base), request_timeout=5.0), ctx)
+        try:
+            await client.fetch_token()  # the first answers
+            server, _, name = postgres_url.replace("postgresql+psycopg://", "postgresql://").rpartition("/")
+            with psycopg.connect(f"{server}/postgres", autocommit=True, connect_timeout=10) as conn:
+                conn.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
+            await client.fetch_token()  # the first answers 503: the second issues it
+            assert client._current == 1  # and used from now on
+            assert "POST /token failed" in first.log()  # the replica's reason, in its log
+        finally:
+            await client.close()

@@ -163,3 +163,12 @@ def test_a_local_subscriber_is_checked_by_the_policy_before_its_stream_leaves():
         with pytest.raises(PolicyDenied) as info:
             check_local_subscriber_header({**header, **changed}, grants=grants)
         assert info.value.reason == reason
+
+
+def test_a_held_long_poll_ends_before_the_feed_counts_as_stale():
+    from interceptor.gate import held_feed_wait
+
+    assert held_feed_wait(25.0, request_timeout=5.0, max_feed_age=60.0) == 25.0  # the defaults: as asked
+    assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=60.0) == 54.0  # cut to fit max_feed_age
+    assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=330.0) == 300.0
+    assert held_feed_wait(25.0, request_timeout=5.0, max_feed_age=3.0) == 0.0  # nothing left: plain polling
