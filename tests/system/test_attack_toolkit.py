@@ -87,9 +87,11 @@ def victim_run(victim_env: dict[str, str], attacks: list[tuple[dict[str, str], l
 
 
 def shut_down(lines: list[str]) -> bool:
-    """A shutdown before the victim's own end (rospy also reports its atexit)."""
+    """A shutdown before the victim's own end (rospy also reports its atexit): the
+    victim's pre-shutdown hook, or rospy's own "shutdown request:" line (the hook can
+    lose the race with the victim's end; rospy logs the request when it receives it)."""
     end = lines.index("END") if "END" in lines else len(lines)
-    return any(x.startswith("SHUTDOWN") and "atexit" not in x for x in lines[:end])
+    return any(x.startswith(("SHUTDOWN", "shutdown request:")) and "atexit" not in x for x in lines[:end])
 
 
 def counts(lines: list[str]) -> dict[str, int]:
