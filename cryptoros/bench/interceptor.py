@@ -423,19 +423,26 @@ async def _tcpros_probe(host: str, port: int, topic: str = "/bench_str") -> tupl
         "topic": topic, "type": "std_msgs/String",
     })
     t0 = time.perf_counter()
-    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), 10)
-    try:
-        writer.write(header)
-        (length,) = struct.unpack("<I", await asyncio.wait_for(reader.readexactly(4), 10))
-        body = await asyncio.wait_for(reader.readexactly(length), 10)
-    except BaseException:
-        writer.close()
-        raise
+    _reader, writer, body = await _open_with_header(host, port, header)
     elapsed = time.perf_counter() - t0
     if b"error=" in body:
         writer.close()
         raise NetworkError(f"publisher refused the probe: {body[:200]!r}")
     return elapsed, writer
+
+
+async def _open_with_header(host: str, port: int, header: bytes) -> tuple[asyncio.StreamReader,
+                                                                          asyncio.StreamWriter, bytes]:
+    """Connect, send a TCPROS connection header, read the reply header (each step
+    bounded): the streams and the reply's bytes. Closed on failure."""
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), 10)
+    try:
+        writer.write(header)
+        (length,) = struct.unpack("<I", await asyncio.wait_for(reader.readexactly(4), 10))
+        return reader, writer, await asyncio.wait_for(reader.readexactly(length), 10)
+    except BaseException:
+        writer.close()
+        raise
 
 
 async def _service_probe(host: str, port: int, service: str = "/bench_srv") -> float:
@@ -447,11 +454,8 @@ async def _service_probe(host: str, port: int, service: str = "/bench_srv") -> f
     srv = msgs.service_type("std_srvs/Trigger")
     header = encode_header({"callerid": "/bench_probe", "md5sum": srv.md5sum, "persistent": "0", "service": service})
     t0 = time.perf_counter()
-    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), 10)
+    reader, writer, body = await _open_with_header(host, port, header)
     try:
-        writer.write(header)
-        (length,) = struct.unpack("<I", await asyncio.wait_for(reader.readexactly(4), 10))
-        body = await asyncio.wait_for(reader.readexactly(length), 10)
         if b"error=" in body:
             raise NetworkError(f"service server refused the probe: {body[:200]!r}")
         writer.write(encode_frame(b""))
