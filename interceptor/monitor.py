@@ -132,6 +132,8 @@ class Monitor:
         self._cuts: dict[tuple[str, str], set[Callable[[], None]]] = {}
         #: what the streams tell about each other (a robot's beacons against its poses)
         self.crosscheck = Crosscheck()
+        #: this host's own beacon streams read (one per publisher and topic)
+        self._references: dict[tuple[str, str], WatchedStream] = {}
 
     def reconfigure(self, settings: MonitorSettings, model: MonitorModel) -> None:
         """SIGHUP: new settings and model (loaded and checked by the caller). Open streams
@@ -199,11 +201,16 @@ class Monitor:
     def watch_reference(self, *, manager: str, publisher: str, topic: str, typename: str) -> WatchedStream | None:
         """A stream this host's own node sends out (``manager`` is this interceptor's),
         tapped only for what other streams are checked against: its robot's beacons.
-        Never scored, never cut; None for every other kind, or past the stream cap."""
-        if kind_of(typename) != "beacon" or len(self._streams) >= self.settings.max_streams:
+        Never scored, never cut; None for every other kind, past the stream cap, or when
+        the same publisher's topic is already read on its way to another peer (one copy
+        of each beacon is enough)."""
+        key = (publisher, topic)
+        if kind_of(typename) != "beacon" or len(self._streams) >= self.settings.max_streams \
+                or key in self._references:
             return None
         stream = WatchedStream(self, manager, publisher, topic, typename, lambda: None, reference=True)
         self._streams.add(stream)
+        self._references[key] = stream
         return stream
 
     def _alert(self, stream: WatchedStream, feature: str, score: float) -> None:
@@ -265,6 +272,7 @@ class WatchedStream:
         self.closed = False
         self.logged_at = -ALERT_LOG_INTERVAL
         self._scored = 0
+        self._messages_counted = monitor.metrics.messages.labels(topic)
 
     def feed(self, data: bytes) -> None:
         """The pump's tap: queue a forwarded chunk of TCPROS frames (no copy, no parsing)."""
@@ -297,6 +305,8 @@ class WatchedStream:
         self._chunks.clear()
         self._buffer.clear()
         self.monitor._streams.discard(self)
+        if self.reference and self.monitor._references.get((self.publisher, self.topic)) is self:
+            del self.monitor._references[(self.publisher, self.topic)]
 
     def _give_up(self, reason: str) -> None:
         self.monitor.metrics.given_up.labels(reason).inc()
@@ -321,7 +331,8 @@ class WatchedStream:
     def _gate_timed(self, body: bytes) -> bool:
         monitor = self.monitor
         try:
-            suspicious = self._score(body, monitor.clock(), monitor.wall(), monitor.metrics.messages.labels(self.topic))
+            self._messages_counted.inc()
+            suspicious = self._score(body, monitor.clock(), monitor.wall())
         except Exception:  # noqa: BLE001 - a gate that cannot decide denies
             log.exception("MONITOR gate on %s from %s failed: message dropped", self.topic, self.publisher)
             suspicious = True
@@ -329,7 +340,7 @@ class WatchedStream:
             monitor.metrics.dropped.labels(self.topic).inc()
         return not suspicious
 
-    def _score(self, body: bytes, now: float, wall: float, messages) -> bool:
+    def _score(self, body: bytes, now: float, wall: float) -> bool:
         """Score one message (features, model, alert): whether it is suspicious. One
         message in :data:`TIMING_SAMPLE` is timed for ``cryptoros_monitor_score_seconds``."""
         monitor = self.monitor
@@ -341,7 +352,6 @@ class WatchedStream:
             t0 = time.perf_counter()
             score = model.score(self.features.kind, self.features.observe(body, now, wall))
             monitor.metrics.seconds.observe(time.perf_counter() - t0)
-        messages.inc()
         if self.alerts.update(score.value > 1.0, model.is_severe(score)):
             monitor._alert(self, score.feature, score.value)
         return score.value > 1.0
@@ -356,7 +366,7 @@ class WatchedStream:
     def _score_queued_timed(self) -> None:
         self._scheduled = False
         monitor = self.monitor
-        messages = monitor.metrics.messages.labels(self.topic)
+        messages = self._messages_counted
         scored = 0
         while self._chunks and not self.closed:
             if scored >= MESSAGES_PER_TURN:  # let the loop forward others' bytes; go on after
@@ -373,13 +383,15 @@ class WatchedStream:
                 spans, stop, _pending, error = self._walker.split(buffer)
                 bodies = [bytes(buffer[start:end]) for start, end in spans]
             scored += len(bodies)
-            for body in bodies:
-                if self.reference:
+            if self.reference:
+                for body in bodies:
                     self.features.observe(body, now, wall)
-                    continue
-                self._score(body, now, wall, messages)
-                if self.closed:
-                    return
+            else:
+                messages.inc(len(bodies))
+                for body in bodies:
+                    self._score(body, now, wall)
+                    if self.closed:
+                        return
             if whole:
                 continue
             del buffer[:stop]

@@ -18,6 +18,7 @@ refuses to start with a model that does not parse.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -55,10 +56,8 @@ class MonitorModel:
     trained_on: Mapping[str, int] = field(default_factory=dict)
 
     def score(self, kind: str, values: tuple[float, ...]) -> Score:
-        limits = self.limits.get(kind) or self.limits.get("any") or {}
         worst, name = 0.0, ""
-        for feature, value in zip(FEATURES[kind], values):
-            limit = limits.get(feature)
+        for (feature, limit), value in zip(self._limits_by_kind[kind], values):
             if limit is None:
                 continue
             if not math.isfinite(value):  # NaN or inf in a message is never clean (NaN compares false)
@@ -67,6 +66,15 @@ class MonitorModel:
             if ratio > worst:
                 worst, name = ratio, feature
         return Score(worst, name)
+
+    @functools.cached_property
+    def _limits_by_kind(self) -> dict[str, tuple[tuple[str, float | None], ...]]:
+        """Per kind, (feature, its limit or None) in the order the features come."""
+        out = {}
+        for kind, names in FEATURES.items():
+            limits = self.limits.get(kind) or self.limits.get("any") or {}
+            out[kind] = tuple((feature, limits.get(feature)) for feature in names)
+        return out
 
     def is_severe(self, score: Score, threshold: float = 1.0) -> bool:
         """``score`` alone is enough for an alert (limits multiplied by ``threshold``)."""
