@@ -567,6 +567,8 @@ async def test_the_monitor_checks_a_pose_against_the_robots_own_beacons_only(tmp
                             cut=lambda: cuts.append("r1"))
     own = monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO)
     assert monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/map", typename=MAP) is None
+    # the same beacons on their way to a second peer are not read twice
+    assert monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO) is None
     monitor.register("ops", "/mocap", lambda: cuts.append("mocap"))
     for i in range(40):
         clock.t = 1000 + i / 20
@@ -583,6 +585,8 @@ async def test_the_monitor_checks_a_pose_against_the_robots_own_beacons_only(tmp
     assert cuts == ["mocap"] and denials == [("monitor", "quarantined", "/mocap (ops)")]
     assert monitor.metrics.alerts.labels("/r0/pose", "beacon_gap_m")._value.get() == 1
     assert monitor.metrics.alerts.labels("/team/hello", "rate_hz")._value.get() == 0  # the reference is not scored
+    own.close()  # its stream to that peer ends: the next one to another peer is read
+    assert monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO) is not None
 
 
 async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quarantines_its_sender(tmp_path):
