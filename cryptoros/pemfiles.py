@@ -16,6 +16,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,7 @@ __all__ = [
     "key_is_encrypted",
     "load_certificate",
     "load_crl",
+    "load_crls",
     "load_csr",
     "load_private_key",
     "parse_certificate",
@@ -160,3 +162,17 @@ def parse_crl(data: bytes, where: object = "CRL") -> x509.CertificateRevocationL
 
 def load_crl(path: PathLike) -> x509.CertificateRevocationList:
     return parse_crl(_read(path, "CRL"), path)
+
+
+_PEM_CRL = re.compile(rb"-----BEGIN X509 CRL-----.+?-----END X509 CRL-----", re.DOTALL)
+
+
+def load_crls(path: PathLike) -> list[x509.CertificateRevocationList]:
+    """Every CRL of a file (a PEM bundle, as OpenSSL reads one, or one DER CRL)."""
+    data = _read(path, "CRL")
+    if not _is_pem(data):
+        return [parse_crl(data, path)]
+    blocks = _PEM_CRL.findall(data)
+    if not blocks:
+        raise PKIError(f"{path} holds no PEM CRL")
+    return [parse_crl(block, path) for block in blocks]

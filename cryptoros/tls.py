@@ -258,14 +258,17 @@ class PeerCertificateCheck:
     MAX_CERTIFICATES = 4096
 
     def __init__(self, crl_file: Path | None) -> None:
-        self.revoked: frozenset[int] = frozenset()
+        #: (issuer name DER, serial) of every certificate the CRL file revokes (every CRL in
+        #: it, as OpenSSL reads a bundle; a serial is unique only per issuer)
+        self.revoked: frozenset[tuple[bytes, int]] = frozenset()
         if crl_file is not None:
             try:
-                crl = pemfiles.load_crl(crl_file)
+                crls = pemfiles.load_crls(crl_file)
             except CryptorosError as exc:
                 raise ConfigError(f"cannot load the CRL {crl_file}: {exc}") from exc
-            self.revoked = frozenset(entry.serial_number for entry in crl)
-        self._seen: dict[bytes, tuple[int, float, float]] = {}
+            self.revoked = frozenset((crl.issuer.public_bytes(), entry.serial_number)
+                                     for crl in crls for entry in crl)
+        self._seen: dict[bytes, tuple[int, float, float, bytes]] = {}
 
     def check(self, der: bytes, now: float | None = None) -> None:
         key = hashlib.sha256(der).digest()
@@ -275,17 +278,18 @@ class PeerCertificateCheck:
                 cert = pemfiles.parse_certificate(der)
             except CryptorosError as exc:
                 raise TokenError("bad_peer_certificate", str(exc)) from exc
-            facts = (cert.serial_number, cert.not_valid_before_utc.timestamp(), cert.not_valid_after_utc.timestamp())
+            facts = (cert.serial_number, cert.not_valid_before_utc.timestamp(), cert.not_valid_after_utc.timestamp(),
+                     cert.issuer.public_bytes())
             if len(self._seen) >= self.MAX_CERTIFICATES:
                 del self._seen[next(iter(self._seen))]
             self._seen[key] = facts
-        serial, not_before, not_after = facts
+        serial, not_before, not_after, issuer = facts
         current = time.time() if now is None else now
         if current > not_after:
             raise TokenError("certificate_expired", f"the peer's certificate (serial {serial:x}) expired")
         if current < not_before:
             raise TokenError("certificate_not_yet_valid", f"the peer's certificate (serial {serial:x}) is not valid yet")
-        if serial in self.revoked:
+        if (issuer, serial) in self.revoked:
             raise TokenError("certificate_revoked", f"the peer's certificate (serial {serial:x}) is on the CRL")
 
 

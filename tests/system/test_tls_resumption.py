@@ -15,7 +15,7 @@ import urllib.request
 import pytest
 from cryptography import x509
 
-from cryptoros.errors import TokenError
+from cryptoros.errors import ConfigError, TokenError
 from cryptoros.tls import (
     LIFETIME_SLACK,
     FullHandshakes,
@@ -256,6 +256,29 @@ def test_peer_certificate_check_refuses_expired_not_yet_valid_and_crl_revoked(pk
         check.check(_der(gone))
     assert info.value.reason == "certificate_revoked"
     assert PeerCertificateCheck(None).check(_der(gone)) is None  # no CRL configured: validity only
+
+
+def test_peer_certificate_check_reads_every_crl_of_a_bundle_by_issuer(pki, other_pki, tmp_path):
+    """A CRL file holding several CRLs (as OpenSSL reads one) revokes what any of them
+    revokes, each for its own issuer: another CA's revocation of the same serial does not
+    touch ours."""
+    ours, gone = pki.issue("ours"), pki.issue("gone")
+    theirs = other_pki.issue("theirs")
+    bundle = tmp_path / "bundle.crl"
+    bundle.write_bytes(other_pki.revoke("theirs").read_bytes() + pki.revoke("gone").read_bytes())
+    check = PeerCertificateCheck(bundle)
+    assert len(check.revoked) == 2
+    check.check(_der(ours))
+    for revoked in (gone, theirs):
+        with pytest.raises(TokenError) as info:
+            check.check(_der(revoked))
+        assert info.value.reason == "certificate_revoked"
+    theirs_serial = x509.load_pem_x509_certificate(theirs.cert_path.read_bytes()).serial_number
+    ours_issuer = x509.load_pem_x509_certificate(ours.cert_path.read_bytes()).issuer.public_bytes()
+    assert (ours_issuer, theirs_serial) not in check.revoked  # a serial counts for its issuer only
+    (tmp_path / "empty.crl").write_bytes(b"-----BEGIN NOTHING-----\n")
+    with pytest.raises(ConfigError, match="no PEM CRL"):
+        PeerCertificateCheck(tmp_path / "empty.crl")
 
 
 # ------------------------------------------------------------------ between real interceptors
