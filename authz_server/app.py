@@ -69,6 +69,11 @@ MAX_BODY = 16 * 1024
 FEED_WATCH_INTERVAL = 0.25
 #: the longest ``?wait=`` a client may ask for; it is held at most ``max_feed_wait`` (config)
 MAX_FEED_WAIT = 3600.0
+#: a streamed long-poll's heartbeat interval bounds (``?heartbeat=``, seconds)
+MIN_HEARTBEAT = 0.2
+MAX_HEARTBEAT = 300.0
+#: the response header that marks a streamed long-poll (spaces, then one JSON object)
+FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
 #: long-polls held at once, per client certificate and per replica (more are answered at once)
 MAX_HELD_PER_CLIENT = 4
 MAX_HELD = 10_000
@@ -244,6 +249,8 @@ class Metrics:
                                        registry=self.registry)
         self.signing_key_age = Gauge("cryptoros_authz_signing_key_created_timestamp_seconds",
                                      "Creation time of the active signing key", registry=self.registry)
+        self.feed_heartbeats = Counter("cryptoros_authz_feed_heartbeats", "Heartbeats written on streamed "
+                                       "long-polls of the feed", registry=self.registry)
 
 
 class _Denied(CryptorosError):
@@ -400,12 +407,17 @@ class AuthzService:
             stable["revoked_serials"] = sorted(format(n, "x") for n in self.crl.revoked)
         return stable, _etag(json.dumps(stable, sort_keys=True).encode())
 
-    async def wait_feed_change(self, timeout: float) -> None:
+    def feed_event(self) -> asyncio.Event:
+        """The event the next change of the feed sets (take it before reading the feed:
+        a change between the read and the wait is then not missed)."""
+        return self._feed_changed
+
+    async def wait_feed_change(self, timeout: float, event: asyncio.Event | None = None) -> None:
         """Until the feed changes (a long-poll), ``timeout``, or the daemon stops."""
         if self._closing:
             return
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._feed_changed.wait(), timeout)
+            await asyncio.wait_for((event or self._feed_changed).wait(), timeout)
 
     @contextlib.asynccontextmanager
     async def held_poll(self, client: str):
@@ -426,6 +438,10 @@ class AuthzService:
                     self._held[client] = left
                 else:
                     del self._held[client]
+
+    @property
+    def closing(self) -> bool:
+        return self._closing
 
     def release_waiters(self) -> None:
         """Stopping: every long-poll answers now (shutdown does not wait for them)."""
@@ -637,22 +653,61 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         ``max_feed_wait`` (a client asking longer simply asks again sooner)."""
         try:
             wait = float(request.query.get("wait", "0"))
+            heartbeat = float(request.query.get("heartbeat", "0"))
         except ValueError:
             return _oauth_error(400, "invalid_request")
-        if not 0 <= wait <= MAX_FEED_WAIT:
+        if not (0 <= wait <= MAX_FEED_WAIT and (heartbeat == 0 or MIN_HEARTBEAT <= heartbeat <= MAX_HEARTBEAT)):
             return _oauth_error(400, "invalid_request")
         wait = min(wait, service.cfg.max_feed_wait)
+        event = service.feed_event()
         stable, etag = await service.current_feed()
         if wait and etag in _if_none_match(request):
             der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)
             async with service.held_poll(cert_fingerprint_sha256(der)) as held:
+                if held and heartbeat:
+                    return await _streamed_poll(request, wait, heartbeat)
                 if held:  # else over the client's or the replica's bound: answered at once, it polls
-                    await service.wait_feed_change(wait)
+                    await service.wait_feed_change(wait, event)
             stable, etag = await service.current_feed()
         if etag in _if_none_match(request):
             return web.Response(status=304, headers={"ETag": etag, "Cache-Control": "no-cache"})
         body = dict(stable, generated_at=int(time.time()))
         return web.json_response(body, headers={"ETag": etag, "Cache-Control": "no-cache"})
+
+    async def _streamed_poll(request: web.Request, wait: float, heartbeat: float) -> web.StreamResponse:
+        """A long-poll that shows it is alive: a 200 at once, then a space every
+        ``heartbeat`` seconds while the feed stays as the client knows it and this replica
+        reads its registry, then one JSON object: the feed (with its ``etag``) when it
+        changed, or ``{"unchanged": true, "etag": ...}`` after ``wait``. JSON allows the
+        leading spaces. A replica that can no longer read its registry cuts the
+        connection (the client then tries another); one that hangs stops the spaces,
+        which its client notices within two heartbeats."""
+        known = _if_none_match(request)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + wait
+        response = web.StreamResponse(status=200, headers={"Content-Type": "application/json",
+                                                           "Cache-Control": "no-cache", FEED_STREAM_HEADER: "1"})
+        await response.prepare(request)
+        try:
+            while True:
+                event = service.feed_event()
+                stable, etag = await service.current_feed()
+                left = deadline - loop.time()
+                if etag not in known or left <= 0 or service.closing:
+                    break
+                await service.wait_feed_change(min(heartbeat, left), event)
+                if not event.is_set() and deadline - loop.time() > 0:
+                    await response.write(b" ")
+                    service.metrics.feed_heartbeats.inc()
+            answer = dict(stable, generated_at=int(time.time()), etag=etag) if etag not in known \
+                else {"unchanged": True, "etag": etag}
+            await response.write(json.dumps(answer).encode())
+            await response.write_eof()
+        except (CryptorosError, SQLAlchemyError) as exc:  # the registry cannot be read: cut, the client moves on
+            log.error("a streamed feed poll is cut: %s", str(exc).splitlines()[0] if str(exc) else exc)
+            if request.transport is not None:
+                request.transport.abort()
+        return response
 
     async def healthz(request: web.Request) -> web.Response:
         async def ping():

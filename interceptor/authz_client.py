@@ -39,6 +39,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import json
 import logging
 import random
 import socket
@@ -56,6 +57,36 @@ from interceptor.config import AuthzSettings
 log = logging.getLogger("cryptoros.interceptor.authz")
 
 Clock = Callable[[], float]
+
+
+#: marks a streamed long-poll of the feed (the server's ``FEED_STREAM_HEADER``)
+FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
+#: the most a feed answer may weigh (a feed of many revoked tokens is still far under)
+MAX_FEED_BYTES = 16 << 20
+
+
+async def _streamed_feed(resp: aiohttp.ClientResponse, alive: Callable[[], None],
+                         path: str) -> tuple[int, dict | None, dict[str, str]]:
+    """Read a streamed long-poll: spaces (heartbeats: ``alive``), then one JSON object,
+    the feed with its ``etag`` (200) or ``{"unchanged": true, "etag": ...}`` (304)."""
+    data = bytearray()
+    async for chunk in resp.content.iter_any():
+        if not data and not chunk.strip():
+            alive()
+            continue
+        data += chunk
+        if len(data) > MAX_FEED_BYTES:
+            raise AuthzUnavailable(f"{path}: a streamed answer over {MAX_FEED_BYTES} bytes")
+    try:
+        body = json.loads(data)
+    except ValueError as exc:
+        raise AuthzUnavailable(f"{path}: a streamed answer that is not JSON: {exc}") from None
+    if not isinstance(body, dict) or not isinstance(body.get("etag"), str):
+        raise AuthzUnavailable(f"{path}: a streamed answer without its etag")
+    etag = body.pop("etag")
+    if body.get("unchanged") is True:
+        return 304, None, {"ETag": etag}
+    return 200, body, {"ETag": etag}
 
 
 class AuthzUnavailable(TokenError):
@@ -102,11 +133,14 @@ class AuthzClient:
         if old is not None:
             await old.close()
 
-    async def _json(self, method: str, path: str, **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
+    async def _json(self, method: str, path: str, *, alive: Callable[[], None] | None = None,
+                    **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
         """One request to the replica in use; one that does not answer (connection
-        refused, reset, TLS failure, timeout) or answers 5xx (it cannot serve now) hands
-        the request to the next, which is then used from now on. Any other HTTP answer
-        is an answer: no failover on a 4xx."""
+        refused, reset, TLS failure, timeout, a streamed answer cut or gone quiet) or
+        answers 5xx (it cannot serve now) hands the request to the next, which is then
+        used from now on. Any other HTTP answer is an answer: no failover on a 4xx. A
+        streamed long-poll of the feed (:data:`FEED_STREAM_HEADER`) calls ``alive`` on
+        each heartbeat and comes back as 304 (unchanged) or 200 with the feed."""
         bases = self.settings.urls or (self.settings.url,)
         failures = []
         tries = [(self._current + k) % len(bases) for k in range(len(bases))]
@@ -132,18 +166,28 @@ class AuthzClient:
                         continue
                     if resp.status == 304:
                         answer = resp.status, None, resp.headers
+                    elif resp.status == 200 and resp.headers.get(FEED_STREAM_HEADER):
+                        answer = await _streamed_feed(resp, alive or (lambda: None), path)
                     else:
                         body = await resp.json(content_type=None)
                         if not isinstance(body, dict):
                             raise AuthzUnavailable(f"{path}: answer is not a JSON object")
                         answer = resp.status, body, resp.headers
-            except (aiohttp.ClientConnectionError, asyncio.TimeoutError, ssl.SSLError, OSError) as exc:
+            except (aiohttp.ClientConnectionError, aiohttp.ClientPayloadError, asyncio.TimeoutError, ssl.SSLError,
+                    OSError) as exc:
                 failures.append(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}")
                 if _lost_connection(exc) and index not in retried:
                     # a kept connection died under the request (its replica went away): once
                     # more on a new one, which tries every address the url's name has
                     retried.add(index)
                     tries.insert(0, index)
+                elif isinstance(exc, (asyncio.TimeoutError, aiohttp.ClientPayloadError)) and not tries \
+                        and index not in retried:
+                    # the last url's replica went quiet (hung) or cut its answer: once more on
+                    # new connections, starting with the next address of its name
+                    retried.add(index)
+                    tries.insert(0, index)
+                    fresh = True
                 continue
             except (aiohttp.ClientError, ValueError) as exc:
                 raise AuthzUnavailable(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}") from exc
@@ -185,15 +229,22 @@ class AuthzClient:
             raise AuthzUnavailable("JWKS holds no RS256 key")
         return keys
 
-    async def fetch_revocations(self, *, wait: float = 0.0) -> Revocations | None:
+    async def fetch_revocations(self, *, wait: float = 0.0, heartbeat: float = 0.0,
+                                alive: Callable[[], None] | None = None) -> Revocations | None:
         """The feed, or None when it has not changed since the last poll. With ``wait``
         (and a feed already known) a long-poll: the server answers when the feed
-        changes, or with 304 after ``wait`` seconds."""
+        changes, or with 304 after ``wait`` seconds. With ``heartbeat`` too, the server
+        shows every ``heartbeat`` seconds that it is alive and the feed unchanged
+        (``alive`` is called): a replica quiet for two heartbeats is left for the next."""
         headers = {"If-None-Match": self._feed_etag} if self._feed_etag else {}
         extra = {}
-        if wait and self._feed_etag:
-            extra = {"params": {"wait": f"{wait:g}"},
-                     "timeout": aiohttp.ClientTimeout(total=wait + self.settings.request_timeout)}
+        timeout = self.settings.request_timeout
+        if wait and self._feed_etag and heartbeat:
+            extra = {"params": {"wait": f"{wait:g}", "heartbeat": f"{heartbeat:g}"}, "alive": alive,
+                     "timeout": aiohttp.ClientTimeout(total=wait + heartbeat + timeout,
+                                                      sock_read=2 * heartbeat + timeout)}
+        elif wait and self._feed_etag:
+            extra = {"params": {"wait": f"{wait:g}"}, "timeout": aiohttp.ClientTimeout(total=wait + timeout)}
         status, body, resp_headers = await self._json("GET", "/revocations", headers=headers, **extra)
         if status == 304:
             return None
@@ -456,6 +507,7 @@ class PeerVerifier:
         revocation_grace: float = 3.0,
         clock: Clock = time.time,
         feed_wait: float = 0.0,
+        feed_heartbeat: float = 0.0,
         token_cache_size: int = TOKEN_CACHE_SIZE,
     ) -> None:
         self._client = client
@@ -465,6 +517,9 @@ class PeerVerifier:
         self.audience = audience
         #: seconds a feed request may be held by the server (long-poll); 0: plain polling
         self.feed_wait = feed_wait
+        #: seconds between the server's signs of life on a held feed request (0: none);
+        #: each one also keeps the feed fresh (:attr:`last_feed_at`)
+        self.feed_heartbeat = feed_heartbeat
         #: ``urn:cryptoros:peer:<our certificate's thumbprint>``: tokens peers narrowed for us.
         self.own_audience: str | None = None
         self._poll = poll_interval
@@ -679,6 +734,11 @@ class PeerVerifier:
             if self._clock() - self._last_jwks >= self.JWKS_REFRESH_INTERVAL:
                 await self.refresh_jwks()
 
+    def _feed_alive(self) -> None:
+        """A heartbeat of a held feed request: the server reads its registry and the
+        feed is unchanged as of now."""
+        self.last_feed_at = self._clock()
+
     async def _follow_feed(self) -> None:
         down_since: float | None = None
         while True:
@@ -686,7 +746,8 @@ class PeerVerifier:
             if not len(self.keys):
                 await self.refresh_jwks()
             try:
-                feed = await self._client.fetch_revocations(wait=self.feed_wait if self.ready.is_set() else 0.0)
+                feed = await self._client.fetch_revocations(wait=self.feed_wait if self.ready.is_set() else 0.0,
+                                                            heartbeat=self.feed_heartbeat, alive=self._feed_alive)
                 self.refused = False
                 if down_since is not None:
                     log.warning("the revocation feed answers again (unreachable for %.0f s)", self._clock() - down_since)

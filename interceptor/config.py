@@ -141,7 +141,12 @@ class AuthzSettings:
     #: many seconds when nothing changes); 0 polls every revocation_poll_interval. A
     #: hold is kept under [limits] max_feed_age - request_timeout (the feed would look
     #: stale meanwhile) and under the server's max_feed_wait (it answers then)
-    feed_wait: float = 25.0
+    feed_wait: float = 300.0
+    #: while it holds a feed request the server writes a sign of life this often (which
+    #: also says the feed is unchanged): a replica that hangs is left after two of them,
+    #: and the feed stays fresh through a long hold. 0: none (the hold is then kept under
+    #: max_feed_age as above; older servers answer without them)
+    feed_heartbeat: float = 15.0
     request_timeout: float = 5.0
     #: A stream is cut this long after its peer's freshest token expired.
     token_grace: float = 30.0
@@ -370,6 +375,8 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         value = getattr(authz, name)
         if not low <= value <= high:
             raise ConfigError(f"[authz] {name} = {value!r}: expected {low:g}..{high:g} seconds")
+    if authz.feed_heartbeat and not 0.2 <= authz.feed_heartbeat <= 300.0:
+        raise ConfigError(f"[authz] feed_heartbeat = {authz.feed_heartbeat!r}: expected 0 (none) or 0.2..300 seconds")
 
     listen = _check_keys(top.get("listen", {}), "listen")
     if "public" not in listen:

@@ -162,11 +162,15 @@ def feed_problem(*, refused: bool, last_feed_at: float | None, now: float, max_a
 
 
 
-def held_feed_wait(feed_wait: float, *, request_timeout: float, max_feed_age: float) -> float:
-    """How long a long-poll of the feed may be held: ``feed_wait``, but short enough for
-    its answer (which may take ``request_timeout`` more, and a second of slack) to come
-    before the feed counts as stale (``max_feed_age``); 0, plain polling, when nothing
-    is left."""
+def held_feed_wait(feed_wait: float, *, request_timeout: float, max_feed_age: float,
+                   heartbeat: float = 0.0) -> float:
+    """How long a long-poll of the feed may be held: ``feed_wait`` when the server's
+    heartbeats (each keeps the feed fresh) come often enough to keep it fresh, else short
+    enough for its answer (which may take ``request_timeout`` more, and a second of
+    slack) to come before the feed counts as stale (``max_feed_age``); 0, plain polling,
+    when nothing is left."""
+    if heartbeat and 2 * heartbeat + request_timeout + 1.0 <= max_feed_age:
+        return feed_wait
     return max(0.0, min(feed_wait, max_feed_age - request_timeout - 1.0))
 
 class PendingStreams:

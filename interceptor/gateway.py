@@ -235,7 +235,8 @@ class Gateway:
             grace=cfg.authz.token_grace,
             revocation_grace=cfg.authz.revocation_grace,
             feed_wait=held_feed_wait(cfg.authz.feed_wait, request_timeout=cfg.authz.request_timeout,
-                                     max_feed_age=cfg.limits.max_feed_age),
+                                     max_feed_age=cfg.limits.max_feed_age, heartbeat=cfg.authz.feed_heartbeat),
+            feed_heartbeat=cfg.authz.feed_heartbeat,
         )
         if self.verifier.feed_wait < cfg.authz.feed_wait:
             log.warning("[authz] feed_wait %g s is over [limits] max_feed_age %g s less request_timeout %g s "

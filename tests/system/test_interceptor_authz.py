@@ -306,3 +306,61 @@ async def test_a_replica_that_answers_5xx_hands_the_request_to_the_next(tmp_path
             assert "POST /token failed" in first.log()  # the replica's reason, in its log
         finally:
             await client.close()
+
+
+async def test_a_streamed_long_poll_shows_heartbeats_and_a_hung_replica_is_left(tmp_path, postgres_url):
+    """A long-poll with ``heartbeat``: the replica answers 200 at once, writes a space every
+    heartbeat while nothing changes (each one keeps the client's feed fresh), and ends with
+    the feed when it changes or "unchanged" after the wait. A replica that hangs with its
+    connections open (SIGSTOP) sends no heartbeat: the client leaves it after two and the
+    next replica answers."""
+    import logging
+    import os
+    import signal
+
+    from tests.authz_support import authz, ok
+
+    team = build_team(tmp_path, db=postgres_url)
+    with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, postgres_url, tmp_path) as second:
+        alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
+        ctx = client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert, key_file=alice_key))
+        client = AuthzClient(AuthzSettings(url=first.base, urls=(first.base, second.base), request_timeout=2.0), ctx)
+        verifier = PeerVerifier(client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1)
+        stopped = False
+        try:
+            token = await client.fetch_token()
+            await verifier.refresh_jwks()
+            assert await client.fetch_revocations() is not None  # the feed and its etag
+            beats: list[float] = []
+            assert await client.fetch_revocations(wait=3, heartbeat=0.5, alive=lambda: beats.append(time.monotonic())) \
+                is None  # unchanged after the wait
+            assert len(beats) >= 3, beats
+            # a change during a streamed poll ends it with the new feed
+            jti = verifier.verify(token.token, der_of(team.pki, "alice")).jti
+            held = asyncio.ensure_future(client.fetch_revocations(wait=60, heartbeat=0.5, alive=lambda: beats.append(0)))
+            deadline = time.monotonic() + 10
+            while len(beats) < 6:  # the poll is held (its heartbeats come)
+                assert time.monotonic() < deadline and not held.done(), (beats, held)
+                await asyncio.sleep(0.1)
+            ok(authz("revoke-token", jti, db=postgres_url))
+            feed = await asyncio.wait_for(held, 30)
+            assert feed is not None and jti in feed.revoked_jtis
+            # the replica in use hangs: no heartbeat, the client moves to the next within two
+            records: list[logging.LogRecord] = []
+            handler = logging.Handler()
+            handler.emit = records.append  # type: ignore[method-assign]
+            logging.getLogger("cryptoros.interceptor.authz").addHandler(handler)
+            os.kill(first.proc.pid, signal.SIGSTOP)
+            stopped = True
+            try:
+                beats.clear()
+                assert await client.fetch_revocations(wait=2, heartbeat=0.5, alive=lambda: beats.append(0)) is None
+            finally:
+                logging.getLogger("cryptoros.interceptor.authz").removeHandler(handler)
+            assert beats, "the next replica's heartbeats"
+            switched = [r.getMessage() for r in records if "does not answer; using" in r.getMessage()]
+            assert switched == [f"authorization server {first.base} does not answer; using {second.base}"]
+        finally:
+            if stopped:
+                os.kill(first.proc.pid, signal.SIGCONT)
+            await client.close()

@@ -172,3 +172,7 @@ def test_a_held_long_poll_ends_before_the_feed_counts_as_stale():
     assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=60.0) == 54.0  # cut to fit max_feed_age
     assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=330.0) == 300.0
     assert held_feed_wait(25.0, request_timeout=5.0, max_feed_age=3.0) == 0.0  # nothing left: plain polling
+    # with the server's heartbeats (each keeps the feed fresh) the hold is as asked
+    assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=60.0, heartbeat=15.0) == 300.0
+    # unless they are too far apart to keep it fresh: cut as without them
+    assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=60.0, heartbeat=30.0) == 54.0
