@@ -65,18 +65,46 @@ FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
 MAX_FEED_BYTES = 16 << 20
 
 
-async def _streamed_feed(resp: aiohttp.ClientResponse, alive: Callable[[], None],
-                         path: str) -> tuple[int, dict | None, dict[str, str]]:
+async def _drop(session: aiohttp.ClientSession | None) -> None:
+    """Close a session now, requests under way on it included (they fail at once and are
+    asked again on the new one): its TLS connections are aborted, not shut down
+    gracefully, which would wait on a replica streaming a held answer."""
+    if session is None:
+        return
+    if session.connector is not None:
+        await session.connector.close(abort_ssl=True)
+    await session.close()
+
+
+async def _streamed_feed(resp: aiohttp.ClientResponse, alive: Callable[[], None], path: str,
+                         replaced: asyncio.Event) -> tuple[int, dict | None, dict[str, str]]:
     """Read a streamed long-poll: spaces (heartbeats: ``alive``), then one JSON object,
-    the feed with its ``etag`` (200) or ``{"unchanged": true, "etag": ...}`` (304)."""
+    the feed with its ``etag`` (200) or ``{"unchanged": true, "etag": ...}`` (304). When
+    the session is ``replaced`` (a reload, another replica) the read stops at once, as
+    a lost connection: closing a TLS connection does not wake a read waiting on it."""
     data = bytearray()
-    async for chunk in resp.content.iter_any():
-        if not data and not chunk.strip():
-            alive()
-            continue
-        data += chunk
-        if len(data) > MAX_FEED_BYTES:
-            raise AuthzUnavailable(f"{path}: a streamed answer over {MAX_FEED_BYTES} bytes")
+    stop = asyncio.ensure_future(replaced.wait())
+    read: asyncio.Future | None = None
+    try:
+        while True:
+            read = asyncio.ensure_future(resp.content.readany())
+            await asyncio.wait((read, stop), return_when=asyncio.FIRST_COMPLETED)
+            if not read.done():
+                resp.close()
+                raise aiohttp.ServerDisconnectedError("the session was replaced")
+            chunk = read.result()
+            if not chunk:
+                break
+            if not data and not chunk.strip():
+                alive()
+                continue
+            data += chunk
+            if len(data) > MAX_FEED_BYTES:
+                raise AuthzUnavailable(f"{path}: a streamed answer over {MAX_FEED_BYTES} bytes")
+    finally:
+        stop.cancel()
+        if read is not None and not read.done():
+            read.cancel()
     try:
         body = json.loads(data)
     except ValueError as exc:
@@ -109,6 +137,8 @@ class AuthzClient:
         self.settings = settings
         self._ssl = ssl_context
         self._session: aiohttp.ClientSession | None = None
+        #: set when the session is replaced: a streamed answer being read on the old one stops
+        self._replaced = asyncio.Event()
         self._feed_etag: str | None = None
         self._current = 0  # the replica in use (settings.urls)
         self._spread = random.randrange(1 << 16)  # which address of a name this client tries first
@@ -130,8 +160,9 @@ class AuthzClient:
         """Present a new client certificate from the next request on (reload): the
         pooled connections, made with the old one, are closed."""
         old, self._session, self._ssl = self._session, None, ssl_context
-        if old is not None:
-            await old.close()
+        self._replaced.set()
+        self._replaced = asyncio.Event()
+        await _drop(old)
 
     async def _json(self, method: str, path: str, *, alive: Callable[[], None] | None = None,
                     **kw) -> tuple[int, dict | None, aiohttp.typedefs.LooseHeaders]:
@@ -152,6 +183,7 @@ class AuthzClient:
                 fresh = False
             index = tries.pop(0)
             url = bases[index] + path
+            replaced = self._replaced  # this request's session's: set when that session is replaced
             try:
                 async with self._http().request(method, url, **kw) as resp:
                     if resp.status >= 500 and (tries or index not in retried):
@@ -167,7 +199,7 @@ class AuthzClient:
                     if resp.status == 304:
                         answer = resp.status, None, resp.headers
                     elif resp.status == 200 and resp.headers.get(FEED_STREAM_HEADER):
-                        answer = await _streamed_feed(resp, alive or (lambda: None), path)
+                        answer = await _streamed_feed(resp, alive or (lambda: None), path, replaced)
                     else:
                         body = await resp.json(content_type=None)
                         if not isinstance(body, dict):
@@ -204,8 +236,9 @@ class AuthzClient:
         on them included (their callers ask again)."""
         self._spread += 1
         old, self._session = self._session, None
-        if old is not None:
-            await old.close()
+        self._replaced.set()
+        self._replaced = asyncio.Event()
+        await _drop(old)
 
     async def fetch_token(self, *, clock: Clock = time.time, resource: str | None = None) -> OwnToken:
         """Our token; with ``resource`` (RFC 8707) one for that peer only, narrowed to
