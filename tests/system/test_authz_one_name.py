@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,6 +227,13 @@ def test_a_replica_behind_one_name_that_answers_503_is_left_for_the_next_address
         registry = Path(dbs[victim].removeprefix("sqlite:///"))
         with registry.open("r+b") as fh:  # no longer a database: every read fails (503)
             fh.write(b"\0" * 4096)
+        # the replica notices on its next read of the feed (every 0.25 s); until then it
+        # may still answer a token from the grants it holds: wait until it knows
+        log = tmp_path / f"{victim}.log"
+        deadline = time.monotonic() + 20
+        while "cannot read the revocation feed from the registry" not in log.read_text():
+            assert time.monotonic() < deadline, log.read_text()[-2000:]
+            time.sleep(0.05)
         after = fleet.client.ask("token")
         assert after["ok"], after
         assert [fleet.by_address[a] for a in after["peers"]] != [victim], after
