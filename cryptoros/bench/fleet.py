@@ -234,6 +234,7 @@ class Client:
     last_token: str | None = None
     seen: dict[str, float] = field(default_factory=dict)  # revoked jti -> first seen (monotonic)
     feed_requests: int = 0
+    feed_heartbeats: int = 0
     feed_errors: int = 0
     requests: list[tuple[float, float, bool]] = field(default_factory=list)  # failover: (start, end, ok)
 
@@ -275,15 +276,19 @@ async def _token_loop(c: Client, until: float, *, interval: float = 0.0, delay: 
             await asyncio.sleep(max(0.0, start + interval - time.monotonic()))
 
 
-async def _follow_feed(c: Client, wait: float, changed: asyncio.Event) -> None:
-    """Hold long-polls of the feed forever (``wait`` 0: poll once a second)."""
+async def _follow_feed(c: Client, wait: float, changed: asyncio.Event, heartbeat: float = 0.0) -> None:
+    """Hold long-polls of the feed forever (``wait`` 0: poll once a second), with the
+    server's heartbeats every ``heartbeat`` seconds (0: none), counted."""
     from cryptoros.errors import TokenError
+
+    def alive() -> None:
+        c.feed_heartbeats += 1
 
     while True:
         started = time.monotonic()
         try:
             c.feed_requests += 1
-            feed = await c.authz.fetch_revocations(wait=wait)
+            feed = await c.authz.fetch_revocations(wait=wait, heartbeat=heartbeat if wait else 0.0, alive=alive)
         except TokenError:
             c.feed_errors += 1
             await asyncio.sleep(0.2)
@@ -298,10 +303,11 @@ async def _follow_feed(c: Client, wait: float, changed: asyncio.Event) -> None:
 
 
 @contextlib.asynccontextmanager
-async def _following(clients: list[Client], wait: float, changed: asyncio.Event, *, stagger: float = 0.0):
+async def _following(clients: list[Client], wait: float, changed: asyncio.Event, *, stagger: float = 0.0,
+                     heartbeat: float = 0.0):
     async def one(c: Client, delay: float) -> None:
         await asyncio.sleep(delay)
-        await _follow_feed(c, wait, changed)
+        await _follow_feed(c, wait, changed, heartbeat)
 
     n = len(clients)
     tasks = [asyncio.ensure_future(one(c, stagger * i / n)) for i, c in enumerate(clients)]
@@ -393,6 +399,8 @@ class Plan:
     poll_s: float
     failover_s: float
     dense_s: float = 20.0
+    #: the server's heartbeats on held long-polls (the interceptor's feed_heartbeat; 0: none)
+    feed_heartbeat: float = 0.0
     failover_interval: float = 1.0
     request_timeout: float = 15.0
     propagation_timeout: float = 30.0
@@ -461,7 +469,7 @@ async def _run(fleet: Fleet, plan: Plan) -> dict:
             raise NetworkError(f"no client got a token: {errors[:3]}")
         _progress(f"propagation: {len(clients)} long-polls held (wait={plan.feed_wait:g} s), "
                   f"{plan.revocations} revocations")
-        async with _following(clients, plan.feed_wait, changed):
+        async with _following(clients, plan.feed_wait, changed, heartbeat=plan.feed_heartbeat):
             await asyncio.sleep(1.0)  # every long-poll held
             rounds = []
             for k in range(min(plan.revocations, len(jtis))):
@@ -479,10 +487,12 @@ async def _run(fleet: Fleet, plan: Plan) -> dict:
             # idle: the long-polls are re-held after the last change; let them settle
             await asyncio.sleep(1.0)
             _progress(f"idle: {len(clients)} clients holding long-polls for {plan.idle_s:g} s")
-            n0 = sum(c.feed_requests for c in clients)
+            n0, h0 = sum(c.feed_requests for c in clients), sum(c.feed_heartbeats for c in clients)
             idle = await _cpu_window(fleet, plan.idle_s)
             idle["feed_requests"] = sum(c.feed_requests for c in clients) - n0
+            idle["feed_heartbeats"] = sum(c.feed_heartbeats for c in clients) - h0
             idle["feed_wait_s"] = plan.feed_wait
+            idle["feed_heartbeat_s"] = plan.feed_heartbeat
             result["idle"] = idle
 
         # ---- 1 Hz polling
@@ -504,6 +514,18 @@ async def _run(fleet: Fleet, plan: Plan) -> dict:
             dense["feed_requests"] = sum(c.feed_requests for c in clients) - n0
             dense["feed_wait_s"] = 1.0
             result["held_polls"] = dense
+        if plan.feed_heartbeat:
+            # ---- the cost of one heartbeat, where it can be measured: many of them
+            beat = 0.2
+            _progress(f"heartbeats: the same clients holding long-polls with a heartbeat every {beat:g} s for "
+                      f"{plan.dense_s:g} s (the CPU of one heartbeat)")
+            async with _following(clients, max(plan.feed_wait, 60.0), changed, stagger=1.0, heartbeat=beat):
+                await asyncio.sleep(2.5)
+                n0, h0 = sum(c.feed_requests for c in clients), sum(c.feed_heartbeats for c in clients)
+                beats = await _cpu_window(fleet, plan.dense_s)
+                beats["feed_requests"] = sum(c.feed_requests for c in clients) - n0
+                beats["feed_heartbeats"] = sum(c.feed_heartbeats for c in clients) - h0
+                result["heartbeats"] = beats
         result["idle_vs_polling"] = _idle_ratio(result, len(clients))
 
         # ---- failover
@@ -546,8 +568,19 @@ def _idle_ratio(result: dict, clients: int) -> dict:
     out["cpu_ms_per_poll"] = None if polled is None else round(polled * 1e3, 4)
     out["idle_requests_per_client_per_min"] = round(per_client_per_min(result["idle"]), 3)
     out["polling_requests_per_client_per_min"] = round(per_client_per_min(result["polling"]), 3)
+    # heartbeats: their cost measured where there are many (every 0.2 s), a held request's
+    # share of that phase taken off at the held long-poll's cost
+    beat_cost = 0.0
+    beats = result.get("heartbeats")
+    if beats and beats["feed_heartbeats"] and held is not None:
+        per_beat = (beats["replicas_cpu_s"] - base * beats["seconds"] - held * beats["feed_requests"]) \
+            / beats["feed_heartbeats"]
+        out["cpu_ms_per_heartbeat"] = round(per_beat * 1e3, 5)
+        idle_beats = result["idle"].get("feed_heartbeats", 0) / clients / (result["idle"]["seconds"] / 60.0)
+        out["idle_heartbeats_per_client_per_min"] = round(idle_beats, 3)
+        beat_cost = max(0.0, per_beat) * idle_beats
     if held is not None and polled:
-        idle_cost = held * per_client_per_min(result["idle"])
+        idle_cost = held * per_client_per_min(result["idle"]) + beat_cost
         poll_cost = polled * per_client_per_min(result["polling"])
         out["idle_per_client_per_min_s_per_request"] = round(idle_cost, 7)
         out["polling_per_client_per_min_s_per_request"] = round(poll_cost, 7)
@@ -716,6 +749,10 @@ def _report(result: dict) -> None:
     echo(f"   one held long-poll {iv['cpu_ms_per_held_long_poll']} ms CPU, one poll {iv['cpu_ms_per_poll']} ms; "
          f"requests per client per minute: idle {iv['idle_requests_per_client_per_min']}, "
          f"polling {iv['polling_requests_per_client_per_min']})")
+    if "cpu_ms_per_heartbeat" in iv:
+        echo(f"   heartbeats every {idle.get('feed_heartbeat_s', 0):g} s: {idle.get('feed_heartbeats', 0)} while idle, "
+             f"{iv['idle_heartbeats_per_client_per_min']} per client per minute, one {iv['cpu_ms_per_heartbeat']} ms "
+             f"CPU (counted in the judged figure)")
     rev = fo["revocation_after_kill"] or {}
     echo(f"failover: {fo['killed_replica']} SIGKILLed at {fo['killed_at_s']} s; {fo['failed_requests']} of "
          f"{fo['token_requests']} token requests failed; {fo['recovered_clients']}/{fo['affected_clients']} affected "
@@ -745,6 +782,9 @@ def _report(result: dict) -> None:
 @click.option("--feed-wait", type=click.FloatRange(1, 600), default=None, show_default="the interceptor's "
               "[authz] feed_wait default", help="Long-poll wait (?wait=) of the clients (the replicas' max_feed_wait "
               "is set to at least this).")
+@click.option("--feed-heartbeat", type=click.FloatRange(0, 300), default=None, show_default="the interceptor's "
+              "[authz] feed_heartbeat default", help="Seconds between the server's heartbeats on a held long-poll "
+              "(0: none).")
 @click.option("--idle-seconds", type=click.FloatRange(1, 3600), default=120.0, show_default=True)
 @click.option("--poll-seconds", type=click.FloatRange(1, 3600), default=30.0, show_default=True)
 @click.option("--failover-seconds", type=click.FloatRange(3, 600), default=15.0, show_default=True)
@@ -754,7 +794,7 @@ def _report(result: dict) -> None:
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write every figure to this file.")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, PKI) and print its path.")
 def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: float, revocations: int,
-          feed_wait: float | None, idle_seconds: float,
+          feed_wait: float | None, feed_heartbeat: float | None, idle_seconds: float,
           poll_seconds: float, failover_seconds: float, failover_interval: float, quick: bool, json_path: str | None,
           keep: bool) -> None:
     """A fleet of interceptors against authz replicas: tokens, revocation propagation,
@@ -765,14 +805,20 @@ def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: f
         from interceptor.config import AuthzSettings
 
         feed_wait = next(f.default for f in dataclasses.fields(AuthzSettings) if f.name == "feed_wait")
+    if feed_heartbeat is None:
+        import dataclasses
+
+        from interceptor.config import AuthzSettings
+
+        feed_heartbeat = next(f.default for f in dataclasses.fields(AuthzSettings) if f.name == "feed_heartbeat")
     if quick:
         plan = Plan(clients=min(clients, 20), replicas=replicas, baseline_s=1.0, token_s=2.0, revocations=2,
                     feed_wait=3.0, idle_s=4.0, poll_s=3.0, failover_s=5.0, dense_s=3.0,
-                    failover_interval=failover_interval)
+                    feed_heartbeat=min(feed_heartbeat, 1.0), failover_interval=failover_interval)
     else:
         plan = Plan(clients=clients, replicas=replicas, baseline_s=baseline_seconds, token_s=token_seconds,
                     revocations=revocations, feed_wait=feed_wait, idle_s=idle_seconds, poll_s=poll_seconds,
-                    failover_s=failover_seconds, failover_interval=failover_interval)
+                    failover_s=failover_seconds, feed_heartbeat=feed_heartbeat, failover_interval=failover_interval)
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     want = min(hard, max(soft, 8 * plan.clients + 256))
     if want > soft:
