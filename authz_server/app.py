@@ -30,6 +30,7 @@ import asyncio
 import contextlib
 import functools
 import hashlib
+import heapq
 import json
 import logging
 import time
@@ -125,6 +126,63 @@ class _Cache:
         self._values.clear()
         self._inflight.clear()
         self._generation += 1
+
+
+class _Heartbeats:
+    """The heartbeats of every held streamed long-poll, written by one task as they fall
+    due (a heap by due time): a heartbeat costs one small write, not a wake-up of the
+    request that holds the stream. Written only while ``healthy()`` (the replica reads
+    its registry); a stream that cannot take its space any more is dropped."""
+
+    def __init__(self, healthy: Callable[[], bool], counted: Callable[[], None]) -> None:
+        self._healthy, self._counted = healthy, counted
+        self._due: list[tuple[float, int, web.StreamResponse, float]] = []
+        self._live: set[int] = set()
+        self._next_key = 0
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task | None = None
+
+    def add(self, response: web.StreamResponse, interval: float) -> int:
+        loop = asyncio.get_running_loop()
+        self._next_key += 1
+        key = self._next_key
+        heapq.heappush(self._due, (loop.time() + interval, key, response, interval))
+        self._live.add(key)
+        self._wake.set()
+        if self._task is None or self._task.done():
+            self._task = asyncio.ensure_future(self._run())
+        return key
+
+    def remove(self, key: int) -> None:
+        self._live.discard(key)
+
+    def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            due = self._due
+            while due and due[0][1] not in self._live:
+                heapq.heappop(due)
+            if not due:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            at, key, response, interval = due[0]
+            if at > loop.time():
+                self._wake.clear()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), at - loop.time())
+                continue
+            heapq.heapreplace(due, (at + interval, key, response, interval))
+            if self._healthy():
+                try:
+                    await response.write(b" ")
+                    self._counted()
+                except (ConnectionError, RuntimeError):  # gone, or already answered
+                    self._live.discard(key)
 
 
 class _AuditWriter:
@@ -274,6 +332,7 @@ class AuthzService:
         self.metrics = Metrics()
         # a manager's grants by certificate fingerprint, kept while the registry's version
         # is unchanged (manager_for); the version is read by the feed watcher
+        self.heartbeats = _Heartbeats(lambda: self._latest is not None, self.metrics.feed_heartbeats.inc)
         self._managers = _Cache(float("inf"))
         self._managers_version: int | None = None
         self._version: tuple[int, float] | None = None  # (registry version, monotonic time its read began)
@@ -327,6 +386,7 @@ class AuthzService:
             if task is not None:
                 task.cancel()
         await self.audit.close()
+        self.heartbeats.close()
         self.executor.shutdown(wait=True)
         self._watch_executor.shutdown(wait=True)
 
@@ -688,6 +748,7 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         response = web.StreamResponse(status=200, headers={"Content-Type": "application/json",
                                                            "Cache-Control": "no-cache", FEED_STREAM_HEADER: "1"})
         await response.prepare(request)
+        beats = service.heartbeats.add(response, heartbeat)  # written by one task, when due
         try:
             while True:
                 event = service.feed_event()
@@ -695,10 +756,8 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
                 left = deadline - loop.time()
                 if etag not in known or left <= 0 or service.closing:
                     break
-                await service.wait_feed_change(min(heartbeat, left), event)
-                if not event.is_set() and deadline - loop.time() > 0:
-                    await response.write(b" ")
-                    service.metrics.feed_heartbeats.inc()
+                await service.wait_feed_change(left, event)
+            service.heartbeats.remove(beats)
             answer = dict(stable, generated_at=int(time.time()), etag=etag) if etag not in known \
                 else {"unchanged": True, "etag": etag}
             await response.write(json.dumps(answer).encode())
@@ -707,6 +766,8 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
             log.error("a streamed feed poll is cut: %s", str(exc).splitlines()[0] if str(exc) else exc)
             if request.transport is not None:
                 request.transport.abort()
+        finally:
+            service.heartbeats.remove(beats)
         return response
 
     async def healthz(request: web.Request) -> web.Response:

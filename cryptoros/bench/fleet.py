@@ -579,8 +579,13 @@ def _idle_ratio(result: dict, clients: int) -> dict:
         idle_beats = result["idle"].get("feed_heartbeats", 0) / clients / (result["idle"]["seconds"] / 60.0)
         out["idle_heartbeats_per_client_per_min"] = round(idle_beats, 3)
         beat_cost = max(0.0, per_beat) * idle_beats
+    # a held long-poll is renewed at least every feed_wait seconds: an idle window shorter
+    # than the wait may see none renewed, which would count its requests as free
+    wait = result["idle"].get("feed_wait_s") or 0.0
+    idle_requests = max(per_client_per_min(result["idle"]), 60.0 / wait if wait else 0.0)
+    out["idle_requests_per_client_per_min_steady"] = round(idle_requests, 3)
     if held is not None and polled:
-        idle_cost = held * per_client_per_min(result["idle"]) + beat_cost
+        idle_cost = held * idle_requests + beat_cost
         poll_cost = polled * per_client_per_min(result["polling"])
         out["idle_per_client_per_min_s_per_request"] = round(idle_cost, 7)
         out["polling_per_client_per_min_s_per_request"] = round(poll_cost, 7)
@@ -747,7 +752,8 @@ def _report(result: dict) -> None:
          f"polling {poll['seconds']:g} s, {poll['feed_requests']} requests; baseline "
          f"{iv['baseline_replicas_cpu_s_per_min']:.3f} CPU s/min for the replicas together;")
     echo(f"   one held long-poll {iv['cpu_ms_per_held_long_poll']} ms CPU, one poll {iv['cpu_ms_per_poll']} ms; "
-         f"requests per client per minute: idle {iv['idle_requests_per_client_per_min']}, "
+         f"requests per client per minute: idle {iv['idle_requests_per_client_per_min']} (judged at "
+         f"{iv['idle_requests_per_client_per_min_steady']}: one per wait at least), "
          f"polling {iv['polling_requests_per_client_per_min']})")
     if "cpu_ms_per_heartbeat" in iv:
         echo(f"   heartbeats every {idle.get('feed_heartbeat_s', 0):g} s: {idle.get('feed_heartbeats', 0)} while idle, "
