@@ -516,7 +516,7 @@ async def _run(fleet: Fleet, plan: Plan) -> dict:
             result["held_polls"] = dense
         if plan.feed_heartbeat:
             # ---- the cost of one heartbeat, where it can be measured: many of them
-            beat = 0.2
+            beat = 1.0  # often enough to be measured, far enough apart not to arrive coalesced
             _progress(f"heartbeats: the same clients holding long-polls with a heartbeat every {beat:g} s for "
                       f"{plan.dense_s:g} s (the CPU of one heartbeat)")
             async with _following(clients, max(plan.feed_wait, 60.0), changed, stagger=1.0, heartbeat=beat):
