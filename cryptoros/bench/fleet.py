@@ -568,7 +568,7 @@ def _idle_ratio(result: dict, clients: int) -> dict:
     out["cpu_ms_per_poll"] = None if polled is None else round(polled * 1e3, 4)
     out["idle_requests_per_client_per_min"] = round(per_client_per_min(result["idle"]), 3)
     out["polling_requests_per_client_per_min"] = round(per_client_per_min(result["polling"]), 3)
-    # heartbeats: their cost measured where there are many (every 0.2 s), a held request's
+    # heartbeats: their cost measured where there are many (one a second per client), a held request's
     # share of that phase taken off at the held long-poll's cost
     beat_cost = 0.0
     beats = result.get("heartbeats")
