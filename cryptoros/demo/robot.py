@@ -204,6 +204,9 @@ class DemoRobot:
                 self.stats["map_received"] += 1
                 if m.exploration_complete and m.source != self.name:
                     self.stats["map_complete_claims"] += 1
+                    by_source = self.stats.setdefault("map_complete_claims_from", {})
+                    if m.source in by_source or len(by_source) < 64:  # bounded: claimed sources are any strings
+                        by_source[m.source] = by_source.get(m.source, 0) + 1
                 if m.source not in self.team:
                     self.stats["map_from_non_team"] += 1
                     self.received.setdefault("map_non_team", []).append(digest(data))

@@ -601,17 +601,21 @@ def _judge_held(k: str, t: str | None, final: dict[str, Any], mode: dict[str, An
     stopped believing the map explored."""
     if k == "held-false-map":
         liar = t
-        claims = sum(s["stats"].get("map_complete_claims", 0) for r, s in final.items() if r != liar)
+        # a robot is fooled by the liar's claims it received: one that stopped early without
+        # any (its own frontiers gone, under the other attacks) is not the false map's doing
+        from_liar = {r: s["stats"].get("map_complete_claims_from", {}).get(liar, 0) for r, s in final.items() if r != liar}
+        claims = sum(from_liar.values())
         fooled = {}
         for r, s in final.items():
-            if r != liar and s.get("done_at") is not None:
+            if r != liar and from_liar[r] and s.get("done_at") is not None:
                 cov = coverage_at(mode["timeline"], s["done_at"] - mode["t0"])
                 if cov < mode["coverage_target"]:
                     fooled[r] = cov
         if fooled:
             return {"succeeded": True, "evidence": f"{', '.join(sorted(fooled))} stopped exploring at "
                     f"{min(fooled.values()):.0%} coverage, believing {liar}'s claims ({claims} received)"}
-        return {"succeeded": False, "evidence": f"no robot stopped before the target ({claims} claims received)"}
+        return {"succeeded": False, "evidence": f"no robot stopped before the target believing {liar}'s claims "
+                f"({claims} of them received)"}
     st = final[t]["stats"]
     key = {"held-scan-noise": "scan", "held-cmd-flood": "cmd_vel", "held-replay": "pose_replayed"}.get(k, "pose")
     got = from_publisher(st, key, ATTACKS[k]["node"])
