@@ -154,7 +154,13 @@ class _Heartbeats:
         return key
 
     def remove(self, key: int) -> None:
+        """Stop a stream's heartbeats. Its heap entry goes when the heap holds twice as
+        many entries as live streams (so streams that come and go at a high rate, each
+        removed long before its next beat, cannot grow the heap past that)."""
         self._live.discard(key)
+        if len(self._due) > 2 * len(self._live) + 64:
+            self._due = [entry for entry in self._due if entry[1] in self._live]
+            heapq.heapify(self._due)
 
     def close(self) -> None:
         if self._task is not None:

@@ -176,3 +176,34 @@ def test_a_held_long_poll_ends_before_the_feed_counts_as_stale():
     assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=60.0, heartbeat=15.0) == 300.0
     # unless they are too far apart to keep it fresh: cut as without them
     assert held_feed_wait(300.0, request_timeout=5.0, max_feed_age=60.0, heartbeat=30.0) == 54.0
+
+
+async def test_feed_heartbeats_are_written_when_due_and_their_table_stays_bounded():
+    """The replica's one heartbeat writer: a held stream gets its spaces, a removed one
+    none; streams that come and go (a client asking and hanging up in a loop) leave at
+    most twice as many heap entries as live streams."""
+    import asyncio
+
+    from authz_server.app import _Heartbeats
+
+    class Stream:
+        def __init__(self) -> None:
+            self.written = b""
+
+        async def write(self, data: bytes) -> None:
+            self.written += data
+
+    counted: list[int] = []
+    beats = _Heartbeats(lambda: True, lambda: counted.append(1))
+    held, gone = Stream(), Stream()
+    beats.add(held, 0.2)
+    beats.remove(beats.add(gone, 0.2))
+    for _ in range(10_000):
+        beats.remove(beats.add(Stream(), 300.0))
+    assert len(beats._due) <= 2 * len(beats._live) + 64
+    deadline = asyncio.get_running_loop().time() + 10
+    while held.written.count(b" ") < 2:
+        assert asyncio.get_running_loop().time() < deadline, held.written
+        await asyncio.sleep(0.05)
+    assert gone.written == b"" and len(counted) >= 2
+    beats.close()
