@@ -17,6 +17,7 @@ import json
 import queue
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -212,6 +213,19 @@ def test_replicas_behind_one_name_keep_tokens_and_the_feed_coming_when_one_is_ki
         assert sorted(killed) == ["authz1", "authz2"], killed  # each held it once
 
 
+def _break_registry(path: Path) -> None:
+    """Every read of this registry fails from now on (503): each table is renamed in one
+    committed transaction. (Zeroing the file's first page did not do it reliably: in WAL
+    mode a replica's pooled connection reads pages it holds in its cache until the
+    wal-index says the database changed, and overwriting the file says nothing to it.)"""
+    with contextlib.closing(sqlite3.connect(path, timeout=30)) as db:
+        tables = [row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+        assert "registry_state" in tables, tables
+        with db:
+            for table in tables:
+                db.execute(f'ALTER TABLE "{table}" RENAME TO "{table}_gone"')
+
+
 def test_a_replica_behind_one_name_that_answers_503_is_left_for_the_next_address(tmp_path):
     """A replica that is up but cannot read its registry answers 503 on its kept
     connection; with one url there is no next url, so the client opens new connections
@@ -224,9 +238,7 @@ def test_a_replica_behind_one_name_that_answers_503_is_left_for_the_next_address
         first = fleet.client.ask("token")
         assert first["ok"] and len(first["peers"]) == 1, first
         victim = fleet.by_address[first["peers"][0]]
-        registry = Path(dbs[victim].removeprefix("sqlite:///"))
-        with registry.open("r+b") as fh:  # no longer a database: every read fails (503)
-            fh.write(b"\0" * 4096)
+        _break_registry(Path(dbs[victim].removeprefix("sqlite:///")))
         # the replica notices on its next read of the feed (every 0.25 s); until then it
         # may still answer a token from the grants it holds: wait until it knows
         log = tmp_path / f"{victim}.log"
