@@ -117,6 +117,10 @@ async def _streamed_feed(resp: aiohttp.ClientResponse, alive: Callable[[], None]
     return 200, body, {"ETag": etag}
 
 
+#: times one request is asked again because this client replaced its session under it
+MAX_SWAP_RETRIES = 3
+
+
 class AuthzUnavailable(TokenError):
     """The authorization server could not be asked (down, refused us, bad answer)."""
 
@@ -177,6 +181,7 @@ class AuthzClient:
         tries = [(self._current + k) % len(bases) for k in range(len(bases))]
         retried = set()
         fresh = False
+        swaps = 0
         while tries:
             if fresh:
                 await self._next_address()
@@ -207,6 +212,13 @@ class AuthzClient:
                         answer = resp.status, body, resp.headers
             except (aiohttp.ClientConnectionError, aiohttp.ClientPayloadError, asyncio.TimeoutError, ssl.SSLError,
                     OSError) as exc:
+                if replaced.is_set() and swaps < MAX_SWAP_RETRIES:
+                    # this client closed the session under the request (a reload's new
+                    # certificate, another address): not the replica's failure, the same
+                    # url again on the new session ("Connector is closed" was logged as one)
+                    swaps += 1
+                    tries.insert(0, index)
+                    continue
                 failures.append(f"{method} {url}: {type(exc).__name__}: {exc}{_hint(exc)}")
                 if _lost_connection(exc) and index not in retried:
                     # a kept connection died under the request (its replica went away): once

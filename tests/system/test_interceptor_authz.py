@@ -364,3 +364,39 @@ async def test_a_streamed_long_poll_shows_heartbeats_and_a_hung_replica_is_left(
             if stopped:
                 os.kill(first.proc.pid, signal.SIGCONT)
             await client.close()
+
+
+@pytest.mark.parametrize("heartbeat", [0.5, 0.0])
+async def test_a_reload_under_a_held_long_poll_asks_again_on_the_new_session(team, tmp_path, heartbeat):
+    """A reload gives the client a new certificate (``use_ssl_context``) while its feed
+    long-poll is held on the old session: the poll is asked again on the new one, not
+    failed (it was logged as "cannot poll the revocation feed ... Connector is closed").
+    One url: there is no other replica to fail over to."""
+    from tests.authz_support import authz, ok
+
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        client = client_for(daemon, "alice")
+        verifier = PeerVerifier(client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1)
+        try:
+            token = await client.fetch_token()
+            await verifier.refresh_jwks()
+            assert await client.fetch_revocations() is not None
+            beats: list[float] = []
+            held = asyncio.ensure_future(client.fetch_revocations(wait=30, heartbeat=heartbeat,
+                                                                  alive=lambda: beats.append(0)))
+            deadline = time.monotonic() + 10
+            while not (beats if heartbeat else client._session and client._session.connector._acquired):
+                assert time.monotonic() < deadline and not held.done(), held  # the poll is held
+                await asyncio.sleep(0.05)
+            old = client._session
+            alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
+            await client.use_ssl_context(client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert,
+                                                                  key_file=alice_key)))
+            assert old.closed and not held.done()  # asked again, not failed
+            jti = verifier.verify(token.token, der_of(team.pki, "alice")).jti
+            ok(authz("revoke-token", jti, db=team.db))
+            feed = await asyncio.wait_for(held, 30)  # the held poll, on the new session, brings the change
+            assert feed is not None and jti in feed.revoked_jtis
+            assert client._session is not old
+        finally:
+            await client.close()
