@@ -265,6 +265,16 @@ def _cdr_decoder(typename: str, kind: str) -> Callable[[Any], Any]:
     from cryptoros.ros2.cdr import deserializer
 
     decode = deserializer(typename)
+    if kind == "pose":
+        def pose(body: Any) -> tuple[float, float, float]:
+            msg = decode(body)
+            return _stamp(msg), float(msg.pose.position.x), float(msg.pose.position.y)
+        return pose
+    if kind == "twist":
+        def twist(body: Any) -> tuple[float, float]:
+            msg = decode(body)
+            return float(msg.linear.x), float(msg.angular.z)
+        return twist
     if kind != "scan":
         return decode
 
@@ -295,6 +305,8 @@ def _stamp(msg: Any) -> float:
 
 
 _HEADER = struct.Struct("<III")  # seq, stamp sec, stamp nsec
+_POSE = struct.Struct("<7d")  # position x, y, z, orientation x, y, z, w
+_TWIST = struct.Struct("<6d")  # linear x, y, z, angular x, y, z
 _SCAN_FIELDS = struct.Struct("<7f")  # angle_min .. range_max
 _U32 = struct.Struct("<I")
 
@@ -320,6 +332,29 @@ def _decode_scan(body: bytes | memoryview) -> tuple[float, tuple[float, ...], np
         raise RemoteProtocolError(f"malformed LaserScan: {err}") from err
     geometry = _checked_geometry((fields[0], fields[1], fields[2], fields[5], fields[6]))
     return sec + nsec * 1e-9, geometry, ranges
+
+
+def _decode_pose(body: bytes | memoryview) -> tuple[float, float, float]:
+    """What the pose features read of a ``geometry_msgs/PoseStamped`` (ROS 1
+    serialization): the stamp and the position's x and y. A body of any other length
+    than the type's is malformed (:class:`RemoteProtocolError`)."""
+    try:
+        _seq, sec, nsec = _HEADER.unpack_from(body, 0)
+        (frame_len,) = _U32.unpack_from(body, 12)
+        if 16 + frame_len + _POSE.size != len(body):
+            raise RemoteProtocolError(f"PoseStamped of {len(body)} bytes with a frame_id of {frame_len}")
+        x, y, *_rest = _POSE.unpack_from(body, 16 + frame_len)
+    except struct.error as err:
+        raise RemoteProtocolError(f"malformed PoseStamped: {err}") from err
+    return sec + nsec * 1e-9, x, y
+
+
+def _decode_twist(body: bytes | memoryview) -> tuple[float, float]:
+    """What the twist features read of a ``geometry_msgs/Twist``: linear.x, angular.z."""
+    if len(body) != _TWIST.size:
+        raise RemoteProtocolError(f"Twist of {len(body)} bytes (it has {_TWIST.size})")
+    linear_x, _ly, _lz, _ax, _ay, angular_z = _TWIST.unpack(body)
+    return linear_x, angular_z
 
 
 _BEACON_HEAD = struct.Struct("<Id3d")  # seq, timestamp, position
@@ -367,8 +402,8 @@ def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, 
     return x, y, origin_x, origin_y, cells
 
 
-_DECODERS: dict[str, Callable[[Any], Any]] = {"scan": _decode_scan, "beacon": _decode_beacon,
-                                              "team_map": _decode_team_map}
+_DECODERS: dict[str, Callable[[Any], Any]] = {"pose": _decode_pose, "twist": _decode_twist, "scan": _decode_scan,
+                                              "beacon": _decode_beacon, "team_map": _decode_team_map}
 
 
 class StreamFeatures:
@@ -433,8 +468,7 @@ class StreamFeatures:
         return back, abs(wall - stamp)  # old (a replay) or ahead of the clock (made up)
 
     def _pose(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
-        p = msg.pose.position
-        x, y, stamp = float(p.x), float(p.y), _stamp(msg)
+        stamp, x, y = msg
         prev = self._prev
         speed = 0.0
         if prev is not None:
@@ -463,17 +497,18 @@ class StreamFeatures:
         known = cells != -1
         total = int(np.count_nonzero(known))
         if total:
-            # known cells counted per coarse place (consecutive places: a small grid), then
-            # looked up in the grid of places in reach (outside it: out of reach)
+            # the grid of places in reach over the patch's coarse places (outside it: out
+            # of reach), spread to the patch's cells (each place repeated over the cells
+            # it covers: the patch's places are consecutive), then the known cells in it
             scale = TEAM_MAP_RESOLUTION_M / REACH_CELL_M
             h, w = cells.shape
             row_place = np.floor((np.arange(h) + origin_y) * scale).astype(np.int64)
             col_place = np.floor((np.arange(w) + origin_x) * scale).astype(np.int64)
-            row_starts = np.flatnonzero(np.diff(row_place, prepend=row_place[0] - 1))
-            col_starts = np.flatnonzero(np.diff(col_place, prepend=col_place[0] - 1))
-            counts = np.add.reduceat(np.add.reduceat(known, row_starts, axis=0, dtype=np.int64), col_starts, axis=1)
-            in_reach = self._reach.lookup(int(row_place[0]), int(col_place[0]), *counts.shape)
-            unseen = int(counts[~in_reach].sum()) / total
+            row_cells = np.bincount(row_place - row_place[0])  # cells per place, in order
+            col_cells = np.bincount(col_place - col_place[0])
+            in_reach = self._reach.lookup(int(row_place[0]), int(col_place[0]), row_cells.size, col_cells.size)
+            reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
+            unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
         erased = self._walls_erased(origin_x, origin_y, cells)
         claims = self._claims
         claims.append((now, unseen, erased))
@@ -506,37 +541,47 @@ class StreamFeatures:
         self._reach.mark(place[0] - _REACH_RADIUS, place[1] - _REACH_RADIUS, _reach_disk())
 
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
+        """Means over the valid beams only (in range: NaN and inf never are), computed
+        with a handful of numpy reductions (no NaN bookkeeping: ``nanmean`` and
+        ``errstate`` cost more than the rest of a scan's features together)."""
         import numpy as np
 
         stamp, geometry, ranges = msg
         range_min, range_max = geometry[3], geometry[4]
+        size = ranges.size
         valid = (ranges >= range_min) & (ranges <= range_max)  # NaN compares false: invalid
+        n = int(np.count_nonzero(valid))
+        every = n == size
+        filled = ranges if every else np.where(valid, ranges, 0.0)  # invalid beams add nothing
+        scale = max(float(np.add.reduce(filled)) / n if n else 0.0, 1e-3)
+        steps = np.abs(filled[1:] - filled[:-1])
+        if every:
+            rough = float(np.add.reduce(steps)) / (size - 1) / scale if size > 1 else 0.0
+        else:  # steps between two valid beams
+            pairs = valid[1:] & valid[:-1]
+            n_pairs = int(np.count_nonzero(pairs))
+            rough = float(np.add.reduce(steps[pairs])) / n_pairs / scale if n_pairs else 0.0
         prev = self._prev
-        if valid.all():  # the common case, without NaN bookkeeping
-            kept = ranges
-            scale = max(float(kept.mean()) if kept.size else 0.0, 1e-3)
-            rough = float(np.abs(np.diff(kept)).mean()) / scale if kept.size > 1 else 0.0
-            same = prev is not None and prev[0].shape == kept.shape
-            change = float(np.nanmean(np.abs(kept - prev[0]))) / scale if same and kept.size else 0.0
-        else:
-            kept = np.where(valid, ranges, np.nan)
-            with np.errstate(invalid="ignore"):
-                scale = max(float(np.nanmean(kept)) if valid.any() else 0.0, 1e-3)
-                steps = np.abs(np.diff(kept))
-                rough = float(np.nanmean(steps)) / scale if np.isfinite(steps).any() else 0.0
-                change = 0.0
-                if prev is not None and prev[0].shape == kept.shape:
-                    delta = np.abs(kept - prev[0])
-                    change = float(np.nanmean(delta)) / scale if np.isfinite(delta).any() else 0.0
+        change = 0.0
+        if prev is not None and prev[0].shape == filled.shape:
+            prev_filled, prev_valid, prev_every = prev[3], prev[4], prev[5]
+            delta = np.abs(filled - prev_filled)
+            if every and prev_every:
+                change = float(np.add.reduce(delta)) / size / scale if size else 0.0
+            else:  # beams valid in both scans
+                both = valid & prev_valid
+                n_both = int(np.count_nonzero(both))
+                change = float(np.add.reduce(delta[both])) / n_both / scale if n_both else 0.0
         if not math.isfinite(change):
             change = 0.0
         back, lag = self._stamps(stamp, prev[1] if prev is not None else None, wall)
         moved = 1.0 if prev is not None and prev[2] != geometry else 0.0
-        self._prev = (kept, stamp, geometry)
+        self._prev = (ranges, stamp, geometry, filled, valid, every)
         return rough, change, back, lag, moved
 
     def _twist(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
-        return abs(float(msg.linear.x)), abs(float(msg.angular.z))
+        linear, angular = msg
+        return abs(linear), abs(angular)
 
 
 __all__ = ["FEATURES", "KIND_OF_TYPE", "Crosscheck", "StreamFeatures", "kind_of", "robot_of", "warm_up"]
