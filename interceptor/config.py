@@ -296,6 +296,12 @@ def _typed(value: Any, kind: type, where: str) -> Any:
     return value
 
 
+def _seconds_or_zero(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+        raise ConfigError(f"{where} must be a number of seconds, 0 or more, got {value!r}")
+    return float(value)
+
+
 def _path(base: Path, value: Any, where: str) -> Path:
     if not isinstance(value, str) or not value:
         raise ConfigError(f"{where} must be a file path")
@@ -477,6 +483,7 @@ def _parse_monitor(raw: dict[str, Any], base: Path) -> MonitorSettings:
         max_streams=_typed(raw.get("max_streams", 1024), int, "[monitor] max_streams"),
         fail_closed=_typed(raw.get("fail_closed", False), bool, "[monitor] fail_closed"),
         manager_after=_typed(raw.get("manager_after", 3), int, "[monitor] manager_after"),
+        batch_seconds=_seconds_or_zero(raw.get("batch_seconds", 0.25), "[monitor] batch_seconds"),
     )
     MonitorModel.load(settings.model)  # a model that does not load stops the start, with its reason
     return settings

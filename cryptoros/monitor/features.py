@@ -245,6 +245,20 @@ class Crosscheck:
 
 
 _REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
+#: team-map cells per coarse place along a side
+_CELLS_PER_PLACE = round(REACH_CELL_M / TEAM_MAP_RESOLUTION_M)
+assert math.isclose(_CELLS_PER_PLACE * TEAM_MAP_RESOLUTION_M, REACH_CELL_M), "a place is a whole number of cells"
+
+
+def _places(origin: int, n: int) -> tuple[int, list[int]]:
+    """The coarse places cells ``origin .. origin + n - 1`` lie in (integers: a place is
+    :data:`_CELLS_PER_PLACE` cells): the first place, and how many of the cells each
+    place in turn covers."""
+    k = _CELLS_PER_PLACE
+    first, last = origin // k, (origin + n - 1) // k
+    if first == last:
+        return first, [n]
+    return first, [k * (first + 1) - origin, *([k] * (last - first - 1)), origin + n - k * last]
 
 def warm_up() -> None:
     """Load what scoring needs (numpy, the decoders of the known ROS 1 types) now."""
@@ -412,7 +426,7 @@ class StreamFeatures:
     arrival times)."""
 
     __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at", "_robot", "_crosscheck",
-                 "_beacon_from", "_reach", "_visited", "_claims", "_walls")
+                 "_beacon_from", "_reach", "_visited", "_claims", "_walls", "_content")
 
     def __init__(self, typename: str, *, codec: str = "ros1", topic: str = "",
                  crosscheck: Crosscheck | None = None, beacon_from: str | None = None) -> None:
@@ -424,6 +438,8 @@ class StreamFeatures:
         self.kind = kind_of(typename, codec)
         self.names = FEATURES[self.kind]
         self._decode: Callable[[Any], Any] | None = None
+        #: the kind's content features (``_pose``, ``_scan``...)
+        self._content: Callable[[Any, float, float], tuple[float, ...]] | None = getattr(self, f"_{self.kind}", None)
         if self.kind != "any":
             if codec == "cdr":
                 self._decode = _cdr_decoder(typename, self.kind)
@@ -456,7 +472,7 @@ class StreamFeatures:
             return (*common, 0.0)
         try:
             msg = self._decode(body)
-            content = getattr(self, f"_{self.kind}")(msg, now, wall)
+            content = self._content(msg, now, wall)
         except (CryptorosError, AttributeError, ValueError, TypeError):
             return (*common, 1.0) + (0.0,) * (len(self.names) - 3)
         self._prev_at = now
@@ -500,13 +516,10 @@ class StreamFeatures:
             # the grid of places in reach over the patch's coarse places (outside it: out
             # of reach), spread to the patch's cells (each place repeated over the cells
             # it covers: the patch's places are consecutive), then the known cells in it
-            scale = TEAM_MAP_RESOLUTION_M / REACH_CELL_M
             h, w = cells.shape
-            row_place = np.floor((np.arange(h) + origin_y) * scale).astype(np.int64)
-            col_place = np.floor((np.arange(w) + origin_x) * scale).astype(np.int64)
-            row_cells = np.bincount(row_place - row_place[0])  # cells per place, in order
-            col_cells = np.bincount(col_place - col_place[0])
-            in_reach = self._reach.lookup(int(row_place[0]), int(col_place[0]), row_cells.size, col_cells.size)
+            row0, row_cells = _places(origin_y, h)
+            col0, col_cells = _places(origin_x, w)
+            in_reach = self._reach.lookup(row0, col0, len(row_cells), len(col_cells))
             reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
             unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
         erased = self._walls_erased(origin_x, origin_y, cells)

@@ -159,6 +159,17 @@ def test_ros2_poses_and_twists_give_the_features_their_ros1_twins_give():
         "malformed"] == 1.0
 
 
+def test_a_team_map_patch_is_split_into_the_coarse_places_its_cells_lie_in():
+    from cryptoros.monitor.features import _CELLS_PER_PLACE, REACH_CELL_M, TEAM_MAP_RESOLUTION_M, _places
+
+    for origin in range(-23, 24):
+        for n in range(1, 30):
+            first, counts = _places(origin, n)
+            place = np.floor((np.arange(n) + origin) * TEAM_MAP_RESOLUTION_M / REACH_CELL_M).astype(np.int64)
+            assert (first, counts) == (place[0], np.bincount(place - place[0]).tolist()), (origin, n)
+            assert sum(counts) == n and max(counts) <= _CELLS_PER_PLACE
+
+
 def test_scan_means_count_only_beams_in_range_whatever_the_mix():
     """Roughness and change are means over valid beams only (NaN, inf and out-of-range
     beams left out, a step or a change only between two valid beams): checked against
