@@ -520,8 +520,9 @@ class StreamFeatures:
             row0, row_cells = _places(origin_y, h)
             col0, col_cells = _places(origin_x, w)
             in_reach = self._reach.lookup(row0, col0, len(row_cells), len(col_cells))
-            reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
-            unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
+            if not in_reach.all():  # (all: every cell in reach, the honest robot's case)
+                reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
+                unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
         erased = self._walls_erased(origin_x, origin_y, cells)
         claims = self._claims
         claims.append((now, unseen, erased))
