@@ -72,8 +72,9 @@ class MonitorSettings:
     #: robot whose grant names a pattern (/pose_*) cannot evade by renaming its node
     manager_after: int = 3
     #: fnmatch patterns of topics whose messages are scored before they are forwarded
-    #: (ROS 1): a suspicious one is dropped. For topics where one message does the harm
-    #: (a false "map explored" is believed at once); the scoring is then on the hot path
+    #: (ROS 2: samples before they are republished): a suspicious one is dropped. For
+    #: topics where one message does the harm (a false "map explored" is believed at
+    #: once); the scoring is then on the hot path
     gate: tuple[str, ...] = ()
     #: what the streams queue within this many seconds is scored in one pass (0: each
     #: chunk on the loop's next turn); alerts come up to this much later

@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import itertools
 import logging
 import os
@@ -590,6 +591,10 @@ class Ros2Role(Role):
             unregister = monitor.register(peer.manager, target.node, writer.transport.abort)
             watched = monitor.watch(manager=peer.manager, publisher=target.node, topic=target.name,
                                     typename=target.type, cut=writer.transport.abort, codec="cdr")
+            if watched is None and monitor.settings.gates(target.name):  # never unscored
+                unregister()
+                raise PolicyDenied("monitor_busy", f"{target.name} is gated by the monitor, which watches as "
+                                                   "many streams as it may")
         self.metrics.allowed.labels(f"ros2_{target.kind}").inc()
         self._inbound.add(writer)
         try:
@@ -628,6 +633,8 @@ class Ros2Role(Role):
         except CdrError as exc:
             raise PolicyDenied("type_not_checkable", f"{target.type}: {exc}") from None
         refused = 0
+        # a gated topic: each sample is scored before it is republished, a suspicious one dropped
+        gate = watched.gate if watched is not None and self.gw.monitor.settings.gates(target.name) else None
         budget = self.gw.budget(peer)
         rx = self.metrics.bytes.labels("rx")
         # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
@@ -643,6 +650,8 @@ class Ros2Role(Role):
                 except fr.FrameError as exc:
                     raise RemoteProtocolError(str(exc)) from None
                 runs, bad = _checked_runs(runs, check)
+                if gate is not None and runs:
+                    runs, _dropped = _checked_runs(runs, functools.partial(_gated_sample, gate))
                 if bad:
                     if not refused:
                         log.warning("DENY ros2 sample from %s on %s [%s]: %s (dropped; logged once per stream)",
@@ -670,7 +679,7 @@ class Ros2Role(Role):
                         self._kept[peer.manager] = held
                         kept = largest * kept_depth
                     mine.extend(p for run in runs for p in fr.payloads(run[3]))
-                if runs and watched is not None:  # the monitor queues them; it scores later
+                if runs and watched is not None and gate is None:  # the monitor queues them; it scores later
                     watched.feed_messages([bytes(p) for run in runs for p in fr.payloads(run[3])])
                 if runs:
                     chan = advert[0]
@@ -748,6 +757,15 @@ class Ros2Role(Role):
             link.control(op="unserve", chan=proxy.chan)
             for rid in proxy.pending:
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
+
+
+class _Gated(CdrError):
+    """A sample the monitor's gate dropped (counted by the monitor, not as malformed)."""
+
+
+def _gated_sample(gate: Callable[[bytes], bool], sample: memoryview) -> None:
+    if not gate(bytes(sample)):
+        raise _Gated("suspicious: dropped by the monitor's gate")
 
 
 def _checked_runs(runs: list, check) -> tuple[list, list[str]]:

@@ -199,6 +199,43 @@ def test_the_ros2_role_quarantines_a_flooded_topic_stream_and_keeps_the_others(t
 
 
 @pytest.mark.slow
+def test_the_ros2_role_gates_a_topic_each_suspicious_sample_dropped_before_it_is_republished(tmp_path):
+    """Robot B's interceptor (role ros2) gates /twist: each of robot A's samples is scored
+    before robot B's domain sees it. The talkers' twists carry linear.x = seq + offset; the
+    model allows |linear.x| up to 50,000. Robot A's honest talker (offset 0) and a
+    compromised one (offset 100,000; both named /talker, the name the grant gives) publish
+    on /twist: robot A's bridge merges them into one stream, and robot B's listener gets
+    the honest samples and not one of the others (each dropped and counted), while the
+    stream stays up (action "log")."""
+    from cryptoros.monitor.model import MonitorModel
+    from tests.ros2_support import collect, got, ros2_network
+
+    model = tmp_path / "model.json"
+    MonitorModel(limits={"twist": {"rate_hz": 1000.0, "size_change": 10.0, "malformed": 0.5, "linear": 50_000.0,
+                                   "angular": 1e9}}).save(model)
+    monitor = f'[monitor]\nmodel = "{model}"\ntopics = ["/none"]\ngate = ["/twist"]\naction = "log"\n'
+    with ros2_network(tmp_path / "net", start=("robot_a", "robot_b"), extra={"robot_b": monitor}) as net:
+        with net.node("robot_b", "listener.py", "twist", "/twist", "60") as twist:
+            twist.until("READY", 30)
+            with net.node("robot_a", "talker.py", "twist", "/twist", "100000", "10"):
+                received = got(collect(twist, 3, 40))  # the path is up
+                with net.node("robot_a", "talker.py", "twist", "/twist", "100000", "10",
+                              "--offset", "100000"):
+                    deadline = time.monotonic() + 30
+                    while True:  # until the gate has dropped 10 of the compromised talker's samples
+                        counted = net.metrics("robot_b")
+                        dropped = [float(line.rsplit(" ", 1)[1]) for line in counted.splitlines()
+                                   if line.startswith('cryptoros_monitor_dropped_total{topic="/twist"}')]
+                        if dropped and dropped[0] >= 10:
+                            break
+                        assert time.monotonic() < deadline, f"the gate dropped {dropped} within 30 s"
+                        received += got(twist.until(None, 0.5))
+                    received += got(collect(twist, 5, 20))  # the honest talker's go on
+    assert len(received) >= 8 and all(seq < 100_000 for seq in received), received
+    assert received == sorted(received)  # the honest ones in order
+
+
+@pytest.mark.slow
 def test_ros2_traffic_is_recorded_per_publisher_node_and_trains_a_model_that_flags_a_flood(tmp_path):
     """`cryptoros monitor record --ros 2`: unmodified rclpy talkers on a robot's domain,
     recorded by an rclpy node of the ROS 2 venv into a ROS 1 bag (one connection per
