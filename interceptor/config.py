@@ -44,6 +44,7 @@ Example::
     max_pending_per_certificate = 8   # ... and per client certificate
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
+    name_hold_seconds = 120.0         # master role: a released node name stays its owner's (0: off)
     spare_connections = false         # true: one connection kept ready per peer after a stream
 
     [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
@@ -189,6 +190,10 @@ class Limits:
     max_relays_per_peer: int = 512
     #: Node names one peer may have registered at the master (master role).
     max_nodes_per_peer: int = 1024
+    #: A node name its owner unregistered stays that manager's for this many seconds
+    #: (master role): a node restarting cannot have its name taken in between by another
+    #: manager whose grant names nodes by a pattern. 0: a released name is free at once.
+    name_hold_seconds: float = 120.0
     #: New streams are refused (and /healthz answers 503) while the revocation feed is
     #: older than this many seconds: a revoked peer could be let in.
     max_feed_age: float = 60.0
@@ -433,10 +438,14 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
     lifetime = limits_raw.pop("tls_session_lifetime", Limits.tls_session_lifetime)
     if isinstance(lifetime, bool) or not isinstance(lifetime, (int, float)) or not 0 <= lifetime <= 7200:
         raise ConfigError(f"[limits] tls_session_lifetime must be seconds from 0 (off) to 7200, got {lifetime!r}")
+    hold = limits_raw.pop("name_hold_seconds", Limits.name_hold_seconds)
+    if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold <= 86400:
+        raise ConfigError(f"[limits] name_hold_seconds must be seconds from 0 (off) to 86400, got {hold!r}")
     limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
     limits = Limits(
         message_size=tuple(sizes),
         tls_session_lifetime=float(lifetime),
+        name_hold_seconds=float(hold),
         spare_connections=spare,
         **{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()},
     )

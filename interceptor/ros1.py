@@ -73,6 +73,7 @@ from cryptoros.ros1.xmlrpc import (
 from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
+from interceptor.name_holds import NameHolds
 from interceptor.pump import FrameCounter
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
 
@@ -233,6 +234,8 @@ class Ros1Role(GatewayRole):
             self.translator.add_master_uri(cfg.master.upstream)
         self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
+        #: master role: names released by their owner, kept for it a while (a restart)
+        self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._servers: list[asyncio.AbstractServer] = []
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
@@ -496,8 +499,10 @@ class Ros1Role(GatewayRole):
 
     # ---------------------------------------------------------------- master role
     def _owner_of(self, node: str) -> str | None:
+        """The manager that has ``node`` registered, or released it within
+        ``[limits] name_hold_seconds`` (:mod:`interceptor.name_holds`)."""
         entry = self._owners.get(node)
-        return entry[0] if entry else None
+        return entry[0] if entry else self._holds.holder(node)
 
     def _check_node_limit(self, call: Request, manager: str) -> None:
         """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
@@ -515,6 +520,7 @@ class Ros1Role(GatewayRole):
         if call.method.startswith("register") or call.method == "subscribeParam":
             entry = self._owners.setdefault(node, [manager, 0])
             entry[1] += 1
+            self._holds.claim(node)
             self._count_relay_refs(call.method, call.params, +1)
             self._save_state_soon()
         elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
@@ -524,6 +530,7 @@ class Ros1Role(GatewayRole):
                 entry[1] -= 1
                 if entry[1] <= 0:
                     del self._owners[node]
+                    self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
                 self._save_state_soon()
             self._count_relay_refs(call.method, call.params, -1)
 

@@ -228,7 +228,7 @@ def check_master_call(
     if method in NAME_BINDING or method in PARAM_WRITE or method in ("unsubscribeParam",):
         owner = owner_of(caller)
         if owner is not None and owner != manager:
-            raise _deny("name_taken", f"node {caller} is registered by manager {owner}")
+            raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
     if method in ("subscribeParam", "unsubscribeParam") and not grants.names_node(caller):
         raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
     if method in PARAM_READ or method in PARAM_WRITE or method == "getParamNames":
@@ -257,7 +257,7 @@ def check_master_call(
     if method in MASTER_UNREGISTER:
         owner = owner_of(caller)
         if owner is not None and owner != manager:
-            raise _deny("name_taken", f"node {caller} is registered by manager {owner}")
+            raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
         if owner is None and not grants.names_node(caller):
             raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
         return

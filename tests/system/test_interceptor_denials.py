@@ -197,6 +197,37 @@ def test_existing_node_name_from_another_manager_is_refused(network):
     assert "name_taken" in network.hosts["master"].logs()
 
 
+def test_a_restarting_nodes_name_is_held_for_its_manager_in_between(network):
+    """Robot A's /rospy_talker stops (rospy unregisters it) and is started again. In
+    between, robot B's node of the same name (B's grant names any node subscribing
+    /chatter) is refused: the name stays robot A's for [limits] name_hold_seconds (120 s
+    by default). Robot A's restarted node registers it again."""
+    def denied_names() -> int:
+        return sum(1 for line in network.hosts["master"].logs().splitlines()
+                   if "name_taken" in line and "/rospy_talker" in line)
+
+    with running([SYS_PY, NODE, "pub", "/rospy_talker", "/chatter", "3", "20", "0.2"],
+                 env=network.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/rospy_talker")
+        pub.wait(timeout=30)  # it publishes and ends by itself (a SIGTERM would skip rospy's unregistering)
+    deadline = time.monotonic() + 20
+    while "/rospy_talker" in nodes_in_state(master_state(network)):  # unregistered as it ended
+        assert time.monotonic() < deadline, "/rospy_talker stayed registered after it stopped"
+        time.sleep(0.1)
+    before = denied_names()
+    with running([SYS_PY, NODE, "sub", "/rospy_talker", "/chatter", "10"], env=network.ros_env("robot_b")) as squat:
+        read_lines(squat, "READY", 20)  # rospy does not wait for its registration: READY comes anyway
+        deadline = time.monotonic() + 20
+        while denied_names() == before:
+            assert time.monotonic() < deadline, "robot B's node took the released name"
+            time.sleep(0.1)
+    assert "/rospy_talker" not in nodes_in_state(master_state(network))
+    with talker(network, node="/rospy_talker") as pub:  # the owner takes its name back
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/rospy_talker")
+
+
 def refused_at_handshake(host, port, ca, cert, key) -> bool:
     """True when the TLS handshake fails. Under TLS 1.3 the server's verdict on the
     client certificate arrives after the client's own handshake completed: as an alert
