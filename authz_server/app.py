@@ -437,12 +437,15 @@ class AuthzService:
             self._managers_version = version
 
         async def fetch():
-            info = await self.db(self.registry.lookup_fingerprint, fingerprint)
+            info = await self.db(self.registry.lookup_fingerprint, fingerprint, now=time.time())
             grants = Grants(Grant(node=g.node, action=g.action, name=g.name, type=g.type)
                             for g in (info.grants if info else ()))
             return info, grants
 
-        return await self._managers.get(fingerprint, fetch)
+        info, grants = await self._managers.get(fingerprint, fetch)
+        if info is not None and info.fingerprint != fingerprint and (info.previous_until or 0) <= time.time():
+            return None, Grants(())  # a renewed certificate's overlap ended (no registry change marks it)
+        return info, grants
 
     def _fresh_version(self) -> int | None:
         if self._version is None or self.cfg.cache_seconds <= 0:

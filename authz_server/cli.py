@@ -20,7 +20,7 @@ import click
 
 from authz_server import keys as keymod
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
-from authz_server.registry import ACTIONS, Registry, validate_manager_name
+from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, Registry, validate_manager_name
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
@@ -137,16 +137,25 @@ def add_manager(ctx: click.Context, name: str, cert: str | None, fingerprint: st
 @click.argument("name")
 @click.option("--cert", "cert", type=str, help="The manager's new certificate.")
 @click.option("--fingerprint", help="SHA-256 fingerprint instead of --cert.")
+@click.option("--overlap", type=click.FloatRange(0, MAX_CERT_OVERLAP_S), default=0.0, show_default=True,
+              help="A planned renewal: seconds the old certificate is still accepted, no token revoked, so the "
+                   "robot keeps its streams until its interceptor reloads (SIGHUP) with the new one. 0: the old "
+                   "one is refused at once and the manager's outstanding tokens revoked (a key that may be "
+                   "compromised).")
 @click.pass_context
-def set_cert(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None) -> None:
-    """Bind manager NAME to a renewed certificate (tokens bound to the old one are revoked)."""
+def set_cert(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None, overlap: float) -> None:
+    """Bind manager NAME to a renewed certificate (by default the old one's tokens are revoked)."""
     validate_manager_name(name)
     fp = _cert_or_fp(name, cert, fingerprint)
     if fp is None:
         raise RegistryError("set-cert needs --cert FILE (or --fingerprint HEX)")
-    revoked = _registry(ctx).set_cert(name, fp)
-    click.echo(f"manager {name} now bound to certificate sha256 {fp.replace(':', '').lower()}; "
-               f"{revoked} outstanding token(s) revoked")
+    revoked = _registry(ctx).set_cert(name, fp, overlap=overlap)
+    if overlap:
+        click.echo(f"manager {name} now bound to certificate sha256 {fp.replace(':', '').lower()}; its previous "
+                   f"certificate is accepted for {overlap:g} s more (revoke its serial to end that everywhere)")
+    else:
+        click.echo(f"manager {name} now bound to certificate sha256 {fp.replace(':', '').lower()}; "
+                   f"{revoked} outstanding token(s) revoked")
 
 
 @main.command("list-managers")
@@ -157,7 +166,8 @@ def list_managers(ctx: click.Context, as_json: bool) -> None:
     ms = _registry(ctx).list_managers()
     if as_json:
         click.echo(json.dumps([{"name": m.name, "fingerprint_sha256": m.fingerprint, "enabled": m.enabled,
-                                "grants": len(m.grants)} for m in ms], indent=2))
+                                "grants": len(m.grants), "previous_fingerprint_sha256": m.previous_fingerprint,
+                                "previous_until": m.previous_until} for m in ms], indent=2))
         return
     click.echo(f"{'NAME':20} {'ENABLED':8} {'GRANTS':>6}  CERTIFICATE SHA-256")
     for m in ms:
@@ -171,6 +181,9 @@ def show_manager(ctx: click.Context, name: str) -> None:
     """Show one manager and all of its grants."""
     m = _registry(ctx).get_manager(name)
     click.echo(f"manager {m.name}: {'enabled' if m.enabled else 'DISABLED'}, certificate sha256 {m.fingerprint or '-'}")
+    if m.previous_fingerprint:
+        left = (m.previous_until or 0) - time.time()
+        click.echo(f"  previous certificate sha256 {m.previous_fingerprint} accepted for {left:.0f} s more")
     for g in m.grants:
         click.echo(f"  {g.action:9} {g.node:24} {g.name:32} {g.type}")
 

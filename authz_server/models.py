@@ -44,6 +44,10 @@ class Manager(Base):
     name: Mapped[str] = mapped_column(String(128), unique=True, nullable=False)
     #: lowercase hex SHA-256 of the DER client certificate
     cert_fingerprint: Mapped[str | None] = mapped_column(String(64), unique=True, nullable=True)
+    #: the certificate this one renewed, still accepted until ``previous_until`` (Unix
+    #: seconds): ``set-cert --overlap``, so a robot keeps its tokens until it reloads
+    previous_fingerprint: Mapped[str | None] = mapped_column(String(64), nullable=True, index=True)
+    previous_until: Mapped[int | None] = mapped_column(Integer, nullable=True)
     enabled: Mapped[bool] = mapped_column(Boolean, nullable=False, default=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False)
 

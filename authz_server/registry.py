@@ -21,7 +21,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
-from sqlalchemy import Engine, delete, func, insert, or_, select, update
+from sqlalchemy import Engine, and_, delete, func, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -54,6 +54,8 @@ REVOCATION_SERIAL = "revocation_serial"
 #: bumped by every change to a manager, its certificate or its grants: a replica keeps a
 #: manager's grants cached for as long as this has not moved (the feed watcher reads it)
 REGISTRY_VERSION = "registry_version"
+#: longest a renewed certificate's predecessor may stay accepted (``set-cert --overlap``)
+MAX_CERT_OVERLAP_S = 86400
 
 
 def _now() -> datetime:
@@ -111,6 +113,9 @@ class ManagerInfo:
     enabled: bool
     created_at: datetime
     grants: tuple[GrantRow, ...] = field(default=())
+    #: a renewed certificate's predecessor, accepted until ``previous_until`` (Unix seconds)
+    previous_fingerprint: str | None = None
+    previous_until: int | None = None
 
 
 @dataclass(frozen=True)
@@ -162,7 +167,9 @@ def _grants_of(m: Manager) -> tuple[GrantRow, ...]:
 
 
 def _info(m: Manager, with_grants: bool = True) -> ManagerInfo:
-    return ManagerInfo(m.name, m.cert_fingerprint, m.enabled, m.created_at, _grants_of(m) if with_grants else ())
+    previous = m.previous_fingerprint if m.previous_until is not None and m.previous_until > time.time() else None
+    return ManagerInfo(m.name, m.cert_fingerprint, m.enabled, m.created_at, _grants_of(m) if with_grants else (),
+                       previous, m.previous_until if previous else None)
 
 
 class Registry:
@@ -234,19 +241,37 @@ class Registry:
             return _info(m, with_grants=False)
 
     def _check_fp_free(self, s: Session, fp: str, name: str) -> None:
-        owner = s.scalars(select(Manager.name).where(Manager.cert_fingerprint == fp)).first()
+        """A certificate is bound to one manager at most: as its certificate, or as the
+        previous one it still accepts (``set-cert --overlap``)."""
+        owner = s.scalars(select(Manager.name).where(or_(
+            Manager.cert_fingerprint == fp,
+            and_(Manager.previous_fingerprint == fp, Manager.previous_until > int(time.time()))))).first()
         if owner is not None and owner != name:
             raise RegistryError(f"certificate {fp[:16]}... is already bound to manager {owner!r}")
 
-    def set_cert(self, name: str, fingerprint: str) -> int:
-        """Bind ``name`` to a new certificate; tokens bound to the old one are revoked."""
+    def set_cert(self, name: str, fingerprint: str, *, overlap: float = 0.0) -> int:
+        """Bind ``name`` to a new certificate. With no ``overlap``, the old one is refused
+        at once and every outstanding token of the manager revoked (a key that may be
+        compromised). With ``overlap`` seconds, a planned renewal: the old certificate is
+        still accepted that long and no token is revoked, so the robot's interceptor
+        keeps its streams and tokens until it reloads with the new one (its old
+        certificate's tokens expire on their own; revoke its serial at the CA to end it
+        early everywhere). Returns the tokens revoked."""
         fp = normalize_fingerprint(fingerprint)
+        if not 0 <= overlap <= MAX_CERT_OVERLAP_S:
+            raise RegistryError(f"overlap must be 0 to {MAX_CERT_OVERLAP_S} seconds, got {overlap!r}")
         with self._session.begin() as s:
             m = self._manager(s, name)
             self._check_fp_free(s, fp, name)
-            if m.cert_fingerprint == fp:
+            if m.cert_fingerprint == fp and not (overlap == 0 and m.previous_fingerprint):
                 return 0
-            m.cert_fingerprint = fp
+            if overlap > 0:
+                if m.cert_fingerprint != fp:
+                    m.previous_fingerprint, m.previous_until = m.cert_fingerprint, int(time.time() + overlap)
+                m.cert_fingerprint = fp
+                self._managers_changed(s)
+                return 0
+            m.cert_fingerprint, m.previous_fingerprint, m.previous_until = fp, None, None
             self._managers_changed(s)
             return self._revoke_outstanding(s, name, "certificate replaced")
 
@@ -283,12 +308,15 @@ class Registry:
         with self._session() as s:
             return _info(self._manager(s, name, load_grants=True))
 
-    def lookup_fingerprint(self, fingerprint: str) -> ManagerInfo | None:
-        """The manager bound to a certificate fingerprint, with its grants (daemon path)."""
+    def lookup_fingerprint(self, fingerprint: str, *, now: float | None = None) -> ManagerInfo | None:
+        """The manager bound to a certificate fingerprint, with its grants (daemon path):
+        its certificate, or the one it renewed while the overlap lasts."""
+        now_i = int(time.time() if now is None else now)
         with self._session() as s:
             m = s.scalars(
                 select(Manager)
-                .where(Manager.cert_fingerprint == fingerprint)
+                .where(or_(Manager.cert_fingerprint == fingerprint,
+                           and_(Manager.previous_fingerprint == fingerprint, Manager.previous_until > now_i)))
                 .options(*(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values()))
             ).one_or_none()
             return None if m is None else _info(m)
@@ -404,9 +432,12 @@ class Registry:
                             s.delete(m)
                             stats["managers_removed"] += 1
                 # Free changing fingerprints first so swapping certificates between managers works.
+                # A policy names one certificate per manager: a renewal's overlap ends with it.
                 for name, m in existing.items():
                     if name in wanted and target_fp[name] != orig_fp[name]:
-                        m.cert_fingerprint = None
+                        m.cert_fingerprint = m.previous_fingerprint = m.previous_until = None
+                    elif m.previous_fingerprint is not None and m.previous_fingerprint in target_fp.values():
+                        m.previous_fingerprint = m.previous_until = None
                 s.flush()
                 for name, w in wanted.items():
                     m = existing.get(name)

@@ -293,7 +293,7 @@ def renew(name, directory, same_key, key_type, days, passphrase_file, unsafe_no_
                                 unsafe_no_passphrase=unsafe_no_passphrase and not same_key)
     _print_issued(out, encrypted=passphrase is not None if not same_key else None)
     click.echo(f"previous:    serial {old_serial:x} (still valid)")
-    click.echo("next:        cryptoros-authz set-cert " + f"{name} --fingerprint {out.fingerprint_sha256}")
+    click.echo("next:        cryptoros-authz set-cert " + f"{name} --fingerprint {out.fingerprint_sha256} --overlap 600")
     click.echo("             then SIGHUP the interceptor using it (it reloads the new files), then")
     click.echo(f"             cryptoros-certs revoke {name} --serial {old_serial:x} --dir {directory}")
 

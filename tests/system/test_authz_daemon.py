@@ -334,6 +334,42 @@ def test_registry_changes_that_revoke_no_token_reach_the_next_token_request(daem
     assert daemon.token("erin_new") == (403, {"error": "access_denied"})  # the new one is erin's, still disabled
 
 
+def test_a_planned_renewal_with_an_overlap_serves_both_certificates_then_only_the_new(daemon):
+    """``set-cert --overlap``: the running daemon issues tokens to the old certificate and
+    to the new one (each bound to the certificate that asked), revokes none; after the
+    overlap only the new one gets tokens."""
+    import ssl
+
+    import jwt
+
+    from cryptoros.tls import cert_thumbprint_s256
+
+    pki = daemon.team.pki
+    gina_old, gina_new = pki.issue("gina"), pki.issue("gina_new")
+    ok(daemon.cli("add-manager", "gina", "--fingerprint", gina_old.fingerprint_sha256))
+    deadline = time.monotonic() + 10
+    while (answer := daemon.token("gina"))[0] != 200:  # known once the replica re-read the managers
+        assert time.monotonic() < deadline, answer
+        time.sleep(0.1)
+    first = answer[1]
+    out = ok(daemon.cli("set-cert", "gina", "--fingerprint", gina_new.fingerprint_sha256, "--overlap", "4"))
+    assert "accepted for 4 s more" in out, out
+    deadline = time.monotonic() + 10
+    while daemon.token("gina_new")[0] != 200:  # the new one, once the replica re-read the manager
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    for name, cert in (("gina", gina_old), ("gina_new", gina_new)):
+        status, body = daemon.token(name)
+        assert status == 200, (name, body)
+        claims = jwt.decode(body["access_token"], options={"verify_signature": False})
+        der = ssl.PEM_cert_to_DER_cert(cert.cert_path.read_text())
+        assert claims["sub"] == "gina" and claims["cnf"]["x5t#S256"] == cert_thumbprint_s256(der)
+    feed = daemon.get_json("/revocations")
+    assert jwt.decode(first["access_token"], options={"verify_signature": False})["jti"] not in feed["revoked_jtis"]
+    _until(daemon, "gina", (401, {"error": "invalid_client"}), bound=15)  # the overlap is over
+    assert daemon.token("gina_new")[0] == 200
+
+
 def test_certificate_revoked_while_running_is_refused_within_seconds(daemon):
     # a manager registered and working...
     daemon.team.pki.issue("dave")

@@ -187,6 +187,39 @@ def test_taking_rights_away_revokes_live_tokens_of_that_manager_only(reg):
     assert live not in reg.revocation_feed(now=time.time() + 400).revoked_jtis
 
 
+def test_a_renewal_with_an_overlap_accepts_both_certificates_for_its_time_and_revokes_nothing(reg):
+    """``set-cert --overlap``: the old certificate still resolves to the manager (the
+    daemon's lookup) until the overlap ends, no token is revoked; without an overlap the
+    old one is refused at once and the manager's tokens are revoked; a certificate
+    accepted as another manager's previous one is not free."""
+    new = "e" * 64
+    reg.add_manager("alice", FP["alice"])
+    reg.add_manager("bob", FP["bob"])
+    reg.grant("alice", "publish", "/talker", "/chatter", "std_msgs/String")
+    live = _issue(reg, "alice")
+    version0 = reg.revocation_feed(now=time.time()).registry_version
+    assert reg.set_cert("alice", new, overlap=600) == 0
+    now = time.time()
+    feed = reg.revocation_feed(now=now)
+    assert live not in feed.revoked_jtis and feed.registry_version > version0  # replicas re-read the manager
+    for fp in (FP["alice"], new):
+        info = reg.lookup_fingerprint(fp, now=now)
+        assert info is not None and info.name == "alice" and len(info.grants) == 1
+    assert reg.lookup_fingerprint(FP["alice"], now=now + 601) is None  # the overlap is over
+    assert reg.lookup_fingerprint(new, now=now + 601).name == "alice"
+    shown = reg.get_manager("alice")
+    assert shown.fingerprint == new and shown.previous_fingerprint == FP["alice"]
+    with pytest.raises(RegistryError, match="already bound"):
+        reg.set_cert("bob", FP["alice"])  # still alice's while the overlap lasts
+    with pytest.raises(RegistryError, match="overlap"):
+        reg.set_cert("alice", "f" * 64, overlap=10 ** 6)
+    # ending the overlap early: set-cert again with the same certificate and no overlap
+    assert reg.set_cert("alice", new) == 1
+    assert reg.lookup_fingerprint(FP["alice"], now=time.time()) is None
+    assert live in reg.revocation_feed(now=time.time()).revoked_jtis
+    assert reg.get_manager("alice").previous_fingerprint is None
+
+
 def test_revoke_token_uses_the_expiry_from_the_audit_log(reg):
     reg.add_manager("alice", FP["alice"])
     jti = _issue(reg, "alice", lifetime=120)

@@ -384,7 +384,7 @@ def test_renew_keeps_kind_and_names_and_prints_the_next_steps(ca: Path, pwfile: 
         {"127.0.0.7", "robot-r.lan"}
     key = load_private_key(ca / "private" / "robot_r.key", b"correct horse")  # encrypted with the new passphrase
     assert key.public_key().public_numbers() == second.public_key().public_numbers()
-    assert "set-cert robot_r --fingerprint" in out and f"--serial {first.serial_number:x}" in out
+    assert "set-cert robot_r --fingerprint" in out and "--overlap 600" in out and f"--serial {first.serial_number:x}" in out
     status = {r["serial"]: r["status"] for r in json.loads(ok("list", "--dir", ca, "--json").stdout)}
     assert status[first.serial_number] == "valid" and status[second.serial_number] == "valid"
     ok("revoke", "robot_r", "--dir", ca, "--serial", format(first.serial_number, "x"))
