@@ -134,6 +134,7 @@ class _OneName:
     start: Callable[[str], None]
     client: _Client
     by_address: dict[str, str]
+    port: int
 
 
 @contextlib.contextmanager
@@ -174,7 +175,7 @@ def _one_name(tmp_path: Path, team, dbs: dict[str, str]) -> Iterator[_OneName]:
             cert, key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
             client = _Client(hosts["robot"].argv([sys.executable, "-c", CLIENT, f"https://{NAME}:{port}",
                                                   str(team.pki.ca_cert), str(cert), str(key)]))
-            yield _OneName(hosts, replicas, start, client, {hosts[n].address: n for n in ("authz1", "authz2")})
+            yield _OneName(hosts, replicas, start, client, {hosts[n].address: n for n in ("authz1", "authz2")}, port)
         finally:
             if client is not None:
                 client.proc.stdin.close()
@@ -250,3 +251,39 @@ def test_a_replica_behind_one_name_that_answers_503_is_left_for_the_next_address
         assert after["ok"], after
         assert [fleet.by_address[a] for a in after["peers"]] != [victim], after
         assert fleet.replicas[victim].poll() is None  # it was up all along
+
+
+def test_a_token_request_in_flight_when_its_replica_dies_is_asked_again_at_the_names_next_address(tmp_path):
+    """One url, one name: the replica in use hangs (SIGSTOP) with the client's POST /token
+    already in its socket, then is SIGKILLed. The reset reaches the client under the
+    request, which it asks once more on a new connection: the name's next address, the
+    other replica. aiohttp retries only idempotent methods by itself; a POST is asked
+    again by the client (a token request is safe to repeat: the first was never
+    answered)."""
+    team = build_team(tmp_path)
+    with _one_name(tmp_path, team, {"authz1": team.db, "authz2": team.db}) as fleet:
+        first = fleet.client.ask("token")
+        assert first["ok"] and len(first["peers"]) == 1, first
+        victim = fleet.by_address[first["peers"][0]]
+        proc = fleet.replicas[victim]
+        proc.send_signal(signal.SIGSTOP)
+        try:
+            fleet.client.proc.stdin.write("token\n")
+            fleet.client.proc.stdin.flush()
+            deadline = time.monotonic() + 15
+            while True:  # until the request sits unread in the stopped replica's socket
+                out = subprocess.run(fleet.hosts[victim].argv(["ss", "-tnH", "state", "established",
+                                                               f"( sport = :{fleet.port} )"]),
+                                     capture_output=True, text=True, timeout=10, check=True).stdout
+                if sum(int(line.split()[0]) for line in out.splitlines() if line.strip()):
+                    break
+                assert time.monotonic() < deadline, out
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
+        after = fleet.client.next("token")
+        assert after["ok"], after  # no failure reached the caller
+        assert [fleet.by_address[a] for a in after["peers"]] != [victim], after
