@@ -79,7 +79,9 @@ async def main():
                 say(kind="feed", ok=True, revoked=sorted(feed.revoked_jtis) if feed else None)
             elif line == "hold":
                 held.append(asyncio.ensure_future(hold()))
-                await asyncio.sleep(0.3)  # the request is on its way (sent, then held)
+                deadline = loop.time() + 10
+                while not peers(client) and loop.time() < deadline:  # its connection is acquired
+                    await asyncio.sleep(0.01)
                 say(kind="holding", peers=peers(client))
         except TokenError as exc:
             say(kind=line, ok=False, error=exc.detail)
