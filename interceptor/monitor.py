@@ -7,7 +7,10 @@ pump copies out of its read buffer) and schedules the scoring for later on the l
 forwarding never waits for decoding. What every stream queued within ``batch_seconds``
 is scored in one pass: at a robot's rates (tens of messages a second per stream) a
 wake-up per message ran the scoring code cold each time, at several times the cost of
-the same code run over a batch; an alert comes at most that much later. The scoring splits the chunks into TCPROS frames,
+the same code run over a batch; an alert comes at most that much later. A stream that
+queues :data:`BATCH_EARLY_CHUNKS` chunks before the timer (a flood, a burst of spoofed
+poses) has the batch scored at once: at such rates a batch fills by itself, and the
+stream is cut within a few messages. The scoring splits the chunks into TCPROS frames,
 computes the message's features (:mod:`cryptoros.monitor.features`) and scores them
 with the model (:mod:`cryptoros.monitor.model`); ``consecutive`` suspicious messages in
 a row make an alert: a log line (``MONITOR alert``) and
@@ -52,6 +55,8 @@ TIMING_SAMPLE = 16
 #: messages one stream scores before it hands the event loop back (a backlog of small
 #: messages must not stall forwarding)
 MESSAGES_PER_TURN = 256
+#: chunks one stream may queue before the batch is scored at once (not at its timer)
+BATCH_EARLY_CHUNKS = 8
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,6 +151,7 @@ class Monitor:
         #: streams with chunks queued for the next batch, and its timer
         self._due: list[WatchedStream] = []
         self._batch: asyncio.TimerHandle | asyncio.Handle | None = None
+        self._batch_soon = False  # the batch is due on the loop's next turn, not on its timer
 
     def _schedule(self, stream: WatchedStream) -> None:
         """Score ``stream``'s queue in the next batch (one timer for every stream)."""
@@ -153,13 +159,25 @@ class Monitor:
         if self._batch is None:
             loop = asyncio.get_running_loop()
             delay = self.settings.batch_seconds
+            self._batch_soon = delay <= 0
             self._batch = loop.call_later(delay, self._score_batch) if delay > 0 else \
                 loop.call_soon(self._score_batch)
+
+    def _score_soon(self) -> None:
+        """A stream queued :data:`BATCH_EARLY_CHUNKS` chunks: score the batch on the loop's
+        next turn instead of waiting out ``batch_seconds`` (a flood is a batch of its own:
+        it is cut within a few messages, not after a quarter of a second of them)."""
+        if self._batch_soon:
+            return
+        if self._batch is not None:
+            self._batch.cancel()
+        self._batch_soon = True
+        self._batch = asyncio.get_running_loop().call_soon(self._score_batch)
 
     def _score_batch(self) -> None:
         t0 = time.thread_time()
         try:
-            self._batch = None
+            self._batch, self._batch_soon = None, False
             due, self._due = self._due, []
             for stream in due:
                 stream._score_queued_timed()
@@ -330,6 +348,8 @@ class WatchedStream:
         if not self._scheduled:
             self._scheduled = True
             self.monitor._schedule(self)
+        elif len(self._chunks) >= BATCH_EARLY_CHUNKS:
+            self.monitor._score_soon()
 
     def close(self) -> None:
         self.closed = True

@@ -60,15 +60,19 @@ class LiveView:
         self.live.update(Group(t, bar))  # type: ignore[union-attr]
 
 
-def _yes(ok: bool | None) -> str:
+def _yes(ok: bool | None, mode: str = "") -> str:
     if ok is None:
         return "-"
+    if not ok and mode == "plain":  # nothing blocks in plain ROS: the attack found nothing to act on
+        return "no effect"
     return "[red]SUCCEEDED[/red]" if ok else "[green]blocked[/green]"
 
 
-def _verdict(cell: dict[str, Any]) -> str:
-    """One attack in one mode: the verdict, and in an isolated run its mission's coverage."""
-    out = _yes(cell["succeeded"])
+def _verdict(cell: dict[str, Any], mode: str = "") -> str:
+    """One attack in one mode: the verdict, and in an isolated run its mission's coverage.
+    An attack without effect in plain ROS (its liar shut down by another attack) is "no
+    effect", not "blocked": nothing there blocks."""
+    out = _yes(cell["succeeded"], mode)
     if cell.get("cut_after_s") is not None:  # the monitor quarantined it: how long it had
         out = f"{out}, [yellow]cut after {cell['cut_after_s']:.1f} s[/yellow]"
     if "coverage" in cell:
@@ -99,7 +103,7 @@ def table(result: dict[str, Any]) -> Table:
         t.add_column(MODE_LABEL[m])
     if isolated:
         for k, a in result["attacks"].items():
-            t.add_row(f"{k} (seed {a['seed']})", *[_verdict(a[m]) if m in a else "-" for m in modes])
+            t.add_row(f"{k} (seed {a['seed']})", *[_verdict(a[m], m) if m in a else "-" for m in modes])
         return t
     rows: list[tuple[str, list[str]]] = []
     R = result["modes"]
@@ -107,7 +111,7 @@ def table(result: dict[str, Any]) -> Table:
     rows.append(("mission time", [f"{R[m]['mission_time_sim_s']:.0f} s sim / {R[m]['mission_time_wall_s']:.1f} s wall"
                                   if R[m]["target_reached"] else f"not reached ({R[m]['end_reason']})" for m in modes]))
     for k, a in result["attacks"].items():
-        rows.append((f"{k} (seed {a['seed']})", [_verdict(a[m]) if m in a else "-" for m in modes]))
+        rows.append((f"{k} (seed {a['seed']})", [_verdict(a[m], m) if m in a else "-" for m in modes]))
     rows.append(("messages tx / rx", [f"{R[m]['messages']['tx']} / {R[m]['messages']['rx']}" for m in modes]))
     rows.append(("bytes tx / rx", [f"{_kb(R[m]['messages']['tx_bytes'])} / {_kb(R[m]['messages']['rx_bytes'])}" for m in modes]))
     rows.append(("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes]))
@@ -195,8 +199,8 @@ def _figures(result: dict[str, Any], out: Path) -> list[tuple[str, str]]:
     return figs
 
 
-def _md_verdict(cell: dict[str, Any]) -> str:
-    out = "**succeeded**" if cell["succeeded"] else "blocked"
+def _md_verdict(cell: dict[str, Any], mode: str = "") -> str:
+    out = "**succeeded**" if cell["succeeded"] else ("no effect" if mode == "plain" else "blocked")
     if cell.get("cut_after_s") is not None:
         out += f", cut after {cell['cut_after_s']:.1f} s"
     return out
@@ -207,7 +211,7 @@ def _mission_rows(R: dict[str, Any], modes: list[str], result: dict[str, Any], r
     row("mission time", [f"{R[m]['mission_time_sim_s']:.0f} s simulated, {R[m]['mission_time_wall_s']:.1f} s wall"
                          if R[m]["target_reached"] else f"target not reached ({R[m]['end_reason']})" for m in modes])
     for k, a in result["attacks"].items():
-        row(f"{k} (seed {a['seed']})", [_md_verdict(a[m]) if m in a else "-" for m in modes])
+        row(f"{k} (seed {a['seed']})", [_md_verdict(a[m], m) if m in a else "-" for m in modes])
     row("messages tx / rx", [f"{R[m]['messages']['tx']} / {R[m]['messages']['rx']}" for m in modes])
     row("bytes tx / rx", [f"{_kb(R[m]['messages']['tx_bytes'])} / {_kb(R[m]['messages']['rx_bytes'])}" for m in modes])
     row("denials by reason", [", ".join(f"{k} {v}" for k, v in R[m]["denials"].items()) or "-" for m in modes])
@@ -236,7 +240,7 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
     if isolated:
         lines.insert(-2, "Each attack ran in its own missions (`--isolate`); in brackets, that mission's coverage.\n")
         for k, a in result["attacks"].items():
-            row(f"{k} (seed {a['seed']})", [_md_verdict(a[m]) + f" ({a[m]['coverage']:.0%})" if m in a else "-" for m in modes])
+            row(f"{k} (seed {a['seed']})", [_md_verdict(a[m], m) + f" ({a[m]['coverage']:.0%})" if m in a else "-" for m in modes])
     else:
         _mission_rows(R, modes, result, row)
     lines += ["", "## Attacks", "", "| attack | what | attacker in protected mode | " + " | ".join(f"evidence ({MODE_LABEL[m]})" for m in modes) + " |",

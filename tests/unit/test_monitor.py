@@ -508,6 +508,28 @@ async def test_what_the_streams_queue_within_batch_seconds_is_scored_in_one_pass
     assert monitor.metrics.busy._value.get() > 0
 
 
+async def test_a_stream_that_queues_a_burst_has_the_batch_scored_at_once(tmp_path):
+    """A flood does not wait out batch_seconds: the stream's BATCH_EARLY_CHUNKS-th chunk
+    has every due stream scored on the loop's next turn."""
+    from interceptor.monitor import BATCH_EARLY_CHUNKS
+
+    clock = Clock()
+    monitor, _ = monitor_for(tmp_path, action="log", clock=clock, batch_seconds=1.0)
+    quiet = monitor.watch(manager="m", publisher="/q", topic="/r1/pose", typename=POSE, cut=lambda: None)
+    flood = monitor.watch(manager="m", publisher="/f", topic="/r0/pose", typename=POSE, cut=lambda: None)
+    quiet.feed(frame(pose(0.0, 0.0, clock.t)))
+    for k in range(BATCH_EARLY_CHUNKS - 1):
+        flood.feed(frame(pose(0.01 * k, 0.0, clock.t)))
+    await drain()
+    counted = monitor.metrics.messages
+    assert counted.labels("/r0/pose")._value.get() == 0  # still waiting for the timer
+    flood.feed(frame(pose(0.1, 0.0, clock.t)))
+    await drain()  # the next turn of the loop, not a second later
+    assert counted.labels("/r0/pose")._value.get() == BATCH_EARLY_CHUNKS
+    assert counted.labels("/r1/pose")._value.get() == 1  # the quiet stream went in the same batch
+    assert monitor._batch is None and not monitor._due
+
+
 def test_batch_seconds_is_checked_at_start(tmp_path):
     from interceptor.config import _parse_monitor
 
