@@ -150,6 +150,11 @@ class Grants:
         node is this manager's, so it may register that name at the master."""
         return any(node_matches(g.node, node) for g in self._grants)
 
+    def names_node_exactly(self, node: str) -> bool:
+        """Whether a grant names ``node`` itself (not through ``*`` or a pattern): the
+        registry gives this manager that very name."""
+        return any(g.node == node for g in self._grants)
+
     def names(self) -> frozenset[str]:
         """The topics and services named by any grant (parameter namespaces excluded)."""
         return frozenset(g.name for g in self._grants if g.action not in PARAM_ACTIONS)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -70,6 +71,7 @@ from cryptoros.ros1.xmlrpc import (
     request_path,
     split_multicall_response,
 )
+from cryptoros.tokens import Grants
 from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
@@ -498,11 +500,19 @@ class Ros1Role(GatewayRole):
         return results[0]  # type: ignore[return-value]
 
     # ---------------------------------------------------------------- master role
-    def _owner_of(self, node: str) -> str | None:
+    def _owner_of(self, node: str, grants: Grants | None = None) -> str | None:
         """The manager that has ``node`` registered, or released it within
-        ``[limits] name_hold_seconds`` (:mod:`interceptor.name_holds`)."""
+        ``[limits] name_hold_seconds`` (:mod:`interceptor.name_holds`). A hold does not
+        stand against a caller whose ``grants`` name that very node (the registry gives
+        it the name: one tool name granted to two robots): it keeps the name from
+        managers that would take it through ``*`` or a pattern."""
         entry = self._owners.get(node)
-        return entry[0] if entry else self._holds.holder(node)
+        if entry:
+            return entry[0]
+        holder = self._holds.holder(node)
+        if holder is not None and grants is not None and grants.names_node_exactly(node):
+            return None
+        return holder
 
     def _check_node_limit(self, call: Request, manager: str) -> None:
         """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
@@ -631,7 +641,8 @@ class Ros1Role(GatewayRole):
 
         def decide(call: Request) -> Request:
             grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
-            check_master_call(call.method, call.params, manager=peer.manager, grants=grants, owner_of=self._owner_of)
+            check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
+                              owner_of=functools.partial(self._owner_of, grants=grants))
             call = _resolved_param_call(call, grants)
             self._check_node_limit(call, peer.manager)
             uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
