@@ -793,10 +793,11 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         return web.json_response(body, headers={"ETag": etag, "Cache-Control": "no-cache"})
 
     async def _streamed_poll(request: web.Request, wait: float, heartbeat: float) -> web.StreamResponse:
-        """A long-poll that shows it is alive: a 200 at once, then a space every
-        ``heartbeat`` seconds while the feed stays as the client knows it and this replica
-        reads its registry, then one JSON object: the feed (with its ``etag``) when it
-        changed, or ``{"unchanged": true, "etag": ...}`` after ``wait``. JSON allows the
+        """A long-poll that shows it is alive: a 200 and a space at once, then a space every
+        ``heartbeat`` seconds (:class:`_Heartbeats`) while the feed stays as the client
+        knows it and this replica reads its registry, then one JSON object: the feed (with
+        its ``etag``) when it changed, or ``{"unchanged": true, "etag": ...}`` after
+        ``wait``. JSON allows the
         leading spaces. A replica that can no longer read its registry cuts the
         connection (the client then tries another); one that hangs stops the spaces,
         which its client notices within two heartbeats."""
