@@ -33,13 +33,14 @@ import hashlib
 import heapq
 import json
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from aiohttp import web
+from aiohttp import HttpVersion11, web
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from sqlalchemy.exc import SQLAlchemyError
@@ -75,6 +76,14 @@ MIN_HEARTBEAT = 0.2
 MAX_HEARTBEAT = 300.0
 #: the response header that marks a streamed long-poll (spaces, then one JSON object)
 FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
+#: a heartbeat on a streamed long-poll: one HTTP/1.1 chunk of one space
+HEARTBEAT_CHUNK = b"1\r\n \r\n"
+#: heartbeats fall due on this grid (seconds; half the interval if that is shorter), so one
+#: wake-up writes every stream due at that instant
+HEARTBEAT_GRID = 1.0
+#: unsent bytes a stream's transport may hold before its heartbeats stop and it is cut
+MAX_HEARTBEAT_BACKLOG = 4096
+_dropped_log = OncePer(60.0, max_keys=1)
 #: long-polls held at once, per client certificate and per replica (more are answered at once)
 MAX_HELD_PER_CLIENT = 4
 MAX_HELD = 10_000
@@ -129,28 +138,41 @@ class _Cache:
 
 
 class _Heartbeats:
-    """The heartbeats of every held streamed long-poll, written by one task as they fall
-    due (a heap by due time): a heartbeat costs one small write, not a wake-up of the
-    request that holds the stream. Written only while ``healthy()`` (the replica reads
-    its registry); a stream that cannot take its space any more is dropped."""
+    """The heartbeats of every held streamed long-poll, written by one timer callback as
+    they fall due: a heartbeat costs one small write to its stream's transport, not a
+    wake-up of the request that holds the stream nor one of its own. Due times are
+    aligned on a grid (``HEARTBEAT_GRID``, or half the interval if that is shorter), so
+    the streams due at one instant are written in one wake-up: each is late by less
+    than one grid step and its spacing stays its interval. A heartbeat is one HTTP/1.1
+    chunk holding a space (:data:`HEARTBEAT_CHUNK`), written straight to the transport
+    without waiting for it to drain; the request's response must be chunked and
+    uncompressed and have written its headers already (``_streamed_poll``). Written only
+    while ``healthy()`` (the replica reads its registry). A stream whose transport is
+    closing, or holds more than ``MAX_HEARTBEAT_BACKLOG`` bytes unsent (its client stopped
+    reading), is dropped and its connection aborted: spaces never pile up in the replica."""
 
-    def __init__(self, healthy: Callable[[], bool], counted: Callable[[], None]) -> None:
+    def __init__(self, healthy: Callable[[], bool], counted: Callable[[int], None]) -> None:
         self._healthy, self._counted = healthy, counted
-        self._due: list[tuple[float, int, web.StreamResponse, float]] = []
+        self._due: list[tuple[float, int, asyncio.Transport, float]] = []
         self._live: set[int] = set()
         self._next_key = 0
-        self._wake = asyncio.Event()
-        self._task: asyncio.Task | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at = 0.0
+        self.dropped = 0
 
-    def add(self, response: web.StreamResponse, interval: float) -> int:
-        loop = asyncio.get_running_loop()
+    @staticmethod
+    def _aligned(at: float, interval: float) -> float:
+        grid = min(HEARTBEAT_GRID, interval / 2)
+        return math.ceil(at / grid - 1e-6) * grid
+
+    def add(self, transport: asyncio.Transport, interval: float) -> int:
+        self._loop = asyncio.get_running_loop()
         self._next_key += 1
         key = self._next_key
-        heapq.heappush(self._due, (loop.time() + interval, key, response, interval))
+        heapq.heappush(self._due, (self._aligned(self._loop.time() + interval, interval), key, transport, interval))
         self._live.add(key)
-        self._wake.set()
-        if self._task is None or self._task.done():
-            self._task = asyncio.ensure_future(self._run())
+        self._schedule()
         return key
 
     def remove(self, key: int) -> None:
@@ -163,32 +185,62 @@ class _Heartbeats:
             heapq.heapify(self._due)
 
     def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
 
-    async def _run(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            due = self._due
-            while due and due[0][1] not in self._live:
-                heapq.heappop(due)
-            if not due:
-                self._wake.clear()
-                await self._wake.wait()
-                continue
-            at, key, response, interval = due[0]
-            if at > loop.time():
-                self._wake.clear()
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(self._wake.wait(), at - loop.time())
-                continue
-            heapq.heapreplace(due, (at + interval, key, response, interval))
-            if self._healthy():
+    def _schedule(self) -> None:
+        due, live = self._due, self._live
+        while due and due[0][1] not in live:
+            heapq.heappop(due)
+        if not due:
+            return
+        at = due[0][0]
+        if self._timer is not None:
+            if self._timer_at <= at:
+                return
+            self._timer.cancel()
+        assert self._loop is not None
+        self._timer, self._timer_at = self._loop.call_at(at, self._tick), at
+
+    def _tick(self) -> None:
+        self._timer = None
+        assert self._loop is not None
+        now = self._loop.time()
+        healthy = self._healthy()
+        written = 0
+        try:
+            while self._due and self._due[0][0] <= now + 0.001:  # a timer may fire up to a clock tick early
+                at, key, transport, interval = self._due[0]
+                if key not in self._live:
+                    heapq.heappop(self._due)
+                    continue
+                after = at + interval
+                if after <= now:  # the loop was held up past a whole interval: no burst of beats
+                    after = now + interval
+                heapq.heapreplace(self._due, (self._aligned(after, interval), key, transport, interval))
                 try:
-                    await response.write(b" ")
-                    self._counted()
-                except (ConnectionError, RuntimeError):  # gone, or already answered
-                    self._live.discard(key)
+                    if transport.is_closing() or transport.get_write_buffer_size() > MAX_HEARTBEAT_BACKLOG:
+                        self._drop(key, transport)
+                    elif healthy:
+                        transport.write(HEARTBEAT_CHUNK)
+                        written += 1
+                except Exception as exc:  # gone under us: that stream alone stops
+                    log.debug("a heartbeat could not be written: %s", exc)
+                    self._drop(key, transport)
+        finally:
+            if written:
+                self._counted(written)
+            self._schedule()
+
+    def _drop(self, key: int, transport: asyncio.Transport) -> None:
+        self._live.discard(key)
+        self.dropped += 1
+        if not transport.is_closing():
+            if _dropped_log("backlog"):
+                log.warning("a streamed feed poll is cut: its client does not read its heartbeats "
+                            "(over %d bytes unsent; logged once a minute)", MAX_HEARTBEAT_BACKLOG)
+            transport.abort()  # its request is cancelled (handler_cancellation) and its hold ends
 
 
 class _AuditWriter:
@@ -733,7 +785,7 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         if wait and etag in _if_none_match(request):
             der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)
             async with service.held_poll(cert_fingerprint_sha256(der)) as held:
-                if held and heartbeat:
+                if held and heartbeat and request.version >= HttpVersion11:  # its spaces are chunks
                     return await _streamed_poll(request, wait, heartbeat)
                 if held:  # else over the client's or the replica's bound: answered at once, it polls
                     await service.wait_feed_change(wait, event)
@@ -744,10 +796,11 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         return web.json_response(body, headers={"ETag": etag, "Cache-Control": "no-cache"})
 
     async def _streamed_poll(request: web.Request, wait: float, heartbeat: float) -> web.StreamResponse:
-        """A long-poll that shows it is alive: a 200 at once, then a space every
-        ``heartbeat`` seconds while the feed stays as the client knows it and this replica
-        reads its registry, then one JSON object: the feed (with its ``etag``) when it
-        changed, or ``{"unchanged": true, "etag": ...}`` after ``wait``. JSON allows the
+        """A long-poll that shows it is alive: a 200 and a space at once, then a space every
+        ``heartbeat`` seconds (:class:`_Heartbeats`) while the feed stays as the client
+        knows it and this replica reads its registry, then one JSON object: the feed (with
+        its ``etag``) when it changed, or ``{"unchanged": true, "etag": ...}`` after
+        ``wait``. JSON allows the
         leading spaces. A replica that can no longer read its registry cuts the
         connection (the client then tries another); one that hangs stops the spaces,
         which its client notices within two heartbeats."""
@@ -756,8 +809,12 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         deadline = loop.time() + wait
         response = web.StreamResponse(status=200, headers={"Content-Type": "application/json",
                                                            "Cache-Control": "no-cache", FEED_STREAM_HEADER: "1"})
+        response.enable_chunked_encoding()
         await response.prepare(request)
-        beats = service.heartbeats.add(response, heartbeat)  # written by one task, when due
+        await response.write(b" ")  # the headers and a first space through aiohttp; the next ones are raw chunks
+        if request.transport is None:  # gone already
+            return response
+        beats = service.heartbeats.add(request.transport, heartbeat)  # written by one timer, when due
         try:
             while True:
                 event = service.feed_event()

@@ -179,31 +179,64 @@ def test_a_held_long_poll_ends_before_the_feed_counts_as_stale():
 
 
 async def test_feed_heartbeats_are_written_when_due_and_their_table_stays_bounded():
-    """The replica's one heartbeat writer: a held stream gets its spaces, a removed one
-    none; streams that come and go (a client asking and hanging up in a loop) leave at
-    most twice as many heap entries as live streams."""
+    """The replica's one heartbeat writer, on real loopback connections: a held stream
+    gets its spaces (HTTP/1.1 chunks written straight to its transport), a removed one
+    none; a stream whose client stops reading is cut, not written to without end; streams
+    that come and go (a client asking and hanging up in a loop) leave at most twice as
+    many heap entries as live streams; due times fall on a shared grid."""
     import asyncio
+    import socket
 
-    from authz_server.app import _Heartbeats
+    from authz_server.app import HEARTBEAT_CHUNK, MAX_HEARTBEAT_BACKLOG, _Heartbeats
 
-    class Stream:
-        def __init__(self) -> None:
-            self.written = b""
+    assert HEARTBEAT_CHUNK == b"1\r\n \r\n"
+    # a 15 s heartbeat falls on whole seconds, so every stream due in one second shares a wake-up
+    assert _Heartbeats._aligned(12345.678, 15.0) == 12346.0 and _Heartbeats._aligned(12346.0, 15.0) == 12346.0
+    assert _Heartbeats._aligned(10.01, 0.2) == pytest.approx(10.1)  # half the interval when that is under the grid
 
-        async def write(self, data: bytes) -> None:
-            self.written += data
+    accepted: asyncio.Queue = asyncio.Queue()
+
+    async def on_client(reader, writer) -> None:
+        await accepted.put(writer)
+
+    server = await asyncio.start_server(on_client, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    writers = []
+
+    async def connection():
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        theirs = await accepted.get()
+        writers.extend((writer, theirs))
+        return reader, writer, theirs.transport
 
     counted: list[int] = []
-    beats = _Heartbeats(lambda: True, lambda: counted.append(1))
-    held, gone = Stream(), Stream()
-    beats.add(held, 0.2)
-    beats.remove(beats.add(gone, 0.2))
-    for _ in range(10_000):
-        beats.remove(beats.add(Stream(), 300.0))
-    assert len(beats._due) <= 2 * len(beats._live) + 64
-    deadline = asyncio.get_running_loop().time() + 10
-    while held.written.count(b" ") < 2:
-        assert asyncio.get_running_loop().time() < deadline, held.written
-        await asyncio.sleep(0.05)
-    assert gone.written == b"" and len(counted) >= 2
-    beats.close()
+    beats = _Heartbeats(lambda: True, counted.append)
+    try:
+        held, _, held_transport = await connection()
+        gone, _, gone_transport = await connection()
+        _, stalled_writer, stalled_transport = await connection()
+        stalled_writer.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stalled_transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        stalled_transport.write(b"x" * (1 << 20))  # its client reads none of it
+        assert stalled_transport.get_write_buffer_size() > MAX_HEARTBEAT_BACKLOG
+        beats.add(held_transport, 0.2)
+        beats.remove(beats.add(gone_transport, 0.2))
+        beats.add(stalled_transport, 0.2)
+        for _ in range(10_000):
+            beats.remove(beats.add(held_transport, 300.0))
+        assert len(beats._due) <= 2 * len(beats._live) + 64
+        received = b""
+        while received.count(HEARTBEAT_CHUNK) < 2:
+            received += await asyncio.wait_for(held.read(64), 10)
+        assert received == HEARTBEAT_CHUNK * (len(received) // len(HEARTBEAT_CHUNK))
+        assert sum(counted) >= 2
+        assert stalled_transport.is_closing() and beats.dropped == 1  # cut at its first beat
+        with pytest.raises(asyncio.TimeoutError):
+            await asyncio.wait_for(gone.read(1), 0.5)
+        assert not gone_transport.is_closing()
+    finally:
+        beats.close()
+        for writer in writers:
+            writer.transport.abort()
+        server.close()
+        await server.wait_closed()
