@@ -70,6 +70,12 @@ READ_SIZE = 65536
 #: the preamble timeout or turned into a token exchange: the peer's preamble deadline
 #: counts from its accept (and refuses a stream that waits longer)
 SPARE_AGE = 0.4
+#: spare connections kept ready per peer endpoint (a subscription's TCPROS stream and a
+#: service call, or a few nodes starting together, each find one)
+SPARES_PER_PEER = 2
+#: a spare is connected only once no stream was opened to its endpoint for this long
+#: (seconds): its handshake then takes no CPU from the streams of a burst
+SPARE_QUIET = 0.01
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
@@ -109,6 +115,14 @@ class Tunnel:
     writer: asyncio.StreamWriter
     peer: Peer
     pending: bytes = b""
+    #: completed by :meth:`settle` (see :meth:`Gateway.open_tunnel`, ``settles``)
+    settled: asyncio.Future | None = field(default=None, compare=False)
+
+    def settle(self) -> None:
+        """This stream's set-up is over (its first reply relayed, or it failed): the
+        spare connection for the next stream to this peer may be made now."""
+        if self.settled is not None and not self.settled.done():
+            self.settled.set_result(None)
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +136,8 @@ class _Connected:
     ssl_object: Any
     offer: Any
     used: asyncio.Future | None = None
+    #: the task that made the spare (and holds its opening slot until it is used)
+    maker: Any = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -258,10 +274,15 @@ class Gateway:
         self._exchanges: set[tuple[str, int]] = set()
         #: streams being opened per peer endpoint (see _opening_slot); entries live while in use
         self._opening: dict[tuple[str, int], list] = {}
-        #: at most one spare connection per peer endpoint, made after a stream to it
-        #: (see _keep_spare); endpoints whose spare is being made or waits
-        self._spares: dict[tuple[str, int], _Connected] = {}
-        self._spare_makers: dict[tuple[str, int], asyncio.Future] = {}
+        #: up to SPARES_PER_PEER ready spare connections per peer endpoint, oldest first,
+        #: made after a stream to it (see _want_spare)
+        self._spares: dict[tuple[str, int], list[_Connected]] = {}
+        #: per endpoint, the tasks making (or holding, until taken) its spares
+        self._spare_makers: dict[tuple[str, int], set[asyncio.Future]] = {}
+        #: per endpoint, spares being connected now (each done once ready or failed)
+        self._spare_connecting: dict[tuple[str, int], set[asyncio.Future]] = {}
+        #: when a stream to each peer endpoint was last opened (spares wait for a quiet moment)
+        self._last_stream: dict[tuple[str, int], float] = {}
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -634,6 +655,7 @@ class Gateway:
     # ================================================================ outbound
     async def open_tunnel(
         self, host: str, port: int, purpose: str, target: str, *, first: bytes = b"", whole: bool | None = None,
+        settles: bool = False,
     ) -> Tunnel:
         """Mutual TLS to a peer interceptor, our token in the preamble, its token in
         the reply (verified and bound to its certificate). ``first`` (a connection
@@ -643,11 +665,24 @@ class Gateway:
         The token shown is narrowed for the peer (its certificate the audience, only
         the grants on names its manager holds too), except on master streams
         (``whole``, by default for purpose ``master``): the master's interceptor judges
-        every registration, so it sees every grant."""
+        every registration, so it sees every grant.
+
+        ``settles``: the caller calls :meth:`Tunnel.settle` once the stream's set-up is
+        over; the spare connection for the next stream (``spare_connections``) is made
+        only then, so its handshake does not take the CPU from this stream's set-up on
+        both interceptors (otherwise it is made at once)."""
         self.keeper.current()  # no token of our own: nothing is opened
         whole = purpose == "master" if whole is None else whole
         endpoint = (host, port)
+        _remember(self._last_stream, endpoint, time.monotonic())
         spare = self._take_spare(endpoint)
+        connecting = [f for f in self._spare_connecting.get(endpoint, ()) if not f.done()] if spare is None else []
+        if connecting:
+            # a spare is being connected: it is ready sooner than a connection of our own
+            await asyncio.wait(connecting, timeout=self.cfg.limits.handshake_timeout,
+                               return_when=asyncio.FIRST_COMPLETED)
+            spare = self._take_spare(endpoint)
+        settled = asyncio.get_running_loop().create_future() if settles else None
         if spare is not None:
             log.debug("%s stream to %s:%d over a spare connection", purpose, host, port)
             try:
@@ -660,52 +695,84 @@ class Gateway:
                     spare.used.set_result(None)
             if tunnel is not None:
                 self.metrics.spares.labels("used").inc()
-                self._want_spare(endpoint, purpose)
-                return tunnel
+                return self._with_spare_after(tunnel, endpoint, purpose, settled)
         async with self._opening_slot(host, port):
             tunnel = await self._tunnel_over(await self._connect(host, port), host, port, purpose, target,
                                              first=first, whole=whole)
-        self._want_spare(endpoint, purpose)
-        return tunnel
+        return self._with_spare_after(tunnel, endpoint, purpose, settled)
 
     # ---------------------------------------------------------------- spare connections
+    def _with_spare_after(self, tunnel: Tunnel, endpoint: tuple[str, int], purpose: str,
+                          settled: asyncio.Future | None) -> Tunnel:
+        """``tunnel``, and a spare for the next stream to ``endpoint`` made once it settles."""
+        self._want_spare(endpoint, purpose, settled)
+        if settled is None:
+            return tunnel
+        return Tunnel(tunnel.reader, tunnel.writer, tunnel.peer, tunnel.pending, settled)
+
     def _take_spare(self, endpoint: tuple[str, int]) -> _Connected | None:
-        spare = self._spares.pop(endpoint, None)
-        if spare is None:
-            return None
-        self._spare_makers.pop(endpoint, None)  # its maker is done: the next stream may want another
-        if spare.writer.is_closing() or spare.reader.at_eof():
-            spare.writer.close()
-            spare.used.set_result(None)
-            return None
-        return spare
+        """The oldest ready spare to ``endpoint`` still open, if any (its maker stops
+        counting toward the endpoint's spares: the next stream may want another)."""
+        spares = self._spares.get(endpoint)
+        while spares:
+            spare = spares.pop(0)
+            if not spares:
+                del self._spares[endpoint]
+            self._discard_maker(endpoint, spare.maker)
+            if spare.writer.is_closing() or spare.reader.at_eof():
+                spare.writer.close()
+                spare.used.set_result(None)
+                continue
+            return spare
+        return None
 
-    def _want_spare(self, endpoint: tuple[str, int], purpose: str) -> None:
-        """After a stream to ``endpoint``, have one more connection to it ready (TLS
-        done, no preamble): the next stream skips the handshake's wait. Its preamble,
-        token check and every other per-stream check run when it is used; unused for
-        ``SPARE_AGE`` x the preamble timeout, it carries a token exchange and closes, so
-        a burst costs one extra connection and an idle peer none."""
-        if (purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections
-                or endpoint in self._spares or endpoint in self._spare_makers):
+    def _discard_maker(self, endpoint: tuple[str, int], maker: Any) -> None:
+        makers = self._spare_makers.get(endpoint)
+        if makers is not None:
+            makers.discard(maker)
+            if not makers:
+                del self._spare_makers[endpoint]
+
+    def _want_spare(self, endpoint: tuple[str, int], purpose: str, after: asyncio.Future | None = None) -> None:
+        """After a stream to ``endpoint``, have up to ``SPARES_PER_PEER`` connections to
+        it ready (TLS done, no preamble): the next streams skip the handshake's wait.
+        Their preamble, token check and every other per-stream check run when one is
+        used; unused for ``SPARE_AGE`` x the preamble timeout, a spare carries a token
+        exchange and closes, so a burst costs a few extra connections and an idle peer
+        none. A spare is connected once the stream ``after`` belongs to settled (bounded
+        by the handshake timeout) and no stream was opened to ``endpoint`` for
+        ``SPARE_QUIET`` seconds: its handshake runs between bursts, not during one."""
+        if purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections:
             return
-        self._spare_makers[endpoint] = self.spawn(self._keep_spare(endpoint))
+        makers = self._spare_makers.setdefault(endpoint, set())
+        while len(makers) < SPARES_PER_PEER:
+            makers.add(self.spawn(self._keep_spare(endpoint, after)))
 
-    async def _keep_spare(self, endpoint: tuple[str, int]) -> None:
+    async def _keep_spare(self, endpoint: tuple[str, int], after: asyncio.Future | None = None) -> None:
         host, port = endpoint
+        me = asyncio.current_task()
         spare: _Connected | None = None
+        connecting: asyncio.Future | None = None
         try:
+            if after is not None:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(after), self.cfg.limits.handshake_timeout)
+            while (quiet := self._last_stream.get(endpoint, 0.0) + SPARE_QUIET - time.monotonic()) > 0:
+                await asyncio.sleep(quiet)
             async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
+                connecting = asyncio.get_running_loop().create_future()
+                self._spare_connecting.setdefault(endpoint, set()).add(connecting)
                 connected = await self._connect(host, port)
                 spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
-                                   asyncio.get_running_loop().create_future())
-                self._spares[endpoint] = spare
+                                   asyncio.get_running_loop().create_future(), me)
+                self._spares.setdefault(endpoint, []).append(spare)
+                connecting.set_result(None)
                 log.debug("spare connection to %s:%d ready", host, port)
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(asyncio.shield(spare.used), SPARE_AGE * self.cfg.limits.preamble_timeout)
-                if self._spares.get(endpoint) is spare:  # unused: show the peer our token and close
+                if self._unlist_spare(endpoint, spare):  # unused: show the peer our token and close
                     log.debug("spare connection to %s:%d unused: a token exchange", host, port)
-                    del self._spares[endpoint]
+                    self._discard_maker(endpoint, me)
                     self.metrics.spares.labels("expired").inc()
                     tunnel = await self._tunnel_over(spare, host, port, REFRESH, "", first=b"", whole=False)
                     tunnel.writer.close()
@@ -716,17 +783,35 @@ class Gateway:
         except Exception:
             log.exception("spare connection to %s:%d", host, port)
         finally:
-            if self._spare_makers.get(endpoint) is asyncio.current_task():
-                del self._spare_makers[endpoint]
-            if spare is not None and self._spares.get(endpoint) is spare:
-                del self._spares[endpoint]
+            if connecting is not None:
+                if not connecting.done():
+                    connecting.set_result(None)
+                waiting = self._spare_connecting.get(endpoint)
+                if waiting is not None:
+                    waiting.discard(connecting)
+                    if not waiting:
+                        del self._spare_connecting[endpoint]
+            self._discard_maker(endpoint, me)
+            if spare is not None and self._unlist_spare(endpoint, spare):
                 spare.writer.close()
 
+    def _unlist_spare(self, endpoint: tuple[str, int], spare: _Connected) -> bool:
+        """Take ``spare`` off the ready list of ``endpoint``; False if it was not there (taken)."""
+        spares = self._spares.get(endpoint, [])
+        for i, ready in enumerate(spares):
+            if ready is spare:
+                del spares[i]
+                if not spares:
+                    del self._spares[endpoint]
+                return True
+        return False
+
     def _drop_spares(self) -> None:
-        for spare in self._spares.values():
-            spare.writer.close()
-            if not spare.used.done():
-                spare.used.set_result(None)
+        for spares in self._spares.values():
+            for spare in spares:
+                spare.writer.close()
+                if not spare.used.done():
+                    spare.used.set_result(None)
         self._spares.clear()
 
     @contextlib.asynccontextmanager

@@ -151,7 +151,7 @@ class XmlRpcTunnel:
                     # The first request rides with the preamble: no extra round trip.
                     self._conn = XmlRpcConnection(Role.CLIENT, max_body_size=self._owner.cfg.limits.max_xmlrpc_body)
                     self._stream = await self._owner.gw.open_tunnel(
-                        *self._address, self._purpose, self._target, first=self._conn.send(request)
+                        *self._address, self._purpose, self._target, first=self._conn.send(request), settles=True
                     )
                     if self._stream.pending:
                         self._conn.receive_data(self._stream.pending)
@@ -160,7 +160,11 @@ class XmlRpcTunnel:
                     if not fresh:
                         writer.write(self._conn.send(request))
                         await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
-                    event = await read_xmlrpc(reader, self._conn, CALL_TIMEOUT)
+                    try:
+                        event = await read_xmlrpc(reader, self._conn, CALL_TIMEOUT)
+                    finally:
+                        if fresh:
+                            self._stream.settle()
                     if isinstance(event, ConnectionClosed):
                         raise ConnectionResetError("tunnel closed")
                     return event
@@ -976,6 +980,7 @@ class Ros1Role(GatewayRole):
     async def _tcpros_relay(self, reader, writer, target: Canonical) -> None:
         limits = self.cfg.limits
         tunnel_writer = None
+        tunnel: Tunnel | None = None
         unwatch: Callable[[], None] = lambda: None  # noqa: E731  (until the peer's stream is watched)
         try:
             header, rest = await read_tcpros_header(
@@ -992,7 +997,8 @@ class Ros1Role(GatewayRole):
             else:
                 raise PolicyDenied("malformed", "TCPROS header with neither topic nor service")
             tunnel = await self.gw.open_tunnel(
-                target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest
+                target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest,
+                settles=True,
             )
             tunnel_reader, tunnel_writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
             unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
@@ -1027,6 +1033,7 @@ class Ros1Role(GatewayRole):
                     raise PolicyDenied("monitor_busy", f"{fields['topic']} is gated by the monitor, which "
                                                        "watches as many streams as it may")
             writer.write(encode_header(canonical_header(reply)))
+            tunnel.settle()  # set up: the spare for the next stream to this peer may be made now
             self.metrics.open_streams.labels(purpose).inc()
             try:
                 # What the peer sends into this host (messages it publishes, replies of
@@ -1061,6 +1068,8 @@ class Ros1Role(GatewayRole):
                 tunnel_writer.close()
             writer.close()
         finally:
+            if tunnel is not None:
+                tunnel.settle()
             # a stream refused after its peer's token was watched (a publisher header not
             # granted, a quarantined publisher) must not stay in the verifier's watch list:
             # a subscriber retries such a stream every few seconds, for as long as it runs
