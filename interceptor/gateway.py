@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hashlib
 import logging
 import os
@@ -194,8 +195,10 @@ class Role:
         """The gateway swapped to the new configuration."""
 
 
+@functools.lru_cache(maxsize=256)
 def cert_hosts(der: bytes) -> frozenset[str]:
-    """IP and DNS names in a certificate's SAN: where its owner's endpoints may live."""
+    """IP and DNS names in a certificate's SAN: where its owner's endpoints may live
+    (each certificate parsed once: a peer shows the same one on every stream)."""
     try:
         san = x509.load_der_x509_certificate(der).extensions.get_extension_for_class(x509.SubjectAlternativeName)
     except (ValueError, x509.ExtensionNotFound):
