@@ -284,8 +284,9 @@ class Gateway:
         self._spare_makers: dict[tuple[str, int], set[asyncio.Future]] = {}
         #: per endpoint, spares being connected now (each done once ready or failed)
         self._spare_connecting: dict[tuple[str, int], set[asyncio.Future]] = {}
-        #: when a stream to each peer endpoint was last opened (spares wait for a quiet moment)
-        self._last_stream: dict[tuple[str, int], float] = {}
+        #: when the last few streams to each peer endpoint were opened, newest last (how
+        #: many spares it gets; they wait for a quiet moment)
+        self._recent_streams: dict[tuple[str, int], list[float]] = {}
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -677,7 +678,8 @@ class Gateway:
         self.keeper.current()  # no token of our own: nothing is opened
         whole = purpose == "master" if whole is None else whole
         endpoint = (host, port)
-        _remember(self._last_stream, endpoint, time.monotonic())
+        if purpose != REFRESH:
+            self._note_stream(endpoint)
         spare = self._take_spare(endpoint)
         connecting = [f for f in self._spare_connecting.get(endpoint, ()) if not f.done()] if spare is None else []
         if connecting:
@@ -736,9 +738,29 @@ class Gateway:
             if not makers:
                 del self._spare_makers[endpoint]
 
+    def _note_stream(self, endpoint: tuple[str, int]) -> None:
+        now = time.monotonic()
+        recent = [t for t in self._recent_streams.get(endpoint, ()) if now - t < self._spare_window()]
+        _remember(self._recent_streams, endpoint, [*recent[-SPARES_PER_PEER:], now])
+
+    def _spare_window(self) -> float:
+        return SPARE_AGE * self.cfg.limits.preamble_timeout
+
+    def _spares_wanted(self, endpoint: tuple[str, int]) -> int:
+        """As many spares as streams to ``endpoint`` were opened within a spare's life
+        before the last one (at most ``SPARES_PER_PEER``): a peer that gets a stream now
+        and then gets none (no handshake and token exchange for nothing), one that got
+        a few in a row gets them."""
+        recent = self._recent_streams.get(endpoint, [])
+        if not recent:
+            return 0
+        now = time.monotonic()
+        return min(SPARES_PER_PEER, sum(1 for t in recent[:-1] if now - t < self._spare_window()))
+
     def _want_spare(self, endpoint: tuple[str, int], purpose: str, after: asyncio.Future | None = None) -> None:
         """After a stream to ``endpoint``, have up to ``SPARES_PER_PEER`` connections to
-        it ready (TLS done, no preamble): the next streams skip the handshake's wait.
+        it ready (TLS done, no preamble; how many: :meth:`_spares_wanted`): the next
+        streams skip the handshake's wait.
         Their preamble, token check and every other per-stream check run when one is
         used; unused for ``SPARE_AGE`` x the preamble timeout, a spare carries a token
         exchange and closes, so a burst costs a few extra connections and an idle peer
@@ -747,8 +769,11 @@ class Gateway:
         ``SPARE_QUIET`` seconds: its handshake runs between bursts, not during one."""
         if purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections:
             return
+        wanted = self._spares_wanted(endpoint)
+        if wanted <= len(self._spare_makers.get(endpoint, ())):
+            return
         makers = self._spare_makers.setdefault(endpoint, set())
-        while len(makers) < SPARES_PER_PEER:
+        while len(makers) < wanted:
             makers.add(self.spawn(self._keep_spare(endpoint, after)))
 
     async def _keep_spare(self, endpoint: tuple[str, int], after: asyncio.Future | None = None) -> None:
@@ -760,7 +785,7 @@ class Gateway:
             if after is not None:
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(asyncio.shield(after), self.cfg.limits.handshake_timeout)
-            while (quiet := self._last_stream.get(endpoint, 0.0) + SPARE_QUIET - time.monotonic()) > 0:
+            while (quiet := self._recent_streams.get(endpoint, [0.0])[-1] + SPARE_QUIET - time.monotonic()) > 0:
                 await asyncio.sleep(quiet)
             async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
                 connecting = asyncio.get_running_loop().create_future()
