@@ -794,6 +794,7 @@ class Gateway:
                 spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
                                    asyncio.get_running_loop().create_future(), me)
                 self._spares.setdefault(endpoint, []).append(spare)
+                self.metrics.spares.labels("made").inc()
                 connecting.set_result(None)
                 log.debug("spare connection to %s:%d ready", host, port)
                 with contextlib.suppress(asyncio.TimeoutError):

@@ -680,13 +680,22 @@ def checks_delta(before: dict[str, float], after: dict[str, float]) -> dict[str,
 
 
 def describe_checks(delta: dict[str, int]) -> str:
-    """One line: handshakes accepted (full, resumed) and the checks every stream got."""
+    """One line: handshakes accepted (full, resumed) and the checks every stream got
+    (a spare connection still waiting when the counters were read is accepted, its
+    certificate checked by the peer, but no stream yet: see :func:`spares_waiting`)."""
     full, resumed = delta.get("in_full", 0), delta.get("in_resumed", 0)
-    return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed; "
+    waiting = spares_waiting(delta)
+    return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed"
+            f"{f' ({waiting} of them spare connections not used yet)' if waiting else ''}; "
             f"peer certificate (validity + CRL) checked {delta.get('certificate', 0)} times, "
             f"token (signature or cache, time, cnf binding, feed incl. revoked serials) {delta.get('token', 0)} times "
-            f"(both ends of each stream); spare connections used {delta.get('spare_used', 0)}, "
-            f"expired into a token exchange {delta.get('spare_expired', 0)}")
+            f"(both ends of each stream); spare connections made {delta.get('spare_made', 0)}, used "
+            f"{delta.get('spare_used', 0)}, expired into a token exchange {delta.get('spare_expired', 0)}")
+
+
+def spares_waiting(delta: dict[str, int]) -> int:
+    """Spare connections made but neither used nor expired yet when the counters were read."""
+    return max(0, delta.get("spare_made", 0) - delta.get("spare_used", 0) - delta.get("spare_expired", 0))
 
 
 # ============================================================ bring-up: many subscribers at once
@@ -1199,4 +1208,4 @@ def _legend() -> str:
     )
 
 
-__all__ = ["interceptor", "build_report", "flows"]
+__all__ = ["interceptor", "build_report", "flows", "spares_waiting"]
