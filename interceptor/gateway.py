@@ -680,8 +680,11 @@ class Gateway:
         endpoint = (host, port)
         if purpose != REFRESH:
             self._note_stream(endpoint)
-        spare = self._take_spare(endpoint)
-        connecting = [f for f in self._spare_connecting.get(endpoint, ()) if not f.done()] if spare is None else []
+        # a token exchange also tells whether the peer is reachable now (_wait_reachable):
+        # it never goes over a spare, which may have been connected before the peer stopped
+        spare = self._take_spare(endpoint) if purpose != REFRESH else None
+        connecting = ([f for f in self._spare_connecting.get(endpoint, ()) if not f.done()]
+                      if spare is None and purpose != REFRESH else [])
         if connecting:
             # a spare is being connected: it is ready sooner than a connection of our own
             await asyncio.wait(connecting, timeout=self.cfg.limits.handshake_timeout,
@@ -945,9 +948,12 @@ class Gateway:
             ):
                 self._pending.enter(key, cap, key[0])
                 entered.append(key)
+            # nothing in flight until the preamble (a peer's spare connection waits here):
+            # a stop cuts it at once instead of waiting out its grace period
             async with asyncio.timeout(limits.preamble_timeout):
-                while (event := gate.next_event()) is NEED_DATA:
-                    await read_into(reader, gate.receive_data, limits.preamble_timeout)
+                with self.cuttable():
+                    while (event := gate.next_event()) is NEED_DATA:
+                        await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
             access = await self.verifier.verify_fresh(event.preamble.token, der)
             self.verifier.note(access)
@@ -957,6 +963,9 @@ class Gateway:
                 open_streams=self._open_per_peer.get(access.subject, 0), max_streams=limits.max_connections_per_peer,
             )
             own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
+        except asyncio.CancelledError:
+            writer.transport.abort()  # stop(): no preamble yet, nothing to finish
+            raise
         except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
             if isinstance(exc, CryptorosError):
                 self.deny("stream", exc, who)
