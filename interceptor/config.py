@@ -45,7 +45,7 @@ Example::
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
     name_hold_seconds = 120.0         # master role: a released node name stays its owner's (0: off)
-    spare_connections = false         # true: one connection kept ready per peer after a stream
+    spare_connections = true          # up to 2 connections kept ready per peer with streams in a row
 
     [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
     "/camera/points" = 67108864
@@ -206,12 +206,12 @@ class Limits:
     #: stream makes a full handshake. The peer's certificate (validity, CRL) and token
     #: are checked on every stream, resumed or not. At most 7200 (OpenSSL's ticket life).
     tls_session_lifetime: float = 300.0
-    #: After a stream to a peer, have one spare connection to it ready (TLS done, no
-    #: preamble: the next stream skips the handshake's round trip; its preamble, token
-    #: and certificate checks run when it is used). Unused, it carries a token exchange.
-    #: Off by default: on loopback it gained nothing measurable over resumption alone
-    #: (README, issue 16); a link with a real round-trip time is where it would pay.
-    spare_connections: bool = False
+    #: After streams in a row to a peer, have up to two spare connections to it ready
+    #: (TLS done, no preamble: the next stream skips the handshake; its preamble, token
+    #: and certificate checks run when it is used). Unused, one carries a token exchange
+    #: and closes. On by default since issue 16: made between bursts, they take the
+    #: handshake off a stream's set-up (README).
+    spare_connections: bool = True
 
     def message_size_for(self, name: str) -> int:
         """The max_message_size of one topic or service."""

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hashlib
 import logging
 import os
@@ -70,6 +71,12 @@ READ_SIZE = 65536
 #: the preamble timeout or turned into a token exchange: the peer's preamble deadline
 #: counts from its accept (and refuses a stream that waits longer)
 SPARE_AGE = 0.4
+#: spare connections kept ready per peer endpoint (a subscription's TCPROS stream and a
+#: service call, or a few nodes starting together, each find one)
+SPARES_PER_PEER = 2
+#: a spare is connected only once no stream was opened to its endpoint for this long
+#: (seconds): its handshake then takes no CPU from the streams of a burst
+SPARE_QUIET = 0.01
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
@@ -109,6 +116,14 @@ class Tunnel:
     writer: asyncio.StreamWriter
     peer: Peer
     pending: bytes = b""
+    #: completed by :meth:`settle` (see :meth:`Gateway.open_tunnel`, ``settles``)
+    settled: asyncio.Future | None = field(default=None, compare=False)
+
+    def settle(self) -> None:
+        """This stream's set-up is over (its first reply relayed, or it failed): the
+        spare connection for the next stream to this peer may be made now."""
+        if self.settled is not None and not self.settled.done():
+            self.settled.set_result(None)
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +137,8 @@ class _Connected:
     ssl_object: Any
     offer: Any
     used: asyncio.Future | None = None
+    #: the task that made the spare (and holds its opening slot until it is used)
+    maker: Any = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -178,8 +195,10 @@ class Role:
         """The gateway swapped to the new configuration."""
 
 
+@functools.lru_cache(maxsize=256)
 def cert_hosts(der: bytes) -> frozenset[str]:
-    """IP and DNS names in a certificate's SAN: where its owner's endpoints may live."""
+    """IP and DNS names in a certificate's SAN: where its owner's endpoints may live
+    (each certificate parsed once: a peer shows the same one on every stream)."""
     try:
         san = x509.load_der_x509_certificate(der).extensions.get_extension_for_class(x509.SubjectAlternativeName)
     except (ValueError, x509.ExtensionNotFound):
@@ -258,10 +277,16 @@ class Gateway:
         self._exchanges: set[tuple[str, int]] = set()
         #: streams being opened per peer endpoint (see _opening_slot); entries live while in use
         self._opening: dict[tuple[str, int], list] = {}
-        #: at most one spare connection per peer endpoint, made after a stream to it
-        #: (see _keep_spare); endpoints whose spare is being made or waits
-        self._spares: dict[tuple[str, int], _Connected] = {}
-        self._spare_makers: dict[tuple[str, int], asyncio.Future] = {}
+        #: up to SPARES_PER_PEER ready spare connections per peer endpoint, oldest first,
+        #: made after a stream to it (see _want_spare)
+        self._spares: dict[tuple[str, int], list[_Connected]] = {}
+        #: per endpoint, the tasks making (or holding, until taken) its spares
+        self._spare_makers: dict[tuple[str, int], set[asyncio.Future]] = {}
+        #: per endpoint, spares being connected now (each done once ready or failed)
+        self._spare_connecting: dict[tuple[str, int], set[asyncio.Future]] = {}
+        #: when the last few streams to each peer endpoint were opened, newest last (how
+        #: many spares it gets; they wait for a quiet moment)
+        self._recent_streams: dict[tuple[str, int], list[float]] = {}
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -634,6 +659,7 @@ class Gateway:
     # ================================================================ outbound
     async def open_tunnel(
         self, host: str, port: int, purpose: str, target: str, *, first: bytes = b"", whole: bool | None = None,
+        settles: bool = False,
     ) -> Tunnel:
         """Mutual TLS to a peer interceptor, our token in the preamble, its token in
         the reply (verified and bound to its certificate). ``first`` (a connection
@@ -643,11 +669,28 @@ class Gateway:
         The token shown is narrowed for the peer (its certificate the audience, only
         the grants on names its manager holds too), except on master streams
         (``whole``, by default for purpose ``master``): the master's interceptor judges
-        every registration, so it sees every grant."""
+        every registration, so it sees every grant.
+
+        ``settles``: the caller calls :meth:`Tunnel.settle` once the stream's set-up is
+        over; the spare connection for the next stream (``spare_connections``) is made
+        only then, so its handshake does not take the CPU from this stream's set-up on
+        both interceptors (otherwise it is made at once)."""
         self.keeper.current()  # no token of our own: nothing is opened
         whole = purpose == "master" if whole is None else whole
         endpoint = (host, port)
-        spare = self._take_spare(endpoint)
+        if purpose != REFRESH:
+            self._note_stream(endpoint)
+        # a token exchange also tells whether the peer is reachable now (_wait_reachable):
+        # it never goes over a spare, which may have been connected before the peer stopped
+        spare = self._take_spare(endpoint) if purpose != REFRESH else None
+        connecting = ([f for f in self._spare_connecting.get(endpoint, ()) if not f.done()]
+                      if spare is None and purpose != REFRESH else [])
+        if connecting:
+            # a spare is being connected: it is ready sooner than a connection of our own
+            await asyncio.wait(connecting, timeout=self.cfg.limits.handshake_timeout,
+                               return_when=asyncio.FIRST_COMPLETED)
+            spare = self._take_spare(endpoint)
+        settled = asyncio.get_running_loop().create_future() if settles else None
         if spare is not None:
             log.debug("%s stream to %s:%d over a spare connection", purpose, host, port)
             try:
@@ -660,52 +703,108 @@ class Gateway:
                     spare.used.set_result(None)
             if tunnel is not None:
                 self.metrics.spares.labels("used").inc()
-                self._want_spare(endpoint, purpose)
-                return tunnel
+                return self._with_spare_after(tunnel, endpoint, purpose, settled)
         async with self._opening_slot(host, port):
             tunnel = await self._tunnel_over(await self._connect(host, port), host, port, purpose, target,
                                              first=first, whole=whole)
-        self._want_spare(endpoint, purpose)
-        return tunnel
+        return self._with_spare_after(tunnel, endpoint, purpose, settled)
 
     # ---------------------------------------------------------------- spare connections
+    def _with_spare_after(self, tunnel: Tunnel, endpoint: tuple[str, int], purpose: str,
+                          settled: asyncio.Future | None) -> Tunnel:
+        """``tunnel``, and a spare for the next stream to ``endpoint`` made once it settles."""
+        self._want_spare(endpoint, purpose, settled)
+        if settled is None:
+            return tunnel
+        return Tunnel(tunnel.reader, tunnel.writer, tunnel.peer, tunnel.pending, settled)
+
     def _take_spare(self, endpoint: tuple[str, int]) -> _Connected | None:
-        spare = self._spares.pop(endpoint, None)
-        if spare is None:
-            return None
-        self._spare_makers.pop(endpoint, None)  # its maker is done: the next stream may want another
-        if spare.writer.is_closing() or spare.reader.at_eof():
-            spare.writer.close()
-            spare.used.set_result(None)
-            return None
-        return spare
+        """The oldest ready spare to ``endpoint`` still open, if any (its maker stops
+        counting toward the endpoint's spares: the next stream may want another)."""
+        spares = self._spares.get(endpoint)
+        while spares:
+            spare = spares.pop(0)
+            if not spares:
+                del self._spares[endpoint]
+            self._discard_maker(endpoint, spare.maker)
+            if spare.writer.is_closing() or spare.reader.at_eof():
+                spare.writer.close()
+                spare.used.set_result(None)
+                continue
+            return spare
+        return None
 
-    def _want_spare(self, endpoint: tuple[str, int], purpose: str) -> None:
-        """After a stream to ``endpoint``, have one more connection to it ready (TLS
-        done, no preamble): the next stream skips the handshake's wait. Its preamble,
-        token check and every other per-stream check run when it is used; unused for
-        ``SPARE_AGE`` x the preamble timeout, it carries a token exchange and closes, so
-        a burst costs one extra connection and an idle peer none."""
-        if (purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections
-                or endpoint in self._spares or endpoint in self._spare_makers):
+    def _discard_maker(self, endpoint: tuple[str, int], maker: Any) -> None:
+        makers = self._spare_makers.get(endpoint)
+        if makers is not None:
+            makers.discard(maker)
+            if not makers:
+                del self._spare_makers[endpoint]
+
+    def _note_stream(self, endpoint: tuple[str, int]) -> None:
+        now = time.monotonic()
+        recent = [t for t in self._recent_streams.get(endpoint, ()) if now - t < self._spare_window()]
+        _remember(self._recent_streams, endpoint, [*recent[-SPARES_PER_PEER:], now])
+
+    def _spare_window(self) -> float:
+        return SPARE_AGE * self.cfg.limits.preamble_timeout
+
+    def _spares_wanted(self, endpoint: tuple[str, int]) -> int:
+        """As many spares as streams to ``endpoint`` were opened within a spare's life
+        before the last one (at most ``SPARES_PER_PEER``): a peer that gets a stream now
+        and then gets none (no handshake and token exchange for nothing), one that got
+        a few in a row gets them."""
+        recent = self._recent_streams.get(endpoint, [])
+        if not recent:
+            return 0
+        now = time.monotonic()
+        return min(SPARES_PER_PEER, sum(1 for t in recent[:-1] if now - t < self._spare_window()))
+
+    def _want_spare(self, endpoint: tuple[str, int], purpose: str, after: asyncio.Future | None = None) -> None:
+        """After a stream to ``endpoint``, have up to ``SPARES_PER_PEER`` connections to
+        it ready (TLS done, no preamble; how many: :meth:`_spares_wanted`): the next
+        streams skip the handshake's wait.
+        Their preamble, token check and every other per-stream check run when one is
+        used; unused for ``SPARE_AGE`` x the preamble timeout, a spare carries a token
+        exchange and closes, so a burst costs a few extra connections and an idle peer
+        none. A spare is connected once the stream ``after`` belongs to settled (bounded
+        by the handshake timeout) and no stream was opened to ``endpoint`` for
+        ``SPARE_QUIET`` seconds: its handshake runs between bursts, not during one."""
+        if purpose == REFRESH or not self.started or not self.cfg.limits.spare_connections:
             return
-        self._spare_makers[endpoint] = self.spawn(self._keep_spare(endpoint))
+        wanted = self._spares_wanted(endpoint)
+        if wanted <= len(self._spare_makers.get(endpoint, ())):
+            return
+        makers = self._spare_makers.setdefault(endpoint, set())
+        while len(makers) < wanted:
+            makers.add(self.spawn(self._keep_spare(endpoint, after)))
 
-    async def _keep_spare(self, endpoint: tuple[str, int]) -> None:
+    async def _keep_spare(self, endpoint: tuple[str, int], after: asyncio.Future | None = None) -> None:
         host, port = endpoint
+        me = asyncio.current_task()
         spare: _Connected | None = None
+        connecting: asyncio.Future | None = None
         try:
+            if after is not None:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(after), self.cfg.limits.handshake_timeout)
+            while (quiet := self._recent_streams.get(endpoint, [0.0])[-1] + SPARE_QUIET - time.monotonic()) > 0:
+                await asyncio.sleep(quiet)
             async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
+                connecting = asyncio.get_running_loop().create_future()
+                self._spare_connecting.setdefault(endpoint, set()).add(connecting)
                 connected = await self._connect(host, port)
                 spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
-                                   asyncio.get_running_loop().create_future())
-                self._spares[endpoint] = spare
+                                   asyncio.get_running_loop().create_future(), me)
+                self._spares.setdefault(endpoint, []).append(spare)
+                self.metrics.spares.labels("made").inc()
+                connecting.set_result(None)
                 log.debug("spare connection to %s:%d ready", host, port)
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(asyncio.shield(spare.used), SPARE_AGE * self.cfg.limits.preamble_timeout)
-                if self._spares.get(endpoint) is spare:  # unused: show the peer our token and close
+                if self._unlist_spare(endpoint, spare):  # unused: show the peer our token and close
                     log.debug("spare connection to %s:%d unused: a token exchange", host, port)
-                    del self._spares[endpoint]
+                    self._discard_maker(endpoint, me)
                     self.metrics.spares.labels("expired").inc()
                     tunnel = await self._tunnel_over(spare, host, port, REFRESH, "", first=b"", whole=False)
                     tunnel.writer.close()
@@ -716,17 +815,35 @@ class Gateway:
         except Exception:
             log.exception("spare connection to %s:%d", host, port)
         finally:
-            if self._spare_makers.get(endpoint) is asyncio.current_task():
-                del self._spare_makers[endpoint]
-            if spare is not None and self._spares.get(endpoint) is spare:
-                del self._spares[endpoint]
+            if connecting is not None:
+                if not connecting.done():
+                    connecting.set_result(None)
+                waiting = self._spare_connecting.get(endpoint)
+                if waiting is not None:
+                    waiting.discard(connecting)
+                    if not waiting:
+                        del self._spare_connecting[endpoint]
+            self._discard_maker(endpoint, me)
+            if spare is not None and self._unlist_spare(endpoint, spare):
                 spare.writer.close()
 
+    def _unlist_spare(self, endpoint: tuple[str, int], spare: _Connected) -> bool:
+        """Take ``spare`` off the ready list of ``endpoint``; False if it was not there (taken)."""
+        spares = self._spares.get(endpoint, [])
+        for i, ready in enumerate(spares):
+            if ready is spare:
+                del spares[i]
+                if not spares:
+                    del self._spares[endpoint]
+                return True
+        return False
+
     def _drop_spares(self) -> None:
-        for spare in self._spares.values():
-            spare.writer.close()
-            if not spare.used.done():
-                spare.used.set_result(None)
+        for spares in self._spares.values():
+            for spare in spares:
+                spare.writer.close()
+                if not spare.used.done():
+                    spare.used.set_result(None)
         self._spares.clear()
 
     @contextlib.asynccontextmanager
@@ -831,9 +948,12 @@ class Gateway:
             ):
                 self._pending.enter(key, cap, key[0])
                 entered.append(key)
+            # nothing in flight until the preamble (a peer's spare connection waits here):
+            # a stop cuts it at once instead of waiting out its grace period
             async with asyncio.timeout(limits.preamble_timeout):
-                while (event := gate.next_event()) is NEED_DATA:
-                    await read_into(reader, gate.receive_data, limits.preamble_timeout)
+                with self.cuttable():
+                    while (event := gate.next_event()) is NEED_DATA:
+                        await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
             access = await self.verifier.verify_fresh(event.preamble.token, der)
             self.verifier.note(access)
@@ -843,6 +963,9 @@ class Gateway:
                 open_streams=self._open_per_peer.get(access.subject, 0), max_streams=limits.max_connections_per_peer,
             )
             own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
+        except asyncio.CancelledError:
+            writer.transport.abort()  # stop(): no preamble yet, nothing to finish
+            raise
         except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
             if isinstance(exc, CryptorosError):
                 self.deny("stream", exc, who)

@@ -59,7 +59,8 @@ class Metrics:
         self.spares = Counter(
             "cryptoros_interceptor_spare_connections_total",
             "Spare connections to peers (TLS done before a stream needs one), by outcome "
-            "(used: a stream's preamble went over it; expired: it carried a token exchange)",
+            "(made: connected and waiting; used: a stream's preamble went over it; expired: it "
+            "carried a token exchange)",
             ["outcome"],
             registry=self.registry,
         )

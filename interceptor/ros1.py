@@ -84,6 +84,11 @@ log = logging.getLogger("cryptoros.interceptor")
 OPAQUE = "denied by cryptoros"
 #: What a caller is told when its call was allowed but nobody answered (the ROS master
 #: or the peer's interceptor down): not a denial, so not worded as one.
+#: XML-RPC calls in flight per tunnel pool before the next waits for a tunnel to come back
+POOL_BUSY = 8
+#: how long (seconds) such a call waits before it opens a tunnel of its own (a slow call
+#: on every tunnel delays the others by at most this)
+POOL_WAIT = 0.2
 UNANSWERED = "cryptoros: no answer from the ROS master or the peer (not a denial)"
 _UNANSWERED_REASONS = frozenset({"peer_unreachable", "tunnel_failed"})
 CALL_TIMEOUT = 30.0
@@ -154,7 +159,7 @@ class XmlRpcTunnel:
                     # The first request rides with the preamble: no extra round trip.
                     self._conn = XmlRpcConnection(Role.CLIENT, max_body_size=self._owner.cfg.limits.max_xmlrpc_body)
                     self._stream = await self._owner.gw.open_tunnel(
-                        *self._address, self._purpose, self._target, first=self._conn.send(request)
+                        *self._address, self._purpose, self._target, first=self._conn.send(request), settles=True
                     )
                     if self._stream.pending:
                         self._conn.receive_data(self._stream.pending)
@@ -163,7 +168,11 @@ class XmlRpcTunnel:
                     if not fresh:
                         writer.write(self._conn.send(request))
                         await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
-                    event = await read_xmlrpc(reader, self._conn, CALL_TIMEOUT)
+                    try:
+                        event = await read_xmlrpc(reader, self._conn, CALL_TIMEOUT)
+                    finally:
+                        if fresh:
+                            self._stream.settle()
                     if isinstance(event, ConnectionClosed):
                         raise ConnectionResetError("tunnel closed")
                     return event
@@ -186,20 +195,60 @@ class XmlRpcTunnel:
 class TunnelPool:
     """Reusable XML-RPC tunnels to one peer endpoint: rospy opens a new connection for
     every node-API call, and a TLS handshake per call would cost about 8 KB and
-    10 ms; idle tunnels are kept (up to ``max_idle``) and reused."""
+    10 ms; idle tunnels are kept (up to ``max_idle``) and reused. With ``max_busy``
+    calls in flight, the next one waits up to :data:`POOL_WAIT` for a tunnel to come
+    back before it opens one of its own: a burst of calls (a robot's nodes registering
+    at once) shares a few tunnels instead of paying a handshake each."""
 
-    def __init__(self, owner: Ros1Role, host: str, port: int, purpose: str, target: str, max_idle: int = 4):
+    def __init__(self, owner: Ros1Role, host: str, port: int, purpose: str, target: str, max_idle: int = 4,
+                 max_busy: int = POOL_BUSY):
         self._args = (owner, host, port, purpose, target)
         self._idle: list[XmlRpcTunnel] = []
         self._max_idle = max_idle
+        self._max_busy = max_busy
+        self._busy = 0
+        #: calls waiting for a tunnel: each gets one handed back, or None (open your own)
+        self._waiters: list[asyncio.Future] = []
+
+    async def _acquire(self) -> XmlRpcTunnel:
+        if self._idle:
+            return self._idle.pop()
+        if self._busy >= self._max_busy:
+            waiter = asyncio.get_running_loop().create_future()
+            self._waiters.append(waiter)
+            try:
+                tunnel = await asyncio.wait_for(waiter, POOL_WAIT)
+            except asyncio.TimeoutError:
+                tunnel = None
+            finally:
+                if waiter in self._waiters:
+                    self._waiters.remove(waiter)
+            if tunnel is not None:
+                return tunnel
+        return XmlRpcTunnel(*self._args)
+
+    def _hand_over(self, tunnel: XmlRpcTunnel | None) -> bool:
+        """Give ``tunnel`` (None: leave to open one) to the first call still waiting."""
+        while self._waiters:
+            waiter = self._waiters.pop(0)
+            if not waiter.done():
+                waiter.set_result(tunnel)
+                return True
+        return False
 
     async def call(self, request: Request) -> Response | Fault:
-        tunnel = self._idle.pop() if self._idle else XmlRpcTunnel(*self._args)
+        tunnel = await self._acquire()
+        self._busy += 1
         try:
             response = await tunnel.call(request)
         except BaseException:
+            self._busy -= 1
+            self._hand_over(None)
             await tunnel.close()
             raise
+        self._busy -= 1
+        if self._hand_over(tunnel):
+            return response
         if len(self._idle) < self._max_idle:
             self._idle.append(tunnel)
         else:
@@ -994,6 +1043,7 @@ class Ros1Role(GatewayRole):
     async def _tcpros_relay(self, reader, writer, target: Canonical) -> None:
         limits = self.cfg.limits
         tunnel_writer = None
+        tunnel: Tunnel | None = None
         unwatch: Callable[[], None] = lambda: None  # noqa: E731  (until the peer's stream is watched)
         try:
             header, rest = await read_tcpros_header(
@@ -1010,7 +1060,8 @@ class Ros1Role(GatewayRole):
             else:
                 raise PolicyDenied("malformed", "TCPROS header with neither topic nor service")
             tunnel = await self.gw.open_tunnel(
-                target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest
+                target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest,
+                settles=True,
             )
             tunnel_reader, tunnel_writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
             unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
@@ -1045,6 +1096,7 @@ class Ros1Role(GatewayRole):
                     raise PolicyDenied("monitor_busy", f"{fields['topic']} is gated by the monitor, which "
                                                        "watches as many streams as it may")
             writer.write(encode_header(canonical_header(reply)))
+            tunnel.settle()  # set up: the spare for the next stream to this peer may be made now
             self.metrics.open_streams.labels(purpose).inc()
             try:
                 # What the peer sends into this host (messages it publishes, replies of
@@ -1079,6 +1131,8 @@ class Ros1Role(GatewayRole):
                 tunnel_writer.close()
             writer.close()
         finally:
+            if tunnel is not None:
+                tunnel.settle()
             # a stream refused after its peer's token was watched (a publisher header not
             # granted, a quarantined publisher) must not stay in the verifier's watch list:
             # a subscriber retries such a stream every few seconds, for as long as it runs

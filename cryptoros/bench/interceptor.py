@@ -32,8 +32,8 @@ from launch to exit as with ``time``, with and without interceptors).
 Which checks ran on the interceptor rows is printed from the interceptors' own
 counters (/metrics): streams accepted with a full or a resumed TLS handshake, peer
 certificate checks (validity, CRL) and token checks, spare connections used.
-``--tls-session-lifetime 0`` gives a full handshake on every stream; ``--spares`` turns
-the interceptors' spare connections on.
+``--tls-session-lifetime 0`` gives a full handshake on every stream; ``--no-spares``
+turns the interceptors' spare connections off (on by default).
 """
 
 from __future__ import annotations
@@ -680,13 +680,22 @@ def checks_delta(before: dict[str, float], after: dict[str, float]) -> dict[str,
 
 
 def describe_checks(delta: dict[str, int]) -> str:
-    """One line: handshakes accepted (full, resumed) and the checks every stream got."""
+    """One line: handshakes accepted (full, resumed) and the checks every stream got
+    (a spare connection still waiting when the counters were read is accepted, its
+    certificate checked by the peer, but no stream yet: see :func:`spares_waiting`)."""
     full, resumed = delta.get("in_full", 0), delta.get("in_resumed", 0)
-    return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed; "
+    waiting = spares_waiting(delta)
+    return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed"
+            f"{f' ({waiting} of them spare connections not used yet)' if waiting else ''}; "
             f"peer certificate (validity + CRL) checked {delta.get('certificate', 0)} times, "
             f"token (signature or cache, time, cnf binding, feed incl. revoked serials) {delta.get('token', 0)} times "
-            f"(both ends of each stream); spare connections used {delta.get('spare_used', 0)}, "
-            f"expired into a token exchange {delta.get('spare_expired', 0)}")
+            f"(both ends of each stream); spare connections made {delta.get('spare_made', 0)}, used "
+            f"{delta.get('spare_used', 0)}, expired into a token exchange {delta.get('spare_expired', 0)}")
+
+
+def spares_waiting(delta: dict[str, int]) -> int:
+    """Spare connections made but neither used nor expired yet when the counters were read."""
+    return max(0, delta.get("spare_made", 0) - delta.get("spare_used", 0) - delta.get("spare_expired", 0))
 
 
 # ============================================================ bring-up: many subscribers at once
@@ -1093,8 +1102,9 @@ def _target_value(t: dict) -> str:
               help="Bring-ups per transport, median reported (default 3; --quick: 1; 0: skip).")
 @click.option("--only", type=click.Choice(IMPLS), default=None, help="Run one node client only.")
 @click.option("--no-throughput", is_flag=True, help="Skip the latency and throughput rows.")
-@click.option("--spares", is_flag=True, help="The interceptors keep a spare connection per peer "
-                                             "([limits] spare_connections = true).")
+@click.option("--spares/--no-spares", default=None,
+              help="The interceptors keep spare connections per peer or not ([limits] spare_connections; "
+                   "default: the interceptor's, on).")
 @click.option("--tls-session-lifetime", type=click.FloatRange(0, 7200), default=None,
               help="The interceptors' [limits] tls_session_lifetime (0: a full TLS handshake on every stream; "
                    "default: the interceptor's, 300 s).")
@@ -1103,7 +1113,7 @@ def _target_value(t: dict) -> str:
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
 def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
                 setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None, only: str | None,
-                no_throughput: bool, spares: bool, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
+                no_throughput: bool, spares: bool | None, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
                 keep: bool) -> None:
     """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
     if not Path(SYS_PY).exists() or subprocess.run([SYS_PY, "-c", "import rospy"], capture_output=True).returncode:
@@ -1145,13 +1155,13 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
                                 "tls_session_lifetime": ("300 s (default)" if tls_session_lifetime is None else
                                                          f"{tls_session_lifetime:g} s" if tls_session_lifetime else
                                                          "0 (off: a full handshake on every stream)"),
-                                "spare_connections": spares}}
+                                "spare_connections": "on (default)" if spares is None else spares}}
     try:
         limits: dict[str, float | bool] = {}
         if tls_session_lifetime is not None:
             limits["tls_session_lifetime"] = tls_session_lifetime
-        if spares:
-            limits["spare_connections"] = True
+        if spares is not None:
+            limits["spare_connections"] = spares
         with lab_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
                                                             ("stunnel_b", "127.0.0.1")], progress=progress,
                          metrics=True, limits=limits or None) as net:
@@ -1190,12 +1200,12 @@ def _legend() -> str:
         "the two hosts (frames as Wireshark counts them, TCP payload in brackets); the TCPROS row is from connect\n"
         "to the publisher's header reply (no message yet); a subscription adds the requestTopic call. stunnel's\n"
         "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates); so\n"
-        "do the interceptors (unless --tls-session-lifetime 0), which keep a spare connection per peer with\n"
-        "--spares: the lines above the table say which handshakes and checks ran.\n"
+        "do the interceptors (unless --tls-session-lifetime 0), which also keep spare connections per peer\n"
+        "(unless --no-spares): the lines above the table say which handshakes and checks ran.\n"
         "bring-up: N subscriber nodes of our node client start at once in one process (register, requestTopic,\n"
         "TCPROS) against a latched publisher; time from the start until the last one received its message.\n"
         "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."
     )
 
 
-__all__ = ["interceptor", "build_report", "flows"]
+__all__ = ["interceptor", "build_report", "flows", "spares_waiting"]

@@ -13,6 +13,7 @@ import os
 
 import pytest
 
+from cryptoros.bench.interceptor import spares_waiting
 from tests.support import require, run, script
 
 pytestmark = [pytest.mark.ros1, pytest.mark.slow]
@@ -65,9 +66,10 @@ def test_bench_interceptor_quick(tmp_path):
     assert paper["overhead_pct"] is not None
 
     # which checks ran on the interceptor rows: every stream's certificate and token, and
-    # the set-ups after the first to a peer resumed (counted by the interceptors themselves)
+    # the set-ups after the first to a peer resumed (counted by the interceptors themselves);
+    # a spare connection not used yet is accepted but carries no stream (nor a token) yet
     checks = setup["interceptor"]["checks"]
-    accepted = checks.get("in_full", 0) + checks.get("in_resumed", 0)
+    accepted = checks.get("in_full", 0) + checks.get("in_resumed", 0) - spares_waiting(checks)
     assert checks.get("in_resumed", 0) >= 1, checks
     assert checks["certificate"] >= 2 * accepted and checks["token"] >= 2 * accepted, checks
     assert "resumed" in result.stdout and "peer certificate (validity + CRL) checked" in result.stdout

@@ -285,7 +285,7 @@ def test_peer_certificate_check_reads_every_crl_of_a_bundle_by_issuer(pki, other
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    spares = "[limits]\nspare_connections = true"  # B keeps spare connections (off by default)
+    spares = "[limits]\nspare_connections = true"  # B keeps spare connections (the default, said here)
     with robot_network(tmp_path_factory.mktemp("net"), start=("master", "robot_a", "robot_b"),
                        extra={"robot_b": spares}) as net:
         yield net

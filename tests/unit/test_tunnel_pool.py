@@ -1,0 +1,68 @@
+"""The XML-RPC tunnel pool under a burst: a few tunnels shared, none waiting for long."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+import interceptor.ros1 as ros1
+from interceptor.ros1 import TunnelPool
+
+
+class FakeTunnel:
+    made: list[FakeTunnel] = []
+
+    def __init__(self, *args) -> None:
+        self.calls = 0
+        self.closed = False
+        FakeTunnel.made.append(self)
+
+    async def call(self, request):
+        self.calls += 1
+        await asyncio.sleep(request)  # the "request" is how long the far end takes
+        if request < 0:
+            raise ConnectionResetError("tunnel closed")
+        return "ok"
+
+    async def close(self) -> None:
+        self.closed = True
+
+
+@pytest.fixture(autouse=True)
+def fake_tunnels(monkeypatch):
+    FakeTunnel.made = []
+    monkeypatch.setattr(ros1, "XmlRpcTunnel", FakeTunnel)
+
+
+async def test_a_burst_of_calls_shares_max_busy_tunnels():
+    pool = TunnelPool(None, "127.0.0.2", 1, "master", "", max_idle=4, max_busy=3)
+    results = await asyncio.gather(*(pool.call(0.01) for _ in range(20)))
+    assert results == ["ok"] * 20
+    assert len(FakeTunnel.made) == 3  # not one handshake per call
+    assert sum(t.calls for t in FakeTunnel.made) == 20
+
+
+async def test_a_call_waits_at_most_pool_wait_for_a_busy_tunnel(monkeypatch):
+    monkeypatch.setattr(ros1, "POOL_WAIT", 0.05)
+    pool = TunnelPool(None, "127.0.0.2", 1, "master", "", max_idle=4, max_busy=2)
+    slow = [asyncio.ensure_future(pool.call(1.0)) for _ in range(2)]
+    await asyncio.sleep(0)
+    started = asyncio.get_running_loop().time()
+    assert await pool.call(0.0) == "ok"
+    assert asyncio.get_running_loop().time() - started < 0.5  # opened its own after POOL_WAIT
+    assert len(FakeTunnel.made) == 3
+    for task in slow:
+        task.cancel()
+
+
+async def test_a_failed_call_closes_its_tunnel_and_lets_a_waiter_open_one():
+    pool = TunnelPool(None, "127.0.0.2", 1, "master", "", max_idle=4, max_busy=1)
+    failing = asyncio.ensure_future(pool.call(-0.01))
+    await asyncio.sleep(0)
+    waiting = asyncio.ensure_future(pool.call(0.0))
+    with pytest.raises(ConnectionResetError):
+        await failing
+    assert await waiting == "ok"
+    assert FakeTunnel.made[0].closed
+    assert len(FakeTunnel.made) == 2
