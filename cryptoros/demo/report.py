@@ -255,6 +255,13 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
             lines += [f"- **{name}**"] + [f"  - `{e}`" for e in entries]
         lines += ["", "A robot's own `/rN/*` topics are `[ros2] local` on its interceptor: they stay on its "
                   "domain and are not listed here.", ""]
+    exits = [(f"{m} mission" + (f" of {k}" if k else ""), r, log)
+             for k, mission in ([(None, R)] + [(k, v) for k, v in result.get("isolated", {}).items()])
+             for m, cell in mission.items() for r, log in cell.get("exit_log", {}).items()]
+    if exits:
+        lines += ["## Robots that exited during a mission (the last lines of their logs)", ""]
+        for where, robot, log in exits:
+            lines += [f"- **{robot}**, {where}:", "", "  ```", *(f"  {line}" for line in log), "  ```", ""]
     for title, path in figs:
         lines += [f"## {title}", "", f"![{title}]({path})", ""]
     report = out / "report.md"

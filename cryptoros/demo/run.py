@@ -176,6 +176,13 @@ def _cpu_seconds(pid: int) -> float:
     return cpu_seconds(pid) or 0.0
 
 
+def _tail(path: Path, lines: int) -> list[str]:
+    try:
+        return path.read_text(errors="replace").splitlines()[-lines:]
+    except OSError as exc:
+        return [f"(no log: {exc})"]
+
+
 def _rss_mb(pid: int) -> float:
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
@@ -247,6 +254,8 @@ class Mission:
         self.mode = mode
         self.dir = workdir / mode
         self.dir.mkdir(parents=True, exist_ok=True)
+        #: the last lines of the log of a robot that exited during the mission
+        self.exit_log: dict[str, list[str]] = {}
         self.children = children
         self.progress = progress
         self.team = [f"r{i}" for i in range(opts.robots)]
@@ -447,7 +456,9 @@ class Mission:
                     break
                 for r, p in robots.items():
                     if p.poll() is not None:
-                        end_reason = f"robot {r} exited"
+                        end_reason = f"robot {r} exited with {p.returncode}"
+                        # its last words, kept in the result: the work directory may be gone after
+                        self.exit_log[r] = _tail(self.dir / f"{r}.log", 12)
                 if end_reason:
                     break
             wall_total = time.monotonic() - started
@@ -468,6 +479,7 @@ class Mission:
             "mode": self.mode,
             "setup_s": round(setup_s, 2),
             "end_reason": end_reason,
+            **({"exit_log": self.exit_log} if self.exit_log else {}),
             "coverage": round(cov, 4),
             "coverage_target": opts.coverage_target,
             "target_reached": mission_time is not None,
