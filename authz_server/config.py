@@ -52,7 +52,7 @@ class ServeConfig:
     audit_max_rows: int = 1_000_000
     #: the longest this replica holds a long-poll of the feed (``/revocations?wait=``); a
     #: longer wait is held this long. Any proxy in front must allow a request this long.
-    max_feed_wait: float = 300.0
+    max_feed_wait: float = 600.0
 
     def __post_init__(self) -> None:
         try:

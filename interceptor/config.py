@@ -142,7 +142,7 @@ class AuthzSettings:
     #: many seconds when nothing changes); 0 polls every revocation_poll_interval. A
     #: hold is kept under [limits] max_feed_age - request_timeout (the feed would look
     #: stale meanwhile) and under the server's max_feed_wait (it answers then)
-    feed_wait: float = 300.0
+    feed_wait: float = 600.0
     #: while it holds a feed request the server writes a sign of life this often (which
     #: also says the feed is unchanged): a replica that hangs is left after two of them,
     #: and the feed stays fresh through a long hold. 0: none (the hold is then kept under
