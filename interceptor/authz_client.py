@@ -357,10 +357,13 @@ def _hint(exc: BaseException) -> str:
     """What a bare TLS or connection failure most likely means, for the log line."""
     if isinstance(exc, aiohttp.ClientConnectorCertificateError):
         return " (the authorization server's certificate does not verify against [tls] ca, or its name/IP differs)"
-    reset = isinstance(exc, ConnectionResetError) or getattr(exc, "errno", None) == errno.ECONNRESET
-    if reset or isinstance(exc, aiohttp.ServerDisconnectedError) or "alert" in str(exc).lower():
-        return (" (the authorization server closed the TLS connection: is this certificate issued by the CA it "
+    if "alert" in str(exc).lower():  # TLS refused us (TLS 1.3: after the client's side of the handshake)
+        return (" (the authorization server refused the TLS connection: is this certificate issued by the CA it "
                 "trusts, and not revoked?)")
+    reset = isinstance(exc, ConnectionResetError) or getattr(exc, "errno", None) == errno.ECONNRESET
+    if reset or isinstance(exc, aiohttp.ServerDisconnectedError):
+        return (" (the authorization server closed the connection: it went away or restarted, or, on a new "
+                "connection, it refused this certificate: issued by the CA it trusts, not revoked?)")
     if isinstance(exc, (aiohttp.ClientConnectorError, ConnectionRefusedError)):
         return " (nothing answers there: is cryptoros-authz running, and [authz] url right?)"
     return ""
