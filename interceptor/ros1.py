@@ -82,13 +82,13 @@ from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, L
 log = logging.getLogger("cryptoros.interceptor")
 
 OPAQUE = "denied by cryptoros"
-#: What a caller is told when its call was allowed but nobody answered (the ROS master
-#: or the peer's interceptor down): not a denial, so not worded as one.
 #: XML-RPC calls in flight per tunnel pool before the next waits for a tunnel to come back
 POOL_BUSY = 8
 #: how long (seconds) such a call waits before it opens a tunnel of its own (a slow call
 #: on every tunnel delays the others by at most this)
 POOL_WAIT = 0.2
+#: What a caller is told when its call was allowed but nobody answered (the ROS master
+#: or the peer's interceptor down): not a denial, so not worded as one.
 UNANSWERED = "cryptoros: no answer from the ROS master or the peer (not a denial)"
 _UNANSWERED_REASONS = frozenset({"peer_unreachable", "tunnel_failed"})
 CALL_TIMEOUT = 30.0
