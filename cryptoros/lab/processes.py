@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import contextlib
+import random
 import signal
 import socket
 import subprocess
@@ -24,13 +25,35 @@ class NetworkError(CryptorosError, RuntimeError):
     """A part of the benchmark network did not come up."""
 
 
+#: where :func:`free_port` picks: below the kernel's range of ephemeral ports (Linux's
+#: default is 32768-60999), above the well-known ones and rosmaster's 11311
+_PICK_FROM = 20000
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def free_port(host: str = "127.0.0.1", taken: set[int] | None = None) -> int:
-    """A port nothing listens on now; with ``taken``, also one not handed out before
-    (the kernel may give the same free port twice in a row, and two listeners of one
-    host picked that way would collide when they start), and it is added there."""
-    for _ in range(100):
+    """A port nothing listens on now, for a child to listen on a moment later; with
+    ``taken``, also one not handed out before (and it is added there).
+
+    Picked at random below the kernel's ephemeral range: a port the kernel handed out
+    (bind to 0) was often the local port of another process's outgoing connection by the
+    time the child bound it ("address already in use": a fresh run's interceptor, with
+    the other test worker's connections all around it). Outside that range no outgoing
+    connection takes it; only another such pick could, one in thousands."""
+    low = _ephemeral_low()
+    span = range(_PICK_FROM, low) if low - _PICK_FROM >= 1000 else None
+    for _ in range(200):
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind((host, 0))
+            try:
+                s.bind((host, random.choice(span) if span is not None else 0))
+            except OSError:
+                continue  # in use: another pick
             port = s.getsockname()[1]
         if taken is None:
             return port
