@@ -27,11 +27,16 @@ def team(tmp_path):
     return build_team(tmp_path)
 
 
+def tls_of(pki, name: str, *, ca_pki=None) -> ssl.SSLContext:
+    """The client TLS context of ``name``'s certificate (issued by ``pki``), trusting
+    ``ca_pki``'s CA (by default the same)."""
+    return client_context(TLSConfig(ca_file=(ca_pki or pki).ca_cert, cert_file=pki.pki.cert_path_for(name),
+                                    key_file=pki.pki.key_path_for(name)))
+
+
 def client_for(daemon, name: str, *, pki=None) -> AuthzClient:
-    pki = pki or daemon.pki
-    issued_cert, issued_key = pki.pki.cert_path_for(name), pki.pki.key_path_for(name)
-    ctx = client_context(TLSConfig(ca_file=daemon.pki.ca_cert, cert_file=issued_cert, key_file=issued_key))
-    return AuthzClient(AuthzSettings(url=daemon.base, request_timeout=5.0), ctx)
+    return AuthzClient(AuthzSettings(url=daemon.base, request_timeout=5.0),
+                       tls_of(pki or daemon.pki, name, ca_pki=daemon.pki))
 
 
 def der_of(pki, name: str) -> bytes:
@@ -250,8 +255,7 @@ async def test_replicas_on_postgresql_and_the_client_fails_over_when_one_dies(tm
 
     team = build_team(tmp_path, db=postgres_url)
     with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, postgres_url, tmp_path) as second:
-        alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
-        ctx = client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert, key_file=alice_key))
+        ctx = tls_of(team.pki, "alice")
         client = AuthzClient(AuthzSettings(url=first.base, urls=(first.base, second.base), request_timeout=5.0), ctx)
         verifier = PeerVerifier(client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1)
         try:
@@ -293,8 +297,7 @@ async def test_a_replica_that_answers_5xx_hands_the_request_to_the_next(tmp_path
     other_db = f"sqlite:///{tmp_path / 'other.db'}"  # the second replica's registry: the same policy
     ok(authz("import", str(tmp_path / "policy.yaml"), db=other_db))
     with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, other_db, tmp_path) as second:
-        alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
-        ctx = client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert, key_file=alice_key))
+        ctx = tls_of(team.pki, "alice")
         client = AuthzClient(AuthzSettings(url=first.base, urls=(first.base, second.base), request_timeout=5.0), ctx)
         try:
             await client.fetch_token()  # the first answers
@@ -322,8 +325,7 @@ async def test_a_streamed_long_poll_shows_heartbeats_and_a_hung_replica_is_left(
 
     team = build_team(tmp_path, db=postgres_url)
     with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, postgres_url, tmp_path) as second:
-        alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
-        ctx = client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert, key_file=alice_key))
+        ctx = tls_of(team.pki, "alice")
         client = AuthzClient(AuthzSettings(url=first.base, urls=(first.base, second.base), request_timeout=2.0), ctx)
         verifier = PeerVerifier(client, issuer="cryptoros-authz", audience="cryptoros", poll_interval=1)
         stopped = False
@@ -389,9 +391,7 @@ async def test_a_reload_under_a_held_long_poll_asks_again_on_the_new_session(tea
                 assert time.monotonic() < deadline and not held.done(), held  # the poll is held
                 await asyncio.sleep(0.05)
             old = client._session
-            alice_cert, alice_key = team.pki.pki.cert_path_for("alice"), team.pki.pki.key_path_for("alice")
-            await client.use_ssl_context(client_context(TLSConfig(ca_file=team.pki.ca_cert, cert_file=alice_cert,
-                                                                  key_file=alice_key)))
+            await client.use_ssl_context(tls_of(team.pki, "alice"))
             assert old.closed and not held.done()  # asked again, not failed
             jti = verifier.verify(token.token, der_of(team.pki, "alice")).jti
             ok(authz("revoke-token", jti, db=team.db))
