@@ -153,20 +153,19 @@ class Monitor:
         self._batch: asyncio.TimerHandle | asyncio.Handle | None = None
         self._batch_soon = False  # the batch is due on the loop's next turn, not on its timer
 
-    def _schedule(self, stream: WatchedStream) -> None:
-        """Score ``stream``'s queue in the next batch (one timer for every stream)."""
+    def _schedule(self, stream: WatchedStream, *, soon: bool = False) -> None:
+        """Score ``stream``'s queue in the next batch (one timer for every stream); with
+        ``soon``, on the loop's next turn (a backlog scored in turns)."""
         self._due.append(stream)
-        if self._batch is None:
-            loop = asyncio.get_running_loop()
-            delay = self.settings.batch_seconds
-            self._batch_soon = delay <= 0
-            self._batch = loop.call_later(delay, self._score_batch) if delay > 0 else \
-                loop.call_soon(self._score_batch)
+        if soon or self.settings.batch_seconds <= 0:
+            self._score_soon()
+        elif self._batch is None:
+            self._batch = asyncio.get_running_loop().call_later(self.settings.batch_seconds, self._score_batch)
 
     def _score_soon(self) -> None:
-        """A stream queued :data:`BATCH_EARLY_CHUNKS` chunks: score the batch on the loop's
-        next turn instead of waiting out ``batch_seconds`` (a flood is a batch of its own:
-        it is cut within a few messages, not after a quarter of a second of them)."""
+        """Score the batch on the loop's next turn instead of waiting out ``batch_seconds``
+        (a stream queued :data:`BATCH_EARLY_CHUNKS` chunks: a flood is a batch of its own,
+        cut within a few messages, not after a quarter of a second of them)."""
         if self._batch_soon:
             return
         if self._batch is not None:
@@ -180,7 +179,7 @@ class Monitor:
             self._batch, self._batch_soon = None, False
             due, self._due = self._due, []
             for stream in due:
-                stream._score_queued_timed()
+                stream._score_queued()
         finally:
             self.metrics.busy.inc(time.thread_time() - t0)
 
@@ -408,13 +407,6 @@ class WatchedStream:
         return score.value > 1.0
 
     def _score_queued(self) -> None:
-        t0 = time.thread_time()
-        try:
-            self._score_queued_timed()
-        finally:
-            self.monitor.metrics.busy.inc(time.thread_time() - t0)
-
-    def _score_queued_timed(self) -> None:
         self._scheduled = False
         monitor = self.monitor
         messages = self._messages_counted
@@ -422,7 +414,7 @@ class WatchedStream:
         while self._chunks and not self.closed:
             if scored >= MESSAGES_PER_TURN:  # let the loop forward others' bytes; go on after
                 self._scheduled = True
-                asyncio.get_running_loop().call_soon(self._score_queued)
+                monitor._schedule(self, soon=True)
                 return
             data, now, wall, whole = self._chunks.popleft()
             self._backlog -= len(data)
