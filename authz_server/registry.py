@@ -166,6 +166,13 @@ def _grants_of(m: Manager) -> tuple[GrantRow, ...]:
     return tuple(sorted(rows))
 
 
+def _bound_to(fp: str, now: float):
+    """The managers a certificate fingerprint is bound to at ``now``: as its certificate,
+    or as the previous one a renewal's overlap still accepts."""
+    return or_(Manager.cert_fingerprint == fp,
+               and_(Manager.previous_fingerprint == fp, Manager.previous_until > int(now)))
+
+
 def _info(m: Manager, with_grants: bool = True) -> ManagerInfo:
     previous = m.previous_fingerprint if m.previous_until is not None and m.previous_until > time.time() else None
     return ManagerInfo(m.name, m.cert_fingerprint, m.enabled, m.created_at, _grants_of(m) if with_grants else (),
@@ -243,9 +250,7 @@ class Registry:
     def _check_fp_free(self, s: Session, fp: str, name: str) -> None:
         """A certificate is bound to one manager at most: as its certificate, or as the
         previous one it still accepts (``set-cert --overlap``)."""
-        owner = s.scalars(select(Manager.name).where(or_(
-            Manager.cert_fingerprint == fp,
-            and_(Manager.previous_fingerprint == fp, Manager.previous_until > int(time.time()))))).first()
+        owner = s.scalars(select(Manager.name).where(_bound_to(fp, time.time()))).first()
         if owner is not None and owner != name:
             raise RegistryError(f"certificate {fp[:16]}... is already bound to manager {owner!r}")
 
@@ -311,12 +316,11 @@ class Registry:
     def lookup_fingerprint(self, fingerprint: str, *, now: float | None = None) -> ManagerInfo | None:
         """The manager bound to a certificate fingerprint, with its grants (daemon path):
         its certificate, or the one it renewed while the overlap lasts."""
-        now_i = int(time.time() if now is None else now)
+        now = time.time() if now is None else now
         with self._session() as s:
             m = s.scalars(
                 select(Manager)
-                .where(or_(Manager.cert_fingerprint == fingerprint,
-                           and_(Manager.previous_fingerprint == fingerprint, Manager.previous_until > now_i)))
+                .where(_bound_to(fingerprint, now))
                 .options(*(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values()))
             ).one_or_none()
             return None if m is None else _info(m)
