@@ -8,7 +8,13 @@ suspicious", so a model is one upper limit per feature (:mod:`cryptoros.monitor.
 Kinds and what they show (seed 001's attacks and the demo's insiders):
 
 * every type (``any``): ``rate_hz`` (messages in the last second: a flood),
-  ``size_change`` (relative change of the body size from the previous message);
+  ``burst_hz`` (the rate over the last :data:`BURST_INTERVALS` arrivals: a flood seen
+  within milliseconds of its start, where the second's count needs many messages to
+  rise over a clean stream's own), ``size_change`` (relative change of the body size
+  from the previous message). An arrival is a read: messages read together (within
+  :data:`BURST_MERGE_S`) are one, so a stream the proxy could not read for a while,
+  then read at once, is not a burst; a flood so fast that it arrives in chunks is
+  caught by ``rate_hz`` in as little time;
 * ``pose`` (``geometry_msgs/PoseStamped``): ``speed_mps``, the speed the step from the
   previous position implies (a spoofed position jumps); ``stamp_back_s``, how far
   the header stamp went back (a replay); ``stamp_lag_s``, how far the stamp is from
@@ -76,7 +82,7 @@ KIND_OF_TYPE = {
 }
 #: kinds whose types exist only in ROS 1 (the demo team's own messages)
 _ROS1_ONLY = frozenset({"beacon", "team_map"})
-_COMMON = ("rate_hz", "size_change", "malformed")
+_COMMON = ("rate_hz", "burst_hz", "size_change", "malformed")
 FEATURES: dict[str, tuple[str, ...]] = {
     "any": _COMMON,
     "pose": (*_COMMON, "speed_mps", "stamp_back_s", "stamp_lag_s"),
@@ -88,6 +94,10 @@ FEATURES: dict[str, tuple[str, ...]] = {
 # appended last, so a model fitted before it was added still lines up (and ignores it)
 FEATURES["pose"] = (*FEATURES["pose"], "beacon_gap_m")
 RATE_WINDOW_S = 1.0
+#: ``burst_hz`` is the rate over this many intervals between arrivals
+BURST_INTERVALS = 3
+#: messages read within this of the previous one count as one arrival for ``burst_hz``
+BURST_MERGE_S = 0.002
 #: arrival times kept for the rate (a flood faster than this per second reads as this)
 MAX_RATE_SAMPLES = 4096
 
@@ -236,6 +246,10 @@ class Crosscheck:
                     track.gap, track.gap_at = min(before, math.hypot(x - bx, y - by)), now
         return track.gap if now - track.gap_at <= GAP_HOLD_S else 0.0
 
+    def follows(self, robot: str) -> bool:
+        """Whether a pose stream of ``robot`` is followed (its beacons are worth reading)."""
+        return robot in self._robots
+
     def beacon(self, robot: str, now: float, x: float, y: float) -> None:
         """``robot``'s beacon puts it at (x, y) at ``now``: per pose stream whose latest
         pose arrived in the last :data:`BEACON_MATCH_S`, the gap is known at its next pose."""
@@ -261,11 +275,45 @@ def _places(origin: int, n: int) -> tuple[int, list[int]]:
     return first, [k * (first + 1) - origin, *([k] * (last - first - 1)), origin + n - k * last]
 
 def warm_up() -> None:
-    """Load what scoring needs (numpy, the decoders of the known ROS 1 types) now."""
-    importlib.import_module("numpy")
+    """Load what scoring needs (numpy, the decoders of the known ROS 1 types) and run
+    every kind's features over two made-up messages now: the first message of a kind
+    costs ten times the next ones (numpy's first calls, the grids' first allocations),
+    and at start-up that is not paid on a peer's first message, on the forwarding path."""
     for typename, kind in KIND_OF_TYPE.items():
         if kind not in _DECODERS:
             msgs.deserializer(typename)
+    crosscheck = Crosscheck()
+    for typename, sample in _warm_up_samples().items():
+        features = StreamFeatures(typename, topic="/r0/warm_up", crosscheck=crosscheck)
+        for t in (1.0, 1.1):
+            features.observe(sample(t), t, t)
+
+
+def _warm_up_samples() -> dict[str, Callable[[float], bytes]]:
+    """Per known type, a clean message at time t (ROS 1 serialization)."""
+    np = importlib.import_module("numpy")
+
+    def header(t: float) -> bytes:
+        return _HEADER.pack(1, int(t), int(t % 1 * 1e9)) + _U32.pack(3) + b"map"
+
+    def team_head(t: float) -> bytes:
+        return _U32.pack(2) + b"r0" + _BEACON_HEAD.pack(1, t, 1.0, 1.0, 0.0)
+
+    ranges = np.linspace(1.0, 2.0, 360, dtype="<f4").tobytes()
+    cells = np.full((10, 10), -1, dtype=np.int8)
+    cells[:5] = 0
+    cells[5, :] = 100
+    samples: dict[str, Callable[[float], bytes]] = {
+        "geometry_msgs/PoseStamped": lambda t: header(t) + _POSE.pack(t, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+        "sensor_msgs/LaserScan": lambda t: header(t) + _SCAN_FIELDS.pack(0.0, 6.28, 0.0175, 0.0, 0.2, 0.1, 3.5)
+        + _U32.pack(360) + ranges + _U32.pack(0),
+        "geometry_msgs/Twist": lambda t: _TWIST.pack(0.2, 0.0, 0.0, 0.0, 0.0, 0.1),
+        "cryptoros_sim/Hello": team_head,
+        "cryptoros_sim/MapUpdate": lambda t: team_head(t) + _MAP_TAIL.pack(0.0, 0.0, 0.0, False, 0, 0, 10, 10, 100)
+        + cells.tobytes(),
+    }
+    assert set(samples) == set(KIND_OF_TYPE)
+    return samples
 
 
 def robot_of(topic: str) -> str:
@@ -425,7 +473,7 @@ class StreamFeatures:
     message's features need (the previous message's values and a bounded window of
     arrival times)."""
 
-    __slots__ = ("kind", "names", "_decode", "_arrivals", "_size", "_prev", "_prev_at", "_robot", "_crosscheck",
+    __slots__ = ("kind", "names", "_decode", "_arrivals", "_reads", "_size", "_prev", "_prev_at", "_robot", "_crosscheck",
                  "_beacon_from", "_reach", "_visited", "_claims", "_walls", "_content")
 
     def __init__(self, typename: str, *, codec: str = "ros1", topic: str = "",
@@ -453,6 +501,7 @@ class StreamFeatures:
         self._claims: deque[tuple[float, float, float]] = deque(maxlen=64)  # team_map: (arrival, unseen, erased)
         self._walls = _Grid(MAX_WALL_CELLS)  # team_map: cells this stream claimed occupied
         self._arrivals: deque[float] = deque(maxlen=MAX_RATE_SAMPLES)
+        self._reads: deque[float] = deque(maxlen=BURST_INTERVALS + 1)  # for burst_hz: the last arrivals (reads)
         self._size: int | None = None
         self._prev: Any = None  # the previous message's content values (per kind)
         self._prev_at = 0.0
@@ -464,17 +513,21 @@ class StreamFeatures:
         arrivals.append(now)
         while arrivals and arrivals[0] <= now - RATE_WINDOW_S:
             arrivals.popleft()
+        reads = self._reads
+        if not reads or now - reads[-1] > BURST_MERGE_S:
+            reads.append(now)
+        burst = BURST_INTERVALS / max(reads[-1] - reads[0], 1e-3) if len(reads) > BURST_INTERVALS else 0.0
         size = len(body)
         size_change = abs(size - self._size) / max(1, self._size) if self._size is not None else 0.0
         self._size = size
-        common = (float(len(arrivals)), size_change)
+        common = (float(len(arrivals)), burst, size_change)
         if self._decode is None:
             return (*common, 0.0)
         try:
             msg = self._decode(body)
             content = self._content(msg, now, wall)
         except (CryptorosError, AttributeError, ValueError, TypeError):
-            return (*common, 1.0) + (0.0,) * (len(self.names) - 3)
+            return (*common, 1.0) + (0.0,) * (len(self.names) - len(_COMMON))
         self._prev_at = now
         return (*common, 0.0, *content)
 
@@ -510,17 +563,17 @@ class StreamFeatures:
         x, y, origin_x, origin_y, cells = msg
         self._note_reach(x, y)
         unseen = 0.0
-        known = cells != -1
-        total = int(np.count_nonzero(known))
-        if total:
-            # the grid of places in reach over the patch's coarse places (outside it: out
-            # of reach), spread to the patch's cells (each place repeated over the cells
-            # it covers: the patch's places are consecutive), then the known cells in it
-            h, w = cells.shape
-            row0, row_cells = _places(origin_y, h)
-            col0, col_cells = _places(origin_x, w)
-            in_reach = self._reach.lookup(row0, col0, len(row_cells), len(col_cells))
-            if not in_reach.all():  # (all: every cell in reach, the honest robot's case)
+        # the grid of places in reach over the patch's coarse places (outside it: out of
+        # reach); when some are not, spread to the patch's cells (each place repeated over
+        # the cells it covers: the patch's places are consecutive), then the known cells
+        h, w = cells.shape
+        row0, row_cells = _places(origin_y, h)
+        col0, col_cells = _places(origin_x, w)
+        in_reach = self._reach.lookup(row0, col0, len(row_cells), len(col_cells))
+        if not in_reach.all():  # (all: every cell in reach, the honest robot's case: nothing unseen)
+            known = cells != -1
+            total = int(np.count_nonzero(known))
+            if total:
                 reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
                 unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
         erased = self._walls_erased(origin_x, origin_y, cells)

@@ -31,7 +31,7 @@ from cryptoros.monitor.features import FEATURES
 
 FORMAT = "cryptoros-monitor-model/1"
 #: absolute floors added to every limit (a feature that is 0 on clean data needs this much)
-FLOORS = {"rate_hz": 2.0, "size_change": 0.05, "malformed": 0.5, "speed_mps": 0.2, "stamp_back_s": 0.05,
+FLOORS = {"rate_hz": 2.0, "burst_hz": 2.0, "size_change": 0.05, "malformed": 0.5, "speed_mps": 0.2, "stamp_back_s": 0.05,
           "stamp_lag_s": 0.5, "roughness": 0.05, "scan_change": 0.05, "linear": 0.1, "angular": 0.1,
           "geometry_change": 0.5, "beacon_gap_m": 0.3, "unseen_claim": 0.05,
           "walls_erased": 0.05}

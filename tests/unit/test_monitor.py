@@ -43,6 +43,12 @@ def scan(ranges, t: float, range_min: float = 0.1, range_max: float = 10.0, angl
     return msgs.serialize(body, SCAN)
 
 
+def twist(linear: float, angular: float) -> bytes:
+    vector = msgs.msg_class("geometry_msgs/Vector3")
+    return msgs.serialize(msgs.msg_class(TWIST)(linear=vector(x=linear, y=0.0, z=0.0),
+                                                angular=vector(x=0.0, y=0.0, z=angular)), TWIST)
+
+
 def frame(body: bytes) -> bytes:
     return struct.pack("<I", len(body)) + body
 
@@ -54,6 +60,12 @@ def clean_poses(n: int, t0: float = 1000.0, hz: float = 20.0):
 
 def named(kind: str, values: tuple[float, ...]) -> dict[str, float]:
     return dict(zip(FEATURES[kind], values))
+
+
+def row(kind: str, **values: float) -> tuple[float, ...]:
+    """A feature row of ``kind`` with ``values`` by name, every other feature 0."""
+    assert set(values) <= set(FEATURES[kind])
+    return tuple(values.get(name, 0.0) for name in FEATURES[kind])
 
 
 # ------------------------------------------------------------------ features
@@ -103,7 +115,39 @@ def test_a_body_that_does_not_decode_is_malformed_and_any_type_has_rate_and_size
     assert named("pose", f.observe(b"\x01\x02", 1.0, 1.0))["malformed"] == 1.0
     g = StreamFeatures("std_msgs/String")
     assert g.kind == "any" and len(g.observe(b"abcd", 1.0, 1.0)) == len(FEATURES["any"])
-    assert named("any", g.observe(b"abcdefgh", 1.1, 1.1)) == {"rate_hz": 2.0, "size_change": 1.0, "malformed": 0.0}
+    assert named("any", g.observe(b"abcdefgh", 1.1, 1.1)) == {"rate_hz": 2.0, "burst_hz": 0.0, "size_change": 1.0,
+                                                                "malformed": 0.0}
+
+
+def test_a_flood_shows_in_burst_hz_within_a_few_messages_and_a_delayed_read_does_not():
+    """``burst_hz`` is the rate over the last 3 arrivals: a 200 Hz flood added to a 10 Hz
+    stream reads 200 Hz at its fourth message, while the second's count has hardly moved;
+    messages read at once after a stall (the proxy's loop was busy) are one arrival."""
+    from cryptoros.monitor.features import BURST_INTERVALS
+
+    f = StreamFeatures(TWIST)
+    clean = [named("twist", f.observe(twist(0.2, 0.0), 10 + i / 10, 10 + i / 10)) for i in range(20)]
+    assert max(r["burst_hz"] for r in clean) == pytest.approx(10.0)
+    flood = [named("twist", f.observe(twist(0.0, 0.0), 12.0 + i / 200, 12.0 + i / 200)) for i in range(1, 5)]
+    assert flood[-1]["burst_hz"] == pytest.approx(200.0) and flood[-1]["rate_hz"] <= 14
+    g = StreamFeatures(TWIST)
+    for i in range(10):
+        g.observe(twist(0.2, 0.0), 10 + i / 10, 10 + i / 10)
+    stalled = [named("twist", g.observe(twist(0.2, 0.0), 11.5 + i * 1e-5, 11.5 + i * 1e-5)) for i in range(6)]
+    assert max(r["burst_hz"] for r in stalled) < 10.0
+    assert len(g._reads) == BURST_INTERVALS + 1
+
+
+def test_the_warm_up_runs_every_known_kind_over_clean_messages():
+    """The start-up warm-up (the first message of a kind costs ten times the next) runs
+    each kind's content features over messages that decode: none comes out malformed."""
+    from cryptoros.monitor.features import KIND_OF_TYPE, _warm_up_samples, warm_up
+
+    warm_up()
+    for typename, sample in _warm_up_samples().items():
+        f = StreamFeatures(typename, topic="/r0/x")
+        rows = [named(KIND_OF_TYPE[typename], f.observe(sample(t), t, t)) for t in (1.0, 1.1)]
+        assert all(r["malformed"] == 0.0 for r in rows), (typename, rows)
 
 
 def test_pose_and_twist_are_read_straight_from_the_bytes_as_the_full_decoder_reads_them():
@@ -273,8 +317,8 @@ def test_a_severe_message_alerts_alone_once_and_the_model_keeps_the_setting(tmp_
         [False, True, False, False, True]
     model = fitted()
     assert model.severe == 5.0
-    assert model.is_severe(model.score("pose", (1.0, 0.0, 0.0, 1000.0, 0.0, 0.0, 0.0)))
-    assert not model.is_severe(model.score("pose", (1.0, 0.0, 0.0, 0.4, 0.0, 0.0, 0.0)))
+    assert model.is_severe(model.score("pose", row("pose", rate_hz=1.0, speed_mps=1000.0)))
+    assert not model.is_severe(model.score("pose", row("pose", rate_hz=1.0, speed_mps=0.4)))
     model.save(tmp_path / "m.json")
     assert MonitorModel.load(tmp_path / "m.json").severe == 5.0
     raw = json.loads((tmp_path / "m.json").read_text())
@@ -285,8 +329,8 @@ def test_a_severe_message_alerts_alone_once_and_the_model_keeps_the_setting(tmp_
     del raw["severe"]  # a model written before the setting: the default
     (tmp_path / "old.json").write_text(json.dumps(raw))
     assert MonitorModel.load(tmp_path / "old.json").severe == 5.0
-    off = MonitorModel.fit({"pose": [(1.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0)]}, severe=0)
-    assert not off.is_severe(off.score("pose", (1.0, 0.0, 0.0, 1e9, 0.0, 0.0, 0.0)))
+    off = MonitorModel.fit({"pose": [row("pose", rate_hz=1.0, speed_mps=0.3)]}, severe=0)
+    assert not off.is_severe(off.score("pose", row("pose", rate_hz=1.0, speed_mps=1e9)))
 
 
 def test_the_lstm_threshold_for_a_false_positive_rate_flags_at_most_that_share_of_clean_messages():
@@ -719,6 +763,10 @@ async def test_the_monitor_checks_a_pose_against_the_robots_own_beacons_only(tmp
     # the same beacons on their way to a second peer are not read twice
     assert monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO) is None
     monitor.register("ops", "/mocap", lambda: cuts.append("mocap"))
+    clock.t = 999.0
+    own.feed(frame(beacon("r0", 0.0, 1.0, clock.t)))
+    await drain()
+    assert not own.features._arrivals  # no pose of r0 followed yet: its own beacons are not read
     for i in range(40):
         clock.t = 1000 + i / 20
         framing.feed(frame(beacon("r0", 40.0, 40.0, clock.t)))  # robot r1 says r0 is elsewhere
@@ -746,7 +794,7 @@ async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quar
               for i in range(6)]
     clean = StreamFeatures(MAP, topic="/team/map")
     model = MonitorModel.fit({"team_map": [clean.observe(body, 1000.0 + i, 1000.0 + i) for i, body in enumerate(honest)],
-                              "pose": [(1.0, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0)]})
+                              "pose": [row("pose", rate_hz=1.0, speed_mps=0.3)]})
     model.save(tmp_path / "m.json")
     from prometheus_client import CollectorRegistry
 
