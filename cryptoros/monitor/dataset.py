@@ -10,6 +10,7 @@ an attack message, every other message a clean one.
 from __future__ import annotations
 
 import json
+import statistics
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -147,7 +148,7 @@ def figures(tp: int, fp: int, fn: int, tn: int, *, right_runs: int, runs: int,
     n = tp + fp + fn + tn
     precision = tp / (tp + fp) if tp + fp else 0.0
     recall = tp / (tp + fn) if tp + fn else 0.0
-    known = sorted(d for d in delays.values() if d is not None)
+    known = [d for d in delays.values() if d is not None]
     return {
         "messages": n, "attack_messages": tp + fn,
         "accuracy": round((tp + tn) / n, 4) if n else None,
@@ -156,7 +157,7 @@ def figures(tp: int, fp: int, fn: int, tn: int, *, right_runs: int, runs: int,
         "false_positive_rate": round(fp / (fp + tn), 5) if fp + tn else 0.0,
         "runs": runs, "run_accuracy": round(right_runs / runs, 4) if runs else None,
         "attack_streams_detected": f"{len(known)} of {len(delays)}",
-        "median_delay_s": round(known[len(known) // 2], 3) if known else None,
+        "median_delay_s": round(statistics.median(known), 3) if known else None,
         "delays_s": {k: (round(v, 3) if v is not None else None) for k, v in delays.items()},
     }
 
