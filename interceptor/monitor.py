@@ -426,9 +426,10 @@ class WatchedStream:
                 spans, stop, _pending, error = self._walker.split(buffer)
                 bodies = [bytes(buffer[start:end]) for start, end in spans]
             scored += len(bodies)
-            if self.reference:
-                for body in bodies:
-                    self.features.observe(body, now, wall)
+            if self.reference:  # read only while a pose stream of its robot is followed
+                if monitor.crosscheck.follows(self.manager):
+                    for body in bodies:
+                        self.features.observe(body, now, wall)
             else:
                 messages.inc(len(bodies))
                 for body in bodies:
