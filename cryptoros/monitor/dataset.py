@@ -218,6 +218,7 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
     for bag in bags:
         labels = everywhere + labels_for(Path(bag))
         trackers: dict[tuple[str, str], AlertTracker] = {}
+        first_message: dict[str, float] = {}
         flagged_run = False
         for row in rows_of([Path(bag)], robot):
             key = (row.topic, row.publisher)
@@ -233,8 +234,10 @@ def evaluate(model: MonitorModel, bags: Iterable[Path], attackers: Iterable[str]
                 result.attack_messages += 1
                 result.true_positives += flagged
                 result.delays.setdefault(name, None)
+                # from the onset; a label without one (--attacker): from the stream's first message
+                began = label.onset or first_message.setdefault(name, row.at)
                 if alerted and result.delays[name] is None:
-                    result.delays[name] = row.at - label.onset
+                    result.delays[name] = row.at - began
             else:
                 result.false_positives += flagged
                 if alerted:

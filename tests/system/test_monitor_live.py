@@ -109,6 +109,8 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
     assert scored.returncode == 0, scored.stderr
     figures = json.loads(scored.stdout)
     assert figures["attack_streams_detected"] == "2 of 2", figures
+    # an --attacker has no onset: its delay counts from its stream's first message
+    assert all(0.0 <= d < 2.0 for d in figures["delays_s"].values()), figures
     assert figures["false_positive_rate"] <= 0.005 and figures["clean_streams_alerted"] == [], figures
     alerts = [line for line in log.splitlines() if "MONITOR alert" in line]
     print("\n".join(["monitor live:", clean_eval.stdout, scored.stdout, *alerts,
