@@ -300,6 +300,15 @@ class Ros1Role(GatewayRole):
         #: restarted rosmaster gets them replayed: (kind, node, name) -> (method, params)
         self._registrations: dict[tuple[str, str, str], tuple[str, tuple]] = {}
         self._registrations_full_logged = False
+        #: master role: each registered node's API as rosmaster has it (its relay here) and
+        #: the keys of its kept registrations. A node that registers from another API was
+        #: restarted or replaced: rosmaster then drops all the old API had registered, and
+        #: so do we (with the relays behind it)
+        self._api_of_node: dict[str, str] = {}
+        self._keys_of_node: dict[str, set[tuple[str, str, str]]] = {}
+        #: master role: nodes whose owner holds the name only through ``*`` or a pattern (a
+        #: manager whose grants name the node itself takes it from such an owner)
+        self._owned_by_pattern: set[str] = set()
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
         #: service servers) that came from it: released when the node registers again
@@ -399,7 +408,8 @@ class Ros1Role(GatewayRole):
         if path is None or not self._state_loaded:
             return
         data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
-                "owners": self._owners, "local_subscribers": self._local_subscribers,
+                "owners": self._owners, "owned_by_pattern": sorted(self._owned_by_pattern),
+                "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
                 "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
@@ -436,6 +446,7 @@ class Ros1Role(GatewayRole):
             problems = self.translator.restore(data["translator"])
             self.topic_types.update({str(k): str(v) for k, v in data.get("topic_types", {}).items()})
             self._owners.update({str(k): [str(v[0]), int(v[1])] for k, v in data.get("owners", {}).items()})
+            self._owned_by_pattern.update(str(n) for n in data.get("owned_by_pattern", ()) if str(n) in self._owners)
             for method, params in data.get("registrations", [])[:MAX_REGISTRATIONS]:
                 self._record_registration(str(method), tuple(str(p) for p in params))
             for method, params in self._registrations.values():  # the counts behind each restored relay
@@ -554,9 +565,14 @@ class Ros1Role(GatewayRole):
         ``[limits] name_hold_seconds`` (:mod:`interceptor.name_holds`). A hold does not
         stand against a caller whose ``grants`` name that very node (the registry gives
         it the name: one tool name granted to two robots): it keeps the name from
-        managers that would take it through ``*`` or a pattern."""
+        managers that would take it through ``*`` or a pattern. Nor does a registration
+        made through ``*`` or a pattern: a manager holding such a grant cannot squat a
+        name the registry gives another manager before that one's node starts (rosmaster
+        then drops the squatter's registrations, :meth:`_forget_replaced_node`)."""
         entry = self._owners.get(node)
         if entry:
+            if node in self._owned_by_pattern and grants is not None and grants.names_node_exactly(node):
+                return None
             return entry[0]
         holder = self._holds.holder(node)
         if holder is not None and grants is not None and grants.names_node_exactly(node):
@@ -571,13 +587,24 @@ class Ros1Role(GatewayRole):
         if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
             raise PolicyDenied("node_limit", f"{manager} has {cap} nodes registered already (max_nodes_per_peer)")
 
-    def _note_registration(self, call: Request, response: Response | Fault, manager: str) -> None:
+    def _note_registration(self, call: Request, response: Response | Fault, manager: str,
+                           exact: bool = True) -> None:
+        """What a call rosmaster accepted changes: owners, kept registrations, relay
+        counts. ``exact``: the caller's grants name the node itself (not ``*`` or a pattern)."""
         if not _ros_ok(response) or not call.params:
             return
-        self._record_registration(call.method, call.params)
         node = call.params[0]
-        if call.method.startswith("register") or call.method == "subscribeParam":
+        registering = call.method.startswith("register") or call.method == "subscribeParam"
+        if registering:
+            api = _caller_api(call.method, call.params)
+            if api is not None and self._api_of_node.setdefault(node, api) != api:
+                self._forget_replaced_node(node)
+                self._api_of_node[node] = api
+        self._record_registration(call.method, call.params)
+        if registering:
             entry = self._owners.setdefault(node, [manager, 0])
+            if entry[1] == 0:
+                (self._owned_by_pattern.discard if exact else self._owned_by_pattern.add)(node)
             entry[1] += 1
             self._holds.claim(node)
             self._count_relay_refs(call.method, call.params, +1)
@@ -589,6 +616,8 @@ class Ros1Role(GatewayRole):
                 entry[1] -= 1
                 if entry[1] <= 0:
                     del self._owners[node]
+                    self._owned_by_pattern.discard(node)
+                    self._api_of_node.pop(node, None)
                     self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
                 self._save_state_soon()
             self._count_relay_refs(call.method, call.params, -1)
@@ -598,6 +627,7 @@ class Ros1Role(GatewayRole):
         key = _registration_key(method, params)
         if key is None:
             return
+        node = key[1]
         if method.startswith("register"):
             if key not in self._registrations and len(self._registrations) >= MAX_REGISTRATIONS:
                 if not self._registrations_full_logged:
@@ -606,8 +636,30 @@ class Ros1Role(GatewayRole):
                                 "(a restarted rosmaster will not learn them)", MAX_REGISTRATIONS)
                 return
             self._registrations[key] = (method, tuple(params))
-        else:
-            self._registrations.pop(key, None)
+            self._keys_of_node.setdefault(node, set()).add(key)
+            api = _caller_api(method, params)
+            if api is not None:
+                self._api_of_node.setdefault(node, api)
+        elif self._registrations.pop(key, None) is not None:
+            keys = self._keys_of_node.get(node)
+            if keys is not None:
+                keys.discard(key)
+                if not keys:
+                    del self._keys_of_node[node]
+
+    def _forget_replaced_node(self, node: str) -> None:
+        """``node`` registered from another API: rosmaster dropped every registration of
+        the old one (a restarted node, or a name taken from a ``*`` holder), so the kept
+        registrations, the relay counts behind them and the owner go too. (Parameter
+        subscriptions are not kept: their relays go when unused, by the export limit.)"""
+        for key in self._keys_of_node.pop(node, ()):
+            kept = self._registrations.pop(key, None)
+            if kept is not None:
+                self._count_relay_refs(kept[0], kept[1], -1)
+        entry = self._owners.pop(node, None)
+        self._owned_by_pattern.discard(node)
+        log.info("node %s registered from another API: rosmaster dropped what it had registered before%s", node,
+                 f" (by {entry[0]})" if entry else "")
 
     async def _watch_master(self) -> None:
         """Go past plain ROS: when rosmaster comes back with a new pid (restarted), every
@@ -699,7 +751,9 @@ class Ros1Role(GatewayRole):
             return _rewrite_param_api(call, uri_map)
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
-            self._note_registration(call, response, peer.manager)
+            grants = self.verifier.freshest(peer.access).grants
+            self._note_registration(call, response, peer.manager, exact=bool(call.params) and
+                                    isinstance(call.params[0], str) and grants.names_node_exactly(call.params[0]))
             response = _filtered_param_reply(call, response, self.verifier.freshest(peer.access).grants)
             return rewrite_response(call, response, uri=self.translator.to_canonical)
 
@@ -1155,6 +1209,13 @@ _RELAY_URI_INDEX = {
     "registerPublisher": (3,), "registerSubscriber": (3,), "registerService": (2, 3), "subscribeParam": (1,),
     "unregisterPublisher": (2,), "unregisterSubscriber": (2,), "unregisterService": (2,), "unsubscribeParam": (1,),
 }
+
+
+def _caller_api(method: str, params: tuple) -> str | None:
+    """The node API a registration gives rosmaster (None: not a registration)."""
+    index = {"registerPublisher": 3, "registerSubscriber": 3, "registerService": 3, "subscribeParam": 1}.get(method)
+    value = params[index] if index is not None and len(params) > index else None
+    return value if isinstance(value, str) else None
 
 
 def _registration_key(method: str, params: tuple) -> tuple[str, str, str] | None:

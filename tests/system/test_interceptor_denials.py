@@ -197,6 +197,37 @@ def test_existing_node_name_from_another_manager_is_refused(network):
     assert "name_taken" in network.hosts["master"].logs()
 
 
+def test_a_name_squatted_through_a_wildcard_goes_to_the_manager_whose_grants_name_it(network):
+    """Robot B's grant lets any of its nodes subscribe /chatter (``*``); robot A's grants
+    name /roscpp_talker itself. B's node takes that name before A's starts (a squat: no
+    owner, no hold yet). A's node registers it all the same: the registry gives A that
+    very name. rosmaster then drops what the squatter had registered, the master's
+    interceptor forgets it too, and the squatter can no longer act under the name."""
+    def publishers_and_subscribers():
+        publishers, subscribers, _services = master_state(network)
+        return dict(publishers).get("/chatter", []), dict(subscribers).get("/chatter", [])
+
+    log_before = len(network.hosts["master"].logs())
+    with running([SYS_PY, NODE, "sub", "/roscpp_talker", "/chatter", "30"], env=network.ros_env("robot_b")) as squat:
+        read_lines(squat, "READY", 20)
+        deadline = time.monotonic() + 20
+        while "/roscpp_talker" not in publishers_and_subscribers()[1]:  # the squat went through
+            assert time.monotonic() < deadline, publishers_and_subscribers()
+            time.sleep(0.1)
+        with talker(network, node="/roscpp_talker") as pub:
+            read_lines(pub, "READY", 20)
+            deadline = time.monotonic() + 20
+            # A's publisher is registered, B's subscription under the name is gone
+            while (state := publishers_and_subscribers()) and not \
+                    ("/roscpp_talker" in state[0] and "/roscpp_talker" not in state[1]):
+                assert time.monotonic() < deadline, state
+                time.sleep(0.1)
+            assert pub.poll() is None
+        assert "/roscpp_talker registered from another API" in network.hosts["master"].logs()[log_before:]
+    assert "name_taken" not in "".join(line for line in network.hosts["master"].logs()[log_before:].splitlines()
+                                       if "robot_a" in line and "/roscpp_talker" in line)
+
+
 def test_a_restarting_nodes_name_is_held_for_its_manager_in_between(network):
     """Robot A's /rospy_talker stops (rospy unregisters it) and is started again. In
     between, robot B's node of the same name (B's grant names any node subscribing
