@@ -134,8 +134,13 @@ def test_service_call_across_robots(network):
 
 
 def test_latched_message_reaches_a_late_subscriber_with_transient_local(network):
+    log_before = len(network.robots["robot_b"].logs())
     with network.node("robot_a", "talker.py", "string", "/latched", "1", "10", "--latched"):
-        time.sleep(4)  # robot A's interceptor finds the topic and forwards the one message
+        # robot A's interceptor finds the topic and opens its stream to B, which republishes it
+        deadline = time.monotonic() + 20
+        while "republishing /latched" not in network.robots["robot_b"].logs()[log_before:]:
+            assert time.monotonic() < deadline, network.robots["robot_b"].logs()[log_before:][-2000:]
+            time.sleep(0.1)
         with network.node("robot_b", "listener.py", "string", "/latched", "10", "--latched") as sub:
             lines = sub.until("GOT 0", 12)
     assert got(lines) == [0]
