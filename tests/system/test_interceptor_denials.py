@@ -228,6 +228,28 @@ def test_a_name_squatted_through_a_wildcard_goes_to_the_manager_whose_grants_nam
                                        if "robot_a" in line and "/roscpp_talker" in line)
 
 
+def test_a_node_killed_and_started_again_has_the_relays_of_its_old_api_released(network):
+    """SIGKILL leaves no time to unregister: the restarted node registers the same name
+    from a new API. rosmaster drops what the old API had registered; the master's
+    interceptor forgets it too and releases the relay it kept for the old API (before,
+    it was kept until the relay limit pushed it out)."""
+    log_before = len(network.hosts["master"].logs())
+    with talker(network, node="/talker_a") as first:
+        read_lines(first, "READY", 20)
+        wait_registered(network, "/talker_a")
+        first.kill()
+        first.wait(timeout=10)
+    with talker(network, node="/talker_a") as again:
+        read_lines(again, "READY", 20)
+        deadline = time.monotonic() + 20
+        while "/talker_a registered from another API" not in (new := network.hosts["master"].logs()[log_before:]):
+            assert time.monotonic() < deadline, new[-3000:]
+            time.sleep(0.1)
+        assert "released (no registration behind it)" in network.hosts["master"].logs()[log_before:]
+        publishers, _subscribers, _services = master_state(network)
+        assert dict(publishers).get("/chatter", []).count("/talker_a") == 1
+
+
 def test_a_restarting_nodes_name_is_held_for_its_manager_in_between(network):
     """Robot A's /rospy_talker stops (rospy unregisters it) and is started again. In
     between, robot B's node of the same name (B's grant names any node subscribing
