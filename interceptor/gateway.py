@@ -241,7 +241,9 @@ class Gateway:
         self.cfg = cfg
         self.metrics = Metrics()
         #: the runtime monitor ([monitor]); roles tap the streams it watches
-        self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny) if cfg.monitor is not None else None
+        self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny,
+                               state_path=(cfg.state_dir / f"{cfg.manager}.quarantine.json" if cfg.state_dir else None)
+                               ) if cfg.monitor is not None else None
         self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = (
             self._tls_state(cfg))
         self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))

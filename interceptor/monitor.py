@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import asyncio
 import fnmatch
+import json
 import logging
+import os
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
@@ -128,7 +130,11 @@ class Monitor:
 
     def __init__(self, settings: MonitorSettings, registry, *,
                  deny: Callable[[str, PolicyDenied, str], None] = lambda _k, _e, _w: None,
-                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
+                 state_path: Path | None = None) -> None:
+        """``state_path``: where the quarantines are kept across restarts (None: not kept):
+        a restarted interceptor (a crash, an operator's restart) still refuses what it had
+        quarantined, for the time left."""
         self.settings = settings
         self.wall = wall  # arrival times: clock (rates, quarantine) and wall (the age of a stamp)
         self.deny = deny
@@ -140,6 +146,8 @@ class Monitor:
         self.metrics = MonitorMetrics(registry)
         self.clock = clock
         self._quarantine: OrderedDict[tuple[str, str], float] = OrderedDict()
+        self._state_path = state_path
+        self._load_quarantines()
         self._streams: set[WatchedStream] = set()
         #: every open topic stream into this host (watched or not), by (manager, publisher):
         #: how to cut it when its publisher is quarantined
@@ -299,6 +307,49 @@ class Monitor:
         while len(self._quarantine) > MAX_QUARANTINED:
             self._quarantine.popitem(last=False)
         self.metrics.quarantined.inc()
+        self._save_quarantines()
+
+    # -- kept across restarts (wall-clock ends: the monotonic clock starts again)
+    def _save_quarantines(self) -> None:
+        path = self._state_path
+        if path is None:
+            return
+        now, wall = self.clock(), self.wall()
+        entries = [{"manager": m, "publisher": p, "until": round(wall + (u - now), 3)}
+                   for (m, p), u in self._quarantine.items() if u > now]
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                json.dump({"version": 1, "quarantined": entries}, f)
+            os.replace(tmp, path)
+        except OSError as exc:
+            log.error("cannot keep the monitor's quarantines in %s: %s", path, exc)
+
+    def _load_quarantines(self) -> None:
+        path = self._state_path
+        if path is None or not path.exists():
+            return
+        try:
+            data = json.loads(path.read_text())
+            if not isinstance(data, dict) or data.get("version") != 1 or not isinstance(data.get("quarantined"), list):
+                raise ValueError("not a version 1 quarantine list")
+            now, wall = self.clock(), self.wall()
+            kept = []
+            for entry in data["quarantined"][-MAX_QUARANTINED:]:
+                manager, publisher, until = entry["manager"], entry["publisher"], float(entry["until"])
+                if not (isinstance(manager, str) and isinstance(publisher, str)):
+                    raise ValueError(f"bad entry {entry!r:.80}")
+                left = min(until - wall, self.settings.quarantine_seconds)  # a clock set back lengthens nothing
+                if left > 0:
+                    self._quarantine[(manager, publisher)] = now + left
+                    kept.append(f"{publisher} ({manager}) {left:.0f} s")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.error("the monitor's quarantines in %s were not read (%s): none is in force", path, exc)
+            return
+        if kept:
+            log.warning("MONITOR quarantines kept across the restart: %s", ", ".join(kept))
 
 
 class WatchedStream:

@@ -71,7 +71,8 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
         # 3. Robot B's interceptor with the monitor.
         net.stop("robot_b")
         config = net.hosts["robot_b"].config
-        config.write_text(config.read_text() + f'\n[monitor]\nmodel = "{model}"\ntopics = ["/r0/pose"]\n'
+        config.write_text(f'state_dir = "{tmp_path / "state_b"}"\n' + config.read_text() +
+                          f'\n[monitor]\nmodel = "{model}"\ntopics = ["/r0/pose"]\n'
                           'action = "quarantine"\nquarantine_seconds = 120.0\n')
         net.start("robot_b")
 
@@ -102,6 +103,12 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
                 watched = shown["peers"]
             log = net.hosts["robot_b"].logs()
             counted = metrics(net, "robot_b")
+        # robot B's interceptor restarted (a crash, an operator): the quarantines stand
+        net.stop("robot_b")
+        net.start("robot_b")
+        restarted = json.loads(urllib.request.urlopen(status_url, timeout=5).read())
+        assert {q["publisher"] for q in restarted["monitor"]["quarantined"]} == {"/pose_spoof", "/pose_flood"}
+        assert "MONITOR quarantines kept across the restart" in net.hosts["robot_b"].logs()
 
     # the same attacks, recorded on robot A and scored offline as the interceptor scores them
     scored = run([script("cryptoros"), "monitor", "eval", str(attacked), "--model", str(model), "--attacker",

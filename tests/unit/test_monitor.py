@@ -364,7 +364,7 @@ class Clock:
         return self.t
 
 
-def monitor_for(tmp_path, *, action="quarantine", clock=None, **extra) -> tuple[Monitor, list]:
+def monitor_for(tmp_path, *, action="quarantine", clock=None, state_path=None, **extra) -> tuple[Monitor, list]:
     from prometheus_client import CollectorRegistry
 
     fitted().save(tmp_path / "m.json")
@@ -372,7 +372,8 @@ def monitor_for(tmp_path, *, action="quarantine", clock=None, **extra) -> tuple[
     extra.setdefault("batch_seconds", 0.0)  # scored on the loop's next turn: drain() sees it
     settings = MonitorSettings(model=tmp_path / "m.json", action=action, quarantine_seconds=30.0, **extra)
     kw = {"clock": clock, "wall": clock} if clock else {}
-    return Monitor(settings, CollectorRegistry(), deny=lambda k, e, w: denials.append((k, e.reason, w)), **kw), denials
+    return Monitor(settings, CollectorRegistry(), deny=lambda k, e, w: denials.append((k, e.reason, w)),
+                   state_path=state_path, **kw), denials
 
 
 async def drain() -> None:
@@ -411,6 +412,39 @@ async def test_a_spoofing_publisher_is_quarantined_and_only_it_is_cut(tmp_path):
     monitor.check_admission("robot_a", "/base")  # the honest publisher is not refused
     clock.t += 31.0
     monitor.check_admission("robot_a", "/evil")  # quarantine over
+
+
+async def test_quarantines_are_kept_across_a_restart_for_the_time_left(tmp_path, caplog):
+    """A restarted interceptor (a crash, an operator's restart) still refuses what it had
+    quarantined, for the time left (wall clock: the monotonic one starts again); an
+    unreadable file is logged and puts nothing in force."""
+    state = tmp_path / "state" / "robot_b.quarantine.json"
+    clock = Clock()
+    monitor, _denials = monitor_for(tmp_path, clock=clock, state_path=state)
+    evil = monitor.watch(manager="robot_a", publisher="/evil", topic="/r0/pose", typename=POSE, cut=lambda: None)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        clock.t += 0.005
+        evil.feed(frame(pose(*rng.uniform(-50, 50, 2), clock.t)))
+    await drain()
+    assert monitor.quarantined_for("robot_a", "/evil") == pytest.approx(30.0, abs=0.1)
+    assert state.exists() and oct(state.stat().st_mode & 0o777) == "0o600"
+
+    clock.t += 10.0  # restarted 10 s later
+    again, _ = monitor_for(tmp_path, clock=clock, state_path=state)
+    assert again.quarantined_for("robot_a", "/evil") == pytest.approx(20.0, abs=0.1)
+    with pytest.raises(PolicyDenied, match="quarantined"):
+        again.check_admission("robot_a", "/evil")
+    again.check_admission("robot_a", "/base")
+    clock.t += 21.0  # over: restarted again, nothing is refused
+    monitor_for(tmp_path, clock=clock, state_path=state)[0].check_admission("robot_a", "/evil")
+
+    for bad in ("{not json", '{"version": 2, "quarantined": []}', '{"version": 1, "quarantined": [{"manager": 1}]}'):
+        state.write_text(bad)
+        caplog.clear()
+        fresh, _ = monitor_for(tmp_path, clock=clock, state_path=state)
+        fresh.check_admission("robot_a", "/evil")
+        assert "were not read" in caplog.text
 
 
 async def test_action_log_alerts_but_cuts_nothing(tmp_path):
