@@ -59,6 +59,8 @@ async def _run(config_path: str, grace: float) -> None:
     loop.add_signal_handler(signal.SIGINT, stop.set)
 
     async def reload() -> None:
+        if interceptor.monitor is not None:  # an operator's release needs no valid configuration
+            interceptor.monitor.apply_releases()
         try:
             await interceptor.reload(load(config_path))
             interceptor.metrics.reloads.labels("ok").inc()

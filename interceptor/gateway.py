@@ -61,7 +61,7 @@ from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig
 from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
-from interceptor.monitor import Monitor
+from interceptor.monitor import Monitor, quarantine_path
 from interceptor.pump import FrameCounter, MessageBudget, splice
 
 log = logging.getLogger("cryptoros.interceptor")
@@ -242,7 +242,7 @@ class Gateway:
         self.metrics = Metrics()
         #: the runtime monitor ([monitor]); roles tap the streams it watches
         self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny,
-                               state_path=(cfg.state_dir / f"{cfg.manager}.quarantine.json" if cfg.state_dir else None)
+                               state_path=quarantine_path(cfg.state_dir, cfg.manager) if cfg.state_dir else None
                                ) if cfg.monitor is not None else None
         self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = (
             self._tls_state(cfg))
@@ -525,7 +525,7 @@ class Gateway:
         crl = self.cfg.tls.crl_file
         last = self.verifier.last_feed_at
         return {
-            "manager": self.cfg.manager, "roles": list(self.cfg.roles), "public": str(self.cfg.public),
+            "manager": self.cfg.manager, "pid": os.getpid(), "roles": list(self.cfg.roles), "public": str(self.cfg.public),
             "health": health, "token": token,
             "certificate": {"subject": cert.subject.rfc4514_string(), "serial": format(cert.serial_number, "x"),
                             "not_after": cert.not_valid_after_utc.isoformat(),

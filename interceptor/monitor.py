@@ -26,6 +26,7 @@ unless ``fail_closed = true``, which cuts the stream instead.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import fnmatch
 import json
 import logging
@@ -125,6 +126,16 @@ class MonitorMetrics:
                                  registry=registry)
 
 
+def release_path_for(state_path: Path) -> Path:
+    """The release requests beside a quarantine file (``<manager>.quarantine.json``)."""
+    return state_path.with_name(state_path.name.replace(".json", ".release.json"))
+
+
+def quarantine_path(state_dir: Path, manager: str) -> Path:
+    """Where an interceptor with ``state_dir`` keeps its monitor's quarantines."""
+    return state_dir / f"{manager}.quarantine.json"
+
+
 class Monitor:
     """One interceptor's monitor: the model, the quarantine list, the watched streams."""
 
@@ -148,6 +159,7 @@ class Monitor:
         self._quarantine: OrderedDict[tuple[str, str], float] = OrderedDict()
         self._state_path = state_path
         self._load_quarantines()
+        self.apply_releases()  # asked for while the interceptor was down
         self._streams: set[WatchedStream] = set()
         #: every open topic stream into this host (watched or not), by (manager, publisher):
         #: how to cut it when its publisher is quarantined
@@ -327,6 +339,36 @@ class Monitor:
         except OSError as exc:
             log.error("cannot keep the monitor's quarantines in %s: %s", path, exc)
 
+    def release_path(self) -> Path | None:
+        """Where ``cryptoros unquarantine`` asks for quarantines to be lifted."""
+        return release_path_for(self._state_path) if self._state_path is not None else None
+
+    def apply_releases(self) -> list[str]:
+        """Lift the quarantines an operator asked to (``cryptoros unquarantine``: a false
+        alert on a publisher a robot needs), then forget the request. Called on SIGHUP and
+        at start. Returns what was lifted."""
+        path = self.release_path()
+        if path is None or not path.exists():
+            return []
+        try:
+            data = json.loads(path.read_text())
+            asked = [(str(e["manager"]), None if e.get("publisher") is None else str(e["publisher"]))
+                     for e in data["release"][:MAX_QUARANTINED]]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.error("quarantine release request %s not read (%s): nothing lifted", path, exc)
+            return []
+        finally:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        lifted = []
+        for manager, publisher in asked:
+            for key in [k for k in self._quarantine if k[0] == manager and publisher in (None, k[1])]:
+                del self._quarantine[key]
+                lifted.append(f"{key[1]} ({manager})" if key[1] != WHOLE_MANAGER else f"every publisher of {manager}")
+        log.warning("MONITOR quarantines lifted by the operator: %s", ", ".join(lifted) or "none matched")
+        self._save_quarantines()
+        return lifted
+
     def _load_quarantines(self) -> None:
         path = self._state_path
         if path is None or not path.exists():
@@ -498,4 +540,4 @@ class WatchedStream:
                 return
 
 
-__all__ = ["ACTIONS", "Monitor", "MonitorSettings", "WatchedStream"]
+__all__ = ["ACTIONS", "Monitor", "MonitorSettings", "WatchedStream", "quarantine_path", "release_path_for"]

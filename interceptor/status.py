@@ -74,3 +74,74 @@ def status(config_path: str | None, url: str | None, as_json: bool) -> None:
         raise SystemExit(2) from None
     click.echo(json.dumps(body, indent=2) if as_json else "\n".join(render(body)))
     raise SystemExit(0 if body.get("health") == "ok" else 1)
+
+
+@click.command()
+@click.option("--config", "config_path", required=True,
+              help="The interceptor's configuration (its state_dir, [monitor] and [listen] metrics).")
+@click.option("--timeout", default=10.0, show_default=True, help="Seconds to wait for the interceptor to lift it.")
+@click.argument("manager")
+@click.argument("publisher", required=False)
+def unquarantine(config_path: str, timeout: float, manager: str, publisher: str | None) -> None:
+    """Lift the runtime monitor's quarantine of PUBLISHER (a node, e.g. /teleop) of
+    MANAGER on this host's interceptor, or of every publisher of MANAGER: after a false
+    alert on a publisher a robot needs, without a restart (a restart keeps quarantines).
+
+    The request is written to the interceptor's state_dir and the running interceptor
+    (found at its /status) is sent SIGHUP, which lifts it and logs what it lifted; an
+    interceptor that is not running lifts it when it starts."""
+    import os
+    import signal
+    import time
+    from pathlib import Path
+
+    from interceptor.config import load
+    from interceptor.monitor import quarantine_path, release_path_for
+
+    try:
+        cfg = load(config_path)
+    except ConfigError as exc:
+        raise click.ClickException(str(exc)) from None
+    if cfg.monitor is None:
+        raise click.ClickException(f"{config_path} has no [monitor]: nothing is quarantined there")
+    if cfg.state_dir is None:
+        raise click.ClickException(f"{config_path} has no state_dir: quarantines are not kept there, and a "
+                                   "release is handed to the interceptor there (set state_dir, restart)")
+    path = release_path_for(quarantine_path(cfg.state_dir, cfg.manager))
+    asked = []
+    if path.exists():
+        try:
+            asked = list(json.loads(path.read_text())["release"])
+        except (OSError, ValueError, KeyError, TypeError):
+            asked = []  # an unreadable earlier request is replaced
+    asked.append({"manager": manager, "publisher": publisher})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump({"version": 1, "release": asked}, f)
+    os.replace(tmp, path)
+    who = f"{publisher} of {manager}" if publisher else f"every publisher of {manager}"
+    url = f"http://{cfg.metrics.host}:{cfg.metrics.port}/status" if cfg.metrics else None
+    try:
+        if url is None:
+            raise OSError("no [listen] metrics endpoint")
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            pid = int(json.loads(resp.read())["pid"])
+        if b"interceptor" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+            raise OSError(f"pid {pid} from {url} is not an interceptor")
+        os.kill(pid, signal.SIGHUP)
+    except (urllib.error.URLError, OSError, ValueError, KeyError, TypeError) as exc:
+        click.echo(f"release of {who} written to {path}; the interceptor could not be told now "
+                   f"({getattr(exc, 'reason', exc)}): it lifts it on its next SIGHUP or start")
+        return
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            held = json.loads(resp.read()).get("monitor", {}).get("quarantined", [])
+        if not path.exists() and not any(q["manager"] == manager and publisher in (None, q["publisher"])
+                                              for q in held):
+            click.echo(f"lifted: {who} (interceptor pid {pid})")
+            return
+        time.sleep(0.1)
+    raise click.ClickException(f"the interceptor (pid {pid}) did not lift {who} within {timeout:g} s: see its log")

@@ -109,6 +109,13 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
         restarted = json.loads(urllib.request.urlopen(status_url, timeout=5).read())
         assert {q["publisher"] for q in restarted["monitor"]["quarantined"]} == {"/pose_spoof", "/pose_flood"}
         assert "MONITOR quarantines kept across the restart" in net.hosts["robot_b"].logs()
+        # an operator lifts one of them (a false alert, say) without a restart
+        lifted = run([script("cryptoros"), "unquarantine", "--config", str(net.hosts["robot_b"].config),
+                      "robot_a", "/pose_flood"], timeout=30)
+        assert lifted.returncode == 0 and "lifted: /pose_flood of robot_a" in lifted.stdout, lifted
+        after_release = json.loads(urllib.request.urlopen(status_url, timeout=5).read())
+        assert {q["publisher"] for q in after_release["monitor"]["quarantined"]} == {"/pose_spoof"}
+        assert "MONITOR quarantines lifted by the operator: /pose_flood (robot_a)" in net.hosts["robot_b"].logs()
 
     # the same attacks, recorded on robot A and scored offline as the interceptor scores them
     scored = run([script("cryptoros"), "monitor", "eval", str(attacked), "--model", str(model), "--attacker",

@@ -447,6 +447,32 @@ async def test_quarantines_are_kept_across_a_restart_for_the_time_left(tmp_path,
         assert "were not read" in caplog.text
 
 
+async def test_an_operator_lifts_one_quarantine_or_a_managers_and_the_request_is_used_once(tmp_path, caplog):
+    """``cryptoros unquarantine`` writes a release request beside the quarantine file;
+    the monitor applies it (on SIGHUP, or at start), keeps the rest, and removes it."""
+    from interceptor.monitor import WHOLE_MANAGER, release_path_for
+
+    state = tmp_path / "state" / "robot_b.quarantine.json"
+    clock = Clock()
+    monitor, _ = monitor_for(tmp_path, clock=clock, state_path=state)
+    for publisher in ("/a", "/b", WHOLE_MANAGER):
+        monitor._put("robot_a", publisher, clock.t + 30.0)
+    monitor._put("robot_c", "/c", clock.t + 30.0)
+    release = release_path_for(state)
+    release.write_text(json.dumps({"version": 1, "release": [{"manager": "robot_a", "publisher": "/a"}]}))
+    assert monitor.apply_releases() == ["/a (robot_a)"]
+    assert not release.exists() and monitor.apply_releases() == []
+    assert monitor._left(("robot_a", "/a")) == 0 and monitor.quarantined_for("robot_a", "/b") > 0
+    release.write_text(json.dumps({"version": 1, "release": [{"manager": "robot_a", "publisher": None}]}))
+    restarted, _ = monitor_for(tmp_path, clock=clock, state_path=state)  # applied at start too
+    assert restarted.quarantined_for("robot_a", "/b") == 0 and restarted.quarantined_for("robot_a", "/x") == 0
+    assert restarted.quarantined_for("robot_c", "/c") > 0
+    assert "lifted by the operator: /b (robot_a), every publisher of robot_a" in caplog.text
+    release.write_text("{not json")
+    assert restarted.apply_releases() == [] and not release.exists()
+    assert restarted.quarantined_for("robot_c", "/c") > 0 and "nothing lifted" in caplog.text
+
+
 async def test_action_log_alerts_but_cuts_nothing(tmp_path):
     clock = Clock()
     monitor, denials = monitor_for(tmp_path, action="log", clock=clock)
