@@ -96,6 +96,8 @@ IDLE_TIMEOUT = 600.0
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
 #: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
 MAX_REGISTRATIONS = 65_536
+#: parameter subscriptions of one node counted for its relay (more: freed by the export limit)
+MAX_PARAM_SUBSCRIPTIONS_PER_NODE = 4096
 #: how often, and how patiently, the master role asks rosmaster for its pid
 MASTER_WATCH_INTERVAL = 1.0
 MASTER_WATCH_TIMEOUT = 5.0
@@ -309,6 +311,9 @@ class Ros1Role(GatewayRole):
         #: master role: nodes whose owner holds the name only through ``*`` or a pattern (a
         #: manager whose grants name the node itself takes it from such an owner)
         self._owned_by_pattern: set[str] = set()
+        #: master role: each node's parameter subscriptions (key -> the call as forwarded),
+        #: not replayed to a restarted rosmaster but counted behind their relays
+        self._param_subs_of_node: dict[str, dict[str, tuple]] = {}
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
         #: service servers) that came from it: released when the node registers again
@@ -608,6 +613,7 @@ class Ros1Role(GatewayRole):
             entry[1] += 1
             self._holds.claim(node)
             self._count_relay_refs(call.method, call.params, +1)
+            self._note_param_subscription(call.method, call.params)
             self._save_state_soon()
         elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
                 isinstance(response.value[2], int) and response.value[2] > 0:
@@ -618,9 +624,27 @@ class Ros1Role(GatewayRole):
                     del self._owners[node]
                     self._owned_by_pattern.discard(node)
                     self._api_of_node.pop(node, None)
+                    self._param_subs_of_node.pop(node, None)
                     self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
                 self._save_state_soon()
             self._count_relay_refs(call.method, call.params, -1)
+            self._note_param_subscription(call.method, call.params)
+
+    def _note_param_subscription(self, method: str, params: tuple) -> None:
+        key = _param_subscription_key(method, params)
+        if key is None:
+            return
+        _kind, node, name = key
+        if method == "subscribeParam":
+            subs = self._param_subs_of_node.setdefault(node, {})
+            if name in subs or len(subs) < MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
+                subs[name] = tuple(params)
+        else:
+            subs = self._param_subs_of_node.get(node)
+            if subs is not None:
+                subs.pop(name, None)
+                if not subs:
+                    del self._param_subs_of_node[node]
 
     def _record_registration(self, method: str, params: tuple) -> None:
         """Keep (or drop) one registration as it was forwarded to rosmaster."""
@@ -650,12 +674,14 @@ class Ros1Role(GatewayRole):
     def _forget_replaced_node(self, node: str) -> None:
         """``node`` registered from another API: rosmaster dropped every registration of
         the old one (a restarted node, or a name taken from a ``*`` holder), so the kept
-        registrations, the relay counts behind them and the owner go too. (Parameter
-        subscriptions are not kept: their relays go when unused, by the export limit.)"""
+        registrations, its parameter subscriptions, the relay counts behind them and the
+        owner go too."""
         for key in self._keys_of_node.pop(node, ()):
             kept = self._registrations.pop(key, None)
             if kept is not None:
                 self._count_relay_refs(kept[0], kept[1], -1)
+        for params in self._param_subs_of_node.pop(node, {}).values():
+            self._count_relay_refs("subscribeParam", params, -1)
         entry = self._owners.pop(node, None)
         self._owned_by_pattern.discard(node)
         log.info("node %s registered from another API: rosmaster dropped what it had registered before%s", node,

@@ -250,6 +250,26 @@ def test_a_node_killed_and_started_again_has_the_relays_of_its_old_api_released(
         assert dict(publishers).get("/chatter", []).count("/talker_a") == 1
 
 
+def test_a_replaced_nodes_parameter_subscription_frees_its_relay_too(network):
+    """A node's parameter subscription (roscpp's cached parameters) holds a relay at the
+    master's interceptor; when the node registers from another API, rosmaster drops the
+    subscription and the master's interceptor releases that relay."""
+    local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+    log_before = len(network.hosts["master"].logs())
+    with network.inside("robot_b"):
+        assert local_b.subscribeParam("/rospy_listener", "http://127.0.0.1:9/", "/rospy_listener/rate")[0] == 1
+        assert local_b.registerSubscriber("/rospy_listener", "/chatter", "std_msgs/String",
+                                          "http://127.0.0.1:10/")[0] == 1
+        try:
+            deadline = time.monotonic() + 10
+            while "released (no registration behind it)" not in (new := network.hosts["master"].logs()[log_before:]):
+                assert time.monotonic() < deadline, new[-3000:]
+                time.sleep(0.1)
+            assert "/rospy_listener registered from another API" in new
+        finally:
+            local_b.unregisterSubscriber("/rospy_listener", "/chatter", "http://127.0.0.1:10/")
+
+
 def test_a_restarting_nodes_name_is_held_for_its_manager_in_between(network):
     """Robot A's /rospy_talker stops (rospy unregisters it) and is started again. In
     between, robot B's node of the same name (B's grant names any node subscribing
