@@ -76,6 +76,44 @@ def status(config_path: str | None, url: str | None, as_json: bool) -> None:
     raise SystemExit(0 if body.get("health") == "ok" else 1)
 
 
+def _write_release(path, manager: str, publisher: str | None) -> None:
+    """Add one release request to the file the interceptor applies on SIGHUP (0600)."""
+    import os
+
+    asked = []
+    if path.exists():
+        try:
+            asked = list(json.loads(path.read_text())["release"])
+        except (OSError, ValueError, KeyError, TypeError):
+            asked = []  # an unreadable earlier request is replaced
+    asked.append({"manager": manager, "publisher": publisher})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump({"version": 1, "release": asked}, f)
+    os.replace(tmp, path)
+
+
+def _interceptor_at(url: str) -> tuple[int, list[dict]]:
+    """(pid, quarantines) of the interceptor serving ``url``; OSError when it cannot be
+    asked or the pid it gives is not an interceptor's."""
+    from pathlib import Path
+
+    try:
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            body = json.loads(resp.read())
+        pid = int(body["pid"])
+        held = list((body.get("monitor") or {}).get("quarantined", []))
+    except urllib.error.URLError as exc:
+        raise OSError(str(exc.reason)) from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise OSError(f"{url} is not an interceptor's status: {exc}") from None
+    if b"interceptor" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+        raise OSError(f"pid {pid} from {url} is not an interceptor")
+    return pid, held
+
+
 @click.command()
 @click.option("--config", "config_path", required=True,
               help="The interceptor's configuration (its state_dir, [monitor] and [listen] metrics).")
@@ -93,7 +131,6 @@ def unquarantine(config_path: str, timeout: float, manager: str, publisher: str 
     import os
     import signal
     import time
-    from pathlib import Path
 
     from interceptor.config import load
     from interceptor.monitor import quarantine_path, release_path_for
@@ -108,40 +145,34 @@ def unquarantine(config_path: str, timeout: float, manager: str, publisher: str 
         raise click.ClickException(f"{config_path} has no state_dir: quarantines are not kept there, and a "
                                    "release is handed to the interceptor there (set state_dir, restart)")
     path = release_path_for(quarantine_path(cfg.state_dir, cfg.manager))
-    asked = []
-    if path.exists():
-        try:
-            asked = list(json.loads(path.read_text())["release"])
-        except (OSError, ValueError, KeyError, TypeError):
-            asked = []  # an unreadable earlier request is replaced
-    asked.append({"manager": manager, "publisher": publisher})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        json.dump({"version": 1, "release": asked}, f)
-    os.replace(tmp, path)
     who = f"{publisher} of {manager}" if publisher else f"every publisher of {manager}"
+
+    def matching(held: list[dict]) -> list[dict]:
+        return [q for q in held if q.get("manager") == manager and publisher in (None, q.get("publisher"))]
+
     url = f"http://{cfg.metrics.host}:{cfg.metrics.port}/status" if cfg.metrics else None
     try:
         if url is None:
             raise OSError("no [listen] metrics endpoint")
-        with urllib.request.urlopen(url, timeout=5) as resp:
-            pid = int(json.loads(resp.read())["pid"])
-        if b"interceptor" not in Path(f"/proc/{pid}/cmdline").read_bytes():
-            raise OSError(f"pid {pid} from {url} is not an interceptor")
-        os.kill(pid, signal.SIGHUP)
-    except (urllib.error.URLError, OSError, ValueError, KeyError, TypeError) as exc:
-        click.echo(f"release of {who} written to {path}; the interceptor could not be told now "
-                   f"({getattr(exc, 'reason', exc)}): it lifts it on its next SIGHUP or start")
+        pid, held = _interceptor_at(url)
+    except OSError as exc:
+        _write_release(path, manager, publisher)
+        click.echo(f"release of {who} written to {path}; the interceptor could not be asked now ({exc}): "
+                   "it lifts it on its next SIGHUP or start")
         return
+    if not matching(held):
+        click.echo(f"no quarantine of {who} on this interceptor (pid {pid}): nothing to lift")
+        return
+    _write_release(path, manager, publisher)
+    os.kill(pid, signal.SIGHUP)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        with urllib.request.urlopen(url, timeout=5) as resp:
-            held = json.loads(resp.read()).get("monitor", {}).get("quarantined", [])
-        if not path.exists() and not any(q["manager"] == manager and publisher in (None, q["publisher"])
-                                              for q in held):
-            click.echo(f"lifted: {who} (interceptor pid {pid})")
-            return
         time.sleep(0.1)
+        try:
+            pid_now, held = _interceptor_at(url)
+        except OSError:
+            continue
+        if not path.exists() and not matching(held):
+            click.echo(f"lifted: {who} (interceptor pid {pid_now})")
+            return
     raise click.ClickException(f"the interceptor (pid {pid}) did not lift {who} within {timeout:g} s: see its log")

@@ -13,6 +13,7 @@ from typing import Any
 import click
 
 from cryptoros.demo.attackers import ATTACKS, ROS2_ATTACKS
+from cryptoros.errors import CryptorosError
 
 
 def _sigterm(_sig: int, _frame: Any) -> None:
@@ -115,7 +116,7 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, isolate
     except KeyboardInterrupt:
         console.print("[yellow]interrupted: every child process was stopped[/yellow]")
         sys.exit(130)
-    except DemoError as exc:
+    except (DemoError, CryptorosError) as exc:  # a clear line, never a traceback
         raise click.ClickException(str(exc)) from None
     finally:
         if result is None and opts.workdir is None and not keep:

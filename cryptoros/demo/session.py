@@ -7,6 +7,7 @@ Kept apart from both missions so neither imports the other's module back.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import socket
 import tempfile
 from dataclasses import asdict
@@ -16,6 +17,7 @@ from typing import Any, Callable
 from cryptoros.demo import ros2
 from cryptoros.demo.attackers import ATTACKS, target_of
 from cryptoros.demo.run import ALL_ATTACKS, Children, DemoError, DemoOptions, Mission, attacker_role, judge
+from cryptoros.errors import CryptorosError
 
 
 def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lambda _e: None,
@@ -88,16 +90,30 @@ def calibrate(opts: DemoOptions, workdir: Path, children: Children, note: Callab
     """A clean plain mission of the same team, recorded through ``cryptoros monitor record``,
     and the monitor's model trained on it: what an operator does before enabling the
     monitor (``docs/monitor.md``). Returns the model's path."""
-    from cryptoros.demo.dataset import RecordingMission
+    from cryptoros.demo.dataset import ATTEMPTS, RecordingMission
     from cryptoros.monitor.dataset import train
 
     note(f"calibration: a clean {CALIBRATION_S:g} s plain mission recorded to train the monitor's model")
     clean = dataclasses.replace(opts, attacks=(), modes=("plain",), seconds=CALIBRATION_S, coverage_target=1.01,
                                 compromise=None, isolate=False)
     bag = workdir / "clean.bag"
-    workdir.mkdir(parents=True, exist_ok=True)
-    RecordingMission(clean, "plain", workdir, children, lambda _e: None, bag=bag).run()
-    model = train([bag])
+    for attempt in range(1, ATTEMPTS + 1):
+        workdir.mkdir(parents=True, exist_ok=True)
+        mission = RecordingMission(clean, "plain", workdir, children, lambda _e: None, bag=bag)
+        result = mission.run()
+        try:
+            model = train([bag])
+            break
+        except CryptorosError as exc:  # no bag, or nothing in it: never a model from nothing
+            recorder = mission.dir / "recorder.log"
+            why = (f"{exc} (the mission ran {result.get('wall_s', 0):.1f} s, "
+                   f"{result.get('end_reason') or 'no end reason'}; recorder: "
+                   f"{' | '.join(recorder.read_text().splitlines()[-3:]) if recorder.exists() else 'no log'}"
+                   f"{'; ' + repr(result['exit_log']) if result.get('exit_log') else ''})")
+            if attempt == ATTEMPTS:
+                raise DemoError(f"calibration failed {ATTEMPTS} times: {why}") from None
+            note(f"calibration: {why}; recording it again")
+            shutil.rmtree(workdir, ignore_errors=True)
     path = workdir / "monitor-model.json"
     model.save(path)
     note(f"calibration: model trained on {sum(model.trained_on.values())} clean messages ({path})")

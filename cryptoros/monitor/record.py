@@ -40,6 +40,7 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
     writer.open()
     counts: dict[str, int] = {}
     connections: dict[tuple[str, str], Any] = {}
+    closed = False  # the bag is closed first when recording stops: what comes after is not written
     node = Node(name, master_uri, host=host, api_timeout=timeout)
     try:
         await node.start()
@@ -49,6 +50,8 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
 
             def on_message(data: bytes, header: dict[str, str] | None, topic: str = topic,
                            typename: str = typename, known: bool = known) -> None:
+                if closed:
+                    return
                 header = header or {}
                 publisher = header.get("callerid", "?")
                 conn = connections.get((topic, publisher))
@@ -71,9 +74,12 @@ async def record(master_uri: str, topics: list[str], out: Path, *, seconds: floa
         with contextlib.suppress(asyncio.TimeoutError, TimeoutError):
             await asyncio.wait_for((stop or asyncio.Event()).wait(), seconds)
     finally:
+        # the bag first: a node slow to unregister (a master going away, a loaded machine)
+        # must not keep it from being complete when whoever stopped us loses patience
+        closed = True
+        writer.close()
         with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):
             await asyncio.wait_for(node.close(), timeout)
-        writer.close()
     return counts
 
 

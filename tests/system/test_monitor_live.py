@@ -116,6 +116,9 @@ def test_a_model_trained_on_a_clean_recording_quarantines_only_the_misbehaving_p
         after_release = json.loads(urllib.request.urlopen(status_url, timeout=5).read())
         assert {q["publisher"] for q in after_release["monitor"]["quarantined"]} == {"/pose_spoof"}
         assert "MONITOR quarantines lifted by the operator: /pose_flood (robot_a)" in net.hosts["robot_b"].logs()
+        again = run([script("cryptoros"), "unquarantine", "--config", str(net.hosts["robot_b"].config),
+                     "robot_a", "/pose_flood"], timeout=30)
+        assert again.returncode == 0 and "nothing to lift" in again.stdout, again
 
     # the same attacks, recorded on robot A and scored offline as the interceptor scores them
     scored = run([script("cryptoros"), "monitor", "eval", str(attacked), "--model", str(model), "--attacker",
