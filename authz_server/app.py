@@ -367,6 +367,8 @@ class Metrics:
                                      "Creation time of the active signing key", registry=self.registry)
         self.feed_heartbeats = Counter("cryptoros_authz_feed_heartbeats", "Heartbeats written on streamed "
                                        "long-polls of the feed", registry=self.registry)
+        self.feed_polls_held = Gauge("cryptoros_authz_feed_polls_held", "Long-polls of the feed held open now",
+                                     registry=self.registry)
 
 
 class _Denied(CryptorosError):
@@ -407,6 +409,7 @@ class AuthzService:
         self._closing = False
         self._held: dict[str, int] = {}  # long-polls held, per client certificate
         self._held_total = 0
+        self.metrics.feed_polls_held.set_function(lambda: self._held_total)
         self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:

@@ -112,6 +112,21 @@ class AuthzDaemon:
         finally:
             conn.close()
 
+    def wait_polls_held(self, count: int, timeout: float = 15.0) -> None:
+        """Until at least ``count`` long-polls of the feed are held open (the daemon's
+        ``cryptoros_authz_feed_polls_held``): readiness seen, not slept for."""
+        cert, key = self.cert_of("probe")
+        deadline = time.monotonic() + timeout
+        held = 0.0
+        while True:
+            _status, raw = self.request("GET", "/metrics", cert=cert, key=key)
+            held = next((float(line.split()[1]) for line in raw.decode().splitlines()
+                         if line.startswith("cryptoros_authz_feed_polls_held ")), 0.0)
+            if held >= count:
+                return
+            assert time.monotonic() < deadline, f"{held:g} long-polls held after {timeout:g} s, {count} expected"
+            time.sleep(0.05)
+
     def token(self, name: str, body: str = "grant_type=client_credentials") -> tuple[int, dict]:
         cert, key = self.cert_of(name)
         status, raw = self.request("POST", "/token", cert=cert, key=key, body=body)

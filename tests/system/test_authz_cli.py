@@ -243,7 +243,7 @@ def test_a_held_long_poll_answers_when_the_replica_loses_its_database(team, post
         holder = threading.Thread(target=lambda: answer.append(d.request(
             "GET", "/revocations?wait=60", cert=cert, key=key, headers={"If-None-Match": etag})))
         holder.start()
-        time.sleep(1.0)  # the request is held
+        d.wait_polls_held(1)  # the request is held
         server, _, name = postgres_url.replace("postgresql+psycopg://", "postgresql://").rpartition("/")
         with psycopg.connect(f"{server}/postgres", autocommit=True, connect_timeout=10) as conn:
             conn.execute(f'DROP DATABASE "{name}" WITH (FORCE)')

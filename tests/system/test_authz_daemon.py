@@ -218,7 +218,7 @@ def test_a_long_poll_of_the_feed_answers_as_soon_as_it_changes(daemon):
 
     waiter = threading.Thread(target=long_poll)
     waiter.start()
-    time.sleep(1.0)  # the request is being held
+    daemon.wait_polls_held(1)  # the request is being held
     assert "status" not in answer
     revoked_at = time.monotonic()
     ok(daemon.cli("revoke-token", jti))
@@ -449,7 +449,7 @@ def test_an_insider_cannot_hold_more_than_four_long_polls(daemon):
     holders = [threading.Thread(target=hold) for _ in range(4)]
     for t in holders:
         t.start()
-    time.sleep(1.0)
+    daemon.wait_polls_held(4)
     started = time.monotonic()
     status, _ = daemon.request("GET", "/revocations?wait=4", cert=cert, key=key, headers={"If-None-Match": etag})
     assert status == 304 and time.monotonic() - started < 1.5 and not done
