@@ -30,7 +30,6 @@ import contextlib
 import fnmatch
 import json
 import logging
-import os
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
@@ -43,6 +42,7 @@ from cryptoros.errors import ConfigError, PolicyDenied
 from cryptoros.monitor.features import Crosscheck, StreamFeatures, kind_of, warm_up
 from cryptoros.monitor.model import AlertTracker, MonitorModel
 from cryptoros.ros1.tcpros import FrameWalker
+from interceptor.statefile import write_private_json
 
 log = logging.getLogger("cryptoros.interceptor.monitor")
 
@@ -330,12 +330,7 @@ class Monitor:
         entries = [{"manager": m, "publisher": p, "until": round(wall + (u - now), 3)}
                    for (m, p), u in self._quarantine.items() if u > now]
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "w") as f:
-                json.dump({"version": 1, "quarantined": entries}, f)
-            os.replace(tmp, path)
+            write_private_json(path, {"version": 1, "quarantined": entries})
         except OSError as exc:
             log.error("cannot keep the monitor's quarantines in %s: %s", path, exc)
 

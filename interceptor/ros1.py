@@ -28,7 +28,6 @@ import contextlib
 import functools
 import json
 import logging
-import os
 import socket
 import time
 from collections.abc import Awaitable, Callable
@@ -77,6 +76,7 @@ from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_
 from interceptor.gateway import Role as GatewayRole
 from interceptor.name_holds import NameHolds
 from interceptor.pump import FrameCounter
+from interceptor.statefile import write_private_json
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
 
 log = logging.getLogger("cryptoros.interceptor")
@@ -419,12 +419,7 @@ class Ros1Role(GatewayRole):
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
                 "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "w") as f:
-                json.dump(data, f)
-            os.replace(tmp, path)
+            write_private_json(path, data)
         except OSError as exc:
             log.error("cannot keep state in %s: %s", path, exc)
 

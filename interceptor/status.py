@@ -78,7 +78,7 @@ def status(config_path: str | None, url: str | None, as_json: bool) -> None:
 
 def _write_release(path, manager: str, publisher: str | None) -> None:
     """Add one release request to the file the interceptor applies on SIGHUP (0600)."""
-    import os
+    from interceptor.statefile import write_private_json
 
     asked = []
     if path.exists():
@@ -87,12 +87,7 @@ def _write_release(path, manager: str, publisher: str | None) -> None:
         except (OSError, ValueError, KeyError, TypeError):
             asked = []  # an unreadable earlier request is replaced
     asked.append({"manager": manager, "publisher": publisher})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        json.dump({"version": 1, "release": asked}, f)
-    os.replace(tmp, path)
+    write_private_json(path, {"version": 1, "release": asked})
 
 
 def _interceptor_at(url: str) -> tuple[int, list[dict]]:
