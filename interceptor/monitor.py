@@ -373,6 +373,7 @@ class Monitor:
             if not isinstance(data, dict) or data.get("version") != 1 or not isinstance(data.get("quarantined"), list):
                 raise ValueError("not a version 1 quarantine list")
             now, wall = self.clock(), self.wall()
+            loaded: dict[tuple[str, str], float] = {}
             kept = []
             for entry in data["quarantined"][-MAX_QUARANTINED:]:
                 manager, publisher, until = entry["manager"], entry["publisher"], float(entry["until"])
@@ -380,11 +381,12 @@ class Monitor:
                     raise ValueError(f"bad entry {entry!r:.80}")
                 left = min(until - wall, self.settings.quarantine_seconds)  # a clock set back lengthens nothing
                 if left > 0:
-                    self._quarantine[(manager, publisher)] = now + left
+                    loaded[(manager, publisher)] = now + left
                     kept.append(f"{publisher} ({manager}) {left:.0f} s")
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.error("the monitor's quarantines in %s were not read (%s): none is in force", path, exc)
             return
+        self._quarantine.update(loaded)  # all of the file or none of it
         if kept:
             log.warning("MONITOR quarantines kept across the restart: %s", ", ".join(kept))
 

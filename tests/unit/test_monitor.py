@@ -439,7 +439,9 @@ async def test_quarantines_are_kept_across_a_restart_for_the_time_left(tmp_path,
     clock.t += 21.0  # over: restarted again, nothing is refused
     monitor_for(tmp_path, clock=clock, state_path=state)[0].check_admission("robot_a", "/evil")
 
-    for bad in ("{not json", '{"version": 2, "quarantined": []}', '{"version": 1, "quarantined": [{"manager": 1}]}'):
+    good = {"manager": "robot_a", "publisher": "/evil", "until": clock.t + 20.0}
+    for bad in ("{not json", '{"version": 2, "quarantined": []}', '{"version": 1, "quarantined": [{"manager": 1}]}',
+                json.dumps({"version": 1, "quarantined": [good, {"manager": "robot_a", "publisher": 7, "until": 1}]})):
         state.write_text(bad)
         caplog.clear()
         fresh, _ = monitor_for(tmp_path, clock=clock, state_path=state)
