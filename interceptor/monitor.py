@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import fnmatch
+import heapq
 import json
 import logging
 import time
@@ -194,12 +195,30 @@ class Monitor:
         self._batch = asyncio.get_running_loop().call_soon(self._score_batch)
 
     def _score_batch(self) -> None:
+        """Score what the due streams queued, chunk by chunk in arrival order across the
+        streams (what streams tell about each other, a robot's beacons against its poses,
+        needs the order they arrived in, not one stream after the other); a stream that
+        scored :data:`MESSAGES_PER_TURN` goes on in the loop's next turn."""
         t0 = time.thread_time()
         try:
             self._batch, self._batch_soon = None, False
             due, self._due = self._due, []
             for stream in due:
-                stream._score_queued()
+                stream._scheduled = False
+            heap = [(stream._chunks[0][1], i, stream) for i, stream in enumerate(due)
+                    if stream._chunks and not stream.closed]
+            heapq.heapify(heap)
+            scored = [0] * len(due)
+            while heap:
+                _at, i, stream = heapq.heappop(heap)
+                scored[i] += stream._score_next_chunk()
+                if stream.closed or not stream._chunks:
+                    continue
+                if scored[i] >= MESSAGES_PER_TURN:  # let the loop forward others' bytes; go on after
+                    stream._scheduled = True
+                    self._schedule(stream, soon=True)
+                    continue
+                heapq.heappush(heap, (stream._chunks[0][1], i, stream))
         finally:
             self.metrics.busy.inc(time.thread_time() - t0)
 
@@ -496,45 +515,37 @@ class WatchedStream:
             monitor._alert(self, score.feature, score.value)
         return score.value > 1.0
 
-    def _score_queued(self) -> None:
-        self._scheduled = False
+    def _score_next_chunk(self) -> int:
+        """Score the oldest queued chunk (its whole messages; a frame still arriving stays
+        in the buffer): how many messages it held."""
         monitor = self.monitor
-        messages = self._messages_counted
-        scored = 0
-        while self._chunks and not self.closed:
-            if scored >= MESSAGES_PER_TURN:  # let the loop forward others' bytes; go on after
-                self._scheduled = True
-                monitor._schedule(self, soon=True)
-                return
-            data, now, wall, whole = self._chunks.popleft()
-            self._backlog -= len(data)
-            if whole:
-                bodies, stop, error = [data], 0, None
-            else:
-                buffer = self._buffer
-                buffer += data
-                spans, stop, _pending, error = self._walker.split(buffer)
-                bodies = [bytes(buffer[start:end]) for start, end in spans]
-            scored += len(bodies)
-            if self.reference:  # read only while a pose stream of its robot is followed
-                if monitor.crosscheck.follows(self.manager):
-                    for body in bodies:
-                        self.features.observe(body, now, wall)
-            else:
-                messages.inc(len(bodies))
+        data, now, wall, whole = self._chunks.popleft()
+        self._backlog -= len(data)
+        if whole:
+            bodies, stop, error = [data], 0, None
+        else:
+            buffer = self._buffer
+            buffer += data
+            spans, stop, _pending, error = self._walker.split(buffer)
+            bodies = [bytes(buffer[start:end]) for start, end in spans]
+        if self.reference:  # read only while a pose stream of its robot is followed
+            if monitor.crosscheck.follows(self.manager):
                 for body in bodies:
-                    self._score(body, now, wall)
-                    if self.closed:
-                        return
-            if whole:
-                continue
-            del buffer[:stop]
-            if error is not None:
-                self._give_up("malformed")
-                return
-            if len(buffer) > monitor.settings.max_backlog_bytes:  # one frame bigger than the backlog
-                self._give_up("backlog")
-                return
+                    self.features.observe(body, now, wall)
+        else:
+            self._messages_counted.inc(len(bodies))
+            for body in bodies:
+                self._score(body, now, wall)
+                if self.closed:
+                    return len(bodies)
+        if whole:
+            return len(bodies)
+        del buffer[:stop]
+        if error is not None:
+            self._give_up("malformed")
+        elif len(buffer) > monitor.settings.max_backlog_bytes:  # one frame bigger than the backlog
+            self._give_up("backlog")
+        return len(bodies)
 
 
 __all__ = ["ACTIONS", "Monitor", "MonitorSettings", "WatchedStream", "quarantine_path", "release_path_for"]

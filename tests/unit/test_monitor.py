@@ -848,6 +848,29 @@ async def test_the_monitor_checks_a_pose_against_the_robots_own_beacons_only(tmp
     assert monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO) is not None
 
 
+async def test_a_batch_scores_the_streams_in_arrival_order_so_beacons_meet_the_poses_around_them(tmp_path):
+    """Two seconds of a bridge's poses and of r0's own beacons, 3 m apart, queued before
+    one batch is scored: scored stream after stream, every beacon would come after every
+    pose (no pose around it: no gap, no alert); scored in arrival order, the gap is seen."""
+    clock = Clock()
+    monitor, denials = monitor_for(tmp_path, clock=clock)
+    cuts: list[str] = []
+    mocap = monitor.watch(manager="ops", publisher="/mocap", topic="/r0/pose", typename=POSE,
+                          cut=lambda: cuts.append("mocap"))
+    own = monitor.watch_reference(manager="r0", publisher="/r0", topic="/team/hello", typename=HELLO)
+    monitor.register("ops", "/mocap", lambda: cuts.append("mocap"))
+    mocap.feed(frame(pose(0.0, 1.0, clock.t)))  # r0's pose is followed: its own beacons are read
+    await drain()
+    for i in range(1, 40):
+        clock.t = 1000 + i / 20
+        mocap.feed(frame(pose(0.3 * i / 20, 1.0, clock.t)))
+        clock.t += 0.01
+        own.feed(frame(beacon("r0", 0.3 * i / 20 - 3.0, 1.0, clock.t)))
+    await drain()
+    assert cuts == ["mocap"] and denials == [("monitor", "quarantined", "/mocap (ops)")]
+    assert monitor.metrics.alerts.labels("/r0/pose", "beacon_gap_m")._value.get() == 1
+
+
 async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quarantines_its_sender(tmp_path):
     """The team map is gated: each update is scored as it arrives. An honest one goes on; the
     first false "explored" claim is dropped (it is severe: its sender is quarantined at once)."""
