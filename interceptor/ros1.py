@@ -286,6 +286,10 @@ class Ros1Role(GatewayRole):
         if "master" in cfg.roles and cfg.master.upstream:
             self.translator.add_master_uri(cfg.master.upstream)
         self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
+        #: topics first known from a publisher registration still on its way to the master:
+        #: rosmaster tells subscribers at once, and their requestTopic can come back before
+        #: the master's answer does (refused as unknown_topic, the subscriber never connected)
+        self._topics_registering: set[str] = set()
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         #: master role: names released by their owner, kept for it a while (a restart)
         self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
@@ -928,12 +932,20 @@ class Ros1Role(GatewayRole):
                 call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
             )
             call = _resolved_param_call(call, own.grants)
+            if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
+                self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
+                self._topics_registering.add(call.params[1])
             call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
             return _rewrite_param_api(call, self.translator.to_canonical)
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
-            if call.method == "registerPublisher" and _ros_ok(response):
-                if self.topic_types.get(call.params[1]) != call.params[2]:
+            if call.method == "registerPublisher":
+                registering = call.params[1] in self._topics_registering
+                self._topics_registering.discard(call.params[1])
+                if not _ros_ok(response):
+                    if registering:  # the master refused it: not published here after all
+                        self.topic_types.pop(call.params[1], None)
+                elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
                     self.topic_types[call.params[1]] = call.params[2]
                     self._save_state()
             elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
