@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 import subprocess
 import sys
 
@@ -57,8 +58,22 @@ def test_capture_holds_the_last_packets_sent_before_stop(tmp_path):
         pytest.skip("tcpdump on lo needs root")
     server = socket.create_server(("127.0.0.1", 0))
     port = server.getsockname()[1]
-    capture = Capture(tmp_path / "c.pcap", f"tcp and port {port}")
+    probe = socket.create_server(("127.0.0.1", 0))
+    probe_port = probe.getsockname()[1]
+    capture = Capture(tmp_path / "c.pcap", f"tcp and (port {port} or port {probe_port})")
     try:
+        # packets reach the file a moment after tcpdump says "listening on": a probe
+        # connection first, until its bytes are seen there (readiness seen, not assumed)
+        deadline = time.monotonic() + 15
+        with socket.create_connection(("127.0.0.1", probe_port), timeout=5) as prober:
+            probed = probe.accept()[0]
+            while b"probe;" not in (capture.path.read_bytes() if capture.path.exists() else b""):
+                assert time.monotonic() < deadline, "tcpdump wrote no probe packet within 15 s"
+                prober.sendall(b"probe;")
+                probed.recv(4096)
+                time.sleep(0.05)
+            probed.close()
+        probe.close()
         with socket.create_connection(("127.0.0.1", port), timeout=5) as client:
             peer = server.accept()[0]
             for i in range(5):
@@ -69,5 +84,5 @@ def test_capture_holds_the_last_packets_sent_before_stop(tmp_path):
         server.close()
         data = capture.stop()
     assert all(f"payload-{i};".encode() in data for i in range(5)), capture.dropped
-    (flow,) = flows(capture.path)
+    flow = flows(capture.path)[-1]  # in order of their first packet: the probe's, then ours
     assert flow["payload_bytes"] == len(b"payload-0;") * 5 and flow["frames"] >= 4
