@@ -129,7 +129,7 @@ class MonitorMetrics:
 
 def release_path_for(state_path: Path) -> Path:
     """The release requests beside a quarantine file (``<manager>.quarantine.json``)."""
-    return state_path.with_name(state_path.name.replace(".json", ".release.json"))
+    return state_path.with_suffix(".release.json")
 
 
 def quarantine_path(state_dir: Path, manager: str) -> Path:

@@ -607,8 +607,10 @@ class Ros1Role(GatewayRole):
         self._record_registration(call.method, call.params)
         if registering:
             entry = self._owners.setdefault(node, [manager, 0])
-            if entry[1] == 0:
-                (self._owned_by_pattern.discard if exact else self._owned_by_pattern.add)(node)
+            if entry[1] == 0 and exact:
+                self._owned_by_pattern.discard(node)
+            elif entry[1] == 0:
+                self._owned_by_pattern.add(node)
             entry[1] += 1
             self._holds.claim(node)
             self._count_relay_refs(call.method, call.params, +1)
@@ -1245,9 +1247,10 @@ _RELAY_URI_INDEX = {
 
 
 def _caller_api(method: str, params: tuple) -> str | None:
-    """The node API a registration gives rosmaster (None: not a registration)."""
-    index = {"registerPublisher": 3, "registerSubscriber": 3, "registerService": 3, "subscribeParam": 1}.get(method)
-    value = params[index] if index is not None and len(params) > index else None
+    """The node API a registration gives rosmaster (None: not a registration): the last
+    of the URIs :data:`_RELAY_URI_INDEX` names (a service's own URI comes before it)."""
+    indexes = _RELAY_URI_INDEX.get(method) if method.startswith("register") or method == "subscribeParam" else None
+    value = params[indexes[-1]] if indexes and len(params) > indexes[-1] else None
     return value if isinstance(value, str) else None
 
 
