@@ -108,14 +108,17 @@ def test_the_second_connection_resumes_and_both_ends_still_see_the_peer_certific
     async def main():
         async with EchoServer(server_context(server_cfg, tickets=1)) as server:
             first = await connect(server.port, ctx, cache)
+            kept = cache.get(("127.0.0.1", server.port))
             second = await connect(server.port, ctx, cache)
             third = await connect(server.port, ctx, cache)
+            # the full handshake's ticket resumed both: it is kept, not replaced by their new ones
+            assert cache.get(("127.0.0.1", server.port)) is kept
         return first, second, third, server.seen
 
     first, second, third, seen = run_on(loop_kind, main)
     assert (first[0], first[2]) == (False, b"full")
     assert (second[0], second[2]) == (True, b"resumed")
-    assert (third[0], third[2]) == (True, b"resumed")  # from the ticket the resumed one got
+    assert (third[0], third[2]) == (True, b"resumed")  # the same ticket, offered again
     # after resumption each end still has the other's certificate (from the session)
     assert first[1] and second[1] == first[1] == third[1]
     assert [reused for reused, _ in seen] == [False, True, True]

@@ -284,3 +284,31 @@ async def gate_drops_refused_frames():
     writer.transport.abort()
     relay.close()
     sink.close()
+
+
+def test_the_read_buffer_starts_small_and_grows_for_a_bulk_stream(run_loop):
+    """A stream of small messages keeps a 16 KiB read buffer; the first read that fills
+    it (a bulk stream) moves the pump to its full buffer size; bytes stay exact."""
+    run_loop(read_buffer_grows())
+
+
+async def read_buffer_grows():
+    from interceptor.pump import DEFAULT_BUFFER_SIZE, FIRST_BUFFER_SIZE
+
+    echo = await echo_server()
+    spliced: list = []
+    loop = asyncio.get_running_loop()
+    relay = await loop.create_server(lambda: HeaderThenSplice(echo.sockets[0].getsockname()[1], spliced),
+                                     "127.0.0.1", 0)
+    reader, writer = await asyncio.open_connection("127.0.0.1", relay.sockets[0].getsockname()[1])
+    writer.write(b"header\nsmall")
+    assert await asyncio.wait_for(reader.readexactly(5), 10) == b"small"
+    left = spliced[0][0].get_protocol()
+    assert len(left.get_buffer(-1)) == FIRST_BUFFER_SIZE
+    payload = os.urandom(4 * 1024 * 1024)
+    writer.write(payload)
+    assert await asyncio.wait_for(reader.readexactly(len(payload)), 30) == payload
+    assert len(left.get_buffer(-1)) == DEFAULT_BUFFER_SIZE
+    writer.close()
+    relay.close()
+    echo.close()
