@@ -22,6 +22,7 @@ The translator is state plus pure mapping; opening relay listeners is the
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import re
 from collections.abc import Callable
@@ -69,6 +70,11 @@ class LocalEndpoint:
 
 
 def is_loopback(host: str) -> bool:
+    return isinstance(host, str) and _is_loopback_name(host)
+
+
+@functools.lru_cache(maxsize=256)  # every registration asks (ipaddress parses a string in ~15 us)
+def _is_loopback_name(host: str) -> bool:
     if host == "localhost":
         return True
     try:
