@@ -32,13 +32,14 @@ class CaptureError(CryptorosError):
 class Capture:
     """tcpdump on ``lo`` writing ``path``; started and stopped with bounded waits.
 
-    ``prove_loopback=True`` sends marker packets over 127.0.0.1 until one shows up in
-    the file (the filter must admit them): "listening on" is printed before packets
+    ``prove_loopback=True`` sends marker packets over ``marker_host`` (a loopback
+    address, 127.0.0.1 unless given) until one shows up in the file (the filter must
+    admit them): "listening on" is printed before packets
     really flow into the file. ``dropped`` is what tcpdump reported as dropped by the
     kernel once stopped (None while running)."""
 
     def __init__(self, path: Path, bpf: str, *, snaplen: int = 0, prove_loopback: bool = False,
-                 start_timeout: float = 10.0) -> None:
+                 marker_host: str = "127.0.0.1", start_timeout: float = 10.0) -> None:
         binary = shutil.which("tcpdump")
         if binary is None:
             raise CaptureError("tcpdump is not installed")
@@ -55,14 +56,14 @@ class Capture:
                 raise CaptureError(f"tcpdump did not start: {self.err.read_text()[-300:]}")
             time.sleep(0.02)
         if prove_loopback:
-            self._wait_for_marker(deadline)
+            self._wait_for_marker(deadline, marker_host)
 
-    def _wait_for_marker(self, deadline: float) -> None:
-        server = socket.create_server(("127.0.0.1", 0))
+    def _wait_for_marker(self, deadline: float, host: str) -> None:
+        server = socket.create_server((host, 0))
         port = server.getsockname()[1]
         try:
             while time.monotonic() < deadline:
-                with socket.create_connection(("127.0.0.1", port), timeout=2) as client:
+                with socket.create_connection((host, port), timeout=2) as client:
                     client.sendall(MARKER)
                 server.accept()[0].close()
                 time.sleep(0.05)
@@ -71,7 +72,7 @@ class Capture:
         finally:
             server.close()
         self.stop()
-        raise CaptureError("tcpdump never wrote a marker packet sent over 127.0.0.1")
+        raise CaptureError(f"tcpdump never wrote a marker packet sent over {host}")
 
     def stop(self, settle: float = 0.0) -> bytes:
         """After ``settle`` seconds (for the last ACKs in flight), SIGINT: tcpdump flushes

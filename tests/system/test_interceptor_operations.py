@@ -60,7 +60,8 @@ def test_capture_between_interceptors_holds_no_published_string(network, tmp_pat
 
     # With interceptors: capture only what travels between hosts (127.0.0.2-5).
     hosts = " or ".join(f"host {h.address}" for h in network.hosts.values())
-    secure = Capture(tmp_path / "secure.pcap", f"tcp and ({hosts})")
+    secure = Capture(tmp_path / "secure.pcap", f"tcp and ({hosts})", prove_loopback=True,
+                     marker_host=network.hosts["robot_a"].address)  # live before the flow starts
     assert flow_works(network, count=20) == [f"secret-{i}" for i in range(20)]
     secure_bytes = secure.stop()
     assert len(secure_bytes) > 5000, "the capture saw no traffic between the interceptors"

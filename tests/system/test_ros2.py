@@ -242,7 +242,8 @@ def test_malformed_targets_and_frames_are_refused_and_the_interceptor_keeps_serv
 
 def test_capture_between_interceptors_holds_no_published_string(network, tmp_path):
     hosts = " or ".join(f"host {r.address}" for r in network.robots.values())
-    capture = Capture(tmp_path / "ros2.pcap", f"tcp and ({hosts})")
+    capture = Capture(tmp_path / "ros2.pcap", f"tcp and ({hosts})", prove_loopback=True,
+                      marker_host=network.robots["robot_a"].address)  # live before the talker starts
     with network.node("robot_b", "listener.py", "string", "/chatter", "20") as sub:
         sub.until("READY", 20)
         with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "50"):
