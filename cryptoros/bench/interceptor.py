@@ -359,6 +359,7 @@ def _summary(mode: Mode, raw: dict) -> dict:
         if lat:
             out["p50_us"] = lat[len(lat) // 2] / 1e3
             out["p99_us"] = lat[min(len(lat) - 1, int(len(lat) * 0.99))] / 1e3
+            out["samples_us"] = [round(x / 1e3, 1) for x in lat]  # for --plots
     else:
         per = raw["bytes"] / got if got else 0
         out["mb_per_s"] = (raw["bytes"] - per) / span / 1e6 if got > 1 else 0.0
@@ -482,7 +483,8 @@ async def _request_topic(uri: str, topic: str = "/bench_str") -> tuple[float, tu
 
 def _stats(samples: list[float]) -> dict:
     ms = sorted(s * 1e3 for s in samples)
-    return {"median_ms": statistics.median(ms), "p90_ms": ms[min(len(ms) - 1, int(len(ms) * 0.9))], "n": len(ms)}
+    return {"median_ms": statistics.median(ms), "p90_ms": ms[min(len(ms) - 1, int(len(ms) * 0.9))], "n": len(ms),
+            "samples_ms": [round(x, 3) for x in ms]}
 
 
 def _bytes_entry(fl: list[dict], labels: list[str]) -> dict:
@@ -1110,11 +1112,14 @@ def _target_value(t: dict) -> str:
                    "default: the interceptor's, 300 s).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None, help="Also write the results here.")
 @click.option("--markdown", is_flag=True, help="Print the tables as Markdown (for the README).")
+@click.option("--plots", "plots_dir", type=click.Path(file_okay=False), default=None,
+              help="Also draw latency.png (one-way latency at 1 kHz, per node client) and setup.png (TCPROS set-up "
+                   "and service call) here: each sample's distribution for plain, interceptor and stunnel.")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
 def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
                 setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None, only: str | None,
                 no_throughput: bool, spares: bool | None, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
-                keep: bool) -> None:
+                plots_dir: str | None, keep: bool) -> None:
     """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
     if not Path(SYS_PY).exists() or subprocess.run([SYS_PY, "-c", "import rospy"], capture_output=True).returncode:
         raise click.ClickException("rospy is not installed for /usr/bin/python3 (scripts/install-system-parts)")
@@ -1189,6 +1194,78 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
         Path(json_path).write_text(json.dumps(report, indent=2))
     render(report, markdown)
     click.echo(_legend(), err=False)
+    if plots_dir:
+        for path in write_plots(results, Path(plots_dir)):
+            click.echo(f"plot: {path}", err=True)
+
+
+TRANSPORT_STYLE = {"plain": ("plain ROS 1", "-"), "interceptor": ("cryptoros interceptors", "-"),
+                   "stunnel": ("stunnel4", "--")}
+
+
+def write_plots(results: dict, out: Path) -> list[Path]:
+    """Empirical distributions (the share of samples at or below x) of what the run
+    timed: latency.png, the one-way latency at 1 kHz per node client (when the
+    throughput rows ran); setup.png, the TCPROS set-up and the service call."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+
+    def ecdf(ax, samples: list[float], transport: str) -> None:
+        label, style = TRANSPORT_STYLE[transport]
+        xs = sorted(samples)
+        if not xs:
+            return
+        ys = [(i + 1) / len(xs) for i in range(len(xs))]
+        ax.step(xs, ys, where="post", linestyle=style, label=f"{label} (median {statistics.median(xs):,.3g})")
+
+    def log_x(ax, label: str) -> None:
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        plain_numbers = matplotlib.ticker.FuncFormatter(lambda v, _pos: f"{v:g}")
+        ax.xaxis.set_major_formatter(plain_numbers)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xlabel(label)
+
+    tp = results.get("throughput") or {}
+    impls = [impl for impl in IMPLS if any(tp.get(impl, {}).get(t, {}).get("latency", {}).get("samples_us")
+                                           for t in TRANSPORTS)]
+    if impls:
+        fig, axes = plt.subplots(1, len(impls), figsize=(5.5 * len(impls), 4), squeeze=False)
+        for ax, impl in zip(axes[0], impls):
+            for transport in TRANSPORTS:
+                ecdf(ax, tp[impl].get(transport, {}).get("latency", {}).get("samples_us", []), transport)
+            log_x(ax, "one-way latency (us), log scale")
+            ax.set_ylabel("share of messages at or below")
+            ax.set_title(f"1 kHz, {'rospy' if impl == 'rospy' else 'our node client'}")
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(loc="lower right", fontsize=8)
+        fig.tight_layout()
+        written.append(out / "latency.png")
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    setup = results.get("setup") or {}
+    if setup:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4), squeeze=False)
+        for ax, (key, title) in zip(axes[0], (("tcpros_connect", "TCPROS set-up: connect to the publisher's header"),
+                                             ("service_call", "service call: connect + request + reply"))):
+            for transport in TRANSPORTS:
+                ecdf(ax, setup.get(transport, {}).get(key, {}).get("samples_ms", []), transport)
+            log_x(ax, "ms, log scale")
+            ax.set_ylabel("share of probes at or below")
+            ax.set_title(title, fontsize=10)
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(loc="lower right", fontsize=8)
+        fig.tight_layout()
+        written.append(out / "setup.png")
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+    return written
 
 
 def _legend() -> str:

@@ -26,7 +26,7 @@ def test_bench_interceptor_quick(tmp_path):
         pytest.skip("tcpdump on lo needs root")
     out = tmp_path / "bench.json"
     result = run([script("cryptoros"), "bench", "interceptor", "--quick", "--messages", "200", "--paper", "30",
-                  "--setup-probes", "3", "--json", str(out)], timeout=230)
+                  "--setup-probes", "3", "--json", str(out), "--plots", str(tmp_path / "plots")], timeout=230)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
     report = json.loads(out.read_text())
 
@@ -34,6 +34,7 @@ def test_bench_interceptor_quick(tmp_path):
         for transport in ("plain", "interceptor", "stunnel"):
             rows = report["throughput"][impl][transport]
             assert rows["latency"]["p50_us"] > 0 and rows["latency"]["p99_us"] > 0, (impl, transport, rows)
+            assert len(rows["latency"]["samples_us"]) == rows["latency"]["received"]  # what latency.png draws
             assert rows["small"]["msg_per_s"] > 0, (impl, transport, rows)
             assert rows["image80k"]["mb_per_s"] > 0, (impl, transport, rows)
             assert rows["image1m"]["mb_per_s"] > 0, (impl, transport, rows)
@@ -46,6 +47,7 @@ def test_bench_interceptor_quick(tmp_path):
         assert setup[transport]["bytes"]["tcpros"]["frame_bytes"] > 0
         assert setup[transport]["bytes"]["tcpros"]["payload_bytes"] > 0
         assert setup[transport]["service_call"]["median_ms"] > 0
+        assert len(setup[transport]["tcpros_connect"]["samples_ms"]) == 3
     for transport in ("plain", "interceptor"):
         assert setup[transport]["request_topic"]["median_ms"] > 0
         assert setup[transport]["bytes"]["request_topic"]["frame_bytes"] > 0
@@ -75,6 +77,8 @@ def test_bench_interceptor_quick(tmp_path):
     assert "resumed" in result.stdout and "peer certificate (validity + CRL) checked" in result.stdout
 
     assert report["targets"] and all(isinstance(t["met"], bool) for t in report["targets"])
+    for name in ("latency.png", "setup.png"):  # the distributions of the three paths
+        assert (tmp_path / "plots" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
     assert "interceptor/stunnel" in result.stdout
 
 

@@ -91,6 +91,10 @@ async def tls_to_tcp_relay_is_byte_exact(server_ctx, client_ctx):
     received = await asyncio.wait_for(reader.readexactly(len(payload)), timeout=60)
     await sender
     assert hashlib.sha256(received).digest() == hashlib.sha256(payload).digest()
+    from interceptor.pump import DEFAULT_BUFFER_SIZE
+
+    # a bulk stream: the pump reading TLS records grew its buffer too
+    assert len(spliced[0][0].get_protocol().get_buffer(-1)) == DEFAULT_BUFFER_SIZE
     writer.close()
     await asyncio.wait_for(spliced[0][2], timeout=10)  # both sides closed when the client left
     relay.close()
