@@ -1232,39 +1232,39 @@ def write_plots(results: dict, out: Path) -> list[Path]:
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel(label)
 
+    def panel(ax, samples_by_transport: dict[str, list[float]], xlabel: str, ylabel: str, title: str) -> None:
+        for transport in TRANSPORTS:
+            ecdf(ax, samples_by_transport.get(transport, []), transport)
+        log_x(ax, xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(loc="lower right", fontsize=8)
+
+    def save(fig, name: str) -> None:
+        fig.tight_layout()
+        written.append(out / name)
+        fig.savefig(written[-1], dpi=120)
+        plt.close(fig)
+
     tp = results.get("throughput") or {}
     impls = [impl for impl in IMPLS if any(tp.get(impl, {}).get(t, {}).get("latency", {}).get("samples_us")
                                            for t in TRANSPORTS)]
     if impls:
         fig, axes = plt.subplots(1, len(impls), figsize=(5.5 * len(impls), 4), squeeze=False)
         for ax, impl in zip(axes[0], impls):
-            for transport in TRANSPORTS:
-                ecdf(ax, tp[impl].get(transport, {}).get("latency", {}).get("samples_us", []), transport)
-            log_x(ax, "one-way latency (us), log scale")
-            ax.set_ylabel("share of messages at or below")
-            ax.set_title(f"1 kHz, {'rospy' if impl == 'rospy' else 'our node client'}")
-            ax.grid(alpha=0.3, which="both")
-            ax.legend(loc="lower right", fontsize=8)
-        fig.tight_layout()
-        written.append(out / "latency.png")
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+            panel(ax, {t: tp[impl].get(t, {}).get("latency", {}).get("samples_us", []) for t in TRANSPORTS},
+                  "one-way latency (us), log scale", "share of messages at or below",
+                  f"1 kHz, {'rospy' if impl == 'rospy' else 'our node client'}")
+        save(fig, "latency.png")
     setup = results.get("setup") or {}
     if setup:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4), squeeze=False)
         for ax, (key, title) in zip(axes[0], (("tcpros_connect", "TCPROS set-up: connect to the publisher's header"),
                                              ("service_call", "service call: connect + request + reply"))):
-            for transport in TRANSPORTS:
-                ecdf(ax, setup.get(transport, {}).get(key, {}).get("samples_ms", []), transport)
-            log_x(ax, "ms, log scale")
-            ax.set_ylabel("share of probes at or below")
-            ax.set_title(title, fontsize=10)
-            ax.grid(alpha=0.3, which="both")
-            ax.legend(loc="lower right", fontsize=8)
-        fig.tight_layout()
-        written.append(out / "setup.png")
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
+            panel(ax, {t: setup.get(t, {}).get(key, {}).get("samples_ms", []) for t in TRANSPORTS},
+                  "ms, log scale", "share of probes at or below", title)
+        save(fig, "setup.png")
     return written
 
 
