@@ -25,9 +25,9 @@ from cryptoros.ros1.tcpros import FrameTooLarge, FrameWalker
 
 DEFAULT_BUFFER_SIZE = 256 * 1024
 #: a pump starts reading into this much and grows to its ``buffer_size`` on the first
-#: read that fills it: most streams carry small messages, and a 256 KiB buffer per
-#: direction per stream was a fresh mmap and 64 page faults each (measured: 3.5 % of an
-#: interceptor's CPU in a robot's bring-up)
+#: read that fills it: most streams carry small messages, and 256 KiB per direction per
+#: stream, zeroed on allocation (new heap pages fault in), was 3.5 % of an interceptor's
+#: CPU in a robot's bring-up (py-spy)
 FIRST_BUFFER_SIZE = 16 * 1024
 #: Write-buffer limits of each transport: pause the source above HIGH, resume below LOW.
 HIGH_WATER = 1024 * 1024
