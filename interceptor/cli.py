@@ -174,6 +174,7 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
                 click.echo(f"warning: {problem}: ROS 2 nodes started from this environment answer discovery from "
                            "other hosts; write the profile with --ros2-profile FILE and export it", err=True)
         return
+    _raise_descriptor_limit()
     runner = asyncio.run
     if not no_uvloop:
         try:
@@ -186,6 +187,20 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
         runner(_run(config_path, grace))
     except CryptorosError as exc:
         _fail(str(exc), code=1)
+
+
+def _raise_descriptor_limit(ceiling: int = 1 << 20) -> None:
+    """Every relayed stream holds two descriptors and every relay listener one: lift the
+    soft limit (often 1,024) to the hard one, so the caps in [limits] bind first."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = ceiling if hard == resource.RLIM_INFINITY else min(hard, ceiling)
+    if soft != resource.RLIM_INFINITY and soft < want:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
+        except (ValueError, OSError) as exc:  # pragma: no cover - a container that forbids it
+            logging.getLogger(__name__).warning("could not raise the descriptor limit from %d: %s", soft, exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

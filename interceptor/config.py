@@ -39,9 +39,10 @@ Example::
     max_new_connections_per_second = 50.0
     max_messages_per_second = 2000.0  # per peer, over TCPROS; absent = unlimited
     max_message_size = 16777216       # bytes per TCPROS message from a peer (default 16 MiB)
-    preamble_timeout = 5.0            # seconds from accept until the peer's preamble is verified
+    preamble_timeout = 5.0            # seconds from the TLS handshake until the peer's preamble is verified
     max_pending_per_source = 16       # unauthenticated streams per source address
     max_pending_per_certificate = 8   # ... and per client certificate
+    max_pending_streams = 256         # ... and in all (from accept, TLS handshake included)
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
     name_hold_seconds = 120.0         # master role: a released node name stays its owner's (0: off)
@@ -181,10 +182,13 @@ class Limits:
     message_size: tuple[tuple[str, int], ...] = ()
     #: Overall deadline, from accept, for a peer's preamble (after the TLS handshake).
     preamble_timeout: float = 5.0
-    #: Streams not yet authenticated (TLS done, preamble not verified) per source
-    #: address and per client certificate.
+    #: Streams not yet authenticated (preamble not verified) per source address and in
+    #: all, counted from accept (a connection that never finishes its TLS handshake
+    #: holds one of these, not a descriptor of its own), and per client certificate
+    #: once the handshake is done.
     max_pending_per_source: int = 16
     max_pending_per_certificate: int = 8
+    max_pending_streams: int = 256
     #: Relay listeners toward one peer interceptor (its canonical endpoints handed to
     #: local processes or to the master); more is refused with ``relay_limit``.
     max_relays_per_peer: int = 512

@@ -32,6 +32,7 @@ import functools
 import hashlib
 import logging
 import os
+import socket
 import ssl
 import time
 from collections.abc import Awaitable, Callable, Iterator
@@ -233,6 +234,65 @@ async def read_chunks(reader: asyncio.StreamReader, size: int, first: bytes = b"
         yield data
 
 
+class PublicListener:
+    """The public port's listening socket, accepting by hand: each accepted socket goes
+    to ``on_accept(sock)`` in a task of its own before any byte of it is read (the
+    gateway counts it against its caps, then starts TLS on it). ``close`` and
+    ``wait_closed`` as an ``asyncio.Server``'s."""
+
+    def __init__(self, listener: socket.socket, on_accept: Callable[[socket.socket], Awaitable[None]]) -> None:
+        self._listener = listener
+        self._on_accept = on_accept
+        self._loop = asyncio.get_running_loop()
+        self._closed = self._loop.create_future()
+        self._loop.add_reader(listener.fileno(), self._accept)
+
+    @classmethod
+    async def start(cls, host: str, port: int, on_accept: Callable[[socket.socket], Awaitable[None]],
+                    backlog: int = 100) -> PublicListener:
+        infos = await asyncio.get_running_loop().getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)
+        family, _type, _proto, _name, address = infos[0]
+        listener = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            listener.bind(address)
+            listener.listen(backlog)
+            listener.setblocking(False)
+        except BaseException:
+            listener.close()
+            raise
+        return cls(listener, on_accept)
+
+    def _accept(self) -> None:
+        for _ in range(64):  # a burst: take it, but let the loop run between bursts
+            try:
+                sock, _addr = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # out of descriptors and the like: the rest wait in the backlog
+                log.warning("accept on the public port failed: %s", exc)
+                self._loop.remove_reader(self._listener.fileno())
+                self._loop.call_later(0.1, self._resume)
+                return
+            sock.setblocking(False)
+            asyncio.ensure_future(self._on_accept(sock))
+
+    def _resume(self) -> None:
+        if not self._closed.done():
+            self._loop.add_reader(self._listener.fileno(), self._accept)
+
+    def close(self) -> None:
+        if self._closed.done():
+            return
+        self._loop.remove_reader(self._listener.fileno())
+        self._listener.close()
+        self._closed.set_result(None)
+
+    async def wait_closed(self) -> None:
+        await self._closed
+
+
 class Gateway:
     """One host's interceptor: ``serve()`` purposes and ``add_role()`` roles, then
     ``await start()``, then ``await stop()``."""
@@ -390,12 +450,61 @@ class Gateway:
                 log.warning("waiting for the authorization server: %s", exc)
                 await asyncio.sleep(0.5)
 
-    async def _listen_public(self, ctx) -> asyncio.AbstractServer:
+    async def _listen_public(self, ctx: ssl.SSLContext) -> PublicListener:
+        """Accept TCP, counted against the unauthenticated-stream caps from its accept,
+        and only then the TLS handshake (:meth:`_on_public`): a connection that never
+        sends a ClientHello holds a slot, not an unbounded descriptor."""
         ctx.sslobject_class = self._counting_sslobject_class()
-        return await asyncio.start_server(
-            self._on_public, self.cfg.public.host, self.cfg.public.port, ssl=ctx, reuse_address=True,
-            ssl_handshake_timeout=self.cfg.limits.handshake_timeout, limit=READ_SIZE,
-        )
+        return await PublicListener.start(self.cfg.public.host, self.cfg.public.port,
+                                          lambda sock: self._on_public(sock, ctx))
+
+    async def _accept_tls(self, sock: socket.socket, ctx: ssl.SSLContext,
+                          who: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
+        """The server side of the mutual TLS handshake on an accepted socket, within
+        ``handshake_timeout``: a stream pair, or None for a failed or late handshake
+        (counted and logged like every other denial, the socket closed)."""
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader(limit=READ_SIZE)
+        protocol = asyncio.StreamReaderProtocol(reader)
+        try:
+            with self.cuttable():  # nothing in flight yet: a stop need not wait for it
+                transport, _ = await loop.connect_accepted_socket(
+                    lambda: protocol, sock, ssl=ctx, ssl_handshake_timeout=self.cfg.limits.handshake_timeout)
+        except asyncio.CancelledError:
+            sock.close()
+            raise
+        except (ssl.SSLError, ConnectionError, OSError, TimeoutError) as exc:
+            sock.close()
+            if isinstance(exc, ssl.SSLError):
+                return None  # counted and logged as it happened (_counting_sslobject_class)
+            if isinstance(exc, TimeoutError) or "longer than" in str(exc):
+                reason, level = "handshake_timeout", logging.WARNING
+            else:  # closed before or during the handshake: a port probe, a peer gone
+                reason, level = "closed_in_handshake", logging.INFO
+            self.metrics.denied.labels("tls", reason).inc()
+            log.log(level, "DENY tls handshake from %s: %s", who, str(exc) or reason)
+            return None
+        return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
+
+    def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
+        """An SSLObject whose failed handshakes are counted and logged like every other
+        denial (asyncio itself only logs them in debug mode)."""
+        metrics = self.metrics
+
+        class CountingSSLObject(ssl.SSLObject):
+            def do_handshake(self) -> None:
+                try:
+                    super().do_handshake()
+                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+                    raise
+                except ssl.SSLError as exc:
+                    reason = (exc.reason or type(exc).__name__).lower()
+                    metrics.denied.labels("tls", reason).inc()
+                    log.warning("DENY tls handshake: %s", exc)
+                    raise
+
+        return CountingSSLObject
+
 
     async def stop(self, grace: float = 5.0) -> None:
         """Stop listening, cut the streams with nothing in flight (:meth:`cuttable`), let
@@ -568,25 +677,6 @@ class Gateway:
         self._metrics_runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await self._metrics_runner.setup()
         await web.TCPSite(self._metrics_runner, self.cfg.metrics.host, self.cfg.metrics.port).start()
-
-    def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
-        """An SSLObject whose failed handshakes are counted and logged like every other
-        denial (asyncio itself only logs them in debug mode)."""
-        metrics = self.metrics
-
-        class CountingSSLObject(ssl.SSLObject):
-            def do_handshake(self) -> None:
-                try:
-                    super().do_handshake()
-                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
-                    raise
-                except ssl.SSLError as exc:
-                    reason = (exc.reason or type(exc).__name__).lower()
-                    metrics.denied.labels("tls", reason).inc()
-                    log.warning("DENY tls handshake: %s", exc)
-                    raise
-
-        return CountingSSLObject
 
     # ================================================================ tokens
     def _on_feed(self, revocations) -> None:
@@ -908,10 +998,11 @@ class Gateway:
             writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
             preamble_reader = PreambleReader(PreambleReply)
             reply = None
-            while reply is None:
-                await read_into(reader, preamble_reader.receive_data, self.cfg.limits.handshake_timeout)
-                event = preamble_reader.next_event()
-                reply = event if isinstance(event, PreambleReply) else None
+            async with asyncio.timeout(self.cfg.limits.handshake_timeout):  # the whole reply, not each read
+                while reply is None:
+                    await read_into(reader, preamble_reader.receive_data, self.cfg.limits.handshake_timeout)
+                    event = preamble_reader.next_event()
+                    reply = event if isinstance(event, PreambleReply) else None
             if not reply.ok:
                 if ssl_object.session_reused:  # e.g. too old for the peer: the next one in full
                     sessions.forget((host, port))
@@ -930,26 +1021,44 @@ class Gateway:
         return Tunnel(reader, writer, Peer(access=access, hosts=cert_hosts(der)), pending)
 
     # ================================================================ public side
-    async def _on_public(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _on_public(self, sock: socket.socket, ctx: ssl.SSLContext) -> None:
         task = asyncio.current_task()
         if task is not None:
             self._streams.add(task)
             task.add_done_callback(self._streams.discard)
-        peername = writer.get_extra_info("peername")
+        try:
+            peername = sock.getpeername()
+        except OSError:  # gone already
+            sock.close()
+            return
         who = f"{peername[0]}:{peername[1]}" if peername else "?"
         limits = self.cfg.limits
-        entered: list[tuple[str, str]] = []
+        entered: list[tuple[str, ...]] = []
         gate = StreamGate(self._checks)
         try:
-            der = self._check_peer_certificate(writer.get_extra_info("ssl_object"), "in")
-            # Before the token is verified a stream is bounded per source address and
-            # per certificate, and its preamble has one deadline from accept.
-            for key, cap in (
-                (("source", peername[0] if peername else "?"), limits.max_pending_per_source),
-                (("certificate", hashlib.sha256(der).hexdigest()), limits.max_pending_per_certificate),
-            ):
-                self._pending.enter(key, cap, key[0])
+            # Until its token is verified a stream is bounded per source address and in
+            # all from its accept (through the TLS handshake), then per certificate too.
+            for key, cap in ((("source", peername[0] if peername else "?"), limits.max_pending_per_source),
+                             (("all",), limits.max_pending_streams)):
+                self._pending.enter(key, cap, "interceptor" if key == ("all",) else key[0])
                 entered.append(key)
+        except PolicyDenied as exc:
+            for key in entered:
+                self._pending.leave(key)
+            self.metrics.denied.labels("tls", exc.reason).inc()
+            log.warning("DENY connection from %s: %s", who, exc)
+            sock.close()
+            return
+        writer: asyncio.StreamWriter | None = None
+        try:
+            streams = await self._accept_tls(sock, ctx, who)
+            if streams is None:
+                return
+            reader, writer = streams
+            der = self._check_peer_certificate(writer.get_extra_info("ssl_object"), "in")
+            key = ("certificate", hashlib.sha256(der).hexdigest())
+            self._pending.enter(key, limits.max_pending_per_certificate, "certificate")
+            entered.append(key)
             # nothing in flight until the preamble (a peer's spare connection waits here):
             # a stop cuts it at once instead of waiting out its grace period
             async with asyncio.timeout(limits.preamble_timeout):
@@ -966,7 +1075,8 @@ class Gateway:
             )
             own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
         except asyncio.CancelledError:
-            writer.transport.abort()  # stop(): no preamble yet, nothing to finish
+            if writer is not None:
+                writer.transport.abort()  # stop(): no preamble yet, nothing to finish
             raise
         except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
             if isinstance(exc, CryptorosError):

@@ -108,12 +108,15 @@ _RELEASING_CALLS = frozenset({"unregisterPublisher", "unregisterSubscriber", "un
 
 
 async def read_xmlrpc(reader: asyncio.StreamReader, conn: XmlRpcConnection, timeout: float):
-    """The next XML-RPC event of ``conn``, reading from ``reader`` as needed."""
+    """The next XML-RPC event of ``conn``, reading from ``reader`` as needed, within
+    ``timeout`` seconds overall (``asyncio.TimeoutError``): a peer that dribbles a
+    byte at a time cannot hold a call, and the caller waiting on it, for longer."""
+    deadline = time.monotonic() + timeout
     while True:
         event = conn.next_event()
         if event is not NEED_DATA:
             return event
-        await read_into(reader, conn.receive_data, timeout)
+        await read_into(reader, conn.receive_data, max(0.01, deadline - time.monotonic()))
 
 
 async def read_tcpros_header(
@@ -500,7 +503,7 @@ class Ros1Role(GatewayRole):
                 if not conn.trailing_data.data:  # between requests: a stop need not wait for this stream
                     with self.gw.cuttable():
                         await read_into(reader, conn.receive_data, IDLE_TIMEOUT)
-                event = await read_xmlrpc(reader, conn, IDLE_TIMEOUT)
+                event = await read_xmlrpc(reader, conn, CALL_TIMEOUT)  # the request's first bytes are in
             except RemoteProtocolError:
                 writer.transport.pause_reading()
                 with contextlib.suppress(Exception):
@@ -889,6 +892,10 @@ class Ros1Role(GatewayRole):
             local_writer.write(encode_header(canonical_header(header)))
             reply, reply_rest = await read_tcpros_header(local_reader, CALL_TIMEOUT, limits.max_header_size)
             reply_fields = reply.as_dict()
+            if "error" in reply_fields:  # the node refused the stream on its own
+                await _pass_refusal(writer, reply_fields["error"])
+                local_writer.close()
+                return
             own = self.gw.own_access()
             if purpose == "topic":
                 check_publisher_header(reply_fields, grants=own.grants, topic=fields["topic"])
@@ -1115,8 +1122,11 @@ class Ros1Role(GatewayRole):
                 raise PolicyDenied("shutdown_dropped", "node shutdown is never forwarded")
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_canonical))
 
+        # the publisher's address must be the answering interceptor's own (see tcpros_to_local)
+        tcpros = functools.partial(self.translator.tcpros_to_local, via=(target.host, target.port))
+
         def after(call: Request, response: Response | Fault) -> Response | Fault:
-            return rewrite_response(call, response, tcpros=self.translator.tcpros_to_local)
+            return rewrite_response(call, response, tcpros=tcpros)
 
         async def handle(request: Request) -> Response | Fault:
             return await self._decide_calls(request, decide, tunnel.call, after, "relay", str(target))
@@ -1161,8 +1171,13 @@ class Ros1Role(GatewayRole):
                 tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields, pending=tunnel.pending
             )
             reply_fields = reply.as_dict()
+            if "error" in reply_fields:  # the far side refused the stream: nothing is pumped
+                await _pass_refusal(writer, reply_fields["error"])
+                tunnel_writer.close()
+                writer.close()
+                return
 
-            if purpose == "topic" and "error" not in reply_fields:  # a subscriber of any type: what it gets
+            if purpose == "topic":  # a subscriber of any type: what it gets
                 check_subscribed_type(fields, reply_fields.get("type", ""), grants=own.grants)
 
             def judge(grants) -> None:
@@ -1229,6 +1244,14 @@ class Ros1Role(GatewayRole):
             # granted, a quarantined publisher) must not stay in the verifier's watch list:
             # a subscriber retries such a stream every few seconds, for as long as it runs
             unwatch()
+
+
+async def _pass_refusal(writer: asyncio.StreamWriter, error: str) -> None:
+    """A TCPROS server refused a stream with an ``error`` header: the refusal goes on to
+    the client, rebuilt from the parsed text, and nothing after it (the stream ends)."""
+    writer.write(encode_header({"error": error}))
+    with contextlib.suppress(Exception):
+        await asyncio.wait_for(writer.drain(), 1)
 
 
 def _monitor_hooks(watched: Any, gated: bool) -> dict[str, Any]:

@@ -291,11 +291,18 @@ class Translator:
             target = self.export(KIND_TCPROS, host, port, f"rosrpc://{host}:{port}")
         return str(target), target.port
 
-    def tcpros_to_local(self, host: str, port: int) -> tuple[str, int]:
-        """A canonical TCPROS reply from a peer -> (host, port) a local node connects to."""
+    def tcpros_to_local(self, host: str, port: int, *, via: tuple[str, int] | None = None) -> tuple[str, int]:
+        """A canonical TCPROS reply from a peer -> (host, port) a local node connects to.
+        ``via``: the (host, port) of the interceptor that answered; a publisher is served
+        by the interceptor in front of it, so a reply naming another one is refused
+        (``endpoint_not_peer``): else a peer could have us open a relay, and connect,
+        wherever it says, one listening socket per name it makes up."""
         target = Canonical.parse(host)
         if target is None or target.kind != KIND_TCPROS:
             raise PolicyDenied("bad_uri", f"TCPROS reply host is not a canonical name: {host!r:.80}")
+        if via is not None and (target.host, target.port) != via:
+            raise PolicyDenied("endpoint_not_peer", f"requestTopic reply from {via[0]}:{via[1]} names another "
+                                                    f"interceptor ({target.host}:{target.port})")
         if self.owns(target):
             endpoint = self.resolve(KIND_TCPROS, target.id)
             return endpoint.host, endpoint.port

@@ -347,9 +347,7 @@ def check_subscribed_type(header: Mapping[str, str], published_type: str, *, gra
 def check_publisher_header(header: Mapping[str, str], *, grants: Grants, topic: str, infrastructure: bool = True) -> None:
     """A publisher's reply header against the publisher's grants."""
     caller, type_name = header.get("callerid", ""), header.get("type", "")
-    if "error" in header:
-        return  # the publisher refused on its own; relayed as is
-    if not (caller and type_name):
+    if not (caller and type_name):  # an ``error`` reply included: the caller passes refusals on itself
         raise _deny("malformed", "publisher header lacks callerid or type")
     if not _granted(grants, "publish", caller, topic, type_name, infrastructure):
         raise _deny("not_granted", f"{caller} may not publish {topic} [{type_name}]")
@@ -377,9 +375,8 @@ def check_service_server_header(
     infrastructure: bool = True,
 ) -> None:
     """A service server's reply: its ``type`` must be one the client may call and
-    one the server may serve."""
-    if "error" in header:
-        return
+    one the server may serve (an ``error`` reply is the caller's to pass on: here it is
+    malformed)."""
     caller, type_name = header.get("callerid", ""), header.get("type", "")
     if not (caller and type_name):
         raise _deny("malformed", "service server header lacks callerid or type")

@@ -144,6 +144,41 @@ def test_dribbled_preambles_are_cut_at_the_deadline_and_capped_per_certificate(n
     assert log.count("preamble_timeout") >= 1
 
 
+def test_connections_that_never_start_tls_hold_capped_slots_not_descriptors(network):
+    """No certificate needed: 200 TCP connections to robot A's public port that never
+    send a ClientHello. Each counts against ``max_pending_per_source`` (16) from its
+    accept: the rest are closed at once, before any TLS work, so the interceptor's
+    descriptors stay bounded; a peer from another address still gets through meanwhile."""
+    import select
+
+    a = network.hosts["robot_a"]
+    before = fds(a.proc.pid)
+    socks = [socket.create_connection((a.address, a.public_port), timeout=5) for _ in range(200)]
+    try:
+        closed: set[int] = set()
+        deadline = time.monotonic() + 8  # under the 10 s handshake timeout of the 16 let in
+        while len(closed) < 200 - 16 and time.monotonic() < deadline:
+            readable, _, _ = select.select([s for i, s in enumerate(socks) if i not in closed], [], [], 0.2)
+            for s in readable:
+                try:
+                    data = s.recv(1)
+                except OSError:
+                    data = b""
+                if data == b"":
+                    closed.add(socks.index(s))
+        assert len(closed) >= 200 - 16, f"only {len(closed)} of 200 silent connections were closed"
+        held = fds(a.proc.pid) - before
+        assert held <= 16 + 8, f"robot A holds {held} more descriptors with the flood on"
+        if separate_hosts():  # the flood's source is capped, not the port: the master still gets in
+            with network.inside("master"), rogue(network, "robot_a", "master") as s:
+                reply = rogue_preamble(s, token_of(network, "master"), "node", "1")
+                assert reply is not None  # TLS done and the preamble answered: not capped
+    finally:
+        for s in socks:
+            s.close()
+    assert "16 unauthenticated streams from this source already" in denials(network, "robot_a")
+
+
 # ---------------------------------------------------------------- finding 5: endpoint leaks
 
 

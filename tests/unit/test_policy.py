@@ -151,6 +151,16 @@ def test_publisher_and_service_headers():
                   service="/add_two_ints", server_grants=ALICE, client_types=types) == "not_granted"
 
 
+def test_a_refusal_reply_is_never_taken_for_a_granted_stream():
+    """A server's ``error`` header (with or without other fields) does not pass the
+    reply checks: the interceptor passes the refusal on and relays nothing after it."""
+    for header in ({"error": "md5 mismatch"}, {"error": "x", "callerid": "/listener", "type": STRING}):
+        assert denied(check_publisher_header, header, grants=ALICE, topic="/chatter") in ("malformed", "not_granted")
+    assert denied(check_publisher_header, {"error": "no"}, grants=ALICE, topic="/chatter") == "malformed"
+    assert denied(check_service_server_header, {"error": "no"}, service="/add_two_ints", server_grants=ALICE,
+                  client_types=frozenset({"rospy_tutorials/AddTwoInts"})) == "malformed"
+
+
 # ------------------------------------------------------------------ subscribers of any type (rosbag record)
 
 

@@ -63,3 +63,19 @@ def test_released_exports_free_their_slot_and_their_id_is_never_reused(monkeypat
     restored.restore(t.snapshot())
     assert restored.to_canonical("http://127.0.0.1:5003/").endswith("/x/4")  # ids keep counting after a restart
     assert restored.own_id("cryptoros://127.0.0.9:11400/x/1") is None  # another interceptor's name
+
+
+def test_a_requesttopic_reply_may_name_only_the_interceptor_that_answered():
+    """A peer answering requestTopic for its node names its own public address; naming
+    another (made-up) interceptor would have us open a listening relay per name."""
+    opened: list = []
+    t = Translator(public_host="127.0.0.2", public_port=11400, local_master_uri=None,
+                   open_relay=lambda target, port: opened.append(target) or ("127.0.0.1", 40000 + len(opened)))
+    peer = ("10.0.0.7", 11400)
+    assert t.tcpros_to_local("cryptoros://10.0.0.7:11400/t/3", 1, via=peer) == ("127.0.0.1", 40001)
+    for made_up in ("cryptoros://10.0.0.8:11400/t/3", "cryptoros://10.0.0.7:11401/t/3",
+                    "cryptoros://203.0.113.9:443/t/1"):
+        with pytest.raises(PolicyDenied) as elsewhere:
+            t.tcpros_to_local(made_up, 1, via=peer)
+        assert elsewhere.value.reason == "endpoint_not_peer"
+    assert [(o.host, o.port) for o in opened] == [peer]  # no relay was opened for the others
