@@ -774,7 +774,7 @@ class Ros1Role(GatewayRole):
             return local
 
         def decide(call: Request) -> Request:
-            grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
+            grants = self.verifier.deciding(peer.access).grants  # the peer's freshest token, still valid
             check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
                               owner_of=functools.partial(self._owner_of, grants=grants))
             call = _resolved_param_call(call, grants)
@@ -826,7 +826,7 @@ class Ros1Role(GatewayRole):
             check_node_call(
                 call.method,
                 call.params,
-                grants=self.verifier.freshest(peer.access).grants,
+                grants=self.verifier.deciding(peer.access).grants,
                 peer_is_master=peer.manager == self.cfg.master.manager,
                 topic_types=self.topic_types,
             )
