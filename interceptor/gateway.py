@@ -289,6 +289,9 @@ class Gateway:
         #: when the last few streams to each peer endpoint were opened, newest last (how
         #: many spares it gets; they wait for a quiet moment)
         self._recent_streams: dict[tuple[str, int], list[float]] = {}
+        #: incremented by :meth:`_drop_spares` (a reload, a stop): a spare whose connect
+        #: began before is not listed (made with the old client context; see _keep_spare)
+        self._spare_generation = 0
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
@@ -795,7 +798,15 @@ class Gateway:
             async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
                 connecting = asyncio.get_running_loop().create_future()
                 self._spare_connecting.setdefault(endpoint, set()).add(connecting)
+                generation = self._spare_generation
                 connected = await self._connect(host, port)
+                if generation != self._spare_generation:
+                    # spares were dropped meanwhile (a reload): this one has the old client
+                    # context, and a token bound to the new certificate is refused over it
+                    connected.writer.close()
+                    self.metrics.spares.labels("stale").inc()
+                    log.debug("spare connection to %s:%d made before a reload: closed", host, port)
+                    return
                 spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
                                    asyncio.get_running_loop().create_future(), me)
                 self._spares.setdefault(endpoint, []).append(spare)
@@ -841,6 +852,8 @@ class Gateway:
         return False
 
     def _drop_spares(self) -> None:
+        """Close every ready spare; one still connecting is closed once connected (generation)."""
+        self._spare_generation += 1
         for spares in self._spares.values():
             for spare in spares:
                 spare.writer.close()
