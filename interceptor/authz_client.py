@@ -385,7 +385,8 @@ class TokenKeeper:
 
     def __init__(self, client: AuthzClient, *, refresh_margin: float, clock: Clock = time.time) -> None:
         self._client = client
-        self._margin = refresh_margin
+        #: seconds before expiry a token is refreshed (a reload may change it: from the next refresh on)
+        self.refresh_margin = refresh_margin
         self._clock = clock
         self._token: OwnToken | None = None
         self._peer_tokens: dict[str, OwnToken] = {}  # by the peer certificate's thumbprint
@@ -416,7 +417,7 @@ class TokenKeeper:
         self.current()  # no own token, no peer token either
         cached = self._peer_tokens.get(thumbprint)
         now = self._clock()
-        if cached is not None and now < cached.expires_at - max(self.MIN_REMAINING, self._margin):
+        if cached is not None and now < cached.expires_at - max(self.MIN_REMAINING, self.refresh_margin):
             self._peer_tokens[thumbprint] = self._peer_tokens.pop(thumbprint)  # most recently used
             return cached.token
         fetch = self._peer_fetches.get(thumbprint)
@@ -502,7 +503,7 @@ class TokenKeeper:
                 await self.refresh()
                 backoff = 1.0
                 lifetime = self._token.expires_at - self._clock()
-                delay = max(1.0, min(lifetime - self._margin, lifetime / 2))
+                delay = max(1.0, min(lifetime - self.refresh_margin, lifetime / 2))
             except TokenError as exc:
                 remaining = (self._token.expires_at - self._clock()) if self._token else 0
                 log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail, max(0, remaining))
@@ -588,6 +589,16 @@ class PeerVerifier:
         self.listeners: list[Callable[[Revocations], None]] = []
         #: Called with a peer token the feed just revoked (its holder may have a new one).
         self.stale_listeners: list[Callable[[AccessToken], None]] = []
+
+    def reconfigure(self, *, poll_interval: float, grace: float, revocation_grace: float, feed_wait: float,
+                    feed_heartbeat: float) -> None:
+        """A reload's settings: the poll interval and the feed's long-poll from the next
+        request (one held now ends as it was asked), the graces from the next sweep and feed."""
+        self._poll = poll_interval
+        self.grace = grace
+        self.revocation_grace = revocation_grace
+        self.feed_wait = feed_wait
+        self.feed_heartbeat = feed_heartbeat
 
     def verify(self, token: str, peer_cert_der: bytes | None) -> AccessToken:
         """Verify with the keys and revocations known now; TokenError on any failure.

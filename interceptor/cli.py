@@ -1,9 +1,10 @@
 """``cryptoros-interceptor --config FILE``: run one host's interceptor.
 
-SIGHUP reloads certificates, CRL and policy without dropping open streams (a
-failed reload keeps the old state); SIGTERM and SIGINT stop accepting, cut the
-streams with nothing in flight, give calls under way a grace period and exit 0. Configuration mistakes are one line on
-stderr and exit status 2.
+SIGHUP reloads certificates, CRL, policy and settings without dropping open streams
+(a failed reload, or a file changing a key that needs a restart, keeps the old state);
+SIGTERM and SIGINT stop accepting, cut the streams with nothing in flight, give calls
+under way a grace period and exit 0. Configuration mistakes are one line on stderr and
+exit status 2.
 """
 
 from __future__ import annotations

@@ -78,6 +78,7 @@ import ipaddress
 import os
 import tomllib
 import urllib.parse
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -283,6 +284,85 @@ _SECTIONS = {
     "limits": {f.name for f in fields(Limits)},
     "monitor": {f.name for f in fields(MonitorSettings)},
 }
+
+
+#: What a SIGHUP (:meth:`interceptor.gateway.Gateway.reload`) does with each key of the
+#: file: ``APPLY`` (in effect once the reload returned: read per use from the new
+#: configuration or handed to its holder by the reload) or ``RESTART`` (a reload that
+#: changes it is refused before anything is swapped, naming the key; the running
+#: interceptor keeps its old state). Every key of :data:`_SECTIONS` is here (a test
+#: checks): a new key must be decided.
+#:
+#: Needs a restart, and why:
+#:
+#: - ``manager``, ``roles``: who this interceptor is and which roles run (listeners,
+#:   children and tables made at start); ``state_dir``: the tables were loaded from it.
+#: - ``[authz] url``, ``issuer``, ``audience``: another authorization server (or
+#:   deployment): the feed, the keys and every token verified so far came from the old one.
+#: - ``[listen] public``: baked into the endpoint names handed to the master and to peers
+#:   (and kept in the state file); ``local_master`` and ``metrics``: listeners bound at start.
+#: - ``[master]`` (all): local nodes registered through that master (pools, relays,
+#:   replayed registrations; the master role's rosmaster watch).
+#: - ``[ros2] domain_id``, ``python``, ``node_name``, ``graph_interval``,
+#:   ``max_message_size``: handed to the DDS bridge child when it starts.
+#: - ``[monitor]`` added or removed.
+#:
+#: Applied: ``[tls]`` (all: both TLS contexts, the authorization client's, the binding of
+#: our own token), ``[authz]`` ``refresh_margin`` (from the next refresh),
+#: ``revocation_poll_interval``, ``feed_wait``, ``feed_heartbeat`` (from the next feed
+#: request), ``request_timeout``, ``token_grace``, ``revocation_grace``; every ``[limits]``
+#: key (for new streams and connections: an open stream keeps the limits it started with;
+#: ``handshake_timeout`` on the public listener, re-bound with the new configuration);
+#: ``[ros2] peers``, ``depth``, ``local``, ``transient_local``,
+#: ``max_kept_bytes_per_peer``; every ``[monitor]`` key (the model too);
+#: ``unsafe_plaintext_upstream`` (only checked when the file is loaded).
+APPLY = "apply"
+RESTART = "restart"
+RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
+    "manager": (RESTART, lambda c: c.manager),
+    "roles": (RESTART, lambda c: c.roles),
+    "state_dir": (RESTART, lambda c: c.state_dir),
+    "unsafe_plaintext_upstream": (APPLY, lambda c: c.unsafe_plaintext_upstream),
+    "[tls] ca": (APPLY, lambda c: c.tls.ca_file),
+    "[tls] cert": (APPLY, lambda c: c.tls.cert_file),
+    "[tls] key": (APPLY, lambda c: c.tls.key_file),
+    "[tls] key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),
+    "[tls] crl": (APPLY, lambda c: c.tls.crl_file),
+    "[tls] pin_tls12": (APPLY, lambda c: c.tls.pin_tls12),
+    "[authz] url": (RESTART, lambda c: c.authz.urls),  # one URL or the list of replicas
+    "[authz] issuer": (RESTART, lambda c: c.authz.issuer),
+    "[authz] audience": (RESTART, lambda c: c.authz.audience),
+    **{f"[authz] {name}": (APPLY, lambda c, name=name: getattr(c.authz, name))
+       for name in ("refresh_margin", "revocation_poll_interval", "feed_wait", "feed_heartbeat", "request_timeout",
+                    "token_grace", "revocation_grace")},
+    "[listen] public": (RESTART, lambda c: c.public),
+    "[listen] local_master": (RESTART, lambda c: c.local_master),
+    "[listen] metrics": (RESTART, lambda c: c.metrics),
+    "[master] interceptor": (RESTART, lambda c: c.master.interceptor),
+    "[master] manager": (RESTART, lambda c: c.master.manager),
+    "[master] upstream": (RESTART, lambda c: c.master.upstream),
+    **{f"[limits] {f.name}": (APPLY, lambda c, name=f.name: getattr(c.limits, name)) for f in fields(Limits)},
+    **{f"[ros2] {name}": (RESTART, lambda c, name=name: getattr(c.ros2, name, None))
+       for name in ("domain_id", "python", "node_name", "graph_interval", "max_message_size")},
+    **{f"[ros2] {name}": (APPLY, lambda c, name=name: getattr(c.ros2, name, None))
+       for name in ("peers", "depth", "local", "transient_local", "max_kept_bytes_per_peer")},
+    "[monitor]": (RESTART, lambda c: c.monitor is not None),  # the section added or removed
+    **{f"[monitor] {f.name}": (APPLY, lambda c, name=f.name: getattr(c.monitor, name, None))
+       for f in fields(MonitorSettings)},
+}
+
+
+def reload_refusals(old: InterceptorConfig, new: InterceptorConfig) -> list[str]:
+    """The keys that differ between ``old`` (running) and ``new`` and need a restart
+    (:data:`RELOAD`), in the table's order; empty: a reload may apply ``new``."""
+    return [key for key, (action, value) in RELOAD.items() if action == RESTART and value(old) != value(new)]
+
+
+def check_reload(old: InterceptorConfig, new: InterceptorConfig) -> None:
+    """ConfigError naming every key of ``new`` a reload cannot apply (see :data:`RELOAD`)."""
+    refused = reload_refusals(old, new)
+    if refused:
+        raise ConfigError("; ".join(f"{key} changed" for key in refused) + ": needs a restart of the interceptor")
 
 
 def _check_keys(table: Any, section: str) -> dict[str, Any]:
@@ -545,6 +625,6 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
 
 
 __all__ = [
-    "AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings", "Ros2Settings",
-    "default_ros2_python", "load", "parse",
+    "APPLY", "RELOAD", "RESTART", "AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings",
+    "Ros2Settings", "check_reload", "default_ros2_python", "load", "parse", "reload_refusals",
 ]

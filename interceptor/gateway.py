@@ -42,7 +42,7 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
@@ -59,7 +59,7 @@ from cryptoros.tls import (
 from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
-from interceptor.config import InterceptorConfig
+from interceptor.config import InterceptorConfig, check_reload
 from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
@@ -315,14 +315,9 @@ class Gateway:
             poll_interval=cfg.authz.revocation_poll_interval,
             grace=cfg.authz.token_grace,
             revocation_grace=cfg.authz.revocation_grace,
-            feed_wait=held_feed_wait(cfg.authz.feed_wait, request_timeout=cfg.authz.request_timeout,
-                                     max_feed_age=cfg.limits.max_feed_age, heartbeat=cfg.authz.feed_heartbeat),
+            feed_wait=self._held_feed_wait(cfg),
             feed_heartbeat=cfg.authz.feed_heartbeat,
         )
-        if self.verifier.feed_wait < cfg.authz.feed_wait:
-            log.warning("[authz] feed_wait %g s is over [limits] max_feed_age %g s less request_timeout %g s "
-                        "and 1 s: the feed's long-polls are held %g s", cfg.authz.feed_wait,
-                        cfg.limits.max_feed_age, cfg.authz.request_timeout, self.verifier.feed_wait)
         self._own_cert_der = cert_der(cfg.tls.cert_file)
         self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
@@ -349,15 +344,17 @@ class Gateway:
         #: when the last few streams to each peer endpoint were opened, newest last (how
         #: many spares it gets; they wait for a quiet moment)
         self._recent_streams: dict[tuple[str, int], list[float]] = {}
+        #: incremented by :meth:`_drop_spares` (a reload, a stop): a spare whose connect
+        #: began before is not listed (made with the old client context; see _keep_spare)
+        self._spare_generation = 0
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
         self._roles: list[Role] = []
         self._open_per_peer: dict[str, int] = {}
         self._pending = PendingStreams()
         self._budgets: dict[str, MessageBudget] = {}
-        rate = cfg.limits.max_new_connections_per_second
-        self._new_stream_limiter = TokenBuckets(rate, 2 * rate)  # per peer manager
-        self._public_server: asyncio.AbstractServer | None = None
+        self._new_stream_limiter = self._stream_limiter(cfg)
+        self._public_server: PublicListener | None = None
         self._tasks: list[asyncio.Task] = []
         self._streams: set[asyncio.Future] = set()
         self._cuttable: set[asyncio.Future] = set()  # streams with nothing in flight (see cuttable)
@@ -421,7 +418,7 @@ class Gateway:
         self.keeper.listeners.append(self._on_own_token)
         self.spawn(self.keeper.run(), "token-keeper")
         self.spawn(self.verifier.run(), "revocation-feed")
-        self._public_server = await self._listen_public(self._server_ctx)
+        self._public_server = await self._listen_public(self._server_ctx, self.cfg)
         if self.cfg.metrics is not None:
             await self._start_metrics()
         self.started = True
@@ -450,13 +447,14 @@ class Gateway:
                 log.warning("waiting for the authorization server: %s", exc)
                 await asyncio.sleep(0.5)
 
-    async def _listen_public(self, ctx: ssl.SSLContext) -> PublicListener:
-        """Accept TCP, counted against the unauthenticated-stream caps from its accept,
-        and only then the TLS handshake (:meth:`_on_public`): a connection that never
-        sends a ClientHello holds a slot, not an unbounded descriptor."""
+    async def _listen_public(self, ctx: ssl.SSLContext, cfg: InterceptorConfig) -> PublicListener:
+        """The public listener of ``cfg`` (a reload's new one, before ``self.cfg`` is
+        swapped). It accepts TCP, counted against the unauthenticated-stream caps from
+        its accept, and only then makes the TLS handshake (:meth:`_on_public`): a
+        connection that never sends a ClientHello holds a slot, not an unbounded
+        descriptor."""
         ctx.sslobject_class = self._counting_sslobject_class()
-        return await PublicListener.start(self.cfg.public.host, self.cfg.public.port,
-                                          lambda sock: self._on_public(sock, ctx))
+        return await PublicListener.start(cfg.public.host, cfg.public.port, lambda sock: self._on_public(sock, ctx))
 
     async def _accept_tls(self, sock: socket.socket, ctx: ssl.SSLContext,
                           who: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
@@ -547,6 +545,23 @@ class Gateway:
                 SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
                 PeerCertificateCheck(cfg.tls.crl_file))
 
+    @staticmethod
+    def _held_feed_wait(cfg: InterceptorConfig) -> float:
+        """How long the feed's long-polls are held under ``cfg`` (:func:`held_feed_wait`)."""
+        wait = held_feed_wait(cfg.authz.feed_wait, request_timeout=cfg.authz.request_timeout,
+                              max_feed_age=cfg.limits.max_feed_age, heartbeat=cfg.authz.feed_heartbeat)
+        if wait < cfg.authz.feed_wait:
+            log.warning("[authz] feed_wait %g s is over [limits] max_feed_age %g s less request_timeout %g s "
+                        "and 1 s: the feed's long-polls are held %g s", cfg.authz.feed_wait,
+                        cfg.limits.max_feed_age, cfg.authz.request_timeout, wait)
+        return wait
+
+    @staticmethod
+    def _stream_limiter(cfg: InterceptorConfig) -> TokenBuckets:
+        """New streams per peer manager: ``max_new_connections_per_second``, twice that at once."""
+        rate = cfg.limits.max_new_connections_per_second
+        return TokenBuckets(rate, 2 * rate)
+
     def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
         """The peer's certificate, checked on every stream (resumed or not): validity
         period and CRL here, the revocation feed with its token. Returns its DER."""
@@ -560,15 +575,22 @@ class Gateway:
         return der
 
     async def reload(self, cfg: InterceptorConfig) -> None:
-        """SIGHUP: new certificates, CRL and policy; open streams stay up. All or
-        nothing: the new TLS material is loaded and a token bound to the new
-        certificate fetched and verified before anything is swapped, so a failure (a
-        renewed certificate the registry does not know yet, the authorization server
-        down) keeps the old state everywhere (the caller catches and logs)."""
+        """SIGHUP: new certificates, CRL, policy and settings; open streams stay up.
+
+        Every key of the file is either applied or refused (the table:
+        :data:`interceptor.config.RELOAD`). A key that needs a restart ([authz] url,
+        [listen] public, manager, roles...) refuses the whole reload with a ConfigError
+        naming it, before anything is read or swapped. Otherwise all or nothing: the new
+        TLS material is loaded, the public listener re-bound with the new context and
+        limits, and a token bound to the new certificate fetched and verified before
+        anything is swapped, so a failure (a renewed certificate the registry does not
+        know yet, the authorization server down) keeps the old state everywhere (the
+        caller catches and logs). Then the new configuration is swapped in and handed to
+        the holders that keep a copy (authorization client, token keeper, verifier, the
+        new-stream rate, the roles)."""
+        check_reload(self.cfg, cfg)
         for role in self._roles:
             role.check_reload(cfg)
-        if (cfg.monitor is None) != (self.monitor is None):
-            raise ConfigError("adding or removing [monitor] needs a restart of the interceptor")
         monitor_model = MonitorModel.load(cfg.monitor.model) if cfg.monitor is not None else None
         # one certificate source: every holder below is built from cfg.tls
         tls_state = self._tls_state(cfg)
@@ -585,18 +607,25 @@ class Gateway:
         if old is not None:
             old.close()
         try:
-            self._public_server = await self._listen_public(server_ctx)
+            self._public_server = await self._listen_public(server_ctx, cfg)
         except OSError:
-            self._public_server = await self._listen_public(self._server_ctx)
+            self._public_server = await self._listen_public(self._server_ctx, self.cfg)
             raise
         self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = tls_state
         self._drop_spares()  # made with the old certificate: a token bound to the new one fails on them
-        self.cfg = cfg
+        if cfg.limits.max_new_connections_per_second != self.cfg.limits.max_new_connections_per_second:
+            self._new_stream_limiter = self._stream_limiter(cfg)
+        self.cfg = cfg  # what is read per use (most [limits]) applies from here
         # every holder of the certificate reads the new one: the authorization server
         # binds the next token to it, and our own token is checked against it
         self._own_cert_der = own_der
         self._own_serial = cert_serial(own_der)
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(own_der))
+        self.verifier.reconfigure(poll_interval=cfg.authz.revocation_poll_interval, grace=cfg.authz.token_grace,
+                                  revocation_grace=cfg.authz.revocation_grace, feed_wait=self._held_feed_wait(cfg),
+                                  feed_heartbeat=cfg.authz.feed_heartbeat)
+        self.keeper.refresh_margin = cfg.authz.refresh_margin
+        self.authz.settings = cfg.authz  # same servers (check_reload): request_timeout from the new session on
         await self.authz.use_ssl_context(authz_ctx)
         self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
         self._own_access = None
@@ -605,7 +634,7 @@ class Gateway:
             self.monitor.reconfigure(cfg.monitor, monitor_model)  # a retrained model: scored with from now on
         for role in self._roles:
             role.reloaded()
-        log.info("reloaded certificates, CRL, policy%s", " and the monitor's model" if self.monitor else "")
+        log.info("reloaded certificates, CRL, policy, settings%s", " and the monitor's model" if self.monitor else "")
 
     # ================================================================ health
     def feed_problem(self) -> PolicyDenied | None:
@@ -885,7 +914,15 @@ class Gateway:
             async with self._opening_slot(host, port):  # a spare counts as an opening stream at the peer
                 connecting = asyncio.get_running_loop().create_future()
                 self._spare_connecting.setdefault(endpoint, set()).add(connecting)
+                generation = self._spare_generation
                 connected = await self._connect(host, port)
+                if generation != self._spare_generation:
+                    # spares were dropped meanwhile (a reload): this one has the old client
+                    # context, and a token bound to the new certificate is refused over it
+                    connected.writer.close()
+                    self.metrics.spares.labels("stale").inc()
+                    log.debug("spare connection to %s:%d made before a reload: closed", host, port)
+                    return
                 spare = _Connected(connected.reader, connected.writer, connected.ssl_object, connected.offer,
                                    asyncio.get_running_loop().create_future(), me)
                 self._spares.setdefault(endpoint, []).append(spare)
@@ -931,6 +968,8 @@ class Gateway:
         return False
 
     def _drop_spares(self) -> None:
+        """Close every ready spare; one still connecting is closed once connected (generation)."""
+        self._spare_generation += 1
         for spares in self._spares.values():
             for spare in spares:
                 spare.writer.close()

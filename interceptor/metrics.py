@@ -60,7 +60,7 @@ class Metrics:
             "cryptoros_interceptor_spare_connections_total",
             "Spare connections to peers (TLS done before a stream needs one), by outcome "
             "(made: connected and waiting; used: a stream's preamble went over it; expired: it "
-            "carried a token exchange)",
+            "carried a token exchange; stale: connected across a reload, closed unused)",
             ["outcome"],
             registry=self.registry,
         )

@@ -370,6 +370,11 @@ class Ros1Role(GatewayRole):
             sock.close()
         self._relay_socket_of.clear()
 
+    def reloaded(self) -> None:
+        """The limits this role keeps a copy of: the next relay and the next held name count by the new ones."""
+        self.translator.max_relays_per_host = self.cfg.limits.max_relays_per_peer
+        self._holds.per_manager = self.cfg.limits.max_nodes_per_peer
+
     # ================================================================ targets the gate checks
     def _check_master_target(self, preamble: Preamble) -> None:
         if "master" not in self.cfg.roles:

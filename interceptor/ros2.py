@@ -45,7 +45,7 @@ from cryptoros.policy.ros2 import Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
-from interceptor.config import Endpoint, InterceptorConfig
+from interceptor.config import Endpoint
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks
 from interceptor.monitor import WatchedStream
 
@@ -187,10 +187,6 @@ class Ros2Role(Role):
 
     async def stopped(self) -> None:
         await self._stop_bridge()
-
-    def check_reload(self, cfg: InterceptorConfig) -> None:
-        if cfg.ros2 is None or (cfg.ros2.domain_id, cfg.ros2.python) != (self.cfg.ros2.domain_id, self.cfg.ros2.python):
-            raise CryptorosError("[ros2] domain_id and python cannot change on reload; restart the interceptor")
 
     def reloaded(self) -> None:
         self._noted.clear()

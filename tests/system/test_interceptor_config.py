@@ -195,3 +195,36 @@ def test_a_monitor_whose_model_does_not_load_stops_the_start_with_one_line(mater
     path = write(tmp_path, good(material) + '\n        [monitor]\n        model = "m.json"\n        colour = 1\n')
     with pytest.raises(ConfigError, match="unknown key 'colour' in \\[monitor\\]"):
         load(path)
+
+
+def test_every_key_of_the_file_is_applied_or_refused_by_a_reload():
+    """SIGHUP (Gateway.reload) applies a key or refuses the reload naming it: every key
+    the file may hold is decided in interceptor.config.RELOAD, none forgotten."""
+    from interceptor.config import _SECTIONS, APPLY, RELOAD, RESTART
+
+    sections = {name for name in _SECTIONS if name}
+    keys = {key for key in _SECTIONS[""] if key not in sections}
+    keys |= {f"[{section}] {key}" for section in sections for key in _SECTIONS[section]}
+    keys.discard("[authz] urls")  # the list [authz] url gives, not a key of its own
+    assert set(RELOAD) == keys | {"[monitor]"}  # [monitor] itself: added or removed
+    assert {action for action, _value in RELOAD.values()} == {APPLY, RESTART}
+
+
+def test_a_reload_is_refused_naming_each_key_that_needs_a_restart(material, tmp_path):
+    from interceptor.config import check_reload, reload_refusals
+
+    running = load(write(tmp_path, good(material)))
+    limits = load(write(tmp_path, good(material, **{"max_connections_per_peer = 8": "max_connections_per_peer = 2\n"
+                                                    "max_new_connections_per_second = 1.5"})))
+    assert reload_refusals(running, limits) == []
+    check_reload(running, limits)  # limits are applied
+    moved = load(write(tmp_path, good(material, **{"https://127.0.0.1:8443": "https://127.0.0.9:8443",
+                                                   "127.0.0.2:11400": "127.0.0.2:11401",
+                                                   "max_connections_per_peer = 8": "max_connections_per_peer = 2"})))
+    assert reload_refusals(running, moved) == ["[authz] url", "[listen] public"]
+    with pytest.raises(ConfigError) as info:
+        check_reload(running, moved)
+    assert str(info.value) == ("[authz] url changed; [listen] public changed: needs a restart of the interceptor")
+    renamed = load(write(tmp_path, good(material, **{'manager = "robot1"': 'manager = "robot9"'})))
+    with pytest.raises(ConfigError, match="^manager changed: needs a restart"):
+        check_reload(running, renamed)

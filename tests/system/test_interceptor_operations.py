@@ -15,7 +15,7 @@ import urllib.request
 import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls
-from tests.interceptor_harness import got, read_lines, token_of
+from tests.interceptor_harness import denials, got, read_lines, rogue_to, token_of
 from tests.support import Capture, running
 
 pytestmark = [pytest.mark.ros1]
@@ -197,6 +197,70 @@ def test_sighup_reload_keeps_open_streams_and_disabled_manager_is_cut_off_within
     text = metrics(network, "robot_a")
     assert "cryptoros_interceptor_revocation_cutoffs_total 0.0" not in text
     network.cli("enable-manager", "robot_b")
+
+
+def sighup(host, timeout: float = 20) -> str:
+    """SIGHUP ``host``'s interceptor; the log lines it wrote until the reload's outcome."""
+    before = len(host.logs())
+    host.proc.send_signal(signal.SIGHUP)
+    deadline = time.monotonic() + timeout
+    while "reloaded" not in (lines := host.logs()[before:]) and "reload failed" not in lines:
+        assert time.monotonic() < deadline, "no reload outcome in the log"
+        time.sleep(0.1)
+    return lines
+
+
+def token_exchanges(net, host: str, as_name: str, count: int) -> list[bool]:
+    """``count`` refresh streams in a row to ``host`` as ``as_name`` (its certificate and a
+    genuine token): which were accepted."""
+    token = token_of(net, as_name)
+    accepted = []
+    for _ in range(count):
+        with rogue_to(net, host, as_name) as s:
+            reply = rogue_preamble(s, token, "refresh")
+        accepted.append(reply is not None and reply.ok)
+    return accepted
+
+
+def test_sighup_applies_a_changed_limit_and_refuses_a_key_that_needs_a_restart(tmp_path):
+    """Day 2: a SIGHUP applies every key it can ([limits] here: new streams per second,
+    observed on real streams) and refuses the whole reload, naming the key, when one needs
+    a restart ([authz] url): nothing is swapped, and the interceptor keeps following its
+    authorization server as before."""
+    with robot_network(tmp_path, start=("master", "robot_a")) as net:
+        a = net.hosts["robot_a"]
+        assert token_exchanges(net, "robot_a", "robot_b", 6) == [True] * 6  # 50 per second by default
+        original = a.config.read_text()
+        limited = original + "[limits]\nmax_new_connections_per_second = 0.2\n"
+        moved = limited.replace(f'url = "{net.authz_url}"', f'url = ["https://127.0.0.1:9", "{net.authz_url}"]')
+        assert moved != limited
+        a.config.write_text(moved)
+        lines = sighup(a)
+        assert "reload failed, keeping the old state: [authz] url changed: needs a restart of the interceptor" in lines
+        assert "reloaded" not in lines
+        assert token_exchanges(net, "robot_a", "robot_b", 6) == [True] * 6  # all or nothing: the limit is not in
+        # the old authorization server is still followed: robot B disabled there is refused here
+        token = token_of(net, "robot_b")
+        assert net.cli("disable-manager", "robot_b").returncode == 0
+        try:
+            deadline = time.monotonic() + 10
+            while "revoked: token" not in denials(net, "robot_a"):  # disabling revokes its tokens
+                assert time.monotonic() < deadline, "robot A did not learn from its feed that robot B is disabled"
+                with rogue_to(net, "robot_a", "robot_b") as s:
+                    rogue_preamble(s, token, "refresh")
+                time.sleep(0.2)
+        finally:
+            assert net.cli("enable-manager", "robot_b").returncode == 0
+        deadline = time.monotonic() + 10
+        while token_exchanges(net, "robot_a", "robot_b", 1) != [True]:
+            assert time.monotonic() < deadline, "robot B was not let in again after enable-manager"
+            time.sleep(0.2)
+        a.config.write_text(limited)  # the limit alone: applied
+        lines = sighup(a)
+        assert "reloaded" in lines and "reload failed" not in lines
+        accepted = token_exchanges(net, "robot_a", "robot_b", 6)
+        assert accepted[0] and sum(accepted) <= 2, accepted  # a burst of 1 (twice 0.2), then 0.2 per second
+        assert "rate_limited" in denials(net, "robot_a")
 
 
 def test_sigterm_stops_the_interceptor_cleanly(network):
