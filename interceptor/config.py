@@ -278,7 +278,7 @@ _SECTIONS = {
          "state_dir", "monitor"},
     "ros2": {f.name for f in fields(Ros2Settings)},
     "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
-    "authz": {f.name for f in fields(AuthzSettings)},
+    "authz": {f.name for f in fields(AuthzSettings)} - {"urls"},  # urls: the parsed url (one or a list)
     "listen": {"public", "local_master", "metrics"},
     "master": {"interceptor", "manager", "upstream"},
     "limits": {f.name for f in fields(Limits)},

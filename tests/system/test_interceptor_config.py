@@ -228,3 +228,14 @@ def test_a_reload_is_refused_naming_each_key_that_needs_a_restart(material, tmp_
     renamed = load(write(tmp_path, good(material, **{'manager = "robot1"': 'manager = "robot9"'})))
     with pytest.raises(ConfigError, match="^manager changed: needs a restart"):
         check_reload(running, renamed)
+
+
+def test_urls_is_not_a_key_of_its_own(tmp_path):
+    """``[authz] url`` takes one URL or a list; ``urls`` is the parsed form, not a key."""
+    for name in ("ca", "c", "k"):
+        (tmp_path / name).write_text("")
+    cfg = tmp_path / "i.toml"
+    cfg.write_text('manager = "m"\nroles = ["node"]\n[tls]\nca = "ca"\ncert = "c"\nkey = "k"\n'
+                   '[authz]\nurl = "https://127.0.0.1:8443"\nurls = ["https://127.0.0.1:8444"]\n')
+    with pytest.raises(ConfigError, match="unknown key 'urls' in \\[authz\\]"):
+        load(cfg)
