@@ -607,6 +607,7 @@ class Ros1Role(GatewayRole):
             if api is not None and self._api_of_node.setdefault(node, api) != api:
                 self._forget_replaced_node(node)
                 self._api_of_node[node] = api
+        kept = None if registering else self._kept(call.method, call.params)
         self._record_registration(call.method, call.params)
         if registering:
             entry = self._owners.setdefault(node, [manager, 0])
@@ -631,8 +632,22 @@ class Ros1Role(GatewayRole):
                     self._param_subs_of_node.pop(node, None)
                     self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
                 self._save_state_soon()
-            self._count_relay_refs(call.method, call.params, -1)
+            # the relays behind the registration as it was made: unregisterService names
+            # the service's URI, not the node API its registration counted too
+            self._count_relay_refs(*(kept or (call.method, call.params)), -1)
             self._note_param_subscription(call.method, call.params)
+
+    def _kept(self, method: str, params: tuple) -> tuple[str, tuple] | None:
+        """The registration (or parameter subscription) a master call makes or releases,
+        as it was forwarded when made ((method, params)), if it is kept."""
+        key = _registration_key(method, params)
+        if key is not None:
+            return self._registrations.get(key)
+        key = _param_subscription_key(method, params)
+        if key is not None:
+            params = self._param_subs_of_node.get(key[1], {}).get(key[2])
+            return None if params is None else ("subscribeParam", params)
+        return None
 
     def _note_param_subscription(self, method: str, params: tuple) -> None:
         key = _param_subscription_key(method, params)
