@@ -188,6 +188,10 @@ class Role:
     async def stopped(self) -> None:
         """Release what is left (pools, listeners, children)."""
 
+    def status(self) -> dict:
+        """What the role adds to ``/status`` (top-level keys of its own)."""
+        return {}
+
     def check_reload(self, cfg: InterceptorConfig) -> None:
         """Raise CryptorosError if the role cannot take ``cfg`` without a restart."""
 
@@ -538,6 +542,7 @@ class Gateway:
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
             "monitor": self.monitor.status() if self.monitor is not None else None,
+            **{key: value for role in self._roles for key, value in role.status().items()},
         }
 
     async def _start_metrics(self) -> None:

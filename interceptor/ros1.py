@@ -74,6 +74,7 @@ from cryptoros.tokens import Grants
 from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
+from interceptor.config import XMLRPC_IDLE_TIMEOUT
 from interceptor.name_holds import NameHolds
 from interceptor.pump import FrameCounter
 from interceptor.statefile import write_private_json
@@ -92,7 +93,12 @@ POOL_WAIT = 0.2
 UNANSWERED = "cryptoros: no answer from the ROS master or the peer (not a denial)"
 _UNANSWERED_REASONS = frozenset({"peer_unreachable", "tunnel_failed"})
 CALL_TIMEOUT = 30.0
-IDLE_TIMEOUT = 600.0
+#: an inbound XML-RPC stream idle this long between requests is closed (a pooled tunnel
+#: of ours is closed sooner: [limits] tunnel_idle_timeout)
+IDLE_TIMEOUT = XMLRPC_IDLE_TIMEOUT
+#: tunnel pools kept (one per peer endpoint called: the master, each remote node API);
+#: the least recently used is closed past this. A pool's relay released closes it too.
+MAX_POOLS = 1024
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
 #: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
 MAX_REGISTRATIONS = 65_536
@@ -185,6 +191,10 @@ class XmlRpcTunnel:
             raise AssertionError("unreachable")
 
     async def close_locked(self) -> None:
+        self.close_now()
+
+    def close_now(self) -> None:
+        """Close the stream of a tunnel not in use (idle in its pool)."""
         if self._stream is not None:
             self._stream.writer.close()
             self._stream = None
@@ -200,21 +210,36 @@ class TunnelPool:
     10 ms; idle tunnels are kept (up to ``max_idle``) and reused. With ``max_busy``
     calls in flight, the next one waits up to :data:`POOL_WAIT` for a tunnel to come
     back before it opens one of its own: a burst of calls (a robot's nodes registering
-    at once) shares a few tunnels instead of paying a handshake each."""
+    at once) shares a few tunnels instead of paying a handshake each.
+
+    A tunnel unused for ``idle_timeout`` seconds is closed (a peer closes an idle stream
+    after :data:`IDLE_TIMEOUT`: this side closes first). A closed pool (:meth:`close`:
+    its relay released, or evicted) keeps no tunnel: a call still under way, or made
+    later through a connection that holds the pool, closes its own."""
 
     def __init__(self, owner: Ros1Role, host: str, port: int, purpose: str, target: str, max_idle: int = 4,
-                 max_busy: int = POOL_BUSY):
+                 max_busy: int = POOL_BUSY, idle_timeout: float = 60.0,
+                 on_idle_close: Callable[[], None] = lambda: None):
         self._args = (owner, host, port, purpose, target)
-        self._idle: list[XmlRpcTunnel] = []
+        self._on_idle_close = on_idle_close
+        #: idle tunnels and when each was put back (the loop's clock), oldest first
+        self._idle: list[tuple[XmlRpcTunnel, float]] = []
         self._max_idle = max_idle
         self._max_busy = max_busy
+        self._idle_timeout = idle_timeout
+        self._sweep: asyncio.TimerHandle | None = None
         self._busy = 0
+        self.closed = False
         #: calls waiting for a tunnel: each gets one handed back, or None (open your own)
         self._waiters: list[asyncio.Future] = []
 
+    @property
+    def idle_count(self) -> int:
+        return len(self._idle)
+
     async def _acquire(self) -> XmlRpcTunnel:
         if self._idle:
-            return self._idle.pop()
+            return self._idle.pop()[0]  # the most recently used: the others may go idle
         if self._busy >= self._max_busy:
             waiter = asyncio.get_running_loop().create_future()
             self._waiters.append(waiter)
@@ -251,15 +276,38 @@ class TunnelPool:
         self._busy -= 1
         if self._hand_over(tunnel):
             return response
-        if len(self._idle) < self._max_idle:
-            self._idle.append(tunnel)
-        else:
-            await tunnel.close()
+        self._park(tunnel)
         return response
 
-    async def close(self) -> None:
+    def _park(self, tunnel: XmlRpcTunnel) -> None:
+        """Keep an unused tunnel for the next call (closed after ``idle_timeout``)."""
+        if self.closed or len(self._idle) >= self._max_idle:
+            tunnel.close_now()
+            return
+        loop = asyncio.get_running_loop()
+        self._idle.append((tunnel, loop.time()))
+        if self._sweep is None:
+            self._sweep = loop.call_later(self._idle_timeout, self._close_idle)
+
+    def _close_idle(self) -> None:
+        """Close the tunnels idle for ``idle_timeout``; come back for the next one."""
+        self._sweep = None
+        loop = asyncio.get_running_loop()
+        due = loop.time() - self._idle_timeout + 0.01  # the loop may wake a little early
+        while self._idle and self._idle[0][1] <= due:
+            self._idle.pop(0)[0].close_now()
+            self._on_idle_close()
+        if self._idle:
+            self._sweep = loop.call_at(self._idle[0][1] + self._idle_timeout, self._close_idle)
+
+    def close(self) -> None:
+        """Close the idle tunnels now, and every tunnel that comes back from then on."""
+        self.closed = True
+        if self._sweep is not None:
+            self._sweep.cancel()
+            self._sweep = None
         while self._idle:
-            await self._idle.pop().close()
+            self._idle.pop()[0].close_now()
 
 
 
@@ -293,7 +341,9 @@ class Ros1Role(GatewayRole):
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         #: master role: names released by their owner, kept for it a while (a restart)
         self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
+        #: one per peer endpoint called, the least recently used first (see pool())
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
+        self._tunnels_closed_idle = 0
         self._servers: list[asyncio.AbstractServer] = []
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
@@ -362,10 +412,18 @@ class Ros1Role(GatewayRole):
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(server.wait_closed(), 1)
         for pool in self._pools.values():
-            await pool.close()
+            pool.close()
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()
+
+    def status(self) -> dict:
+        pools = list(self._pools.values())
+        return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
+                         "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count}}
+
+    def _count_idle_close(self) -> None:
+        self._tunnels_closed_idle += 1
 
     # ================================================================ targets the gate checks
     def _check_master_target(self, preamble: Preamble) -> None:
@@ -473,10 +531,16 @@ class Ros1Role(GatewayRole):
         self._save_state()
 
     def pool(self, host: str, port: int, purpose: str, target: str) -> TunnelPool:
+        """The tunnel pool to one peer endpoint (the least recently used of more than
+        :data:`MAX_POOLS` is closed)."""
         key = (host, port, purpose, target)
-        pool = self._pools.get(key)
+        pool = self._pools.pop(key, None)
         if pool is None:
-            pool = self._pools[key] = TunnelPool(self, host, port, purpose, target)
+            pool = TunnelPool(self, host, port, purpose, target, idle_timeout=self.cfg.limits.tunnel_idle_timeout,
+                              on_idle_close=self._count_idle_close)
+        self._pools[key] = pool
+        while len(self._pools) > MAX_POOLS:
+            self._pools.pop(next(iter(self._pools))).close()
         return pool
 
 
@@ -756,7 +820,11 @@ class Ros1Role(GatewayRole):
                 self._release_relay(endpoint)
 
     def _release_relay(self, endpoint: tuple[str, int]) -> None:
+        target = self.translator.relay_target(*endpoint)
         self.translator.forget_relay(*endpoint)
+        pool = self._pools.pop((target.host, target.port, "node", target.id), None) if target else None
+        if pool is not None:  # its tunnels to the node's interceptor are closed with it
+            pool.close()
         server = self._relay_servers.pop(endpoint, None)
         if server is not None:
             server.close()

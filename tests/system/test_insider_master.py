@@ -1,0 +1,111 @@
+"""What peers make the master's interceptor hold: its XML-RPC tunnels to their nodes
+(closed when idle, and with the relay they serve), against real rosmaster and rospy
+behind real interceptors."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    got,
+    read_lines,
+    robot_network,
+    separate_hosts,
+    wait_registered,
+)
+from tests.support import running
+
+pytestmark = [pytest.mark.ros1]
+
+IDLE = 3.0  # the master's tunnel_idle_timeout here
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    extra = {"master": f"[limits]\ntunnel_idle_timeout = {IDLE}\nspare_connections = false\n"}
+    with robot_network(tmp_path_factory.mktemp("master"), start=("master", "robot_a", "robot_b"), extra=extra,
+                       netns=separate_hosts()) as net:
+        yield net
+
+
+def status(network, host: str) -> dict:
+    with network.inside(host):
+        url = f"http://127.0.0.1:{network.hosts[host].metrics_port}/status"
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return json.loads(reply.read())
+
+
+def connections_to(network, host: str, peer: str) -> int:
+    """TCP connections established from ``host``'s network to ``peer``'s public port
+    (the kernel's own table: every tunnel the interceptor there holds open to it)."""
+    p = network.hosts[peer]
+    want = f"{socket.inet_aton(p.address)[::-1].hex().upper()}:{p.public_port:04X}"
+    table = Path(f"/proc/{network.hosts[host].proc.pid}/net/tcp").read_text().splitlines()[1:]
+    return sum(1 for line in table if line.split()[2] == want and line.split()[3] == "01")
+
+
+def until(condition, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while not (value := condition()):
+        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
+        time.sleep(0.1)
+    return value
+
+
+#: a rospy subscriber that unregisters and exits when told to (a line on stdin)
+LISTENER = """
+import sys, rospy
+from std_msgs.msg import String
+rospy.init_node("rospy_listener", disable_signals=True)
+rospy.Subscriber("/chatter", String, lambda m: print("GOT", m.data, flush=True))
+print("READY", flush=True)
+sys.stdin.readline()
+rospy.signal_shutdown("asked")
+print("END", flush=True)
+"""
+
+
+def test_tunnels_to_a_node_close_when_idle_and_its_pool_goes_with_its_relay(network):
+    """rosmaster tells robot B's subscriber of a new publisher through the master's
+    interceptor (a relay there, a pooled tunnel to B's interceptor). Idle, the tunnel
+    is closed after tunnel_idle_timeout, the pool kept while the node is registered;
+    once the node unregisters, its relay is released and the pool with it."""
+    before = status(network, "master")["ros1"]
+    with running([SYS_PY, "-c", LISTENER], env=network.ros_env("robot_b"), stdin=subprocess.PIPE) as listener:
+        read_lines(listener, "READY", 20)
+        wait_registered(network, "/rospy_listener")
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "20", "20", "0.5"],
+                     env=network.ros_env("robot_a")) as talker:
+            read_lines(talker, "READY", 20)
+            assert got(read_lines(listener, "GOT", 20))  # publisherUpdate went through the pool
+            read_lines(talker, "SENT", 20)
+            talker.wait(20)  # it unregistered: rosmaster told the listener again, through the pool
+        held = status(network, "master")["ros1"]
+        assert held["tunnel_pools"] > before["tunnel_pools"]
+        # idle: closed by this side after tunnel_idle_timeout (the peer would wait 600 s)
+        until(lambda: status(network, "master")["ros1"]["tunnels_closed_idle"] > before["tunnels_closed_idle"],
+              IDLE + 15, "an idle tunnel closed")
+        until(lambda: connections_to(network, "master", "robot_b") == 0
+              and status(network, "master")["ros1"]["idle_tunnels"] == 0, IDLE + 15, "every idle tunnel closed")
+        # the pool stays while the node is registered
+        assert status(network, "master")["ros1"]["tunnel_pools"] == held["tunnel_pools"]
+        assert listener.poll() is None
+        listener.stdin.write("stop\n")
+        listener.stdin.flush()
+        read_lines(listener, "END", 20)
+        listener.wait(20)
+        # unregistered: the relay of its node API is released, and its pool closed with it
+        until(lambda: status(network, "master")["ros1"]["tunnel_pools"] == before["tunnel_pools"], 15,
+              "the pool dropped with its relay")
+    after = status(network, "master")["ros1"]
+    assert after["relays"] <= before["relays"] and after["idle_tunnels"] == 0
+    assert connections_to(network, "master", "robot_b") == 0
