@@ -658,10 +658,13 @@ class Gateway:
         tunnel.writer.close()
         return tunnel.peer.access
 
-    def deny(self, kind: str, exc: CryptorosError, who: str) -> None:
+    def deny(self, kind: str, exc: CryptorosError, who: str, *, logged: bool = True) -> None:
+        """Count a refusal by reason; log it (``logged``: False for a flood of one kind,
+        logged once in a while by the caller)."""
         reason = getattr(exc, "reason", type(exc).__name__)
         self.metrics.denied.labels(kind, reason).inc()
-        log.warning("DENY %s from %s: %s", kind, who, exc)
+        if logged:
+            log.warning("DENY %s from %s: %s", kind, who, exc)
 
     # ================================================================ outbound
     async def open_tunnel(

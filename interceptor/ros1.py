@@ -34,6 +34,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros.policy.ros1 import (
     NAME_BINDING,
     PARAM_READ,
@@ -99,6 +100,9 @@ IDLE_TIMEOUT = XMLRPC_IDLE_TIMEOUT
 #: tunnel pools kept (one per peer endpoint called: the master, each remote node API);
 #: the least recently used is closed past this. A pool's relay released closes it too.
 MAX_POOLS = 1024
+#: master role: a master call refused as rate_limited is logged once per manager this
+#: often (seconds); every one is counted (cryptoros_interceptor_denied_total)
+RATE_LOG_INTERVAL = 10.0
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
 #: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
 MAX_REGISTRATIONS = 65_536
@@ -341,6 +345,9 @@ class Ros1Role(GatewayRole):
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         #: master role: names released by their owner, kept for it a while (a restart)
         self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
+        #: master role: master calls per peer manager ([limits] max_master_calls_per_second)
+        self._master_calls = self._master_call_buckets()
+        self._rate_log = OncePer(RATE_LOG_INTERVAL, max_keys=1024)
         #: one per peer endpoint called, the least recently used first (see pool())
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._tunnels_closed_idle = 0
@@ -416,6 +423,16 @@ class Ros1Role(GatewayRole):
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()
+
+    def reloaded(self) -> None:
+        limits = self.cfg.limits
+        if (self._master_calls.rate, self._master_calls.burst) != (limits.max_master_calls_per_second,
+                                                                   float(limits.master_call_burst)):
+            self._master_calls = self._master_call_buckets()
+
+    def _master_call_buckets(self) -> TokenBuckets:
+        limits = self.cfg.limits
+        return TokenBuckets(limits.max_master_calls_per_second, limits.master_call_burst, max_keys=4096)
 
     def status(self) -> dict:
         pools = list(self._pools.values())
@@ -605,7 +622,8 @@ class Ros1Role(GatewayRole):
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
-                self.gw.deny(kind, exc, f"{who} {call.method}")
+                flood = getattr(exc, "reason", None) == "rate_limited"
+                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who))
                 # rospy's set_param/delete_param ignore a [-1, ...] answer: a refused write is
                 # a fault, which raises in the node (rosparam reports it either way)
                 results[i] = (Fault(code=-1, string=OPAQUE) if call.method in PARAM_WRITE
@@ -854,6 +872,12 @@ class Ros1Role(GatewayRole):
             return local
 
         def decide(call: Request) -> Request:
+            if not self._master_calls.allow(peer.manager):
+                limits = self.cfg.limits
+                raise PolicyDenied("rate_limited", f"{peer.manager} makes master calls faster than "
+                                   f"{limits.max_master_calls_per_second:g} a second after {limits.master_call_burst} "
+                                   f"(max_master_calls_per_second, master_call_burst; this is logged once per "
+                                   f"{RATE_LOG_INTERVAL:g} s, every refusal counted)")
             grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
             check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
                               owner_of=functools.partial(self._owner_of, grants=grants))

@@ -1,6 +1,10 @@
-"""What peers make the master's interceptor hold: its XML-RPC tunnels to their nodes
-(closed when idle, and with the relay they serve), against real rosmaster and rospy
-behind real interceptors."""
+"""What peers make the master's interceptor and rosmaster hold, against real rosmaster
+and rospy behind real interceptors: master calls (a rate per manager), the XML-RPC
+tunnels to their nodes (closed when idle, and with the relay they serve).
+
+The insiders have valid certificates and tokens: robot B (subscribe grants on /chatter,
+for any node name) and robot C (no grant at all: it may still read the graph).
+"""
 
 from __future__ import annotations
 
@@ -13,13 +17,19 @@ from pathlib import Path
 
 import pytest
 
+from cryptoros.ros1.xmlrpc import Request, make_multicall
 from tests.interceptor_harness import (
     NODE,
     SYS_PY,
+    denials,
     got,
     read_lines,
     robot_network,
+    rogue_preamble,
+    rogue_to,
+    rogue_xmlrpc,
     separate_hosts,
+    token_of,
     wait_registered,
 )
 from tests.support import running
@@ -27,11 +37,13 @@ from tests.support import running
 pytestmark = [pytest.mark.ros1]
 
 IDLE = 3.0  # the master's tunnel_idle_timeout here
+RATE, BURST = 20.0, 300  # its max_master_calls_per_second and master_call_burst
 
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    extra = {"master": f"[limits]\ntunnel_idle_timeout = {IDLE}\nspare_connections = false\n"}
+    extra = {"master": f"[limits]\ntunnel_idle_timeout = {IDLE}\nspare_connections = false\n"
+                       f"max_master_calls_per_second = {RATE}\nmaster_call_burst = {BURST}\n"}
     with robot_network(tmp_path_factory.mktemp("master"), start=("master", "robot_a", "robot_b"), extra=extra,
                        netns=separate_hosts()) as net:
         yield net
@@ -51,6 +63,14 @@ def connections_to(network, host: str, peer: str) -> int:
     want = f"{socket.inet_aton(p.address)[::-1].hex().upper()}:{p.public_port:04X}"
     table = Path(f"/proc/{network.hosts[host].proc.pid}/net/tcp").read_text().splitlines()[1:]
     return sum(1 for line in table if line.split()[2] == want and line.split()[3] == "01")
+
+
+def metric(network, host: str, name: str) -> float:
+    with network.inside(host):
+        url = f"http://127.0.0.1:{network.hosts[host].metrics_port}/metrics"
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            body = reply.read().decode()
+    return sum(float(line.rsplit(" ", 1)[1]) for line in body.splitlines() if line.startswith(name))
 
 
 def until(condition, timeout: float, what: str):
@@ -109,3 +129,34 @@ def test_tunnels_to_a_node_close_when_idle_and_its_pool_goes_with_its_relay(netw
     after = status(network, "master")["ros1"]
     assert after["relays"] <= before["relays"] and after["idle_tunnels"] == 0
     assert connections_to(network, "master", "robot_b") == 0
+
+
+def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_registers(network):
+    """Robot C floods the master with multicalls of getPid (allowed to anyone): past the
+    burst its calls are refused (rate_limited: a ROS error each, counted, logged once a
+    while), and robot A's nodes still register and talk."""
+    refused_metric = 'cryptoros_interceptor_denied_total{kind="master",reason="rate_limited"}'
+    before = metric(network, "master", refused_metric)
+    calls = [Request(method="getPid", params=("/flood",))] * 256
+    answers = []
+    with rogue_to(network, "master", "robot_c") as s:
+        assert rogue_preamble(s, token_of(network, "robot_c"), "master").ok
+        started = time.monotonic()
+        for _ in range(4):
+            answers += rogue_xmlrpc(s, "system.multicall", make_multicall(calls).params[0]).value
+        elapsed = time.monotonic() - started
+    allowed = sum(1 for a in answers if isinstance(a, list) and a[0][0] == 1)
+    refused = [a for a in answers if isinstance(a, list) and a[0][0] == -1]
+    assert allowed + len(refused) == 1024
+    assert allowed <= BURST + RATE * elapsed + 1, (allowed, elapsed)
+    assert refused and refused[0] == [[-1, "denied by cryptoros", 0]]
+    assert metric(network, "master", refused_metric) - before == len(refused)
+    log = denials(network, "master")
+    assert "rate_limited" in log and log.count("rate_limited") < len(refused)  # not one line per call
+    # robot A's nodes: not robot C's budget
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"], env=network.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "30"], env=network.ros_env("robot_a")) as sub:
+            read_lines(sub, "READY", 20)
+            assert got(read_lines(sub, "GOT", 20))
