@@ -46,6 +46,8 @@ Example::
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
     name_hold_seconds = 120.0         # master role: a released node name stays its owner's (0: off)
     max_master_calls_per_second = 200.0  # master role: per peer manager, after master_call_burst = 4000
+    max_param_keys_per_peer = 10000   # master role: what a peer may store through setParam (keys...
+    max_param_bytes_per_peer = 16777216  # ... and bytes); deleteParam frees it
     tunnel_idle_timeout = 60.0        # a pooled XML-RPC tunnel to a peer closes after this long unused
     spare_connections = true          # up to 2 connections kept ready per peer with streams in a row
 
@@ -201,6 +203,13 @@ class Limits:
     #: two rospy subscribers from start to exit (about 10 a node, more with more topics).
     max_master_calls_per_second: float = 200.0
     master_call_burst: int = 4000
+    #: What one peer manager may store in rosmaster's parameter tree through setParam
+    #: (master role; its nodes' private namespaces and granted ones alike): parameter
+    #: keys (leaves of the values it set) and their bytes (names and values). A write
+    #: past either is refused (``param_quota``); deleteParam frees what it removes. The
+    #: same number of keys bounds the parameter subscriptions (subscribeParam) it holds.
+    max_param_keys_per_peer: int = 10_000
+    max_param_bytes_per_peer: int = 16 << 20
     #: An XML-RPC tunnel to a peer (pooled for reuse) is closed after this many seconds
     #: unused; under the peers' own :data:`XMLRPC_IDLE_TIMEOUT` (they close it then), so
     #: this side closes first and never reuses one the peer is closing.

@@ -77,6 +77,7 @@ from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_
 from interceptor.gateway import Role as GatewayRole
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
 from interceptor.name_holds import NameHolds
+from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
 from interceptor.statefile import write_private_json
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
@@ -348,6 +349,10 @@ class Ros1Role(GatewayRole):
         #: master role: master calls per peer manager ([limits] max_master_calls_per_second)
         self._master_calls = self._master_call_buckets()
         self._rate_log = OncePer(RATE_LOG_INTERVAL, max_keys=1024)
+        #: master role: what each peer manager stored in rosmaster through setParam, and the
+        #: lock its parameter writes go to rosmaster under (in the order they are charged)
+        self._params = ParamQuota(cfg.limits.max_param_keys_per_peer, cfg.limits.max_param_bytes_per_peer)
+        self._param_writes = asyncio.Lock()
         #: one per peer endpoint called, the least recently used first (see pool())
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._tunnels_closed_idle = 0
@@ -429,6 +434,7 @@ class Ros1Role(GatewayRole):
         if (self._master_calls.rate, self._master_calls.burst) != (limits.max_master_calls_per_second,
                                                                    float(limits.master_call_burst)):
             self._master_calls = self._master_call_buckets()
+        self._params.max_keys, self._params.max_bytes = limits.max_param_keys_per_peer, limits.max_param_bytes_per_peer
 
     def _master_call_buckets(self) -> TokenBuckets:
         limits = self.cfg.limits
@@ -437,7 +443,8 @@ class Ros1Role(GatewayRole):
     def status(self) -> dict:
         pools = list(self._pools.values())
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
-                         "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count}}
+                         "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
+                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}}}
 
     def _count_idle_close(self) -> None:
         self._tunnels_closed_idle += 1
@@ -676,6 +683,30 @@ class Ros1Role(GatewayRole):
         if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
             raise PolicyDenied("node_limit", f"{manager} has {cap} nodes registered already (max_nodes_per_peer)")
 
+    def _check_param_subscription(self, call: Request, manager: str) -> None:
+        """A peer holds at most ``max_param_keys_per_peer`` parameter subscriptions (rosmaster
+        keeps each), and one node at most :data:`MAX_PARAM_SUBSCRIPTIONS_PER_NODE`."""
+        key = _param_subscription_key(call.method, call.params) if call.method == "subscribeParam" else None
+        if key is None:
+            return
+        _kind, node, name = key
+        subs = self._param_subs_of_node.get(node, {})
+        if name in subs:
+            return  # a repeat: nothing more is kept
+        cap = self.cfg.limits.max_param_keys_per_peer
+        held = sum(len(s) for n, s in self._param_subs_of_node.items() if self._owners.get(n, ("",))[0] == manager)
+        if held >= cap or len(subs) >= MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
+            raise PolicyDenied("param_quota", f"{manager} holds {held} parameter subscriptions ({len(subs)} of {node}): "
+                               f"max_param_keys_per_peer {cap}, {MAX_PARAM_SUBSCRIPTIONS_PER_NODE} per node")
+
+    def _charge_param_write(self, call: Request, manager: str) -> None:
+        """A parameter write allowed (key resolved): charged to ``manager`` before it is
+        sent, refused past its quota (:mod:`interceptor.param_quota`)."""
+        if call.method == "setParam" and len(call.params) >= 3:
+            self._params.set(manager, call.params[1], call.params[2])
+        elif call.method == "deleteParam" and len(call.params) >= 2:
+            self._params.delete(call.params[1])
+
     def _note_registration(self, call: Request, response: Response | Fault, manager: str,
                            exact: bool = True) -> None:
         """What a call rosmaster accepted changes: owners, kept registrations, relay
@@ -803,6 +834,8 @@ class Ros1Role(GatewayRole):
             if pid is not None and pid != self._master_pid:
                 # a new pid, or the first one seen after a restart of ours with registrations
                 # from state_dir (a repeated registration is harmless to rosmaster)
+                if self._master_pid is not None:
+                    self._params.clear()  # a new rosmaster holds no parameter
                 if self._master_pid is not None or self._registrations:
                     await self._replay_registrations(pid)
                 self._master_pid = pid
@@ -883,9 +916,12 @@ class Ros1Role(GatewayRole):
                               owner_of=functools.partial(self._owner_of, grants=grants))
             call = _resolved_param_call(call, grants)
             self._check_node_limit(call, peer.manager)
+            self._check_param_subscription(call, peer.manager)
             uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
             call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
-            return _rewrite_param_api(call, uri_map)
+            call = _rewrite_param_api(call, uri_map)
+            self._charge_param_write(call, peer.manager)  # last: only a call sent on is charged
+            return call
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             grants = self.verifier.freshest(peer.access).grants
@@ -895,7 +931,14 @@ class Ros1Role(GatewayRole):
             return rewrite_response(call, response, uri=self.translator.to_canonical)
 
         async def handle(request: Request) -> Response | Fault:
-            return await self._decide_calls(request, decide, self._call_upstream_master, after, "master", peer.manager)
+            if not _writes_params(request):
+                return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
+                                                peer.manager)
+            # parameter writes reach rosmaster one request at a time, in the order they
+            # were charged: a deleteParam racing a setParam cannot free what rosmaster keeps
+            async with self._param_writes:
+                return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
+                                                peer.manager)
 
         await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
@@ -1387,6 +1430,14 @@ def _local_endpoint(uri) -> tuple[str, int] | None:
         return host_port(uri)
     except UriError:
         return None
+
+
+def _writes_params(request: Request) -> bool:
+    """Whether a request (a multicall: one of its calls) is setParam or deleteParam."""
+    if request.method in PARAM_WRITE:
+        return True
+    calls = request.params[0] if request.method == MULTICALL and request.params else None
+    return isinstance(calls, list) and any(isinstance(c, dict) and c.get("methodName") in PARAM_WRITE for c in calls)
 
 
 def _resolved_param_call(call: Request, grants) -> Request:

@@ -1,6 +1,7 @@
 """What peers make the master's interceptor and rosmaster hold, against real rosmaster
-and rospy behind real interceptors: master calls (a rate per manager), the XML-RPC
-tunnels to their nodes (closed when idle, and with the relay they serve).
+and rospy behind real interceptors: master calls (a rate per manager), parameters
+(keys and bytes per manager), the XML-RPC tunnels to their nodes (closed when idle, and
+with the relay they serve).
 
 The insiders have valid certificates and tokens: robot B (subscribe grants on /chatter,
 for any node name) and robot C (no grant at all: it may still read the graph).
@@ -13,11 +14,12 @@ import socket
 import subprocess
 import time
 import urllib.request
+import xmlrpc.client
 from pathlib import Path
 
 import pytest
 
-from cryptoros.ros1.xmlrpc import Request, make_multicall
+from cryptoros.ros1.xmlrpc import Fault, Request, make_multicall
 from tests.interceptor_harness import (
     NODE,
     SYS_PY,
@@ -38,12 +40,14 @@ pytestmark = [pytest.mark.ros1]
 
 IDLE = 3.0  # the master's tunnel_idle_timeout here
 RATE, BURST = 20.0, 300  # its max_master_calls_per_second and master_call_burst
+KEYS, BYTES = 40, 65536  # its max_param_keys_per_peer and max_param_bytes_per_peer
 
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
     extra = {"master": f"[limits]\ntunnel_idle_timeout = {IDLE}\nspare_connections = false\n"
-                       f"max_master_calls_per_second = {RATE}\nmaster_call_burst = {BURST}\n"}
+                       f"max_master_calls_per_second = {RATE}\nmaster_call_burst = {BURST}\n"
+                       f"max_param_keys_per_peer = {KEYS}\nmax_param_bytes_per_peer = {BYTES}\n"}
     with robot_network(tmp_path_factory.mktemp("master"), start=("master", "robot_a", "robot_b"), extra=extra,
                        netns=separate_hosts()) as net:
         yield net
@@ -160,3 +164,35 @@ def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_regis
         with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "30"], env=network.ros_env("robot_a")) as sub:
             read_lines(sub, "READY", 20)
             assert got(read_lines(sub, "GOT", 20))
+
+
+def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(network):
+    """Robot B needs no parameter grant to write under its nodes' names: 100 fresh keys
+    are refused past max_param_keys_per_peer (rosmaster holds no more), deleteParam
+    frees the quota, a value past max_param_bytes_per_peer is refused, and so are
+    parameter subscriptions past the quota."""
+    b = network.hosts["robot_b"]
+    with rogue_to(network, "master", "robot_b") as s:
+        assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
+        answers = [rogue_xmlrpc(s, "setParam", "/rospy_listener", f"~flood/k{i}", "x" * 100) for i in range(100)]
+        stored = [a for a in answers if not isinstance(a, Fault) and a.value[0] == 1]
+        refused = [a for a in answers if isinstance(a, Fault)]
+        assert len(stored) + len(refused) == 100
+        assert refused and refused[0].string == "denied by cryptoros"
+        with network.inside("master"):
+            held = xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/operator", "/rospy_listener/flood")
+        assert held[0] == 1 and len(held[2]) == len(stored)
+        assert 2 + len(stored) <= KEYS  # with the namespaces /rospy_listener and flood: what rosmaster holds
+        assert status(network, "master")["ros1"]["param_usage"]["robot_b"][0] <= KEYS
+        # deleteParam frees it; then one big value fits and a second is past the bytes
+        assert rogue_xmlrpc(s, "deleteParam", "/rospy_listener", "~flood").value[0] == 1
+        assert rogue_xmlrpc(s, "setParam", "/rospy_listener", "~blob1", "y" * 40000).value[0] == 1
+        assert isinstance(rogue_xmlrpc(s, "setParam", "/rospy_listener", "~blob2", "y" * 40000), Fault)
+        assert rogue_xmlrpc(s, "deleteParam", "/rospy_listener", "~blob1").value[0] == 1
+        # parameter subscriptions: rosmaster keeps each too
+        api = f"cryptoros://{b.address}:{b.public_port}/x/970001"
+        subscribed = [rogue_xmlrpc(s, "subscribeParam", "/param_spy", api, f"~watch/k{i}").value[0] for i in range(60)]
+        assert subscribed.count(1) <= KEYS and subscribed.count(-1) >= 60 - KEYS
+    with network.inside("master"):
+        assert xmlrpc.client.ServerProxy(network.rosmaster_uri).hasParam("/operator", "/rospy_listener/blob2")[2] is False
+    assert denials(network, "master").count("param_quota") >= len(refused)
