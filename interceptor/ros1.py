@@ -362,6 +362,7 @@ class Ros1Role(GatewayRole):
         self._relay_refs: dict[tuple[str, int], int] = {}  # master role: registrations behind each relay
         self._state_loaded = False
         self._save_pending = False
+        self._state_saves = 0  # state files written (/status: a repeat registration writes none)
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         self._resubscribing: set[str] = set()
         #: master role: the registrations rosmaster holds through us, as forwarded, so a
@@ -444,6 +445,7 @@ class Ros1Role(GatewayRole):
         pools = list(self._pools.values())
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
+                         "state_saves": self._state_saves,
                          "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}}}
 
     def _count_idle_close(self) -> None:
@@ -509,6 +511,7 @@ class Ros1Role(GatewayRole):
                 "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
         try:
             write_private_json(path, data)
+            self._state_saves += 1
         except OSError as exc:
             log.error("cannot keep state in %s: %s", path, exc)
 
@@ -710,7 +713,13 @@ class Ros1Role(GatewayRole):
     def _note_registration(self, call: Request, response: Response | Fault, manager: str,
                            exact: bool = True) -> None:
         """What a call rosmaster accepted changes: owners, kept registrations, relay
-        counts. ``exact``: the caller's grants name the node itself (not ``*`` or a pattern)."""
+        counts (and the state file, when one of them changed). ``exact``: the caller's
+        grants name the node itself (not ``*`` or a pattern).
+
+        rosmaster keeps one registration per node and topic (service, parameter key):
+        the same registration made again changes nothing, here either (it used to count
+        again, keeping the node's name and relays after its one unregister, and to
+        rewrite the state file each time)."""
         if not _ros_ok(response) or not call.params:
             return
         node = call.params[0]
@@ -720,17 +729,24 @@ class Ros1Role(GatewayRole):
             if api is not None and self._api_of_node.setdefault(node, api) != api:
                 self._forget_replaced_node(node)
                 self._api_of_node[node] = api
-        kept = None if registering else self._kept(call.method, call.params)
+        kept = self._kept(call.method, call.params)
+        if registering and node in self._owners and kept == (call.method, tuple(call.params)):
+            return  # an identical repeat
         self._record_registration(call.method, call.params)
         if registering:
-            entry = self._owners.setdefault(node, [manager, 0])
-            if entry[1] == 0 and exact:
-                self._owned_by_pattern.discard(node)
-            elif entry[1] == 0:
-                self._owned_by_pattern.add(node)
-            entry[1] += 1
-            self._holds.claim(node)
             self._count_relay_refs(call.method, call.params, +1)
+            if kept is not None and node in self._owners:
+                # made again with other values (a topic's type, a service's URI): it
+                # replaces the one kept, and the relays behind that one lose its count
+                self._count_relay_refs(kept[0], kept[1], -1)
+            else:
+                entry = self._owners.setdefault(node, [manager, 0])
+                if entry[1] == 0 and exact:
+                    self._owned_by_pattern.discard(node)
+                elif entry[1] == 0:
+                    self._owned_by_pattern.add(node)
+                entry[1] += 1
+                self._holds.claim(node)
             self._note_param_subscription(call.method, call.params)
             self._save_state_soon()
         elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
@@ -744,6 +760,7 @@ class Ros1Role(GatewayRole):
                     self._api_of_node.pop(node, None)
                     self._param_subs_of_node.pop(node, None)
                     self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
+            if entry is not None or kept is not None:
                 self._save_state_soon()
             # the relays behind the registration as it was made: unregisterService names
             # the service's URI, not the node API its registration counted too
@@ -1189,13 +1206,15 @@ class Ros1Role(GatewayRole):
         node, topic = call.params[0], call.params[1]
         api = call.params[3] if call.method == "registerSubscriber" else call.params[2]
         subscribers = self._local_subscribers.setdefault(topic, {})
+        before = subscribers.get(node)
         if call.method == "registerSubscriber":
             subscribers[node] = self.translator.to_local(api)
         else:
             subscribers.pop(node, None)
             if not subscribers:
                 del self._local_subscribers[topic]
-        self._save_state()
+        if subscribers.get(node) != before:  # a repeat changes nothing, and writes nothing
+            self._save_state()
 
     def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
         """A topic stream into this host ended: tell the topic's local subscribers the

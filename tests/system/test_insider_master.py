@@ -1,7 +1,8 @@
 """What peers make the master's interceptor and rosmaster hold, against real rosmaster
 and rospy behind real interceptors: master calls (a rate per manager), parameters
-(keys and bytes per manager), the XML-RPC tunnels to their nodes (closed when idle, and
-with the relay they serve).
+(keys and bytes per manager), the state file (not rewritten for a repeated
+registration), the XML-RPC tunnels to their nodes (closed when idle, and with the relay
+they serve).
 
 The insiders have valid certificates and tokens: robot B (subscribe grants on /chatter,
 for any node name) and robot C (no grant at all: it may still read the graph).
@@ -45,10 +46,12 @@ KEYS, BYTES = 40, 65536  # its max_param_keys_per_peer and max_param_bytes_per_p
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    extra = {"master": f"[limits]\ntunnel_idle_timeout = {IDLE}\nspare_connections = false\n"
+    workdir = tmp_path_factory.mktemp("master")
+    extra = {"master": f'state_dir = "{workdir / "state"}"\n'
+                       f"[limits]\ntunnel_idle_timeout = {IDLE}\nspare_connections = false\n"
                        f"max_master_calls_per_second = {RATE}\nmaster_call_burst = {BURST}\n"
                        f"max_param_keys_per_peer = {KEYS}\nmax_param_bytes_per_peer = {BYTES}\n"}
-    with robot_network(tmp_path_factory.mktemp("master"), start=("master", "robot_a", "robot_b"), extra=extra,
+    with robot_network(workdir, start=("master", "robot_a", "robot_b"), extra=extra,
                        netns=separate_hosts()) as net:
         yield net
 
@@ -196,3 +199,32 @@ def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(netwo
     with network.inside("master"):
         assert xmlrpc.client.ServerProxy(network.rosmaster_uri).hasParam("/operator", "/rospy_listener/blob2")[2] is False
     assert denials(network, "master").count("param_quota") >= len(refused)
+
+
+def test_a_repeated_registration_changes_nothing_and_rewrites_no_state_file(network):
+    """rosmaster keeps one registration per node and topic: the same registerSubscriber
+    50 times over writes the master's state file once, and one unregisterSubscriber
+    releases it (its relay too)."""
+    b = network.hosts["robot_b"]
+    state = network.workdir / "state" / "master.state.json"
+    api = f"cryptoros://{b.address}:{b.public_port}/x/980001"
+    call = ("registerSubscriber", "/repeat_listener", "/chatter", "std_msgs/String", api)
+    before = status(network, "master")["ros1"]
+    with rogue_to(network, "master", "robot_b") as s:
+        assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
+        assert rogue_xmlrpc(s, *call).value[0] == 1
+        assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1  # the save after it has run
+        first = status(network, "master")["ros1"]
+        written = state.stat()
+        assert first["state_saves"] > before["state_saves"] and first["relays"] == before["relays"] + 1
+        assert all(rogue_xmlrpc(s, *call).value[0] == 1 for _ in range(50))
+        assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1
+        repeated = status(network, "master")["ros1"]
+        assert repeated["state_saves"] == first["state_saves"]
+        assert (state.stat().st_mtime_ns, state.stat().st_ino) == (written.st_mtime_ns, written.st_ino)
+        # one unregister undoes the one registration rosmaster kept: node and relay released
+        assert rogue_xmlrpc(s, "unregisterSubscriber", "/repeat_listener", "/chatter", api).value[0] == 1
+        assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1
+    after = status(network, "master")["ros1"]
+    assert after["relays"] == before["relays"] and after["state_saves"] > repeated["state_saves"]
+    assert "/repeat_listener" not in json.loads(state.read_text())["owners"]
