@@ -20,9 +20,10 @@ written within one.
 Exact for what passes here. Writes that reach rosmaster another way (a process on
 the master's host talking to rosmaster directly) are not seen: a key such a write
 replaced stays charged until it is deleted through here, and a namespace it made is
-charged to the first manager that writes below it. A restarted rosmaster has lost
-every parameter (:meth:`clear`); a restarted interceptor starts from nothing (what
-was written before is not charged).
+charged to the first manager that writes below it. A write is charged when it is
+sent: one whose request got no answer stays charged (rosmaster may have applied it).
+A restarted rosmaster has lost every parameter (:meth:`clear`); a restarted
+interceptor starts from nothing (what was written before is not charged).
 """
 
 from __future__ import annotations
