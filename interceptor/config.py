@@ -46,6 +46,10 @@ Example::
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
     name_hold_seconds = 120.0         # master role: a released node name stays its owner's (0: off)
+    max_master_calls_per_second = 200.0  # master role: per peer manager, after master_call_burst = 4000
+    max_param_keys_per_peer = 10000   # master role: what a peer may store through setParam (keys...
+    max_param_bytes_per_peer = 16777216  # ... and bytes); deleteParam frees it
+    tunnel_idle_timeout = 60.0        # a pooled XML-RPC tunnel to a peer closes after this long unused
     spare_connections = true          # up to 2 connections kept ready per peer with streams in a row
 
     [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
@@ -92,6 +96,8 @@ from cryptoros.tls import TLSConfig
 from interceptor.monitor import MonitorSettings
 
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
+#: seconds an inbound XML-RPC stream may sit idle between two requests before it is closed
+XMLRPC_IDLE_TIMEOUT = 600.0
 ROLES = ("node", "master", "ros2")
 
 
@@ -195,6 +201,24 @@ class Limits:
     max_relays_per_peer: int = 512
     #: Node names one peer may have registered at the master (master role).
     max_nodes_per_peer: int = 1024
+    #: Master-API calls one peer manager may make per second (master role; every call of
+    #: a multicall counts), after a burst of ``master_call_burst``; more are refused
+    #: (``rate_limited``). A robot's bring-up stays inside the burst: measured, 102 calls
+    #: for the 50 subscribers of ``cryptoros bench interceptor``'s bring-up row, 19 for
+    #: two rospy subscribers from start to exit (about 10 a node, more with more topics).
+    max_master_calls_per_second: float = 200.0
+    master_call_burst: int = 4000
+    #: What one peer manager may store in rosmaster's parameter tree through setParam
+    #: (master role; its nodes' private namespaces and granted ones alike): parameter
+    #: keys (leaves of the values it set) and their bytes (names and values). A write
+    #: past either is refused (``param_quota``); deleteParam frees what it removes. The
+    #: same number of keys bounds the parameter subscriptions (subscribeParam) it holds.
+    max_param_keys_per_peer: int = 10_000
+    max_param_bytes_per_peer: int = 16 << 20
+    #: An XML-RPC tunnel to a peer (pooled for reuse) is closed after this many seconds
+    #: unused; under the peers' own :data:`XMLRPC_IDLE_TIMEOUT` (they close it then), so
+    #: this side closes first and never reuses one the peer is closing.
+    tunnel_idle_timeout: float = 60.0
     #: A node name its owner unregistered stays that manager's for this many seconds
     #: (master role): a node restarting cannot have its name taken in between by another
     #: manager whose grant names nodes by a pattern. 0: a released name is free at once.
@@ -525,11 +549,16 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
     hold = limits_raw.pop("name_hold_seconds", Limits.name_hold_seconds)
     if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold <= 86400:
         raise ConfigError(f"[limits] name_hold_seconds must be seconds from 0 (off) to 86400, got {hold!r}")
+    idle = limits_raw.pop("tunnel_idle_timeout", Limits.tunnel_idle_timeout)
+    if isinstance(idle, bool) or not isinstance(idle, (int, float)) or not 0 < idle < XMLRPC_IDLE_TIMEOUT:
+        raise ConfigError(f"[limits] tunnel_idle_timeout must be seconds over 0 and under {XMLRPC_IDLE_TIMEOUT:g} "
+                          f"(peers close an idle XML-RPC stream then), got {idle!r}")
     limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
     limits = Limits(
         message_size=tuple(sizes),
         tls_session_lifetime=float(lifetime),
         name_hold_seconds=float(hold),
+        tunnel_idle_timeout=float(idle),
         spare_connections=spare,
         **{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()},
     )

@@ -189,6 +189,10 @@ class Role:
     async def stopped(self) -> None:
         """Release what is left (pools, listeners, children)."""
 
+    def status(self) -> dict:
+        """What the role adds to ``/status`` (top-level keys of its own)."""
+        return {}
+
     def check_reload(self, cfg: InterceptorConfig) -> None:
         """Raise CryptorosError if the role cannot take ``cfg`` without a restart."""
 
@@ -676,6 +680,7 @@ class Gateway:
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
             "monitor": self.monitor.status() if self.monitor is not None else None,
+            **{key: value for role in self._roles for key, value in role.status().items()},
         }
 
     async def _start_metrics(self) -> None:
@@ -772,10 +777,13 @@ class Gateway:
         tunnel.writer.close()
         return tunnel.peer.access
 
-    def deny(self, kind: str, exc: CryptorosError, who: str) -> None:
+    def deny(self, kind: str, exc: CryptorosError, who: str, *, logged: bool = True) -> None:
+        """Count a refusal by reason; log it (``logged``: False for a flood of one kind,
+        logged once in a while by the caller)."""
         reason = getattr(exc, "reason", type(exc).__name__)
         self.metrics.denied.labels(kind, reason).inc()
-        log.warning("DENY %s from %s: %s", kind, who, exc)
+        if logged:
+            log.warning("DENY %s from %s: %s", kind, who, exc)
 
     # ================================================================ outbound
     async def open_tunnel(

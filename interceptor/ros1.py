@@ -34,6 +34,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros.policy.ros1 import (
     NAME_BINDING,
     PARAM_READ,
@@ -74,7 +75,9 @@ from cryptoros.tokens import Grants
 from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
+from interceptor.config import XMLRPC_IDLE_TIMEOUT
 from interceptor.name_holds import NameHolds
+from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
 from interceptor.statefile import write_private_json
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
@@ -92,7 +95,15 @@ POOL_WAIT = 0.2
 UNANSWERED = "cryptoros: no answer from the ROS master or the peer (not a denial)"
 _UNANSWERED_REASONS = frozenset({"peer_unreachable", "tunnel_failed"})
 CALL_TIMEOUT = 30.0
-IDLE_TIMEOUT = 600.0
+#: an inbound XML-RPC stream idle this long between requests is closed (a pooled tunnel
+#: of ours is closed sooner: [limits] tunnel_idle_timeout)
+IDLE_TIMEOUT = XMLRPC_IDLE_TIMEOUT
+#: tunnel pools kept (one per peer endpoint called: the master, each remote node API);
+#: the least recently used is closed past this. A pool's relay released closes it too.
+MAX_POOLS = 1024
+#: master role: a master call refused as rate_limited is logged once per manager this
+#: often (seconds); every one is counted (cryptoros_interceptor_denied_total)
+RATE_LOG_INTERVAL = 10.0
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
 #: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
 MAX_REGISTRATIONS = 65_536
@@ -188,6 +199,10 @@ class XmlRpcTunnel:
             raise AssertionError("unreachable")
 
     async def close_locked(self) -> None:
+        self.close_now()
+
+    def close_now(self) -> None:
+        """Close the stream of a tunnel not in use (idle in its pool)."""
         if self._stream is not None:
             self._stream.writer.close()
             self._stream = None
@@ -203,21 +218,36 @@ class TunnelPool:
     10 ms; idle tunnels are kept (up to ``max_idle``) and reused. With ``max_busy``
     calls in flight, the next one waits up to :data:`POOL_WAIT` for a tunnel to come
     back before it opens one of its own: a burst of calls (a robot's nodes registering
-    at once) shares a few tunnels instead of paying a handshake each."""
+    at once) shares a few tunnels instead of paying a handshake each.
+
+    A tunnel unused for ``idle_timeout`` seconds is closed (a peer closes an idle stream
+    after :data:`IDLE_TIMEOUT`: this side closes first). A closed pool (:meth:`close`:
+    its relay released, or evicted) keeps no tunnel: a call still under way, or made
+    later through a connection that holds the pool, closes its own."""
 
     def __init__(self, owner: Ros1Role, host: str, port: int, purpose: str, target: str, max_idle: int = 4,
-                 max_busy: int = POOL_BUSY):
+                 max_busy: int = POOL_BUSY, idle_timeout: float = 60.0,
+                 on_idle_close: Callable[[], None] = lambda: None):
         self._args = (owner, host, port, purpose, target)
-        self._idle: list[XmlRpcTunnel] = []
+        self._on_idle_close = on_idle_close
+        #: idle tunnels and when each was put back (the loop's clock), oldest first
+        self._idle: list[tuple[XmlRpcTunnel, float]] = []
         self._max_idle = max_idle
         self._max_busy = max_busy
+        self._idle_timeout = idle_timeout
+        self._sweep: asyncio.TimerHandle | None = None
         self._busy = 0
+        self.closed = False
         #: calls waiting for a tunnel: each gets one handed back, or None (open your own)
         self._waiters: list[asyncio.Future] = []
 
+    @property
+    def idle_count(self) -> int:
+        return len(self._idle)
+
     async def _acquire(self) -> XmlRpcTunnel:
         if self._idle:
-            return self._idle.pop()
+            return self._idle.pop()[0]  # the most recently used: the others may go idle
         if self._busy >= self._max_busy:
             waiter = asyncio.get_running_loop().create_future()
             self._waiters.append(waiter)
@@ -254,15 +284,38 @@ class TunnelPool:
         self._busy -= 1
         if self._hand_over(tunnel):
             return response
-        if len(self._idle) < self._max_idle:
-            self._idle.append(tunnel)
-        else:
-            await tunnel.close()
+        self._park(tunnel)
         return response
 
-    async def close(self) -> None:
+    def _park(self, tunnel: XmlRpcTunnel) -> None:
+        """Keep an unused tunnel for the next call (closed after ``idle_timeout``)."""
+        if self.closed or len(self._idle) >= self._max_idle:
+            tunnel.close_now()
+            return
+        loop = asyncio.get_running_loop()
+        self._idle.append((tunnel, loop.time()))
+        if self._sweep is None:
+            self._sweep = loop.call_later(self._idle_timeout, self._close_idle)
+
+    def _close_idle(self) -> None:
+        """Close the tunnels idle for ``idle_timeout``; come back for the next one."""
+        self._sweep = None
+        loop = asyncio.get_running_loop()
+        due = loop.time() - self._idle_timeout + 0.01  # the loop may wake a little early
+        while self._idle and self._idle[0][1] <= due:
+            self._idle.pop(0)[0].close_now()
+            self._on_idle_close()
+        if self._idle:
+            self._sweep = loop.call_at(self._idle[0][1] + self._idle_timeout, self._close_idle)
+
+    def close(self) -> None:
+        """Close the idle tunnels now, and every tunnel that comes back from then on."""
+        self.closed = True
+        if self._sweep is not None:
+            self._sweep.cancel()
+            self._sweep = None
         while self._idle:
-            await self._idle.pop().close()
+            self._idle.pop()[0].close_now()
 
 
 
@@ -296,13 +349,23 @@ class Ros1Role(GatewayRole):
         self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
         #: master role: names released by their owner, kept for it a while (a restart)
         self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
+        #: master role: master calls per peer manager ([limits] max_master_calls_per_second)
+        self._master_calls = self._master_call_buckets()
+        self._rate_log = OncePer(RATE_LOG_INTERVAL, max_keys=1024)
+        #: master role: what each peer manager stored in rosmaster through setParam, and the
+        #: lock its parameter writes go to rosmaster under (in the order they are charged)
+        self._params = ParamQuota(cfg.limits.max_param_keys_per_peer, cfg.limits.max_param_bytes_per_peer)
+        self._param_writes = asyncio.Lock()
+        #: one per peer endpoint called, the least recently used first (see pool())
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
+        self._tunnels_closed_idle = 0
         self._servers: list[asyncio.AbstractServer] = []
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
         self._relay_refs: dict[tuple[str, int], int] = {}  # master role: registrations behind each relay
         self._state_loaded = False
         self._save_pending = False
+        self._state_saves = 0  # state files written (/status: a repeat registration writes none)
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         self._resubscribing: set[str] = set()
         #: master role: the registrations rosmaster holds through us, as forwarded, so a
@@ -365,15 +428,35 @@ class Ros1Role(GatewayRole):
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(server.wait_closed(), 1)
         for pool in self._pools.values():
-            await pool.close()
+            pool.close()
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()
 
     def reloaded(self) -> None:
-        """The limits this role keeps a copy of: the next relay and the next held name count by the new ones."""
-        self.translator.max_relays_per_host = self.cfg.limits.max_relays_per_peer
-        self._holds.per_manager = self.cfg.limits.max_nodes_per_peer
+        """The limits this role keeps a copy of: the next relay, held name, master call and
+        parameter write count by the new ones."""
+        limits = self.cfg.limits
+        self.translator.max_relays_per_host = limits.max_relays_per_peer
+        self._holds.per_manager = limits.max_nodes_per_peer
+        if (self._master_calls.rate, self._master_calls.burst) != (limits.max_master_calls_per_second,
+                                                                   float(limits.master_call_burst)):
+            self._master_calls = self._master_call_buckets()
+        self._params.max_keys, self._params.max_bytes = limits.max_param_keys_per_peer, limits.max_param_bytes_per_peer
+
+    def _master_call_buckets(self) -> TokenBuckets:
+        limits = self.cfg.limits
+        return TokenBuckets(limits.max_master_calls_per_second, limits.master_call_burst, max_keys=4096)
+
+    def status(self) -> dict:
+        pools = list(self._pools.values())
+        return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
+                         "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
+                         "state_saves": self._state_saves,
+                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}}}
+
+    def _count_idle_close(self) -> None:
+        self._tunnels_closed_idle += 1
 
     # ================================================================ targets the gate checks
     def _check_master_target(self, preamble: Preamble) -> None:
@@ -435,6 +518,7 @@ class Ros1Role(GatewayRole):
                 "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
         try:
             write_private_json(path, data)
+            self._state_saves += 1
         except OSError as exc:
             log.error("cannot keep state in %s: %s", path, exc)
 
@@ -481,10 +565,16 @@ class Ros1Role(GatewayRole):
         self._save_state()
 
     def pool(self, host: str, port: int, purpose: str, target: str) -> TunnelPool:
+        """The tunnel pool to one peer endpoint (the least recently used of more than
+        :data:`MAX_POOLS` is closed)."""
         key = (host, port, purpose, target)
-        pool = self._pools.get(key)
+        pool = self._pools.pop(key, None)
         if pool is None:
-            pool = self._pools[key] = TunnelPool(self, host, port, purpose, target)
+            pool = TunnelPool(self, host, port, purpose, target, idle_timeout=self.cfg.limits.tunnel_idle_timeout,
+                              on_idle_close=self._count_idle_close)
+        self._pools[key] = pool
+        while len(self._pools) > MAX_POOLS:
+            self._pools.pop(next(iter(self._pools))).close()
         return pool
 
 
@@ -549,7 +639,8 @@ class Ros1Role(GatewayRole):
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
-                self.gw.deny(kind, exc, f"{who} {call.method}")
+                flood = getattr(exc, "reason", None) == "rate_limited"
+                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who))
                 # rospy's set_param/delete_param ignore a [-1, ...] answer: a refused write is
                 # a fault, which raises in the node (rosparam reports it either way)
                 results[i] = (Fault(code=-1, string=OPAQUE) if call.method in PARAM_WRITE
@@ -602,10 +693,40 @@ class Ros1Role(GatewayRole):
         if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
             raise PolicyDenied("node_limit", f"{manager} has {cap} nodes registered already (max_nodes_per_peer)")
 
+    def _check_param_subscription(self, call: Request, manager: str) -> None:
+        """A peer holds at most ``max_param_keys_per_peer`` parameter subscriptions (rosmaster
+        keeps each), and one node at most :data:`MAX_PARAM_SUBSCRIPTIONS_PER_NODE`."""
+        key = _param_subscription_key(call.method, call.params) if call.method == "subscribeParam" else None
+        if key is None:
+            return
+        _kind, node, name = key
+        subs = self._param_subs_of_node.get(node, {})
+        if name in subs:
+            return  # a repeat: nothing more is kept
+        cap = self.cfg.limits.max_param_keys_per_peer
+        held = sum(len(s) for n, s in self._param_subs_of_node.items() if self._owners.get(n, ("",))[0] == manager)
+        if held >= cap or len(subs) >= MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
+            raise PolicyDenied("param_quota", f"{manager} holds {held} parameter subscriptions ({len(subs)} of {node}): "
+                               f"max_param_keys_per_peer {cap}, {MAX_PARAM_SUBSCRIPTIONS_PER_NODE} per node")
+
+    def _charge_param_write(self, call: Request, manager: str) -> None:
+        """A parameter write allowed (key resolved): charged to ``manager`` before it is
+        sent, refused past its quota (:mod:`interceptor.param_quota`)."""
+        if call.method == "setParam" and len(call.params) >= 3:
+            self._params.set(manager, call.params[1], call.params[2])
+        elif call.method == "deleteParam" and len(call.params) >= 2:
+            self._params.delete(call.params[1])
+
     def _note_registration(self, call: Request, response: Response | Fault, manager: str,
                            exact: bool = True) -> None:
         """What a call rosmaster accepted changes: owners, kept registrations, relay
-        counts. ``exact``: the caller's grants name the node itself (not ``*`` or a pattern)."""
+        counts (and the state file, when one of them changed). ``exact``: the caller's
+        grants name the node itself (not ``*`` or a pattern).
+
+        rosmaster keeps one registration per node and topic (service, parameter key):
+        the same registration made again changes nothing, here either (it used to count
+        again, keeping the node's name and relays after its one unregister, and to
+        rewrite the state file each time)."""
         if not _ros_ok(response) or not call.params:
             return
         node = call.params[0]
@@ -615,16 +736,24 @@ class Ros1Role(GatewayRole):
             if api is not None and self._api_of_node.setdefault(node, api) != api:
                 self._forget_replaced_node(node)
                 self._api_of_node[node] = api
+        kept = self._kept(call.method, call.params)
+        if registering and node in self._owners and kept == (call.method, tuple(call.params)):
+            return  # an identical repeat
         self._record_registration(call.method, call.params)
         if registering:
-            entry = self._owners.setdefault(node, [manager, 0])
-            if entry[1] == 0 and exact:
-                self._owned_by_pattern.discard(node)
-            elif entry[1] == 0:
-                self._owned_by_pattern.add(node)
-            entry[1] += 1
-            self._holds.claim(node)
             self._count_relay_refs(call.method, call.params, +1)
+            if kept is not None and node in self._owners:
+                # made again with other values (a topic's type, a service's URI): it
+                # replaces the one kept, and the relays behind that one lose its count
+                self._count_relay_refs(kept[0], kept[1], -1)
+            else:
+                entry = self._owners.setdefault(node, [manager, 0])
+                if entry[1] == 0 and exact:
+                    self._owned_by_pattern.discard(node)
+                elif entry[1] == 0:
+                    self._owned_by_pattern.add(node)
+                entry[1] += 1
+                self._holds.claim(node)
             self._note_param_subscription(call.method, call.params)
             self._save_state_soon()
         elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
@@ -638,9 +767,24 @@ class Ros1Role(GatewayRole):
                     self._api_of_node.pop(node, None)
                     self._param_subs_of_node.pop(node, None)
                     self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
+            if entry is not None or kept is not None:
                 self._save_state_soon()
-            self._count_relay_refs(call.method, call.params, -1)
+            # the relays behind the registration as it was made: unregisterService names
+            # the service's URI, not the node API its registration counted too
+            self._count_relay_refs(*(kept or (call.method, call.params)), -1)
             self._note_param_subscription(call.method, call.params)
+
+    def _kept(self, method: str, params: tuple) -> tuple[str, tuple] | None:
+        """The registration (or parameter subscription) a master call makes or releases,
+        as it was forwarded when made ((method, params)), if it is kept."""
+        key = _registration_key(method, params)
+        if key is not None:
+            return self._registrations.get(key)
+        key = _param_subscription_key(method, params)
+        if key is not None:
+            params = self._param_subs_of_node.get(key[1], {}).get(key[2])
+            return None if params is None else ("subscribeParam", params)
+        return None
 
     def _note_param_subscription(self, method: str, params: tuple) -> None:
         key = _param_subscription_key(method, params)
@@ -714,6 +858,8 @@ class Ros1Role(GatewayRole):
             if pid is not None and pid != self._master_pid:
                 # a new pid, or the first one seen after a restart of ours with registrations
                 # from state_dir (a repeated registration is harmless to rosmaster)
+                if self._master_pid is not None:
+                    self._params.clear()  # a new rosmaster holds no parameter
                 if self._master_pid is not None or self._registrations:
                     await self._replay_registrations(pid)
                 self._master_pid = pid
@@ -749,7 +895,11 @@ class Ros1Role(GatewayRole):
                 self._release_relay(endpoint)
 
     def _release_relay(self, endpoint: tuple[str, int]) -> None:
+        target = self.translator.relay_target(*endpoint)
         self.translator.forget_relay(*endpoint)
+        pool = self._pools.pop((target.host, target.port, "node", target.id), None) if target else None
+        if pool is not None:  # its tunnels to the node's interceptor are closed with it
+            pool.close()
         server = self._relay_servers.pop(endpoint, None)
         if server is not None:
             server.close()
@@ -779,14 +929,23 @@ class Ros1Role(GatewayRole):
             return local
 
         def decide(call: Request) -> Request:
+            if not self._master_calls.allow(peer.manager):
+                limits = self.cfg.limits
+                raise PolicyDenied("rate_limited", f"{peer.manager} makes master calls faster than "
+                                   f"{limits.max_master_calls_per_second:g} a second after {limits.master_call_burst} "
+                                   f"(max_master_calls_per_second, master_call_burst; this is logged once per "
+                                   f"{RATE_LOG_INTERVAL:g} s, every refusal counted)")
             grants = self.verifier.deciding(peer.access).grants  # the peer's freshest token, still valid
             check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
                               owner_of=functools.partial(self._owner_of, grants=grants))
             call = _resolved_param_call(call, grants)
             self._check_node_limit(call, peer.manager)
+            self._check_param_subscription(call, peer.manager)
             uri_map = existing_from_peer if call.method in _RELEASING_CALLS else to_local_from_peer
             call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
-            return _rewrite_param_api(call, uri_map)
+            call = _rewrite_param_api(call, uri_map)
+            self._charge_param_write(call, peer.manager)  # last: only a call sent on is charged
+            return call
 
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             grants = self.verifier.freshest(peer.access).grants
@@ -796,7 +955,14 @@ class Ros1Role(GatewayRole):
             return rewrite_response(call, response, uri=self.translator.to_canonical)
 
         async def handle(request: Request) -> Response | Fault:
-            return await self._decide_calls(request, decide, self._call_upstream_master, after, "master", peer.manager)
+            if not _writes_params(request):
+                return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
+                                                peer.manager)
+            # parameter writes reach rosmaster one request at a time, in the order they
+            # were charged: a deleteParam racing a setParam cannot free what rosmaster keeps
+            async with self._param_writes:
+                return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
+                                                peer.manager)
 
         await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
@@ -1051,13 +1217,15 @@ class Ros1Role(GatewayRole):
         node, topic = call.params[0], call.params[1]
         api = call.params[3] if call.method == "registerSubscriber" else call.params[2]
         subscribers = self._local_subscribers.setdefault(topic, {})
+        before = subscribers.get(node)
         if call.method == "registerSubscriber":
             subscribers[node] = self.translator.to_local(api)
         else:
             subscribers.pop(node, None)
             if not subscribers:
                 del self._local_subscribers[topic]
-        self._save_state()
+        if subscribers.get(node) != before:  # a repeat changes nothing, and writes nothing
+            self._save_state()
 
     def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
         """A topic stream into this host ended: tell the topic's local subscribers the
@@ -1308,6 +1476,14 @@ def _local_endpoint(uri) -> tuple[str, int] | None:
         return host_port(uri)
     except UriError:
         return None
+
+
+def _writes_params(request: Request) -> bool:
+    """Whether a request (a multicall: one of its calls) is setParam or deleteParam."""
+    if request.method in PARAM_WRITE:
+        return True
+    calls = request.params[0] if request.method == MULTICALL and request.params else None
+    return isinstance(calls, list) and any(isinstance(c, dict) and c.get("methodName") in PARAM_WRITE for c in calls)
 
 
 def _resolved_param_call(call: Request, grants) -> Request:

@@ -78,6 +78,8 @@ def test_relative_paths_are_relative_to_the_file(material, tmp_path):
         ({'local_master = "127.0.0.1:11311"': 'local_master = "10.1.2.3:11311"'}, "must be a loopback address"),
         ({'interceptor = "127.0.0.4:11400"': ""}, "needs \\[master\\] interceptor"),
         ({"manager = \"robot1\"": "manager = \"robot1\"\nroles2 = 1"}, "unknown key 'roles2'"),
+        ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 600"}, "tunnel_idle_timeout must be seconds"),
+        ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 0"}, "tunnel_idle_timeout must be seconds"),
     ],
 )
 def test_mistakes_are_one_line_config_errors(material, tmp_path, edit, message):

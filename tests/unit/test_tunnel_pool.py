@@ -28,6 +28,9 @@ class FakeTunnel:
     async def close(self) -> None:
         self.closed = True
 
+    def close_now(self) -> None:
+        self.closed = True
+
 
 @pytest.fixture(autouse=True)
 def fake_tunnels(monkeypatch):
@@ -66,3 +69,35 @@ async def test_a_failed_call_closes_its_tunnel_and_lets_a_waiter_open_one():
     assert await waiting == "ok"
     assert FakeTunnel.made[0].closed
     assert len(FakeTunnel.made) == 2
+
+
+async def _until(condition, timeout: float = 5.0) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not condition():
+        assert asyncio.get_running_loop().time() < deadline, "not within the bound"
+        await asyncio.sleep(0.01)
+
+
+async def test_an_idle_tunnel_is_closed_after_the_idle_timeout_and_a_used_one_is_kept():
+    pool = TunnelPool(None, "127.0.0.2", 1, "node", "7", max_idle=4, max_busy=2, idle_timeout=0.2)
+    await asyncio.gather(pool.call(0.0), pool.call(0.0))
+    old, recent = FakeTunnel.made
+    assert pool.idle_count == 2 and not old.closed
+    await _until(lambda: pool.idle_count == 0)
+    assert old.closed and recent.closed
+    assert await pool.call(0.0) == "ok"  # the next call opens a fresh tunnel
+    assert len(FakeTunnel.made) == 3 and pool.idle_count == 1
+
+
+async def test_a_closed_pool_keeps_no_tunnel_even_one_coming_back_from_a_call():
+    pool = TunnelPool(None, "127.0.0.2", 1, "node", "7", max_idle=4, max_busy=2, idle_timeout=60.0)
+    await asyncio.gather(pool.call(0.0), pool.call(0.0))
+    idle, taken = FakeTunnel.made
+    under_way = asyncio.ensure_future(pool.call(0.05))  # takes the most recently used
+    await asyncio.sleep(0)
+    pool.close()
+    assert idle.closed and not taken.closed and pool.idle_count == 0
+    assert await under_way == "ok"
+    assert all(t.closed for t in FakeTunnel.made) and pool.idle_count == 0
+    assert await pool.call(0.0) == "ok"  # still answers (a connection holding it), keeps nothing
+    assert all(t.closed for t in FakeTunnel.made) and pool.idle_count == 0
