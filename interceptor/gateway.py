@@ -480,11 +480,10 @@ class Gateway:
             if isinstance(exc, ssl.SSLError):
                 return None  # counted and logged as it happened (_counting_sslobject_class)
             if isinstance(exc, TimeoutError) or "longer than" in str(exc):
-                reason, level = "handshake_timeout", logging.WARNING
-            else:  # closed before or during the handshake: a port probe, a peer gone
-                reason, level = "closed_in_handshake", logging.INFO
-            self.metrics.denied.labels("tls", reason).inc()
-            log.log(level, "DENY tls handshake from %s: %s", who, str(exc) or reason)
+                self.metrics.denied.labels("tls", "handshake_timeout").inc()
+                log.warning("DENY tls handshake from %s: %s", who, str(exc) or "handshake_timeout")
+            else:  # closed before or during the handshake (a port probe, a peer gone): no denial
+                log.debug("connection from %s closed in its TLS handshake: %s", who, exc)
             return None
         return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
 
