@@ -422,7 +422,9 @@ class Mission:
                 time.sleep(0.1)
             armed = self._arm_attacks(g)
             t0 = time.time() + 0.3
-            (self.dir / "go.json").write_text(json.dumps({"t0": t0}))
+            go = self.dir / "go.json"  # the robots wait for it to exist: it must never be seen half written
+            go.with_suffix(".tmp").write_text(json.dumps({"t0": t0}))
+            os.replace(go.with_suffix(".tmp"), go)
             self.t0 = t0
             started = time.monotonic() + 0.3
             quiet_since = None

