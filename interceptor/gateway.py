@@ -475,7 +475,7 @@ class Gateway:
         except asyncio.CancelledError:
             sock.close()
             raise
-        except (ssl.SSLError, ConnectionError, OSError, TimeoutError) as exc:
+        except OSError as exc:  # an SSLError, a reset, the handshake deadline (TimeoutError)
             sock.close()
             if isinstance(exc, ssl.SSLError):
                 return None  # counted and logged as it happened (_counting_sslobject_class)
@@ -505,7 +505,6 @@ class Gateway:
                     raise
 
         return CountingSSLObject
-
 
     async def stop(self, grace: float = 5.0) -> None:
         """Stop listening, cut the streams with nothing in flight (:meth:`cuttable`), let
