@@ -684,19 +684,6 @@ class PeerVerifier:
             return access
         return current
 
-    def deciding(self, access: AccessToken) -> AccessToken:
-        """The token a new call of the peer that presented ``access`` is decided by: its
-        freshest, refused (:class:`~cryptoros.errors.TokenError`) once the feed revoked
-        it or it expired. The grace periods let what is under way finish while a fresh
-        token comes (:meth:`apply`, :meth:`sweep`); they never let a new call start on
-        grants the registry took back."""
-        current = self.freshest(access)
-        if current.jti in self.revocations.revoked_jtis:
-            raise TokenError("token_revoked", f"{current.subject}'s token was revoked and no fresh one shown yet")
-        if current.expires_at <= self._clock():
-            raise TokenError("token_expired", f"{current.subject}'s token expired and no fresh one shown yet")
-        return current
-
     def _cut(self, entry: _Watch, reason: str) -> None:
         self._watches.discard(entry)
         log.warning("cutting off stream of manager=%s jti=%s: %s", entry.access.subject, entry.access.jti, reason)

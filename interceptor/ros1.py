@@ -935,7 +935,7 @@ class Ros1Role(GatewayRole):
                                    f"{limits.max_master_calls_per_second:g} a second after {limits.master_call_burst} "
                                    f"(max_master_calls_per_second, master_call_burst; this is logged once per "
                                    f"{RATE_LOG_INTERVAL:g} s, every refusal counted)")
-            grants = self.verifier.deciding(peer.access).grants  # the peer's freshest token, still valid
+            grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
             check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
                               owner_of=functools.partial(self._owner_of, grants=grants))
             call = _resolved_param_call(call, grants)
@@ -997,7 +997,7 @@ class Ros1Role(GatewayRole):
             check_node_call(
                 call.method,
                 call.params,
-                grants=self.verifier.deciding(peer.access).grants,
+                grants=self.verifier.freshest(peer.access).grants,
                 peer_is_master=peer.manager == self.cfg.master.manager,
                 topic_types=self.topic_types,
             )
