@@ -236,32 +236,32 @@ def _read_profile(profile: ET.Element, ns: str, node: str, where: str, types: Ma
                 out.notes.append(Note(ewhere, "a private name of a node pattern names no one topic: not granted"))
                 continue
             name = resolve(expr, ns, node)
-            for attr, value in sorted(rule_q.items()):
-                action = qualifiers[attr]
-                if value == "DENY":
-                    denied.append((action, name, ewhere))
-                    out.notes.append(Note(ewhere, f"{attr}=DENY has no equivalent (grants only allow; no grant is a "
-                                                  f"denial): it withholds every {action} ALLOW of this enclave it "
-                                                  "matches"))
-                    continue
-                if not node_ok:
-                    continue
-                if _WILDCARD.search(name):
-                    out.notes.append(Note(ewhere, f"{attr}=ALLOW of the wildcard {name}: grants name each "
-                                                  f"{child_tag} exactly: not granted"))
-                    continue
-                if _stays_local(rule.tag, name, node_name):
-                    out.notes.append(Note(ewhere, f"{name} is ROS's own and never leaves the robot's domain: "
-                                                  "needs no grant"))
-                    continue
-                type_ = types.get(name)
-                if type_ is None:
-                    out.notes.append(Note(ewhere, f"{attr}=ALLOW: no type for {name} (SROS2 holds none; give "
-                                                  f"--type {name}=pkg/{'msg' if child_tag == 'topic' else 'srv'}/"
-                                                  "Name): not granted"))
-                    continue
+            allows = [attr for attr, value in sorted(rule_q.items()) if value == "ALLOW"]
+            for attr in sorted(a for a, value in rule_q.items() if value == "DENY"):
+                denied.append((qualifiers[attr], name, ewhere))
+                out.notes.append(Note(ewhere, f"{attr}=DENY has no equivalent (grants only allow; no grant is a "
+                                              f"denial): it withholds every {qualifiers[attr]} ALLOW of this "
+                                              "enclave it matches"))
+            if not allows or not node_ok:
+                continue
+            said = "/".join(allows) + "=ALLOW"
+            if _WILDCARD.search(name):
+                out.notes.append(Note(ewhere, f"{said} of the wildcard {name}: grants name each {child_tag} "
+                                              "exactly: not granted"))
+                continue
+            if _stays_local(rule.tag, name, node_name):
+                out.notes.append(Note(ewhere, f"{name} is ROS's own and never leaves the robot's domain: needs "
+                                              "no grant"))
+                continue
+            type_ = types.get(name)
+            if type_ is None:
+                out.notes.append(Note(ewhere, f"{said}: no type for {name} (SROS2 holds none; give --type "
+                                              f"{name}=pkg/{'msg' if child_tag == 'topic' else 'srv'}/Name): "
+                                              "not granted"))
+                continue
+            for attr in allows:
                 try:
-                    allowed.append((GrantRow.checked(action, node_name, name, type_), ewhere))
+                    allowed.append((GrantRow.checked(qualifiers[attr], node_name, name, type_), ewhere))
                 except RegistryError as exc:
                     out.notes.append(Note(ewhere, f"{attr}=ALLOW: {exc}: not granted"))
 
@@ -302,6 +302,7 @@ def sros2_from_grants(grants: Iterable[GrantRow], *, enclave: str) -> Exported:
     (the schema needs at least one profile)."""
     notes: list[Note] = []
     types: dict[str, str] = {}
+    conflicts: set[str] = set()
     per_node: dict[str, dict[str, set[str]]] = {}
     for g in sorted(grants):
         where = f"{g.action} {g.node} {g.name}"
@@ -316,9 +317,12 @@ def sros2_from_grants(grants: Iterable[GrantRow], *, enclave: str) -> Exported:
             notes.append(Note(where, "node name cannot be a profile: not exported"))
             continue
         if types.setdefault(g.name, g.type) != g.type:
-            notes.append(Note(where, f"{g.name} is granted with {types[g.name]} and {g.type}: SROS2 holds no type "
-                                     f"and the types file keeps {types[g.name]}"))
+            conflicts.add(g.name)
         per_node.setdefault(g.node, {}).setdefault(g.name, set()).add(g.action)
+    for name in sorted(conflicts):
+        notes.append(Note(name, "granted with several types: SROS2 holds none, and the types file leaves it out "
+                                "(import-sros2 then needs --type for it)"))
+        del types[name]
     if not per_node:
         raise RegistryError("nothing to export as SROS2: no topic or service grant with a ROS 2 type")
     root = ET.Element("policy", version=VERSION)
