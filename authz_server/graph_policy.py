@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import fnmatch
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -28,6 +29,9 @@ from cryptoros.policy.ros1 import DEFAULT_PARAM_READS
 
 #: the caller id the reader presents to the master and in its service probes
 CALLER_ID = "/cryptoros_authz_graph"
+#: rospy's anonymous names (``<name>_<pid>_<ms>``: rostopic, rosservice) and rosparam's
+#: ``/rosparam-<pid>``: a name another run will not have
+_ANONYMOUS = re.compile(r"(_\d+_\d+|-\d+)$")
 
 
 # ---------------------------------------------------------------------- manager map
@@ -134,6 +138,10 @@ def draft_policy(graph: Graph, managers: ManagerMap, *, param_access: str = "rea
         manager = managers.manager_for(node, _host(graph.node_uris.get(node)))
         if manager is None:
             draft.warnings.append(f"node {node} matches no --manager-map entry: granted nothing")
+        elif _ANONYMOUS.search(node):
+            draft.warnings.append(f"node {node} has an anonymous name (another each run: a stock tool or "
+                                  "init_node(anonymous=True)): granted nothing; grant it by a pattern by hand "
+                                  "(cryptoros-authz grant-tools for stock tools)")
         else:
             owner[node] = manager
     grants: dict[str, set[GrantRow]] = {}
@@ -239,19 +247,18 @@ async def read_graph(master_uri: str, *, timeout: float = 5.0) -> Graph:
     except CryptorosError as exc:
         raise RegistryError(f"--master-uri {master_uri!r}: {exc}") from None
     try:
+        def table(rows) -> dict[str, list[str]]:
+            return {_text(name): [_text(n) for n in nodes] for name, nodes in rows}
+
         try:
-            pubs, subs, srvs = await client.call("getSystemState", CALLER_ID)
-            types = dict(await client.call("getTopicTypes", CALLER_ID))
-            params = await client.call("getParamNames", CALLER_ID)
+            pubs, subs, srvs = (table(rows) for rows in await client.call("getSystemState", CALLER_ID))
+            types = {_text(k): _text(v) for k, v in await client.call("getTopicTypes", CALLER_ID)}
+            params = [_text(p) for p in await client.call("getParamNames", CALLER_ID)]
         except (OSError, asyncio.TimeoutError) as exc:
             raise RegistryError(f"cannot read the graph from {master_uri}: {exc or type(exc).__name__}") from None
         except (RosApiError, CryptorosError, ValueError, TypeError) as exc:
             raise RegistryError(f"{master_uri} did not answer as a ROS master: {exc}") from None
-
-        def table(rows) -> dict[str, list[str]]:
-            return {str(name): [str(n) for n in nodes] for name, nodes in rows}
-
-        graph_nodes = {n for t in (pubs, subs, srvs) for _name, nodes in t for n in nodes}
+        graph_nodes = {n for t in (pubs, subs, srvs) for nodes in t.values() for n in nodes}
         node_uris: dict[str, str | None] = {}
         for node in sorted(graph_nodes):
             try:
@@ -259,7 +266,7 @@ async def read_graph(master_uri: str, *, timeout: float = 5.0) -> Graph:
             except (OSError, asyncio.TimeoutError, RosApiError, CryptorosError):
                 node_uris[node] = None
         service_types: dict[str, str | None] = {}
-        for service, _nodes in srvs:
+        for service in srvs:
             try:
                 uri = await client.call("lookupService", CALLER_ID, service)
             except (OSError, asyncio.TimeoutError, RosApiError, CryptorosError):
@@ -268,8 +275,14 @@ async def read_graph(master_uri: str, *, timeout: float = 5.0) -> Graph:
             service_types[service] = await _probe_service_type(service, uri, timeout)
     finally:
         await client.close()
-    return Graph(publishers=table(pubs), subscribers=table(subs), services=table(srvs), topic_types=types,
-                 service_types=service_types, node_uris=node_uris, param_names=[str(p) for p in params])
+    return Graph(publishers=pubs, subscribers=subs, services=srvs, topic_types=types,
+                 service_types=service_types, node_uris=node_uris, param_names=params)
+
+
+def _text(value: object) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"expected a string, got {type(value).__name__}")
+    return value
 
 
 __all__ = ["CALLER_ID", "Draft", "Graph", "ManagerMap", "draft_policy", "policy_document", "read_graph"]
