@@ -11,7 +11,6 @@ changes nothing.
 from __future__ import annotations
 
 import asyncio
-import sys
 from pathlib import Path
 
 import click

@@ -143,3 +143,23 @@ def test_the_draft_with_certificates_runs_that_graph_behind_interceptors(tmp_pat
             while "/stray" not in denials(network, "robot_b"):
                 assert time.monotonic() < deadline, denials(network, "robot_b")
                 time.sleep(0.2)
+
+
+def test_a_master_answering_garbage_is_one_error_line():
+    import threading
+    from xmlrpc.server import SimpleXMLRPCServer
+
+    server = SimpleXMLRPCServer(("127.0.0.1", 0), logRequests=False, allow_none=True)
+    server.register_function(lambda caller: [1, "", [[["/t", [7]]], [], []]], "getSystemState")
+    server.register_function(lambda caller: [1, "", "not a list"], "getTopicTypes")
+    server.register_function(lambda caller: [1, "", []], "getParamNames")
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        uri = f"http://127.0.0.1:{server.server_address[1]}"
+        r = run([script("cryptoros-authz"), "policy", "from-graph", "--master-uri", uri, "--manager-map", "*=m"],
+                timeout=30)
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip() == f"cryptoros-authz: error: {uri} did not answer as a ROS master: expected a string, got int"
