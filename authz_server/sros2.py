@@ -232,9 +232,6 @@ def _read_profile(profile: ET.Element, ns: str, node: str, where: str, types: Ma
                                               "role does not carry actions (their /_action/ topics and services "
                                               "are hidden names a grant cannot hold): not granted"))
                 continue
-            if "*" in node_name and expr.startswith("~"):
-                out.notes.append(Note(ewhere, "a private name of a node pattern names no one topic: not granted"))
-                continue
             name = resolve(expr, ns, node)
             allows = [attr for attr, value in sorted(rule_q.items()) if value == "ALLOW"]
             for attr in sorted(a for a, value in rule_q.items() if value == "DENY"):
@@ -245,6 +242,10 @@ def _read_profile(profile: ET.Element, ns: str, node: str, where: str, types: Ma
             if not allows or not node_ok:
                 continue
             said = "/".join(allows) + "=ALLOW"
+            if "*" in node_name and expr.startswith("~"):
+                out.notes.append(Note(ewhere, f"{said} of a private name of a node pattern ({name}) names no one "
+                                              f"{child_tag}: not granted"))
+                continue
             if _WILDCARD.search(name):
                 out.notes.append(Note(ewhere, f"{said} of the wildcard {name}: grants name each {child_tag} "
                                               "exactly: not granted"))

@@ -286,6 +286,21 @@ def test_a_deny_withholds_the_allows_it_matches_in_the_whole_enclave():
     assert any("a DENY of /cmd_*" in str(n) and "node=a" in str(n) for n in imported.notes)
 
 
+def test_a_deny_of_a_private_name_in_a_node_pattern_still_withholds():
+    policy = """<policy version="0.2.0"><enclaves><enclave path="/e"><profiles>
+      <profile ns="/r" node="*"><services request="DENY"><service>~/reset</service></services></profile>
+      <profile ns="/r" node="driver"><services request="ALLOW"><service>/r/driver/reset</service></services>
+        <services reply="ALLOW"><service>~/status</service></services></profile>
+      <profile ns="/r" node="*"><topics subscribe="ALLOW"><topic>~/state</topic></topics></profile>
+    </profiles></enclave></enclaves></policy>"""
+    types = {"/r/driver/reset": "std_srvs/srv/Empty", "/r/driver/status": "std_srvs/srv/Trigger"}
+    imported = grants_from_sros2(policy, ManagerMap.parse(["/e=m"]), types)
+    assert imported.grants == {"m": {GrantRow("serve", "/r/driver", "/r/driver/status", "std_srvs/srv/Trigger")}}
+    text = "\n".join(map(str, imported.notes))
+    assert "call /r/driver/reset: not granted, a DENY of /r/*/reset" in text
+    assert "subscribe=ALLOW of a private name of a node pattern (/r/*/state)" in text
+
+
 def test_what_export_cannot_hold_is_reported():
     grants = {
         GrantRow("publish", "/talker", "/chatter", "std_msgs/msg/String"),
