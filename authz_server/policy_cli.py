@@ -54,9 +54,10 @@ def policy() -> None:
 
 
 @policy.command("from-graph")
-@click.option("--master-uri", required=True, envvar="ROS_MASTER_URI", show_envvar=True,
+@click.option("--master-uri", required=True,
               help="XML-RPC URI of the plain rosmaster (before cryptoros is enforced, or the master host's "
-                   "loopback one): an interceptor's local master answers only what its grants show.")
+                   "loopback one), never taken from $ROS_MASTER_URI: an interceptor's local master answers "
+                   "only what its grants show.")
 @click.option("--manager-map", "manager_map", multiple=True, required=True, metavar="PATTERN=MANAGER",
               help=_MAP_HELP.format(what="node name", extra=", or '@HOST=MANAGER' on the host of the node's "
                                                            "XML-RPC URI"))
