@@ -554,5 +554,12 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
         pass
 
 
+# ---------------------------------------------------------------------- policy authoring
+from authz_server.policy_cli import COMMANDS as _POLICY_COMMANDS  # noqa: E402
+
+for _command in _POLICY_COMMANDS:  # policy from-graph, import-sros2, export-sros2
+    main.add_command(_command)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()
