@@ -419,6 +419,8 @@ class Gateway:
             log.error("no access token yet (%s): everything is refused until one arrives", exc)
         self.verifier.listeners.append(self._on_feed)
         self.verifier.stale_listeners.append(self._on_stale_peer_token)
+        self.verifier.cut_listeners.append(lambda reason: self.metrics.cutoffs.labels(reason).inc())
+        self.verifier.own_expiry = lambda: self.keeper.expires_at
         self.keeper.listeners.append(self._on_own_token)
         self.spawn(self.keeper.run(), "token-keeper")
         self.spawn(self.verifier.run(), "revocation-feed")
@@ -1157,7 +1159,6 @@ class Gateway:
 
         def cut(reason: str) -> None:
             cut_by.setdefault("reason", reason)
-            self.metrics.cutoffs.inc()
             writer.transport.abort()
 
         unwatch = self.verifier.watch(access, cut)
