@@ -28,7 +28,7 @@ import contextvars
 import hashlib
 import ssl
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -258,15 +258,19 @@ class FullHandshakes:
 
 class PeerCertificateCheck:
     """What a full handshake checked of the peer's certificate and a resumed one does
-    not: its validity period and the configured CRL. Run on every stream, resumed or
-    not (the chain itself was verified by the full handshake the session descends
+    not: its validity period and the configured CRL; and what neither checks: the
+    serials the CA revoked since the CRL was loaded (``revoked_serials``, read at each
+    check: the authorization server's revocation feed). Run on every handshake, resumed
+    or not (the chain itself was verified by the full handshake the session descends
     from, with the same CA: a reload draws new ticket keys). Raises TokenError
     (``certificate_expired``, ``certificate_not_yet_valid``, ``certificate_revoked``).
     Each certificate is parsed once (bounded cache by SHA-256)."""
 
     MAX_CERTIFICATES = 4096
 
-    def __init__(self, crl_file: Path | None) -> None:
+    def __init__(self, crl_file: Path | None, *,
+                 revoked_serials: Callable[[], Collection[int]] = frozenset) -> None:
+        self._feed_serials = revoked_serials
         #: (issuer name DER, serial) of every certificate the CRL file revokes (every CRL in
         #: it, as OpenSSL reads a bundle; a serial is unique only per issuer)
         self.revoked: frozenset[tuple[bytes, int]] = frozenset()
@@ -300,6 +304,9 @@ class PeerCertificateCheck:
             raise TokenError("certificate_not_yet_valid", f"the peer's certificate (serial {serial:x}) is not valid yet")
         if (issuer, serial) in self.revoked:
             raise TokenError("certificate_revoked", f"the peer's certificate (serial {serial:x}) is on the CRL")
+        if serial in self._feed_serials():
+            raise TokenError("certificate_revoked", f"the peer's certificate (serial {serial:x}) was revoked by the CA "
+                                                    "(revocation feed)")
 
 
 def peer_cert_der(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> bytes:

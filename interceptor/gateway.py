@@ -491,8 +491,12 @@ class Gateway:
 
     def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
         """An SSLObject whose failed handshakes are counted and logged like every other
-        denial (asyncio itself only logs them in debug mode)."""
-        metrics = self.metrics
+        denial (asyncio itself only logs them in debug mode), and whose handshake fails
+        for a client certificate :class:`~cryptoros.tls.PeerCertificateCheck` refuses:
+        one the CA revoked after the CRL was loaded (the feed's serials), one out of its
+        validity period or on the CRL on a resumed handshake (which OpenSSL does not
+        verify again). The client's connection then closes before any stream begins."""
+        gateway = self
 
         class CountingSSLObject(ssl.SSLObject):
             def do_handshake(self) -> None:
@@ -502,9 +506,16 @@ class Gateway:
                     raise
                 except ssl.SSLError as exc:
                     reason = (exc.reason or type(exc).__name__).lower()
-                    metrics.denied.labels("tls", reason).inc()
+                    gateway.metrics.denied.labels("tls", reason).inc()
                     log.warning("DENY tls handshake: %s", exc)
                     raise
+                if self.server_side:
+                    try:
+                        gateway._cert_check.check(peer_cert_der(self))
+                    except TokenError as exc:
+                        gateway.metrics.denied.labels("tls", exc.reason).inc()
+                        log.warning("DENY tls handshake: %s", exc)
+                        raise ssl.SSLError(ssl.SSL_ERROR_SSL, f"{exc.reason}: {exc.detail}") from None
 
         return CountingSSLObject
 
@@ -536,18 +547,19 @@ class Gateway:
             await self._metrics_runner.cleanup()
         await self.authz.close()
 
-    @staticmethod
-    def _tls_state(cfg: InterceptorConfig):
+    def _tls_state(self, cfg: InterceptorConfig):
         """Everything TLS between interceptors, built from one configuration: both
         contexts, the client's kept sessions (for that client context only), the
-        server's record of full handshakes and the per-stream certificate check (the
-        CRL as loaded with the contexts). A new server context draws new ticket keys,
-        so a reload makes every earlier session worthless."""
+        server's record of full handshakes and the per-handshake certificate check (the
+        CRL as loaded with the contexts, and the serials the revocation feed lists now).
+        A new server context draws new ticket keys, so a reload makes every earlier
+        session worthless."""
         lifetime = cfg.limits.tls_session_lifetime
         client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
         return (server_context(cfg.tls, tickets=1 if lifetime > 0 else 0), client_ctx,
                 SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
-                PeerCertificateCheck(cfg.tls.crl_file))
+                PeerCertificateCheck(cfg.tls.crl_file,
+                                     revoked_serials=lambda: self.verifier.revocations.revoked_serials))
 
     @staticmethod
     def _held_feed_wait(cfg: InterceptorConfig) -> float:
@@ -568,14 +580,16 @@ class Gateway:
 
     def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
         """The peer's certificate, checked on every stream (resumed or not): validity
-        period and CRL here, the revocation feed with its token. Returns its DER."""
+        period, CRL and the CA's revocations in the feed (for a stream in, inside the
+        handshake: :meth:`_counting_sslobject_class`), then its token. Returns its DER."""
         der = peer_cert_der(ssl_object)
         resumed = bool(ssl_object.session_reused)
         self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
         self.metrics.stream_checks.labels("certificate").inc()
-        self._cert_check.check(der)
         if direction == "in":
             self._full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+        else:
+            self._cert_check.check(der)
         return der
 
     async def reload(self, cfg: InterceptorConfig) -> None:
