@@ -80,15 +80,29 @@ def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl
         if cfg.crl_file is not None:
             ctx.load_verify_locations(cafile=str(cfg.crl_file))
             ctx.verify_flags |= ssl.VERIFY_CRL_CHECK_LEAF
-        ctx.load_cert_chain(str(cfg.cert_file), str(cfg.key_file), password=cfg.key_passphrase or _no_password)
+        ctx.load_cert_chain(str(cfg.cert_file), str(cfg.key_file),
+                            password=cfg.key_passphrase or (lambda: _no_password(cfg.key_file)))
     except ssl.SSLError as exc:
+        _explain_key(cfg)
         raise ConfigError(f"cannot load TLS material ({cfg.cert_file}, {cfg.key_file}): {exc.reason or exc}") from exc
     return ctx
 
 
-def _no_password() -> bytes:
+def _explain_key(cfg: TLSConfig) -> None:
+    """OpenSSL says only ``PEM lib`` when the key does not open: read it ourselves to say
+    which file and why (:mod:`cryptoros.pemfiles` names the file)."""
+    try:
+        pemfiles.load_private_key(cfg.key_file, cfg.key_passphrase)
+    except pemfiles.WrongPassphrase:
+        raise ConfigError(f"TLS key {cfg.key_file}: the passphrase given does not open it (a wrong passphrase, "
+                          "or the passphrase of another key?)") from None
+    except CryptorosError as exc:
+        raise ConfigError(f"TLS key: {exc}") from None
+
+
+def _no_password(key_file: Path) -> bytes:
     # Called by OpenSSL only if the key file is encrypted and no passphrase was given.
-    raise ConfigError("the TLS private key is encrypted and no passphrase was given")
+    raise ConfigError(f"TLS key {key_file} is encrypted and no passphrase was given")
 
 
 def server_context(cfg: TLSConfig, *, tickets: int = 0) -> ssl.SSLContext:
