@@ -42,7 +42,7 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
@@ -81,6 +81,17 @@ SPARE_QUIET = 0.01
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
+
+
+@contextlib.contextmanager
+def listening(what: str, endpoint: object) -> Iterator[None]:
+    """A listener that cannot bind is a ConfigError naming it and its address:
+    ``cannot listen on 127.0.0.2:11400 (public): Address already in use``."""
+    try:
+        yield
+    except OSError as exc:
+        detail = os.strerror(exc.errno) if exc.errno else str(exc)
+        raise ConfigError(f"cannot listen on {endpoint} ({what}): {detail}") from None
 
 
 def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
@@ -393,6 +404,23 @@ class Gateway:
         future.add_done_callback(self._streams.discard)
         return future
 
+    async def start_local_server(self, what: str, endpoint: object,
+                                 handler: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]],
+                                 **kw: Any) -> asyncio.Server:
+        """``asyncio.start_server`` for a role's listener (the local master, a relay):
+        one that cannot bind is a ConfigError naming it (:func:`listening`), and a
+        connection's handler that :meth:`stop` cuts ends quietly, its connection aborted
+        (Python 3.11's ``start_server`` logs a traceback for a handler that ends
+        cancelled). ``kw``: ``host``/``port`` or ``sock``, ``limit``."""
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            try:
+                await handler(reader, writer)
+            except asyncio.CancelledError:  # only stop() cancels a handler: nobody waits on it
+                writer.transport.abort()
+
+        with listening(what, endpoint):
+            return await asyncio.start_server(handle, **kw)
+
     @contextlib.contextmanager
     def cuttable(self) -> Iterator[None]:
         """While inside, the current stream has nothing in flight that a stop could
@@ -424,9 +452,11 @@ class Gateway:
         self.keeper.listeners.append(self._on_own_token)
         self.spawn(self.keeper.run(), "token-keeper")
         self.spawn(self.verifier.run(), "revocation-feed")
-        self._public_server = await self._listen_public(self._server_ctx, self.cfg)
+        with listening("public", self.cfg.public):
+            self._public_server = await self._listen_public(self._server_ctx, self.cfg)
         if self.cfg.metrics is not None:
-            await self._start_metrics()
+            with listening("metrics", self.cfg.metrics):
+                await self._start_metrics()
         self.started = True
         for role in self._roles:
             await role.start()
@@ -1246,5 +1276,5 @@ class Gateway:
             await done
 
 
-__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts",
+__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts", "listening",
            "read_chunks", "read_into", "take_buffered"]
