@@ -20,7 +20,9 @@ token of every peer (its manager and certificate, :meth:`PeerVerifier.note`): a 
 presents a new one on any stream, or on a ``refresh`` exchange its interceptor makes
 when its token changes. Every open stream is judged by its peer's freshest token:
 
-- it is cut once that token has expired for more than ``grace`` seconds;
+- it is cut once that token has expired for more than ``grace`` seconds, and so is
+  every stream once our own token has (both ends' authority must hold; the check runs
+  on its own timer, never behind a request to the authorization server);
 - when a fresher token arrives, the stream's ``recheck`` runs the policy again with
   the new grants and cuts the stream if it is no longer covered (a removed grant cuts
   exactly the streams it covered);
