@@ -12,10 +12,12 @@ interceptors and a real ``cryptoros-authz`` daemon.
 
 from __future__ import annotations
 
+import contextlib
 import re
 import subprocess
 import time
 import urllib.request
+from collections.abc import Iterator
 
 import pytest
 
@@ -28,6 +30,20 @@ pytestmark = [pytest.mark.ros1]
 LIFETIME = 10  # the daemon's shortest token lifetime (authz_server.config.MIN_LIFETIME)
 GRACE = 3.0
 POLL = 0.5  # the harness's revocation_poll_interval
+
+
+@contextlib.contextmanager
+def talker_a_to_listener_b(net) -> Iterator[subprocess.Popen]:
+    """Robot A's rospy talker (20 Hz) and robot B's rospy listener, messages arriving:
+    yields the listener's process (its GOT lines)."""
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "1000000", "20", "300"],
+                 env=net.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(net, "/talker_a")
+        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "300"], env=net.ros_env("robot_b")) as sub:
+            read_lines(sub, "READY", 20)
+            assert got(read_lines(sub, "GOT", 20))
+            yield sub
 
 
 def short_token_daemon(net, lifetime: int = LIFETIME) -> subprocess.Popen:
@@ -64,29 +80,22 @@ def test_with_the_authorization_server_down_a_topic_stream_is_cut_once_the_token
         for name in ("master", "robot_a", "robot_b"):
             with_authz_settings(net, name, token_grace=GRACE, refresh_margin=3)
             net.start(name)
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "1000000", "20", "300"],
-                     env=net.ros_env("robot_a")) as pub:
-            read_lines(pub, "READY", 20)
-            wait_registered(net, "/talker_a")
-            with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "300"],
-                         env=net.ros_env("robot_b")) as sub:
-                read_lines(sub, "READY", 20)
-                assert got(read_lines(sub, "GOT", 20))
-                stop(daemon, timeout=10)
-                killed = time.monotonic()
-                # every token any interceptor holds was issued before the kill: all expired
-                # LIFETIME s after it at the latest; the cut follows within GRACE + a sweep
-                bound = LIFETIME + GRACE + POLL
-                deadline = killed + bound + 5  # + slack for a loaded machine
-                while not any("token_expired" in net.hosts[n].logs() for n in ("robot_a", "robot_b")):
-                    assert time.monotonic() < deadline, (
-                        f"no token_expired cut within {bound + 5:.1f} s of the daemon's kill; logs:\n"
-                        + net.hosts["robot_a"].logs()[-3000:] + net.hosts["robot_b"].logs()[-3000:])
-                    time.sleep(0.1)
-                cut_after = time.monotonic() - killed
-                read_lines(sub, None, 0.5)  # what was in flight at the cut
-                late = got(read_lines(sub, None, 3.0))
-                assert not late, f"the listener still received {len(late)} messages after the cut"
+        with talker_a_to_listener_b(net) as sub:
+            stop(daemon, timeout=10)
+            killed = time.monotonic()
+            # every token any interceptor holds was issued before the kill: all expired
+            # LIFETIME s after it at the latest; the cut follows within GRACE + a sweep
+            bound = LIFETIME + GRACE + POLL
+            deadline = killed + bound + 5  # + slack for a loaded machine
+            while not any("token_expired" in net.hosts[n].logs() for n in ("robot_a", "robot_b")):
+                assert time.monotonic() < deadline, (
+                    f"no token_expired cut within {bound + 5:.1f} s of the daemon's kill; logs:\n"
+                    + net.hosts["robot_a"].logs()[-3000:] + net.hosts["robot_b"].logs()[-3000:])
+                time.sleep(0.1)
+            cut_after = time.monotonic() - killed
+            read_lines(sub, None, 0.5)  # what was in flight at the cut
+            late = got(read_lines(sub, None, 3.0))
+            assert not late, f"the listener still received {len(late)} messages after the cut"
         cuts = {}
         for name in ("robot_a", "robot_b"):
             found = re.findall(r"cutting off stream of manager=robot_[ab] jti=\w+: ((?:own_)?token_expired)",
@@ -103,20 +112,13 @@ def test_a_cut_by_a_removed_grant_is_counted_with_its_reason_where_it_happens(tm
     """The publisher's grant is removed: the subscriber's interceptor (its relay judged
     the publisher's side) cuts the stream, logs ``grant_removed`` and counts it."""
     with robot_network(tmp_path) as net:
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "1000000", "20", "300"],
-                     env=net.ros_env("robot_a")) as pub:
-            read_lines(pub, "READY", 20)
-            wait_registered(net, "/talker_a")
-            with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "300"],
-                         env=net.ros_env("robot_b")) as sub:
-                read_lines(sub, "READY", 20)
-                assert got(read_lines(sub, "GOT", 20))
-                result = net.cli("revoke", "robot_a", "publish", "/talker_a", "/chatter")
-                assert result.returncode == 0, result.stderr
-                deadline = time.monotonic() + 10
-                while "grant_removed" not in net.hosts["robot_b"].logs():
-                    assert time.monotonic() < deadline, "robot B did not cut the stream within 10 s"
-                    time.sleep(0.1)
-                read_lines(sub, None, 0.5)
-                assert not got(read_lines(sub, None, 2.0)), "the listener still receives after the cut"
+        with talker_a_to_listener_b(net) as sub:
+            result = net.cli("revoke", "robot_a", "publish", "/talker_a", "/chatter")
+            assert result.returncode == 0, result.stderr
+            deadline = time.monotonic() + 10
+            while "grant_removed" not in net.hosts["robot_b"].logs():
+                assert time.monotonic() < deadline, "robot B did not cut the stream within 10 s"
+                time.sleep(0.1)
+            read_lines(sub, None, 0.5)
+            assert not got(read_lines(sub, None, 2.0)), "the listener still receives after the cut"
         assert cutoffs(net, "robot_b").get("grant_removed", 0) >= 1, cutoffs(net, "robot_b")

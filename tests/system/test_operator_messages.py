@@ -20,8 +20,9 @@ from cryptography.hazmat.primitives import serialization
 
 from cryptoros import pemfiles
 from cryptoros.lab.network import clean_env, stop, tool, wait_port
-from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, wait_registered
-from tests.support import free_port, running
+from tests.interceptor_harness import robot_network
+from tests.support import free_port
+from tests.system.test_authority_cuts import talker_a_to_listener_b
 
 pytestmark = [pytest.mark.ros1]
 
@@ -127,18 +128,11 @@ def test_a_listener_that_cannot_bind_is_named_with_its_address(net, listener):
 
 def test_sigterm_with_rospy_nodes_and_a_peer_stream_connected_exits_0_without_a_traceback(tmp_path):
     with robot_network(tmp_path) as network:
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "1000000", "20", "300"],
-                     env=network.ros_env("robot_a")) as pub:
-            read_lines(pub, "READY", 20)
-            wait_registered(network, "/talker_a")
-            with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "300"],
-                         env=network.ros_env("robot_b")) as sub:
-                read_lines(sub, "READY", 20)
-                assert got(read_lines(sub, "GOT", 20))  # both nodes on their local masters, a stream A -> B
-                for name in ("robot_b", "robot_a"):
-                    proc = network.hosts[name].proc
-                    proc.terminate()
-                    assert proc.wait(timeout=30) == 0
+        with talker_a_to_listener_b(network):  # both nodes on their local masters, a stream A -> B
+            for name in ("robot_b", "robot_a"):
+                proc = network.hosts[name].proc
+                proc.terminate()
+                assert proc.wait(timeout=30) == 0
         for name in ("robot_a", "robot_b"):
             log = network.hosts[name].logs()
             assert "stopping" in log
