@@ -12,38 +12,22 @@ interceptors and a real ``cryptoros-authz`` daemon.
 
 from __future__ import annotations
 
-import contextlib
 import re
 import subprocess
 import time
 import urllib.request
-from collections.abc import Iterator
 
 import pytest
 
 from cryptoros.lab.network import clean_env, stop, wait_port
-from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, wait_registered
-from tests.support import running
+from tests.interceptor_harness import got, read_lines, robot_network
+from tests.stream_support import talker_a_to_listener_b
 
 pytestmark = [pytest.mark.ros1]
 
 LIFETIME = 10  # the daemon's shortest token lifetime (authz_server.config.MIN_LIFETIME)
 GRACE = 3.0
 POLL = 0.5  # the harness's revocation_poll_interval
-
-
-@contextlib.contextmanager
-def talker_a_to_listener_b(net) -> Iterator[subprocess.Popen]:
-    """Robot A's rospy talker (20 Hz) and robot B's rospy listener, messages arriving:
-    yields the listener's process (its GOT lines)."""
-    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "1000000", "20", "300"],
-                 env=net.ros_env("robot_a")) as pub:
-        read_lines(pub, "READY", 20)
-        wait_registered(net, "/talker_a")
-        with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "300"], env=net.ros_env("robot_b")) as sub:
-            read_lines(sub, "READY", 20)
-            assert got(read_lines(sub, "GOT", 20))
-            yield sub
 
 
 def short_token_daemon(net, lifetime: int = LIFETIME) -> subprocess.Popen:

@@ -22,7 +22,7 @@ from cryptoros import pemfiles
 from cryptoros.lab.network import clean_env, stop, tool, wait_port
 from tests.interceptor_harness import robot_network
 from tests.support import free_port
-from tests.system.test_authority_cuts import talker_a_to_listener_b
+from tests.stream_support import talker_a_to_listener_b
 
 pytestmark = [pytest.mark.ros1]
 
