@@ -50,10 +50,12 @@ async def _run(config_path: str, grace: float) -> None:
     cfg = load(config_path)
     interceptor = build_interceptor(cfg)
     try:
-        await interceptor.start()
-    except OSError as exc:
+        await interceptor.start()  # a listener that cannot bind: a ConfigError naming it and its address
+    except (CryptorosError, OSError) as exc:
         await interceptor.stop(grace=0)
-        raise ConfigError(f"cannot listen: {exc.strerror or exc}") from None
+        if isinstance(exc, OSError):
+            raise ConfigError(f"cannot start: {exc}") from None
+        raise
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     loop.add_signal_handler(signal.SIGTERM, stop.set)

@@ -15,7 +15,8 @@ Example::
     ca = "pki/ca.crt"
     cert = "pki/issued/robot1.crt"
     key = "pki/private/robot1.key"
-    key_passphrase_file = "robot1.pass"   # or env CRYPTOROS_KEY_PASSPHRASE, or none
+    tls_key_passphrase_file = "robot1.pass"   # or env CRYPTOROS_KEY_PASSPHRASE, or none
+                                              # (key_passphrase_file: its old name, accepted)
     crl = "pki/crl.pem"
     pin_tls12 = false
 
@@ -301,7 +302,7 @@ _SECTIONS = {
     "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2",
          "state_dir", "monitor"},
     "ros2": {f.name for f in fields(Ros2Settings)},
-    "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
+    "tls": {"ca", "cert", "key", "tls_key_passphrase_file", "key_passphrase_file", "crl", "pin_tls12"},
     "authz": {f.name for f in fields(AuthzSettings)} - {"urls"},  # urls: the parsed url (one or a list)
     "listen": {"public", "local_master", "metrics"},
     "master": {"interceptor", "manager", "upstream"},
@@ -350,7 +351,8 @@ RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
     "[tls] ca": (APPLY, lambda c: c.tls.ca_file),
     "[tls] cert": (APPLY, lambda c: c.tls.cert_file),
     "[tls] key": (APPLY, lambda c: c.tls.key_file),
-    "[tls] key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),
+    "[tls] tls_key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),
+    "[tls] key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),  # its old name
     "[tls] crl": (APPLY, lambda c: c.tls.crl_file),
     "[tls] pin_tls12": (APPLY, lambda c: c.tls.pin_tls12),
     "[authz] url": (RESTART, lambda c: c.authz.urls),  # one URL or the list of replicas
@@ -452,12 +454,15 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         if required not in tls_raw:
             raise ConfigError(f"[tls] {required} is required")
     passphrase = None
-    if "key_passphrase_file" in tls_raw:
-        pass_path = _path(base, tls_raw["key_passphrase_file"], "[tls] key_passphrase_file")
+    given = [name for name in ("tls_key_passphrase_file", "key_passphrase_file") if name in tls_raw]
+    if len(given) > 1:
+        raise ConfigError("[tls] tls_key_passphrase_file and key_passphrase_file (its old name) are both given")
+    if given:
+        pass_path = _path(base, tls_raw[given[0]], f"[tls] {given[0]}")
         try:
             passphrase = read_file(pass_path)
         except PassphraseError as exc:
-            raise ConfigError(f"[tls] key_passphrase_file: {exc}") from None
+            raise ConfigError(f"[tls] {given[0]}: {exc}") from None
     else:
         passphrase = from_env(PASSPHRASE_ENV)
     tls = TLSConfig(

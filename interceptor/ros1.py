@@ -413,7 +413,8 @@ class Ros1Role(GatewayRole):
     async def start(self) -> None:
         if "node" in self.cfg.roles:
             lm = self.cfg.local_master
-            self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
+            self._servers.append(await self.gw.start_local_server("local master", lm, self._on_local_master,
+                                                                  host=lm.host, port=lm.port))
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:
@@ -490,7 +491,8 @@ class Ros1Role(GatewayRole):
         host, port = sock.getsockname()[:2]
 
         async def serve() -> None:
-            server = await asyncio.start_server(lambda r, w: handler(r, w, target), sock=sock, limit=READ_SIZE)
+            server = await self.gw.start_local_server("relay", f"{host}:{port}", lambda r, w: handler(r, w, target),
+                                                      sock=sock, limit=READ_SIZE)
             if sock.fileno() < 0:  # released before it started
                 server.close()
             else:
