@@ -452,7 +452,8 @@ def list_keys(ctx: click.Context) -> None:
 @main.command("revoke-token")
 @click.argument("jti")
 @click.option("--reason", default="revoked by operator", show_default=True)
-@click.option("--expires-at", type=int, help="Expiry (unix time) of a token missing from the audit log.")
+@click.option("--expires-at", type=click.IntRange(0, 2**31 - 1),
+              help="Expiry (unix time) of a token missing from the audit log.")
 @click.pass_context
 def revoke_token(ctx: click.Context, jti: str, reason: str, expires_at: int | None) -> None:
     """Revoke one access token by its jti; interceptors see it on their next feed poll."""

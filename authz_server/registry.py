@@ -262,13 +262,15 @@ class Registry:
         """Append one change row (in ``s``, inside :meth:`_changing`)."""
         last = s.execute(select(RegistryChange.seq, RegistryChange.hash)
                          .order_by(RegistryChange.seq.desc()).limit(1)).first()
-        seq, prev = (last.seq + 1, last.hash) if last else (1, changes.GENESIS)
+        head = s.get(RegistryState, CHANGE_CHAIN)
+        # numbered after the head counter: rows cut from the end stay a gap the next row shows
+        seq = max(head.value if head is not None else 0, last.seq if last else 0) + 1
+        prev = last.hash if last else changes.GENESIS
         src = self.source
         row = {"seq": seq, "at": _now(), "os_user": src.os_user, "host": src.host, "command": src.command,
                "target": target[:256], "before": changes.to_json(before), "after": changes.to_json(after),
                "prev_hash": prev}
         s.execute(insert(RegistryChange), [{**row, "hash": changes.row_hash(**row)}])
-        head = s.get(RegistryState, CHANGE_CHAIN)
         if head is None:
             s.add(RegistryState(key=CHANGE_CHAIN, value=seq))
         else:
