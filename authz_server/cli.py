@@ -26,7 +26,7 @@ import click
 from authz_server import keys as keymod
 from authz_server.changes import ChangeSource, parse_since, summary
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
-from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, Registry, validate_manager_name
+from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
@@ -343,8 +343,6 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
         raise RegistryError("give either --param-ns or --no-params, not both")
     namespaces = () if no_params else (param_namespaces or ("/",))
     rows = tool_grants(topics, publish_topics, services, namespaces, params_read_only)
-    from authz_server.registry import GrantRow
-
     checked = [GrantRow.checked(*row) for row in rows]  # all validated before the one transaction
     done = _registry(ctx).grant_many(manager, checked, remove=remove)
     for (action, node, name, type_), changed_one in zip(rows, done, strict=True):

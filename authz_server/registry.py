@@ -31,8 +31,8 @@ import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from datetime import UTC, datetime
+from pathlib import Path
 
 from sqlalchemy import Engine, and_, delete, func, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
@@ -276,14 +276,6 @@ class Registry:
         else:
             head.value = seq
 
-    def _log_diff(self, s: Session, target: str, before: dict | None, after: dict | None) -> bool:
-        """Record what changed between two states of ``target``; nothing if nothing did."""
-        b, a = changes.diff(before, after)
-        if b == a == {}:
-            return False
-        self._log_change(s, target, b, a)
-        return True
-
     def _states(self, s: Session, names: Iterable[str] | None = None) -> dict[str, dict]:
         """The managers' states as a change records them, read from the database (after
         a flush: what this transaction wrote is included)."""
@@ -525,11 +517,13 @@ class Registry:
         return bool(s.execute(delete(cls).where(cls.manager_id == m.id, cls.name == g.node,
                                                 getattr(cls, column) == g.name, cls.data_type == g.type)).rowcount)
 
-    def _log_manager_change(self, s: Session, name: str, before: dict | None, tokens_revoked: int = 0) -> None:
+    def _log_manager_change(self, s: Session, name: str, before: dict, tokens_revoked: int = 0) -> None:
+        """Record what changed in manager ``name`` (still there) since ``before``."""
         b, a = changes.diff(before, self._state(s, name))
+        assert b is not None and a is not None
         if b == a == {} and not tokens_revoked:
             return
-        if tokens_revoked and a is not None:
+        if tokens_revoked:
             a["tokens_revoked"] = tokens_revoked
         self._log_change(s, f"manager {name}", b, a)
 
@@ -694,9 +688,8 @@ class Registry:
             b, a = changes.diff(before.get(name), after.get(name))
             if not b == a == {}:
                 b_all[name], a_all[name] = b, a
-        if tokens_revoked:
-            a_all["tokens_revoked"] = tokens_revoked
-        self._log_change(s, "policy", b_all, a_all)
+        extra = {"tokens_revoked": tokens_revoked} if tokens_revoked else {}
+        self._log_change(s, "policy", {"managers": b_all}, {"managers": a_all, **extra})
 
     # ------------------------------------------------------------------ signing keys
     def rotate_key(self, prot: keymod.KeyProtection, bits: int = keymod.RSA_BITS, *,

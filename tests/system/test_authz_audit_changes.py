@@ -24,7 +24,7 @@ import pytest
 
 from authz_server.db import make_engine
 from authz_server.registry import Registry
-from tests.authz_support import authz, ok
+from tests.authz_support import AuthzDaemon, authz, build_team, ok
 from tests.support import script
 
 pytest_plugins = ["tests.postgres_fixture"]
@@ -119,9 +119,9 @@ def test_each_change_leaves_one_row_with_who_and_what(db, tmp_path):
         (["revoke-token", "0123456789abcdef", "--expires-at", "2000000000", "--reason", "lost laptop"],
          "token 0123456789abcdef", None, {"revoked": True, "expires_at": 2000000000, "reason": "lost laptop"}),
         (["import", str(policy)], "policy",
-         {"alice": {"enabled": True}, "bob": None},
-         {"alice": {"enabled": False}, "bob": {"fingerprint": FP["c"], "enabled": True, "grants": [G],
-                                               "previous_fingerprint": None, "previous_until": None}}),
+         {"managers": {"alice": {"enabled": True}, "bob": None}},
+         {"managers": {"alice": {"enabled": False}, "bob": {"fingerprint": FP["c"], "enabled": True, "grants": [G],
+                                                            "previous_fingerprint": None, "previous_until": None}}}),
         (["remove-manager", "bob"], "manager bob",
          {"fingerprint": FP["c"], "enabled": True, "grants": [G], "previous_fingerprint": None,
           "previous_until": None}, None),
@@ -335,3 +335,24 @@ def test_a_registry_from_before_the_change_record_gets_it(tmp_path):
     assert [(r["seq"], r["target"], r["after"]) for r in rows] == [
         (1, "manager alice", {"grants": ["publish /talker /chatter std_msgs/String"]})]
     assert ok(verify(url)).startswith("1 rows, chain intact")
+
+
+def test_the_daemon_records_the_key_it_makes_and_tokens_are_not_changes(tmp_path):
+    """``serve`` on a registry with no signing key makes one: a change, recorded as made
+    by ``cryptoros-authz serve``; the tokens it issues are audit rows, not changes."""
+    team = build_team(tmp_path)
+    daemon = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
+    try:
+        daemon.start()
+        status, _ = daemon.token("alice")
+        assert status == 200
+        ok(authz("disable-manager", "alice", db=team.db))  # while the daemon runs
+    finally:
+        daemon.stop()
+    rows = changes(team.db)
+    assert [(r["target"], r["command"].split()[:2]) for r in rows] == [
+        ("policy", ["cryptoros-authz", "import"]), ("signing key", ["cryptoros-authz", "serve"]),
+        ("manager alice", ["cryptoros-authz", "disable-manager"])]
+    assert rows[1]["before"] == {"active": None} and rows[1]["after"]["encrypted"] is True
+    assert "issued manager=alice" in ok(authz("audit", db=team.db))
+    assert ok(verify(team.db)).startswith("3 rows, chain intact")
