@@ -200,7 +200,6 @@ class ChainReport:
     rows: int
     head: str
     problem: str | None = None
-    bad_seq: int | None = None
 
 
 def _default_source() -> ChangeSource:
@@ -328,17 +327,17 @@ class Registry:
                                           target=r.target, before=r.before, after=r.after, prev_hash=r.prev_hash)
                 if expect != r.hash:
                     return ChainReport(n - 1, prev, f"row {r.seq}: its content does not match its hash "
-                                                    "(the row was edited)", r.seq)
+                                                    "(the row was edited)")
                 if r.seq != n:
                     return ChainReport(n - 1, prev, f"row {r.seq}: expected row {n} here "
-                                                    "(a row is missing before it)", r.seq)
+                                                    "(a row is missing before it)")
                 if r.prev_hash != prev:
                     return ChainReport(n - 1, prev, f"row {r.seq}: does not follow the row before it "
-                                                    "(a row before it was deleted, inserted or rewritten)", r.seq)
+                                                    "(a row before it was deleted, inserted or rewritten)")
                 prev = r.hash
             if head_seq != n:
                 return ChainReport(n, prev, f"the chain head records {head_seq} row(s) but {n} are there "
-                                            "(rows cut from its end, or the head edited)", n + 1)
+                                            "(rows cut from its end, or the head edited)")
             return ChainReport(n, prev)
 
     # ------------------------------------------------------------------ helpers
