@@ -28,7 +28,7 @@ UNSAFE = KeyProtection(passphrase=None, unsafe_no_passphrase=True)
 
 
 TABLES = ("publisher", "subscriber", "service", "service_client", "param_reader", "param_writer", "manager", "revoked_token", "audit_log",
-          "signing_key", "registry_state")
+          "signing_key", "registry_state", "registry_change")
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
