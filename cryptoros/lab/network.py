@@ -352,7 +352,7 @@ def lab_network(
         daemon = subprocess.Popen(
             [authz, "--db", db, "serve", "--host", authz_host, "--port", str(authz_port), "--ca", str(pki.ca_cert_path),
              "--cert", str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
-             "--key-passphrase-file", str(pass_file), "--log-level", "warning"],
+             "--signing-key-passphrase-file", str(pass_file), "--log-level", "warning"],
             stdout=authz_log, stderr=subprocess.STDOUT, env=env, **popen_extra,
         )
         procs.append(daemon)
