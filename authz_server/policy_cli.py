@@ -164,8 +164,7 @@ def import_sros2(ctx: click.Context, file: str, manager_map: tuple[str, ...], ty
                    f"{len(imported.notes)} element(s) reported")
         return
     doc = {"version": 1, "managers": [
-        {"name": name, "fingerprint_sha256": current[name].fingerprint, "enabled": current[name].enabled,
-         "grants": _grants_doc(rows)}
+        {"name": name, "fingerprint_sha256": current[name].fingerprint, "grants": _grants_doc(rows)}
         for name, rows in sorted(new.items()) if rows]}
     stats = reg.import_policy(doc, merge=True) if doc["managers"] else {"grants_added": 0}
     click.echo(f"import-sros2 {file}: {stats['grants_added']} grant(s) added, "

@@ -639,11 +639,12 @@ class Registry:
                     m = existing.get(name)
                     have: set[GrantRow] = set()
                     if m is None:
-                        m = Manager(name=name, cert_fingerprint=w.fingerprint, enabled=w.enabled, created_at=_now())
+                        enabled = w.enabled is not False
+                        m = Manager(name=name, cert_fingerprint=w.fingerprint, enabled=enabled, created_at=_now())
                         s.add(m)
                         s.flush()
                         stats["managers_added"] += 1
-                        if not w.enabled:
+                        if not enabled:
                             self._bump_serial(s)
                     else:
                         have = set(_grants_of(m))
@@ -651,11 +652,14 @@ class Registry:
                         m.cert_fingerprint = target_fp[name]
                         if target_fp[name] != orig_fp[name]:
                             changed = shrink = True
-                        if m.enabled != w.enabled:
-                            m.enabled = w.enabled
+                        # a merge that does not say 'enabled' leaves it: an import never
+                        # re-enables a manager an operator disabled meanwhile
+                        enabled = m.enabled if (w.enabled is None and merge) else w.enabled is not False
+                        if m.enabled != enabled:
+                            m.enabled = enabled
                             self._bump_serial(s)
                             changed = True
-                            shrink = shrink or not w.enabled
+                            shrink = shrink or not enabled
                         if not merge:
                             for g in sorted(have - w.grants):
                                 cls, column, _rel = GRANT_TABLES[g.action]
@@ -842,7 +846,7 @@ def new_jti() -> str:
 class WantedManager:
     name: str
     fingerprint: str | None
-    enabled: bool
+    enabled: bool | None  # None: not said (true, or on a merge the manager's own state)
     grants: frozenset[GrantRow]
 
 
@@ -873,8 +877,8 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
             name = validate_manager_name(m.get("name"))
             fp = m.get("fingerprint_sha256")
             fp = normalize_fingerprint(fp) if fp is not None else None
-            enabled = m.get("enabled", True)
-            if not isinstance(enabled, bool):
+            enabled = m.get("enabled")  # absent: true, or on a merge the manager's own state
+            if enabled is not None and not isinstance(enabled, bool):
                 raise RegistryError(f"'enabled' must be true or false, got {enabled!r}")
             grants = _parse_grants(m.get("grants") or {})
         except RegistryError as exc:
