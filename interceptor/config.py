@@ -12,6 +12,8 @@ Example::
     state_dir = "state"             # tables kept across restarts (default: <config stem>.state
                                     # beside this file), the instance lock among them
     allow_exposed_master = false    # master role: serve a rosmaster other hosts reach (warned)
+    allow_exposed_nodes = []        # node role: node-name patterns served though their ports are
+                                    # on every address (roscpp's XML-RPC API): a firewall closes them
 
     [tls]
     ca = "pki/ca.crt"
@@ -292,13 +294,17 @@ class InterceptorConfig:
     #: master role: serve even while the rosmaster in ``[master] upstream`` listens on a
     #: non-loopback address (warned at start and in every status); docs/interceptor.md
     allow_exposed_master: bool = False
+    #: node role: fnmatch patterns of local node names served even while an endpoint they
+    #: announce listens on a non-loopback address (roscpp binds its XML-RPC API to every
+    #: address whatever ROS_IP says): the operator closed those ports with a firewall
+    allow_exposed_nodes: tuple[str, ...] = ()
     #: the file this configuration was loaded from (None: parsed from a table)
     source: Path | None = None
 
 
 _SECTIONS = {
     "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2",
-         "state_dir", "monitor", "allow_exposed_master"},
+         "state_dir", "monitor", "allow_exposed_master", "allow_exposed_nodes"},
     "ros2": {f.name for f in fields(Ros2Settings)},
     "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
     "authz": {f.name for f in fields(AuthzSettings)} - {"urls"},  # urls: the parsed url (one or a list)
@@ -339,7 +345,8 @@ _SECTIONS = {
 #: ``[ros2] peers``, ``depth``, ``local``, ``transient_local``,
 #: ``max_kept_bytes_per_peer``; every ``[monitor]`` key (the model too);
 #: ``unsafe_plaintext_upstream`` (only checked when the file is loaded);
-#: ``allow_exposed_master`` (read by the master role's rosmaster watch each second).
+#: ``allow_exposed_master`` (read by the master role's rosmaster watch each second),
+#: ``allow_exposed_nodes`` (read per registration).
 APPLY = "apply"
 RESTART = "restart"
 RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
@@ -348,6 +355,7 @@ RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
     "state_dir": (RESTART, lambda c: c.state_dir),
     "unsafe_plaintext_upstream": (APPLY, lambda c: c.unsafe_plaintext_upstream),
     "allow_exposed_master": (APPLY, lambda c: c.allow_exposed_master),
+    "allow_exposed_nodes": (APPLY, lambda c: c.allow_exposed_nodes),
     "[tls] ca": (APPLY, lambda c: c.tls.ca_file),
     "[tls] cert": (APPLY, lambda c: c.tls.cert_file),
     "[tls] key": (APPLY, lambda c: c.tls.key_file),
@@ -596,8 +604,16 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         ros2=ros2,
         monitor=_parse_monitor(_check_keys(top["monitor"], "monitor"), base) if "monitor" in top else None,
         allow_exposed_master=_typed(top.get("allow_exposed_master", False), bool, "allow_exposed_master"),
+        allow_exposed_nodes=_node_patterns(top.get("allow_exposed_nodes", []), "allow_exposed_nodes"),
         source=source,
     )
+
+
+def _node_patterns(value: Any, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or len(value) > 256 or not all(
+            isinstance(p, str) and p.startswith("/") and len(p) <= 256 for p in value):
+        raise ConfigError(f"{where} must be a list of at most 256 node name patterns, each starting with /")
+    return tuple(value)
 
 
 def _parse_monitor(raw: dict[str, Any], base: Path) -> MonitorSettings:

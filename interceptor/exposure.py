@@ -14,6 +14,7 @@ only once it listens, so a fresh port is never judged from an older table).
 
 from __future__ import annotations
 
+import fnmatch
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -80,28 +81,15 @@ def master_problem(upstream: str, exposure: PortExposure, config: Path | None) -
             f"{run_hint(config, f'rosmaster --core -p {port}')}), or set allow_exposed_master = true")
 
 
-def check_node_endpoint(node: str, uri: str, what: str, exposure: PortExposure, config: Path | None) -> None:
-    """PolicyDenied ``exposed_endpoint`` when the local ``uri`` (``what``: "XML-RPC API",
-    "TCPROS port", "service") listens where other hosts reach it; a URI that does not
-    parse is left to the policy that checks it."""
-    try:
-        _, port = host_port(uri)
-    except UriError:
-        return
-    check_node_port(node, port, what, exposure, config)
-
-
-def check_node_port(node: str, port: int, what: str, exposure: PortExposure, config: Path | None) -> None:
-    """As :func:`check_node_endpoint`, for a port."""
-    try:
-        addresses = exposure.exposed(port)
-    except ExposureError as exc:
-        raise PolicyDenied("exposed_endpoint", f"cannot tell whether node {node}'s {what} (port {port}) answers "
-                                               f"other hosts: {exc}") from None
-    if addresses:
-        raise PolicyDenied("exposed_endpoint", f"node {node}'s {what} listens on {', '.join(addresses)} port {port}, "
-                                               f"reachable from other hosts: start it with ROS_IP=127.0.0.1 "
-                                               f"({run_hint(config, 'CMD')})")
+def _node_refusal(node: str, what: str, port: int, addresses: list[str], config: Path | None,
+                  advertised: str | None) -> str:
+    where = f"node {node}'s {what} listens on {', '.join(addresses)} port {port}, reachable from other hosts"
+    if advertised is not None and is_loopback_host(advertised):
+        # ROS_IP is set and the node binds every address all the same: roscpp's XML-RPC server
+        return (f"{where}, though it announces {advertised} (roscpp binds its XML-RPC API to every address "
+                f"whatever ROS_IP says): close the node's ports to the network with the host's firewall, then list "
+                f"it in allow_exposed_nodes")
+    return f"{where}: start it with ROS_IP=127.0.0.1 ({run_hint(config, 'CMD')})"
 
 
 #: where a local node's master call names its own endpoints: index -> what it is
@@ -113,15 +101,67 @@ REGISTRATION_URIS: dict[str, tuple[tuple[int, str], ...]] = {
 }
 
 
-def check_registrations(calls: list[Request], exposure: PortExposure, config: Path | None) -> None:
-    """PolicyDenied ``exposed_endpoint`` for the first local registration among
-    ``calls`` (a request, or the calls of a multicall) whose node listens where other
-    hosts reach it."""
-    for call in calls:
-        for index, what in REGISTRATION_URIS.get(call.method, ()):
-            if len(call.params) > index and isinstance(call.params[0], str):
-                check_node_endpoint(call.params[0], call.params[index], what, exposure, config)
+class NodeGuard:
+    """The node role's check of the endpoints its local nodes announce. An endpoint
+    other hosts reach is refused (PolicyDenied ``exposed_endpoint``) unless the node
+    matches a pattern of ``allow_exposed_nodes`` (the operator closed its ports with a
+    firewall, which no socket table shows): then it is served and remembered for the
+    status warning (at most :data:`MAX_NOTED` nodes)."""
+
+    MAX_NOTED = 1024
+
+    def __init__(self, exposure: PortExposure | None = None) -> None:
+        self.exposure = exposure or PortExposure()
+        self._served: dict[tuple[str, int], str] = {}  # (node, port) -> addresses, served exposed
+
+    def check_port(self, node: str | Callable[[], str], port: int, what: str, *, allow: tuple[str, ...],
+                   config: Path | None, advertised: str | None = None) -> str | None:
+        """None when ``port`` answers on loopback only; a warning line the first time an
+        allowed node is seen exposed on it; PolicyDenied otherwise. ``node`` may be a
+        callable, asked only when the port is exposed; ``advertised``: the host the node
+        announces with the port (it picks the fix the refusal names)."""
+        try:
+            addresses = self.exposure.exposed(port)
+        except ExposureError as exc:
+            name = node() if callable(node) else node
+            raise PolicyDenied("exposed_endpoint", f"cannot tell whether node {name}'s {what} (port {port}) answers "
+                                                   f"other hosts: {exc}") from None
+        if not addresses:
+            return None
+        name = node() if callable(node) else node
+        if not any(fnmatch.fnmatchcase(name, pattern) for pattern in allow):
+            raise PolicyDenied("exposed_endpoint", _node_refusal(name, what, port, addresses, config, advertised))
+        if (name, port) in self._served or len(self._served) >= self.MAX_NOTED:
+            return None
+        self._served[(name, port)] = ", ".join(addresses)
+        return (f"allow_exposed_nodes: node {name}'s {what} listens on {', '.join(addresses)} port {port}, served "
+                f"(its ports must be closed to the network by the host's firewall)")
+
+    def check_registrations(self, calls: list[Request], *, allow: tuple[str, ...], config: Path | None) -> list[str]:
+        """:meth:`check_port` for every endpoint the registrations among ``calls`` (a
+        request, or the calls of a multicall) announce; the new warnings."""
+        warnings = []
+        for call in calls:
+            for index, what in REGISTRATION_URIS.get(call.method, ()):
+                if len(call.params) <= index or not isinstance(call.params[0], str):
+                    continue
+                try:
+                    host, port = host_port(call.params[index])
+                except UriError:
+                    continue  # left to the policy that checks the call
+                warning = self.check_port(call.params[0], port, what, allow=allow, config=config, advertised=host)
+                if warning:
+                    warnings.append(warning)
+        return warnings
+
+    def warnings(self) -> list[str]:
+        """The status line naming the nodes served exposed (empty: none)."""
+        if not self._served:
+            return []
+        named = ", ".join(f"{node} ({where} port {port})" for (node, port), where in list(self._served.items())[:8])
+        more = len(self._served) - 8
+        return [f"allow_exposed_nodes: served with ports other hosts reach unless a firewall closes them: {named}"
+                + (f" and {more} more" if more > 0 else "")]
 
 
-__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "PortExposure", "check_node_endpoint", "check_node_port",
-           "check_registrations", "master_problem", "run_hint"]
+__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "master_problem", "run_hint"]

@@ -76,7 +76,7 @@ from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
-from interceptor.exposure import PortExposure, check_node_port, check_registrations, master_problem
+from interceptor.exposure import NodeGuard, PortExposure, master_problem
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
@@ -399,6 +399,7 @@ class Ros1Role(GatewayRole):
         #: deployment checks (interceptor/exposure.py): which ports answer other hosts, and
         #: (master role) why rosmaster must not be served now, or None
         self._exposure = PortExposure()
+        self._nodes_exposed = NodeGuard(self._exposure)
         self._master_exposed: str | None = None
         gateway.serve("master", self._check_master_target, self._serve_master_stream)
         gateway.serve("node", self._check_node_target, self._serve_node_stream)
@@ -462,11 +463,12 @@ class Ros1Role(GatewayRole):
                 "warnings": self._deployment_warnings()}
 
     def _deployment_warnings(self) -> list[str]:
-        if not self._master_exposed:
-            return []
-        what = ("allow_exposed_master = true, served anyway" if self.cfg.allow_exposed_master
-                else "master streams refused (exposed_master)")
-        return [f"{what}: {self._master_exposed}"]
+        warnings = self._nodes_exposed.warnings()
+        if self._master_exposed:
+            what = ("allow_exposed_master = true, served anyway" if self.cfg.allow_exposed_master
+                    else "master streams refused (exposed_master)")
+            warnings.append(f"{what}: {self._master_exposed}")
+        return warnings
 
     def _count_idle_close(self) -> None:
         self._tunnels_closed_idle += 1
@@ -1040,7 +1042,7 @@ class Ros1Role(GatewayRole):
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
         def tcpros_to_canonical(host: str, port: int) -> tuple[str, int]:
-            check_node_port(endpoint.uri, port, "TCPROS port", self._exposure, self.cfg.source)
+            self._check_local_port(lambda: self._node_of_api(stream.target), port, "TCPROS port")
             canonical, public_port = self.translator.tcpros_to_canonical(host, port)
             child = self.translator.own_id(canonical)
             if child is not None:  # this node's TCPROS server: released with its API
@@ -1198,7 +1200,9 @@ class Ros1Role(GatewayRole):
         it (each call of a multicall), naming the node, the port and the fix."""
         try:
             calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
-            check_registrations(calls, self._exposure, self.cfg.source)
+            for warning in self._nodes_exposed.check_registrations(calls, allow=self.cfg.allow_exposed_nodes,
+                                                                   config=self.cfg.source):
+                log.warning("%s", warning)
         except RemoteProtocolError:
             return None  # _decide_calls refuses it
         except PolicyDenied as exc:
@@ -1206,6 +1210,15 @@ class Ros1Role(GatewayRole):
             error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
             return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
         return None
+
+    def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
+        warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,
+                                                 config=self.cfg.source)
+        if warning:
+            log.warning("%s", warning)
+
+    def _node_of_api(self, api_id: str) -> str:
+        return next((node for node, api in self._node_apis.items() if api == api_id), f"with API export {api_id}")
 
     # ---------------------------------------------------------------- exports of restarted nodes
     def _note_local_node(self, call: Request) -> None:

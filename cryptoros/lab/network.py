@@ -207,6 +207,9 @@ def _interceptor_config(
     lines = [
         f'manager = "{name}"',
         "roles = [" + ", ".join(f'"{r}"' for r in roles) + "]",
+        # the roscpp test nodes (tests/ros1_nodes/*.cpp): roscpp binds its XML-RPC API to
+        # every address whatever ROS_IP says (docs/interceptor.md, "Deployment checks")
+        *(['allow_exposed_nodes = ["/roscpp_talker", "/roscpp_udp_listener"]'] if "node" in roles else []),
         extra,
         "[tls]",
         f'ca = "{pki.ca_cert_path}"',

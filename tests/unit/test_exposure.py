@@ -22,7 +22,7 @@ from cryptoros.exposure import (
     read_listeners,
 )
 from cryptoros.ros1.xmlrpc import Request
-from interceptor.exposure import PortExposure, check_registrations, master_problem
+from interceptor.exposure import NodeGuard, PortExposure, master_problem
 
 HEADER = ("  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n")
 TAIL = " 00000000:00000000 00:00000000 00000000     0        0 1563 1 0000000087f7565e 100 0 0 10 0\n"
@@ -133,16 +133,29 @@ def test_a_port_seen_listening_is_answered_from_the_cache_until_the_ttl_and_a_ne
 
 def test_a_registration_of_an_exposed_node_is_refused_in_one_line_naming_node_port_and_fix(tmp_path):
     table = FakeTable()
-    exposure = PortExposure(read=table.read, clock=lambda: table.now)
+    guard = NodeGuard(PortExposure(read=table.read, clock=lambda: table.now))
     config = tmp_path / "robot_a.toml"
     private = Request(method="registerPublisher", params=("/ok", "/chatter", "std_msgs/String", "http://127.0.0.1:11311/"))
-    check_registrations([private], exposure, config)
+    assert guard.check_registrations([private], allow=(), config=config) == []
     exposed = Request(method="registerService", params=("/talker", "/add", "rosrpc://robot-a:41234", "http://127.0.0.1:11311/"))
     with pytest.raises(PolicyDenied) as err:
-        check_registrations([private, exposed], exposure, config)
+        guard.check_registrations([private, exposed], allow=(), config=config)
     text = str(err.value)
     assert err.value.reason == "exposed_endpoint" and "\n" not in text
     assert "/talker" in text and "41234" in text and "ROS_IP=127.0.0.1" in text and f"--config {config}" in text
+    assert guard.warnings() == []
+
+
+def test_a_node_that_announces_loopback_but_binds_every_address_is_told_about_roscpp_and_the_override():
+    table = FakeTable()
+    guard = NodeGuard(PortExposure(read=table.read, clock=lambda: table.now))
+    roscpp = Request(method="registerPublisher", params=("/cpp", "/chatter", "std_msgs/String", "http://127.0.0.1:41234/"))
+    with pytest.raises(PolicyDenied, match="roscpp binds its XML-RPC API.*firewall.*allow_exposed_nodes"):
+        guard.check_registrations([roscpp], allow=("/other*",), config=None)
+    warnings = guard.check_registrations([roscpp], allow=("/c*",), config=None)
+    assert len(warnings) == 1 and "/cpp" in warnings[0] and "41234" in warnings[0]
+    assert guard.check_registrations([roscpp], allow=("/c*",), config=None) == []  # said once
+    assert "/cpp (0.0.0.0 port 41234)" in guard.warnings()[0]
 
 
 def test_master_problem_names_the_fix_and_the_override():
