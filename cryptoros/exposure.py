@@ -98,11 +98,23 @@ _REQUEST = struct.Struct("=BBBBI48x")
 #: inet_diag_msg: family, state, timer, retrans, then sockid: sport, dport (big endian), src[16]
 _DIAG_MSG = struct.Struct("=BBBB2H16s")
 _TCP_LISTEN = 10
+#: the request's filter (attribute INET_DIAG_REQ_BYTECODE): a program of inet_diag_bc_op
+#: (code, yes, no); ``yes``/``no`` are the bytes to skip, and a socket is kept when the
+#: program ends exactly at its end (so ``no`` = what is left + 4 rejects)
+_INET_DIAG_REQ_BYTECODE = 1
+_BC_S_GE, _BC_S_LE = 2, 3
+_BC_OP = struct.Struct("=BBH")
 
 
-def sock_diag_request(family: int, seq: int = 1) -> bytes:
-    """The netlink request for the TCP sockets in LISTEN of ``family`` (AF_INET or AF_INET6)."""
+def sock_diag_request(family: int, port: int | None = None, seq: int = 1) -> bytes:
+    """The netlink request for the TCP sockets in LISTEN of ``family`` (AF_INET or
+    AF_INET6); with ``port``, only those on that local port (the kernel filters: source
+    port >= port and <= port, comparisons every kernel since 2.6 has)."""
     body = _REQUEST.pack(family, socket.IPPROTO_TCP, 0, 0, 1 << _TCP_LISTEN)
+    if port is not None:
+        program = (_BC_OP.pack(_BC_S_GE, 8, 20) + _BC_OP.pack(0, 0, port)
+                   + _BC_OP.pack(_BC_S_LE, 8, 12) + _BC_OP.pack(0, 0, port))
+        body += struct.pack("=HH", 4 + len(program), _INET_DIAG_REQ_BYTECODE) + program
     return _NLMSG.pack(_NLMSG.size + len(body), _SOCK_DIAG_BY_FAMILY, _NLM_F_REQUEST | _NLM_F_DUMP, seq, 0) + body
 
 
@@ -134,10 +146,10 @@ def parse_sock_diag(data: bytes) -> tuple[list[Listener], bool]:
     return listeners, False
 
 
-def _read_sock_diag(family: int) -> list[Listener]:
+def _read_sock_diag(family: int, port: int | None) -> list[Listener]:
     with socket.socket(socket.AF_NETLINK, socket.SOCK_RAW, _NETLINK_SOCK_DIAG) as sock:
         sock.settimeout(2.0)
-        sock.sendto(sock_diag_request(family), (0, 0))
+        sock.sendto(sock_diag_request(family, port), (0, 0))
         listeners: list[Listener] = []
         while True:
             found, done = parse_sock_diag(sock.recv(1 << 16))
@@ -146,13 +158,13 @@ def _read_sock_diag(family: int) -> list[Listener]:
                 return listeners
 
 
-def read_listeners(proc_net: Path = PROC_NET) -> list[Listener]:
-    """Every TCP socket in LISTEN of this network namespace (IPv4 and IPv6), from
-    ``sock_diag``; where netlink is refused, from ``/proc/net/tcp`` and ``tcp6`` (a host
-    without IPv6 has no ``tcp6``, which is fine). :class:`ExposureError` when neither
-    can be read."""
+def read_listeners(port: int | None = None, proc_net: Path = PROC_NET) -> list[Listener]:
+    """The TCP sockets in LISTEN of this network namespace (IPv4 and IPv6), all or those
+    on ``port``, from ``sock_diag``; where netlink is refused, from ``/proc/net/tcp`` and
+    ``tcp6`` (a host without IPv6 has no ``tcp6``, which is fine). :class:`ExposureError`
+    when neither can be read."""
     try:
-        return _read_sock_diag(socket.AF_INET) + _read_sock_diag(socket.AF_INET6)
+        return _read_sock_diag(socket.AF_INET, port) + _read_sock_diag(socket.AF_INET6, port)
     except (OSError, ExposureError):
         pass
     listeners: list[Listener] = []
@@ -166,7 +178,7 @@ def read_listeners(proc_net: Path = PROC_NET) -> list[Listener]:
         except (OSError, UnicodeDecodeError) as exc:
             raise ExposureError(f"cannot read {proc_net / name}: {exc}") from None
         listeners += parse_proc_net_tcp(text)
-    return listeners
+    return listeners if port is None else [one for one in listeners if one.port == port]
 
 
 def is_loopback_host(host: str) -> bool:

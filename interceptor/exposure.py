@@ -6,10 +6,10 @@ without ``ROS_IP=127.0.0.1``) is reachable from other hosts past every check: th
 master's interceptor refuses to serve such a rosmaster, a robot's interceptor refuses
 such a node's registrations (docs/interceptor.md, "Deployment checks").
 
-What the kernel says (:mod:`cryptoros.exposure`) is cached per port for
-:data:`TTL` seconds, so a node's many registrations and ``requestTopic`` replies cost a
-dict lookup; a port not seen listening is asked again at once (a node announces a port
-only once it listens, so a fresh port is never judged from an older table).
+What the kernel says about a port (:mod:`cryptoros.exposure`) is kept for :data:`TTL`
+seconds, so a node's many registrations and ``requestTopic`` replies cost a dict
+lookup; a port not seen listening is asked again at once (a node announces a port only
+once it listens, so a fresh port is never judged from an older answer).
 """
 
 from __future__ import annotations
@@ -20,38 +20,43 @@ from collections.abc import Callable
 from pathlib import Path
 
 from cryptoros.errors import PolicyDenied
-from cryptoros.exposure import ExposureError, Listener, exposed_addresses, is_loopback_host, read_listeners
+from cryptoros.exposure import ExposureError, Listener, is_loopback_host, read_listeners
 from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.ros1.xmlrpc import Request
 
 #: seconds a port's answer is reused
 TTL = 1.0
-#: ports remembered at most (a table read refreshes them all)
-MAX_PORTS = 65536
-
-
+#: ports whose answers are kept
+MAX_PORTS = 4096
 class PortExposure:
     """``exposed(port)``: the non-loopback addresses a port listens on (empty: loopback
-    only, or not listening). Reads the socket table at most once per :data:`TTL` for
-    ports it has seen listening; ``read`` and ``clock`` are injectable."""
+    only, or not listening). The kernel is asked about that port alone (its sockets in
+    LISTEN, filtered by the kernel: the cost does not grow with the host's other
+    listeners, the interceptor's relays among them); a port seen listening keeps its
+    answer for :data:`TTL` seconds (at most :data:`MAX_PORTS` ports, the oldest
+    forgotten first). ``read`` and ``clock`` are injectable."""
 
-    def __init__(self, read: Callable[[], list[Listener]] = read_listeners,
+    def __init__(self, read: Callable[[int], list[Listener]] = read_listeners,
                  clock: Callable[[], float] = time.monotonic, ttl: float = TTL) -> None:
         self._read, self._clock, self._ttl = read, clock, ttl
-        self._table: dict[int, list[str]] = {}
-        self._read_at = float("-inf")
+        self._answers: dict[int, tuple[float, list[str]]] = {}
         self.reads = 0
 
     def exposed(self, port: int) -> list[str]:
-        """Raises :class:`~cryptoros.exposure.ExposureError` when the table cannot be read."""
+        """Raises :class:`~cryptoros.exposure.ExposureError` when the kernel cannot be asked."""
         now = self._clock()
-        if port not in self._table or now - self._read_at >= self._ttl:
-            listeners = self._read()
-            self.reads += 1
-            ports = {one.port for one in listeners}
-            self._table = {p: exposed_addresses(listeners, p) for p in list(ports)[:MAX_PORTS]}
-            self._read_at = now
-        return self._table.get(port, [])
+        kept = self._answers.get(port)
+        if kept is not None and now - kept[0] < self._ttl:
+            return kept[1]
+        listeners = [one for one in self._read(port) if one.port == port]
+        self.reads += 1
+        addresses = sorted({str(one.address) for one in listeners if one.exposed})
+        self._answers.pop(port, None)
+        if listeners:  # not listening: asked again next time (a port is announced once it listens)
+            self._answers[port] = (now, addresses)
+            if len(self._answers) > MAX_PORTS:
+                del self._answers[next(iter(self._answers))]
+        return addresses
 
 
 def run_hint(config: Path | None, command: str) -> str:

@@ -115,20 +115,32 @@ class FakeTable:
                           Listener(address=ip_address("127.0.0.1"), port=11311)]
         self.now = 0.0
 
-    def read(self) -> list[Listener]:
-        return list(self.listeners)
+    def read(self, port: int) -> list[Listener]:
+        return [one for one in self.listeners if one.port == port]
 
 
-def test_a_port_seen_listening_is_answered_from_the_cache_until_the_ttl_and_a_new_port_at_once():
+def test_a_port_seen_listening_keeps_its_answer_until_the_ttl_and_a_port_not_listening_is_asked_again():
     table = FakeTable()
     exposure = PortExposure(read=table.read, clock=lambda: table.now, ttl=1.0)
     assert exposure.exposed(41234) == ["0.0.0.0"] and exposure.reads == 1
-    assert exposure.exposed(11311) == [] and exposure.exposed(41234) == ["0.0.0.0"] and exposure.reads == 1
+    assert exposure.exposed(11311) == [] and exposure.reads == 2
+    assert exposure.exposed(41234) == ["0.0.0.0"] and exposure.exposed(11311) == [] and exposure.reads == 2
+    assert exposure.exposed(5555) == [] and exposure.reads == 3  # not listening: not kept
     table.listeners.append(Listener(address=ip_address("::"), port=5555))
-    assert exposure.exposed(5555) == ["::"] and exposure.reads == 2  # not in the table read before: read again
+    assert exposure.exposed(5555) == ["::"] and exposure.reads == 4
     table.now = 1.5
     table.listeners = []
-    assert exposure.exposed(41234) == [] and exposure.reads == 3
+    assert exposure.exposed(41234) == [] and exposure.reads == 5
+
+
+def test_the_kernel_filters_by_port():
+    with socket.socket() as one, socket.socket() as other:
+        one.bind(("0.0.0.0", 0))
+        other.bind(("0.0.0.0", 0))
+        one.listen()
+        other.listen()
+        port = one.getsockname()[1]
+        assert {(str(x.address), x.port) for x in read_listeners(port)} == {("0.0.0.0", port)}
 
 
 def test_a_registration_of_an_exposed_node_is_refused_in_one_line_naming_node_port_and_fix(tmp_path):
