@@ -212,3 +212,24 @@ def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_ch
         stop(host.proc)
         net.start("robot_a")  # the lock went with the process: a restart takes it
         assert (state / "robot_a.lock").read_text().strip() == str(host.proc.pid)
+
+
+def test_the_embedded_master_binds_loopback_and_refuses_another_address_without_the_unsafe_flag():
+    from cryptoros.exposure import read_listeners
+    from cryptoros.lab.netns import NetnsLab
+
+    separate_hosts()
+    with NetnsLab() as lab:
+        host = lab.add_host("m")
+        refused = subprocess.run(host.argv([tool("cryptoros"), "master", "--host", "0.0.0.0", "--port", "11311"]),
+                                 capture_output=True, text=True, timeout=60)
+        lines = refused.stderr.strip().splitlines()
+        assert refused.returncode == 1 and len(lines) == 1 and "--unsafe-expose" in lines[0], refused
+        proc = subprocess.Popen(host.argv([tool("cryptoros"), "master", "--port", "11311"]),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            with host.inside():
+                wait_port("127.0.0.1", 11311, 20, proc, "cryptoros master")
+                assert {str(one.address) for one in read_listeners(11311)} == {"127.0.0.1"}
+        finally:
+            stop(proc)
