@@ -29,7 +29,7 @@ def write_private_json(path: Path, data: Any) -> None:
     os.replace(tmp, path)
 
 
-def private_dir(path: Path) -> None:
+def _private_dir(path: Path) -> None:
     """Make ``path`` (and its parents) with mode 0700; an existing one is narrowed to
     0700 (its files hold this host's relay table and node owners)."""
     path.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -45,7 +45,7 @@ def lock_instance(state_dir: Path, manager: str) -> IO[str]:
     :class:`InstanceRunning` naming the running pid, having changed nothing."""
     path = state_dir / f"{manager}.lock"
     try:
-        private_dir(state_dir)
+        _private_dir(state_dir)
         lock = open(os.open(path, os.O_RDWR | os.O_CREAT, 0o600), "r+", encoding="ascii")
     except OSError as exc:
         raise InstanceRunning(f"cannot take the instance lock {path}: {exc.strerror or exc} "
@@ -64,4 +64,4 @@ def lock_instance(state_dir: Path, manager: str) -> IO[str]:
     return lock
 
 
-__all__ = ["InstanceRunning", "lock_instance", "private_dir", "write_private_json"]
+__all__ = ["InstanceRunning", "lock_instance", "write_private_json"]
