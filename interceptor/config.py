@@ -431,18 +431,22 @@ def _path(base: Path, value: Any, where: str) -> Path:
     return path if path.is_absolute() else base / path
 
 
-def load(path: str | os.PathLike[str]) -> InterceptorConfig:
-    """Load and validate a configuration file; every problem is one ConfigError line."""
-    path = Path(path)
+def read_toml(path: Path) -> dict[str, Any]:
+    """A configuration file's TOML table; ConfigError (one line) when it cannot be read."""
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"configuration file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read configuration file {path}: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML: {exc}") from None
-    return parse(raw, base=path.parent, source=path)
+
+
+def load(path: str | os.PathLike[str]) -> InterceptorConfig:
+    """Load and validate a configuration file; every problem is one ConfigError line."""
+    path = Path(path)
+    return parse(read_toml(path), base=path.parent, source=path)
 
 
 def default_state_dir(source: Path) -> Path:
@@ -685,5 +689,5 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
 
 __all__ = [
     "APPLY", "RELOAD", "RESTART", "AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings",
-    "Ros2Settings", "check_reload", "default_ros2_python", "default_state_dir", "is_loopback", "load", "parse", "reload_refusals",
+    "Ros2Settings", "check_reload", "default_ros2_python", "default_state_dir", "is_loopback", "read_toml", "load", "parse", "reload_refusals",
 ]

@@ -20,7 +20,6 @@ from __future__ import annotations
 import os
 import shlex
 import sys
-import tomllib
 from pathlib import Path
 
 import click
@@ -28,21 +27,14 @@ import click
 from cryptoros.errors import ConfigError
 from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.exposure import is_loopback_host
-from interceptor.config import ROLES, Endpoint
+from interceptor.config import ROLES, Endpoint, read_toml
 
 
 def node_environment(path: str | os.PathLike[str]) -> tuple[dict[str, str], tuple[str, ...]]:
     """(variables to set, variables to unset) for a node of the interceptor configured
     in ``path``; ConfigError (one line) for a file that does not say where nodes go."""
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"configuration file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read configuration file {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    raw = read_toml(path)
     roles = raw.get("roles", ["node"])
     if not isinstance(roles, list) or not roles or any(r not in ROLES for r in roles):
         raise ConfigError(f"{path}: roles must be a non-empty list of {', '.join(ROLES)}, got {roles!r}")
