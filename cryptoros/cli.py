@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, str] = {
     "attack": "cryptoros.attack.cli:attack",
     "status": "interceptor.status:status",
     "unquarantine": "interceptor.status:unquarantine",
+    "env": "interceptor.runenv:env",
+    "run": "interceptor.runenv:run",
 }
 MONITOR_SUBCOMMANDS: dict[str, str] = {
     "record": "cryptoros.monitor.cli:record",
