@@ -411,6 +411,7 @@ def test_runbook_has_every_step_a_check_and_a_host():
         assert part in text
 
 
+@pytest.mark.timeout(600)  # the whole deployment and every day-2 step: ~60 s quiet, ~160 s on a busy machine
 def test_runbook_on_separate_hosts(tmp_path):
     """The whole runbook on a master host and two robots, then a stranger's scan."""
     require("rosmaster", "rostopic", "rosparam", "rosnode", "curl", "ss")
