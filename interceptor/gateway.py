@@ -204,6 +204,11 @@ class Role:
         """What the role adds to ``/status`` (top-level keys of its own)."""
         return {}
 
+    def problem(self) -> PolicyDenied | None:
+        """Why the role does not serve now (a deployment check failing), or None: makes
+        ``/healthz`` 503 and ``cryptoros status`` exit 1 with that reason."""
+        return None
+
     def check_reload(self, cfg: InterceptorConfig) -> None:
         """Raise CryptorosError if the role cannot take ``cfg`` without a restart."""
 
@@ -694,6 +699,13 @@ class Gateway:
         if problem is not None:
             raise problem
 
+    def check_roles(self) -> None:
+        """Raise the first role's problem (a deployment check failing), if any."""
+        for role in self._roles:
+            problem = role.problem()
+            if problem is not None:
+                raise problem
+
     def status(self) -> dict:
         """What ``cryptoros status`` shows: who this interceptor is to the registry now
         (token subject, grants, expiry), how fresh its view of revocations is
@@ -705,6 +717,7 @@ class Gateway:
             token = {"subject": access.subject, "jti": access.jti, "expires_in": round(access.expires_at - now),
                      "grants": [[g.node, g.action, g.name, g.type] for g in access.grants]}
             self.check_feed_age()
+            self.check_roles()
         except (TokenError, PolicyDenied) as exc:
             health = f"{exc.reason}: {exc.detail}"
         cert = x509.load_der_x509_certificate(self._own_cert_der)
@@ -740,6 +753,7 @@ class Gateway:
                 self.keeper.current()
                 self.check_feed_age()
                 self.own_access()  # our own token verifies now: not revoked, manager not disabled
+                self.check_roles()
             except (TokenError, PolicyDenied) as exc:
                 return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
             last = self.verifier.last_feed_at

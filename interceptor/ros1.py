@@ -481,8 +481,14 @@ class Ros1Role(GatewayRole):
         self._refuse_exposed_master()
 
     def _refuse_exposed_master(self) -> None:
+        problem = self.problem()
+        if problem is not None:
+            raise problem
+
+    def problem(self) -> PolicyDenied | None:
         if self._master_exposed and not self.cfg.allow_exposed_master:
-            raise PolicyDenied("exposed_master", self._master_exposed)
+            return PolicyDenied("exposed_master", self._master_exposed)
+        return None
 
     def _check_node_target(self, preamble: Preamble) -> LocalEndpoint:
         return self.translator.resolve(KIND_XMLRPC, preamble.target)

@@ -134,6 +134,9 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
             assert "exposed_master" in net.hosts["master"].logs().split("master streams refused", 1)[1]
             status = _status(net, "master")
             assert "warning   master streams refused (exposed_master)" in status, status
+            # not healthy while it refuses: status exits 1 with the reason, /healthz 503
+            result = _on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)])
+            assert result.returncode == 1 and "exposed_master" in result.stdout.splitlines()[0], result
             # the stranger reaches this rosmaster, but it holds no robot: nothing was replayed to it
             with net.inside("stranger"):
                 state = xmlrpc.client.ServerProxy(f"http://{master.address}:{port}/").getSystemState("/stranger")
@@ -155,6 +158,7 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
             _wait_log(net, "master", "answers on loopback only now")
             _wait_rosmaster_holds(net, "/talker_a")  # replayed to the new rosmaster
             assert "warning" not in _status(net, "master")
+            assert _on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)]).returncode == 0
             assert not _reaches(net, "stranger", master.address, port)
         assert stranger.address  # the stranger's host was there all along
 
