@@ -79,6 +79,7 @@ from interceptor.config import XMLRPC_IDLE_TIMEOUT
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
+from interceptor.registrations import REGISTER, RELEASE, LocalRegistrations, Registration, covers
 from interceptor.statefile import write_private_json
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
 
@@ -395,6 +396,12 @@ class Ros1Role(GatewayRole):
         #: exports released, so nodes that come and go under new names (rostopic, rosbag)
         #: do not use up export_limit either
         self._node_registrations: dict[str, set[tuple[str, str]]] = {}
+        #: node role: each registration a local node made or had refused, as it sent it, so a
+        #: grant that comes while it runs is made for it (:meth:`_regrant`)
+        self._ledger = LocalRegistrations()
+        self._grants_seen: Grants | None = None  # the grants of our token the ledger was last judged by
+        self._regrant_wanted = False
+        self._regranting = False
         gateway.serve("master", self._check_master_target, self._serve_master_stream)
         gateway.serve("node", self._check_node_target, self._serve_node_stream)
         gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
@@ -414,6 +421,10 @@ class Ros1Role(GatewayRole):
         if "node" in self.cfg.roles:
             lm = self.cfg.local_master
             self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
+        if "node" in self.cfg.roles:
+            with contextlib.suppress(CryptorosError):
+                self._grants_seen = self.gw.own_access().grants
+            self.gw.keeper.listeners.append(self._own_token_changed)
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:
@@ -1106,52 +1117,60 @@ class Ros1Role(GatewayRole):
 
     # ---------------------------------------------------------------- local master
     async def _on_local_master(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        master = self.cfg.master.interceptor or self.cfg.public
-        tunnel = self.pool(master.host, master.port, "master", "")
-
-        def decide(call: Request) -> Request:
-            own = self.gw.own_access()
-            check_master_call(
-                call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
-            )
-            call = _resolved_param_call(call, own.grants)
-            if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
-                self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
-                self._topics_registering.add(call.params[1])
-            call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
-            return _rewrite_param_api(call, self.translator.to_canonical)
-
-        def after(call: Request, response: Response | Fault) -> Response | Fault:
-            if call.method == "registerPublisher":
-                registering = call.params[1] in self._topics_registering
-                self._topics_registering.discard(call.params[1])
-                if not _ros_ok(response):
-                    if registering:  # the master refused it: not published here after all
-                        self.topic_types.pop(call.params[1], None)
-                elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
-                    self.topic_types[call.params[1]] = call.params[2]
-                    self._save_state()
-            elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
-                self._note_local_subscriber(call)
-            if call.method in _LOCAL_REGISTRATIONS and _ros_ok(response):
-                self._note_local_node(call)
-            if _ros_ok(response):
-                self._track_local_registration(call)
-            response = _filtered_param_reply(call, response, self.gw.own_access().grants)
-            return rewrite_response(call, response, uri=self.translator.to_local)
-
-        async def handle(request: Request) -> Response | Fault:
-            # no token this instant (our manager re-enabled a moment ago): wait for one
-            # refresh attempt rather than refuse a node that starts now
-            await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
-            return await self._decide_calls(request, decide, tunnel.call, after, "local-master", "local node")
-
         try:
-            await self._serve_xmlrpc(reader, writer, handle)
+            await self._serve_xmlrpc(reader, writer, self._local_master_request)
         except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
             log.warning("local master connection dropped: %s", exc)
         finally:
             writer.close()
+
+    async def _local_master_request(self, request: Request) -> Response | Fault:
+        """One request of a local node to its master (a registration made again on a
+        node's behalf goes the same way: :meth:`_regrant`)."""
+        # no token this instant (our manager re-enabled a moment ago): wait for one
+        # refresh attempt rather than refuse a node that starts now
+        await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+        return await self._decide_calls(request, self._local_decide, tunnel.call, self._local_after, "local-master",
+                                        "local node")
+
+    def _local_decide(self, call: Request) -> Request:
+        own = self.gw.own_access()
+        try:
+            check_master_call(
+                call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
+            )
+        except PolicyDenied as exc:
+            if exc.reason == "not_granted":  # kept: made if a grant comes while the node runs
+                self._ledger.refused(call.method, call.params)
+            raise
+        call = _resolved_param_call(call, own.grants)
+        if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
+            self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
+            self._topics_registering.add(call.params[1])
+        call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
+        return _rewrite_param_api(call, self.translator.to_canonical)
+
+    def _local_after(self, call: Request, response: Response | Fault) -> Response | Fault:
+        if call.method == "registerPublisher":
+            registering = call.params[1] in self._topics_registering
+            self._topics_registering.discard(call.params[1])
+            if not _ros_ok(response):
+                if registering:  # the master refused it: not published here after all
+                    self.topic_types.pop(call.params[1], None)
+            elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
+                self.topic_types[call.params[1]] = call.params[2]
+                self._save_state()
+        elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
+            self._note_local_subscriber(call)
+        if call.method in _LOCAL_REGISTRATIONS and _ros_ok(response):
+            self._note_local_node(call)
+        if _ros_ok(response):
+            self._track_local_registration(call)
+        self._note_ledger(call, response)
+        response = _filtered_param_reply(call, response, self.gw.own_access().grants)
+        return rewrite_response(call, response, uri=self.translator.to_local)
 
     # ---------------------------------------------------------------- exports of restarted nodes
     def _note_local_node(self, call: Request) -> None:
@@ -1210,6 +1229,100 @@ class Ros1Role(GatewayRole):
             del self._node_apis[node]
         if released:
             log.info("released %d exports of a node that %s (API export %s)", len(released), why, api_id)
+
+    # ---------------------------------------------------------------- grants for running nodes
+    def _note_ledger(self, call: Request, response: Response | Fault) -> None:
+        """Keep a local node's registration (as the node sent it) made or refused by the
+        master, and forget one it released (:mod:`interceptor.registrations`)."""
+        if call.method in RELEASE:
+            self._ledger.released(call.method, call.params)
+        elif call.method in REGISTER:
+            try:
+                local = rewrite_call(call, caller_api=self.translator.to_local, service_api=self.translator.to_local)
+            except CryptorosError:
+                return
+            if _ros_ok(response):
+                self._ledger.made(local.method, local.params)
+            else:
+                self._ledger.refused(local.method, local.params)
+
+    def _own_token_changed(self) -> None:
+        """Our token changed (keeper listener): the grants it carries may cover
+        registrations of running nodes they did not cover before."""
+        if self.gw.started:
+            self._regrant_wanted = True
+            if not self._regranting:
+                self._regranting = True
+                self.gw.spawn(self._regrant(), "regrant")
+
+    async def _regrant(self) -> None:
+        """Make again, on their nodes' behalf, the registrations our new grants cover and
+        the old ones did not (a grant added, or removed and added back), and every one
+        refused that they cover now; tell each subscriber its publishers
+        (``publisherUpdate``, as rosmaster does for a registration it accepts). Nodes
+        that do not answer any more are forgotten."""
+        try:
+            while self._regrant_wanted:
+                self._regrant_wanted = False
+                try:
+                    own = self.gw.own_access()
+                except CryptorosError:
+                    return
+                before, self._grants_seen = self._grants_seen, own.grants
+                if before == own.grants and not self._ledger.refused_count:
+                    continue
+                todo = self._ledger.to_resend(
+                    lambda reg: covers(own.grants, own.subject, reg.method, reg.params),
+                    None if before is None else lambda reg: covers(before, own.subject, reg.method, reg.params))
+                if not todo:
+                    continue
+                started = time.monotonic()
+                master = self.cfg.master.interceptor or self.cfg.public
+                try:  # the master's interceptor judges by our freshest token: show it first
+                    await self.gw.exchange_tokens(master.host, master.port)
+                except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                    log.warning("cannot show the master's interceptor our new token (%s): %d registrations of "
+                                "running nodes wait for the next one", exc, len(todo))
+                    self._grants_seen = before
+                    return
+                made = 0
+                for reg in todo:
+                    made += await self._make_again(reg)
+                log.warning("our grants changed: %d of %d registrations of running nodes made again in %.2f s",
+                            made, len(todo), time.monotonic() - started)
+        finally:
+            self._regranting = False
+
+    async def _make_again(self, reg: Registration) -> bool:
+        api = reg.node_api
+        try:
+            if api is None or not _ros_ok(await self._call_plain(api, Request(method="getPid", params=("/master",)))):
+                raise ConnectionError("no answer")
+        except (CryptorosError, OSError, asyncio.TimeoutError):
+            log.info("%s %s of %s not made again: the node does not answer", reg.method, reg.params[1], reg.params[0])
+            self._ledger.released(reg.method, reg.params)
+            return False
+        response = await self._local_master_request(Request(method=reg.method, params=reg.params))
+        if not _ros_ok(response):
+            log.info("%s %s of %s made again: refused (%s)", reg.method, reg.params[1], reg.params[0],
+                     response.value[1] if isinstance(response, Response) else response)
+            return False
+        if reg.method == "registerSubscriber":
+            await self._tell_publishers(api, reg.params[1], response.value[2])
+        return True
+
+    async def _tell_publishers(self, api: str, topic: str, uris: list) -> None:
+        """``publisherUpdate`` to a local subscriber, once each publisher's interceptor
+        has our freshest token (it judges the subscriber's requestTopic by it)."""
+        peers = {(t.host, t.port) for t in (self.translator.relay_target(*e) for e in map(_local_endpoint, uris) if e)
+                 if t is not None}
+        for peer in peers:
+            with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):
+                await self.gw.exchange_tokens(*peer)
+        try:
+            await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, list(uris))))
+        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            log.info("publisherUpdate of %s to %s failed: %s", topic, api, exc)
 
     # ---------------------------------------------------------------- subscribers reconnect
     def _note_local_subscriber(self, call: Request) -> None:

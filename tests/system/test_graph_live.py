@@ -1,0 +1,87 @@
+"""Issue 30 (items 5 and 7, ROS 1): grants take effect for running nodes both ways, and
+restarts never break the graph. Real rosmaster, rospy nodes, interceptors and authz
+daemon; grants changed only with ``cryptoros-authz grant/revoke``; no node is restarted.
+Every wait is bounded and ends on something observed (a message received, a line
+logged, a registration listed), never on a sleep.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, wait_registered
+from tests.support import running
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    with robot_network(tmp_path_factory.mktemp("graph"), start=("master", "robot_a", "robot_b")) as net:
+        yield net
+
+
+def wait_logged(network, host: str, text: str, timeout: float = 15) -> None:
+    logs = network.hosts[host].logs
+    deadline = time.monotonic() + timeout
+    while text not in logs():
+        assert time.monotonic() < deadline, f"{host} never logged {text!r}:\n" + logs()[-3000:]
+        time.sleep(0.1)
+
+
+def first_message_within(proc, seconds: float) -> float:
+    """Seconds until the node printed its next GOT line (fails past ``seconds``)."""
+    started = time.monotonic()
+    assert got(read_lines(proc, "GOT", seconds)), f"nothing received within {seconds} s"
+    return time.monotonic() - started
+
+
+def test_a_subscriber_running_before_its_grant_receives_once_it_is_granted(network):
+    """robot B's listener starts with no grant (its registerSubscriber is refused); the
+    grant is added: it receives robot A's talker, the listener never restarted."""
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "90"],
+                 env=network.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_early", "/secret", "90"], env=network.ros_env("robot_b")) as sub:
+        read_lines(pub, "READY", 20)
+        read_lines(sub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        wait_logged(network, "robot_b", "/listener_early may not subscribe")  # refused: no grant yet
+        network.cli("grant", "robot_b", "subscribe", "/listener_early", "/secret", "std_msgs/String")
+        took = first_message_within(sub, 15)
+        print(f"subscriber before its grant: first message {took:.2f} s after `grant`")
+        assert sub.poll() is None
+
+
+def test_a_publisher_running_before_its_grant_reaches_its_subscriber_once_granted(network):
+    """robot A's talker starts with no publish grant; robot B's listener (granted) waits;
+    the grant is added: rosmaster learns the publication and the listener receives."""
+    with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "90"], env=network.ros_env("robot_b")) as sub, \
+            running([SYS_PY, NODE, "pub", "/talker_early", "/chatter", "100000", "20", "90"],
+                    env=network.ros_env("robot_a")) as pub:
+        read_lines(sub, "READY", 20)
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/rospy_listener")
+        network.cli("grant", "robot_a", "publish", "/talker_early", "/chatter", "std_msgs/String")
+        took = first_message_within(sub, 15)
+        print(f"publisher before its grant: first message {took:.2f} s after `grant`")
+        assert pub.poll() is None
+
+
+def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10_s(network):
+    network.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "120"],
+                 env=network.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_back", "/secret", "120"], env=network.ros_env("robot_b")) as sub:
+        read_lines(pub, "READY", 20)
+        read_lines(sub, "READY", 20)
+        first_message_within(sub, 20)
+        network.cli("revoke", "robot_b", "subscribe", "/listener_back", "/secret")
+        wait_logged(network, "robot_a", "grant_removed")  # robot A cut the stream the removed grant covered
+        read_lines(sub, None, 1.0)  # what was in flight
+        assert not got(read_lines(sub, None, 1.0)), "still receiving after the grant was removed"
+        network.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
+        took = first_message_within(sub, 10)
+        print(f"grant removed and added back: first message {took:.2f} s after `grant`")
+        assert sub.poll() is None and pub.poll() is None
