@@ -869,12 +869,28 @@ class Ros1Role(GatewayRole):
             if pid is not None and pid != self._master_pid:
                 # a new pid, or the first one seen after a restart of ours with registrations
                 # from state_dir (a repeated registration is harmless to rosmaster)
-                if self._master_pid is not None:
-                    self._params.clear()  # a new rosmaster holds no parameter
+                if self._master_pid is not None:  # a new rosmaster holds no parameter
+                    await self._replay_parameters(pid)
                 if self._master_pid is not None or self._registrations:
                     await self._replay_registrations(pid)
                 self._master_pid = pid
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    async def _replay_parameters(self, pid: int) -> None:
+        """Set again what peers set through us and did not delete (the parameter quota's
+        table, :meth:`ParamQuota.items`: bounded per peer), in the order of the tree,
+        before any new write of a peer."""
+        async with self._param_writes:
+            items = self._params.items()
+            failed = 0
+            for key, value in items:
+                try:
+                    reply = await self._call_upstream_master(Request(method="setParam", params=("/cryptoros", key, value)))
+                    failed += not _ros_ok(reply)
+                except (CryptorosError, OSError, asyncio.TimeoutError):
+                    failed += 1
+        log.warning("rosmaster (pid %d) is new: %d parameters replayed%s", pid, len(items),
+                    f", {failed} failed" if failed else "")
 
     async def _replay_registrations(self, pid: int) -> None:
         calls = [Request(method=method, params=params) for method, params in self._registrations.values()]

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, wait_registered
+from tests.interceptor_harness import NODE, NODES, SYS_PY, got, read_lines, robot_network, wait_registered
 from tests.support import running
 
 pytestmark = [pytest.mark.ros1]
@@ -85,3 +85,75 @@ def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10
         took = first_message_within(sub, 10)
         print(f"grant removed and added back: first message {took:.2f} s after `grant`")
         assert sub.poll() is None and pub.poll() is None
+
+
+def call_service(net, host: str) -> str:
+    """A rospy service client on ``host`` calls robot A's /rospy_loggers: its LOGGERS line."""
+    with running([SYS_PY, str(NODES / "services.py"), "call", "/rospy_loggers"], env=net.ros_env(host)) as client:
+        return read_lines(client, "LOGGERS", 20)[-1]
+
+
+@pytest.mark.parametrize("state", ["state_dir", "no_state_dir"])
+@pytest.mark.parametrize("restarted", ["master", "robot_a", "robot_b"])
+def test_after_an_interceptor_restart_the_graph_works(tmp_path, restarted, state):
+    """robot A's talker and service server and robot B's listener keep running while one
+    interceptor restarts, with its state directory or with none: the listener receives
+    again within 15 s, and a listener started after the restart receives and a service
+    call answers, each within its first bounded wait."""
+    extra = ({name: f'state_dir = "{tmp_path / "state" / name}"' for name in ("master", "robot_a", "robot_b")}
+             if state == "state_dir" else None)
+    with robot_network(tmp_path, extra=extra) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "120"],
+                    env=net.ros_env("robot_a")) as pub, \
+            running([SYS_PY, str(NODES / "services.py"), "serve", "0", "120"], env=net.ros_env("robot_a")) as server, \
+            running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "120"], env=net.ros_env("robot_b")) as sub:
+        for proc in (pub, server, sub):
+            read_lines(proc, "READY", 20)
+        first_message_within(sub, 20)
+        assert "rospy.server=debug" in call_service(net, "robot_b")
+        net.stop(restarted)
+        net.start(restarted)
+        read_lines(sub, None, 0.2)  # what arrived before the restart
+        took = first_message_within(sub, 15)
+        with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "60"], env=net.ros_env("robot_b")) as late:
+            read_lines(late, "READY", 20)
+            late_took = first_message_within(late, 10)
+        assert "rospy.server=debug" in call_service(net, "robot_b")
+        print(f"{restarted} restarted ({state}): the running listener again after {took:.2f} s, "
+              f"a new one {late_took:.2f} s after READY")
+        assert pub.poll() is None and server.poll() is None and sub.poll() is None
+
+
+def test_parameters_set_before_a_rosmaster_restart_are_there_after_it(tmp_path):
+    """Past plain ROS: rosmaster dies and a new one starts on the same port; the master's
+    interceptor sets again what peers set through it (a key deleted stays deleted)."""
+    import subprocess
+
+    from cryptoros.lab.network import clean_env, stop
+    from tests.support import require, run
+
+    require("rosparam")
+    with robot_network(tmp_path, start=("master", "robot_b")) as net:
+        net.cli("grant-tools", "robot_b", "--param-ns", "/")
+
+        def rosparam(*argv: str) -> subprocess.CompletedProcess:
+            return run(["rosparam", *argv], env=net.ros_env("robot_b"), timeout=20)
+
+        deadline = time.monotonic() + 15
+        while rosparam("set", "/robot/speed", "1.5").returncode != 0:  # the grant reaches robot B live
+            assert time.monotonic() < deadline, "rosparam set still refused"
+            time.sleep(0.5)
+        assert rosparam("set", "/robot/name", "r1").returncode == 0
+        assert rosparam("set", "/gone", "x").returncode == 0
+        assert rosparam("delete", "/gone").returncode == 0
+        old = next(p for p in net.procs if "--core" in p.args)  # Debian's rosmaster
+        stop(old)
+        new = subprocess.Popen(old.args, env=clean_env(ROS_MASTER_URI=net.rosmaster_uri, ROS_IP="127.0.0.1",
+                                                         ROS_HOME=str(tmp_path)),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        net.procs.append(new)
+        wait_logged(net, "master", "parameters replayed")
+        got_speed = rosparam("get", "/robot/speed")
+        assert got_speed.returncode == 0 and got_speed.stdout.strip() == "1.5", got_speed
+        assert rosparam("get", "/robot/name").stdout.strip() == "r1"
+        assert rosparam("get", "/gone").returncode != 0  # deleted before the restart: not replayed
