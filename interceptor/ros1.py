@@ -76,6 +76,7 @@ from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
+from interceptor.gate import REFRESH
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
@@ -425,6 +426,8 @@ class Ros1Role(GatewayRole):
             with contextlib.suppress(CryptorosError):
                 self._grants_seen = self.gw.own_access().grants
             self.gw.keeper.listeners.append(self._own_token_changed)
+        if "node" in self.cfg.roles and not self.translator.export_count:
+            self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:
@@ -873,8 +876,49 @@ class Ros1Role(GatewayRole):
                     await self._replay_parameters(pid)
                 if self._master_pid is not None or self._registrations:
                     await self._replay_registrations(pid)
+                elif not self._relay_refs:  # restarted with no state: rosmaster still names our relays
+                    await self._adopt_master_state()
                 self._master_pid = pid
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    async def _adopt_master_state(self) -> None:
+        """Restarted with no state (master role): open again, on their old ports, the
+        relays whose names rosmaster holds (every node API and service URI carries its
+        canonical name, :meth:`Translator.from_master`), each counted once per
+        registration behind it, so rosmaster reaches every node again at once. Who owns
+        each name is not known again until the node registers anew."""
+        try:
+            state = await self._call_upstream_master(Request(method="getSystemState", params=("/cryptoros",)))
+            if not _ros_ok(state):
+                return
+            publishers, subscribers, services = state.value[2]
+            counts: dict[str, int] = {}
+            for _name, nodes in (*publishers, *subscribers, *services):
+                for node in nodes:
+                    counts[node] = counts.get(node, 0) + 1
+            uris = []
+            for node, count in counts.items():
+                reply = await self._call_upstream_master(Request(method="lookupNode", params=("/cryptoros", node)))
+                if _ros_ok(reply) and isinstance(reply.value[2], str):
+                    uris.append((reply.value[2], count))
+            for service, _nodes in services:
+                reply = await self._call_upstream_master(Request(method="lookupService", params=("/cryptoros", service)))
+                if _ros_ok(reply) and isinstance(reply.value[2], str):
+                    uris.append((reply.value[2], 1))
+        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+            log.warning("cannot read rosmaster's graph to re-open our relays: %s", exc)
+            return
+        adopted = 0
+        for uri, count in uris:
+            with contextlib.suppress(CryptorosError):
+                self.translator.from_master(uri)
+            endpoint = _local_endpoint(uri)
+            if endpoint is not None and self.translator.relay_target(*endpoint) is not None:
+                self._relay_refs[endpoint] = self._relay_refs.get(endpoint, 0) + count
+                adopted += 1
+        if uris:
+            log.warning("restarted with no state: %d relays rosmaster names re-opened (%d nodes, %d services)",
+                        adopted, len(counts), len(services))
 
     async def _replay_parameters(self, pid: int) -> None:
         """Set again what peers set through us and did not delete (the parameter quota's
@@ -942,7 +986,7 @@ class Ros1Role(GatewayRole):
             target = Canonical.parse(uri)
             if target is None or target.host not in peer.hosts:
                 raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
-            return self.translator.to_local(uri)
+            return self.translator.to_local(uri, named=True)  # named: rosmaster keeps it across our restarts
 
         def existing_from_peer(uri: str) -> str:
             # unregister*/unsubscribeParam never open a relay: an endpoint no relay was
@@ -950,7 +994,7 @@ class Ros1Role(GatewayRole):
             target = Canonical.parse(uri)
             if target is None or target.host not in peer.hosts:
                 raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
-            local = self.translator.existing_local(uri)
+            local = self.translator.existing_local(uri, named=True)
             if local is None:
                 raise PolicyDenied("unknown_endpoint", f"{uri!r:.80} was never registered through this interceptor")
             return local
@@ -979,7 +1023,7 @@ class Ros1Role(GatewayRole):
             self._note_registration(call, response, peer.manager, exact=bool(call.params) and
                                     isinstance(call.params[0], str) and grants.names_node_exactly(call.params[0]))
             response = _filtered_param_reply(call, response, self.verifier.freshest(peer.access).grants)
-            return rewrite_response(call, response, uri=self.translator.to_canonical)
+            return rewrite_response(call, response, uri=self.translator.from_master)
 
         async def handle(request: Request) -> Response | Fault:
             if not _writes_params(request):
@@ -1246,6 +1290,73 @@ class Ros1Role(GatewayRole):
         if released:
             log.info("released %d exports of a node that %s (API export %s)", len(released), why, api_id)
 
+    # ---------------------------------------------------------------- a restart with no state
+    async def _adopt_local_graph(self, patience: float = 120.0) -> None:
+        """Started with no state (node role): this host's nodes may be running, registered
+        under names of ours that rosmaster still holds. Take back their exports (an id
+        says which loopback endpoint it names, :meth:`Translator.adopt`), the topics they
+        publish, their subscriptions and registrations, and tell each subscriber its
+        publishers, as after a restart with state. Only what the master's interceptor
+        answers is adopted."""
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+
+        async def ask(method: str, *params):
+            reply = await tunnel.call(Request(method=method, params=("/cryptoros", *params)))
+            return reply.value[2] if _ros_ok(reply) else None
+
+        deadline, backoff = time.monotonic() + patience, 0.25
+        while True:
+            try:
+                state = await ask("getSystemState")
+                if state is None:
+                    raise PolicyDenied("master_refused", "getSystemState")
+                break
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                if time.monotonic() + backoff > deadline:
+                    log.warning("started with no state, and rosmaster's graph cannot be read (%s): running nodes "
+                                "of this host are not reached until they register again", exc)
+                    return
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 4.0)
+        started = time.monotonic()
+        try:
+            publishers, subscribers, services = state
+            types = dict(await ask("getTopicTypes") or [])
+            own: dict[str, str] = {}  # node -> its local API
+            for node in {n for _name, nodes in (*publishers, *subscribers, *services) for n in nodes}:
+                uri = await ask("lookupNode", node)
+                endpoint = self.translator.adopt(uri) if isinstance(uri, str) else None
+                if endpoint is not None:
+                    own[node] = endpoint.uri
+                    self._node_apis.setdefault(node, self.translator.own_id(uri))
+            for service, nodes in services:
+                mine = [n for n in nodes if n in own]
+                uri = await ask("lookupService", service) if mine else None
+                if isinstance(uri, str) and self.translator.adopt(uri) is not None:
+                    for node in mine:
+                        self._node_registrations.setdefault(node, set()).add(("srv", service))
+            for kind, section in (("pub", publishers), ("sub", subscribers)):
+                for topic, nodes in section:
+                    for node in (n for n in nodes if n in own):
+                        self._node_registrations.setdefault(node, set()).add((kind, topic))
+                        if kind == "pub" and topic in types:
+                            self.topic_types.setdefault(topic, types[topic])
+                            self._ledger.made("registerPublisher", (node, topic, types[topic], own[node]))
+                        elif kind == "sub":
+                            self._local_subscribers.setdefault(topic, {}).setdefault(node, own[node])
+                            if topic in types:
+                                self._ledger.made("registerSubscriber", (node, topic, types[topic], own[node]))
+        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+            log.warning("started with no state; rosmaster's graph could not be read whole (%s)", exc)
+            return
+        log.warning("started with no state: %d running nodes of this host adopted from rosmaster's graph "
+                    "(%d subscribed topics) in %.2f s", len(own), len(self._local_subscribers),
+                    time.monotonic() - started)
+        self._save_state_soon()
+        for topic in list(self._local_subscribers):
+            self._resubscribe_soon(topic, delay=0.0)
+
     # ---------------------------------------------------------------- grants for running nodes
     def _note_ledger(self, call: Request, response: Response | Fault) -> None:
         """Keep a local node's registration (as the node sent it) made or refused by the
@@ -1294,8 +1405,9 @@ class Ros1Role(GatewayRole):
                     continue
                 started = time.monotonic()
                 master = self.cfg.master.interceptor or self.cfg.public
-                try:  # the master's interceptor judges by our freshest token: show it first
-                    await self.gw.exchange_tokens(master.host, master.port)
+                try:  # the master's interceptor judges by our freshest whole token: show it first
+                    shown = await self.gw.open_tunnel(master.host, master.port, REFRESH, "", whole=True)
+                    shown.writer.close()
                 except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
                     log.warning("cannot show the master's interceptor our new token (%s): %d registrations of "
                                 "running nodes wait for the next one", exc, len(todo))
@@ -1422,7 +1534,8 @@ class Ros1Role(GatewayRole):
         def decide(call: Request) -> Request:
             if call.method == "shutdown":
                 raise PolicyDenied("shutdown_dropped", "node shutdown is never forwarded")
-            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_canonical))
+            # rosmaster's publisherUpdate through the relay of a subscriber: its relay names
+            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.from_master))
 
         # the publisher's address must be the answering interceptor's own (see tcpros_to_local)
         tcpros = functools.partial(self.translator.tcpros_to_local, via=(target.host, target.port))

@@ -31,9 +31,10 @@ def wait_logged(network, host: str, text: str, timeout: float = 15) -> None:
         time.sleep(0.1)
 
 
-def first_message_within(proc, seconds: float) -> float:
-    """Seconds until the node printed its next GOT line (fails past ``seconds``)."""
-    started = time.monotonic()
+def first_message_within(proc, seconds: float, since: float | None = None) -> float:
+    """Seconds from ``since`` (now) until the node printed its next GOT line (fails
+    past ``seconds`` from now)."""
+    started = time.monotonic() if since is None else since
     assert got(read_lines(proc, "GOT", seconds)), f"nothing received within {seconds} s"
     return time.monotonic() - started
 
@@ -48,8 +49,9 @@ def test_a_subscriber_running_before_its_grant_receives_once_it_is_granted(netwo
         read_lines(sub, "READY", 20)
         wait_registered(network, "/talker_a")
         wait_logged(network, "robot_b", "/listener_early may not subscribe")  # refused: no grant yet
+        granted = time.monotonic()
         network.cli("grant", "robot_b", "subscribe", "/listener_early", "/secret", "std_msgs/String")
-        took = first_message_within(sub, 15)
+        took = first_message_within(sub, 15, since=granted)
         print(f"subscriber before its grant: first message {took:.2f} s after `grant`")
         assert sub.poll() is None
 
@@ -63,8 +65,9 @@ def test_a_publisher_running_before_its_grant_reaches_its_subscriber_once_grante
         read_lines(sub, "READY", 20)
         read_lines(pub, "READY", 20)
         wait_registered(network, "/rospy_listener")
+        granted = time.monotonic()
         network.cli("grant", "robot_a", "publish", "/talker_early", "/chatter", "std_msgs/String")
-        took = first_message_within(sub, 15)
+        took = first_message_within(sub, 15, since=granted)
         print(f"publisher before its grant: first message {took:.2f} s after `grant`")
         assert pub.poll() is None
 
@@ -81,8 +84,9 @@ def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10
         wait_logged(network, "robot_a", "grant_removed")  # robot A cut the stream the removed grant covered
         read_lines(sub, None, 1.0)  # what was in flight
         assert not got(read_lines(sub, None, 1.0)), "still receiving after the grant was removed"
+        granted = time.monotonic()
         network.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
-        took = first_message_within(sub, 10)
+        took = first_message_within(sub, 10, since=granted)
         print(f"grant removed and added back: first message {took:.2f} s after `grant`")
         assert sub.poll() is None and pub.poll() is None
 
@@ -113,8 +117,9 @@ def test_after_an_interceptor_restart_the_graph_works(tmp_path, restarted, state
         assert "rospy.server=debug" in call_service(net, "robot_b")
         net.stop(restarted)
         net.start(restarted)
+        restarted_at = time.monotonic()
         read_lines(sub, None, 0.2)  # what arrived before the restart
-        took = first_message_within(sub, 15)
+        took = first_message_within(sub, 15, since=restarted_at)
         with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "60"], env=net.ros_env("robot_b")) as late:
             read_lines(late, "READY", 20)
             late_took = first_message_within(late, 10)
