@@ -1350,9 +1350,9 @@ class Ros1Role(GatewayRole):
         except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
             log.warning("started with no state; rosmaster's graph could not be read whole (%s)", exc)
             return
-        log.warning("started with no state: %d running nodes of this host adopted from rosmaster's graph "
-                    "(%d subscribed topics) in %.2f s", len(own), len(self._local_subscribers),
-                    time.monotonic() - started)
+        log.log(logging.WARNING if own else logging.INFO,
+                "started with no state: %d running nodes of this host adopted from rosmaster's graph "
+                "(%d subscribed topics) in %.2f s", len(own), len(self._local_subscribers), time.monotonic() - started)
         self._save_state_soon()
         for topic in list(self._local_subscribers):
             self._resubscribe_soon(topic, delay=0.0)
