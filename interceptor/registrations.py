@@ -88,9 +88,19 @@ class LocalRegistrations:
         """rosmaster accepted it."""
         self._put(method, params, refused=False)
 
-    def refused(self, method: str, params: tuple) -> None:
-        """Refused (for want of a grant, here or at the master): made later if a grant comes."""
+    def refused(self, method: str, params: tuple) -> bool:
+        """Refused (for want of a grant, here or at the master): made later if a grant
+        comes. Whether the ledger changed (a refusal repeated changes nothing)."""
+        key = _key(method, params)
+        known = None if key is None else self._entries.get(key)
+        if known is not None and known.refused and known.params == tuple(params):
+            return False
         self._put(method, params, refused=True)
+        return key is not None and key in self._refused
+
+    def refused_items(self) -> list[tuple[str, tuple]]:
+        """The refused registrations, oldest first (kept across a restart in the state file)."""
+        return [(self._entries[key].method, self._entries[key].params) for key in self._refused]
 
     def released(self, method: str, params: tuple) -> None:
         """The node unregistered it (an ``unregister*`` call), or it is gone."""

@@ -426,6 +426,8 @@ class Ros1Role(GatewayRole):
             with contextlib.suppress(CryptorosError):
                 self._grants_seen = self.gw.own_access().grants
             self.gw.keeper.listeners.append(self._own_token_changed)
+            if self._ledger.refused_count:  # kept from before our restart: our token may cover them now
+                self._own_token_changed()
         if "node" in self.cfg.roles and not self.translator.export_count:
             self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
@@ -529,7 +531,8 @@ class Ros1Role(GatewayRole):
                 "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
-                "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
+                "registrations": [[method, list(params)] for method, params in self._registrations.values()],
+                "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()]}
         try:
             write_private_json(path, data)
             self._state_saves += 1
@@ -564,6 +567,8 @@ class Ros1Role(GatewayRole):
                 self._record_registration(str(method), tuple(str(p) for p in params))
             for method, params in self._registrations.values():  # the counts behind each restored relay
                 self._count_relay_refs(method, params, +1)
+            for method, params in data.get("waiting", [])[:self._ledger.max_refused]:
+                self._ledger.refused(str(method), tuple(str(p) for p in params))
             for topic, subscribers in data.get("local_subscribers", {}).items():
                 self._local_subscribers[str(topic)] = {str(n): str(api) for n, api in subscribers.items()}
             self._node_apis.update({str(n): str(i) for n, i in data.get("node_apis", {}).items()})
@@ -1202,8 +1207,8 @@ class Ros1Role(GatewayRole):
                 call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
             )
         except PolicyDenied as exc:
-            if exc.reason == "not_granted":  # kept: made if a grant comes while the node runs
-                self._ledger.refused(call.method, call.params)
+            if exc.reason == "not_granted" and self._ledger.refused(call.method, call.params):
+                self._save_state_soon()  # kept: made if a grant comes while the node runs
             raise
         call = _resolved_param_call(call, own.grants)
         if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
@@ -1369,9 +1374,12 @@ class Ros1Role(GatewayRole):
             except CryptorosError:
                 return
             if _ros_ok(response):
+                waiting = self._ledger.get(local.method, local.params)
                 self._ledger.made(local.method, local.params)
-            else:
-                self._ledger.refused(local.method, local.params)
+                if waiting is not None and waiting.refused:
+                    self._save_state_soon()
+            elif self._ledger.refused(local.method, local.params):
+                self._save_state_soon()
 
     def _own_token_changed(self) -> None:
         """Our token changed (keeper listener): the grants it carries may cover

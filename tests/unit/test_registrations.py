@@ -74,3 +74,14 @@ def test_not_a_registration_is_ignored():
     ledger.refused("setParam", ("/n", "/k", 1))
     ledger.made("registerSubscriber", ("/n",))
     assert len(ledger) == 0
+
+
+def test_a_repeated_refusal_changes_nothing_and_the_refused_are_listed_oldest_first():
+    ledger = LocalRegistrations()
+    assert ledger.refused(*SUB) is True
+    assert ledger.refused(*SUB) is False  # the same again: no state to write
+    assert ledger.refused(*PUB) is True
+    assert ledger.refused_items() == [SUB, PUB]
+    ledger.made(*SUB)
+    assert ledger.refused_items() == [PUB]
+    assert ledger.refused("setParam", ("/n", "/k", 1)) is False
