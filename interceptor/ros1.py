@@ -422,14 +422,13 @@ class Ros1Role(GatewayRole):
         if "node" in self.cfg.roles:
             lm = self.cfg.local_master
             self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
-        if "node" in self.cfg.roles:
             with contextlib.suppress(CryptorosError):
                 self._grants_seen = self.gw.own_access().grants
             self.gw.keeper.listeners.append(self._own_token_changed)
             if self._ledger.refused_count:  # kept from before our restart: our token may cover them now
                 self._own_token_changed()
-        if "node" in self.cfg.roles and not self.translator.export_count:
-            self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
+            if not self.translator.export_count:
+                self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:

@@ -91,6 +91,25 @@ def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10
         assert sub.poll() is None and pub.poll() is None
 
 
+def test_a_registration_waiting_for_its_grant_is_kept_across_its_interceptors_restart(tmp_path):
+    """robot B's listener is refused (no grant); robot B's interceptor stops, the grant is
+    added meanwhile, and it starts again from its state directory: it makes the waiting
+    registration, and the listener (never restarted) receives."""
+    with robot_network(tmp_path, extra={"robot_b": f'state_dir = "{tmp_path / "state"}"'}) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "90"],
+                    env=net.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_wait", "/secret", "90"], env=net.ros_env("robot_b")) as sub:
+        read_lines(pub, "READY", 20)
+        read_lines(sub, "READY", 20)
+        wait_logged(net, "robot_b", "/listener_wait may not subscribe")
+        net.stop("robot_b")
+        net.cli("grant", "robot_b", "subscribe", "/listener_wait", "/secret", "std_msgs/String")
+        net.start("robot_b")
+        took = first_message_within(sub, 15)
+        print(f"a registration kept across a restart: first message {took:.2f} s after the restart")
+        assert sub.poll() is None
+
+
 def call_service(net, host: str) -> str:
     """A rospy service client on ``host`` calls robot A's /rospy_loggers: its LOGGERS line."""
     with running([SYS_PY, str(NODES / "services.py"), "call", "/rospy_loggers"], env=net.ros_env(host)) as client:
