@@ -358,8 +358,7 @@ class Translator:
         if isinstance(uri, str) and uri.rstrip("/") not in self._master_uris:
             kind, host, port = _parse_ros_uri(uri)
             path = uri.split("://", 1)[1].partition("/")[2]
-            m = _NAMED_PATH.match("/" + path) if is_loopback(host) and self._relay_targets.get((host, port)) is None \
-                else None
+            m = _NAMED_PATH.match("/" + path) if is_loopback(host) else None  # the name, not the port, says
             target = Canonical.parse(f"{SCHEME}://{m.group(1)}:{m.group(2)}/{m.group(3)}/{m.group(4)}") if m else None
             if target is not None and target.kind == kind and not self.owns(target):
                 if target not in self._relays:

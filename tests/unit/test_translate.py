@@ -101,6 +101,9 @@ def test_relays_handed_to_rosmaster_are_named_and_come_back_after_a_restart():
     assert fresh.from_master(service) == "cryptoros://127.0.0.3:11400/t/9"
     assert opened == [("cryptoros://127.0.0.3:11400/x/7", 40001), ("cryptoros://127.0.0.3:11400/t/9", 40002)]
     assert fresh.from_master(named) == "cryptoros://127.0.0.3:11400/x/7" and len(opened) == 2  # open already
+    # the name says which target, even where another relay took its old port
+    stale = named.replace("/x/7", "/x/11")  # port 40001 is x/7's relay now
+    assert fresh.from_master(stale) == "cryptoros://127.0.0.3:11400/x/11"
     # a name of the wrong kind for its scheme is not taken as a name
     assert fresh.from_master("http://127.0.0.1:40009/cryptoros/127.0.0.3/11400/t/9").startswith(
         "cryptoros://127.0.0.4:11400/x/")
