@@ -91,6 +91,27 @@ def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10
         assert sub.poll() is None and pub.poll() is None
 
 
+def test_a_publish_grant_removed_and_added_back_reaches_the_running_subscriber_within_10_s(network):
+    """The publisher's side: robot B cuts the stream when robot A's publish grant goes;
+    when it comes back, robot A makes the running talker's registration again and
+    rosmaster tells the listener, which receives again."""
+    network.cli("grant", "robot_a", "publish", "/talker_back", "/chatter", "std_msgs/String")
+    with running([SYS_PY, NODE, "sub", "/listener_pb", "/chatter", "120"], env=network.ros_env("robot_b")) as sub, \
+            running([SYS_PY, NODE, "pub", "/talker_back", "/chatter", "100000", "20", "120"],
+                    env=network.ros_env("robot_a")) as pub:
+        read_lines(sub, "READY", 20)
+        read_lines(pub, "READY", 20)
+        first_message_within(sub, 20)
+        network.cli("revoke", "robot_a", "publish", "/talker_back", "/chatter")
+        wait_logged(network, "robot_b", "grant_removed")  # robot B cut the stream the removed grant covered
+        read_lines(sub, None, 1.0)  # what was in flight
+        granted = time.monotonic()
+        network.cli("grant", "robot_a", "publish", "/talker_back", "/chatter", "std_msgs/String")
+        took = first_message_within(sub, 10, since=granted)
+        print(f"publish grant removed and added back: first message {took:.2f} s after `grant`")
+        assert sub.poll() is None and pub.poll() is None
+
+
 def test_a_registration_waiting_for_its_grant_is_kept_across_its_interceptors_restart(tmp_path):
     """robot B's listener is refused (no grant); robot B's interceptor stops, the grant is
     added meanwhile, and it starts again from its state directory: it makes the waiting
