@@ -483,6 +483,11 @@ def grant_hint(reason: str | None, method: str, params: tuple, manager: str | No
         if reason in ("param_write_denied", "param_read_denied"):
             index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
             key = resolve_param_key(_str_param(params, index, method, "a key"), params[0])
+            if node == "/roslaunch":  # its own keys and the launched nodes' (named by grants): one bundle
+                own = any(key == ns or key.startswith(ns + "/") for ns in ("/run_id", "/roslaunch", "/rosdistro",
+                                                                              "/rosversion"))
+                extra = "" if own else f" --launch-param-ns {key}"  # not needed for a launched node's own
+                return f"cryptoros-authz grant-tools {manager} --no-params --roslaunch{extra}"
             action = "write_param" if reason == "param_write_denied" else "read_param"
             return f"{prefix} {action} {node} {key}"
         if reason == "not_granted" and method in ("registerPublisher", "registerSubscriber", "registerService"):

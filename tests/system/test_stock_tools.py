@@ -45,7 +45,7 @@ managers:
   fingerprint_sha256: {robot_c}
 """
 
-GRANT_TOOLS = ("grant-tools", "robot_b", "--topic", "/chatter:std_msgs/String",
+GRANT_TOOLS = ("grant-tools", "robot_b", "--topic", "/chatter:std_msgs/String", "--publish-topic", "/tool_topic:std_msgs/String",
                "--service", "/rospy_loggers:roscpp/GetLoggers", "--param-ns", "/")
 
 
@@ -70,7 +70,7 @@ def until_ok(net, *argv: str, within: float, timeout: float = 15) -> subprocess.
 
 
 def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
-    require("rostopic", "rosparam", "rosnode", "rosservice", "rosbag")
+    require("rostopic", "rosparam", "rosnode", "rosservice", "rosbag", "rosmsg", "rossrv")
     with robot_network(tmp_path, policy=POLICY, start=("master", "robot_a", "robot_b")) as net, \
             running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "10", "120"],
                     env=net.ros_env("robot_a")) as pub, \
@@ -122,6 +122,25 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
         assert nodes.returncode == 0 and "/talker_a" in nodes.stdout.split(), nodes
         info = tool(net, "rosnode", "info", "/talker_a")
         assert info.returncode == 0 and "/chatter" in info.stdout, info
+        ping = tool(net, "rosnode", "ping", "-c", "1", "/talker_a")
+        assert ping.returncode == 0 and "reply from" in ping.stdout, ping
+
+        # --- the rest of the tools of the table in docs/stock-tools.md
+        topics = tool(net, "rostopic", "list")
+        assert topics.returncode == 0 and "/chatter" in topics.stdout.split(), topics
+        topic_info = tool(net, "rostopic", "info", "/chatter")
+        assert topic_info.returncode == 0 and "/talker_a" in topic_info.stdout, topic_info
+        hz = tool(net, "rostopic", "hz", "-w", "5", "/chatter", timeout=8)  # runs until stopped
+        assert "average rate" in hz.stdout, hz
+        published = tool(net, "rostopic", "pub", "-1", "/tool_topic", "std_msgs/String", "hi", timeout=30)
+        assert published.returncode == 0, published
+        services = tool(net, "rosservice", "list")
+        assert services.returncode == 0 and "/rospy_loggers" in services.stdout.split(), services
+        delete = tool(net, "rosparam", "delete", "/x")
+        assert delete.returncode == 0 and tool(net, "rosparam", "get", "/x").returncode != 0, delete
+        for offline in (("rosmsg", "show", "std_msgs/String"), ("rossrv", "show", "roscpp/GetLoggers")):
+            shown = tool(net, *offline)
+            assert shown.returncode == 0 and shown.stdout.strip(), shown
 
         # --- --remove takes the bundle away again (live)
         removed = net.cli(*GRANT_TOOLS, "--remove")

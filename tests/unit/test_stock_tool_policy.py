@@ -155,3 +155,12 @@ def test_distinct_refusals_are_each_logged_and_the_table_is_bounded():
     for n in range(5):
         assert len(table.record("master", "robot_b", "not_granted", f"/t{n}", now=1.0)) == 1
     assert [r["target"] for r in table.table(now=2.0)] == ["/t4", "/t3", "/t2"]
+
+
+def test_roslaunchs_refusals_point_at_its_bundle():
+    assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/run_id", "x"), "robot_b") == \
+        "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
+    assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/roslaunch/uris/host_1", "x"), "robot_b") == \
+        "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
+    assert "--launch-param-ns /global_setting" in grant_hint("param_write_denied", "setParam",
+                                                             ("/roslaunch", "/global_setting", 3), "robot_b")
