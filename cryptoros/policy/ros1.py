@@ -492,6 +492,9 @@ def grant_hint(reason: str | None, method: str, params: tuple, manager: str | No
             return f"{prefix} {action} {node} {key}"
         if reason == "not_granted" and method in ("registerPublisher", "registerSubscriber", "registerService"):
             name = _str_param(params, 1, method, "a name")
+            infra_type = params[2] if method == "registerPublisher" and len(params) > 2 else None
+            if infrastructure_allows("serve" if method == "registerService" else "publish", params[0], name, infra_type):
+                return None  # /rosout, its own loggers: allowed once any grant names the node
             if method == "registerService":
                 return f"{prefix} serve {node} {name} TYPE"
             type_name = _str_param(params, 2, method, "a type")

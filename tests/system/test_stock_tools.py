@@ -45,7 +45,7 @@ managers:
   fingerprint_sha256: {robot_c}
 """
 
-GRANT_TOOLS = ("grant-tools", "robot_b", "--topic", "/chatter:std_msgs/String", "--publish-topic", "/tool_topic:std_msgs/String",
+GRANT_TOOLS = ("grant-tools", "robot_b", "--topic", "/chatter:std_msgs/String",
                "--service", "/rospy_loggers:roscpp/GetLoggers", "--param-ns", "/")
 
 
@@ -132,10 +132,11 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
         assert topic_info.returncode == 0 and "/talker_a" in topic_info.stdout, topic_info
         hz = tool(net, "rostopic", "hz", "-w", "5", "/chatter", timeout=8)  # runs until stopped
         assert "average rate" in hz.stdout, hz
-        published = tool(net, "rostopic", "pub", "-1", "/tool_topic", "std_msgs/String", "hi", timeout=30)
+        assert net.cli("grant", "robot_b", "publish", "/rostopic_*", "/tool_topic", "std_msgs/String").returncode == 0
+        published = until_ok(net, "rostopic", "pub", "-1", "/tool_topic", "std_msgs/String", "hi", within=20, timeout=30)
         assert published.returncode == 0, published
         services = tool(net, "rosservice", "list")
-        assert services.returncode == 0 and "/rospy_loggers" in services.stdout.split(), services
+        assert services.returncode == 0 and "/talker_a/get_loggers" in services.stdout.split(), services
         delete = tool(net, "rosparam", "delete", "/x")
         assert delete.returncode == 0 and tool(net, "rosparam", "get", "/x").returncode != 0, delete
         for offline in (("rosmsg", "show", "std_msgs/String"), ("rossrv", "show", "roscpp/GetLoggers")):
@@ -149,7 +150,7 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
         while tool(net, "rosparam", "set", "/y", "2").returncode == 0:
             assert time.monotonic() < deadline, "rosparam set still works after grant-tools --remove"
             time.sleep(0.5)
-        assert pub.poll() is None and server.poll() is None
+        assert pub.poll() is None  # (the service server lives 30 s only)
 
 
 # ---------------------------------------------------------------------------------------

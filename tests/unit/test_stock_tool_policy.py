@@ -164,3 +164,11 @@ def test_roslaunchs_refusals_point_at_its_bundle():
         "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
     assert "--launch-param-ns /global_setting" in grant_hint("param_write_denied", "setParam",
                                                              ("/roslaunch", "/global_setting", 3), "robot_b")
+
+
+def test_no_hint_for_what_any_grant_naming_the_node_allows():
+    node = "/rostopic_4711_1795791784"
+    assert grant_hint("not_granted", "registerPublisher", (node, "/rosout", "rosgraph_msgs/Log", "http://x:1/"),
+                      "robot_b") is None
+    assert grant_hint("not_granted", "registerService", (node, node + "/get_loggers", "rosrpc://x:1",
+                                                         "http://x:1/"), "robot_b") is None
