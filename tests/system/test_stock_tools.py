@@ -327,3 +327,69 @@ def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
         assert played.returncode == 0, played.stdout + played.stderr
         log = denials(net, "robot_b")
         assert "/clock" not in log and "pause_playback" not in log, log
+
+
+def test_what_stock_libraries_read_is_on_the_default_list(tmp_path, roscpp_talker):
+    """Measured again, with no interceptor: rospy, roscpp, roslaunch, rosbag and actionlib
+    run against a recording proxy in front of rosmaster. Every parameter a node reads
+    outside its own names is on the one default list (or is a parameter of a topic it
+    publishes), and what roslaunch writes is its own keys (the --roslaunch bundle) or the
+    launched nodes' own."""
+    import json
+
+    from cryptoros.lab.processes import free_port, wait_port
+    from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_topic_param
+    from cryptoros.policy.ros1 import resolve_param_key
+
+    require("rosmaster", "roslaunch", "rosbag")
+    if run([SYS_PY, "-c", "import actionlib, move_base_msgs.msg"], timeout=30).returncode != 0:
+        require("python3-actionlib-and-python3-move-base-msgs")
+    master_port, port = free_port(), free_port()
+    out = tmp_path / "reads.jsonl"
+    env = {"ROS_MASTER_URI": f"http://127.0.0.1:{port}/", "ROS_IP": "127.0.0.1", "ROS_HOME": str(tmp_path),
+           "PATH": "/usr/bin:/bin", "ROS_PACKAGE_PATH": str(tmp_path / "pkgs")}
+    pkg = tmp_path / "pkgs" / "crtest"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text(
+        '<?xml version="1.0"?><package format="2"><name>crtest</name><version>0.0.1</version>'
+        '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
+    (pkg / "stock_libs.py").write_text(open(LIBS).read())
+    (pkg / "stock_libs.py").chmod(0o755)
+    (tmp_path / "two.launch").write_text(LAUNCH)
+    with running(["rosmaster", "--core", "-p", str(master_port)], env=env), \
+            running([SYS_PY, str(NODES / "param_recorder.py"), f"http://127.0.0.1:{master_port}/", str(port), str(out)],
+                    env=env) as recorder:
+        read_lines(recorder, "READY", 20)
+        wait_port("127.0.0.1", master_port, 20)
+        with running([SYS_PY, LIBS, "probe", "prober", "/prober/x", "3"], env=env) as prober:  # logs at 5 Hz
+            read_lines(prober, "DONE", 60)
+        with running([roscpp_talker, "/chatter", "1"], env=env) as cpp:
+            read_lines(cpp, None, 3)
+        with running([SYS_PY, LIBS, "action_server"], env=env) as server:
+            read_lines(server, "READY", 30)
+            with running([SYS_PY, LIBS, "action_client"], env=env) as client:
+                assert "RESULT 3" in [line.strip() for line in read_lines(client, "RESULT", 60)]
+        launched = run(["roslaunch", str(tmp_path / "two.launch")], env=env, timeout=60)
+        assert "PARAM 10.0" in launched.stdout, launched.stdout + launched.stderr
+        bag = tmp_path / "rec.bag"
+        assert run(["rosbag", "record", "-O", str(bag), "--duration=1", "/chatter"], env=env, timeout=60).returncode == 0
+        assert run(["rosbag", "play", "--clock", "-q", str(bag)], env=env, timeout=60).returncode == 0
+    calls = [json.loads(line) for line in out.read_text().splitlines()]
+    callers = {caller.split("_")[0] for _m, caller, _k in calls}
+    assert {"/prober", "/roscpp", "/action", "/roslaunch", "/record", "/play", "/launch"} <= callers, callers
+    own_names = {"/launch_talker", "/launch_other"}  # the launched nodes, named by the manager's grants
+    outside = set()
+    for method, caller, key in calls:
+        if method in ("getParamNames",):
+            continue
+        key = "/" + key if method == "searchParam" and not key.startswith("/") else resolve_param_key(key, caller)
+        if key == caller or key.startswith(caller + "/"):
+            continue  # its own private namespace
+        if method in ("setParam", "deleteParam"):
+            assert caller == "/roslaunch", (method, caller, key)
+            assert key.split("/")[1] in ("run_id", "roslaunch", "rosdistro", "rosversion") or \
+                "/" + key.split("/")[1] in own_names, key
+            continue
+        outside.add(key)
+    assert {"/rosout_disable_topics_generation", "/use_sim_time", "/tcp_keepalive"} <= outside, outside
+    assert not [k for k in outside if k not in ROS1_DEFAULT_PARAM_READS and ros1_topic_param(k) is None], outside
