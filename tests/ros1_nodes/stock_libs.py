@@ -7,6 +7,8 @@
                                           and the topic 'chatter' resolves to, publishes it
   stock_libs.py action_server             actionlib SimpleActionServer on /move_base: READY
   stock_libs.py action_client             sends one goal to /move_base: RESULT <state>
+  stock_libs.py dr_server                 dynamic_reconfigure server (TestConfig) as /dr_server: READY
+  stock_libs.py dr_client                 sets /dr_server's int_ to 7: SET <int_ now>
 """
 
 import sys
@@ -69,6 +71,24 @@ def action_client() -> None:
     print("RESULT", client.get_state(), flush=True)
 
 
+def dr_server() -> None:
+    from dynamic_reconfigure.cfg import TestConfig
+    from dynamic_reconfigure.server import Server
+
+    rospy.init_node("dr_server")
+    Server(TestConfig, lambda config, level: config)
+    print("READY", flush=True)
+    rospy.spin()
+
+
+def dr_client() -> None:
+    import dynamic_reconfigure.client
+
+    rospy.init_node("dr_client")
+    client = dynamic_reconfigure.client.Client("/dr_server", timeout=30)
+    print("SET", client.update_configuration({"int_": 7})["int_"], flush=True)
+
+
 if __name__ == "__main__":
     role = sys.argv[1]
     if role == "probe":
@@ -77,5 +97,9 @@ if __name__ == "__main__":
         launched()
     elif role == "action_server":
         action_server()
+    elif role == "dr_server":
+        dr_server()
+    elif role == "dr_client":
+        dr_client()
     else:
         action_client()

@@ -165,6 +165,11 @@ POLICY_LIBS = POLICY.replace("- name: robot_c", """\
     - {{node: /action_client, topic: /move_base/status, type: actionlib_msgs/GoalStatusArray}}
     - {{node: /action_client, topic: /move_base/feedback, type: move_base_msgs/MoveBaseActionFeedback}}
     - {{node: /action_client, topic: /move_base/result, type: move_base_msgs/MoveBaseActionResult}}
+    - {{node: /dr_server, topic: /chatter, type: std_msgs/String}}
+    - {{node: /dr_client, topic: /dr_server/parameter_descriptions, type: dynamic_reconfigure/ConfigDescription}}
+    - {{node: /dr_client, topic: /dr_server/parameter_updates, type: dynamic_reconfigure/Config}}
+    call:
+    - {{node: /dr_client, service: /dr_server/set_parameters, type: dynamic_reconfigure/Reconfigure}}
     publish:
     - {{node: /launch_talker, topic: /launched, type: std_msgs/String}}
     - {{node: /launch_other, topic: /chatter_other, type: std_msgs/String}}
@@ -261,10 +266,12 @@ def test_refusals_read_like_ros_errors_and_unreadable_parameters_like_unset_ones
         assert ping.returncode == 0 and pub.poll() is None, ping
 
 
-def test_actionlib_server_and_client_behind_interceptors(tmp_path):
+def test_actionlib_and_dynamic_reconfigure_behind_interceptors(tmp_path):
     """actionlib reads <action>/status_frequency (has_param: an error would raise in
-    start()) and its queue-size parameters; both readable, the goal succeeds."""
-    missing_action = run([SYS_PY, "-c", "import actionlib, move_base_msgs.msg"], timeout=30)
+    start()) and its queue-size parameters; both readable, the goal succeeds. A
+    dynamic_reconfigure server needs no grant for its own endpoints (set_parameters,
+    parameter_descriptions, parameter_updates); its client, the call and subscriptions."""
+    missing_action = run([SYS_PY, "-c", "import actionlib, move_base_msgs.msg, dynamic_reconfigure"], timeout=30)
     if missing_action.returncode != 0:
         require("python3-actionlib (apt: python3-actionlib python3-move-base-msgs)-not-installed")
     with robot_network(tmp_path, policy=POLICY_LIBS, start=("master", "robot_b")) as net, \
@@ -274,6 +281,12 @@ def test_actionlib_server_and_client_behind_interceptors(tmp_path):
             lines = [line.strip() for line in read_lines(client, "RESULT", 60)]
         assert "RESULT 3" in lines, lines  # GoalStatus.SUCCEEDED
         assert "status_frequency" not in denials(net, "robot_b")
+        with running([SYS_PY, LIBS, "dr_server"], env=net.ros_env("robot_b")) as dr_server:
+            read_lines(dr_server, "READY", 30)
+            with running([SYS_PY, LIBS, "dr_client"], env=net.ros_env("robot_b")) as dr_client:
+                lines = [line.strip() for line in read_lines(dr_client, "SET", 60)]
+        assert "SET 7" in lines, lines
+        assert "DENY" not in denials(net, "robot_b"), denials(net, "robot_b")
 
 
 def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
