@@ -252,6 +252,21 @@ def _granted(grants: Grants, action: str, node: str, name: str, type_name: str, 
     return infrastructure and grants.names_node(node) and infrastructure_allows(action, node, name, type_name)
 
 
+def _check_sibling_owner(params: tuple, caller: str, manager: str, grants: Grants,
+                         owner_of: Callable[[str], str | None]) -> None:
+    """A write into the private namespace of another node its manager's grants name
+    (roslaunch setting a launched node's parameter) is refused while that node is
+    registered by another manager (one name granted to two robots)."""
+    key = resolve_param_key(_str_param(params, 1, "setParam", "a key"), caller)
+    parts = key.split("/")[1:]
+    for n in range(1, len(parts) + 1):
+        node = "/" + "/".join(parts[:n])
+        if node != caller and grants.names_node_exactly(node):
+            owner = owner_of(node)
+            if owner is not None and owner != manager:
+                raise _deny("name_taken", f"node {node} is registered (or held) by manager {owner}")
+
+
 def check_master_call(
     method: str,
     params: tuple,
@@ -273,6 +288,8 @@ def check_master_call(
             raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
     if method in ("subscribeParam", "unsubscribeParam") and not grants.names_node(caller):
         raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
+    if method in PARAM_WRITE:
+        _check_sibling_owner(params, caller, manager, grants, owner_of)
     if method in PARAM_READ or method in PARAM_WRITE or method == "getParamNames":
         check_param_call(method, params, grants=grants)
         return

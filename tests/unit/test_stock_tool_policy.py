@@ -172,3 +172,16 @@ def test_no_hint_for_what_any_grant_naming_the_node_allows():
                       "robot_b") is None
     assert grant_hint("not_granted", "registerService", (node, node + "/get_loggers", "rosrpc://x:1",
                                                          "http://x:1/"), "robot_b") is None
+
+
+def test_a_launched_nodes_parameters_are_not_writable_while_another_manager_holds_its_name():
+    # robot_b's grants name /talker, but robot_a registered it: roslaunch of robot_b may not write it
+    def owner_of(node):
+        return "robot_a" if node == "/talker" else None
+
+    with pytest.raises(PolicyDenied) as info:
+        check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
+                          owner_of=owner_of)
+    assert info.value.reason == "name_taken"
+    check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
+                      owner_of=lambda _n: None)
