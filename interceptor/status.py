@@ -45,6 +45,9 @@ def render(status: dict) -> list[str]:
     peers = status.get("peers") or {}
     lines.append(f"peers     {', '.join(f'{m} ({n} streams)' for m, n in peers.items()) or 'none'}; "
                  f"{status['open_streams']} open streams in all")
+    refusals = status.get("denials") or []
+    lines.append(f"denials   {sum(r['count'] for r in refusals)} refused, {len(refusals)} distinct"
+                 f"{' (cryptoros denials: each with the grant that would allow it)' if refusals else ''}")
     monitor = status.get("monitor")
     if monitor:
         held = ", ".join(f"{q['publisher']} of {q['manager']} ({q['seconds_left']} s)" for q in monitor["quarantined"])
@@ -82,7 +85,7 @@ def render_denials(status: dict) -> list[str]:
     rows = status.get("denials") or []
     if not rows:
         return [f"no refusals recorded by {status.get('manager', 'this interceptor')} since it started"]
-    lines = [f"{len(rows)} kinds of refusal on {status.get('manager', 'this interceptor')}, most recent first:"]
+    lines = [f"{len(rows)} distinct refusals on {status.get('manager', 'this interceptor')}, most recent first:"]
     for row in rows:
         lines.append(f"{row['count']:6d}x  {row['kind']} from {row['peer']}: {row['target']} "
                      f"(last {row['last_ago']:g} s ago, first {row['first_ago']:g} s ago)")
