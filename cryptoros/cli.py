@@ -21,6 +21,8 @@ SUBCOMMANDS: dict[str, str] = {
     "status": "interceptor.status:status",
     "denials": "interceptor.status:denials",
     "unquarantine": "interceptor.status:unquarantine",
+    "env": "interceptor.runenv:env",
+    "run": "interceptor.runenv:run",
 }
 MONITOR_SUBCOMMANDS: dict[str, str] = {
     "record": "cryptoros.monitor.cli:record",

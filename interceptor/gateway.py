@@ -42,7 +42,7 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
@@ -82,6 +82,17 @@ SPARE_QUIET = 0.01
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
+
+
+@contextlib.contextmanager
+def listening(what: str, endpoint: object) -> Iterator[None]:
+    """A listener that cannot bind is a ConfigError naming it and its address:
+    ``cannot listen on 127.0.0.2:11400 (public): Address already in use``."""
+    try:
+        yield
+    except OSError as exc:
+        detail = os.strerror(exc.errno) if exc.errno else str(exc)
+        raise ConfigError(f"cannot listen on {endpoint} ({what}): {detail}") from None
 
 
 def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
@@ -395,6 +406,23 @@ class Gateway:
         future.add_done_callback(self._streams.discard)
         return future
 
+    async def start_local_server(self, what: str, endpoint: object,
+                                 handler: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]],
+                                 **kw: Any) -> asyncio.Server:
+        """``asyncio.start_server`` for a role's listener (the local master, a relay):
+        one that cannot bind is a ConfigError naming it (:func:`listening`), and a
+        connection's handler that :meth:`stop` cuts ends quietly, its connection aborted
+        (Python 3.11's ``start_server`` logs a traceback for a handler that ends
+        cancelled). ``kw``: ``host``/``port`` or ``sock``, ``limit``."""
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            try:
+                await handler(reader, writer)
+            except asyncio.CancelledError:  # only stop() cancels a handler: nobody waits on it
+                writer.transport.abort()
+
+        with listening(what, endpoint):
+            return await asyncio.start_server(handle, **kw)
+
     @contextlib.contextmanager
     def cuttable(self) -> Iterator[None]:
         """While inside, the current stream has nothing in flight that a stop could
@@ -421,12 +449,16 @@ class Gateway:
             log.error("no access token yet (%s): everything is refused until one arrives", exc)
         self.verifier.listeners.append(self._on_feed)
         self.verifier.stale_listeners.append(self._on_stale_peer_token)
+        self.verifier.cut_listeners.append(lambda reason: self.metrics.cutoffs.labels(reason).inc())
+        self.verifier.own_expiry = lambda: self.keeper.expires_at
         self.keeper.listeners.append(self._on_own_token)
         self.spawn(self.keeper.run(), "token-keeper")
         self.spawn(self.verifier.run(), "revocation-feed")
-        self._public_server = await self._listen_public(self._server_ctx, self.cfg)
+        with listening("public", self.cfg.public):
+            self._public_server = await self._listen_public(self._server_ctx, self.cfg)
         if self.cfg.metrics is not None:
-            await self._start_metrics()
+            with listening("metrics", self.cfg.metrics):
+                await self._start_metrics()
         self.started = True
         for role in self._roles:
             await role.start()
@@ -491,8 +523,12 @@ class Gateway:
 
     def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
         """An SSLObject whose failed handshakes are counted and logged like every other
-        denial (asyncio itself only logs them in debug mode)."""
-        metrics = self.metrics
+        denial (asyncio itself only logs them in debug mode), and whose handshake fails
+        for a client certificate :class:`~cryptoros.tls.PeerCertificateCheck` refuses:
+        one the CA revoked after the CRL was loaded (the feed's serials), one out of its
+        validity period or on the CRL on a resumed handshake (which OpenSSL does not
+        verify again). The client's connection then closes before any stream begins."""
+        gateway = self
 
         class CountingSSLObject(ssl.SSLObject):
             def do_handshake(self) -> None:
@@ -502,9 +538,16 @@ class Gateway:
                     raise
                 except ssl.SSLError as exc:
                     reason = (exc.reason or type(exc).__name__).lower()
-                    metrics.denied.labels("tls", reason).inc()
+                    gateway.metrics.denied.labels("tls", reason).inc()
                     log.warning("DENY tls handshake: %s", exc)
                     raise
+                if self.server_side:
+                    try:
+                        gateway._cert_check.check(peer_cert_der(self))
+                    except TokenError as exc:
+                        gateway.metrics.denied.labels("tls", exc.reason).inc()
+                        log.warning("DENY tls handshake: %s", exc)
+                        raise ssl.SSLError(ssl.SSL_ERROR_SSL, f"{exc.reason}: {exc.detail}") from None
 
         return CountingSSLObject
 
@@ -536,18 +579,19 @@ class Gateway:
             await self._metrics_runner.cleanup()
         await self.authz.close()
 
-    @staticmethod
-    def _tls_state(cfg: InterceptorConfig):
+    def _tls_state(self, cfg: InterceptorConfig):
         """Everything TLS between interceptors, built from one configuration: both
         contexts, the client's kept sessions (for that client context only), the
-        server's record of full handshakes and the per-stream certificate check (the
-        CRL as loaded with the contexts). A new server context draws new ticket keys,
-        so a reload makes every earlier session worthless."""
+        server's record of full handshakes and the per-handshake certificate check (the
+        CRL as loaded with the contexts, and the serials the revocation feed lists now).
+        A new server context draws new ticket keys, so a reload makes every earlier
+        session worthless."""
         lifetime = cfg.limits.tls_session_lifetime
         client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
         return (server_context(cfg.tls, tickets=1 if lifetime > 0 else 0), client_ctx,
                 SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
-                PeerCertificateCheck(cfg.tls.crl_file))
+                PeerCertificateCheck(cfg.tls.crl_file,
+                                     revoked_serials=lambda: self.verifier.revocations.revoked_serials))
 
     @staticmethod
     def _held_feed_wait(cfg: InterceptorConfig) -> float:
@@ -568,14 +612,16 @@ class Gateway:
 
     def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
         """The peer's certificate, checked on every stream (resumed or not): validity
-        period and CRL here, the revocation feed with its token. Returns its DER."""
+        period, CRL and the CA's revocations in the feed (for a stream in, inside the
+        handshake: :meth:`_counting_sslobject_class`), then its token. Returns its DER."""
         der = peer_cert_der(ssl_object)
         resumed = bool(ssl_object.session_reused)
         self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
         self.metrics.stream_checks.labels("certificate").inc()
-        self._cert_check.check(der)
         if direction == "in":
             self._full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+        else:
+            self._cert_check.check(der)
         return der
 
     async def reload(self, cfg: InterceptorConfig) -> None:
@@ -1163,7 +1209,6 @@ class Gateway:
 
         def cut(reason: str) -> None:
             cut_by.setdefault("reason", reason)
-            self.metrics.cutoffs.inc()
             writer.transport.abort()
 
         unwatch = self.verifier.watch(access, cut)
@@ -1237,5 +1282,5 @@ class Gateway:
             await done
 
 
-__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts",
+__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts", "listening",
            "read_chunks", "read_into", "take_buffered"]

@@ -79,6 +79,7 @@ from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
+from interceptor.exposure import NodeGuard, PortExposure, master_problem
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
@@ -398,6 +399,11 @@ class Ros1Role(GatewayRole):
         #: exports released, so nodes that come and go under new names (rostopic, rosbag)
         #: do not use up export_limit either
         self._node_registrations: dict[str, set[tuple[str, str]]] = {}
+        #: deployment checks (interceptor/exposure.py): which ports answer other hosts, and
+        #: (master role) why rosmaster must not be served now, or None
+        self._exposure = PortExposure()
+        self._nodes_exposed = NodeGuard(self._exposure)
+        self._master_exposed: str | None = None
         gateway.serve("master", self._check_master_target, self._serve_master_stream)
         gateway.serve("node", self._check_node_target, self._serve_node_stream)
         gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
@@ -416,7 +422,8 @@ class Ros1Role(GatewayRole):
     async def start(self) -> None:
         if "node" in self.cfg.roles:
             lm = self.cfg.local_master
-            self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
+            self._servers.append(await self.gw.start_local_server("local master", lm, self._on_local_master,
+                                                                  host=lm.host, port=lm.port))
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:
@@ -456,7 +463,16 @@ class Ros1Role(GatewayRole):
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
                          "state_saves": self._state_saves,
-                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}}}
+                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
+                "warnings": self._deployment_warnings()}
+
+    def _deployment_warnings(self) -> list[str]:
+        warnings = self._nodes_exposed.warnings()
+        if self._master_exposed:
+            what = ("allow_exposed_master = true, served anyway" if self.cfg.allow_exposed_master
+                    else "master streams refused (exposed_master)")
+            warnings.append(f"{what}: {self._master_exposed}")
+        return warnings
 
     def _count_idle_close(self) -> None:
         self._tunnels_closed_idle += 1
@@ -465,6 +481,11 @@ class Ros1Role(GatewayRole):
     def _check_master_target(self, preamble: Preamble) -> None:
         if "master" not in self.cfg.roles:
             raise PolicyDenied("no_master_here", "this interceptor does not front a master")
+        self._refuse_exposed_master()
+
+    def _refuse_exposed_master(self) -> None:
+        if self._master_exposed and not self.cfg.allow_exposed_master:
+            raise PolicyDenied("exposed_master", self._master_exposed)
 
     def _check_node_target(self, preamble: Preamble) -> LocalEndpoint:
         return self.translator.resolve(KIND_XMLRPC, preamble.target)
@@ -493,7 +514,8 @@ class Ros1Role(GatewayRole):
         host, port = sock.getsockname()[:2]
 
         async def serve() -> None:
-            server = await asyncio.start_server(lambda r, w: handler(r, w, target), sock=sock, limit=READ_SIZE)
+            server = await self.gw.start_local_server("relay", f"{host}:{port}", lambda r, w: handler(r, w, target),
+                                                      sock=sock, limit=READ_SIZE)
             if sock.fileno() < 0:  # released before it started
                 server.close()
             else:
@@ -857,6 +879,9 @@ class Ros1Role(GatewayRole):
         back without restarting a node (rosmaster then tells subscribers their
         publishers with ``publisherUpdate``, as at first)."""
         while True:
+            if self._judge_master_exposure():  # nothing replayed to a rosmaster other hosts reach
+                await asyncio.sleep(MASTER_WATCH_INTERVAL)
+                continue
             try:
                 reply = await asyncio.wait_for(
                     self._call_upstream_master(Request(method="getPid", params=("/cryptoros",))), MASTER_WATCH_TIMEOUT)
@@ -872,6 +897,20 @@ class Ros1Role(GatewayRole):
                     await self._replay_registrations(pid)
                 self._master_pid = pid
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    def _judge_master_exposure(self) -> bool:
+        """Deployment check, each turn of the watch: True while rosmaster answers other
+        hosts and ``allow_exposed_master`` is not set (master streams are refused then)."""
+        problem = master_problem(self.cfg.master.upstream, self._exposure, self.cfg.source)
+        if problem != self._master_exposed:
+            if problem is None:
+                log.warning("rosmaster answers on loopback only now: master streams are served again")
+            elif self.cfg.allow_exposed_master:
+                log.warning("allow_exposed_master = true, serving anyway: %s", problem)
+            else:
+                log.error("master streams refused (exposed_master) until fixed: %s", problem)
+            self._master_exposed = problem
+        return problem is not None and not self.cfg.allow_exposed_master
 
     async def _replay_registrations(self, pid: int) -> None:
         calls = [Request(method=method, params=params) for method, params in self._registrations.values()]
@@ -937,6 +976,7 @@ class Ros1Role(GatewayRole):
             return local
 
         def decide(call: Request) -> Request:
+            self._refuse_exposed_master()  # on streams opened before rosmaster was exposed too
             if not self._master_calls.allow(peer.manager):
                 limits = self.cfg.limits
                 raise PolicyDenied("rate_limited", f"{peer.manager} makes master calls faster than "
@@ -1012,6 +1052,7 @@ class Ros1Role(GatewayRole):
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
         def tcpros_to_canonical(host: str, port: int) -> tuple[str, int]:
+            self._check_local_port(lambda: self._node_of_api(stream.target), port, "TCPROS port")
             canonical, public_port = self.translator.tcpros_to_canonical(host, port)
             child = self.translator.own_id(canonical)
             if child is not None:  # this node's TCPROS server: released with its API
@@ -1149,6 +1190,9 @@ class Ros1Role(GatewayRole):
             return rewrite_response(call, response, uri=self.translator.to_local)
 
         async def handle(request: Request) -> Response | Fault:
+            refusal = self._exposed_registration(request)
+            if refusal is not None:
+                return refusal
             # no token this instant (our manager re-enabled a moment ago): wait for one
             # refresh attempt rather than refuse a node that starts now
             await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
@@ -1160,6 +1204,31 @@ class Ros1Role(GatewayRole):
             log.warning("local master connection dropped: %s", exc)
         finally:
             writer.close()
+
+    def _exposed_registration(self, request: Request) -> Response | None:
+        """A local node registering endpoints other hosts reach: one ROS error line to
+        it (each call of a multicall), naming the node, the port and the fix."""
+        try:
+            calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
+            for warning in self._nodes_exposed.check_registrations(calls, allow=self.cfg.allow_exposed_nodes,
+                                                                   config=self.cfg.source):
+                log.warning("%s", warning)
+        except RemoteProtocolError:
+            return None  # _decide_calls refuses it
+        except PolicyDenied as exc:
+            self.gw.deny("local-master", exc, "local node")
+            error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
+            return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
+        return None
+
+    def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
+        warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,
+                                                 config=self.cfg.source)
+        if warning:
+            log.warning("%s", warning)
+
+    def _node_of_api(self, api_id: str) -> str:
+        return next((node for node, api in self._node_apis.items() if api == api_id), f"with API export {api_id}")
 
     # ---------------------------------------------------------------- exports of restarted nodes
     def _note_local_node(self, call: Request) -> None:

@@ -45,6 +45,7 @@ def render(status: dict) -> list[str]:
     peers = status.get("peers") or {}
     lines.append(f"peers     {', '.join(f'{m} ({n} streams)' for m, n in peers.items()) or 'none'}; "
                  f"{status['open_streams']} open streams in all")
+    lines += [f"warning   {warning}" for warning in status.get("warnings", ())]
     refusals = status.get("denials") or []
     lines.append(f"denials   {sum(r['count'] for r in refusals)} refused, {len(refusals)} distinct"
                  f"{' (cryptoros denials: each with the grant that would allow it)' if refusals else ''}")
