@@ -281,7 +281,11 @@ TOOL_NODES = {
     "rosparam": "/rosparam-*",      # rosgraph.Master('/rosparam-<pid>')
     "rosservice_probe": "/rosservice",  # the service type probe of rosservice call/info
     "rosservice": "/rosservice_*",  # rosservice call: init_node('rosservice', anonymous=True)
+    "rosbag_play": "/play_*",       # rosbag play: the node 'play' with a number
+    "roslaunch": "/roslaunch",      # roslaunch's parameter calls (caller id /roslaunch)
 }
+#: What roslaunch writes besides its launch file's parameters (measured: docs/stock-tools.md).
+ROSLAUNCH_PARAMS = ("/run_id", "/roslaunch", "/rosdistro", "/rosversion")
 
 
 def _name_type(value: str, option: str) -> tuple[str, str]:
@@ -300,6 +304,7 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
         rows.append(("subscribe", TOOL_NODES["rosbag"], *_name_type(value, "--topic")))
     for value in publish_topics:
         rows.append(("publish", TOOL_NODES["rostopic"], *_name_type(value, "--publish-topic")))
+        rows.append(("publish", TOOL_NODES["rosbag_play"], *_name_type(value, "--publish-topic")))
     for value in services:
         name, type_ = _name_type(value, "--service")
         rows.append(("call", TOOL_NODES["rosservice_probe"], name, type_))
@@ -314,25 +319,33 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
 @click.option("--topic", "topics", multiple=True, metavar="NAME:TYPE",
               help="A topic rostopic echo/hz/bw and rosbag record may subscribe to (repeatable).")
 @click.option("--publish-topic", "publish_topics", multiple=True, metavar="NAME:TYPE",
-              help="A topic rostopic pub may publish (repeatable).")
+              help="A topic rostopic pub and rosbag play may publish (repeatable).")
 @click.option("--service", "services", multiple=True, metavar="NAME:TYPE",
               help="A service rosservice call may call (repeatable).")
 @click.option("--param-ns", "param_namespaces", multiple=True, metavar="NS",
               help="Parameter namespace rosparam get/set/list/delete may use (repeatable; default /).")
 @click.option("--params-read-only", is_flag=True, help="rosparam may only read (get, list, dump) the namespaces.")
 @click.option("--no-params", is_flag=True, help="Grant rosparam nothing.")
+@click.option("--clock", is_flag=True, help="rosbag play --clock may publish /clock.")
+@click.option("--roslaunch", is_flag=True, help="roslaunch may write /run_id, /roslaunch, /rosdistro, /rosversion "
+              "(the launched nodes' own <param>s need nothing more).")
+@click.option("--launch-param-ns", "launch_namespaces", multiple=True, metavar="NS",
+              help="A namespace outside the launched nodes' own where roslaunch may set <param>/<rosparam> "
+                   "(repeatable; implies --roslaunch).")
 @click.option("--remove", is_flag=True, help="Take the same grants away instead.")
 @click.pass_context
 def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publish_topics: tuple[str, ...],
                 services: tuple[str, ...], param_namespaces: tuple[str, ...], params_read_only: bool,
-                no_params: bool, remove: bool) -> None:
+                no_params: bool, clock: bool, roslaunch: bool, launch_namespaces: tuple[str, ...],
+                remove: bool) -> None:
     """Grant MANAGER's stock ROS 1 tools what they need, by the anonymous node names
     they run under: rostopic as /rostopic_* and rosbag record as /record_* (--topic;
-    --publish-topic for rostopic pub), rosparam as
-    /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
-    /rosservice_* (--service). rosnode list/info/ping and rostopic list/info/type only
-    read the graph and need no grant; rosnode kill is always refused. Idempotent: a
-    grant already there is left as it is. All of it is one transaction.
+    --publish-topic for rostopic pub and rosbag play as /play_*, --clock for its /clock),
+    rosparam as /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
+    /rosservice_* (--service), roslaunch as /roslaunch (--roslaunch, --launch-param-ns).
+    rosnode list/info/ping and rostopic list/info/type only read the graph and need no
+    grant; rosnode kill is always refused (docs/stock-tools.md). Idempotent: a grant
+    already there is left as it is. All of it is one transaction.
 
     \b
     Example:
@@ -343,6 +356,10 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
         raise RegistryError("give either --param-ns or --no-params, not both")
     namespaces = () if no_params else (param_namespaces or ("/",))
     rows = tool_grants(topics, publish_topics, services, namespaces, params_read_only)
+    if clock:  # rosbag play --clock
+        rows.append(("publish", TOOL_NODES["rosbag_play"], "/clock", "rosgraph_msgs/Clock"))
+    if roslaunch or launch_namespaces:  # its own keys, and what its launch files set outside the nodes' own
+        rows += [("write_param", TOOL_NODES["roslaunch"], ns, None) for ns in (*ROSLAUNCH_PARAMS, *launch_namespaces)]
     checked = [GrantRow.checked(*row) for row in rows]  # all validated before the one transaction
     done = _registry(ctx).grant_many(manager, checked, remove=remove)
     for (action, node, name, type_), changed_one in zip(rows, done, strict=True):

@@ -60,6 +60,7 @@ from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig, check_reload
+from interceptor.denials import DenialTable
 from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
@@ -320,6 +321,7 @@ class Gateway:
     def __init__(self, cfg: InterceptorConfig) -> None:
         self.cfg = cfg
         self.metrics = Metrics()
+        self.denials = DenialTable()  # refusals, aggregated for the log and /status
         #: the runtime monitor ([monitor]); roles tap the streams it watches
         self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny,
                                state_path=quarantine_path(cfg.state_dir, cfg.manager) if cfg.state_dir else None
@@ -737,6 +739,7 @@ class Gateway:
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
             "monitor": self.monitor.status() if self.monitor is not None else None,
+            "denials": self.denials.table(time.monotonic()),
             **{key: value for role in self._roles for key, value in role.status().items()},
         }
 
@@ -835,13 +838,16 @@ class Gateway:
         tunnel.writer.close()
         return tunnel.peer.access
 
-    def deny(self, kind: str, exc: CryptorosError, who: str, *, logged: bool = True) -> None:
-        """Count a refusal by reason; log it (``logged``: False for a flood of one kind,
-        logged once in a while by the caller)."""
+    def deny(self, kind: str, exc: CryptorosError, who: str, *, logged: bool = True, hint: str | None = None) -> None:
+        """Count a refusal by reason; log it, aggregated (:mod:`interceptor.denials`: the
+        first of a kind, peer, reason and target at once, then a count per interval).
+        ``logged``: False for a flood the caller logs once in a while itself; ``hint``:
+        the ``cryptoros-authz grant ...`` that would allow it (``cryptoros denials``)."""
         reason = getattr(exc, "reason", type(exc).__name__)
         self.metrics.denied.labels(kind, reason).inc()
-        if logged:
-            log.warning("DENY %s from %s: %s", kind, who, exc)
+        for line in self.denials.record(kind, who, reason, str(exc), time.monotonic(), hint=hint):
+            if logged:
+                log.warning("%s", line)
 
     # ================================================================ outbound
     async def open_tunnel(

@@ -49,6 +49,9 @@ from cryptoros.policy.ros1 import (
     check_subscribed_type,
     check_subscriber_header,
     filter_param_reply,
+    grant_hint,
+    refusal_answer,
+    refusal_text,
     ros_error,
 )
 from cryptoros.ros1 import msgs
@@ -677,20 +680,24 @@ class Ros1Role(GatewayRole):
             calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
         except RemoteProtocolError as exc:
             self.gw.deny(kind, exc, who)
-            return Fault(code=-1, string=OPAQUE)
+            return Response(value=ros_error(refusal_text("malformed")))
         results: list[Response | Fault | None] = [None] * len(calls)
         allowed: list[tuple[int, Request]] = []
+        # whose grants a refusal lacks: the calling peer's, or (local nodes) our own manager's
+        manager = who if kind in ("master", "node") else self.cfg.manager if kind == "local-master" else None
         for i, call in enumerate(calls):
             try:
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
-                flood = getattr(exc, "reason", None) == "rate_limited"
-                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who))
-                # rospy's set_param/delete_param ignore a [-1, ...] answer: a refused write is
-                # a fault, which raises in the node (rosparam reports it either way)
-                results[i] = (Fault(code=-1, string=OPAQUE) if call.method in PARAM_WRITE
-                              else Response(value=ros_error(OPAQUE)))
+                reason = getattr(exc, "reason", None)
+                flood = reason == "rate_limited"
+                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who),
+                             hint=grant_hint(reason, call.method, call.params, manager))
+                # as rosmaster answers an error ([-1, "denied by cryptoros: <reason>", 0], never
+                # a fault, which tools print as a traceback); a probe of a parameter the caller
+                # may not read as if it were not set
+                results[i] = Response(value=refusal_answer(reason, call.method, call.params))
         if allowed:
             multicall = request.method == MULTICALL
             outgoing = make_multicall([c for _, c in allowed], like=request) if multicall else allowed[0][1]
@@ -706,7 +713,8 @@ class Ros1Role(GatewayRole):
                 else:
                     self.gw.deny(kind, exc, who)
                 for i, _ in allowed:
-                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else OPAQUE))
+                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else
+                                                          refusal_text(getattr(exc, "reason", None))))
         if request.method == MULTICALL:
             return assemble_multicall(results)  # type: ignore[arg-type]
         return results[0]  # type: ignore[return-value]
