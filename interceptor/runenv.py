@@ -29,6 +29,10 @@ from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.exposure import is_loopback_host
 from interceptor.config import ROLES, Endpoint, read_toml
 
+#: the directory of the refusal hook (its ``sitecustomize.py``): first on the
+#: ``PYTHONPATH`` of every ROS 1 node and tool started through ``cryptoros run``/``env``
+TOOL_HOOK = Path(__file__).resolve().parent / "toolhook"
+
 
 def node_environment(path: str | os.PathLike[str]) -> tuple[dict[str, str], tuple[str, ...]]:
     """(variables to set, variables to unset) for a node of the interceptor configured
@@ -62,6 +66,7 @@ def node_environment(path: str | os.PathLike[str]) -> tuple[dict[str, str], tupl
     if env:
         env["ROS_IP"] = "127.0.0.1"
         unset.append("ROS_HOSTNAME")
+        env["PYTHONPATH"] = str(TOOL_HOOK)  # prepended to the caller's (python_path)
     if "ros2" in roles:
         from cryptoros.ros2.profile import LOCALHOST_PROFILE, PROFILE_ENV
 
@@ -75,9 +80,21 @@ def node_environment(path: str | os.PathLike[str]) -> tuple[dict[str, str], tupl
     return env, tuple(unset)
 
 
+def python_path(hook: str, existing: str | None) -> str:
+    """``PYTHONPATH`` with the refusal hook first and the caller's entries after it."""
+    return hook if not existing else f"{hook}{os.pathsep}{existing}"
+
+
 def shell_lines(env: dict[str, str], unset: tuple[str, ...]) -> list[str]:
-    """POSIX shell lines that set ``env`` and unset ``unset``."""
-    return [f"export {name}={shlex.quote(value)}" for name, value in env.items()] + [f"unset {n}" for n in unset]
+    """POSIX shell lines that set ``env`` (``PYTHONPATH`` prepended to the shell's own)
+    and unset ``unset``."""
+    lines = []
+    for name, value in env.items():
+        if name == "PYTHONPATH":
+            lines.append(f'export PYTHONPATH={shlex.quote(value)}"${{PYTHONPATH:+:$PYTHONPATH}}"')
+        else:
+            lines.append(f"export {name}={shlex.quote(value)}")
+    return lines + [f"unset {n}" for n in unset]
 
 
 def _environment_or_exit(config_path: str, prog: str) -> tuple[dict[str, str], tuple[str, ...]]:
@@ -106,6 +123,8 @@ def run(config_path: str, command: tuple[str, ...]) -> None:
     environment: cryptoros run --config FILE -- CMD ARGS..."""
     variables, unset = _environment_or_exit(config_path, "cryptoros run")
     environ = {k: v for k, v in os.environ.items() if k not in unset}
+    if "PYTHONPATH" in variables:
+        variables = {**variables, "PYTHONPATH": python_path(variables["PYTHONPATH"], os.environ.get("PYTHONPATH"))}
     environ.update(variables)
     sys.stdout.flush()
     try:
@@ -115,4 +134,4 @@ def run(config_path: str, command: tuple[str, ...]) -> None:
         raise SystemExit(127 if isinstance(exc, FileNotFoundError) else 126) from None
 
 
-__all__ = ["env", "node_environment", "run", "shell_lines"]
+__all__ = ["TOOL_HOOK", "env", "node_environment", "python_path", "run", "shell_lines"]

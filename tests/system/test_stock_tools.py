@@ -19,7 +19,7 @@ import time
 import pytest
 
 from tests.interceptor_harness import NODE, NODES, SYS_PY, denials, read_lines, robot_network, wait_registered
-from tests.support import require, run, running
+from tests.support import VENV_BIN, require, run, running
 
 pytestmark = [pytest.mark.ros1]
 
@@ -253,6 +253,12 @@ def test_refusals_read_like_ros_errors_and_unreadable_parameters_like_unset_ones
         refused = tool(net, "rosparam", "set", "/secret", "changed")
         assert refused.returncode != 0 and "Fault" not in refused.stderr, refused
         assert refused.stderr.strip().splitlines()[-1].endswith("denied by cryptoros: param_write_denied"), refused
+        # ... which is why nodes and tools run through cryptoros run (or cryptoros env): its
+        # hook prints such an uncaught refusal as one line
+        through_run = run([str(VENV_BIN / "cryptoros"), "run", "--config", str(net.hosts["robot_b"].config), "--",
+                           "rosparam", "set", "/secret", "changed"], env=net.ros_env("robot_b"), timeout=20)
+        assert through_run.returncode == 1 and _one_error_line(through_run) == \
+            "ERROR: denied by cryptoros: param_write_denied", through_run
 
         # --- rosnode kill: the shutdown is refused with an error, the node lives
         import xmlrpc.client

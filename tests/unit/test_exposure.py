@@ -205,12 +205,15 @@ def test_state_dir_defaults_beside_the_config(tmp_path):
 
 
 def test_node_environment_for_each_role(tmp_path):
-    from interceptor.runenv import node_environment, shell_lines
+    from interceptor.runenv import TOOL_HOOK, node_environment, python_path, shell_lines
 
     node = tmp_path / "robot.toml"
     node.write_text('manager = "a"\n[listen]\npublic = "10.0.0.2:1"\nlocal_master = "127.0.0.1:11411"\n')
     env, unset = node_environment(node)
-    assert env == {"ROS_MASTER_URI": "http://127.0.0.1:11411/", "ROS_IP": "127.0.0.1"} and unset == ("ROS_HOSTNAME",)
+    assert env == {"ROS_MASTER_URI": "http://127.0.0.1:11411/", "ROS_IP": "127.0.0.1", "PYTHONPATH": str(TOOL_HOOK)}
+    assert unset == ("ROS_HOSTNAME",) and (TOOL_HOOK / "sitecustomize.py").is_file()
+    assert python_path("/h", None) == "/h" and python_path("/h", "/a:/b") == "/h:/a:/b"
+    assert shell_lines({"PYTHONPATH": "/h"}, ()) == ['export PYTHONPATH=/h"${PYTHONPATH:+:$PYTHONPATH}"']
     master = tmp_path / "master.toml"
     master.write_text('manager = "m"\nroles = ["master"]\n[master]\nupstream = "http://127.0.0.1:11311"\n')
     assert node_environment(master)[0]["ROS_MASTER_URI"] == "http://127.0.0.1:11311"
