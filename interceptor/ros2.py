@@ -156,8 +156,6 @@ class Ros2Role(Role):
         self._outbound: dict[tuple[str, str, str], Outbound] = {}  # (kind, name, type)
         self._out_by_chan: dict[int, Outbound] = {}
         self._calls: dict[int, tuple[asyncio.StreamWriter, int, set[int]]] = {}
-        #: (topic, type) -> [chan, refcount, {stream id: its last samples kept for late joiners}]
-        self._adverts: dict[tuple[str, str], list] = {}
         self._proxies: dict[str, Proxy] = {}
         self._proxy_by_chan: dict[int, Proxy] = {}
         self._inbound: set[asyncio.StreamWriter] = set()
@@ -262,7 +260,6 @@ class Ros2Role(Role):
             self._withdraw(out, tell_bridge=False)
         for writer in list(self._inbound):
             writer.transport.abort()
-        self._adverts.clear()
         self._graph = {"topics": [], "services": []}
 
     # ================================================================ bridge frames
@@ -608,19 +605,13 @@ class Ros2Role(Role):
 
     async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer,
                          first: bytes = b"", watched: WatchedStream | None = None) -> None:
-        key = (target.name, target.type)
-        advert = self._adverts.get(key)
-        if advert is None:
-            advert = self._adverts[key] = [next(self._chans), 0, {}]
-            link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
-                         qos=self._receiver_qos(target).to_dict())
-        advert[1] += 1
+        # Each inbound stream has a DDS publisher of its own on this robot's domain, never
+        # one shared by every peer sending the topic: what one peer's stream does to its
+        # writer (a flood that leaves it waiting for a reader, samples kept for late
+        # joiners) is its own, and ends with the stream (its publisher is destroyed).
         qos = self._receiver_qos(target)
         kept_depth = qos.depth if qos.durability == "transient_local" else 0
         kept = 0  # what this stream makes this robot keep for late joiners: depth x largest sample
-        mine: collections.deque = collections.deque(maxlen=kept_depth or 1)  # its samples now kept
-        if kept_depth:
-            advert[2][id(mine)] = mine
         kept_limit = self.cfg.ros2.max_kept_bytes_per_peer
         log.info("republishing %s [%s] from %s (%s)", target.name, target.type, peer.manager, target.node)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
@@ -637,6 +628,8 @@ class Ros2Role(Role):
         # an 80 KB image would cost a pause/resume per message. Topic streams read big.
         if getattr(reader, "_limit", None) is not None:
             reader._limit = max(reader._limit, TOPIC_READ_SIZE)
+        chan = next(self._chans)
+        link.control(op="advertise", chan=chan, topic=target.name, type=target.type, qos=qos.to_dict())
         try:
             async for data in read_chunks(reader, TOPIC_READ_SIZE, first):
                 rx.inc(len(data))
@@ -654,13 +647,6 @@ class Ros2Role(Role):
                                     peer.manager, target.name, target.type, bad[0])
                     refused += len(bad)
                     self.metrics.denied.labels("ros2_sample", "malformed_sample").inc(len(bad))
-                n = sum(run[2] for run in runs)
-                if budget is not None:
-                    # throttle, never stall: a batch larger than the bucket passes once the
-                    # bucket is full and leaves a debt the next reads wait out
-                    while (wait := budget.delay(n)) > 0:
-                        budget.throttled += 1
-                        await asyncio.sleep(wait)
                 if writer.transport.is_closing():
                     break  # cut (revoked, reloaded away): what is still buffered is not republished
                 if runs and kept_depth:
@@ -674,13 +660,26 @@ class Ros2Role(Role):
                                 "([ros2] max_kept_bytes_per_peer)"))
                         self._kept[peer.manager] = held
                         kept = largest * kept_depth
-                    mine.extend(p for run in runs for p in fr.payloads(run[3]))
                 if runs and watched is not None and gate is None:  # the monitor queues them; it scores later
                     watched.feed_messages([bytes(p) for run in runs for p in fr.payloads(run[3])])
-                if runs:
-                    chan = advert[0]
-                    blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
-                    link.send(blocks[0] if len(blocks) == 1 else b"".join(blocks))
+                if not runs:
+                    continue
+                blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
+                whole = blocks[0] if len(blocks) == 1 else bytearray(b"".join(blocks))
+                n = sum(run[2] for run in runs)
+                # throttled, never stalled: a read of a flood holds thousands of messages, and
+                # handing them to the domain at once is a flood of the local readers in itself
+                # (a reliable reader overrun by one writer stops delivering every writer's
+                # samples: docs/ros2.md). So a read goes on in pieces of at most the bucket,
+                # each when the peer's budget lets it; the rate holds within every second.
+                for count, piece in fr.pieces(whole, n, max(1, int(budget.burst)) if budget else n):
+                    if budget is not None:
+                        while (wait := budget.delay(count)) > 0:
+                            budget.throttled += 1
+                            await asyncio.sleep(wait)
+                    if writer.transport.is_closing():
+                        break  # cut while it waited: the rest is not republished
+                    link.send(piece)
                     # flow control: while the bridge is behind, stop reading this stream (TLS and
                     # TCP then hold the sender back) instead of buffering without bound
                     transport = link.transport
@@ -693,30 +692,14 @@ class Ros2Role(Role):
             peer.cut.setdefault("reason", "kept_budget")
             raise
         finally:
-            advert[2].pop(id(mine), None)
+            # its publisher goes with it, and with it every sample it kept for late joiners
+            link.control(op="unadvertise", chan=chan)
             if kept:
                 left = self._kept.get(peer.manager, 0) - kept
                 if left > 0:
                     self._kept[peer.manager] = left
                 else:
                     self._kept.pop(peer.manager, None)
-            advert[1] -= 1
-            if advert[1] <= 0 and self._adverts.get(key) is advert:
-                del self._adverts[key]
-                link.control(op="unadvertise", chan=advert[0])
-            elif kept and peer.cut and self._adverts.get(key) is advert:
-                # cut by authority (revoked, grant removed) or over budget: the samples it
-                # brought must not be replayed to late joiners. The topic's publisher is made
-                # anew and given only the other streams' kept samples again.
-                old, advert[0] = advert[0], next(self._chans)
-                link.control(op="unadvertise", chan=old)
-                link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
-                             qos=qos.to_dict())
-                again = [fr.encode(fr.PUBLISH, advert[0], p) for other in advert[2].values() for p in other]
-                if again:
-                    link.send(b"".join(again))
-                log.info("dropped the samples kept for late joiners on %s (%s's stream was cut: %s)",
-                         target.name, peer.manager, peer.cut.get("reason"))
 
     def _receiver_qos(self, target: StreamTarget) -> QoS:
         """The sender's QoS is a request: this robot caps the depth at its own ``depth``

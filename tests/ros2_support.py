@@ -247,7 +247,8 @@ def robot_config(pki: TestPKIFactory, name: str, address: str, *, public: int, m
 
 @contextlib.contextmanager
 def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b", "robot_c"),
-                 policy: str = POLICY, extra: dict[str, str] | None = None) -> Iterator[Ros2Network]:
+                 policy: str = POLICY, extra: dict[str, str] | None = None,
+                 peers: dict[str, tuple[str, ...]] | None = None) -> Iterator[Ros2Network]:
     python = ros2_python()
     pki = TestPKIFactory(workdir / "pki")
     fingerprints = {}
@@ -268,7 +269,7 @@ def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b
             metrics = free_port("127.0.0.1", taken)
             config.write_text(robot_config(
                 pki, name, address, public=ports[name], metrics=metrics, domain=domain,
-                peers=[f"{HOSTS[p]}:{ports[p]}" for p in PEERS[name]], authz_url=daemon.base, python=python,
+                peers=[f"{HOSTS[p]}:{ports[p]}" for p in {**PEERS, **(peers or {})}[name]], authz_url=daemon.base, python=python,
                 extra=(extra or {}).get(name, ""),
             ))
             net.robots[name] = Robot(name, address, domain, ports[name], metrics, config)
