@@ -55,8 +55,12 @@ BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py
 #: ROS 2 plumbing every node has; never bridged, never logged as a denial.
 BRIDGE_START_TIMEOUT = 30.0
 RECONCILE_INTERVAL = 1.0
-#: a peer that may not receive a stream is asked for a fresh token (a new grant) this often
-PEER_RECHECK = 10.0
+#: a peer that may not receive a stream is asked for a fresh token (a new grant) this often;
+#: a token learnt within RECHECK_MARGIN before a recheck is fresh enough for it. A grant
+#: re-added to the peer therefore reaches its stream within PEER_RECHECK + RECHECK_MARGIN
+#: + the peer's own token refresh + one stream opening (tested: under 10 s)
+PEER_RECHECK = 5.0
+RECHECK_MARGIN = 1.0
 #: denials remembered (to log each once) before the memory starts over
 MAX_NOTED = 10_000
 #: Flow control of outbound topics: while a peer stream's send buffer is above
@@ -161,8 +165,8 @@ class Ros2Role(Role):
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
-        self._peer_learnt: dict[Endpoint, float] = {}  # when a peer's token was last asked for
-        self._peer_lookups: dict[Endpoint, asyncio.Future] = {}
+        self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
+        self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         self._stopping = False
         self.dropped = 0
         self._paused: asyncio.Task | None = None
@@ -442,11 +446,13 @@ class Ros2Role(Role):
         """Keep one stream to one peer for one outbound topic or service."""
         target = out.target
         backoff = 0.25
+        recheck: float | None = None  # after a recheck's wait: when (monotonic) it ended
         while True:
             try:
                 # need to know: the target (name, type, node, QoS) goes only to a peer whose
                 # grants let it receive the stream, learnt from its token first
-                known = await self._peer_token(endpoint, target)
+                known = await self._peer_token(endpoint, target, recheck=recheck)
+                recheck = None
                 if not may_learn(known.grants, target):
                     key = ("not_offered", endpoint, target.name)
                     if key not in self._noted:
@@ -455,6 +461,7 @@ class Ros2Role(Role):
                             "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
                             f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}")
                     await asyncio.sleep(PEER_RECHECK)
+                    recheck = time.monotonic()
                     continue
                 self._noted.discard(("not_offered", endpoint, target.name))
                 tunnel = await self.gw.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
@@ -511,29 +518,35 @@ class Ros2Role(Role):
                     self._calls.pop(bid, None)
             await asyncio.sleep(backoff)
 
-    async def _peer_token(self, endpoint: Endpoint, target: StreamTarget) -> AccessToken:
+    async def _peer_token(self, endpoint: Endpoint, target: StreamTarget, *,
+                          recheck: float | None = None) -> AccessToken:
         """The peer's freshest verified token: the last one it showed us (any stream, any
-        purpose) while unexpired and either granting ``target`` or learnt within
-        PEER_RECHECK; else one token exchange (purpose ``refresh``: tokens both ways, no
-        target), shared by every stream waiting on that peer."""
-        now = time.time()
+        purpose) while unexpired and either granting ``target`` or learnt recently enough
+        (:func:`reusable`; ``recheck``: the monotonic time a recheck's wait ended); else
+        one token exchange (purpose ``refresh``: tokens both ways, no target), shared by
+        every stream waiting on that peer."""
         known = self.gw.peer_token(endpoint.host, endpoint.port)
         if known is not None:
             known = self.verifier.freshest(known)
-            fresh = known.expires_at > now + 5
-            if fresh and (may_learn(known.grants, target) or now - self._peer_learnt.get(endpoint, 0.0) < PEER_RECHECK):
+            fresh = known.expires_at > time.time() + 5
+            if fresh and (may_learn(known.grants, target)
+                          or reusable(self._peer_learnt.get(endpoint), now=time.monotonic(), recheck=recheck)):
                 return known
-        task = self._peer_lookups.get(endpoint)
-        if task is None:
+        started, task = self._peer_lookups.get(endpoint, (None, None))
+        if task is None or not reusable(started, now=time.monotonic(), recheck=recheck):
+            started = time.monotonic()  # the token it brings is at least this fresh
+
             async def exchange() -> AccessToken:
                 try:
                     access = await self.gw.exchange_tokens(endpoint.host, endpoint.port)
-                    self._peer_learnt[endpoint] = time.time()
+                    self._peer_learnt[endpoint] = max(started, self._peer_learnt.get(endpoint, started))
                     return access
                 finally:
-                    self._peer_lookups.pop(endpoint, None)
+                    if self._peer_lookups.get(endpoint, (None, None))[1] is task:
+                        del self._peer_lookups[endpoint]
 
-            task = self._peer_lookups[endpoint] = asyncio.ensure_future(exchange())
+            task = asyncio.ensure_future(exchange())
+            self._peer_lookups[endpoint] = (started, task)
         return await asyncio.shield(task)
 
     async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int], first: bytes = b"") -> None:
@@ -738,6 +751,19 @@ class Ros2Role(Role):
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
 
 
+def reusable(learnt_at: float | None, *, now: float, recheck: float | None) -> bool:
+    """Whether a peer token learnt at ``learnt_at`` (monotonic) may answer "may it receive
+    this stream?" without asking the peer again. Between rechecks, one learnt within
+    PEER_RECHECK; at a recheck (``recheck``: when its wait ended), only one learnt at most
+    RECHECK_MARGIN before it, whatever the timer's precision: a grant re-added during the
+    wait is never answered by a token older than the wait."""
+    if learnt_at is None:
+        return False
+    if recheck is not None:
+        return learnt_at >= recheck - RECHECK_MARGIN
+    return now - learnt_at < PEER_RECHECK
+
+
 class _Gated(CdrError):
     """A sample the monitor's gate dropped (counted by the monitor, not as malformed)."""
 
@@ -775,4 +801,4 @@ def _checked_runs(runs: list, check) -> tuple[list, list[str]]:
     return out, bad
 
 
-__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Role"]
+__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Role", "reusable"]

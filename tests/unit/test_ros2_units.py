@@ -81,6 +81,31 @@ def test_runs_refuse_oversized_frames_from_the_header():
         decoder.runs()
 
 
+@given(st.lists(st.binary(max_size=40), min_size=1, max_size=60), st.integers(1, 70))
+def test_pieces_split_a_run_into_at_most_most_frames_each_and_lose_nothing(payloads, most):
+    frames = bytearray(b"".join(fr.encode(fr.DATA, 0, p) for p in payloads))
+    pieces = fr.pieces(frames, len(payloads), most)
+    assert all(0 < count <= most for count, _ in pieces)
+    assert sum(count for count, _ in pieces) == len(payloads)
+    assert [p for _, piece in pieces for p in fr.payloads(piece)] == payloads
+
+
+def test_a_recheck_never_reuses_a_peer_token_older_than_its_wait():
+    """A re-added grant reached its flow in 16 s once: the recheck's timer fired a hair
+    before PEER_RECHECK and reused the token learnt at its start. At a recheck only a
+    token learnt at most RECHECK_MARGIN before the wait ended counts, whatever the timer."""
+    from interceptor.ros2 import PEER_RECHECK, RECHECK_MARGIN, reusable
+
+    learnt = 100.0
+    ended = learnt + PEER_RECHECK - 0.001  # the timer fired early
+    assert not reusable(learnt, now=ended, recheck=ended)
+    assert reusable(ended - RECHECK_MARGIN, now=ended, recheck=ended)
+    assert not reusable(None, now=ended, recheck=ended)
+    # between rechecks, a token learnt within PEER_RECHECK answers
+    assert reusable(learnt, now=learnt + PEER_RECHECK - 0.1, recheck=None)
+    assert not reusable(learnt, now=learnt + PEER_RECHECK, recheck=None)
+
+
 def test_stream_target_round_trip_and_strict_decoding():
     t = StreamTarget(kind="topic", name="/scan", type="sensor_msgs/msg/LaserScan", node="/lidar",
                      qos=QoS(reliability="best_effort", durability="transient_local", depth=5))
