@@ -40,7 +40,9 @@ import cryptoros.ros2
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
+from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
 from cryptoros.ros2.profile import localhost_env
+from cryptoros.policy.infrastructure import ros2_stays_local
 from cryptoros.policy.ros2 import Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
@@ -169,6 +171,9 @@ class Ros2Role(Role):
         self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         self._stopping = False
         self.dropped = 0
+        self._exposure = ExposureScan(cfg.ros2.domain_id)
+        self._exposed: tuple[Exposed, ...] = ()
+        self._exposed_nodes: frozenset[str] = frozenset()
         self._paused: asyncio.Task | None = None
         gateway.serve("ros2", self._check_ros2_target, self._serve_ros2_stream)
 
@@ -367,11 +372,25 @@ class Ros2Role(Role):
         want: dict[tuple[str, str, str], Offer] = {}
         entries = [("topic", t, t.get("publishers", [])) for t in self._graph.get("topics", [])]
         entries += [("service", s, [{"node": n} for n in s.get("servers", [])]) for s in self._graph.get("services", [])]
+        exposed = self._check_exposure()
+        if not self.cfg.ros2.require_private_domain:
+            exposed = frozenset()
         for kind, entry, sources in entries:
             name, types = entry["name"], entry["types"]
             if self.cfg.ros2.is_local(name):  # [ros2] local: stays on this robot, by the operator's choice
                 continue
             action = "publish" if kind == "topic" else "serve"
+            if exposed and not ros2_stays_local(name, types) and any(s["node"] in exposed or "*" in exposed
+                                                                     for s in sources):
+                # a participant reachable from the network: its names are not carried (for a
+                # service, none of its servers is: a call cannot be steered to one server)
+                for node in sorted({s["node"] for s in sources if s["node"] in exposed or "*" in exposed}):
+                    exc = PolicyDenied("exposed_participant", f"{node} on this robot's domain is reachable from the "
+                                       f"network (not started with the localhost DDS settings): {name} from it is "
+                                       "not carried ([ros2] require_private_domain)")
+                    self._note_deny((kind, name, node, "exposed"), f"ros2_{action}", exc, me)
+                sources = [] if kind == "service" else [
+                    s for s in sources if s["node"] not in exposed and "*" not in exposed]
             try:
                 offer = local_offer(kind, name, types, sources, grants=grants, depth=self.cfg.ros2.depth)
             except PolicyDenied as exc:
@@ -388,6 +407,40 @@ class Ros2Role(Role):
                 self._note_deny((kind, name, node, "not_granted"), f"ros2_{action}", exc, me)
             want[(kind, name, offer.target.type)] = offer
         return want
+
+    def _check_exposure(self) -> frozenset[str]:
+        """The nodes of this robot's domain whose participant is reachable from the
+        network (``*``: one whose process this user cannot read, so any node may be);
+        each such participant logged once as it appears."""
+        found = self._exposure.scan()
+        if found != self._exposed:
+            for item in set(found) - set(self._exposed):
+                log.warning("DDS participant on domain %d reachable from the network: %s (not started with the "
+                            "localhost DDS settings: %s); %s", self.cfg.ros2.domain_id, item.describe(),
+                            "FASTRTPS_DEFAULT_PROFILES_FILE, see docs/ros2.md",
+                            "its topics and services are not carried" if self.cfg.ros2.require_private_domain
+                            else "carried anyway ([ros2] require_private_domain = false)")
+            self._exposed = found
+        if not found:
+            self._exposed_nodes = frozenset()
+            return self._exposed_nodes
+        pids = {item.pid16 for item in found}
+        nodes = {"*"} if None in pids else set()
+        for topic in self._graph.get("topics", []):
+            for pub in topic.get("publishers", []):
+                if gid_pid16(pub.get("gid", "")) in pids:
+                    nodes.add(pub["node"])
+        self._exposed_nodes = frozenset(nodes)
+        return self._exposed_nodes
+
+    def status(self) -> dict:
+        return {"ros2": {
+            "domain": self.cfg.ros2.domain_id,
+            "require_private_domain": self.cfg.ros2.require_private_domain,
+            "exposed_participants": [{"pid": e.pid, "command": e.command, "sockets": list(e.sockets)}
+                                     for e in self._exposed],
+            "exposed_nodes": sorted(self._exposed_nodes),
+        }}
 
     def _reconcile(self) -> None:
         if self._stopping or self._link is None or not self._bridge_ready.is_set():

@@ -45,6 +45,12 @@ def render(status: dict) -> list[str]:
     peers = status.get("peers") or {}
     lines.append(f"peers     {', '.join(f'{m} ({n} streams)' for m, n in peers.items()) or 'none'}; "
                  f"{status['open_streams']} open streams in all")
+    ros2 = status.get("ros2")
+    if ros2 and ros2["exposed_participants"]:
+        lines += [f"ros2      domain {ros2['domain']}: participant reachable from the network: pid {e['pid']} "
+                  f"({e['command']}) bound to {', '.join(e['sockets'])}; "
+                  f"{'not carried' if ros2['require_private_domain'] else 'carried (require_private_domain = false)'}"
+                  for e in ros2["exposed_participants"]]
     monitor = status.get("monitor")
     if monitor:
         held = ", ".join(f"{q['publisher']} of {q['manager']} ({q['seconds_left']} s)" for q in monitor["quarantined"])

@@ -193,9 +193,11 @@ class Ros2Network:
     robots: dict[str, Robot] = field(default_factory=dict)
 
     @contextlib.contextmanager
-    def node(self, robot: str, script_name: str, *args: str, domain: int | None = None) -> Iterator[Lines]:
-        """An unmodified rclpy node on ``robot``'s domain; stopped on exit."""
-        env = ros2_env(self.robots[robot].domain if domain is None else domain)
+    def node(self, robot: str, script_name: str, *args: str, domain: int | None = None,
+             localhost_profile: bool = True) -> Iterator[Lines]:
+        """An unmodified rclpy node on ``robot``'s domain; stopped on exit. Without
+        ``localhost_profile`` it is started as a careless operator would, DDS on every interface."""
+        env = ros2_env(self.robots[robot].domain if domain is None else domain, localhost_profile=localhost_profile)
         proc = subprocess.Popen([str(self.python), str(NODES / script_name), *args], env=env, cwd=str(NODES),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:

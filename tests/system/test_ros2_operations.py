@@ -117,3 +117,39 @@ def test_flows_resume_within_20_s_after_a_robots_interceptor_restarts(network, r
             network.start(robot)
             _first_message_within(sub, start, 20, f"{robot}'s interceptor restarted")
             collect(sub, 20, 10)
+
+
+def test_a_participant_reachable_from_the_network_is_reported_and_its_topics_not_carried(network):
+    """A talker under robot A's granted name, started without the localhost DDS settings
+    (its RTPS sockets on every interface): robot A reports it in its log, ``/status``
+    (``cryptoros status``) and ``--check``, and carries none of its messages; the same
+    talker started with the profile flows (the control)."""
+    import subprocess
+
+    from tests.support import script
+
+    a = network.robots["robot_a"]
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "7000",
+                          localhost_profile=False) as talker:
+            talker.until("READY", 20)
+            deadline = time.monotonic() + 30
+            # reported as soon as its sockets exist; its node once discovery names it
+            while "reachable from the network" not in a.logs() or "exposed_participant" not in a.denials():
+                assert time.monotonic() < deadline, "robot A never reported the exposed participant"
+                time.sleep(0.2)
+            assert "DENY ros2_publish from local domain" in a.denials() and "/talker on this robot" in a.denials()
+            with urllib.request.urlopen(f"http://127.0.0.1:{a.metrics_port}/status", timeout=5) as reply:
+                ros2 = json.loads(reply.read())["ros2"]
+            assert [e["pid"] for e in ros2["exposed_participants"]] == [talker.proc.pid]
+            assert "/talker" in ros2["exposed_nodes"]
+            check = subprocess.run([script("cryptoros-interceptor"), "--config", str(a.config), "--check"],
+                                   capture_output=True, text=True, timeout=60)
+            assert f"pid {talker.proc.pid}" in check.stderr and "reachable from the network" in check.stderr
+            shown = subprocess.run([script("cryptoros"), "status", "--config", str(a.config)],
+                                   capture_output=True, text=True, timeout=60)
+            assert "participant reachable from the network" in shown.stdout, shown.stdout + shown.stderr
+            assert not [line for line in sub.until(None, 4) if line.startswith("GOT")]
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "8000"):
+            collect(sub, 5, 40)  # the control: the same talker with the profile is carried
