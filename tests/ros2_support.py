@@ -166,6 +166,80 @@ def got(lines: list[str]) -> list[int]:
     return [int(line.split()[1]) for line in lines if line.startswith("GOT ")]
 
 
+#: sequence numbers of an attacker's messages start here (robot A's talker counts from 0)
+INSIDER = 500_000
+#: every legitimate flow is back within this long after an attack ends
+BACK_WITHIN = 5.0
+
+
+class Arrivals:
+    """A listener's GOT lines, timed as they are read, split by sender."""
+
+    def __init__(self, lines: Lines) -> None:
+        self.lines = lines
+        self.a: list[tuple[float, int]] = []  # (arrival, seq) of robot A's messages
+        self.insider: list[tuple[float, int]] = []
+        self.bad: list[str] = []
+
+    def _read(self, timeout: float) -> bool:
+        try:
+            line = self.lines.queue.get(timeout=timeout)
+        except Exception:  # queue.Empty
+            return False
+        if line is None:
+            raise AssertionError("robot B's listener ended")
+        if line.startswith("GOT "):
+            seq = int(line.split()[1])
+            (self.insider if seq >= INSIDER else self.a).append((time.monotonic(), seq))
+        elif line.startswith("BAD"):
+            self.bad.append(line)
+        return True
+
+    def until(self, done, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            left = deadline - time.monotonic()
+            assert left > 0, f"{what} within {timeout} s (robot A: {len(self.a)}, insider: {len(self.insider)})"
+            self._read(min(left, 0.2))
+
+    def more_from_a(self, count: int, timeout: float, what: str) -> None:
+        target = len(self.a) + count
+        self.until(lambda: len(self.a) >= target, timeout, what)
+
+    def a_silence(self, start: float, stop: float | None = None) -> float:
+        """The longest silence of robot A's flow from ``start`` to ``stop`` (None: to its
+        last message), both ends counted."""
+        times = [start] + [t for t, _ in self.a if t > start and (stop is None or t < stop)]
+        times += [stop] if stop is not None else []
+        return max((b - a for a, b in zip(times, times[1:])), default=float("inf"))
+
+
+def assert_flow_held(seen: Arrivals, start: float, end: float, *, during_bound: float = BACK_WITHIN) -> None:
+    """Robot A's flow during an attack (``start`` to ``end``): never silent ``during_bound``
+    seconds; after it: back within BACK_WITHIN and never silent that long again."""
+    assert not seen.bad, seen.bad[:3]
+    during, after = seen.a_silence(start, end), seen.a_silence(end)
+    print(f"robot A's longest silence: {during:.2f} s during the attack, {after:.2f} s after it")
+    assert during < during_bound, f"robot A's flow was silent for {during:.1f} s during the attack"
+    assert after < BACK_WITHIN, f"robot A's flow was silent for {after:.1f} s after the attack"
+
+
+def flow_around(network, attack, *, during_bound: float = BACK_WITHIN) -> None:
+    """Robot A's talker (20 Hz) to robot B's listener on ``/chatter``, before, during
+    ``attack(seen)`` (it returns once the attack ended) and after it: never silent
+    BACK_WITHIN seconds (:func:`assert_flow_held`)."""
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        seen = Arrivals(sub)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+            seen.more_from_a(10, 40, "robot A's /chatter did not reach robot B before the attack")
+            start = time.monotonic()
+            attack(seen)
+            end = time.monotonic()
+            seen.more_from_a(60, 40, "robot A's flow did not come back after the attack")
+    assert_flow_held(seen, start, end, during_bound=during_bound)
+
+
 @dataclass
 class Robot:
     name: str
