@@ -110,8 +110,20 @@ def ros2_env(domain: int, *, localhost_profile: bool = True) -> dict[str, str]:
     return localhost_env(env) if localhost_profile else env
 
 
+class Line(str):
+    """One line of a node's output, with ``at``: when (monotonic) it was read from the pipe."""
+
+    at: float
+
+    def __new__(cls, text: str) -> "Line":
+        line = super().__new__(cls, text)
+        line.at = time.monotonic()
+        return line
+
+
 class Lines:
-    """A process's stdout lines, read by a thread so every wait can be bounded."""
+    """A process's stdout lines (:class:`Line`), read by a thread so every wait can be
+    bounded, and timed as they come even while the test is busy elsewhere."""
 
     def __init__(self, proc: subprocess.Popen) -> None:
         self.proc = proc
@@ -120,7 +132,7 @@ class Lines:
 
     def _pump(self) -> None:
         for line in self.proc.stdout:
-            self.queue.put(line.rstrip("\n"))
+            self.queue.put(Line(line.rstrip("\n")))
         self.queue.put(None)
 
     def until(self, wanted: str | None, timeout: float) -> list[str]:
@@ -173,13 +185,14 @@ BACK_WITHIN = 5.0
 
 
 class Arrivals:
-    """A listener's GOT lines, timed as they are read, split by sender."""
+    """A listener's GOT lines, timed as they left its pipe (:class:`Line`), split by sender."""
 
     def __init__(self, lines: Lines) -> None:
         self.lines = lines
         self.a: list[tuple[float, int]] = []  # (arrival, seq) of robot A's messages
         self.insider: list[tuple[float, int]] = []
         self.bad: list[str] = []
+        self.other: list[str] = []  # the last lines that were neither (errors, READY, END)
 
     def _read(self, timeout: float) -> bool:
         try:
@@ -187,12 +200,14 @@ class Arrivals:
         except Exception:  # queue.Empty
             return False
         if line is None:
-            raise AssertionError("robot B's listener ended")
+            raise AssertionError(f"robot B's listener ended; its last other lines: {self.other[-5:]}")
         if line.startswith("GOT "):
             seq = int(line.split()[1])
-            (self.insider if seq >= INSIDER else self.a).append((time.monotonic(), seq))
+            (self.insider if seq >= INSIDER else self.a).append((getattr(line, "at", time.monotonic()), seq))
         elif line.startswith("BAD"):
             self.bad.append(line)
+        else:
+            self.other = [*self.other[-9:], line]
         return True
 
     def until(self, done, timeout: float, what: str) -> None:
@@ -202,9 +217,13 @@ class Arrivals:
             assert left > 0, f"{what} within {timeout} s (robot A: {len(self.a)}, insider: {len(self.insider)})"
             self._read(min(left, 0.2))
 
-    def more_from_a(self, count: int, timeout: float, what: str) -> None:
-        target = len(self.a) + count
-        self.until(lambda: len(self.a) >= target, timeout, what)
+    def more_from_a(self, count: int, timeout: float, what: str, *, since: float | None = None) -> None:
+        """Until ``count`` more of robot A's messages (``since``: printed after that time)."""
+        if since is None:
+            target = len(self.a) + count
+            self.until(lambda: len(self.a) >= target, timeout, what)
+        else:
+            self.until(lambda: sum(t > since for t, _ in self.a[-count:]) >= count, timeout, what)
 
     def a_silence(self, start: float, stop: float | None = None) -> float:
         """The longest silence of robot A's flow from ``start`` to ``stop`` (None: to its
@@ -236,7 +255,7 @@ def flow_around(network, attack, *, during_bound: float = BACK_WITHIN) -> None:
             start = time.monotonic()
             attack(seen)
             end = time.monotonic()
-            seen.more_from_a(60, 40, "robot A's flow did not come back after the attack")
+            seen.more_from_a(60, 40, "robot A's flow did not come back after the attack", since=end)
     assert_flow_held(seen, start, end, during_bound=during_bound)
 
 

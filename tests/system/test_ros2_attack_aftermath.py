@@ -78,7 +78,7 @@ def test_an_insiders_flood_on_its_own_stream_never_stops_robot_as_flow(network):
                 seen.until(lambda: time.monotonic() - max(published, seen.insider[-1][0]) > 3, 90,
                            "the insider's flood never ended")
             attack_end = max(published, seen.insider[-1][0])
-            seen.more_from_a(100, 60, "robot A's flow did not come back after the flood")
+            seen.more_from_a(100, 60, "robot A's flow did not come back after the flood", since=attack_end)
     span = seen.insider[-1][1] - seen.insider[0][1]
     assert span > 1000, f"the flood was too small to test anything (seq {seen.insider[0][1]}..{seen.insider[-1][1]})"
     assert_flow_held(seen, attack_start, attack_end, during_bound=_during(network))
@@ -131,7 +131,7 @@ def test_an_insiders_flood_on_a_stream_it_opened_itself_never_stops_robot_as_flo
             seen.until(lambda: time.monotonic() - max(written, seen.insider[-1][0]) > 3, 60,
                        "the insider's flood never ended")
             attack_end = max(written, seen.insider[-1][0])
-            seen.more_from_a(100, 60, "robot A's flow did not come back after the flood")
+            seen.more_from_a(100, 60, "robot A's flow did not come back after the flood", since=attack_end)
     assert sent[0] == network.flood
     assert_flow_held(seen, attack_start, attack_end, during_bound=_during(network))
 
