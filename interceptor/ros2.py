@@ -375,22 +375,25 @@ class Ros2Role(Role):
         exposed = self._check_exposure()
         if not self.cfg.ros2.require_private_domain:
             exposed = frozenset()
+
+        def suspect(node: str) -> bool:
+            return "*" in exposed or node in exposed
+
         for kind, entry, sources in entries:
             name, types = entry["name"], entry["types"]
             if self.cfg.ros2.is_local(name):  # [ros2] local: stays on this robot, by the operator's choice
                 continue
             action = "publish" if kind == "topic" else "serve"
-            if exposed and not ros2_stays_local(name, types) and any(s["node"] in exposed or "*" in exposed
-                                                                     for s in sources):
+            held = sorted({s["node"] for s in sources if suspect(s["node"])}) if exposed else []
+            if held and not ros2_stays_local(name, types):
                 # a participant reachable from the network: its names are not carried (for a
                 # service, none of its servers is: a call cannot be steered to one server)
-                for node in sorted({s["node"] for s in sources if s["node"] in exposed or "*" in exposed}):
+                for node in held:
                     exc = PolicyDenied("exposed_participant", f"{node} on this robot's domain is reachable from the "
                                        f"network (not started with the localhost DDS settings): {name} from it is "
                                        "not carried ([ros2] require_private_domain)")
                     self._note_deny((kind, name, node, "exposed"), f"ros2_{action}", exc, me)
-                sources = [] if kind == "service" else [
-                    s for s in sources if s["node"] not in exposed and "*" not in exposed]
+                sources = [] if kind == "service" else [s for s in sources if not suspect(s["node"])]
             try:
                 offer = local_offer(kind, name, types, sources, grants=grants, depth=self.cfg.ros2.depth)
             except PolicyDenied as exc:
@@ -671,10 +674,6 @@ class Ros2Role(Role):
 
     async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer,
                          first: bytes = b"", watched: WatchedStream | None = None) -> None:
-        # Each inbound stream has a DDS publisher of its own on this robot's domain, never
-        # one shared by every peer sending the topic: what one peer's stream does to its
-        # writer (a flood that leaves it waiting for a reader, samples kept for late
-        # joiners) is its own, and ends with the stream (its publisher is destroyed).
         qos = self._receiver_qos(target)
         kept_depth = qos.depth if qos.durability == "transient_local" else 0
         kept = 0  # what this stream makes this robot keep for late joiners: depth x largest sample
@@ -694,6 +693,10 @@ class Ros2Role(Role):
         # an 80 KB image would cost a pause/resume per message. Topic streams read big.
         if getattr(reader, "_limit", None) is not None:
             reader._limit = max(reader._limit, TOPIC_READ_SIZE)
+        # Each inbound stream has a DDS publisher of its own on this robot's domain, never
+        # one shared by every peer sending the topic: what one peer's stream does to its
+        # writer (a flood that wedges it and its readers: docs/ros2.md, samples kept for
+        # late joiners) is its own, and ends with the stream (its publisher is destroyed).
         chan = next(self._chans)
         link.control(op="advertise", chan=chan, topic=target.name, type=target.type, qos=qos.to_dict())
         try:
