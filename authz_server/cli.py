@@ -5,6 +5,10 @@ Every verb takes the registry URL from ``--db`` or ``CRYPTOROS_AUTHZ_DB`` (defau
 type, malformed policy, missing file) prints one line ``cryptoros-authz: error: ...``
 on stderr, exits with status 2 and changes nothing. A daemon that cannot start (port
 taken, database unreachable) exits with status 1 and one line, never a traceback.
+
+Every verb that changes the registry is recorded with who ran it (OS user, host, the
+command line without ``--db``) and what it changed; ``audit --changes`` lists the
+record and ``audit --verify`` checks its hash chain.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -19,8 +24,9 @@ from pathlib import Path
 import click
 
 from authz_server import keys as keymod
+from authz_server.changes import ChangeSource, parse_since, summary
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
-from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, Registry, validate_manager_name
+from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
@@ -60,7 +66,20 @@ def main(ctx: click.Context, db_url: str) -> None:
 def _registry(ctx: click.Context, *, create: bool = False) -> Registry:
     engine = open_registry(ctx.obj["db"], create=create)
     ctx.call_on_close(engine.dispose)
-    return Registry(engine)
+    return Registry(engine, source=ChangeSource.here(_command_line(ctx)))
+
+
+def _command_line(ctx: click.Context) -> str:
+    """The command a change is recorded with: the verb and its arguments as typed,
+    without the group's options (``--db`` may hold a password)."""
+    verb = ctx.command_path.split()[1:2]
+    args = sys.argv[1:]
+    i = 0
+    while i < len(args) and args[i].startswith("-"):
+        i += 2 if args[i] == "--db" else 1
+    if verb and args[i:i + 1] == verb:
+        return shlex.join([PROG, *args[i:]])
+    return ctx.command_path  # run in-process (not from a command line)
 
 
 def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
@@ -262,7 +281,11 @@ TOOL_NODES = {
     "rosparam": "/rosparam-*",      # rosgraph.Master('/rosparam-<pid>')
     "rosservice_probe": "/rosservice",  # the service type probe of rosservice call/info
     "rosservice": "/rosservice_*",  # rosservice call: init_node('rosservice', anonymous=True)
+    "rosbag_play": "/play_*",       # rosbag play: the node 'play' with a number
+    "roslaunch": "/roslaunch",      # roslaunch's parameter calls (caller id /roslaunch)
 }
+#: What roslaunch writes besides its launch file's parameters (measured: docs/stock-tools.md).
+ROSLAUNCH_PARAMS = ("/run_id", "/roslaunch", "/rosdistro", "/rosversion")
 
 
 def _name_type(value: str, option: str) -> tuple[str, str]:
@@ -281,6 +304,7 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
         rows.append(("subscribe", TOOL_NODES["rosbag"], *_name_type(value, "--topic")))
     for value in publish_topics:
         rows.append(("publish", TOOL_NODES["rostopic"], *_name_type(value, "--publish-topic")))
+        rows.append(("publish", TOOL_NODES["rosbag_play"], *_name_type(value, "--publish-topic")))
     for value in services:
         name, type_ = _name_type(value, "--service")
         rows.append(("call", TOOL_NODES["rosservice_probe"], name, type_))
@@ -295,25 +319,33 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
 @click.option("--topic", "topics", multiple=True, metavar="NAME:TYPE",
               help="A topic rostopic echo/hz/bw and rosbag record may subscribe to (repeatable).")
 @click.option("--publish-topic", "publish_topics", multiple=True, metavar="NAME:TYPE",
-              help="A topic rostopic pub may publish (repeatable).")
+              help="A topic rostopic pub and rosbag play may publish (repeatable).")
 @click.option("--service", "services", multiple=True, metavar="NAME:TYPE",
               help="A service rosservice call may call (repeatable).")
 @click.option("--param-ns", "param_namespaces", multiple=True, metavar="NS",
               help="Parameter namespace rosparam get/set/list/delete may use (repeatable; default /).")
 @click.option("--params-read-only", is_flag=True, help="rosparam may only read (get, list, dump) the namespaces.")
 @click.option("--no-params", is_flag=True, help="Grant rosparam nothing.")
+@click.option("--clock", is_flag=True, help="rosbag play --clock may publish /clock.")
+@click.option("--roslaunch", is_flag=True, help="roslaunch may write /run_id, /roslaunch, /rosdistro, /rosversion "
+              "(the launched nodes' own <param>s need nothing more).")
+@click.option("--launch-param-ns", "launch_namespaces", multiple=True, metavar="NS",
+              help="A namespace outside the launched nodes' own where roslaunch may set <param>/<rosparam> "
+                   "(repeatable; implies --roslaunch).")
 @click.option("--remove", is_flag=True, help="Take the same grants away instead.")
 @click.pass_context
 def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publish_topics: tuple[str, ...],
                 services: tuple[str, ...], param_namespaces: tuple[str, ...], params_read_only: bool,
-                no_params: bool, remove: bool) -> None:
+                no_params: bool, clock: bool, roslaunch: bool, launch_namespaces: tuple[str, ...],
+                remove: bool) -> None:
     """Grant MANAGER's stock ROS 1 tools what they need, by the anonymous node names
     they run under: rostopic as /rostopic_* and rosbag record as /record_* (--topic;
-    --publish-topic for rostopic pub), rosparam as
-    /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
-    /rosservice_* (--service). rosnode list/info/ping and rostopic list/info/type only
-    read the graph and need no grant; rosnode kill is always refused. Idempotent: a
-    grant already there is left as it is.
+    --publish-topic for rostopic pub and rosbag play as /play_*, --clock for its /clock),
+    rosparam as /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
+    /rosservice_* (--service), roslaunch as /roslaunch (--roslaunch, --launch-param-ns).
+    rosnode list/info/ping and rostopic list/info/type only read the graph and need no
+    grant; rosnode kill is always refused (docs/stock-tools.md). Idempotent: a grant
+    already there is left as it is. All of it is one transaction.
 
     \b
     Example:
@@ -324,27 +356,19 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
         raise RegistryError("give either --param-ns or --no-params, not both")
     namespaces = () if no_params else (param_namespaces or ("/",))
     rows = tool_grants(topics, publish_topics, services, namespaces, params_read_only)
-    reg = _registry(ctx)
-    reg.get_manager(manager)  # an unknown manager is an error before anything changes
-    from authz_server.registry import GrantRow
-
-    for row in rows:  # all validated before the first write
-        GrantRow.checked(*row)
-    changed = 0
-    for action, node, name, type_ in rows:
+    if clock:  # rosbag play --clock
+        rows.append(("publish", TOOL_NODES["rosbag_play"], "/clock", "rosgraph_msgs/Clock"))
+    if roslaunch or launch_namespaces:  # its own keys, and what its launch files set outside the nodes' own
+        rows += [("write_param", TOOL_NODES["roslaunch"], ns, None) for ns in (*ROSLAUNCH_PARAMS, *launch_namespaces)]
+    checked = [GrantRow.checked(*row) for row in rows]  # all validated before the one transaction
+    done = _registry(ctx).grant_many(manager, checked, remove=remove)
+    for (action, node, name, type_), changed_one in zip(rows, done, strict=True):
         what = f"{manager} {node} {action} {name}{' ' + type_ if type_ else ''}"
         if remove:
-            try:
-                reg.revoke(manager, action, node, name, type_)
-            except RegistryError:
-                click.echo(f"not granted: {what}")
-                continue
-            changed += 1
-            click.echo(f"removed: {what}")
+            click.echo(f"{'removed' if changed_one else 'not granted'}: {what}")
         else:
-            added = reg.grant(manager, action, node, name, type_)
-            changed += added
-            click.echo(f"{'granted' if added else 'already granted'}: {what}")
+            click.echo(f"{'granted' if changed_one else 'already granted'}: {what}")
+    changed = sum(done)
     click.echo(f"grant-tools {manager}: {changed} grant(s) {'removed' if remove else 'added'}, "
                f"{len(rows) - changed} unchanged; rosnode list/info/ping need no grant")
 
@@ -384,9 +408,27 @@ def import_(ctx: click.Context, file: str, merge: bool) -> None:
 
 
 # ---------------------------------------------------------------------- keys and tokens
+class _AliasedOption(click.Option):
+    """An option with old spellings that still work but are left out of --help."""
+
+    def __init__(self, *args, hidden_aliases: tuple[str, ...] = (), **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.hidden_aliases = set(hidden_aliases)
+
+    def get_help_record(self, ctx: click.Context):
+        shown = self.opts
+        self.opts = [o for o in shown if o not in self.hidden_aliases]
+        try:
+            return super().get_help_record(ctx)
+        finally:
+            self.opts = shown
+
+
 _passphrase_options = [
-    click.option("--key-passphrase-file", type=str,
-                 help=f"File holding the passphrase that encrypts the signing keys (or ${keymod.PASSPHRASE_ENV})."),
+    click.option("--signing-key-passphrase-file", "--key-passphrase-file", "signing_key_passphrase_file",
+                 cls=_AliasedOption, hidden_aliases=("--key-passphrase-file",), type=str,
+                 help="File holding the passphrase that encrypts the token-signing keys in the registry "
+                      f"(or ${keymod.PASSPHRASE_ENV}).", ),
     click.option("--unsafe-no-passphrase", is_flag=True, help="Store signing keys unencrypted."),
 ]
 
@@ -403,12 +445,12 @@ def _with_passphrase(fn):
 @click.option("--change-passphrase", is_flag=True,
               help="Encrypt the new key with a passphrase that does not open the current one (restart serve with it).")
 @click.pass_context
-def rotate_key(ctx: click.Context, key_passphrase_file: str | None, unsafe_no_passphrase: bool, bits: str,
+def rotate_key(ctx: click.Context, signing_key_passphrase_file: str | None, unsafe_no_passphrase: bool, bits: str,
                change_passphrase: bool) -> None:
     """Create a new RS256 signing key; the old one stays in the JWKS until its tokens expire.
 
     The passphrase must open the current key (the one serve uses), unless --change-passphrase."""
-    prot = keymod.protection(key_passphrase_file, unsafe_no_passphrase=unsafe_no_passphrase)
+    prot = keymod.protection(signing_key_passphrase_file, unsafe_no_passphrase=unsafe_no_passphrase)
     kid = _registry(ctx, create=True).rotate_key(prot, int(bits), change_passphrase=change_passphrase)
     click.echo(f"new signing key {kid}")
 
@@ -425,7 +467,8 @@ def list_keys(ctx: click.Context) -> None:
 @main.command("revoke-token")
 @click.argument("jti")
 @click.option("--reason", default="revoked by operator", show_default=True)
-@click.option("--expires-at", type=int, help="Expiry (unix time) of a token missing from the audit log.")
+@click.option("--expires-at", type=click.IntRange(0, 2**31 - 1),
+              help="Expiry (unix time) of a token missing from the audit log.")
 @click.pass_context
 def revoke_token(ctx: click.Context, jti: str, reason: str, expires_at: int | None) -> None:
     """Revoke one access token by its jti; interceptors see it on their next feed poll."""
@@ -434,14 +477,37 @@ def revoke_token(ctx: click.Context, jti: str, reason: str, expires_at: int | No
 
 
 @main.command("audit")
-@click.option("--limit", type=click.IntRange(1, 100000), default=50, show_default=True)
-@click.option("--manager", help="Only rows of this manager.")
+@click.option("--limit", type=click.IntRange(1, 100000),
+              help="The newest rows only, this many.  [default: 50 token rows; every change]")
+@click.option("--manager", help="Only token rows of this manager.")
 @click.option("--event", type=click.Choice(["issued", "denied"]))
+@click.option("--since", metavar="AGE|TIME", help="Only rows since then: an age (7d, 12h, 30m) or an ISO time "
+                                                  "(UTC unless it says otherwise).")
+@click.option("--changes", is_flag=True, help="The record of registry changes (who changed what) instead of tokens.")
+@click.option("--verify", is_flag=True, help="Check the hash chain of the change record: exit 0 if intact, "
+                                             "1 naming the first bad row.")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object per line.")
 @click.pass_context
-def audit(ctx: click.Context, limit: int, manager: str | None, event: str | None, as_json: bool) -> None:
-    """Show the audit log of issued and refused tokens, oldest first."""
-    for e in _registry(ctx).audit(limit=limit, manager=manager, event=event):
+def audit(ctx: click.Context, limit: int | None, manager: str | None, event: str | None, since: str | None,
+          changes: bool, verify: bool, as_json: bool) -> None:
+    """Show the audit log of issued and refused tokens, oldest first; with --changes the
+    record of every registry change (time UTC, OS user and host, command, what changed);
+    with --verify check that record's hash chain."""
+    try:
+        since_at = parse_since(since) if since is not None else None
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--since") from None
+    if verify:
+        if changes or since or limit or manager or event or as_json:
+            raise click.UsageError("--verify takes no other option")
+        _verify_changes(_registry(ctx))
+        return
+    if changes:
+        if manager or event:
+            raise click.UsageError("--manager and --event select token rows, not --changes")
+        _show_changes(_registry(ctx), since_at, limit, as_json)
+        return
+    for e in _registry(ctx).audit(limit=limit or 50, manager=manager, event=event, since=since_at):
         if as_json:
             click.echo(json.dumps({"at": e.at.isoformat(), "event": e.event, "manager": e.manager,
                                    "fingerprint_sha256": e.cert_fingerprint, "remote": e.remote,
@@ -450,6 +516,30 @@ def audit(ctx: click.Context, limit: int, manager: str | None, event: str | None
             detail = f"jti={e.jti} kid={e.kid}" if e.event == "issued" else f"reason={e.reason}"
             click.echo(f"{e.at:%Y-%m-%d %H:%M:%S} {e.event:6} manager={e.manager or '-'} "
                        f"remote={e.remote or '-'} cert={(e.cert_fingerprint or '-')[:16]} {detail}")
+
+
+def _verify_changes(reg: Registry) -> None:
+    report = reg.verify_changes()
+    if report.problem is not None:
+        click.echo(f"{PROG}: change record broken: {report.problem}; the {report.rows} row(s) before it are intact",
+                   err=True)
+        sys.exit(1)
+    click.echo(f"{report.rows} rows, chain intact (head sha256 {report.head})")
+
+
+def _show_changes(reg: Registry, since, limit: int | None, as_json: bool) -> None:
+    rows = reg.changes(since=since, limit=limit)
+    if as_json:
+        for c in rows:
+            click.echo(json.dumps({"seq": c.seq, "at": c.at.isoformat(), "os_user": c.os_user, "host": c.host,
+                                   "command": c.command, "target": c.target, "before": c.before,
+                                   "after": c.after, "hash": c.hash}))
+        return
+    click.echo(f"{'#':>5}  {'TIME (UTC)':19}  {'WHO':24}  {'TARGET':24}  CHANGE  [COMMAND]")
+    for c in rows:
+        who = f"{c.os_user}@{c.host}"
+        click.echo(f"{c.seq:>5}  {c.at:%Y-%m-%d %H:%M:%S}  {who:24}  {c.target:24}  {summary(c.before, c.after)}  "
+                   f"[{c.command}]")
 
 
 @main.command("verify-token")
@@ -531,7 +621,7 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
         "host": "host", "port": "port", "ca": "ca", "cert": "cert", "key": "key",
         "tls_key_passphrase_file": "key_passphrase_file", "crl": "crl", "issuer": "issuer",
         "audience": "audience", "token_lifetime": "token_lifetime", "probe": "probe",
-        "key_passphrase_file": "signing_key_passphrase_file",
+        "signing_key_passphrase_file": "signing_key_passphrase_file",
     }
     for flag, key in mapping.items():
         if flags.get(flag) is not None:
@@ -552,6 +642,13 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
         runner(run_server(cfg))
     except KeyboardInterrupt:  # pragma: no cover - SIGINT before the handler is installed
         pass
+
+
+# ---------------------------------------------------------------------- policy authoring
+from authz_server.policy_cli import COMMANDS as _POLICY_COMMANDS  # noqa: E402
+
+for _command in _POLICY_COMMANDS:  # policy from-graph, import-sros2, export-sros2
+    main.add_command(_command)
 
 
 if __name__ == "__main__":  # pragma: no cover

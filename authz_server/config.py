@@ -108,7 +108,8 @@ CONFIG_KEYS = {
     "ca": str,
     "cert": str,
     "key": str,
-    "key_passphrase_file": str,  # the TLS key's passphrase
+    "tls_key_passphrase_file": str,  # the TLS key's passphrase (read into key_passphrase_file)
+    "key_passphrase_file": str,  # the same, its old TOML name (still accepted)
     "crl": str,
     "issuer": str,
     "audience": str,
@@ -145,6 +146,11 @@ def load_toml(path: str | Path) -> dict[str, Any]:
             ok = True
         if not ok:
             raise ConfigError(f"config file {path}: {key} must be {want.__name__}, got {value!r}")
+    if "tls_key_passphrase_file" in data:  # build_config (and the CLI's flag) say key_passphrase_file
+        if "key_passphrase_file" in data:
+            raise ConfigError(f"config file {path}: tls_key_passphrase_file and key_passphrase_file (its old name) "
+                              "are both given")
+        data["key_passphrase_file"] = data.pop("tls_key_passphrase_file")
     return data
 
 

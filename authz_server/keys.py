@@ -34,7 +34,7 @@ class KeyProtection:
     def __post_init__(self) -> None:
         if self.passphrase is None and not self.unsafe_no_passphrase:
             raise ConfigError(
-                "signing keys need a passphrase: --key-passphrase-file FILE or "
+                "signing keys need a passphrase: --signing-key-passphrase-file FILE or "
                 f"{PASSPHRASE_ENV}, or --unsafe-no-passphrase to store them in clear"
             )
         if self.passphrase is not None and len(self.passphrase) < 8:
@@ -87,7 +87,7 @@ def generate(prot: KeyProtection, bits: int = RSA_BITS) -> NewKey:
 
 def load_private(private_pem: bytes, encrypted: bool, prot: KeyProtection, kid: str) -> rsa.RSAPrivateKey:
     if encrypted and prot.passphrase is None:
-        raise ConfigError(f"signing key {kid} is encrypted: give its passphrase (--key-passphrase-file or {PASSPHRASE_ENV})")
+        raise ConfigError(f"signing key {kid} is encrypted: give its passphrase (--signing-key-passphrase-file or {PASSPHRASE_ENV})")
     try:
         key = pemfiles.parse_private_key(private_pem, prot.passphrase if encrypted else None, f"signing key {kid}")
     except PKIError as exc:

@@ -4,8 +4,9 @@ Following the CryptoROS paper's ERD: one ``manager`` (the paper's *user*) owns m
 ``publisher``, ``subscriber``, ``service`` and ``service_client`` rows, each a
 ``(node name, topic or service, data type)`` triple. Beside the policy the registry
 keeps what the token issuer needs: RSA signing keys by ``kid``, revoked token ids, an
-audit log of issued and refused tokens, and a revocation serial that bumps whenever
-the revocation feed changes.
+audit log of issued and refused tokens, a revocation serial that bumps whenever the
+revocation feed changes, and the hash-chained record of every change made to the
+registry (``registry_change``).
 
 The schema is owned by the Alembic migrations in ``authz_server/migrations``; these
 classes must match them (a test compares the two).
@@ -186,6 +187,32 @@ class AuditLog(Base):
     expires_at: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
+class RegistryChange(Base):
+    """One change to the registry (a manager, its certificate or grants, a signing key,
+    a revoked token): who made it, from where, with which command, and what it changed.
+
+    Written in the transaction of the change itself. Rows form a hash chain: ``hash``
+    is the SHA-256 of the row's canonical content, ``prev_hash`` included
+    (:mod:`authz_server.changes`), so a row deleted, inserted or edited is detected.
+    ``seq`` numbers the rows 1, 2, ...; the registry_state counter ``change_chain``
+    holds the last one (a row cut from the end is detected too)."""
+
+    __tablename__ = "registry_change"
+
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False, index=True)
+    os_user: Mapped[str] = mapped_column(String(128), nullable=False)
+    host: Mapped[str] = mapped_column(String(255), nullable=False)
+    command: Mapped[str] = mapped_column(Text, nullable=False)
+    target: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    #: JSON (canonical: sorted keys, no spaces) of what the change replaced, or null
+    before: Mapped[str | None] = mapped_column(Text, nullable=True)
+    #: JSON of what the change put in its place, or null
+    after: Mapped[str | None] = mapped_column(Text, nullable=True)
+    prev_hash: Mapped[str] = mapped_column(String(64), nullable=False)
+    hash: Mapped[str] = mapped_column(String(64), nullable=False)
+
+
 class SigningKey(Base):
     """An RSA key the issuer signs with. Exactly one is ``active``; retired keys stay
     published in the JWKS while a token they signed may still be valid."""
@@ -203,7 +230,7 @@ class SigningKey(Base):
 
 
 class RegistryState(Base):
-    """Small named counters (``revocation_serial``)."""
+    """Small named counters (``revocation_serial``, ``registry_version``, ``change_chain``)."""
 
     __tablename__ = "registry_state"
 

@@ -10,27 +10,43 @@ manager (revoke a grant, disable it, change its certificate, remove it, an impor
 that does any of these), every token issued to it that has not expired yet is
 revoked too, so the revocation feed cuts it off within one poll instead of at token
 expiry.
+
+Every change (a manager added, enabled, disabled, removed or given a new certificate,
+a grant added or removed, a policy import, a signing key rotation, a token revoked)
+writes one ``registry_change`` row in its own transaction: who (OS user, host,
+command; :class:`~authz_server.changes.ChangeSource`) changed what (before and after,
+as JSON). A refused change writes none, and a call that changes nothing writes none.
+The rows are hash-chained; appends are serialized (``BEGIN IMMEDIATE`` on SQLite, a
+transaction-scoped advisory lock on PostgreSQL) so concurrent writers cannot fork the
+chain, and :meth:`Registry.verify_changes` walks it.
 """
 
 from __future__ import annotations
 
+import json
 import re
 import secrets
+import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
 
 from sqlalchemy import Engine, and_, delete, func, insert, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
+from authz_server import changes
 from authz_server import keys as keymod
+from authz_server.changes import ChangeSource
 from authz_server.db import session_factory
 from authz_server.models import (
     GRANT_TABLES,
     AuditLog,
     Manager,
+    RegistryChange,
     RegistryState,
     RevokedToken,
     SigningKey,
@@ -56,6 +72,10 @@ REVOCATION_SERIAL = "revocation_serial"
 REGISTRY_VERSION = "registry_version"
 #: longest a renewed certificate's predecessor may stay accepted (``set-cert --overlap``)
 MAX_CERT_OVERLAP_S = 86400
+#: the ``seq`` of the last registry_change row (a row cut from the chain's end shows)
+CHANGE_CHAIN = "change_chain"
+#: PostgreSQL advisory lock key serializing the change chain's appends (per database)
+_CHAIN_LOCK_KEY = 0x63727970746F7273  # "cryptors"
 
 
 def _now() -> datetime:
@@ -158,6 +178,39 @@ class AuditEntry:
     at: datetime = field(default_factory=_now)
 
 
+@dataclass(frozen=True)
+class ChangeEntry:
+    """One registry change as recorded: ``before`` and ``after`` are decoded JSON."""
+
+    seq: int
+    at: datetime
+    os_user: str
+    host: str
+    command: str
+    target: str
+    before: object
+    after: object
+    hash: str
+
+
+@dataclass(frozen=True)
+class ChainReport:
+    """What :meth:`Registry.verify_changes` found: ``problem`` is None when intact."""
+
+    rows: int
+    head: str
+    problem: str | None = None
+
+
+def _default_source() -> ChangeSource:
+    return ChangeSource.here(Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python")
+
+
+def _grant_text(g: GrantRow) -> str:
+    """A grant in a change record: ``publish /talker /chatter std_msgs/String``."""
+    return f"{g.action} {g.node} {g.name} {g.type}"
+
+
 def _grants_of(m: Manager) -> tuple[GrantRow, ...]:
     rows = []
     for action, (_cls, column, rel) in GRANT_TABLES.items():
@@ -182,9 +235,110 @@ def _info(m: Manager, with_grants: bool = True) -> ManagerInfo:
 class Registry:
     """The registry on one database engine."""
 
-    def __init__(self, engine: Engine) -> None:
+    def __init__(self, engine: Engine, *, source: ChangeSource | None = None) -> None:
         self.engine = engine
         self._session = session_factory(engine)
+        #: who the changes made through this handle are recorded as made by
+        self.source = source or _default_source()
+
+    # ------------------------------------------------------------------ the change record
+    @contextmanager
+    def _changing(self) -> Iterator[Session]:
+        """A transaction that may change the registry: it holds the change chain's lock
+        from its start, so its reads of the state before are not stale and its change
+        row follows the last one committed."""
+        with self._session.begin() as s:
+            backend = self.engine.dialect.name
+            if backend == "sqlite":  # the write lock now, not at the first write
+                s.connection().exec_driver_sql("BEGIN IMMEDIATE")
+            elif backend == "postgresql":
+                s.execute(select(func.pg_advisory_xact_lock(_CHAIN_LOCK_KEY)))
+            else:  # pragma: no cover - the registry runs on SQLite or PostgreSQL
+                s.get(RegistryState, CHANGE_CHAIN, with_for_update=True)
+            yield s
+
+    def _log_change(self, s: Session, target: str, before: object, after: object) -> None:
+        """Append one change row (in ``s``, inside :meth:`_changing`)."""
+        last = s.execute(select(RegistryChange.seq, RegistryChange.hash)
+                         .order_by(RegistryChange.seq.desc()).limit(1)).first()
+        head = s.get(RegistryState, CHANGE_CHAIN)
+        # numbered after the head counter: rows cut from the end stay a gap the next row shows
+        seq = max(head.value if head is not None else 0, last.seq if last else 0) + 1
+        prev = last.hash if last else changes.GENESIS
+        src = self.source
+        row = {"seq": seq, "at": _now(), "os_user": src.os_user, "host": src.host, "command": src.command,
+               "target": target[:256], "before": changes.to_json(before), "after": changes.to_json(after),
+               "prev_hash": prev}
+        s.execute(insert(RegistryChange), [{**row, "hash": changes.row_hash(**row)}])
+        if head is None:
+            s.add(RegistryState(key=CHANGE_CHAIN, value=seq))
+        else:
+            head.value = seq
+
+    def _states(self, s: Session, names: Iterable[str] | None = None) -> dict[str, dict]:
+        """The managers' states as a change records them, read from the database (after
+        a flush: what this transaction wrote is included)."""
+        q = select(Manager)
+        if names is not None:
+            q = q.where(Manager.name.in_(list(names)))
+        s.flush()
+        ms = list(s.scalars(q))
+        grants: dict[int, list[str]] = {m.id: [] for m in ms}
+        for action, (cls, column, _rel) in GRANT_TABLES.items():
+            for mid, node, name, type_ in s.execute(select(cls.manager_id, cls.name, getattr(cls, column),
+                                                           cls.data_type).where(cls.manager_id.in_(list(grants)))):
+                grants[mid].append(_grant_text(GrantRow(action, node, name, type_)))
+        return {m.name: {"fingerprint": m.cert_fingerprint, "enabled": m.enabled,
+                         "previous_fingerprint": m.previous_fingerprint, "previous_until": m.previous_until,
+                         "grants": sorted(grants[m.id])} for m in ms}
+
+    def _state(self, s: Session, name: str) -> dict | None:
+        return self._states(s, [name]).get(name)
+
+    def changes(self, *, since: datetime | None = None, limit: int | None = None) -> list[ChangeEntry]:
+        """Recorded changes, oldest first (the last ``limit`` of them)."""
+        with self._session() as s:
+            q = select(RegistryChange).order_by(RegistryChange.seq.desc())
+            if since is not None:
+                q = q.where(RegistryChange.at >= since)
+            if limit is not None:
+                q = q.limit(limit)
+            rows = list(s.scalars(q))
+        rows.reverse()
+        return [ChangeEntry(r.seq, r.at if r.at.tzinfo else r.at.replace(tzinfo=UTC), r.os_user, r.host, r.command,
+                            r.target, _loads(r.before), _loads(r.after), r.hash) for r in rows]
+
+    def verify_changes(self) -> ChainReport:
+        """Walk the change chain from its first row: every row's hash must match its
+        content, its ``prev_hash`` the row before it, its ``seq`` the next number, and
+        the last row the chain head counter. One consistent snapshot of the table."""
+        with self._session() as s:
+            if self.engine.dialect.name == "sqlite":
+                s.connection().exec_driver_sql("BEGIN")  # one read snapshot for the walk
+            else:
+                s.connection(execution_options={"isolation_level": "REPEATABLE READ"})
+            head_row = s.get(RegistryState, CHANGE_CHAIN)
+            head_seq = head_row.value if head_row is not None else 0
+            prev, n = changes.GENESIS, 0
+            for r in s.execute(select(RegistryChange).order_by(RegistryChange.seq)
+                               .execution_options(yield_per=1000)).scalars():
+                n += 1
+                expect = changes.row_hash(seq=r.seq, at=r.at, os_user=r.os_user, host=r.host, command=r.command,
+                                          target=r.target, before=r.before, after=r.after, prev_hash=r.prev_hash)
+                if expect != r.hash:
+                    return ChainReport(n - 1, prev, f"row {r.seq}: its content does not match its hash "
+                                                    "(the row was edited)")
+                if r.seq != n:
+                    return ChainReport(n - 1, prev, f"row {r.seq}: expected row {n} here "
+                                                    "(a row is missing before it)")
+                if r.prev_hash != prev:
+                    return ChainReport(n - 1, prev, f"row {r.seq}: does not follow the row before it "
+                                                    "(a row before it was deleted, inserted or rewritten)")
+                prev = r.hash
+            if head_seq != n:
+                return ChainReport(n, prev, f"the chain head records {head_seq} row(s) but {n} are there "
+                                            "(rows cut from its end, or the head edited)")
+            return ChainReport(n, prev)
 
     # ------------------------------------------------------------------ helpers
     def _manager(self, s: Session, name: str, *, load_grants: bool = False) -> Manager:
@@ -234,7 +388,7 @@ class Registry:
     def add_manager(self, name: str, fingerprint: str | None, *, enabled: bool = True) -> ManagerInfo:
         validate_manager_name(name)
         fp = normalize_fingerprint(fingerprint) if fingerprint is not None else None
-        with self._session.begin() as s:
+        with self._changing() as s:
             if s.scalars(select(Manager.id).where(Manager.name == name)).first() is not None:
                 raise RegistryError(f"manager {name!r} already exists")
             if fp is not None:
@@ -244,7 +398,7 @@ class Registry:
             self._managers_changed(s)  # a replica may have cached its certificate as unknown
             if not enabled:
                 self._bump_serial(s)
-            s.flush()
+            self._log_change(s, f"manager {name}", None, self._state(s, name))
             return _info(m, with_grants=False)
 
     def _check_fp_free(self, s: Session, fp: str, name: str) -> None:
@@ -265,40 +419,46 @@ class Registry:
         fp = normalize_fingerprint(fingerprint)
         if not 0 <= overlap <= MAX_CERT_OVERLAP_S:
             raise RegistryError(f"overlap must be 0 to {MAX_CERT_OVERLAP_S} seconds, got {overlap!r}")
-        with self._session.begin() as s:
+        with self._changing() as s:
             m = self._manager(s, name)
             self._check_fp_free(s, fp, name)
             if m.cert_fingerprint == fp and not (overlap == 0 and m.previous_fingerprint):
                 return 0
+            before = self._state(s, name)
+            revoked = 0
             if overlap > 0:
                 if m.cert_fingerprint != fp:
                     m.previous_fingerprint, m.previous_until = m.cert_fingerprint, int(time.time() + overlap)
                 m.cert_fingerprint = fp
-                self._managers_changed(s)
-                return 0
-            m.cert_fingerprint, m.previous_fingerprint, m.previous_until = fp, None, None
+            else:
+                m.cert_fingerprint, m.previous_fingerprint, m.previous_until = fp, None, None
+                revoked = self._revoke_outstanding(s, name, "certificate replaced")
             self._managers_changed(s)
-            return self._revoke_outstanding(s, name, "certificate replaced")
+            self._log_manager_change(s, name, before, revoked)
+            return revoked
 
     def set_enabled(self, name: str, enabled: bool) -> bool:
         """Enable or disable; return whether anything changed."""
-        with self._session.begin() as s:
+        with self._changing() as s:
             m = self._manager(s, name)
             if m.enabled == enabled:
                 return False
+            before = self._state(s, name)
             m.enabled = enabled
             self._bump_serial(s)
             self._managers_changed(s)
-            if not enabled:
-                self._revoke_outstanding(s, name, "manager disabled")
+            revoked = 0 if enabled else self._revoke_outstanding(s, name, "manager disabled")
+            self._log_manager_change(s, name, before, revoked)
             return True
 
     def remove_manager(self, name: str) -> None:
-        with self._session.begin() as s:
+        with self._changing() as s:
             m = self._manager(s, name)
-            self._revoke_outstanding(s, name, "manager removed")
+            before = self._state(s, name)
+            revoked = self._revoke_outstanding(s, name, "manager removed")
             s.delete(m)
             self._managers_changed(s)
+            self._log_change(s, f"manager {name}", before, {"tokens_revoked": revoked} if revoked else None)
 
     def list_managers(self) -> list[ManagerInfo]:
         with self._session() as s:
@@ -328,14 +488,43 @@ class Registry:
     # ------------------------------------------------------------------ grants
     def grant(self, manager: str, action: str, node: str, name: str, type_: str | None) -> bool:
         """Add a grant; return False if it was already there."""
-        g = GrantRow.checked(action, node, name, type_)
-        with self._session.begin() as s:
+        return self.grant_many(manager, [GrantRow.checked(action, node, name, type_)])[0]
+
+    def grant_many(self, manager: str, rows: Iterable[GrantRow], *, remove: bool = False) -> list[bool]:
+        """Add (or with ``remove`` take away) several grants of one manager in one
+        transaction, one change row; return, for each, whether it changed anything (a
+        grant already there, or absent for ``remove``, is left as it is). Taking one away
+        revokes the manager's live tokens."""
+        rows = list(rows)
+        with self._changing() as s:
             m = self._manager(s, manager)
-            added = self._add_grant(s, m, g)
-            if added:
+            before = self._state(s, manager)
+            done = [self._remove_grant(s, m, g) if remove else self._add_grant(s, m, g) for g in rows]
+            if not any(done):
+                return done
+            revoked = 0
+            if remove:
+                revoked = self._revoke_outstanding(s, manager, "grant revoked")
+            else:
                 self._bump_serial(s)  # the feed changes: interceptors fetch tokens with the new grant
-                self._managers_changed(s)
-            return added
+            self._managers_changed(s)
+            self._log_manager_change(s, manager, before, revoked)
+            return done
+
+    def _remove_grant(self, s: Session, m: Manager, g: GrantRow) -> bool:
+        cls, column, _rel = GRANT_TABLES[g.action]
+        return bool(s.execute(delete(cls).where(cls.manager_id == m.id, cls.name == g.node,
+                                                getattr(cls, column) == g.name, cls.data_type == g.type)).rowcount)
+
+    def _log_manager_change(self, s: Session, name: str, before: dict, tokens_revoked: int = 0) -> None:
+        """Record what changed in manager ``name`` (still there) since ``before``."""
+        b, a = changes.diff(before, self._state(s, name))
+        assert b is not None and a is not None
+        if b == a == {} and not tokens_revoked:
+            return
+        if tokens_revoked:
+            a["tokens_revoked"] = tokens_revoked
+        self._log_change(s, f"manager {name}", b, a)
 
     def _add_grant(self, s: Session, m: Manager, g: GrantRow) -> bool:
         cls, column, _rel = GRANT_TABLES[g.action]
@@ -364,8 +553,9 @@ class Registry:
         if type_ is not None:
             validate_type(type_)
         cls, column, _rel = GRANT_TABLES[action]
-        with self._session.begin() as s:
+        with self._changing() as s:
             m = self._manager(s, manager)
+            before = self._state(s, manager)
             q = delete(cls).where(cls.manager_id == m.id, cls.name == node, getattr(cls, column) == name)
             if type_ is not None:
                 q = q.where(cls.data_type == type_)
@@ -374,7 +564,8 @@ class Registry:
                 raise RegistryError(f"manager {manager!r} has no {action} grant for {node} on {name}"
                                     + (f" with type {type_}" if type_ else ""))
             self._managers_changed(s)
-            self._revoke_outstanding(s, manager, f"{action} grant revoked")
+            revoked = self._revoke_outstanding(s, manager, f"{action} grant revoked")
+            self._log_manager_change(s, manager, before, revoked)
             return removed
 
     # ------------------------------------------------------------------ policy as YAML
@@ -410,7 +601,7 @@ class Registry:
         if len(fps) != len(set(fps)):
             raise RegistryError("policy binds one certificate fingerprint to two managers")
         try:
-            with self._session.begin() as s:
+            with self._changing() as s:
                 existing = {
                     m.name: m
                     for m in s.scalars(
@@ -419,6 +610,7 @@ class Registry:
                         )
                     )
                 }
+                before = self._states(s)
                 orig_fp = {name: m.cert_fingerprint for name, m in existing.items()}
                 target_fp = {
                     name: (w.fingerprint if (w.fingerprint is not None or not merge or name not in existing)
@@ -447,11 +639,12 @@ class Registry:
                     m = existing.get(name)
                     have: set[GrantRow] = set()
                     if m is None:
-                        m = Manager(name=name, cert_fingerprint=w.fingerprint, enabled=w.enabled, created_at=_now())
+                        enabled = w.enabled is not False
+                        m = Manager(name=name, cert_fingerprint=w.fingerprint, enabled=enabled, created_at=_now())
                         s.add(m)
                         s.flush()
                         stats["managers_added"] += 1
-                        if not w.enabled:
+                        if not enabled:
                             self._bump_serial(s)
                     else:
                         have = set(_grants_of(m))
@@ -459,11 +652,14 @@ class Registry:
                         m.cert_fingerprint = target_fp[name]
                         if target_fp[name] != orig_fp[name]:
                             changed = shrink = True
-                        if m.enabled != w.enabled:
-                            m.enabled = w.enabled
+                        # a merge that does not say 'enabled' leaves it: an import never
+                        # re-enables a manager an operator disabled meanwhile
+                        enabled = m.enabled if (w.enabled is None and merge) else w.enabled is not False
+                        if m.enabled != enabled:
+                            m.enabled = enabled
                             self._bump_serial(s)
                             changed = True
-                            shrink = shrink or not w.enabled
+                            shrink = shrink or not enabled
                         if not merge:
                             for g in sorted(have - w.grants):
                                 cls, column, _rel = GRANT_TABLES[g.action]
@@ -481,9 +677,22 @@ class Registry:
                         stats["grants_added"] += 1
                 if any(stats.values()):
                     self._managers_changed(s)
+                    self._log_policy_change(s, before, stats["tokens_revoked"])
         except IntegrityError as exc:  # pragma: no cover - guarded by the checks above
             raise RegistryError(f"policy conflicts with the registry: {exc.orig}") from exc
         return stats
+
+    def _log_policy_change(self, s: Session, before: dict[str, dict], tokens_revoked: int) -> None:
+        """One change row for an import: per manager that changed, what changed."""
+        after = self._states(s)
+        b_all: dict[str, object] = {}
+        a_all: dict[str, object] = {}
+        for name in sorted(before.keys() | after.keys()):
+            b, a = changes.diff(before.get(name), after.get(name))
+            if not b == a == {}:
+                b_all[name], a_all[name] = b, a
+        extra = {"tokens_revoked": tokens_revoked} if tokens_revoked else {}
+        self._log_change(s, "policy", {"managers": b_all}, {"managers": a_all, **extra})
 
     # ------------------------------------------------------------------ signing keys
     def rotate_key(self, prot: keymod.KeyProtection, bits: int = keymod.RSA_BITS, *,
@@ -502,11 +711,14 @@ class Registry:
                                     "give the one serve uses (or --change-passphrase, then restart serve "
                                     "with the new one)") from None
         new = keymod.generate(prot, bits)
-        with self._session.begin() as s:
+        with self._changing() as s:
+            old = list(s.scalars(select(SigningKey.kid).where(SigningKey.active.is_(True)).order_by(SigningKey.kid)))
             s.execute(update(SigningKey).where(SigningKey.active.is_(True)).values(active=False, retired_at=_now()))
             s.add(SigningKey(kid=new.kid, algorithm="RS256", private_pem=new.private_pem,
                              public_pem=new.public_pem, encrypted=new.encrypted, active=True,
                              created_at=_now()))
+            self._log_change(s, "signing key", {"active": old[0] if len(old) == 1 else old or None},
+                             {"active": new.kid, "encrypted": new.encrypted, "bits": bits})
         return new.kid
 
     def active_key(self) -> ActiveKey | None:
@@ -545,7 +757,7 @@ class Registry:
         """Revoke a token id. Its expiry comes from the audit log (or ``expires_at``)."""
         if not isinstance(jti, str) or not re.match(r"^[A-Za-z0-9_-]{8,64}$", jti):
             raise RegistryError(f"invalid token id {jti!r}")
-        with self._session.begin() as s:
+        with self._changing() as s:
             exp = s.scalars(select(AuditLog.expires_at).where(AuditLog.jti == jti, AuditLog.event == "issued")).first()
             if exp is None:
                 if expires_at is None:
@@ -555,6 +767,7 @@ class Registry:
                 return False
             s.add(RevokedToken(jti=jti, expires_at=exp, revoked_at=_now(), reason=reason[:256]))
             self._bump_serial(s)
+            self._log_change(s, f"token {jti}", None, {"revoked": True, "expires_at": exp, "reason": reason[:256]})
             return True
 
     def revocation_feed(self, *, now: float) -> RevocationFeed:
@@ -598,9 +811,12 @@ class Registry:
             deleted += s.execute(delete(RevokedToken).where(RevokedToken.expires_at < now_i - 86400)).rowcount or 0
         return deleted
 
-    def audit(self, *, limit: int = 50, manager: str | None = None, event: str | None = None) -> list[AuditEntry]:
+    def audit(self, *, limit: int = 50, manager: str | None = None, event: str | None = None,
+              since: datetime | None = None) -> list[AuditEntry]:
         with self._session() as s:
             q = select(AuditLog).order_by(AuditLog.id.desc()).limit(limit)
+            if since is not None:
+                q = q.where(AuditLog.at >= since)
             if manager is not None:
                 q = q.where(AuditLog.manager == manager)
             if event is not None:
@@ -615,6 +831,10 @@ class Registry:
             s.scalar(select(func.count()).select_from(RegistryState))
 
 
+def _loads(text: str | None) -> object:
+    return None if text is None else json.loads(text)
+
+
 def new_jti() -> str:
     """128 random bits in hex: never starts with '-', so ``cryptoros-authz revoke-token JTI``
     cannot mistake a token id for an option (base64url ids did, one in 64)."""
@@ -626,7 +846,7 @@ def new_jti() -> str:
 class WantedManager:
     name: str
     fingerprint: str | None
-    enabled: bool
+    enabled: bool | None  # None: not said (true, or on a merge the manager's own state)
     grants: frozenset[GrantRow]
 
 
@@ -657,8 +877,8 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
             name = validate_manager_name(m.get("name"))
             fp = m.get("fingerprint_sha256")
             fp = normalize_fingerprint(fp) if fp is not None else None
-            enabled = m.get("enabled", True)
-            if not isinstance(enabled, bool):
+            enabled = m.get("enabled")  # absent: true, or on a merge the manager's own state
+            if enabled is not None and not isinstance(enabled, bool):
                 raise RegistryError(f"'enabled' must be true or false, got {enabled!r}")
             grants = _parse_grants(m.get("grants") or {})
         except RegistryError as exc:

@@ -19,6 +19,7 @@ import signal
 from aiohttp import web
 
 from authz_server.app import AuthzService, make_app
+from authz_server.changes import ChangeSource
 from authz_server.config import ServeConfig
 from authz_server.db import open_registry
 from authz_server.registry import Registry
@@ -36,7 +37,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
                 stop: asyncio.Event | None = None) -> None:
     ssl_ctx = server_context(cfg.tls)  # ConfigError on bad TLS material
     engine = open_registry(cfg.db_url, create=False)
-    registry = Registry(engine)
+    registry = Registry(engine, source=ChangeSource.here("cryptoros-authz serve"))
     service = AuthzService(cfg, registry)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None

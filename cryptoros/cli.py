@@ -19,7 +19,10 @@ SUBCOMMANDS: dict[str, str] = {
     "demo": "cryptoros.demo.cli:demo",
     "attack": "cryptoros.attack.cli:attack",
     "status": "interceptor.status:status",
+    "denials": "interceptor.status:denials",
     "unquarantine": "interceptor.status:unquarantine",
+    "env": "interceptor.runenv:env",
+    "run": "interceptor.runenv:run",
 }
 MONITOR_SUBCOMMANDS: dict[str, str] = {
     "record": "cryptoros.monitor.cli:record",

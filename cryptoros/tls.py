@@ -28,7 +28,7 @@ import contextvars
 import hashlib
 import ssl
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,15 +80,29 @@ def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl
         if cfg.crl_file is not None:
             ctx.load_verify_locations(cafile=str(cfg.crl_file))
             ctx.verify_flags |= ssl.VERIFY_CRL_CHECK_LEAF
-        ctx.load_cert_chain(str(cfg.cert_file), str(cfg.key_file), password=cfg.key_passphrase or _no_password)
+        ctx.load_cert_chain(str(cfg.cert_file), str(cfg.key_file),
+                            password=cfg.key_passphrase or (lambda: _no_password(cfg.key_file)))
     except ssl.SSLError as exc:
+        _explain_key(cfg)
         raise ConfigError(f"cannot load TLS material ({cfg.cert_file}, {cfg.key_file}): {exc.reason or exc}") from exc
     return ctx
 
 
-def _no_password() -> bytes:
+def _explain_key(cfg: TLSConfig) -> None:
+    """OpenSSL says only ``PEM lib`` when the key does not open: read it ourselves to say
+    which file and why (:mod:`cryptoros.pemfiles` names the file)."""
+    try:
+        pemfiles.load_private_key(cfg.key_file, cfg.key_passphrase)
+    except pemfiles.WrongPassphrase:
+        raise ConfigError(f"TLS key {cfg.key_file}: the passphrase given does not open it (a wrong passphrase, "
+                          "or the passphrase of another key?)") from None
+    except CryptorosError as exc:
+        raise ConfigError(f"TLS key: {exc}") from None
+
+
+def _no_password(key_file: Path) -> bytes:
     # Called by OpenSSL only if the key file is encrypted and no passphrase was given.
-    raise ConfigError("the TLS private key is encrypted and no passphrase was given")
+    raise ConfigError(f"TLS key {key_file} is encrypted and no passphrase was given")
 
 
 def server_context(cfg: TLSConfig, *, tickets: int = 0) -> ssl.SSLContext:
@@ -258,15 +272,19 @@ class FullHandshakes:
 
 class PeerCertificateCheck:
     """What a full handshake checked of the peer's certificate and a resumed one does
-    not: its validity period and the configured CRL. Run on every stream, resumed or
-    not (the chain itself was verified by the full handshake the session descends
+    not: its validity period and the configured CRL; and what neither checks: the
+    serials the CA revoked since the CRL was loaded (``revoked_serials``, read at each
+    check: the authorization server's revocation feed). Run on every handshake, resumed
+    or not (the chain itself was verified by the full handshake the session descends
     from, with the same CA: a reload draws new ticket keys). Raises TokenError
     (``certificate_expired``, ``certificate_not_yet_valid``, ``certificate_revoked``).
     Each certificate is parsed once (bounded cache by SHA-256)."""
 
     MAX_CERTIFICATES = 4096
 
-    def __init__(self, crl_file: Path | None) -> None:
+    def __init__(self, crl_file: Path | None, *,
+                 revoked_serials: Callable[[], Collection[int]] = frozenset) -> None:
+        self._feed_serials = revoked_serials
         #: (issuer name DER, serial) of every certificate the CRL file revokes (every CRL in
         #: it, as OpenSSL reads a bundle; a serial is unique only per issuer)
         self.revoked: frozenset[tuple[bytes, int]] = frozenset()
@@ -300,6 +318,9 @@ class PeerCertificateCheck:
             raise TokenError("certificate_not_yet_valid", f"the peer's certificate (serial {serial:x}) is not valid yet")
         if (issuer, serial) in self.revoked:
             raise TokenError("certificate_revoked", f"the peer's certificate (serial {serial:x}) is on the CRL")
+        if serial in self._feed_serials():
+            raise TokenError("certificate_revoked", f"the peer's certificate (serial {serial:x}) was revoked by the CA "
+                                                    "(revocation feed)")
 
 
 def peer_cert_der(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> bytes:

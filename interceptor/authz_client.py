@@ -20,7 +20,9 @@ token of every peer (its manager and certificate, :meth:`PeerVerifier.note`): a 
 presents a new one on any stream, or on a ``refresh`` exchange its interceptor makes
 when its token changes. Every open stream is judged by its peer's freshest token:
 
-- it is cut once that token has expired for more than ``grace`` seconds;
+- it is cut once that token has expired for more than ``grace`` seconds, and so is
+  every stream once our own token has (both ends' authority must hold; the check runs
+  on its own timer, never behind a request to the authorization server);
 - when a fresher token arrives, the stream's ``recheck`` runs the policy again with
   the new grants and cuts the stream if it is no longer covered (a removed grant cuts
   exactly the streams it covered);
@@ -589,6 +591,12 @@ class PeerVerifier:
         self.listeners: list[Callable[[Revocations], None]] = []
         #: Called with a peer token the feed just revoked (its holder may have a new one).
         self.stale_listeners: list[Callable[[AccessToken], None]] = []
+        #: Called with the reason label of every stream cut (``token_expired``, ``revoked``...).
+        self.cut_listeners: list[Callable[[str], None]] = []
+        #: When this interceptor's own token expires (None: it holds none): once that is
+        #: ``grace`` ago, every open stream is cut, whatever the peers' tokens say.
+        self.own_expiry: Callable[[], float | None] = lambda: None
+        self._down_since: float | None = None  # the feed has not answered since then
 
     def reconfigure(self, *, poll_interval: float, grace: float, revocation_grace: float, feed_wait: float,
                     feed_heartbeat: float) -> None:
@@ -687,6 +695,8 @@ class PeerVerifier:
     def _cut(self, entry: _Watch, reason: str) -> None:
         self._watches.discard(entry)
         log.warning("cutting off stream of manager=%s jti=%s: %s", entry.access.subject, entry.access.jti, reason)
+        for listener in self.cut_listeners:
+            listener(reason.split(":", 1)[0])
         try:
             entry.on_revoked(reason)
         except Exception:  # a broken stream must not stop the others from being cut
@@ -709,13 +719,18 @@ class PeerVerifier:
 
     def sweep(self) -> int:
         """Cut streams whose peer's freshest token expired more than ``grace`` ago, or
-        whose revoked token was not replaced within ``revocation_grace``; forget
-        tokens no stream needs. Returns how many streams were cut."""
+        whose revoked token was not replaced within ``revocation_grace``, and every
+        stream once our own token expired more than ``grace`` ago (both ends' authority
+        must hold); forget tokens no stream needs. Returns how many streams were cut."""
         now = self._clock()
+        own = self.own_expiry()
         cut = 0
         for entry in list(self._watches):
             if entry.access.expires_at + self.grace < now:
                 self._cut(entry, f"token_expired: no fresh token {now - entry.access.expires_at:.0f} s after expiry")
+                cut += 1
+            elif own is not None and own + self.grace < now:
+                self._cut(entry, f"own_token_expired: this interceptor's own token expired {now - own:.0f} s ago")
                 cut += 1
             elif entry.revoked_deadline is not None and entry.revoked_deadline <= now:
                 self._cut(entry, "revoked")
@@ -779,27 +794,41 @@ class PeerVerifier:
         """Follow the revocation feed forever: long-polls of ``feed_wait`` seconds (the
         server answers at once when it changes), never more often than the poll
         interval (a server that does not hold the request is simply polled); the JWKS
-        every minute; expired and revoked streams swept every poll interval."""
-        sweeper = asyncio.ensure_future(self._sweep_forever())
+        every minute; expired and revoked streams swept every poll interval. Three
+        tasks: the sweep never waits on the network, so a server that is down or hangs
+        cannot hold back a cut."""
+        others = [asyncio.ensure_future(self._sweep_forever()), asyncio.ensure_future(self._refresh_jwks_forever())]
         try:
             await self._follow_feed()
         finally:
-            sweeper.cancel()
+            for task in others:
+                task.cancel()
 
     async def _sweep_forever(self) -> None:
         while True:
             await asyncio.sleep(self._poll)
-            self.sweep()
+            try:
+                self.sweep()
+            except Exception:  # a sweep that stopped for good would let every stream outlive its authority
+                log.exception("sweeping the open streams failed")
+
+    async def _refresh_jwks_forever(self) -> None:
+        while True:
+            await asyncio.sleep(self._poll)
             if self._clock() - self._last_jwks >= self.JWKS_REFRESH_INTERVAL:
                 await self.refresh_jwks()
 
     def _feed_alive(self) -> None:
-        """A heartbeat of a held feed request: the server reads its registry and the
-        feed is unchanged as of now."""
+        """A sign of life of the feed (an answer, or a heartbeat of a held request: the
+        server reads its registry and the feed is unchanged as of now): fresh from now,
+        and one line if it had stopped answering."""
         self.last_feed_at = self._clock()
+        self.refused = False
+        if self._down_since is not None:
+            log.warning("the revocation feed answers again (unreachable for %.0f s)", self.last_feed_at - self._down_since)
+            self._down_since = None
 
     async def _follow_feed(self) -> None:
-        down_since: float | None = None
         while True:
             started = time.monotonic()
             if not len(self.keys):
@@ -807,19 +836,15 @@ class PeerVerifier:
             try:
                 feed = await self._client.fetch_revocations(wait=self.feed_wait if self.ready.is_set() else 0.0,
                                                             heartbeat=self.feed_heartbeat, alive=self._feed_alive)
-                self.refused = False
-                if down_since is not None:
-                    log.warning("the revocation feed answers again (unreachable for %.0f s)", self._clock() - down_since)
-                    down_since = None
-                self.last_feed_at = self._clock()
+                self._feed_alive()
                 if feed is not None:
                     self.apply(feed)
                 if len(self.keys):
                     self.ready.set()
             except TokenError as exc:
                 self.refused = isinstance(exc, AuthzRefused)
-                if down_since is None:  # one line when it goes, one when it comes back
-                    down_since = self._clock()
+                if self._down_since is None:  # one line when it goes, one when it comes back
+                    self._down_since = self._clock()
                     log.warning("cannot poll the revocation feed (%s); keeping the last one, new streams are "
                                 "refused once it is older than max_feed_age", exc.detail)
             await asyncio.sleep(max(0.0, self._poll - (time.monotonic() - started)))

@@ -1,5 +1,10 @@
 """``cryptoros-interceptor --config FILE``: run one host's interceptor.
 
+One instance per configuration: the lock in ``state_dir`` (interceptor/statefile.py) is
+taken before any state is read or written; a second start exits 1 naming the running
+pid. The master role refuses to start while its rosmaster answers other hosts
+(interceptor/exposure.py), exit status 1 and one line saying how to fix it.
+
 SIGHUP reloads certificates, CRL, policy and settings without dropping open streams
 (a failed reload, or a file changing a key that needs a restart, keeps the old state);
 SIGTERM and SIGINT stop accepting, cut the streams with nothing in flight, give calls
@@ -46,14 +51,40 @@ def build_interceptor(cfg):
     return gateway
 
 
+def deployment_problems(cfg) -> tuple[list[str], list[str]]:
+    """(refusals, warnings) of the deployment checks that need no network beyond this
+    host: the master role's rosmaster must answer on loopback only (warned, not
+    refused, with ``allow_exposed_master``)."""
+    if "master" not in cfg.roles or not cfg.master.upstream:
+        return [], []
+    from interceptor.exposure import PortExposure, master_problem
+
+    problem = master_problem(cfg.master.upstream, PortExposure(), cfg.source)
+    if problem is None:
+        return [], []
+    if cfg.allow_exposed_master:
+        return [], [f"allow_exposed_master = true, serving anyway: {problem}"]
+    return [problem], []
+
+
 async def _run(config_path: str, grace: float) -> None:
+    from interceptor.statefile import lock_instance
+
     cfg = load(config_path)
+    lock = lock_instance(cfg.state_dir, cfg.manager) if cfg.state_dir is not None else None
+    refusals, warnings = deployment_problems(cfg)
+    if refusals:
+        raise ConfigError(refusals[0])
+    for warning in warnings:
+        log.warning("%s", warning)
     interceptor = build_interceptor(cfg)
     try:
-        await interceptor.start()
-    except OSError as exc:
+        await interceptor.start()  # a listener that cannot bind: a ConfigError naming it and its address
+    except (CryptorosError, OSError) as exc:
         await interceptor.stop(grace=0)
-        raise ConfigError(f"cannot listen: {exc.strerror or exc}") from None
+        if isinstance(exc, OSError):
+            raise ConfigError(f"cannot start: {exc}") from None
+        raise
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     loop.add_signal_handler(signal.SIGTERM, stop.set)
@@ -74,6 +105,8 @@ async def _run(config_path: str, grace: float) -> None:
     await stop.wait()
     log.info("stopping: calls under way get up to %.0f s to finish", grace)
     await interceptor.stop(grace=grace)
+    if lock is not None:
+        lock.close()
 
 
 class _Unreachable(CryptorosError):
@@ -126,8 +159,9 @@ async def _preflight(cfg) -> list[str]:
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--config", "config_path", help="TOML configuration file (see interceptor/config.py).")
 @click.option("--check", is_flag=True,
-              help="Validate the configuration and TLS material, that the certificate names the public address "
-                   "and that the authorization server issues it a token for this manager, then exit.")
+              help="Validate the configuration and TLS material, that the rosmaster of the master role answers on "
+                   "loopback only, that the certificate names the public address and that the authorization "
+                   "server issues it a token for this manager, then exit.")
 @click.option("--ros2-profile", "ros2_profile", type=click.Path(dir_okay=False, allow_dash=True),
               help="Write the Fast DDS profile that keeps a robot's ROS 2 nodes on loopback to this file "
                    "('-': standard output), then exit.")
@@ -160,6 +194,9 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
     except CryptorosError as exc:
         _fail(str(exc))
     if check:
+        refusals, warnings = deployment_problems(cfg)
+        if refusals:
+            _fail(refusals[0], code=1)
         try:
             lines = asyncio.run(_preflight(cfg))
         except CryptorosError as exc:
@@ -167,6 +204,8 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
         click.echo(f"configuration ok: manager {cfg.manager}, roles {', '.join(cfg.roles)}, public {cfg.public}")
         for line in lines:
             click.echo(line)
+        for warning in warnings:
+            click.echo(f"warning: {warning}", err=True)
         if "ros2" in cfg.roles:
             from cryptoros.ros2.profile import environment_problem
 

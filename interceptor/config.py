@@ -9,13 +9,18 @@ Example::
 
     manager = "robot1"              # the manager whose token this interceptor holds
     roles = ["node"]                # "node", "master", or both
-    state_dir = "state"             # tables kept across restarts (nodes need no restart)
+    state_dir = "state"             # tables kept across restarts (default: <config stem>.state
+                                    # beside this file), the instance lock among them
+    allow_exposed_master = false    # master role: serve a rosmaster other hosts reach (warned)
+    allow_exposed_nodes = []        # node role: node-name patterns served though their ports are
+                                    # on every address (roscpp's XML-RPC API): a firewall closes them
 
     [tls]
     ca = "pki/ca.crt"
     cert = "pki/issued/robot1.crt"
     key = "pki/private/robot1.key"
-    key_passphrase_file = "robot1.pass"   # or env CRYPTOROS_KEY_PASSPHRASE, or none
+    tls_key_passphrase_file = "robot1.pass"   # or env CRYPTOROS_KEY_PASSPHRASE, or none
+                                              # (key_passphrase_file: its old name, accepted)
     crl = "pki/crl.pem"
     pin_tls12 = false
 
@@ -79,7 +84,6 @@ Relative paths are relative to the configuration file's directory.
 from __future__ import annotations
 
 import fnmatch
-import ipaddress
 import os
 import tomllib
 import urllib.parse
@@ -89,6 +93,7 @@ from pathlib import Path
 from typing import Any
 
 from cryptoros.errors import ConfigError
+from cryptoros.exposure import is_loopback_host as is_loopback
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.passphrase import PassphraseError, from_env, read_file
 from cryptoros.ros1.uri import UriError, host_port
@@ -122,19 +127,10 @@ class Endpoint:
 
     @property
     def is_loopback(self) -> bool:
-        return _is_loopback(self.host)
+        return is_loopback(self.host)
 
     def __str__(self) -> str:
         return f"{self.host}:{self.port}"
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -294,18 +290,28 @@ class InterceptorConfig:
     unsafe_plaintext_upstream: bool = False
     ros2: Ros2Settings | None = None
     #: Where the export and relay tables, the published topics and (master role) the
-    #: node owners are kept across restarts; None: nothing is kept, and a restart
-    #: needs the host's nodes restarted too.
+    #: node owners are kept across restarts, and the lock that keeps a second instance
+    #: of this configuration from starting (:func:`default_state_dir` when the file names
+    #: none; None only for a configuration parsed from no file).
     state_dir: Path | None = None
     #: The runtime monitor (interceptor/monitor.py); None: no monitor.
     monitor: MonitorSettings | None = None
+    #: master role: serve even while the rosmaster in ``[master] upstream`` listens on a
+    #: non-loopback address (warned at start and in every status); docs/interceptor.md
+    allow_exposed_master: bool = False
+    #: node role: fnmatch patterns of local node names served even while an endpoint they
+    #: announce listens on a non-loopback address (roscpp binds its XML-RPC API to every
+    #: address whatever ROS_IP says): the operator closed those ports with a firewall
+    allow_exposed_nodes: tuple[str, ...] = ()
+    #: the file this configuration was loaded from (None: parsed from a table)
+    source: Path | None = None
 
 
 _SECTIONS = {
     "": {"manager", "roles", "tls", "authz", "listen", "master", "limits", "unsafe_plaintext_upstream", "ros2",
-         "state_dir", "monitor"},
+         "state_dir", "monitor", "allow_exposed_master", "allow_exposed_nodes"},
     "ros2": {f.name for f in fields(Ros2Settings)},
-    "tls": {"ca", "cert", "key", "key_passphrase_file", "crl", "pin_tls12"},
+    "tls": {"ca", "cert", "key", "tls_key_passphrase_file", "key_passphrase_file", "crl", "pin_tls12"},
     "authz": {f.name for f in fields(AuthzSettings)} - {"urls"},  # urls: the parsed url (one or a list)
     "listen": {"public", "local_master", "metrics"},
     "master": {"interceptor", "manager", "upstream"},
@@ -343,7 +349,9 @@ _SECTIONS = {
 #: ``handshake_timeout`` on the public listener, re-bound with the new configuration);
 #: ``[ros2] peers``, ``depth``, ``local``, ``transient_local``,
 #: ``max_kept_bytes_per_peer``, ``require_private_domain``; every ``[monitor]`` key (the model too);
-#: ``unsafe_plaintext_upstream`` (only checked when the file is loaded).
+#: ``unsafe_plaintext_upstream`` (only checked when the file is loaded);
+#: ``allow_exposed_master`` (read by the master role's rosmaster watch each second),
+#: ``allow_exposed_nodes`` (read per registration).
 APPLY = "apply"
 RESTART = "restart"
 RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
@@ -351,10 +359,13 @@ RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
     "roles": (RESTART, lambda c: c.roles),
     "state_dir": (RESTART, lambda c: c.state_dir),
     "unsafe_plaintext_upstream": (APPLY, lambda c: c.unsafe_plaintext_upstream),
+    "allow_exposed_master": (APPLY, lambda c: c.allow_exposed_master),
+    "allow_exposed_nodes": (APPLY, lambda c: c.allow_exposed_nodes),
     "[tls] ca": (APPLY, lambda c: c.tls.ca_file),
     "[tls] cert": (APPLY, lambda c: c.tls.cert_file),
     "[tls] key": (APPLY, lambda c: c.tls.key_file),
-    "[tls] key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),
+    "[tls] tls_key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),
+    "[tls] key_passphrase_file": (APPLY, lambda c: c.tls.key_passphrase),  # its old name
     "[tls] crl": (APPLY, lambda c: c.tls.crl_file),
     "[tls] pin_tls12": (APPLY, lambda c: c.tls.pin_tls12),
     "[authz] url": (RESTART, lambda c: c.authz.urls),  # one URL or the list of replicas
@@ -427,21 +438,35 @@ def _path(base: Path, value: Any, where: str) -> Path:
     return path if path.is_absolute() else base / path
 
 
-def load(path: str | os.PathLike[str]) -> InterceptorConfig:
-    """Load and validate a configuration file; every problem is one ConfigError line."""
-    path = Path(path)
+def read_toml(path: Path) -> dict[str, Any]:
+    """A configuration file's TOML table; ConfigError (one line) when it cannot be read."""
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"configuration file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read configuration file {path}: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML: {exc}") from None
-    return parse(raw, base=path.parent)
 
 
-def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
+def load(path: str | os.PathLike[str]) -> InterceptorConfig:
+    """Load and validate a configuration file; every problem is one ConfigError line."""
+    path = Path(path)
+    return parse(read_toml(path), base=path.parent, source=path)
+
+
+def default_state_dir(source: Path) -> Path:
+    """Where a configuration file without ``state_dir`` keeps its state: beside it, named
+    after it (``/etc/cryptoros/robot_a.toml`` -> ``/etc/cryptoros/robot_a.state``). Beside
+    the file, not under a user's state directory: every start of the same file finds the
+    same lock, whoever starts it and from whatever environment (a service and an
+    operator's shell alike), so one configuration runs as one instance."""
+    source = source.absolute()
+    return source.with_name(f"{source.stem}.state")
+
+
+def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> InterceptorConfig:
     top = _check_keys(raw, "")
     manager = top.get("manager")
     if not isinstance(manager, str) or not manager:
@@ -457,12 +482,15 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         if required not in tls_raw:
             raise ConfigError(f"[tls] {required} is required")
     passphrase = None
-    if "key_passphrase_file" in tls_raw:
-        pass_path = _path(base, tls_raw["key_passphrase_file"], "[tls] key_passphrase_file")
+    given = [name for name in ("tls_key_passphrase_file", "key_passphrase_file") if name in tls_raw]
+    if len(given) > 1:
+        raise ConfigError("[tls] tls_key_passphrase_file and key_passphrase_file (its old name) are both given")
+    if given:
+        pass_path = _path(base, tls_raw[given[0]], f"[tls] {given[0]}")
         try:
             passphrase = read_file(pass_path)
         except PassphraseError as exc:
-            raise ConfigError(f"[tls] key_passphrase_file: {exc}") from None
+            raise ConfigError(f"[tls] {given[0]}: {exc}") from None
     else:
         passphrase = from_env(PASSPHRASE_ENV)
     tls = TLSConfig(
@@ -530,7 +558,7 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
             upstream_host, _ = host_port(master.upstream, ("http",))
         except UriError:
             raise ConfigError(f"the master role needs [master] upstream = http://host:port, got {master.upstream!r}") from None
-        if not _is_loopback(upstream_host) and not unsafe_plaintext:
+        if not is_loopback(upstream_host) and not unsafe_plaintext:
             raise ConfigError(
                 f"[master] upstream {master.upstream} is plaintext toward a non-loopback address; "
                 "set unsafe_plaintext_upstream = true to allow it"
@@ -585,10 +613,21 @@ def parse(raw: dict[str, Any], *, base: Path) -> InterceptorConfig:
         master=master,
         limits=limits,
         unsafe_plaintext_upstream=unsafe_plaintext,
-        state_dir=_path(base, top["state_dir"], "state_dir") if "state_dir" in top else None,
+        state_dir=(_path(base, top["state_dir"], "state_dir") if "state_dir" in top
+                   else default_state_dir(source) if source is not None else None),
         ros2=ros2,
         monitor=_parse_monitor(_check_keys(top["monitor"], "monitor"), base) if "monitor" in top else None,
+        allow_exposed_master=_typed(top.get("allow_exposed_master", False), bool, "allow_exposed_master"),
+        allow_exposed_nodes=_node_patterns(top.get("allow_exposed_nodes", []), "allow_exposed_nodes"),
+        source=source,
     )
+
+
+def _node_patterns(value: Any, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or len(value) > 256 or not all(
+            isinstance(p, str) and p.startswith("/") and len(p) <= 256 for p in value):
+        raise ConfigError(f"{where} must be a list of at most 256 node name patterns, each starting with /")
+    return tuple(value)
 
 
 def _parse_monitor(raw: dict[str, Any], base: Path) -> MonitorSettings:
@@ -661,5 +700,5 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
 
 __all__ = [
     "APPLY", "RELOAD", "RESTART", "AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings",
-    "Ros2Settings", "check_reload", "default_ros2_python", "load", "parse", "reload_refusals",
+    "Ros2Settings", "check_reload", "default_ros2_python", "default_state_dir", "is_loopback", "read_toml", "load", "parse", "reload_refusals",
 ]

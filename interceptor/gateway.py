@@ -42,7 +42,7 @@ from typing import Any
 from aiohttp import web
 from cryptography import x509
 
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
@@ -60,6 +60,7 @@ from cryptoros.tokens import AccessToken, peer_audience
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig, check_reload
+from interceptor.denials import DenialTable
 from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
@@ -81,6 +82,17 @@ SPARE_QUIET = 0.01
 #: peer endpoints remembered (tokens they showed, views of ours they saw): the least recently
 #: used go first (a peer may name endpoints on many ports of its address over time)
 MAX_PEER_ENDPOINTS = 4096
+
+
+@contextlib.contextmanager
+def listening(what: str, endpoint: object) -> Iterator[None]:
+    """A listener that cannot bind is a ConfigError naming it and its address:
+    ``cannot listen on 127.0.0.2:11400 (public): Address already in use``."""
+    try:
+        yield
+    except OSError as exc:
+        detail = os.strerror(exc.errno) if exc.errno else str(exc)
+        raise ConfigError(f"cannot listen on {endpoint} ({what}): {detail}") from None
 
 
 def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
@@ -193,6 +205,11 @@ class Role:
         """What the role adds to ``/status`` (top-level keys of its own)."""
         return {}
 
+    def problem(self) -> PolicyDenied | None:
+        """Why the role does not serve now (a deployment check failing), or None: makes
+        ``/healthz`` 503 and ``cryptoros status`` exit 1 with that reason."""
+        return None
+
     def check_reload(self, cfg: InterceptorConfig) -> None:
         """Raise CryptorosError if the role cannot take ``cfg`` without a restart."""
 
@@ -304,6 +321,7 @@ class Gateway:
     def __init__(self, cfg: InterceptorConfig) -> None:
         self.cfg = cfg
         self.metrics = Metrics()
+        self.denials = DenialTable()  # refusals, aggregated for the log and /status
         #: the runtime monitor ([monitor]); roles tap the streams it watches
         self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny,
                                state_path=quarantine_path(cfg.state_dir, cfg.manager) if cfg.state_dir else None
@@ -393,6 +411,23 @@ class Gateway:
         future.add_done_callback(self._streams.discard)
         return future
 
+    async def start_local_server(self, what: str, endpoint: object,
+                                 handler: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]],
+                                 **kw: Any) -> asyncio.Server:
+        """``asyncio.start_server`` for a role's listener (the local master, a relay):
+        one that cannot bind is a ConfigError naming it (:func:`listening`), and a
+        connection's handler that :meth:`stop` cuts ends quietly, its connection aborted
+        (Python 3.11's ``start_server`` logs a traceback for a handler that ends
+        cancelled). ``kw``: ``host``/``port`` or ``sock``, ``limit``."""
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            try:
+                await handler(reader, writer)
+            except asyncio.CancelledError:  # only stop() cancels a handler: nobody waits on it
+                writer.transport.abort()
+
+        with listening(what, endpoint):
+            return await asyncio.start_server(handle, **kw)
+
     @contextlib.contextmanager
     def cuttable(self) -> Iterator[None]:
         """While inside, the current stream has nothing in flight that a stop could
@@ -419,12 +454,16 @@ class Gateway:
             log.error("no access token yet (%s): everything is refused until one arrives", exc)
         self.verifier.listeners.append(self._on_feed)
         self.verifier.stale_listeners.append(self._on_stale_peer_token)
+        self.verifier.cut_listeners.append(lambda reason: self.metrics.cutoffs.labels(reason).inc())
+        self.verifier.own_expiry = lambda: self.keeper.expires_at
         self.keeper.listeners.append(self._on_own_token)
         self.spawn(self.keeper.run(), "token-keeper")
         self.spawn(self.verifier.run(), "revocation-feed")
-        self._public_server = await self._listen_public(self._server_ctx, self.cfg)
+        with listening("public", self.cfg.public):
+            self._public_server = await self._listen_public(self._server_ctx, self.cfg)
         if self.cfg.metrics is not None:
-            await self._start_metrics()
+            with listening("metrics", self.cfg.metrics):
+                await self._start_metrics()
         self.started = True
         for role in self._roles:
             await role.start()
@@ -489,8 +528,12 @@ class Gateway:
 
     def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
         """An SSLObject whose failed handshakes are counted and logged like every other
-        denial (asyncio itself only logs them in debug mode)."""
-        metrics = self.metrics
+        denial (asyncio itself only logs them in debug mode), and whose handshake fails
+        for a client certificate :class:`~cryptoros.tls.PeerCertificateCheck` refuses:
+        one the CA revoked after the CRL was loaded (the feed's serials), one out of its
+        validity period or on the CRL on a resumed handshake (which OpenSSL does not
+        verify again). The client's connection then closes before any stream begins."""
+        gateway = self
 
         class CountingSSLObject(ssl.SSLObject):
             def do_handshake(self) -> None:
@@ -500,9 +543,16 @@ class Gateway:
                     raise
                 except ssl.SSLError as exc:
                     reason = (exc.reason or type(exc).__name__).lower()
-                    metrics.denied.labels("tls", reason).inc()
+                    gateway.metrics.denied.labels("tls", reason).inc()
                     log.warning("DENY tls handshake: %s", exc)
                     raise
+                if self.server_side:
+                    try:
+                        gateway._cert_check.check(peer_cert_der(self))
+                    except TokenError as exc:
+                        gateway.metrics.denied.labels("tls", exc.reason).inc()
+                        log.warning("DENY tls handshake: %s", exc)
+                        raise ssl.SSLError(ssl.SSL_ERROR_SSL, f"{exc.reason}: {exc.detail}") from None
 
         return CountingSSLObject
 
@@ -534,18 +584,19 @@ class Gateway:
             await self._metrics_runner.cleanup()
         await self.authz.close()
 
-    @staticmethod
-    def _tls_state(cfg: InterceptorConfig):
+    def _tls_state(self, cfg: InterceptorConfig):
         """Everything TLS between interceptors, built from one configuration: both
         contexts, the client's kept sessions (for that client context only), the
-        server's record of full handshakes and the per-stream certificate check (the
-        CRL as loaded with the contexts). A new server context draws new ticket keys,
-        so a reload makes every earlier session worthless."""
+        server's record of full handshakes and the per-handshake certificate check (the
+        CRL as loaded with the contexts, and the serials the revocation feed lists now).
+        A new server context draws new ticket keys, so a reload makes every earlier
+        session worthless."""
         lifetime = cfg.limits.tls_session_lifetime
         client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
         return (server_context(cfg.tls, tickets=1 if lifetime > 0 else 0), client_ctx,
                 SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
-                PeerCertificateCheck(cfg.tls.crl_file))
+                PeerCertificateCheck(cfg.tls.crl_file,
+                                     revoked_serials=lambda: self.verifier.revocations.revoked_serials))
 
     @staticmethod
     def _held_feed_wait(cfg: InterceptorConfig) -> float:
@@ -566,14 +617,16 @@ class Gateway:
 
     def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
         """The peer's certificate, checked on every stream (resumed or not): validity
-        period and CRL here, the revocation feed with its token. Returns its DER."""
+        period, CRL and the CA's revocations in the feed (for a stream in, inside the
+        handshake: :meth:`_counting_sslobject_class`), then its token. Returns its DER."""
         der = peer_cert_der(ssl_object)
         resumed = bool(ssl_object.session_reused)
         self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
         self.metrics.stream_checks.labels("certificate").inc()
-        self._cert_check.check(der)
         if direction == "in":
             self._full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+        else:
+            self._cert_check.check(der)
         return der
 
     async def reload(self, cfg: InterceptorConfig) -> None:
@@ -648,6 +701,13 @@ class Gateway:
         if problem is not None:
             raise problem
 
+    def check_roles(self) -> None:
+        """Raise the first role's problem (a deployment check failing), if any."""
+        for role in self._roles:
+            problem = role.problem()
+            if problem is not None:
+                raise problem
+
     def status(self) -> dict:
         """What ``cryptoros status`` shows: who this interceptor is to the registry now
         (token subject, grants, expiry), how fresh its view of revocations is
@@ -659,6 +719,7 @@ class Gateway:
             token = {"subject": access.subject, "jti": access.jti, "expires_in": round(access.expires_at - now),
                      "grants": [[g.node, g.action, g.name, g.type] for g in access.grants]}
             self.check_feed_age()
+            self.check_roles()
         except (TokenError, PolicyDenied) as exc:
             health = f"{exc.reason}: {exc.detail}"
         cert = x509.load_der_x509_certificate(self._own_cert_der)
@@ -678,6 +739,7 @@ class Gateway:
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
             "monitor": self.monitor.status() if self.monitor is not None else None,
+            "denials": self.denials.table(time.monotonic()),
             **{key: value for role in self._roles for key, value in role.status().items()},
         }
 
@@ -694,6 +756,7 @@ class Gateway:
                 self.keeper.current()
                 self.check_feed_age()
                 self.own_access()  # our own token verifies now: not revoked, manager not disabled
+                self.check_roles()
             except (TokenError, PolicyDenied) as exc:
                 return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
             last = self.verifier.last_feed_at
@@ -775,13 +838,16 @@ class Gateway:
         tunnel.writer.close()
         return tunnel.peer.access
 
-    def deny(self, kind: str, exc: CryptorosError, who: str, *, logged: bool = True) -> None:
-        """Count a refusal by reason; log it (``logged``: False for a flood of one kind,
-        logged once in a while by the caller)."""
+    def deny(self, kind: str, exc: CryptorosError, who: str, *, logged: bool = True, hint: str | None = None) -> None:
+        """Count a refusal by reason; log it, aggregated (:mod:`interceptor.denials`: the
+        first of a kind, peer, reason and target at once, then a count per interval).
+        ``logged``: False for a flood the caller logs once in a while itself; ``hint``:
+        the ``cryptoros-authz grant ...`` that would allow it (``cryptoros denials``)."""
         reason = getattr(exc, "reason", type(exc).__name__)
         self.metrics.denied.labels(kind, reason).inc()
-        if logged:
-            log.warning("DENY %s from %s: %s", kind, who, exc)
+        for line in self.denials.record(kind, who, reason, str(exc), time.monotonic(), hint=hint):
+            if logged:
+                log.warning("%s", line)
 
     # ================================================================ outbound
     async def open_tunnel(
@@ -1157,7 +1223,6 @@ class Gateway:
 
         def cut(reason: str) -> None:
             cut_by.setdefault("reason", reason)
-            self.metrics.cutoffs.inc()
             writer.transport.abort()
 
         unwatch = self.verifier.watch(access, cut)
@@ -1231,5 +1296,5 @@ class Gateway:
             await done
 
 
-__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts",
+__all__ = ["READ_SIZE", "Gateway", "InboundStream", "Peer", "Role", "Tunnel", "cert_hosts", "listening",
            "read_chunks", "read_into", "take_buffered"]

@@ -34,7 +34,9 @@ class Metrics:
         )
         self.cutoffs = Counter(
             "cryptoros_interceptor_revocation_cutoffs_total",
-            "Open streams closed because their token or manager was revoked",
+            "Open streams cut because their authority ended, by reason (revoked, subject_disabled, "
+            "certificate_revoked, grant_removed, token_expired, own_token_expired)",
+            ["reason"],
             registry=self.registry,
         )
         self.token_expires = Gauge(

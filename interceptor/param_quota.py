@@ -22,8 +22,10 @@ the master's host talking to rosmaster directly) are not seen: a key such a writ
 replaced stays charged until it is deleted through here, and a namespace it made is
 charged to the first manager that writes below it. A write is charged when it is
 sent: one whose request got no answer stays charged (rosmaster may have applied it).
-A restarted rosmaster has lost every parameter (:meth:`clear`); a restarted
-interceptor starts from nothing (what was written before is not charged).
+The table keeps the values too (they are what it charges): a restarted rosmaster,
+which has lost every parameter, gets back what was set through here and not deleted
+(:meth:`items`, replayed by the master role). A restarted interceptor starts from
+nothing (what was written before is neither charged nor replayed).
 """
 
 from __future__ import annotations
@@ -37,11 +39,12 @@ SCALAR_BYTES = 8
 
 
 class _Node:
-    __slots__ = ("children", "owner", "size", "value")
+    __slots__ = ("children", "data", "owner", "size", "value")
 
-    def __init__(self, owner: str, size: int, value: bool) -> None:
+    def __init__(self, owner: str, size: int, value: bool, data: Any = None) -> None:
         self.children: dict[str, _Node] = {}
         self.owner, self.size, self.value = owner, size, value
+        self.data = data  # the value itself (a value node)
 
 
 def _parts(key: str) -> tuple[str, ...]:
@@ -75,7 +78,7 @@ def _measure(name: str, value: Any) -> tuple[int, int]:
 
 def _build(name: str, value: Any, owner: str) -> _Node:
     if not isinstance(value, dict):
-        return _Node(owner, len(name) + value_bytes(value), True)
+        return _Node(owner, len(name) + value_bytes(value), True, value)
     node = _Node(owner, len(name), False)
     for member, inner in value.items():
         node.children[str(member)] = _build(str(member), inner, owner)
@@ -151,7 +154,7 @@ class ParamQuota:
                 self._charge(child, subtree=False)
             elif child.value:
                 self._uncharge(child)
-                child.owner, child.size, child.value = manager, len(part), False
+                child.owner, child.size, child.value, child.data = manager, len(part), False, None
                 self._charge(child)
             node = child
         old = node.children.pop(parts[-1], None)
@@ -171,6 +174,21 @@ class ParamQuota:
         gone = node.children.pop(parts[-1], None)
         if gone is not None:
             self._uncharge(gone)
+
+    def items(self) -> list[tuple[str, Any]]:
+        """What rosmaster holds through here, as ``setParam`` calls would make it again:
+        (key, value) of every value, and ``{}`` for every namespace with nothing in it,
+        namespaces before what is below them."""
+        out: list[tuple[str, Any]] = []
+        stack = [("", self._root)]
+        while stack:
+            key, node = stack.pop()
+            if node.value:
+                out.append((key or "/", node.data))
+            elif not node.children and node is not self._root:
+                out.append((key, {}))
+            stack.extend((f"{key}/{name}", child) for name, child in reversed(node.children.items()))
+        return out
 
     def clear(self) -> None:
         """rosmaster restarted: it holds no parameter any more."""

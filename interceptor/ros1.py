@@ -49,6 +49,9 @@ from cryptoros.policy.ros1 import (
     check_subscribed_type,
     check_subscriber_header,
     filter_param_reply,
+    grant_hint,
+    refusal_answer,
+    refusal_text,
     ros_error,
 )
 from cryptoros.ros1 import msgs
@@ -76,9 +79,12 @@ from cryptoros.tunnel import Preamble
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Tunnel, read_into
 from interceptor.gateway import Role as GatewayRole
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
+from interceptor.exposure import NodeGuard, PortExposure, master_problem
+from interceptor.gate import REFRESH
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.pump import FrameCounter
+from interceptor.registrations import REGISTER, RELEASE, LocalRegistrations, Registration, covers
 from interceptor.statefile import write_private_json
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, MASTER, Canonical, LocalEndpoint, Translator
 
@@ -395,6 +401,17 @@ class Ros1Role(GatewayRole):
         #: exports released, so nodes that come and go under new names (rostopic, rosbag)
         #: do not use up export_limit either
         self._node_registrations: dict[str, set[tuple[str, str]]] = {}
+        #: deployment checks (interceptor/exposure.py): which ports answer other hosts, and
+        #: (master role) why rosmaster must not be served now, or None
+        self._exposure = PortExposure()
+        self._nodes_exposed = NodeGuard(self._exposure)
+        self._master_exposed: str | None = None
+        #: node role: each registration a local node made or had refused, as it sent it, so a
+        #: grant that comes while it runs is made for it (:meth:`_regrant`)
+        self._ledger = LocalRegistrations()
+        self._grants_seen: Grants | None = None  # the grants of our token the ledger was last judged by
+        self._regrant_wanted = False
+        self._regranting = False
         gateway.serve("master", self._check_master_target, self._serve_master_stream)
         gateway.serve("node", self._check_node_target, self._serve_node_stream)
         gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
@@ -413,7 +430,15 @@ class Ros1Role(GatewayRole):
     async def start(self) -> None:
         if "node" in self.cfg.roles:
             lm = self.cfg.local_master
-            self._servers.append(await asyncio.start_server(self._on_local_master, lm.host, lm.port))
+            self._servers.append(await self.gw.start_local_server("local master", lm, self._on_local_master,
+                                                                  host=lm.host, port=lm.port))
+            with contextlib.suppress(CryptorosError):
+                self._grants_seen = self.gw.own_access().grants
+            self.gw.keeper.listeners.append(self._own_token_changed)
+            if self._ledger.refused_count:  # kept from before our restart: our token may cover them now
+                self._own_token_changed()
+            if not self.translator.export_count:
+                self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:
@@ -453,7 +478,16 @@ class Ros1Role(GatewayRole):
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
                          "state_saves": self._state_saves,
-                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}}}
+                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
+                "warnings": self._deployment_warnings()}
+
+    def _deployment_warnings(self) -> list[str]:
+        warnings = self._nodes_exposed.warnings()
+        if self._master_exposed:
+            what = ("allow_exposed_master = true, served anyway" if self.cfg.allow_exposed_master
+                    else "master streams refused (exposed_master)")
+            warnings.append(f"{what}: {self._master_exposed}")
+        return warnings
 
     def _count_idle_close(self) -> None:
         self._tunnels_closed_idle += 1
@@ -462,6 +496,17 @@ class Ros1Role(GatewayRole):
     def _check_master_target(self, preamble: Preamble) -> None:
         if "master" not in self.cfg.roles:
             raise PolicyDenied("no_master_here", "this interceptor does not front a master")
+        self._refuse_exposed_master()
+
+    def _refuse_exposed_master(self) -> None:
+        problem = self.problem()
+        if problem is not None:
+            raise problem
+
+    def problem(self) -> PolicyDenied | None:
+        if self._master_exposed and not self.cfg.allow_exposed_master:
+            return PolicyDenied("exposed_master", self._master_exposed)
+        return None
 
     def _check_node_target(self, preamble: Preamble) -> LocalEndpoint:
         return self.translator.resolve(KIND_XMLRPC, preamble.target)
@@ -490,7 +535,8 @@ class Ros1Role(GatewayRole):
         host, port = sock.getsockname()[:2]
 
         async def serve() -> None:
-            server = await asyncio.start_server(lambda r, w: handler(r, w, target), sock=sock, limit=READ_SIZE)
+            server = await self.gw.start_local_server("relay", f"{host}:{port}", lambda r, w: handler(r, w, target),
+                                                      sock=sock, limit=READ_SIZE)
             if sock.fileno() < 0:  # released before it started
                 server.close()
             else:
@@ -515,7 +561,8 @@ class Ros1Role(GatewayRole):
                 "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
-                "registrations": [[method, list(params)] for method, params in self._registrations.values()]}
+                "registrations": [[method, list(params)] for method, params in self._registrations.values()],
+                "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()]}
         try:
             write_private_json(path, data)
             self._state_saves += 1
@@ -550,6 +597,8 @@ class Ros1Role(GatewayRole):
                 self._record_registration(str(method), tuple(str(p) for p in params))
             for method, params in self._registrations.values():  # the counts behind each restored relay
                 self._count_relay_refs(method, params, +1)
+            for method, params in data.get("waiting", [])[:self._ledger.max_refused]:
+                self._ledger.refused(str(method), tuple(str(p) for p in params))
             for topic, subscribers in data.get("local_subscribers", {}).items():
                 self._local_subscribers[str(topic)] = {str(n): str(api) for n, api in subscribers.items()}
             self._node_apis.update({str(n): str(i) for n, i in data.get("node_apis", {}).items()})
@@ -631,20 +680,24 @@ class Ros1Role(GatewayRole):
             calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
         except RemoteProtocolError as exc:
             self.gw.deny(kind, exc, who)
-            return Fault(code=-1, string=OPAQUE)
+            return Response(value=ros_error(refusal_text("malformed")))
         results: list[Response | Fault | None] = [None] * len(calls)
         allowed: list[tuple[int, Request]] = []
+        # whose grants a refusal lacks: the calling peer's, or (local nodes) our own manager's
+        manager = who if kind in ("master", "node") else self.cfg.manager if kind == "local-master" else None
         for i, call in enumerate(calls):
             try:
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
-                flood = getattr(exc, "reason", None) == "rate_limited"
-                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who))
-                # rospy's set_param/delete_param ignore a [-1, ...] answer: a refused write is
-                # a fault, which raises in the node (rosparam reports it either way)
-                results[i] = (Fault(code=-1, string=OPAQUE) if call.method in PARAM_WRITE
-                              else Response(value=ros_error(OPAQUE)))
+                reason = getattr(exc, "reason", None)
+                flood = reason == "rate_limited"
+                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who),
+                             hint=grant_hint(reason, call.method, call.params, manager))
+                # as rosmaster answers an error ([-1, "denied by cryptoros: <reason>", 0], never
+                # a fault, which tools print as a traceback); a probe of a parameter the caller
+                # may not read as if it were not set
+                results[i] = Response(value=refusal_answer(reason, call.method, call.params))
         if allowed:
             multicall = request.method == MULTICALL
             outgoing = make_multicall([c for _, c in allowed], like=request) if multicall else allowed[0][1]
@@ -660,7 +713,8 @@ class Ros1Role(GatewayRole):
                 else:
                     self.gw.deny(kind, exc, who)
                 for i, _ in allowed:
-                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else OPAQUE))
+                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else
+                                                          refusal_text(getattr(exc, "reason", None))))
         if request.method == MULTICALL:
             return assemble_multicall(results)  # type: ignore[arg-type]
         return results[0]  # type: ignore[return-value]
@@ -849,6 +903,9 @@ class Ros1Role(GatewayRole):
         back without restarting a node (rosmaster then tells subscribers their
         publishers with ``publisherUpdate``, as at first)."""
         while True:
+            if self._judge_master_exposure():  # nothing replayed to a rosmaster other hosts reach
+                await asyncio.sleep(MASTER_WATCH_INTERVAL)
+                continue
             try:
                 reply = await asyncio.wait_for(
                     self._call_upstream_master(Request(method="getPid", params=("/cryptoros",))), MASTER_WATCH_TIMEOUT)
@@ -858,12 +915,83 @@ class Ros1Role(GatewayRole):
             if pid is not None and pid != self._master_pid:
                 # a new pid, or the first one seen after a restart of ours with registrations
                 # from state_dir (a repeated registration is harmless to rosmaster)
-                if self._master_pid is not None:
-                    self._params.clear()  # a new rosmaster holds no parameter
+                if self._master_pid is not None:  # a new rosmaster holds no parameter
+                    await self._replay_parameters(pid)
                 if self._master_pid is not None or self._registrations:
                     await self._replay_registrations(pid)
+                elif not self._relay_refs:  # restarted with no state: rosmaster still names our relays
+                    await self._adopt_master_state()
                 self._master_pid = pid
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    def _judge_master_exposure(self) -> bool:
+        """Deployment check, each turn of the watch: True while rosmaster answers other
+        hosts and ``allow_exposed_master`` is not set (master streams are refused then)."""
+        problem = master_problem(self.cfg.master.upstream, self._exposure, self.cfg.source)
+        if problem != self._master_exposed:
+            if problem is None:
+                log.warning("rosmaster answers on loopback only now: master streams are served again")
+            elif self.cfg.allow_exposed_master:
+                log.warning("allow_exposed_master = true, serving anyway: %s", problem)
+            else:
+                log.error("master streams refused (exposed_master) until fixed: %s", problem)
+            self._master_exposed = problem
+        return problem is not None and not self.cfg.allow_exposed_master
+
+    async def _adopt_master_state(self) -> None:
+        """Restarted with no state (master role): open again, on their old ports, the
+        relays whose names rosmaster holds (every node API and service URI carries its
+        canonical name, :meth:`Translator.from_master`), each counted once per
+        registration behind it, so rosmaster reaches every node again at once. Who owns
+        each name is not known again until the node registers anew."""
+        try:
+            state = await self._call_upstream_master(Request(method="getSystemState", params=("/cryptoros",)))
+            if not _ros_ok(state):
+                return
+            publishers, subscribers, services = state.value[2]
+            counts: dict[str, int] = {}
+            for _name, nodes in (*publishers, *subscribers, *services):
+                for node in nodes:
+                    counts[node] = counts.get(node, 0) + 1
+            uris = []
+            for node, count in counts.items():
+                reply = await self._call_upstream_master(Request(method="lookupNode", params=("/cryptoros", node)))
+                if _ros_ok(reply) and isinstance(reply.value[2], str):
+                    uris.append((reply.value[2], count))
+            for service, _nodes in services:
+                reply = await self._call_upstream_master(Request(method="lookupService", params=("/cryptoros", service)))
+                if _ros_ok(reply) and isinstance(reply.value[2], str):
+                    uris.append((reply.value[2], 1))
+        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+            log.warning("cannot read rosmaster's graph to re-open our relays: %s", exc)
+            return
+        adopted = 0
+        for uri, count in uris:
+            with contextlib.suppress(CryptorosError):
+                self.translator.from_master(uri)
+            endpoint = _local_endpoint(uri)
+            if endpoint is not None and self.translator.relay_target(*endpoint) is not None:
+                self._relay_refs[endpoint] = self._relay_refs.get(endpoint, 0) + count
+                adopted += 1
+        if uris:
+            log.warning("restarted with no state: %d relays rosmaster names re-opened (%d nodes, %d services)",
+                        adopted, len(counts), len(services))
+
+    async def _replay_parameters(self, pid: int) -> None:
+        """Set again what peers set through us and did not delete (the parameter quota's
+        table, :meth:`ParamQuota.items`: bounded per peer), in the order of the tree,
+        before any new write of a peer."""
+        async with self._param_writes:
+            items = self._params.items()
+            failed = 0
+            for key, value in items:
+                try:
+                    reply = await self._call_upstream_master(Request(method="setParam", params=("/cryptoros", key, value)))
+                    failed += not _ros_ok(reply)
+                except (CryptorosError, OSError, asyncio.TimeoutError):
+                    failed += 1
+        log.warning("rosmaster (pid %d) is new: %d parameters replayed%s", pid, len(items),
+                    f", {failed} failed" if failed else "")
 
     async def _replay_registrations(self, pid: int) -> None:
         calls = [Request(method=method, params=params) for method, params in self._registrations.values()]
@@ -915,7 +1043,7 @@ class Ros1Role(GatewayRole):
             target = Canonical.parse(uri)
             if target is None or target.host not in peer.hosts:
                 raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
-            return self.translator.to_local(uri)
+            return self.translator.to_local(uri, named=True)  # named: rosmaster keeps it across our restarts
 
         def existing_from_peer(uri: str) -> str:
             # unregister*/unsubscribeParam never open a relay: an endpoint no relay was
@@ -923,12 +1051,13 @@ class Ros1Role(GatewayRole):
             target = Canonical.parse(uri)
             if target is None or target.host not in peer.hosts:
                 raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
-            local = self.translator.existing_local(uri)
+            local = self.translator.existing_local(uri, named=True)
             if local is None:
                 raise PolicyDenied("unknown_endpoint", f"{uri!r:.80} was never registered through this interceptor")
             return local
 
         def decide(call: Request) -> Request:
+            self._refuse_exposed_master()  # on streams opened before rosmaster was exposed too
             if not self._master_calls.allow(peer.manager):
                 limits = self.cfg.limits
                 raise PolicyDenied("rate_limited", f"{peer.manager} makes master calls faster than "
@@ -952,7 +1081,7 @@ class Ros1Role(GatewayRole):
             self._note_registration(call, response, peer.manager, exact=bool(call.params) and
                                     isinstance(call.params[0], str) and grants.names_node_exactly(call.params[0]))
             response = _filtered_param_reply(call, response, self.verifier.freshest(peer.access).grants)
-            return rewrite_response(call, response, uri=self.translator.to_canonical)
+            return rewrite_response(call, response, uri=self.translator.from_master)
 
         async def handle(request: Request) -> Response | Fault:
             if not _writes_params(request):
@@ -1004,6 +1133,7 @@ class Ros1Role(GatewayRole):
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
         def tcpros_to_canonical(host: str, port: int) -> tuple[str, int]:
+            self._check_local_port(lambda: self._node_of_api(stream.target), port, "TCPROS port")
             canonical, public_port = self.translator.tcpros_to_canonical(host, port)
             child = self.translator.own_id(canonical)
             if child is not None:  # this node's TCPROS server: released with its API
@@ -1106,52 +1236,88 @@ class Ros1Role(GatewayRole):
 
     # ---------------------------------------------------------------- local master
     async def _on_local_master(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        master = self.cfg.master.interceptor or self.cfg.public
-        tunnel = self.pool(master.host, master.port, "master", "")
-
-        def decide(call: Request) -> Request:
-            own = self.gw.own_access()
-            check_master_call(
-                call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
-            )
-            call = _resolved_param_call(call, own.grants)
-            if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
-                self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
-                self._topics_registering.add(call.params[1])
-            call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
-            return _rewrite_param_api(call, self.translator.to_canonical)
-
-        def after(call: Request, response: Response | Fault) -> Response | Fault:
-            if call.method == "registerPublisher":
-                registering = call.params[1] in self._topics_registering
-                self._topics_registering.discard(call.params[1])
-                if not _ros_ok(response):
-                    if registering:  # the master refused it: not published here after all
-                        self.topic_types.pop(call.params[1], None)
-                elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
-                    self.topic_types[call.params[1]] = call.params[2]
-                    self._save_state()
-            elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
-                self._note_local_subscriber(call)
-            if call.method in _LOCAL_REGISTRATIONS and _ros_ok(response):
-                self._note_local_node(call)
-            if _ros_ok(response):
-                self._track_local_registration(call)
-            response = _filtered_param_reply(call, response, self.gw.own_access().grants)
-            return rewrite_response(call, response, uri=self.translator.to_local)
-
-        async def handle(request: Request) -> Response | Fault:
-            # no token this instant (our manager re-enabled a moment ago): wait for one
-            # refresh attempt rather than refuse a node that starts now
-            await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
-            return await self._decide_calls(request, decide, tunnel.call, after, "local-master", "local node")
-
         try:
-            await self._serve_xmlrpc(reader, writer, handle)
+            await self._serve_xmlrpc(reader, writer, self._local_master_request)
         except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
             log.warning("local master connection dropped: %s", exc)
         finally:
             writer.close()
+
+    def _exposed_registration(self, request: Request) -> Response | None:
+        """A local node registering endpoints other hosts reach: one ROS error line to
+        it (each call of a multicall), naming the node, the port and the fix."""
+        try:
+            calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
+            for warning in self._nodes_exposed.check_registrations(calls, allow=self.cfg.allow_exposed_nodes,
+                                                                   config=self.cfg.source):
+                log.warning("%s", warning)
+        except RemoteProtocolError:
+            return None  # _decide_calls refuses it
+        except PolicyDenied as exc:
+            self.gw.deny("local-master", exc, "local node")
+            error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
+            return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
+        return None
+
+    def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
+        warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,
+                                                 config=self.cfg.source)
+        if warning:
+            log.warning("%s", warning)
+
+    def _node_of_api(self, api_id: str) -> str:
+        return next((node for node, api in self._node_apis.items() if api == api_id), f"with API export {api_id}")
+
+    async def _local_master_request(self, request: Request) -> Response | Fault:
+        """One request of a local node to its master (a registration made again on a
+        node's behalf goes the same way: :meth:`_regrant`)."""
+        refusal = self._exposed_registration(request)
+        if refusal is not None:
+            return refusal
+        # no token this instant (our manager re-enabled a moment ago): wait for one
+        # refresh attempt rather than refuse a node that starts now
+        await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+        return await self._decide_calls(request, self._local_decide, tunnel.call, self._local_after, "local-master",
+                                        "local node")
+
+    def _local_decide(self, call: Request) -> Request:
+        own = self.gw.own_access()
+        try:
+            check_master_call(
+                call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
+            )
+        except PolicyDenied as exc:
+            if exc.reason == "not_granted" and self._ledger.refused(call.method, call.params):
+                self._save_state_soon()  # kept: made if a grant comes while the node runs
+            raise
+        call = _resolved_param_call(call, own.grants)
+        if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
+            self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
+            self._topics_registering.add(call.params[1])
+        call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
+        return _rewrite_param_api(call, self.translator.to_canonical)
+
+    def _local_after(self, call: Request, response: Response | Fault) -> Response | Fault:
+        if call.method == "registerPublisher":
+            registering = call.params[1] in self._topics_registering
+            self._topics_registering.discard(call.params[1])
+            if not _ros_ok(response):
+                if registering:  # the master refused it: not published here after all
+                    self.topic_types.pop(call.params[1], None)
+            elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
+                self.topic_types[call.params[1]] = call.params[2]
+                self._save_state()
+        elif call.method in ("registerSubscriber", "unregisterSubscriber") and _ros_ok(response):
+            self._note_local_subscriber(call)
+        if call.method in _LOCAL_REGISTRATIONS and _ros_ok(response):
+            self._note_local_node(call)
+        if _ros_ok(response):
+            self._track_local_registration(call)
+        self._note_ledger(call, response)
+        response = _filtered_param_reply(call, response, self.gw.own_access().grants)
+        return rewrite_response(call, response, uri=self.translator.to_local)
 
     # ---------------------------------------------------------------- exports of restarted nodes
     def _note_local_node(self, call: Request) -> None:
@@ -1210,6 +1376,171 @@ class Ros1Role(GatewayRole):
             del self._node_apis[node]
         if released:
             log.info("released %d exports of a node that %s (API export %s)", len(released), why, api_id)
+
+    # ---------------------------------------------------------------- a restart with no state
+    async def _adopt_local_graph(self, patience: float = 120.0) -> None:
+        """Started with no state (node role): this host's nodes may be running, registered
+        under names of ours that rosmaster still holds. Take back their exports (an id
+        says which loopback endpoint it names, :meth:`Translator.adopt`), the topics they
+        publish, their subscriptions and registrations, and tell each subscriber its
+        publishers, as after a restart with state. Only what the master's interceptor
+        answers is adopted."""
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+
+        async def ask(method: str, *params):
+            reply = await tunnel.call(Request(method=method, params=("/cryptoros", *params)))
+            return reply.value[2] if _ros_ok(reply) else None
+
+        deadline, backoff = time.monotonic() + patience, 0.25
+        while True:
+            try:
+                state = await ask("getSystemState")
+                if state is None:
+                    raise PolicyDenied("master_refused", "getSystemState")
+                break
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                if time.monotonic() + backoff > deadline:
+                    log.warning("started with no state, and rosmaster's graph cannot be read (%s): running nodes "
+                                "of this host are not reached until they register again", exc)
+                    return
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 4.0)
+        started = time.monotonic()
+        try:
+            publishers, subscribers, services = state
+            types = dict(await ask("getTopicTypes") or [])
+            own: dict[str, str] = {}  # node -> its local API
+            for node in {n for _name, nodes in (*publishers, *subscribers, *services) for n in nodes}:
+                uri = await ask("lookupNode", node)
+                endpoint = self.translator.adopt(uri) if isinstance(uri, str) else None
+                if endpoint is not None:
+                    own[node] = endpoint.uri
+                    self._node_apis.setdefault(node, self.translator.own_id(uri))
+            for service, nodes in services:
+                mine = [n for n in nodes if n in own]
+                uri = await ask("lookupService", service) if mine else None
+                if isinstance(uri, str) and self.translator.adopt(uri) is not None:
+                    for node in mine:
+                        self._node_registrations.setdefault(node, set()).add(("srv", service))
+            for kind, section in (("pub", publishers), ("sub", subscribers)):
+                for topic, nodes in section:
+                    for node in (n for n in nodes if n in own):
+                        self._node_registrations.setdefault(node, set()).add((kind, topic))
+                        if kind == "pub" and topic in types:
+                            self.topic_types.setdefault(topic, types[topic])
+                            self._ledger.made("registerPublisher", (node, topic, types[topic], own[node]))
+                        elif kind == "sub":
+                            self._local_subscribers.setdefault(topic, {}).setdefault(node, own[node])
+                            if topic in types:
+                                self._ledger.made("registerSubscriber", (node, topic, types[topic], own[node]))
+        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+            log.warning("started with no state; rosmaster's graph could not be read whole (%s)", exc)
+            return
+        log.log(logging.WARNING if own else logging.INFO,
+                "started with no state: %d running nodes of this host adopted from rosmaster's graph "
+                "(%d subscribed topics) in %.2f s", len(own), len(self._local_subscribers), time.monotonic() - started)
+        self._save_state_soon()
+        for topic in list(self._local_subscribers):
+            self._resubscribe_soon(topic, delay=0.0)
+
+    # ---------------------------------------------------------------- grants for running nodes
+    def _note_ledger(self, call: Request, response: Response | Fault) -> None:
+        """Keep a local node's registration (as the node sent it) made or refused by the
+        master, and forget one it released (:mod:`interceptor.registrations`)."""
+        if call.method in RELEASE:
+            self._ledger.released(call.method, call.params)
+        elif call.method in REGISTER:
+            try:
+                local = rewrite_call(call, caller_api=self.translator.to_local, service_api=self.translator.to_local)
+            except CryptorosError:
+                return
+            if _ros_ok(response):
+                waiting = self._ledger.get(local.method, local.params)
+                self._ledger.made(local.method, local.params)
+                if waiting is not None and waiting.refused:
+                    self._save_state_soon()
+            elif self._ledger.refused(local.method, local.params):
+                self._save_state_soon()
+
+    def _own_token_changed(self) -> None:
+        """Our token changed (keeper listener): the grants it carries may cover
+        registrations of running nodes they did not cover before."""
+        if self.gw.started:
+            self._regrant_wanted = True
+            if not self._regranting:
+                self._regranting = True
+                self.gw.spawn(self._regrant(), "regrant")
+
+    async def _regrant(self) -> None:
+        """Make again, on their nodes' behalf, the registrations our new grants cover and
+        the old ones did not (a grant added, or removed and added back), and every one
+        refused that they cover now; tell each subscriber its publishers
+        (``publisherUpdate``, as rosmaster does for a registration it accepts). Nodes
+        that do not answer any more are forgotten."""
+        try:
+            while self._regrant_wanted:
+                self._regrant_wanted = False
+                try:
+                    own = self.gw.own_access()
+                except CryptorosError:
+                    return
+                before, self._grants_seen = self._grants_seen, own.grants
+                if before == own.grants and not self._ledger.refused_count:
+                    continue
+                todo = self._ledger.to_resend(
+                    lambda reg: covers(own.grants, own.subject, reg.method, reg.params),
+                    None if before is None else lambda reg: covers(before, own.subject, reg.method, reg.params))
+                if not todo:
+                    continue
+                started = time.monotonic()
+                master = self.cfg.master.interceptor or self.cfg.public
+                try:  # the master's interceptor judges by our freshest whole token: show it first
+                    shown = await self.gw.open_tunnel(master.host, master.port, REFRESH, "", whole=True)
+                    shown.writer.close()
+                except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                    log.warning("cannot show the master's interceptor our new token (%s): %d registrations of "
+                                "running nodes wait for the next one", exc, len(todo))
+                    self._grants_seen = before
+                    return
+                made = 0
+                for reg in todo:
+                    made += await self._make_again(reg)
+                log.warning("our grants changed: %d of %d registrations of running nodes made again in %.2f s",
+                            made, len(todo), time.monotonic() - started)
+        finally:
+            self._regranting = False
+
+    async def _make_again(self, reg: Registration) -> bool:
+        api = reg.node_api
+        try:
+            if api is None or not _ros_ok(await self._call_plain(api, Request(method="getPid", params=("/master",)))):
+                raise ConnectionError("no answer")
+        except (CryptorosError, OSError, asyncio.TimeoutError):
+            log.info("%s %s of %s not made again: the node does not answer", reg.method, reg.params[1], reg.params[0])
+            self._ledger.released(reg.method, reg.params)
+            return False
+        response = await self._local_master_request(Request(method=reg.method, params=reg.params))
+        if not _ros_ok(response):
+            log.info("%s %s of %s made again: refused (%s)", reg.method, reg.params[1], reg.params[0],
+                     response.value[1] if isinstance(response, Response) else response)
+            return False
+        if reg.method == "registerSubscriber":
+            await self._tell_publishers(api, reg.params[1], response.value[2])
+        return True
+
+    async def _tell_publishers(self, api: str, topic: str, uris: list) -> None:
+        """``publisherUpdate`` to a local subscriber, once each publisher's interceptor
+        has our freshest token (it judges the subscriber's requestTopic by it)."""
+        peers = {(t.host, t.port) for t in (self.translator.relay_target(*e) for e in map(_local_endpoint, uris) if e)
+                 if t is not None}
+        for peer in peers:
+            with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):
+                await self.gw.exchange_tokens(*peer)
+        try:
+            await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, list(uris))))
+        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            log.info("publisherUpdate of %s to %s failed: %s", topic, api, exc)
 
     # ---------------------------------------------------------------- subscribers reconnect
     def _note_local_subscriber(self, call: Request) -> None:
@@ -1293,7 +1624,8 @@ class Ros1Role(GatewayRole):
         def decide(call: Request) -> Request:
             if call.method == "shutdown":
                 raise PolicyDenied("shutdown_dropped", "node shutdown is never forwarded")
-            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_canonical))
+            # rosmaster's publisherUpdate through the relay of a subscriber: its relay names
+            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.from_master))
 
         # the publisher's address must be the answering interceptor's own (see tcpros_to_local)
         tcpros = functools.partial(self.translator.tcpros_to_local, via=(target.host, target.port))

@@ -437,13 +437,20 @@ class Ros2Role(Role):
         return self._exposed_nodes
 
     def status(self) -> dict:
-        return {"ros2": {
-            "domain": self.cfg.ros2.domain_id,
-            "require_private_domain": self.cfg.ros2.require_private_domain,
-            "exposed_participants": [{"pid": e.pid, "command": e.command, "sockets": list(e.sockets)}
-                                     for e in self._exposed],
-            "exposed_nodes": sorted(self._exposed_nodes),
-        }}
+        carried = ("not carried" if self.cfg.ros2.require_private_domain
+                   else "carried anyway ([ros2] require_private_domain = false)")
+        return {
+            "ros2": {
+                "domain": self.cfg.ros2.domain_id,
+                "require_private_domain": self.cfg.ros2.require_private_domain,
+                "exposed_participants": [{"pid": e.pid, "command": e.command, "sockets": list(e.sockets)}
+                                         for e in self._exposed],
+                "exposed_nodes": sorted(self._exposed_nodes),
+            },
+            "warnings": [f"DDS participant on domain {self.cfg.ros2.domain_id} reachable from the network: "
+                         f"{e.describe()}; its topics are {carried} (start it with the localhost profile: "
+                         "docs/ros2.md)" for e in self._exposed],
+        }
 
     def _reconcile(self) -> None:
         if self._stopping or self._link is None or not self._bridge_ready.is_set():
@@ -540,8 +547,7 @@ class Ros2Role(Role):
                     )
 
                 def cut(reason: str, writer=writer) -> None:
-                    self.metrics.cutoffs.inc()
-                    writer.transport.abort()
+                    writer.transport.abort()  # counted by the verifier, with its reason
 
                 unwatch = self.verifier.watch(peer.access, cut)
                 self.metrics.allowed.labels(f"ros2_{target.kind}_out").inc()

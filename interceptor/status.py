@@ -45,12 +45,10 @@ def render(status: dict) -> list[str]:
     peers = status.get("peers") or {}
     lines.append(f"peers     {', '.join(f'{m} ({n} streams)' for m, n in peers.items()) or 'none'}; "
                  f"{status['open_streams']} open streams in all")
-    ros2 = status.get("ros2")
-    if ros2 and ros2["exposed_participants"]:
-        lines += [f"ros2      domain {ros2['domain']}: participant reachable from the network: pid {e['pid']} "
-                  f"({e['command']}) bound to {', '.join(e['sockets'])}; "
-                  f"{'not carried' if ros2['require_private_domain'] else 'carried (require_private_domain = false)'}"
-                  for e in ros2["exposed_participants"]]
+    lines += [f"warning   {warning}" for warning in status.get("warnings", ())]
+    refusals = status.get("denials") or []
+    lines.append(f"denials   {sum(r['count'] for r in refusals)} refused, {len(refusals)} distinct"
+                 f"{' (cryptoros denials: each with the grant that would allow it)' if refusals else ''}")
     monitor = status.get("monitor")
     if monitor:
         held = ", ".join(f"{q['publisher']} of {q['manager']} ({q['seconds_left']} s)" for q in monitor["quarantined"])
@@ -80,6 +78,49 @@ def status(config_path: str | None, url: str | None, as_json: bool) -> None:
         raise SystemExit(2) from None
     click.echo(json.dumps(body, indent=2) if as_json else "\n".join(render(body)))
     raise SystemExit(0 if body.get("health") == "ok" else 1)
+
+
+def render_denials(status: dict) -> list[str]:
+    """The recent refusals of a ``/status`` answer, grouped (one line per kind, peer,
+    reason and target, most recent first), each with the grant that would allow it."""
+    rows = status.get("denials") or []
+    if not rows:
+        return [f"no refusals recorded by {status.get('manager', 'this interceptor')} since it started"]
+    lines = [f"{len(rows)} distinct refusals on {status.get('manager', 'this interceptor')}, most recent first:"]
+    for row in rows:
+        lines.append(f"{row['count']:6d}x  {row['kind']} from {row['peer']}: {row['target']} "
+                     f"(last {row['last_ago']:g} s ago, first {row['first_ago']:g} s ago)")
+        if row.get("grant"):
+            lines.append(f"         to allow: {row['grant']}")
+    return lines
+
+
+def _read_status(config_path: str | None, url: str | None) -> dict:
+    if not url:
+        if not config_path:
+            raise click.UsageError("give --config FILE (or --url http://127.0.0.1:PORT/status)")
+        try:
+            url = _url_from_config(config_path)
+        except ConfigError as exc:
+            raise click.ClickException(str(exc)) from None
+    try:
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            return json.loads(resp.read())
+    except (urllib.error.URLError, OSError, ValueError) as exc:
+        click.echo(f"cryptoros: error: cannot read {url}: {getattr(exc, 'reason', exc)}", err=True)
+        raise SystemExit(2) from None
+
+
+@click.command()
+@click.option("--config", "config_path", help="The interceptor's configuration (its [listen] metrics endpoint).")
+@click.option("--url", help="The /status URL instead (default: from --config).")
+@click.option("--json", "as_json", is_flag=True, help="Print the raw JSON rows.")
+def denials(config_path: str | None, url: str | None, as_json: bool) -> None:
+    """Show the refusals this host's interceptor made lately, grouped by who, why and
+    what, with the `cryptoros-authz grant ...` that would allow each (run it on the
+    authorization server's host; nothing is granted from here)."""
+    body = _read_status(config_path, url)
+    click.echo(json.dumps(body.get("denials") or [], indent=2) if as_json else "\n".join(render_denials(body)))
 
 
 def _write_release(path, manager: str, publisher: str | None) -> None:

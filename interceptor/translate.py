@@ -9,12 +9,20 @@ endpoint is named *canonically*::
 
 - A local endpoint (on loopback) handed outward is *exported*: given a stable id in
   the owner's export table, the only table a peer can reach through (a peer names an
-  id, never an address, so it cannot make us connect anywhere else).
+  id, never an address, so it cannot make us connect anywhere else). The id of an
+  IPv4 loopback endpoint is a number made of its address, port and kind (the same
+  after a restart); a restarted interceptor takes back the exports rosmaster still
+  names (:meth:`Translator.adopt`, from what the master's interceptor answers), never
+  one a peer names.
 - A canonical name handed to a local process becomes a *relay*: a listener on
   127.0.0.1 that tunnels to the owner over mutual TLS. One relay per canonical
   target, for the life of the interceptor, so the master sees stable URIs and
   ``unregister*`` still matches. A canonical name owned by this interceptor maps
-  straight back to the local endpoint (two nodes on one host talk directly).
+  straight back to the local endpoint (two nodes on one host talk directly). The
+  relays the master's interceptor hands rosmaster carry their canonical name in their
+  path (``http://127.0.0.1:<port>/cryptoros/<host>/<port>/x/<id>``): restarted with
+  no state, it reads every name back from rosmaster (:meth:`Translator.from_master`)
+  and re-opens each relay on its old port.
 
 The translator is state plus pure mapping; opening relay listeners is the
 ``open_relay`` callback's job (the asyncio edge).
@@ -36,7 +44,12 @@ KIND_XMLRPC = "x"
 KIND_TCPROS = "t"
 _KIND_SCHEME = {KIND_XMLRPC: "http", KIND_TCPROS: "rosrpc"}
 _SCHEME_KIND = {"http": KIND_XMLRPC, "rosrpc": KIND_TCPROS}
-_CANONICAL = re.compile(r"^cryptoros://([^/:]+):(\d{1,5})/([xt])/(\d{1,12})$")
+_CANONICAL = re.compile(r"^cryptoros://([^/:]+):(\d{1,5})/([xt])/(\d{1,14})$")
+#: the path of a relay URI handed to rosmaster: the canonical name it stands for
+_NAMED_PATH = re.compile(r"^/cryptoros/([^/:]+)/(\d{1,5})/([xt])/(\d{1,14})$")
+#: export ids below this are counted (endpoints with no IPv4 loopback address); from it on
+#: they are made of the endpoint (:func:`_endpoint_number`)
+_NUMBERED = 1 << 17
 _ROS_URI = re.compile(r"^(http|rosrpc)://([^/:]+):(\d{1,5})(/.*)?$")
 
 
@@ -90,6 +103,36 @@ def _parse_ros_uri(uri: str) -> tuple[str, str, int]:
     return _SCHEME_KIND[m.group(1)], m.group(2), int(m.group(3))
 
 
+def _endpoint_number(kind: str, host: str, port: int) -> str | None:
+    """The id of an IPv4 loopback endpoint: its address (127.0.0.0/8: 24 bits), port and
+    kind, in one number (at least :data:`_NUMBERED`); None for another host name."""
+    try:
+        address = ipaddress.IPv4Address(host)
+    except ValueError:
+        return None
+    if not address.is_loopback or not 0 < port < 65536:
+        return None
+    return str((((int(address) & 0xFFFFFF) << 16 | port) << 1) | (kind == KIND_TCPROS))
+
+
+def _endpoint_of(kind: str, ident: str) -> tuple[str, int] | None:
+    """The endpoint an id of :func:`_endpoint_number` was made of (None: a counted id)."""
+    number = int(ident) if ident.isdigit() else 0
+    if number < _NUMBERED or (number & 1) != (kind == KIND_TCPROS):
+        return None
+    number >>= 1
+    port, low = number & 0xFFFF, number >> 16
+    if not 0 < port or low >> 24:
+        return None
+    return str(ipaddress.IPv4Address((127 << 24) | low)), port
+
+
+def _relay_uri(target: Canonical, relay: tuple[str, int], named: bool) -> str:
+    path = f"/{SCHEME}/{target.host}/{target.port}/{target.kind}/{target.id}" if named else \
+        ("/" if target.kind == KIND_XMLRPC else "")
+    return f"{_KIND_SCHEME[target.kind]}://{relay[0]}:{relay[1]}{path}"
+
+
 class Translator:
     """Export table, relay table and the mappings between them."""
 
@@ -117,7 +160,7 @@ class Translator:
         self._open_relay = open_relay
         self._exports: dict[str, LocalEndpoint] = {}
         self._export_ids: dict[tuple[str, str, int], str] = {}
-        #: ids are never reused: a peer holding a released id reaches nothing, never another endpoint
+        #: counted ids are never reused; an id made of an endpoint names that endpoint only
         self._next_id = 1
         self._relays: dict[Canonical, tuple[str, int]] = {}
         self._relay_targets: dict[tuple[str, int], Canonical] = {}
@@ -137,16 +180,39 @@ class Translator:
         if ident is None:
             if len(self._exports) >= self.MAX_EXPORTS:  # a local flood stops here (released ids do not count)
                 raise PolicyDenied("export_limit", f"{self.MAX_EXPORTS} local endpoints exported already")
-            ident = str(self._next_id)
-            self._next_id += 1
+            ident = _endpoint_number(kind, host, port)
+            if ident is None or ident in self._exports:
+                ident = str(self._next_id)
+                self._next_id += 1
             self._export_ids[key] = ident
             self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=port, uri=uri)
             self._on_change()
         return Canonical(host=self.public_host, port=self.public_port, kind=kind, id=ident)
 
+    def adopt(self, text: str) -> LocalEndpoint | None:
+        """Take back the export behind one of our canonical names that rosmaster still
+        holds (a restart with no state): its id says which loopback endpoint it was.
+        None for another interceptor's name or a counted id. Only names the master's
+        interceptor answers come here, never one a peer names."""
+        target = Canonical.parse(text)
+        if target is None or not self.owns(target):
+            return None
+        known = self._exports.get(target.id)
+        if known is not None:
+            return known if known.kind == target.kind else None
+        endpoint = _endpoint_of(target.kind, target.id)
+        if endpoint is None:
+            return None
+        host, port = endpoint
+        uri = f"http://{host}:{port}/" if target.kind == KIND_XMLRPC else f"rosrpc://{host}:{port}"
+        if str(self.export(target.kind, host, port, uri)) != text:
+            return None
+        return self._exports[target.id]
+
     def release(self, ident: str) -> bool:
         """Forget an export whose endpoint is gone (its node restarted on new ports):
-        new streams to its id are refused (``unknown_target``); the id is not reused."""
+        new streams to its id are refused (``unknown_target``) until an endpoint on the
+        same address and port is exported again."""
         endpoint = self._exports.pop(ident, None)
         if endpoint is None:
             return False
@@ -205,9 +271,10 @@ class Translator:
             if kind in _KIND_SCHEME and is_loopback(host) and ident.isdigit():
                 self._exports[ident] = LocalEndpoint(kind=kind, host=host, port=int(port), uri=uri)
                 self._export_ids[(kind, host, int(port))] = ident
-                self._next_id = max(self._next_id, int(ident) + 1)
+                if int(ident) < _NUMBERED:
+                    self._next_id = max(self._next_id, int(ident) + 1)
         next_id = data.get("next_id")
-        if isinstance(next_id, int):
+        if isinstance(next_id, int) and next_id < _NUMBERED:
             self._next_id = max(self._next_id, next_id)
         for text, port in data.get("relays", []):
             target = Canonical.parse(text)
@@ -239,7 +306,7 @@ class Translator:
             self._relays_per_host.pop(target.host, None)
         self._on_change()
 
-    def existing_local(self, text: str) -> str | None:
+    def existing_local(self, text: str, *, named: bool = False) -> str | None:
         """Like :meth:`to_local`, but never opens a relay: None for a canonical name
         this interceptor never handed out (an ``unregister*`` of it matches nothing)."""
         target = Canonical.parse(text)
@@ -250,7 +317,7 @@ class Translator:
         relay = self._relays.get(target)
         if relay is None:
             return None
-        return f"{_KIND_SCHEME[target.kind]}://{relay[0]}:{relay[1]}" + ("/" if target.kind == KIND_XMLRPC else "")
+        return _relay_uri(target, relay, named)
 
     @property
     def relay_count(self) -> int:
@@ -270,8 +337,9 @@ class Translator:
             return str(target)
         return str(self.export(kind, host, port, uri))
 
-    def to_local(self, text: str) -> str:
-        """A canonical name -> a URI a local process can call."""
+    def to_local(self, text: str, *, named: bool = False) -> str:
+        """A canonical name -> a URI a local process can call (``named``: a relay's URI
+        carries the name in its path, for rosmaster: see :meth:`from_master`)."""
         if text == MASTER:
             if self.local_master_uri is None:
                 raise PolicyDenied("no_master", "this interceptor has no local master URI")
@@ -281,8 +349,25 @@ class Translator:
             raise PolicyDenied("bad_uri", f"not a canonical cryptoros name: {text!r:.80}")
         if self.owns(target):
             return self.resolve(target.kind, target.id).uri
-        host, port = self.relay_for(target)
-        return f"{_KIND_SCHEME[target.kind]}://{host}:{port}" + ("/" if target.kind == KIND_XMLRPC else "")
+        return _relay_uri(target, self.relay_for(target), named)
+
+    def from_master(self, uri: str) -> str:
+        """Like :meth:`to_canonical`, for a URI rosmaster answers (master role): a relay
+        URI with a name in its path (:meth:`to_local` ``named``) is that name, and its
+        relay is opened again on its old port (free after our restart) if it is gone."""
+        if isinstance(uri, str) and uri.rstrip("/") not in self._master_uris:
+            kind, host, port = _parse_ros_uri(uri)
+            path = uri.split("://", 1)[1].partition("/")[2]
+            m = _NAMED_PATH.match("/" + path) if is_loopback(host) else None  # the name, not the port, says
+            target = Canonical.parse(f"{SCHEME}://{m.group(1)}:{m.group(2)}/{m.group(3)}/{m.group(4)}") if m else None
+            if target is not None and target.kind == kind and not self.owns(target):
+                if target not in self._relays:
+                    try:
+                        self.relay_for(target, port=port)
+                    except (OSError, PolicyDenied):
+                        pass  # named all the same; rosmaster's calls to it fail until it is registered anew
+                return str(target)
+        return self.to_canonical(uri)
 
     def tcpros_to_canonical(self, host: str, port: int) -> tuple[str, int]:
         """A ``['TCPROS', host, port]`` reply of a local node -> (canonical, public port)."""

@@ -65,7 +65,7 @@ class AuthzDaemon:
         env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
         args = [script("cryptoros-authz"), "--db", self.db, "serve", "--port", str(self.port),
                 "--ca", str(self.pki.ca_cert), "--cert", str(server.cert_path), "--key", str(server.key_path),
-                "--crl", str(self.pki.crl), "--key-passphrase-file", str(pass_file), *self.extra]
+                "--crl", str(self.pki.crl), "--signing-key-passphrase-file", str(pass_file), *self.extra]
         self.proc = subprocess.Popen(args, stdout=self.log_path.open("w"), stderr=subprocess.STDOUT, env=env)
         wait_for_port("127.0.0.1", self.port, timeout=timeout, proc=self.proc)
         deadline = time.monotonic() + timeout

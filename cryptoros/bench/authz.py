@@ -122,7 +122,7 @@ def authz(clients: int, total: int, db_url: str | None, verify_iterations: int, 
         for i in range(4):  # a realistic grants claim: 8 nodes
             admin("grant", "alice", "publish", f"/talker{i}", f"/robot1/topic{i}", "std_msgs/String")
             admin("grant", "alice", "subscribe", f"/listener{i}", f"/robot1/topic{i}", "std_msgs/String")
-        admin("rotate-key", "--key-passphrase-file", str(work / "signing.pass"), "--bits", key_bits)
+        admin("rotate-key", "--signing-key-passphrase-file", str(work / "signing.pass"), "--bits", key_bits)
         port = free_port()
         # the per-certificate limit of token requests (20/s, burst 300) would answer this
         # benchmark's single client with 429: it measures issuing, not the limiter
@@ -132,7 +132,7 @@ def authz(clients: int, total: int, db_url: str | None, verify_iterations: int, 
             [exe, "--db", db, "serve", "--config", str(work / "serve.toml"), "--port", str(port),
              "--ca", str(pki.ca_cert_path),
              "--cert", str(server.cert_path), "--key", str(server.key_path),
-             "--key-passphrase-file", str(work / "signing.pass"), "--log-level", "warning"],
+             "--signing-key-passphrase-file", str(work / "signing.pass"), "--log-level", "warning"],
             stdout=log, stderr=subprocess.STDOUT, env=env)
         ctx = client_context(TLSConfig(ca_file=pki.ca_cert_path, cert_file=alice.cert_path, key_file=alice.key_path))
         url = f"https://127.0.0.1:{port}"

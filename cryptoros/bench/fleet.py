@@ -187,7 +187,7 @@ def _fleet(workdir: Path, clients: int, replicas: int, feed_wait: float) -> Iter
         fleet.admin("import", str(policy))
         pass_file = workdir / "signing.pass"
         pass_file.write_text(SIGNING_PASSPHRASE + "\n")
-        fleet.admin("rotate-key", "--key-passphrase-file", str(pass_file))
+        fleet.admin("rotate-key", "--signing-key-passphrase-file", str(pass_file))
         setup["registry_s"] = round(time.monotonic() - t0, 2)
 
         # One configuration file for every replica; only the port differs (a flag).

@@ -198,6 +198,13 @@ class Network:
             return ctx, json.loads(reply.read())["access_token"]
 
 
+#: The roscpp programs the tests run behind robots' interceptors (tests/ros1_nodes/*.cpp,
+#: rosbag record and play): roscpp binds its XML-RPC API to every address whatever ROS_IP
+#: says, so a robot's interceptor serves them only when listed (``allow_exposed_nodes``,
+#: docs/interceptor.md, "Deployment checks"); a real robot closes their ports with a firewall.
+ROSCPP_NODES = ("/roscpp_talker", "/roscpp_udp_listener", "/record_*", "/play_*")
+
+
 def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str | None,
     authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float | bool] | None = None,
@@ -207,6 +214,7 @@ def _interceptor_config(
     lines = [
         f'manager = "{name}"',
         "roles = [" + ", ".join(f'"{r}"' for r in roles) + "]",
+        *([f"allow_exposed_nodes = [{', '.join(repr(n) for n in ROSCPP_NODES)}]"] if "node" in roles else []),
         extra,
         "[tls]",
         f'ca = "{pki.ca_cert_path}"',
@@ -352,7 +360,7 @@ def lab_network(
         daemon = subprocess.Popen(
             [authz, "--db", db, "serve", "--host", authz_host, "--port", str(authz_port), "--ca", str(pki.ca_cert_path),
              "--cert", str(server.cert_path), "--key", str(server.key_path), "--crl", str(pki.crl_path),
-             "--key-passphrase-file", str(pass_file), "--log-level", "warning"],
+             "--signing-key-passphrase-file", str(pass_file), "--log-level", "warning"],
             stdout=authz_log, stderr=subprocess.STDOUT, env=env, **popen_extra,
         )
         procs.append(daemon)

@@ -32,7 +32,7 @@ from typing import Any
 import re
 
 from cryptoros.errors import PolicyDenied
-from cryptoros.policy.infrastructure import ros1_allows
+from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allows, ros1_topic_param
 from cryptoros.names import validate_caller_id
 from cryptoros.tokens import Grants
 
@@ -59,11 +59,14 @@ PARAM_WRITE = frozenset({"setParam", "deleteParam"})
 #: (``_register_node_api`` in ros_comm's rosmaster/registrations.py, upstream): a name another manager
 #: registered is refused, and the caller must be one of the manager's nodes.
 NAME_BINDING = MASTER_REGISTER | frozenset({"subscribeParam"})
-#: Parameters every node may read without a grant: what unmodified rospy and roscpp
-#: nodes read at start-up. A node may also read and write its own private namespace
-#: (``/<node name>/...``); everything else needs a ``read_param`` or ``write_param``
-#: grant on a namespace holding the key.
-DEFAULT_PARAM_READS = frozenset({"/use_sim_time", "/rosdistro", "/rosversion", "/run_id"})
+#: Parameters every node may read without a grant: what unmodified rospy, roscpp,
+#: roslaunch, rosbag, actionlib, image_transport, nodelet and dynamic_reconfigure read
+#: (one measured list: :data:`cryptoros.policy.infrastructure.ROS1_DEFAULT_PARAM_READS`).
+#: A node may also read and write its own private namespace (``/<node name>/...``) and
+#: that of any node its manager's grants name exactly (roslaunch sets a launched node's
+#: ``<param>``, a nodelet manager reads its nodelets'); everything else needs a
+#: ``read_param`` or ``write_param`` grant on a namespace holding the key.
+DEFAULT_PARAM_READS = ROS1_DEFAULT_PARAM_READS
 #: Node-API methods that only read.
 NODE_READ_ONLY = frozenset(
     {"getBusInfo", "getBusStats", "getPid", "getName", "getMasterUri", "getSubscriptions", "getPublications"}
@@ -116,13 +119,28 @@ def resolve_param_key(key: str, caller: str) -> str:
 
 
 def _own_private(grants: Grants, caller: str, key: str) -> bool:
-    """``key`` is in the private namespace of ``caller``, one of the manager's nodes."""
-    return (key == caller or key.startswith(caller + "/")) and grants.names_node(caller)
+    """``key`` is in the private namespace of ``caller``, one of the manager's nodes, or
+    of a node the manager's grants name exactly (its own names: roslaunch writing a
+    launched node's parameters, a nodelet manager reading its nodelets')."""
+    if not grants.names_node(caller):
+        return False
+    if key == caller or key.startswith(caller + "/"):
+        return True
+    parts = key.split("/")[1:]
+    return any(grants.names_node_exactly("/" + "/".join(parts[:n])) for n in range(1, len(parts) + 1))
+
+
+def _topic_param(grants: Grants, caller: str, key: str) -> bool:
+    """A parameter a library reads under a topic its node publishes (actionlib's
+    ``<action>/status_frequency``, image_transport's ``<topic>/disable_pub_plugins``)."""
+    found = ros1_topic_param(key)
+    return found is not None and bool(grants.types_for("publish", caller, found[0]))
 
 
 def may_read_param(grants: Grants, caller: str, key: str) -> bool:
-    """Read access to one resolved key (defaults, own private namespace, grants)."""
-    if key in DEFAULT_PARAM_READS or _own_private(grants, caller, key):
+    """Read access to one resolved key (defaults, own names' private namespaces,
+    parameters of its own topics, grants)."""
+    if key in DEFAULT_PARAM_READS or _own_private(grants, caller, key) or _topic_param(grants, caller, key):
         return True
     return grants.param_allows("read", caller, key)
 
@@ -194,8 +212,32 @@ def filter_param_reply(method: str, params: tuple, value: Any, *, grants: Grants
         pruned = prune_param_value(key, value[2], readable)
         return [1, value[1], {} if pruned is None else pruned]
     if method == "searchParam" and isinstance(value[2], str) and value[2] and not readable(value[2]):
-        return [-1, "Cannot find parameter in an upwards search", ""]
+        return unset_answer(method, params)
     return value
+
+
+def unset_answer(method: str, params: tuple) -> list[Any]:
+    """What rosmaster answers a probe of a parameter that is not set (``hasParam``
+    false, ``getParam`` "not set", ``searchParam`` "cannot find", ``subscribeParam``
+    an empty value): a node asking for a parameter it may not read gets this, so a
+    library falls back to its default (actionlib's ``has_param`` would raise on an
+    error) and nobody learns whether the key is set."""
+    index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+    key = params[index] if len(params) > index and isinstance(params[index], str) else ""
+    if method != "searchParam" and params and isinstance(params[0], str):
+        try:  # rosmaster names the key as it resolved it (a refused call's key is as asked)
+            key = resolve_param_key(key, params[0])
+        except PolicyDenied:
+            pass
+    if method == "hasParam":
+        return [1, key, False]
+    if method == "searchParam":
+        return [-1, f"Cannot find parameter [{key}] in an upwards search", ""]
+    if method == "subscribeParam":
+        return [1, f"Subscribed to parameter [{key}]", {}]
+    if method == "unsubscribeParam":
+        return [1, f"Unsubscribe to parameter [{key}]", 1]
+    return [-1, f"Parameter [{key}] is not set", 0]
 
 
 def infrastructure_allows(action: str, node: str, name: str, type_name: str | None) -> bool:
@@ -208,6 +250,21 @@ def _granted(grants: Grants, action: str, node: str, name: str, type_name: str, 
     if grants.allows(action, node, name, type_name):
         return True
     return infrastructure and grants.names_node(node) and infrastructure_allows(action, node, name, type_name)
+
+
+def _check_sibling_owner(params: tuple, caller: str, manager: str, grants: Grants,
+                         owner_of: Callable[[str], str | None]) -> None:
+    """A write into the private namespace of another node its manager's grants name
+    (roslaunch setting a launched node's parameter) is refused while that node is
+    registered by another manager (one name granted to two robots)."""
+    key = resolve_param_key(_str_param(params, 1, "setParam", "a key"), caller)
+    parts = key.split("/")[1:]
+    for n in range(1, len(parts) + 1):
+        node = "/" + "/".join(parts[:n])
+        if node != caller and grants.names_node_exactly(node):
+            owner = owner_of(node)
+            if owner is not None and owner != manager:
+                raise _deny("name_taken", f"node {node} is registered (or held) by manager {owner}")
 
 
 def check_master_call(
@@ -231,6 +288,8 @@ def check_master_call(
             raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
     if method in ("subscribeParam", "unsubscribeParam") and not grants.names_node(caller):
         raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
+    if method in PARAM_WRITE:
+        _check_sibling_owner(params, caller, manager, grants, owner_of)
     if method in PARAM_READ or method in PARAM_WRITE or method == "getParamNames":
         check_param_call(method, params, grants=grants)
         return
@@ -391,6 +450,80 @@ def ros_error(message: str) -> list[Any]:
     return [-1, message, 0]
 
 
+#: How a refused ROS 1 call begins, whatever the reason.
+REFUSED = "denied by cryptoros"
+#: Reason codes a refused caller is told after :data:`REFUSED`: each says what kind of
+#: grant is missing (or that nothing can allow it), none names another manager, a
+#: grant or a policy. A reason not listed is not shown.
+SHOWN_REASONS = frozenset({
+    "not_granted", "param_write_denied", "param_read_denied", "shutdown_dropped", "not_from_master",
+    "method_not_allowed", "name_taken", "node_limit", "param_quota", "rate_limited", "malformed", "unknown_topic",
+    "unknown_endpoint", "endpoint_not_peer",
+})
+
+
+def refusal_text(reason: str | None) -> str:
+    """``denied by cryptoros: <reason code>`` (the code only when it is one of
+    :data:`SHOWN_REASONS`): what ROS tools print as their one error line."""
+    return f"{REFUSED}: {reason}" if reason in SHOWN_REASONS else REFUSED
+
+
+def refusal_answer(reason: str | None, method: str, params: tuple) -> list[Any]:
+    """The XML-RPC value a refused master or node call is answered with, as rosmaster
+    and nodes answer an error: ``[-1, "denied by cryptoros: <reason>", 0]``; a probe of
+    a parameter the caller may not read is answered as if it were not set
+    (:func:`unset_answer`). Never an XML-RPC fault: stock tools print a fault as a
+    traceback."""
+    if reason == "param_read_denied" and method in PARAM_READ:
+        return unset_answer(method, params)
+    return ros_error(refusal_text(reason))
+
+
+_ANONYMOUS = re.compile(r"^(.*?[_-])(\d[\d_]*)$")
+
+
+def node_pattern(node: str) -> str:
+    """The node pattern to grant for an anonymous node name (``/rostopic_4711_1795...``
+    -> ``/rostopic_*``, ``/rosparam-4711`` -> ``/rosparam-*``); other names as they are."""
+    m = _ANONYMOUS.match(node)
+    return m.group(1) + "*" if m and len(m.group(2)) >= 4 else node
+
+
+def grant_hint(reason: str | None, method: str, params: tuple, manager: str | None) -> str | None:
+    """The ``cryptoros-authz grant ...`` command that would allow a refused master or
+    node call of ``manager``'s node, or None when no grant would (or it cannot be told)."""
+    if not manager or not params or not isinstance(params[0], str):
+        return None
+    node = node_pattern(params[0])
+    prefix = f"cryptoros-authz grant {manager}"
+    try:
+        if reason in ("param_write_denied", "param_read_denied"):
+            index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+            key = resolve_param_key(_str_param(params, index, method, "a key"), params[0])
+            if node == "/roslaunch":  # its own keys and the launched nodes' (named by grants): one bundle
+                own = any(key == ns or key.startswith(ns + "/") for ns in ("/run_id", "/roslaunch", "/rosdistro",
+                                                                              "/rosversion"))
+                extra = "" if own else f" --launch-param-ns {key}"  # not needed for a launched node's own
+                return f"cryptoros-authz grant-tools {manager} --no-params --roslaunch{extra}"
+            action = "write_param" if reason == "param_write_denied" else "read_param"
+            return f"{prefix} {action} {node} {key}"
+        if reason == "not_granted" and method in ("registerPublisher", "registerSubscriber", "registerService"):
+            name = _str_param(params, 1, method, "a name")
+            infra_type = params[2] if method == "registerPublisher" and len(params) > 2 else None
+            if infrastructure_allows("serve" if method == "registerService" else "publish", params[0], name, infra_type):
+                return None  # /rosout, its own loggers: allowed once any grant names the node
+            if method == "registerService":
+                return f"{prefix} serve {node} {name} TYPE"
+            type_name = _str_param(params, 2, method, "a type")
+            action = "publish" if method == "registerPublisher" else "subscribe"
+            return f"{prefix} {action} {node} {name} {'TYPE' if type_name == ANY_TYPE else type_name}"
+        if reason == "not_granted" and method == "requestTopic":
+            return f"{prefix} subscribe {node} {_str_param(params, 1, method, 'a topic')} TYPE"
+    except PolicyDenied:
+        return None
+    return None
+
+
 __all__ = [
     "ANY_TYPE",
     "ALWAYS_DROPPED",
@@ -418,4 +551,11 @@ __all__ = [
     "check_subscriber_header",
     "infrastructure_allows",
     "ros_error",
+    "REFUSED",
+    "SHOWN_REASONS",
+    "grant_hint",
+    "node_pattern",
+    "refusal_answer",
+    "refusal_text",
+    "unset_answer",
 ]

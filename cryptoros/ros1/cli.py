@@ -12,13 +12,25 @@ import click
 
 
 @click.command()
-@click.option("--host", default="127.0.0.1", show_default=True, help="Address to bind (loopback by default).")
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to bind: a loopback address unless --unsafe-expose.")
 @click.option("--port", "-p", default=11311, show_default=True, type=click.IntRange(0, 65535), help="XML-RPC port.")
+@click.option("--unsafe-expose", is_flag=True,
+              help="Allow a non-loopback --host: every host that reaches it can register, read and set parameters "
+                   "and shut the master down, past any interceptor.")
 @click.option("-v", "--verbose", is_flag=True, help="Log registrations and callbacks.")
-def master(host: str, port: int, verbose: bool) -> None:
-    """Run an embedded ROS 1 master (master and parameter-server APIs)."""
+def master(host: str, port: int, unsafe_expose: bool, verbose: bool) -> None:
+    """Run an embedded ROS 1 master (master and parameter-server APIs), on loopback only
+    unless told otherwise: the master's interceptor fronts it there."""
+    from cryptoros.exposure import is_loopback_host
     from cryptoros.ros1.master import Master
     from cryptoros.ros1.node import install_uvloop
+
+    if not unsafe_expose and not is_loopback_host(host):
+        click.echo(f"cryptoros master: error: --host {host or '(every address)'} is not a loopback address: other "
+                   "hosts would reach the master past every interceptor; use 127.0.0.1 (the master's interceptor "
+                   "fronts it there) or add --unsafe-expose", err=True)
+        raise SystemExit(1)
 
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(name)s %(message)s")
     install_uvloop()
@@ -45,3 +57,4 @@ def master(host: str, port: int, verbose: bool) -> None:
         await m.close()
 
     asyncio.run(main())
+

@@ -71,6 +71,9 @@ MAX_DEPTH: Final = 64
 #: ``http://host:port/`` and ``http://host:port``. The path sent on is never the
 #: peer's: callers set it from the URI the receiving node advertised.
 ALLOWED_PATHS: Final = ("/", "/RPC2")
+#: A relay URI the master's interceptor hands rosmaster names the relay's target in its
+#: path (``/cryptoros/<host>/<port>/<x|t>/<id>``): accepted, and read as ``/``.
+NAMED_RELAY_PATH: Final = re.compile(r"/cryptoros/[0-9A-Za-z.\-]{1,253}/[0-9]{1,5}/[xt]/[0-9]{1,14}")
 DEFAULT_MAX_HEADER_FIELDS: Final = 32
 MAX_HEADER_FIELD_SIZE: Final = 4096
 #: Calls one ``system.multicall`` may hold (rospy's shutdown multicall holds one
@@ -583,7 +586,7 @@ class XmlRpcConnection:
                 raise RemoteProtocolError(f"bad request line {head.first_line[:80]!r}")
             if m["method"] != "POST":
                 raise RemoteProtocolError(f"XML-RPC needs POST, got {m['method'][:10]!r}")
-            if m["path"] not in ALLOWED_PATHS:
+            if m["path"] not in ALLOWED_PATHS and not NAMED_RELAY_PATH.fullmatch(m["path"]):
                 raise RemoteProtocolError(f"request path {m['path'][:40]!r} is not one of {', '.join(ALLOWED_PATHS)}")
         else:
             m = _STATUS_LINE.fullmatch(head.first_line)
@@ -613,7 +616,7 @@ class XmlRpcConnection:
             return Request(
                 method=method,
                 params=params,
-                path=head.first_line.split(" ")[1],
+                path=path if (path := head.first_line.split(" ")[1]) in ALLOWED_PATHS else "/",
                 keep_alive=keep_alive,
                 accept_gzip=accept,
             )

@@ -47,11 +47,24 @@ def map_png(mission: Any, path: str | Path) -> Path:
             ax.plot(r.cell[1], r.cell[0], "o", ms=3, color="tab:blue" if title.startswith(f"{r.name} ") else "tab:red")
         ax.set_title(title, fontsize=8)
     fig.suptitle(f"{mission.world.name}: attacks={','.join(mission.cfg.attacks) or 'none'} security={mission.cfg.security.label}", fontsize=9)
-    fig.tight_layout()
+    fig.legend(handles=_map_legend(), loc="lower center", ncol=5, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     path = Path(path)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
+
+
+def _map_legend() -> list:
+    """What the marks on a map panel mean (one legend for the figure)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    return [Patch(facecolor="#303030", label="obstacle"),
+            Patch(facecolor="white", edgecolor="#888888", hatch="////", label="never scanned / unknown"),
+            Line2D([], [], marker="s", ls="", color="tab:green", label="base"),
+            Line2D([], [], marker="o", ls="", color="tab:blue", label="this robot"),
+            Line2D([], [], marker="o", ls="", color="tab:red", label="other robots")]
 
 
 def t_interval(values: list[float], confidence: float = 0.95) -> tuple[float, float]:
@@ -96,24 +109,49 @@ LABELS = {
 
 def line_plot(rows: list[dict[str, Any]], x: str, y: str, series: str, path: Path, *, title: str, ylabel: str, xlabel: str | None = None) -> Path:
     fig, ax = plt.subplots(figsize=(5, 3.4))
+    _series_on(ax, rows, x, y, series)
+    ax.set_xlabel(xlabel or x)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _series_on(ax, rows: list[dict[str, Any]], x: str, y: str, series: str) -> None:
+    """Each series of ``rows`` on ``ax``: means over seeds with their t intervals."""
     agg = aggregate(rows, y, (series, x))
-    names = sorted({k[0] for k in agg})
-    for name in names:
+    for name in sorted({k[0] for k in agg}):
         pts = sorted((k[1], v) for k, v in agg.items() if k[0] == name)
-        xs = [p[0] for p in pts]
-        ms = np.array([p[1][0] for p in pts])
-        es = np.array([p[1][1] for p in pts])
-        ax.errorbar(xs, ms, yerr=es, marker="o", capsize=3, label=LABELS.get(str(name), str(name)))
+        ax.errorbar([p[0] for p in pts], [p[1][0] for p in pts], yerr=[p[1][1] for p in pts], marker="o", capsize=3,
+                    label=LABELS.get(str(name), str(name)))
     if all(isinstance(k[1], int) for k in agg):  # robot counts: whole numbers only
         from matplotlib.ticker import MaxNLocator
 
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel(xlabel or x)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
+
+
+def small_multiples(panels: list[tuple[str, list[dict[str, Any]]]], x: str, y: str, series: str, path: Path, *,
+                    title: str, ylabel: str, xlabel: str | None = None, sharey: bool = True,
+                    log_panels: frozenset[str] = frozenset()) -> Path:
+    """One panel per (panel title, rows), the same series in each: a figure a reader
+    compares across panels instead of untangling nine lines in one. A panel named in
+    ``log_panels`` gets a symmetric-log y axis (counts near zero stay visible)."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.4), sharey=sharey, squeeze=False)
+    for ax, (name, rows) in zip(axes[0], panels):
+        _series_on(ax, rows, x, y, series)
+        if name in log_panels:
+            ax.set_yscale("symlog", linthresh=1)
+        ax.set_title(name, fontsize=8)
+        ax.set_xlabel(xlabel or x)
+    axes[0][0].set_ylabel(ylabel)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path

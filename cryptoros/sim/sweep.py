@@ -211,7 +211,9 @@ def figures(rows: list[dict[str, Any]], out: Path, prefix: str = "sim-") -> list
 
     out.mkdir(parents=True, exist_ok=True)
     made = []
-    base_curve = sorted({r["curve"] for r in rows})[0] if rows else "secp256k1"
+    # the curve the text quotes (secp256k1) where the sweep has it, else the first
+    curves = sorted({r["curve"] for r in rows})
+    base_curve = "secp256k1" if "secp256k1" in curves or not curves else curves[0]
     one_curve = [r for r in rows if r["curve"] == base_curve or r["security"] in ("none", "sha256", "hmac", "aes128")]
 
     def sel(*names: str) -> list[dict[str, Any]]:
@@ -222,12 +224,14 @@ def figures(rows: list[dict[str, Any]], out: Path, prefix: str = "sim-") -> list
                                     title="Task time (to coverage target; end time if never) - attack 1 (Fig. 3)", ylabel="seconds"))
         made.append(plots.line_plot(sel("legacy", "attack1", "defended1"), "robots", "coverage", "scenario", out / f"{prefix}coverage-attack1.png",
                                     title="Final true coverage - attack 1 (Fig. 5)", ylabel="fraction of explorable cells"))
-        pk = []
-        for r in sel("legacy", "attack1"):
-            pk.append({**r, "series": f"{r['scenario']} sent", "v": r["sent"]})
-            pk.append({**r, "series": f"{r['scenario']} lost", "v": r["lost"]})
-        made.append(plots.line_plot(pk, "robots", "v", "series", out / f"{prefix}packets-attack1.png",
-                                    title="Packets sent and lost - attack 1 (Fig. 4)", ylabel="packets"))
+        # sent and lost apart: losses are tens where sends are thousands, so on one linear
+        # axis the lost line lies flat on zero
+        pk = sel("legacy", "attack1")
+        made.append(plots.small_multiples([("sent", [{**r, "v": r["sent"]} for r in pk]),
+                                           ("lost (symlog)", [{**r, "v": r["lost"]} for r in pk])],
+                                          "robots", "v", "scenario", out / f"{prefix}packets-attack1.png",
+                                          title="Packets sent and lost - attack 1 (Fig. 4)", ylabel="packets",
+                                          sharey=False, log_panels=frozenset({"lost (symlog)"})))
     if sel("attack2", "sha256-2", "defended2"):
         made.append(plots.line_plot(sel("legacy", "attack2", "sha256-2", "defended2"), "robots", "task_time_s", "scenario", out / f"{prefix}task-time-attack2.png",
                                     title="Task time - man in the middle (Fig. 7)", ylabel="seconds"))
@@ -237,10 +241,14 @@ def figures(rows: list[dict[str, Any]], out: Path, prefix: str = "sim-") -> list
                                       title=f"Team energy by component, {n_max} robots ({base_curve} where signed)"))
     curved = curve_rows(rows)
     if len({r["curve"] for r in curved}) > 1:
-        made.append(plots.line_plot(curved, "robots", "task_time_s", "series", out / f"{prefix}task-time-curves.png",
-                                    title="Task time by ECC curve, signed traffic (Fig. 8)", ylabel="seconds"))
-        made.append(plots.line_plot(curved, "robots", "crypto_cpu_s", "series", out / f"{prefix}crypto-cpu-curves.png",
-                                    title="Crypto CPU time by curve (team total)", ylabel="seconds"))
+        # one panel per signed scenario, the three curves in each (nine series on one
+        # axis could not be read)
+        panels = [(plots.LABELS.get(s, s), [r for r in curved if r["scenario"] == s])
+                  for s in SIGNED_SCENARIOS if any(r["scenario"] == s for r in curved)]
+        made.append(plots.small_multiples(panels, "robots", "task_time_s", "curve", out / f"{prefix}task-time-curves.png",
+                                          title="Task time by ECC curve, signed traffic (Fig. 8)", ylabel="seconds"))
+        made.append(plots.small_multiples(panels, "robots", "crypto_cpu_s", "curve", out / f"{prefix}crypto-cpu-curves.png",
+                                          title="Crypto CPU time by curve (team total)", ylabel="seconds"))
     bat = sel("battery")
     if bat:
         rc = []

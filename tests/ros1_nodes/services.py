@@ -1,6 +1,6 @@
 #!/usr/bin/python3
-"""rospy services: 'serve [DELAY]' offers /rospy_loggers (roscpp/GetLoggers) and prints
-READY (each call prints CALLED, then waits DELAY seconds before it answers);
+"""rospy services: 'serve [DELAY [SECONDS]]' offers /rospy_loggers (roscpp/GetLoggers) and prints
+READY (each call prints CALLED, then waits DELAY seconds before it answers) for SECONDS (30);
 'call NAME' calls our roscpp/GetLoggers service NAME and prints the loggers."""
 import sys
 import time
@@ -22,7 +22,7 @@ if mode == "serve":
 
     rospy.Service("/rospy_loggers", GetLoggers, handle)
     print("READY", flush=True)
-    rospy.sleep(30)
+    rospy.sleep(float(sys.argv[3]) if len(sys.argv) > 3 else 30)
 else:
     rospy.init_node("rospy_client", disable_signals=True)
     rospy.wait_for_service(sys.argv[2], timeout=10)

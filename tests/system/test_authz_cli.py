@@ -127,7 +127,7 @@ def _serve(team, *extra: str, db: str | None = None, timeout: float = 20) -> sub
     (team.workdir / "signing.pass").write_text("test-signing-passphrase\n")
     args = [script("cryptoros-authz"), "--db", db or team.db, "serve", "--ca", str(team.pki.ca_cert),
             "--cert", str(server.cert_path), "--key", str(server.key_path),
-            "--key-passphrase-file", str(team.workdir / "signing.pass"), *extra]
+            "--signing-key-passphrase-file", str(team.workdir / "signing.pass"), *extra]
     return subprocess.run(args, capture_output=True, text=True, timeout=timeout)
 
 
@@ -156,8 +156,8 @@ def test_serve_refuses_a_wrong_signing_key_passphrase(team, tmp_path):
     pw.write_text("not-the-passphrase\n")
     right = tmp_path / "right.pass"
     right.write_text("test-signing-passphrase\n")
-    ok(cli("rotate-key", "--key-passphrase-file", str(right), db=team.db))
-    line = one_line_error(_serve(team, "--port", str(free_port()), "--key-passphrase-file", str(pw)))
+    ok(cli("rotate-key", "--signing-key-passphrase-file", str(right), db=team.db))
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--signing-key-passphrase-file", str(pw)))
     assert "cannot decrypt signing key" in line
 
 
@@ -169,14 +169,14 @@ def test_rotate_key_refuses_a_passphrase_that_does_not_open_the_current_key(tmp_
     right, wrong = tmp_path / "right.pass", tmp_path / "wrong.pass"
     right.write_text("test-signing-passphrase\n")
     wrong.write_text("another-passphrase\n")
-    ok(cli("rotate-key", "--key-passphrase-file", str(right), db=team.db))
+    ok(cli("rotate-key", "--signing-key-passphrase-file", str(right), db=team.db))
     keys_before = ok(cli("list-keys", db=team.db))
-    line = one_line_error(cli("rotate-key", "--key-passphrase-file", str(wrong), db=team.db))
+    line = one_line_error(cli("rotate-key", "--signing-key-passphrase-file", str(wrong), db=team.db))
     assert "does not open the current signing key" in line
     assert ok(cli("list-keys", db=team.db)) == keys_before
-    ok(cli("rotate-key", "--key-passphrase-file", str(right), db=team.db))  # the right one rotates
-    ok(cli("rotate-key", "--key-passphrase-file", str(wrong), "--change-passphrase", db=team.db))
-    line = one_line_error(_serve(team, "--port", str(free_port()), "--key-passphrase-file", str(right)))
+    ok(cli("rotate-key", "--signing-key-passphrase-file", str(right), db=team.db))  # the right one rotates
+    ok(cli("rotate-key", "--signing-key-passphrase-file", str(wrong), "--change-passphrase", db=team.db))
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--signing-key-passphrase-file", str(right)))
     assert "cannot decrypt signing key" in line  # what --change-passphrase asks of the operator
 
 

@@ -263,7 +263,7 @@ def test_key_rotation_keeps_old_key_published_and_signs_with_the_new(daemon):
     _, body = daemon.token("alice")
     old_token = body["access_token"]
     old_kid = header_of(old_token)["kid"]
-    out = ok(authz("rotate-key", "--key-passphrase-file", str(daemon.workdir / "signing.pass"), db=daemon.db))
+    out = ok(authz("rotate-key", "--signing-key-passphrase-file", str(daemon.workdir / "signing.pass"), db=daemon.db))
     new_kid = out.split()[-1]
     assert new_kid != old_kid
     deadline = time.monotonic() + 5

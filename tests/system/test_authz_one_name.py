@@ -149,7 +149,7 @@ def _one_name(tmp_path: Path, team, dbs: dict[str, str]) -> Iterator[_OneName]:
     pass_file = tmp_path / "signing.pass"
     pass_file.write_text(PASSPHRASE + "\n")
     for db in set(dbs.values()):  # one key per registry, before any replica
-        ok(authz("rotate-key", "--key-passphrase-file", str(pass_file), db=db))
+        ok(authz("rotate-key", "--signing-key-passphrase-file", str(pass_file), db=db))
     port = free_port()
     replicas: dict[str, subprocess.Popen] = {}
     client: _Client | None = None
@@ -168,7 +168,7 @@ def _one_name(tmp_path: Path, team, dbs: dict[str, str]) -> Iterator[_OneName]:
                 replicas[name] = subprocess.Popen(host.argv([
                     script("cryptoros-authz"), "--db", dbs[name], "serve", "--host", host.address, "--port", str(port),
                     "--ca", str(team.pki.ca_cert), "--cert", str(server.cert_path), "--key", str(server.key_path),
-                    "--crl", str(team.pki.crl), "--key-passphrase-file", str(pass_file)]),
+                    "--crl", str(team.pki.crl), "--signing-key-passphrase-file", str(pass_file)]),
                     stdout=log, stderr=subprocess.STDOUT)
                 wait_for_port(host.address, port, timeout=30, proc=replicas[name])  # through the bridge
 

@@ -28,7 +28,7 @@ UNSAFE = KeyProtection(passphrase=None, unsafe_no_passphrase=True)
 
 
 TABLES = ("publisher", "subscriber", "service", "service_client", "param_reader", "param_writer", "manager", "revoked_token", "audit_log",
-          "signing_key", "registry_state")
+          "signing_key", "registry_state", "registry_change")
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
@@ -268,6 +268,21 @@ def test_import_swapping_certificates_between_managers(reg):
     reg.import_policy(policy)
     assert reg.lookup_fingerprint(FP["bob"]).name == "alice"
     assert reg.lookup_fingerprint(FP["alice"]).name == "bob"
+
+
+def test_a_merge_that_does_not_say_enabled_leaves_a_disabled_manager_disabled(reg):
+    """A draft merged in (from-graph, import-sros2) adds grants; it never re-enables a
+    manager an operator disabled (a lost robot), nor enables one a plain import adds."""
+    reg.add_manager("alice", FP["alice"])
+    reg.set_enabled("alice", False)
+    doc = {"version": 1, "managers": [{"name": "alice", "grants": {"publish": [
+        {"node": "/talker", "topic": "/chatter", "type": "std_msgs/String"}]}}]}
+    stats = reg.import_policy(doc, merge=True)
+    assert stats["grants_added"] == 1
+    alice = next(m for m in reg.export_policy()["managers"] if m["name"] == "alice")
+    assert alice["enabled"] is False
+    reg.import_policy({"version": 1, "managers": [{**doc["managers"][0], "enabled": True}]}, merge=True)
+    assert next(m for m in reg.export_policy()["managers"] if m["name"] == "alice")["enabled"] is True
 
 
 @pytest.mark.parametrize(

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from cryptoros.ros1.xmlrpc import Fault, Request, make_multicall
+from cryptoros.ros1.xmlrpc import Request, make_multicall
 from tests.interceptor_harness import (
     NODE,
     SYS_PY,
@@ -156,7 +156,7 @@ def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_regis
     refused = [a for a in answers if isinstance(a, list) and a[0][0] == -1]
     assert allowed + len(refused) == 1024
     assert allowed <= BURST + RATE * elapsed + 1, (allowed, elapsed)
-    assert refused and refused[0] == [[-1, "denied by cryptoros", 0]]
+    assert refused and refused[0] == [[-1, "denied by cryptoros: rate_limited", 0]]
     assert metric(network, "master", refused_metric) - before == len(refused)
     log = denials(network, "master")
     assert "rate_limited" in log and log.count("rate_limited") < len(refused)  # not one line per call
@@ -178,10 +178,10 @@ def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(netwo
     with rogue_to(network, "master", "robot_b") as s:
         assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
         answers = [rogue_xmlrpc(s, "setParam", "/rospy_listener", f"~flood/k{i}", "x" * 100) for i in range(100)]
-        stored = [a for a in answers if not isinstance(a, Fault) and a.value[0] == 1]
-        refused = [a for a in answers if isinstance(a, Fault)]
+        stored = [a for a in answers if a.value[0] == 1]
+        refused = [a for a in answers if a.value[0] == -1]  # a ROS error, never a fault
         assert len(stored) + len(refused) == 100
-        assert refused and refused[0].string == "denied by cryptoros"
+        assert refused and refused[0].value == [-1, "denied by cryptoros: param_quota", 0]
         with network.inside("master"):
             held = xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/operator", "/rospy_listener/flood")
         assert held[0] == 1 and len(held[2]) == len(stored)
@@ -190,7 +190,7 @@ def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(netwo
         # deleteParam frees it; then one big value fits and a second is past the bytes
         assert rogue_xmlrpc(s, "deleteParam", "/rospy_listener", "~flood").value[0] == 1
         assert rogue_xmlrpc(s, "setParam", "/rospy_listener", "~blob1", "y" * 40000).value[0] == 1
-        assert isinstance(rogue_xmlrpc(s, "setParam", "/rospy_listener", "~blob2", "y" * 40000), Fault)
+        assert rogue_xmlrpc(s, "setParam", "/rospy_listener", "~blob2", "y" * 40000).value[0] == -1
         assert rogue_xmlrpc(s, "deleteParam", "/rospy_listener", "~blob1").value[0] == 1
         # parameter subscriptions: rosmaster keeps each too
         api = f"cryptoros://{b.address}:{b.public_port}/x/970001"

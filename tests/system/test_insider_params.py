@@ -51,7 +51,8 @@ def test_subscribe_param_cannot_rebind_another_robots_node(network):
         local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
         # on the insider's own local master port, and by hand over a master stream
         with network.inside("robot_b"):
-            assert local_b.subscribeParam("/talker_a", "http://127.0.0.1:9/", "/spy/x")[0] == -1
+            # (a key every node may read: an unreadable one would be answered as unset, unforwarded)
+            assert local_b.subscribeParam("/talker_a", "http://127.0.0.1:9/", "/use_sim_time")[0] == -1
         b = network.hosts["robot_b"]
         m = network.hosts["master"]
         with rogue_tls(m.address, m.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for("robot_b"),
@@ -83,18 +84,20 @@ def _narrowed_reads(network):
     assert "api_key" not in repr(tree) and "hunter2" not in repr(tree) and "secrets" not in tree
     assert local_b.getParam("/rospy_listener", "/secrets/db_password")[0] == -1
     assert local_b.getParam("/rospy_listener", "/robot_a")[0] == -1
-    assert local_b.hasParam("/rospy_listener", "/secrets/db_password")[0] == -1
+    # a probe of what it may not read is answered as if unset (whether it is set is not told)
+    assert local_b.hasParam("/rospy_listener", "/secrets/db_password") == [1, "/secrets/db_password", False]
     code, _, names = local_b.getParamNames("/rospy_listener")
     assert code == 1 and not [n for n in names if n.startswith(("/secrets", "/robot_a"))]
     assert local_b.searchParam("/rospy_listener", "secrets")[0] == -1
-    assert local_b.subscribeParam("/rospy_listener", "http://127.0.0.1:9/", "/secrets")[0] == -1
+    assert local_b.subscribeParam("/rospy_listener", "http://127.0.0.1:9/", "/secrets") == \
+        [1, "Subscribed to parameter [/secrets]", {}]
     # what every node may read, and its own private namespace
     assert local_b.getParam("/rospy_listener", "/rosdistro")[0] in (1, -1)  # set by roscore, not rosmaster --core
     assert local_b.setParam("/rospy_listener", "~rate", 5)[0] == 1
     assert local_b.getParam("/rospy_listener", "/rospy_listener/rate") == [1, "Parameter [/rospy_listener/rate]", 5]
-    # writes outside the caller's namespace are faults (rospy's set_param raises), and nothing is written
-    with pytest.raises(xmlrpc.client.Fault, match="denied by cryptoros"):
-        local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned")
+    # writes outside the caller's namespace are refused with a ROS error, and nothing is written
+    assert local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned") == \
+        [-1, "denied by cryptoros: param_write_denied", 0]
     with network.inside("master"):
         master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
         assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
@@ -134,11 +137,15 @@ except Exception as exc:
 """
 
 
-def test_a_denied_parameter_write_is_an_error_in_an_unmodified_rospy_node(network):
-    """rospy's set_param ignores a [-1, ...] answer: the refusal is a fault, so the node
-    sees an exception instead of a write that silently did not happen."""
+def test_a_denied_parameter_write_of_an_unmodified_rospy_node_writes_nothing_and_is_logged(network):
+    """A refused write is answered as rosmaster answers an error ([-1, "denied by
+    cryptoros: param_write_denied", 0], never a fault, which tools print as a
+    traceback). rospy's set_param ignores that answer, as it ignores any error of
+    rosmaster's: nothing is written, and the interceptor's log names the grant."""
     result = run([SYS_PY, "-c", SET_PARAM_NODE, "/robot_a/api_key"], env=network.ros_env("robot_b"), timeout=60)
     assert "OWN_OK" in result.stdout, result.stdout + result.stderr
-    assert "REFUSED" in result.stdout and "WROTE" not in result.stdout, result.stdout + result.stderr
+    assert "Traceback" not in result.stdout + result.stderr
+    assert "to allow: cryptoros-authz grant robot_b write_param /rospy_listener /robot_a/api_key" in \
+        network.hosts["robot_b"].logs()
     with network.inside("master"):
         assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"

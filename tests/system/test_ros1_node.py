@@ -212,6 +212,7 @@ def test_cryptoros_master_on_a_busy_port_or_a_foreign_address_is_one_line():
         port = busy.getsockname()[1]
         for host, port_, needle in (("127.0.0.1", port, "address already in use"),
                                     ("10.254.254.254", 0, "no such address on this host")):
-            result = run([script("cryptoros"), "master", "--host", host, "--port", str(port_)], timeout=30)
+            result = run([script("cryptoros"), "master", "--host", host, "--port", str(port_), "--unsafe-expose"],
+                         timeout=30)
             lines = result.stderr.strip().splitlines()
             assert result.returncode == 1 and len(lines) == 1 and needle in lines[0], result.stderr

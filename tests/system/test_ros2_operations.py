@@ -149,7 +149,8 @@ def test_a_participant_reachable_from_the_network_is_reported_and_its_topics_not
             assert f"pid {talker.proc.pid}" in check.stderr and "reachable from the network" in check.stderr
             shown = subprocess.run([script("cryptoros"), "status", "--config", str(a.config)],
                                    capture_output=True, text=True, timeout=60)
-            assert "participant reachable from the network" in shown.stdout, shown.stdout + shown.stderr
+            assert f"warning   DDS participant on domain {a.domain} reachable from the network: pid {talker.proc.pid}" \
+                in shown.stdout, shown.stdout + shown.stderr
             assert not [line for line in sub.until(None, 4) if line.startswith("GOT")]
         with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "8000"):
             collect(sub, 5, 40)  # the control: the same talker with the profile is carried

@@ -13,11 +13,12 @@ Refused first (robot B holds no grant for the tools' anonymous node names), then
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 
 import pytest
 
-from tests.interceptor_harness import NODE, NODES, SYS_PY, read_lines, robot_network, wait_registered
+from tests.interceptor_harness import NODE, NODES, SYS_PY, denials, read_lines, robot_network, wait_registered
 from tests.support import require, run, running
 
 pytestmark = [pytest.mark.ros1]
@@ -69,7 +70,7 @@ def until_ok(net, *argv: str, within: float, timeout: float = 15) -> subprocess.
 
 
 def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
-    require("rostopic", "rosparam", "rosnode", "rosservice", "rosbag")
+    require("rostopic", "rosparam", "rosnode", "rosservice", "rosbag", "rosmsg", "rossrv")
     with robot_network(tmp_path, policy=POLICY, start=("master", "robot_a", "robot_b")) as net, \
             running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "10", "120"],
                     env=net.ros_env("robot_a")) as pub, \
@@ -121,6 +122,26 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
         assert nodes.returncode == 0 and "/talker_a" in nodes.stdout.split(), nodes
         info = tool(net, "rosnode", "info", "/talker_a")
         assert info.returncode == 0 and "/chatter" in info.stdout, info
+        ping = tool(net, "rosnode", "ping", "-c", "1", "/talker_a")
+        assert ping.returncode == 0 and "reply from" in ping.stdout, ping
+
+        # --- the rest of the tools of the table in docs/stock-tools.md
+        topics = tool(net, "rostopic", "list")
+        assert topics.returncode == 0 and "/chatter" in topics.stdout.split(), topics
+        topic_info = tool(net, "rostopic", "info", "/chatter")
+        assert topic_info.returncode == 0 and "/talker_a" in topic_info.stdout, topic_info
+        hz = tool(net, "rostopic", "hz", "-w", "5", "/chatter", timeout=8)  # runs until stopped
+        assert "average rate" in hz.stdout, hz
+        assert net.cli("grant", "robot_b", "publish", "/rostopic_*", "/tool_topic", "std_msgs/String").returncode == 0
+        published = until_ok(net, "rostopic", "pub", "-1", "/tool_topic", "std_msgs/String", "hi", within=20, timeout=30)
+        assert published.returncode == 0, published
+        services = tool(net, "rosservice", "list")
+        assert services.returncode == 0 and "/talker_a/get_loggers" in services.stdout.split(), services
+        delete = tool(net, "rosparam", "delete", "/x")
+        assert delete.returncode == 0 and tool(net, "rosparam", "get", "/x").returncode != 0, delete
+        for offline in (("rosmsg", "show", "std_msgs/String"), ("rossrv", "show", "roscpp/GetLoggers")):
+            shown = tool(net, *offline)
+            assert shown.returncode == 0 and shown.stdout.strip(), shown
 
         # --- --remove takes the bundle away again (live)
         removed = net.cli(*GRANT_TOOLS, "--remove")
@@ -129,4 +150,259 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
         while tool(net, "rosparam", "set", "/y", "2").returncode == 0:
             assert time.monotonic() < deadline, "rosparam set still works after grant-tools --remove"
             time.sleep(0.5)
-        assert pub.poll() is None and server.poll() is None
+        assert pub.poll() is None  # (the service server lives 30 s only)
+
+
+# ---------------------------------------------------------------------------------------
+# Issue 31: refusals read like ROS errors, what libraries read is readable, roslaunch and
+# rosbag play with their bundles, actionlib, and quiet, useful denial logs.
+
+#: robot B's own nodes: a prober, two launched nodes, an action server and its client.
+POLICY_LIBS = POLICY.replace("- name: robot_c", """\
+    - {{node: /prober, topic: /chatter, type: std_msgs/String}}
+    - {{node: /action_server, topic: /move_base/goal, type: move_base_msgs/MoveBaseActionGoal}}
+    - {{node: /action_server, topic: /move_base/cancel, type: actionlib_msgs/GoalID}}
+    - {{node: /action_client, topic: /move_base/status, type: actionlib_msgs/GoalStatusArray}}
+    - {{node: /action_client, topic: /move_base/feedback, type: move_base_msgs/MoveBaseActionFeedback}}
+    - {{node: /action_client, topic: /move_base/result, type: move_base_msgs/MoveBaseActionResult}}
+    - {{node: /dr_server, topic: /chatter, type: std_msgs/String}}
+    - {{node: /dr_client, topic: /dr_server/parameter_descriptions, type: dynamic_reconfigure/ConfigDescription}}
+    - {{node: /dr_client, topic: /dr_server/parameter_updates, type: dynamic_reconfigure/Config}}
+    call:
+    - {{node: /dr_client, service: /dr_server/set_parameters, type: dynamic_reconfigure/Reconfigure}}
+    publish:
+    - {{node: /launch_talker, topic: /launched, type: std_msgs/String}}
+    - {{node: /launch_other, topic: /chatter_other, type: std_msgs/String}}
+    - {{node: /action_server, topic: /move_base/status, type: actionlib_msgs/GoalStatusArray}}
+    - {{node: /action_server, topic: /move_base/feedback, type: move_base_msgs/MoveBaseActionFeedback}}
+    - {{node: /action_server, topic: /move_base/result, type: move_base_msgs/MoveBaseActionResult}}
+    - {{node: /action_client, topic: /move_base/goal, type: move_base_msgs/MoveBaseActionGoal}}
+    - {{node: /action_client, topic: /move_base/cancel, type: actionlib_msgs/GoalID}}
+- name: robot_c""")  # robot_b's grants above, robot_c as before
+
+LIBS = str(NODES / "stock_libs.py")
+
+LAUNCH = """\
+<launch>
+  <node name="launch_talker" pkg="crtest" type="stock_libs.py" args="launched" output="screen">
+    <param name="rate" value="10.0"/>
+    <rosparam param="gains">{p: 1.0, i: 0.1}</rosparam>
+    <remap from="chatter" to="/launched"/>
+  </node>
+  <node name="launch_other" pkg="crtest" type="stock_libs.py" args="launched" output="screen">
+    <remap from="chatter" to="/chatter_other"/>
+  </node>
+</launch>
+"""
+
+
+def _one_error_line(result: subprocess.CompletedProcess) -> str:
+    """A tool's refusal: non-zero exit, no traceback, no XML-RPC fault; the error line."""
+    assert result.returncode != 0, result.stdout + result.stderr
+    out = result.stdout + result.stderr
+    assert "Traceback" not in out and "Fault" not in out, out
+    errors = [line for line in out.splitlines() if "ERROR" in line or "denied by cryptoros" in line]
+    assert errors, out
+    return errors[0]
+
+
+def _set_on_master(net, key: str, value) -> None:
+    import xmlrpc.client
+
+    code, msg, _ = xmlrpc.client.ServerProxy(net.rosmaster_uri).setParam("/test", key, value)
+    assert code == 1, msg
+
+
+def test_refusals_read_like_ros_errors_and_unreadable_parameters_like_unset_ones(tmp_path):
+    """No grant-tools: each stock tool refused says so in one line (rosparam get/delete,
+    roslaunch below), a probe of an unreadable parameter is answered as unset, a node's
+    own logging adds no denial, a refusal repeated at 5 Hz for 10 s adds at most two
+    DENY lines, and ``cryptoros denials`` shows it with the grant that would allow it."""
+    require("rosparam", "rosnode")
+    with robot_network(tmp_path, policy=POLICY_LIBS, start=("master", "robot_a", "robot_b")) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "10", "120"],
+                    env=net.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(net, "/talker_a")
+        _set_on_master(net, "/secret", "hidden")
+
+        # --- a node probing a parameter it may not read: as if unset, never a crash
+        with running([SYS_PY, LIBS, "probe", "prober", "/secret", "10"], env=net.ros_env("robot_b")) as prober:
+            lines = [line.strip() for line in read_lines(prober, "DONE", 60)]
+        assert "PROBE False unset-default" in lines, lines
+        log = denials(net, "robot_b")
+        secret = [line for line in log.splitlines() if "/secret" in line]
+        assert 1 <= len(secret) <= 2 * 2, log  # hasParam and getParam: at most two lines each
+        for noise in ("/rosout_disable_topics_generation", "/tcp_keepalive", "/enable_statistics", "/use_sim_time"):
+            assert noise not in log, log
+        assert "to allow: cryptoros-authz grant robot_b read_param /prober /secret" in log, log
+
+        shown = run([sys.executable, "-m", "cryptoros.cli", "denials", "--config", str(net.hosts["robot_b"].config)], timeout=20)
+        assert shown.returncode == 0, shown.stderr
+        assert "to allow: cryptoros-authz grant robot_b read_param /prober /secret" in shown.stdout, shown.stdout
+        counts = [int(line.split("x", 1)[0]) for line in shown.stdout.splitlines() if "/secret" in line and "x  " in line]
+        assert counts and max(counts) >= 20, shown.stdout  # every probe counted
+
+        # --- stock tools: one line, the reason code, no traceback
+        got = tool(net, "rosparam", "get", "/secret")
+        assert _one_error_line(got) == "ERROR: Parameter [/secret] is not set", got  # as if unset
+        deleted = tool(net, "rosparam", "delete", "/secret")
+        assert _one_error_line(deleted) == "ERROR: denied by cryptoros: param_write_denied", deleted
+        # ros_comm 1.15's rosparam set catches no master error (a plain rosmaster's neither):
+        # its last line is the refusal, never an XML-RPC fault
+        refused = tool(net, "rosparam", "set", "/secret", "changed")
+        assert refused.returncode != 0 and "Fault" not in refused.stderr, refused
+        assert refused.stderr.strip().splitlines()[-1].endswith("denied by cryptoros: param_write_denied"), refused
+
+        # --- rosnode kill: the shutdown is refused with an error, the node lives
+        import xmlrpc.client
+
+        code, _, relay = xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).lookupNode("/rosnode", "/talker_a")
+        assert code == 1
+        assert xmlrpc.client.ServerProxy(relay).shutdown("/rosnode", "user request") == \
+            [-1, "denied by cryptoros: shutdown_dropped", 0]
+        tool(net, "rosnode", "kill", "/talker_a")  # ros_comm prints "killed" whatever the answer
+        ping = tool(net, "rosnode", "ping", "-c", "1", "/talker_a")
+        assert ping.returncode == 0 and pub.poll() is None, ping
+
+
+def test_actionlib_and_dynamic_reconfigure_behind_interceptors(tmp_path):
+    """actionlib reads <action>/status_frequency (has_param: an error would raise in
+    start()) and its queue-size parameters; both readable, the goal succeeds. A
+    dynamic_reconfigure server needs no grant for its own endpoints (set_parameters,
+    parameter_descriptions, parameter_updates); its client, the call and subscriptions."""
+    missing_action = run([SYS_PY, "-c", "import actionlib, move_base_msgs.msg, dynamic_reconfigure"], timeout=30)
+    if missing_action.returncode != 0:
+        require("python3-actionlib (apt: python3-actionlib python3-move-base-msgs)-not-installed")
+    with robot_network(tmp_path, policy=POLICY_LIBS, start=("master", "robot_b")) as net, \
+            running([SYS_PY, LIBS, "action_server"], env=net.ros_env("robot_b")) as server:
+        read_lines(server, "READY", 30)
+        with running([SYS_PY, LIBS, "action_client"], env=net.ros_env("robot_b")) as client:
+            lines = [line.strip() for line in read_lines(client, "RESULT", 60)]
+        assert "RESULT 3" in lines, lines  # GoalStatus.SUCCEEDED
+        assert "status_frequency" not in denials(net, "robot_b")
+        with running([SYS_PY, LIBS, "dr_server"], env=net.ros_env("robot_b")) as dr_server:
+            read_lines(dr_server, "READY", 30)
+            with running([SYS_PY, LIBS, "dr_client"], env=net.ros_env("robot_b")) as dr_client:
+                lines = [line.strip() for line in read_lines(dr_client, "SET", 60)]
+        assert "SET 7" in lines, lines
+        assert "DENY" not in denials(net, "robot_b"), denials(net, "robot_b")
+
+
+def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
+    """roslaunch refused in one line without its bundle; with ``grant-tools --roslaunch``
+    a two-node launch file with <param>, <rosparam> and remappings runs. rosbag play
+    --clock with ``--publish-topic`` and ``--clock``; its pause_playback service is its own."""
+    require("roslaunch", "rosbag")
+    pkg = tmp_path / "pkgs" / "crtest"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text(
+        '<?xml version="1.0"?><package format="2"><name>crtest</name><version>0.0.1</version>'
+        '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
+    script = pkg / "stock_libs.py"
+    script.write_text(open(LIBS).read())
+    script.chmod(0o755)
+    launch = tmp_path / "two.launch"
+    launch.write_text(LAUNCH)
+    bag = tmp_path / "clock.bag"
+    run([SYS_PY, "-c", "import rosbag, rospy; from std_msgs.msg import String\n"
+         f"with rosbag.Bag({str(bag)!r}, 'w') as b:\n"
+         "    [b.write('/chatter', String(data='b%d' % i), rospy.Time(1 + i * 0.1)) for i in range(20)]"],
+        timeout=30, check=True)
+    with robot_network(tmp_path, policy=POLICY_LIBS, start=("master", "robot_b")) as net:
+        env = {**net.ros_env("robot_b"), "ROS_PACKAGE_PATH": str(tmp_path / "pkgs")}
+
+        def launch_it() -> subprocess.CompletedProcess:
+            try:
+                return run(["roslaunch", str(launch)], env=env, timeout=60)
+            except subprocess.TimeoutExpired as exc:
+                return subprocess.CompletedProcess([], 124, str(exc.stdout), str(exc.stderr))
+
+        refused = launch_it()
+        assert "denied by cryptoros: param_write_denied" in _one_error_line(refused), refused
+
+        granted = net.cli("grant-tools", "robot_b", "--no-params", "--roslaunch",
+                          "--publish-topic", "/chatter:std_msgs/String", "--clock")
+        assert granted.returncode == 0, granted.stderr
+        assert "granted: robot_b /roslaunch write_param /run_id" in granted.stdout
+        assert "granted: robot_b /play_* publish /clock rosgraph_msgs/Clock" in granted.stdout
+        deadline = time.monotonic() + 30
+        while True:
+            launched = launch_it()
+            if "PARAM 10.0 [('i', 0.1), ('p', 1.0)] /launched" in launched.stdout:
+                break
+            assert time.monotonic() < deadline, launched.stdout + launched.stderr
+            time.sleep(1)
+        assert "PARAM None [] /chatter_other" in launched.stdout, launched.stdout
+        assert "Traceback" not in launched.stdout + launched.stderr
+
+        played = tool(net, "rosbag", "play", "--clock", "-q", str(bag), timeout=60)
+        assert played.returncode == 0, played.stdout + played.stderr
+        log = denials(net, "robot_b")
+        assert "/clock" not in log and "pause_playback" not in log, log
+
+
+def test_what_stock_libraries_read_is_on_the_default_list(tmp_path, roscpp_talker):
+    """Measured again, with no interceptor: rospy, roscpp, roslaunch, rosbag and actionlib
+    run against a recording proxy in front of rosmaster. Every parameter a node reads
+    outside its own names is on the one default list (or is a parameter of a topic it
+    publishes), and what roslaunch writes is its own keys (the --roslaunch bundle) or the
+    launched nodes' own."""
+    import json
+
+    from cryptoros.lab.processes import free_port, wait_port
+    from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_topic_param
+    from cryptoros.policy.ros1 import resolve_param_key
+
+    require("rosmaster", "roslaunch", "rosbag")
+    if run([SYS_PY, "-c", "import actionlib, move_base_msgs.msg"], timeout=30).returncode != 0:
+        require("python3-actionlib-and-python3-move-base-msgs")
+    master_port, port = free_port(), free_port()
+    out = tmp_path / "reads.jsonl"
+    env = {"ROS_MASTER_URI": f"http://127.0.0.1:{port}/", "ROS_IP": "127.0.0.1", "ROS_HOME": str(tmp_path),
+           "PATH": "/usr/bin:/bin", "ROS_PACKAGE_PATH": str(tmp_path / "pkgs")}
+    pkg = tmp_path / "pkgs" / "crtest"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text(
+        '<?xml version="1.0"?><package format="2"><name>crtest</name><version>0.0.1</version>'
+        '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
+    (pkg / "stock_libs.py").write_text(open(LIBS).read())
+    (pkg / "stock_libs.py").chmod(0o755)
+    (tmp_path / "two.launch").write_text(LAUNCH)
+    with running(["rosmaster", "--core", "-p", str(master_port)], env=env), \
+            running([SYS_PY, str(NODES / "param_recorder.py"), f"http://127.0.0.1:{master_port}/", str(port), str(out)],
+                    env=env) as recorder:
+        read_lines(recorder, "READY", 20)
+        wait_port("127.0.0.1", master_port, 20)
+        with running([SYS_PY, LIBS, "probe", "prober", "/prober/x", "3"], env=env) as prober:  # logs at 5 Hz
+            read_lines(prober, "DONE", 60)
+        with running([roscpp_talker, "/chatter", "1"], env=env) as cpp:
+            read_lines(cpp, None, 3)
+        with running([SYS_PY, LIBS, "action_server"], env=env) as server:
+            read_lines(server, "READY", 30)
+            with running([SYS_PY, LIBS, "action_client"], env=env) as client:
+                assert "RESULT 3" in [line.strip() for line in read_lines(client, "RESULT", 60)]
+        launched = run(["roslaunch", str(tmp_path / "two.launch")], env=env, timeout=60)
+        assert "PARAM 10.0" in launched.stdout, launched.stdout + launched.stderr
+        bag = tmp_path / "rec.bag"
+        assert run(["rosbag", "record", "-O", str(bag), "--duration=1", "/chatter"], env=env, timeout=60).returncode == 0
+        assert run(["rosbag", "play", "--clock", "-q", str(bag)], env=env, timeout=60).returncode == 0
+    calls = [json.loads(line) for line in out.read_text().splitlines()]
+    callers = {caller.split("_")[0] for _m, caller, _k in calls}
+    assert {"/prober", "/roscpp", "/action", "/roslaunch", "/record", "/play", "/launch"} <= callers, callers
+    own_names = {"/launch_talker", "/launch_other"}  # the launched nodes, named by the manager's grants
+    outside = set()
+    for method, caller, key in calls:
+        if method in ("getParamNames",):
+            continue
+        key = "/" + key if method == "searchParam" and not key.startswith("/") else resolve_param_key(key, caller)
+        if key == caller or key.startswith(caller + "/"):
+            continue  # its own private namespace
+        if method in ("setParam", "deleteParam"):
+            assert caller == "/roslaunch", (method, caller, key)
+            assert key.split("/")[1] in ("run_id", "roslaunch", "rosdistro", "rosversion") or \
+                "/" + key.split("/")[1] in own_names, key
+            continue
+        outside.add(key)
+    assert {"/rosout_disable_topics_generation", "/use_sim_time", "/tcp_keepalive"} <= outside, outside
+    assert not [k for k in outside if k not in ROS1_DEFAULT_PARAM_READS and ros1_topic_param(k) is None], outside

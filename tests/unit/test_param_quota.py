@@ -77,3 +77,21 @@ def test_a_root_write_replaces_everything_and_clear_forgets_everything():
     assert quota.usage("b")[0] == 2
     quota.clear()
     assert quota.all_usage() == {}
+
+
+def test_items_are_what_a_restarted_rosmaster_gets_back():
+    quota = ParamQuota(100, 10_000)
+    quota.set("a", "/robot/speed", 1.5)
+    quota.set("a", "/robot/limits", {"max": 2, "min": {}})
+    quota.set("b", "/gone/x", "y")
+    quota.set("b", "/other", [1, "two"])
+    quota.delete("/gone/x")
+    quota.set("a", "/robot/name", "r1")
+    quota.set("a", "/robot/name", "r2")  # replaced: only the last value
+    items = dict(quota.items())
+    assert items == {"/robot/speed": 1.5, "/robot/limits/max": 2, "/robot/limits/min": {}, "/gone": {},
+                     "/robot/name": "r2", "/other": [1, "two"]}
+    quota.set("a", "/robot", 7)  # a value replaces the namespace and all below it
+    assert dict(quota.items()) == {"/robot": 7, "/gone": {}, "/other": [1, "two"]}
+    quota.clear()
+    assert quota.items() == []

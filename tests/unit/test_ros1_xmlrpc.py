@@ -283,3 +283,15 @@ def test_any_body_after_valid_head(body) -> None:
             feed(Role.SERVER, http_request(prefix + body))
         except RemoteProtocolError:
             pass
+
+
+def test_a_named_relay_path_is_accepted_and_read_as_the_root_other_paths_are_not() -> None:
+    """rosmaster calls the master's interceptor's relays on the URI it was handed, whose
+    path names the relay's target: accepted, and never passed on."""
+    body = xmlrpc.client.dumps(("/master", "/chatter", []), "publisherUpdate").encode()
+    named = http_request(body).replace(b"POST /RPC2 ", b"POST /cryptoros/127.0.0.3/11400/x/131074 ")
+    (req,) = feed(Role.SERVER, named, eof=False)
+    assert req.method == "publisherUpdate" and req.path == "/"
+    for path in (b"/cryptoros/127.0.0.3/11400/q/1", b"/cryptoros/../etc", b"/other"):
+        with pytest.raises(RemoteProtocolError):
+            feed(Role.SERVER, http_request(body).replace(b"POST /RPC2 ", b"POST " + path + b" "))

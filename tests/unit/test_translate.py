@@ -8,6 +8,10 @@ from cryptoros.errors import PolicyDenied
 from interceptor.translate import Translator
 
 
+#: the id of http://127.0.0.1:5000/ (address, port and kind in one number)
+ID_5000 = ((1 << 16 | 5000) << 1)
+
+
 def _translator(**kw) -> Translator:
     opened: list[tuple[str, int]] = []
 
@@ -22,7 +26,7 @@ def _translator(**kw) -> Translator:
 def test_exports_are_stable_loopback_only_and_bounded(monkeypatch):
     t = _translator()
     first = t.to_canonical("http://127.0.0.1:5000/")
-    assert t.to_canonical("http://127.0.0.1:5000/") == first == "cryptoros://127.0.0.2:11400/x/1"
+    assert t.to_canonical("http://127.0.0.1:5000/") == first == f"cryptoros://127.0.0.2:11400/x/{ID_5000}"
     assert t.to_local(first) == "http://127.0.0.1:5000/"
     with pytest.raises(PolicyDenied) as foreign:
         t.to_canonical("http://10.1.2.3:5000/")
@@ -33,7 +37,7 @@ def test_exports_are_stable_loopback_only_and_bounded(monkeypatch):
     with pytest.raises(PolicyDenied) as full:  # a local process registering endless fake URIs
         t.to_canonical("http://127.0.0.1:5003/")
     assert full.value.reason == "export_limit"
-    assert t.to_canonical("http://127.0.0.1:5001/").endswith("/x/2")  # known ones still resolve
+    assert t.to_canonical("http://127.0.0.1:5001/").endswith(f"/x/{ID_5000 + 2}")  # known ones still resolve
 
 
 def test_relays_toward_one_peer_are_capped():
@@ -47,22 +51,62 @@ def test_relays_toward_one_peer_are_capped():
     assert t.to_local("cryptoros://127.0.0.4:11400/x/1")  # another peer is not affected
 
 
-def test_released_exports_free_their_slot_and_their_id_is_never_reused(monkeypatch):
+def test_released_exports_free_their_slot_and_their_id_names_only_their_endpoint(monkeypatch):
     monkeypatch.setattr(Translator, "MAX_EXPORTS", 2)
     t = _translator()
     old = t.to_canonical("http://127.0.0.1:5000/")
     t.to_canonical("http://127.0.0.1:5001/")
     assert t.release(t.own_id(old)) and not t.release(t.own_id(old))
-    new = t.to_canonical("http://127.0.0.1:5002/")  # the freed slot, a fresh id
-    assert new.endswith("/x/3") and t.export_count == 2
+    new = t.to_canonical("http://127.0.0.1:5002/")  # the freed slot, the new endpoint's own id
+    assert new.endswith(f"/x/{ID_5000 + 4}") and t.export_count == 2
     with pytest.raises(PolicyDenied) as gone:  # a peer holding the old name reaches nothing
         t.to_local(old)
     assert gone.value.reason == "unknown_target"
-    monkeypatch.setattr(Translator, "MAX_EXPORTS", 3)
+    monkeypatch.setattr(Translator, "MAX_EXPORTS", 4)
+    counted = t.to_canonical("http://localhost:5003/")  # no IPv4 address: a counted id, never reused
+    assert counted.endswith("/x/1")
     restored = _translator()
     restored.restore(t.snapshot())
-    assert restored.to_canonical("http://127.0.0.1:5003/").endswith("/x/4")  # ids keep counting after a restart
+    assert restored.to_canonical("http://localhost:5004/").endswith("/x/2")  # counted ids keep counting after a restart
     assert restored.own_id("cryptoros://127.0.0.9:11400/x/1") is None  # another interceptor's name
+
+
+def test_a_restart_with_no_state_adopts_only_its_own_names_that_rosmaster_holds():
+    t = _translator()
+    tcpros = t.tcpros_to_canonical("127.0.0.5", 6000)[0]
+    names = [t.to_canonical("http://127.0.0.1:5000/"), tcpros]
+    fresh = _translator()
+    with pytest.raises(PolicyDenied):  # nothing resolves until adopted
+        fresh.to_local(names[0])
+    assert [fresh.adopt(n).uri for n in names] == ["http://127.0.0.1:5000/", "rosrpc://127.0.0.5:6000"]
+    assert fresh.to_local(names[0]) == "http://127.0.0.1:5000/"
+    assert fresh.tcpros_to_local(tcpros, 1) == ("127.0.0.5", 6000)
+    assert fresh.adopt("cryptoros://127.0.0.9:11400/x/" + names[0].rsplit("/", 1)[1]) is None  # not ours
+    assert fresh.adopt("cryptoros://127.0.0.2:11400/x/7") is None  # a counted id says no endpoint
+    assert fresh.adopt(names[0].replace("/x/", "/t/")) is None  # the kind is part of the id
+
+
+def test_relays_handed_to_rosmaster_are_named_and_come_back_after_a_restart():
+    t = _translator()
+    named = t.to_local("cryptoros://127.0.0.3:11400/x/7", named=True)
+    assert named == "http://127.0.0.1:40001/cryptoros/127.0.0.3/11400/x/7"
+    assert t.from_master(named) == "cryptoros://127.0.0.3:11400/x/7"
+    assert t.existing_local("cryptoros://127.0.0.3:11400/x/7", named=True) == named
+    service = t.to_local("cryptoros://127.0.0.3:11400/t/9", named=True)
+    assert service == "rosrpc://127.0.0.1:40002/cryptoros/127.0.0.3/11400/t/9"
+    opened: list[tuple[str, int]] = []
+    fresh = Translator(public_host="127.0.0.4", public_port=11400, local_master_uri=None,
+                       open_relay=lambda target, port: opened.append((str(target), port)) or ("127.0.0.1", port))
+    assert fresh.from_master(named) == "cryptoros://127.0.0.3:11400/x/7"
+    assert fresh.from_master(service) == "cryptoros://127.0.0.3:11400/t/9"
+    assert opened == [("cryptoros://127.0.0.3:11400/x/7", 40001), ("cryptoros://127.0.0.3:11400/t/9", 40002)]
+    assert fresh.from_master(named) == "cryptoros://127.0.0.3:11400/x/7" and len(opened) == 2  # open already
+    # the name says which target, even where another relay took its old port
+    stale = named.replace("/x/7", "/x/11")  # port 40001 is x/7's relay now
+    assert fresh.from_master(stale) == "cryptoros://127.0.0.3:11400/x/11"
+    # a name of the wrong kind for its scheme is not taken as a name
+    assert fresh.from_master("http://127.0.0.1:40009/cryptoros/127.0.0.3/11400/t/9").startswith(
+        "cryptoros://127.0.0.4:11400/x/")
 
 
 def test_a_requesttopic_reply_may_name_only_the_interceptor_that_answered():

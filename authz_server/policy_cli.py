@@ -1,0 +1,207 @@
+"""``cryptoros-authz`` verbs for writing policy without writing it by hand:
+``policy from-graph`` (a draft from a live ROS 1 graph), ``import-sros2`` and
+``export-sros2`` (SROS2 access-control policies in and out). ``authz_server.cli``
+registers them; they change the registry only through :meth:`Registry.import_policy`.
+
+What has no equivalent goes to stderr, one line each (``cryptoros-authz: warning:``
+for a draft, ``cryptoros-authz: sros2:`` for SROS2); bad input is one error line and
+changes nothing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import click
+
+from authz_server.db import open_registry
+from authz_server.graph_policy import ManagerMap, draft_policy, read_graph
+from authz_server.registry import GrantRow, Registry
+from cryptoros.errors import RegistryError
+
+PROG = "cryptoros-authz"
+_MAP_HELP = ("PATTERN=MANAGER (repeatable, first match wins): an fnmatch pattern on the {what} "
+             "('/robot_a/*=robot_a'; '*' matches '/' too){extra}.")
+
+
+def _registry(ctx: click.Context, *, create: bool = False) -> Registry:
+    engine = open_registry(ctx.find_root().obj["db"], create=create)
+    ctx.call_on_close(engine.dispose)
+    return Registry(engine)
+
+
+def _write(output: str | None, text: str) -> None:
+    if output:
+        try:
+            Path(output).write_text(text)
+        except OSError as exc:
+            raise RegistryError(f"cannot write {output}: {exc.strerror}") from None
+    else:
+        click.echo(text, nl=False)
+
+
+def _yaml(doc: object) -> str:
+    import yaml
+
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
+# ---------------------------------------------------------------------- policy from-graph
+@click.group("policy")
+def policy() -> None:
+    """Write policy from what runs: a draft from a live ROS 1 graph."""
+
+
+@policy.command("from-graph")
+@click.option("--master-uri", required=True,
+              help="XML-RPC URI of the plain rosmaster (before cryptoros is enforced, or the master host's "
+                   "loopback one), never taken from $ROS_MASTER_URI: an interceptor's local master answers "
+                   "only what its grants show.")
+@click.option("--manager-map", "manager_map", multiple=True, required=True, metavar="PATTERN=MANAGER",
+              help=_MAP_HELP.format(what="node name", extra=", or '@HOST=MANAGER' on the host of the node's "
+                                                           "XML-RPC URI"))
+@click.option("--params", "param_access", type=click.Choice(["read", "write"]), default="read", show_default=True,
+              help="Grant each node read_param or write_param on its private namespace when it holds parameters.")
+@click.option("--timeout", type=click.FloatRange(0.1, 120), default=5.0, show_default=True,
+              help="Seconds for each master call and service probe.")
+@click.option("-o", "--output", type=str, help="File for the draft (default stdout).")
+def from_graph(master_uri: str, manager_map: tuple[str, ...], param_access: str, timeout: float,
+               output: str | None) -> None:
+    """Write a first-draft policy (the 'import' YAML) from a live ROS 1 graph: each
+    node's exact topics, types, served services and private parameters, granted to the
+    manager --manager-map gives it. Review it, then 'cryptoros-authz import'.
+
+    \b
+    Example:
+      cryptoros-authz policy from-graph --master-uri http://127.0.0.1:11311 \\
+          --manager-map '/robot_a/*=robot_a' --manager-map '@10.0.0.3=robot_b' -o draft.yaml
+    """
+    managers = ManagerMap.parse(manager_map)
+    graph = asyncio.run(read_graph(master_uri, timeout=timeout))
+    draft = draft_policy(graph, managers, param_access=f"{param_access}_param")
+    for warning in draft.warnings:
+        click.echo(f"{PROG}: warning: {warning}", err=True)
+    count = sum(len(rows) for m in draft.doc["managers"] for rows in m["grants"].values())
+    header = (f"# draft policy from the ROS 1 graph at {master_uri}: review it before"
+              " 'cryptoros-authz import'\n")
+    _write(output, header + _yaml(draft.doc))
+    click.echo(f"{PROG}: drafted {count} grant(s) for {len(draft.doc['managers'])} manager(s) from "
+               f"{len(graph.nodes)} node(s); {draft.infrastructure} left out that ROS has without a grant "
+               f"(/rosout, logger services); {len(draft.warnings)} warning(s)", err=True)
+
+
+# ---------------------------------------------------------------------- SROS2
+def _types(type_values: tuple[str, ...], types_file: str | None) -> dict[str, str]:
+    import yaml
+
+    types: dict[str, str] = {}
+    if types_file:
+        try:
+            doc = yaml.safe_load(Path(types_file).read_text())
+        except OSError as exc:
+            raise RegistryError(f"cannot read types file {types_file}: {exc.strerror}") from None
+        except yaml.YAMLError as exc:
+            raise RegistryError(f"types file {types_file} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        if not isinstance(doc, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in doc.items()):
+            raise RegistryError(f"types file {types_file}: expected a mapping of name to type "
+                                "(/chatter: std_msgs/msg/String)")
+        types.update(doc)
+    for value in type_values:
+        name, sep, type_ = value.partition("=")
+        if not sep or not name or not type_:
+            raise RegistryError(f"--type {value!r}: expected NAME=TYPE such as /chatter=std_msgs/msg/String")
+        types[name] = type_
+    return types
+
+
+@click.command("import-sros2")
+@click.argument("file", type=str)
+@click.option("--manager-map", "manager_map", multiple=True, required=True, metavar="PATTERN=MANAGER",
+              help=_MAP_HELP.format(what="enclave path", extra=""))
+@click.option("--type", "type_values", multiple=True, metavar="NAME=TYPE",
+              help="The type of a topic or service (SROS2 holds none), e.g. /chatter=std_msgs/msg/String.")
+@click.option("--types", "types_file", type=str, help="YAML mapping of name to type (as export-sros2 --types-out "
+                                                      "writes it).")
+@click.option("--dry-run", is_flag=True, help="Print the grants it would add; change nothing.")
+@click.pass_context
+def import_sros2(ctx: click.Context, file: str, manager_map: tuple[str, ...], type_values: tuple[str, ...],
+                 types_file: str | None, dry_run: bool) -> None:
+    """Add the grants an SROS2 access-control policy FILE gives (each enclave to the
+    manager --manager-map names; every manager must exist), in one transaction. What
+    cryptoros cannot express (DENY, wildcards, actions, names without a type) is
+    reported on stderr, one line per element, and not granted.
+
+    \b
+    Example:
+      cryptoros-authz import-sros2 policy.xml --manager-map '/team/robot_a=robot_a' \\
+          --types types.yaml --type /chatter=std_msgs/msg/String
+    """
+    from authz_server.sros2 import grants_from_sros2
+
+    managers = ManagerMap.parse(manager_map)
+    types = _types(type_values, types_file)
+    try:
+        text = Path(file).read_bytes()
+    except OSError as exc:
+        raise RegistryError(f"cannot read SROS2 policy {file}: {exc.strerror}") from None
+    imported = grants_from_sros2(text, managers, types, source=file)
+    reg = _registry(ctx)
+    current = {m.name: m for m in reg.list_managers()}
+    unknown = [m for m in managers.managers if m not in current]
+    if unknown:
+        raise RegistryError(f"unknown manager {unknown[0]!r} in --manager-map (add it first: "
+                            f"cryptoros-authz add-manager {unknown[0]} --cert FILE)")
+    for note in imported.notes:
+        click.echo(f"{PROG}: sros2: {note}", err=True)
+    new: dict[str, list[GrantRow]] = {name: sorted(rows - set(current[name].grants))
+                                      for name, rows in imported.grants.items()}
+    if dry_run:
+        for name, rows in sorted(new.items()):
+            for g in rows:
+                click.echo(f"would grant: {name} {g.node} {g.action} {g.name} {g.type}")
+        click.echo(f"import-sros2 {file}: {sum(map(len, new.values()))} grant(s) to add (dry run), "
+                   f"{len(imported.notes)} element(s) reported")
+        return
+    doc = {"version": 1, "managers": [
+        {"name": name, "fingerprint_sha256": current[name].fingerprint, "grants": _grants_doc(rows)}
+        for name, rows in sorted(new.items()) if rows]}
+    stats = reg.import_policy(doc, merge=True) if doc["managers"] else {"grants_added": 0}
+    click.echo(f"import-sros2 {file}: {stats['grants_added']} grant(s) added, "
+               f"{len(imported.notes)} element(s) reported on stderr")
+
+
+def _grants_doc(rows: list[GrantRow]) -> dict[str, list[dict]]:
+    from authz_server.registry import grant_key
+
+    out: dict[str, list[dict]] = {}
+    for g in rows:
+        out.setdefault(g.action, []).append({"node": g.node, grant_key(g.action): g.name, "type": g.type})
+    return out
+
+
+@click.command("export-sros2")
+@click.option("--manager", required=True, help="The manager whose ROS 2 grants become one enclave.")
+@click.option("--enclave", help="The enclave path.  [default: /MANAGER]")
+@click.option("-o", "--output", type=str, help="File for the policy XML (default stdout).")
+@click.option("--types-out", type=str, help="Write the grants' types (which SROS2 cannot hold) to this YAML file, "
+                                            "for import-sros2 --types.")
+@click.pass_context
+def export_sros2(ctx: click.Context, manager: str, enclave: str | None, output: str | None,
+                 types_out: str | None) -> None:
+    """Write MANAGER's ROS 2 topic and service grants as an SROS2 policy (version
+    0.2.0, one profile per node); what SROS2 cannot hold is reported on stderr."""
+    from authz_server.sros2 import sros2_from_grants
+
+    info = _registry(ctx).get_manager(manager)
+    exported = sros2_from_grants(info.grants, enclave=enclave or f"/{manager}")
+    for note in exported.notes:
+        click.echo(f"{PROG}: sros2: {note}", err=True)
+    if types_out:
+        _write(types_out, _yaml(exported.types))
+    _write(output, exported.xml)
+
+
+COMMANDS = (policy, import_sros2, export_sros2)
+
+__all__ = ["COMMANDS", "export_sros2", "import_sros2", "policy"]

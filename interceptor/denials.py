@@ -1,0 +1,79 @@
+"""Refusals, aggregated: what the log says about them and the table ``/status`` shows.
+
+A denial is keyed by (kind, peer, reason, target). The first of a key is logged at once;
+repeats within ``interval`` seconds are only counted, and the next one after the
+interval logs one line with the count (so a node that retries, or logs at 5 Hz while a
+parameter it reads is refused, adds a line per interval, not per call). The table is
+bounded (the least recently seen key is dropped) and carries, per key, the
+``cryptoros-authz grant ...`` command that would allow it when one is known.
+
+Sans-IO: the clock is passed in; :meth:`DenialTable.record` returns the lines to log.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+#: seconds between two log lines of one key
+INTERVAL = 10.0
+#: keys kept (each a few hundred bytes)
+MAX_KEYS = 512
+
+
+@dataclass
+class _Entry:
+    kind: str
+    peer: str
+    reason: str
+    target: str
+    hint: str | None
+    first: float
+    last: float
+    total: int = 1
+    #: repeats since the last line logged, and when that line was logged
+    unlogged: int = 0
+    logged_at: float = 0.0
+
+
+@dataclass
+class DenialTable:
+    interval: float = INTERVAL
+    max_keys: int = MAX_KEYS
+    _entries: dict[tuple[str, str, str, str], _Entry] = field(default_factory=dict)
+
+    def record(self, kind: str, peer: str, reason: str, target: str, now: float,
+               hint: str | None = None) -> list[str]:
+        """Count one refusal (``target``: what was refused and why, as logged); returns
+        the log lines it calls for (none, or one)."""
+        key = (kind, peer, reason, target)
+        entry = self._entries.pop(key, None)
+        if entry is None:
+            entry = _Entry(kind, peer, reason, target, hint, first=now, last=now, logged_at=now)
+            self._entries[key] = entry
+            while len(self._entries) > self.max_keys:
+                self._entries.pop(next(iter(self._entries)))
+            return [f"DENY {kind} from {peer}: {target}{_hint(hint)}"]
+        self._entries[key] = entry  # most recently seen last
+        entry.total += 1
+        entry.last = now
+        entry.hint = hint or entry.hint
+        if now - entry.logged_at < self.interval:
+            entry.unlogged += 1
+            return []
+        count, entry.unlogged, since = entry.unlogged + 1, 0, entry.logged_at
+        entry.logged_at = now
+        return [f"DENY {kind} from {peer}: {target} ({count} times in the last {now - since:.0f} s, "
+                f"{entry.total} in all){_hint(hint)}"]
+
+    def table(self, now: float) -> list[dict]:
+        """The keys, most recent first: what ``cryptoros denials`` shows."""
+        return [{"kind": e.kind, "peer": e.peer, "reason": e.reason, "target": e.target, "count": e.total,
+                 "first_ago": round(now - e.first, 1), "last_ago": round(now - e.last, 1), "grant": e.hint}
+                for e in reversed(self._entries.values())]
+
+
+def _hint(hint: str | None) -> str:
+    return f" (to allow: {hint})" if hint else ""
+
+
+__all__ = ["INTERVAL", "MAX_KEYS", "DenialTable"]

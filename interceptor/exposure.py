@@ -1,0 +1,172 @@
+"""The interceptor's deployment checks: rosmaster and local nodes on loopback only.
+
+Processes behind an interceptor are trusted because nothing but this host reaches them.
+A rosmaster or node that listens on a non-loopback address (rosmaster and rospy do
+without ``ROS_IP=127.0.0.1``) is reachable from other hosts past every check: the
+master's interceptor refuses to serve such a rosmaster, a robot's interceptor refuses
+such a node's registrations (docs/interceptor.md, "Deployment checks").
+
+What the kernel says about a port (:mod:`cryptoros.exposure`) is kept for :data:`TTL`
+seconds, so a node's many registrations and ``requestTopic`` replies cost a dict
+lookup; a port not seen listening is asked again at once (a node announces a port only
+once it listens, so a fresh port is never judged from an older answer).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from cryptoros.errors import PolicyDenied
+from cryptoros.exposure import ExposureError, Listener, is_loopback_host, read_listeners
+from cryptoros.ros1.uri import UriError, host_port
+from cryptoros.ros1.xmlrpc import Request
+
+#: seconds a port's answer is reused
+TTL = 1.0
+#: ports whose answers are kept
+MAX_PORTS = 4096
+class PortExposure:
+    """``exposed(port)``: the non-loopback addresses a port listens on (empty: loopback
+    only, or not listening). The kernel is asked about that port alone (its sockets in
+    LISTEN, filtered by the kernel: the cost does not grow with the host's other
+    listeners, the interceptor's relays among them); a port seen listening keeps its
+    answer for :data:`TTL` seconds (at most :data:`MAX_PORTS` ports, the oldest
+    forgotten first). ``read`` and ``clock`` are injectable."""
+
+    def __init__(self, read: Callable[[int], list[Listener]] = read_listeners,
+                 clock: Callable[[], float] = time.monotonic, ttl: float = TTL) -> None:
+        self._read, self._clock, self._ttl = read, clock, ttl
+        self._answers: dict[int, tuple[float, list[str]]] = {}
+        self.reads = 0
+
+    def exposed(self, port: int) -> list[str]:
+        """Raises :class:`~cryptoros.exposure.ExposureError` when the kernel cannot be asked."""
+        now = self._clock()
+        kept = self._answers.get(port)
+        if kept is not None and now - kept[0] < self._ttl:
+            return kept[1]
+        listeners = [one for one in self._read(port) if one.port == port]
+        self.reads += 1
+        addresses = sorted({str(one.address) for one in listeners if one.exposed})
+        self._answers.pop(port, None)
+        if listeners:  # not listening: asked again next time (a port is announced once it listens)
+            self._answers[port] = (now, addresses)
+            if len(self._answers) > MAX_PORTS:
+                del self._answers[next(iter(self._answers))]
+        return addresses
+
+
+def run_hint(config: Path | None, command: str) -> str:
+    """How to start ``command`` with this interceptor's environment."""
+    return f"cryptoros run --config {config or 'FILE'} -- {command}"
+
+
+def master_problem(upstream: str, exposure: PortExposure, config: Path | None) -> str | None:
+    """Why the rosmaster at ``upstream`` (a loopback URI of this host) must not be
+    served, in one line, or None. A table that cannot be read is a problem too."""
+    try:
+        host, port = host_port(upstream, ("http",))
+    except UriError:
+        return None  # config.py accepts only http://host:port
+    if not is_loopback_host(host):
+        return (f"rosmaster ({upstream}) is at a non-loopback address, reachable from other hosts past every "
+                f"check: run it on this host on loopback only (ROS_IP=127.0.0.1 rosmaster --core -p {port}) and "
+                f"point [master] upstream at 127.0.0.1, or set allow_exposed_master = true")
+    try:
+        addresses = exposure.exposed(port)
+    except ExposureError as exc:
+        return f"cannot tell whether rosmaster ({upstream}) answers other hosts: {exc}"
+    if not addresses:
+        return None
+    return (f"rosmaster ({upstream}) listens on {', '.join(addresses)} port {port}, so other hosts reach it past "
+            f"every check: restart it on loopback only (ROS_IP=127.0.0.1 rosmaster --core -p {port}, or "
+            f"{run_hint(config, f'rosmaster --core -p {port}')}), or set allow_exposed_master = true")
+
+
+def _node_refusal(node: str, what: str, port: int, addresses: list[str], config: Path | None,
+                  advertised: str | None) -> str:
+    where = f"node {node}'s {what} listens on {', '.join(addresses)} port {port}, reachable from other hosts"
+    if advertised is not None and is_loopback_host(advertised):
+        # ROS_IP is set and the node binds every address all the same: roscpp's XML-RPC server
+        return (f"{where}, though it announces {advertised} (roscpp binds its XML-RPC API to every address "
+                f"whatever ROS_IP says): close the node's ports to the network with the host's firewall, then list "
+                f"it in allow_exposed_nodes")
+    return f"{where}: start it with ROS_IP=127.0.0.1 ({run_hint(config, 'CMD')})"
+
+
+#: where a local node's master call names its own endpoints: index -> what it is
+REGISTRATION_URIS: dict[str, tuple[tuple[int, str], ...]] = {
+    "registerPublisher": ((3, "XML-RPC API"),),
+    "registerSubscriber": ((3, "XML-RPC API"),),
+    "registerService": ((2, "service port"), (3, "XML-RPC API")),
+    "subscribeParam": ((1, "XML-RPC API"),),
+}
+
+
+class NodeGuard:
+    """The node role's check of the endpoints its local nodes announce. An endpoint
+    other hosts reach is refused (PolicyDenied ``exposed_endpoint``) unless the node
+    matches a pattern of ``allow_exposed_nodes`` (the operator closed its ports with a
+    firewall, which no socket table shows): then it is served and remembered for the
+    status warning (at most :data:`MAX_NOTED` nodes)."""
+
+    MAX_NOTED = 1024
+
+    def __init__(self, exposure: PortExposure | None = None) -> None:
+        self.exposure = exposure or PortExposure()
+        self._served: dict[tuple[str, int], str] = {}  # (node, port) -> addresses, served exposed
+
+    def check_port(self, node: str | Callable[[], str], port: int, what: str, *, allow: tuple[str, ...],
+                   config: Path | None, advertised: str | None = None) -> str | None:
+        """None when ``port`` answers on loopback only; a warning line the first time an
+        allowed node is seen exposed on it; PolicyDenied otherwise. ``node`` may be a
+        callable, asked only when the port is exposed; ``advertised``: the host the node
+        announces with the port (it picks the fix the refusal names)."""
+        try:
+            addresses = self.exposure.exposed(port)
+        except ExposureError as exc:
+            name = node() if callable(node) else node
+            raise PolicyDenied("exposed_endpoint", f"cannot tell whether node {name}'s {what} (port {port}) answers "
+                                                   f"other hosts: {exc}") from None
+        if not addresses:
+            return None
+        name = node() if callable(node) else node
+        if not any(fnmatch.fnmatchcase(name, pattern) for pattern in allow):
+            raise PolicyDenied("exposed_endpoint", _node_refusal(name, what, port, addresses, config, advertised))
+        if (name, port) in self._served or len(self._served) >= self.MAX_NOTED:
+            return None
+        self._served[(name, port)] = ", ".join(addresses)
+        return (f"allow_exposed_nodes: node {name}'s {what} listens on {', '.join(addresses)} port {port}, served "
+                f"(its ports must be closed to the network by the host's firewall)")
+
+    def check_registrations(self, calls: list[Request], *, allow: tuple[str, ...], config: Path | None) -> list[str]:
+        """:meth:`check_port` for every endpoint the registrations among ``calls`` (a
+        request, or the calls of a multicall) announce; the new warnings."""
+        warnings = []
+        for call in calls:
+            for index, what in REGISTRATION_URIS.get(call.method, ()):
+                if len(call.params) <= index or not isinstance(call.params[0], str):
+                    continue
+                try:
+                    host, port = host_port(call.params[index])
+                except UriError:
+                    continue  # left to the policy that checks the call
+                warning = self.check_port(call.params[0], port, what, allow=allow, config=config, advertised=host)
+                if warning:
+                    warnings.append(warning)
+        return warnings
+
+    def warnings(self) -> list[str]:
+        """The status line naming the nodes served exposed (empty: none)."""
+        if not self._served:
+            return []
+        named = ", ".join(f"{node} ({where} port {port})" for (node, port), where in list(self._served.items())[:8])
+        more = len(self._served) - 8
+        return [f"allow_exposed_nodes: served with ports other hosts reach unless a firewall closes them: {named}"
+                + (f" and {more} more" if more > 0 else "")]
+
+
+__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "master_problem", "run_hint"]

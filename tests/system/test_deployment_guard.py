@@ -1,0 +1,239 @@
+"""The product refuses an exposed deployment and makes the secure one easy, on separate
+hosts (a network namespace per host, a stranger among them), as an operator and an
+attacker would act:
+
+- rosmaster started as plain ROS starts it (every address): the master's interceptor
+  exits 1 with one line saying how to fix it, ``--check`` too; rosmaster started through
+  ``cryptoros run`` (loopback): it serves; rosmaster restarted exposed while it runs:
+  master streams are refused (``exposed_master``), nothing is replayed to it (a
+  stranger reaching it sees no robot), ``cryptoros status`` warns; back on loopback,
+  served again; ``allow_exposed_master = true`` serves with a warning in status;
+- a rospy node started without ``ROS_IP`` on a robot: its registration is refused
+  (``exposed_endpoint``) as one ROS error line naming the node, the port and the fix;
+  the same node through ``cryptoros run``, and a listener from a shell that sourced
+  ``cryptoros env``, talk;
+- one instance per configuration: a second start exits 1 naming the running pid and
+  leaves the state file's bytes as they were.
+
+Needs root (CI runs as root); without root it skips and says why.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import signal
+import socket
+import subprocess
+import time
+import xmlrpc.client
+
+import pytest
+
+from cryptoros.lab.network import clean_env, stop, tool, wait_port
+from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, separate_hosts
+from tests.support import require, running
+
+pytestmark = [pytest.mark.ros1]
+
+
+def _on(net, host: str, args: list[str], **extra: str) -> subprocess.CompletedProcess:
+    env = clean_env(ROS_HOME=str(net.workdir / "ros_home"), **extra)
+    return subprocess.run(net.argv(host, args), capture_output=True, text=True, timeout=60, env=env)
+
+
+def _rosmaster(net, port: int, *, through_cryptoros_run: bool) -> subprocess.Popen:
+    """rosmaster on the master host: as plain ROS starts it, or through ``cryptoros run``."""
+    cmd = [shutil.which("rosmaster"), "--core", "-p", str(port)]
+    if through_cryptoros_run:
+        cmd = [tool("cryptoros"), "run", "--config", str(net.hosts["master"].config), "--", *cmd]
+    proc = subprocess.Popen(net.argv("master", cmd), env=clean_env(ROS_HOME=str(net.workdir)),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    net.procs.append(proc)
+    with net.inside("master"):
+        wait_port("127.0.0.1", port, 15, proc, "rosmaster")
+    return proc
+
+
+def _lab_rosmaster(net) -> subprocess.Popen:
+    return next(p for p in net.procs if "--core" in p.args and p.poll() is None)
+
+
+def _reaches(net, host: str, address: str, port: int) -> bool:
+    with net.inside(host):
+        try:
+            socket.create_connection((address, port), timeout=2).close()
+            return True
+        except OSError:
+            return False
+
+
+def _wait_log(net, host: str, needle: str, timeout: float = 15) -> None:
+    deadline = time.monotonic() + timeout
+    while needle not in net.hosts[host].logs():
+        assert time.monotonic() < deadline, f"no {needle!r} in {host}'s log within {timeout} s:\n" + net.hosts[host].logs()
+        time.sleep(0.1)
+
+
+def _wait_rosmaster_holds(net, node: str, timeout: float = 20) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        with net.inside("master"):
+            with contextlib.suppress(OSError):
+                if node in str(xmlrpc.client.ServerProxy(net.rosmaster_uri).getSystemState("/t")):
+                    return
+        assert time.monotonic() < deadline, f"rosmaster does not hold {node}"
+        time.sleep(0.2)
+
+
+def _status(net, host: str) -> str:
+    return _on(net, host, [tool("cryptoros"), "status", "--config", str(net.hosts[host].config)]).stdout
+
+
+def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path):
+    separate_hosts()
+    require("rosmaster")
+    with robot_network(tmp_path, start=(), netns=True) as net:
+        stranger = net.lab.add_host("stranger")
+        port = int(net.rosmaster_uri.rstrip("/").rsplit(":", 1)[1])
+        master = net.hosts["master"]
+        stop(_lab_rosmaster(net))
+        exposed = _rosmaster(net, port, through_cryptoros_run=False)  # the runbook's old line
+        assert _reaches(net, "stranger", master.address, port)  # what the check is about
+
+        for args in ([], ["--check"]):
+            result = _on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), *args])
+            lines = result.stderr.strip().splitlines()
+            assert result.returncode == 1 and len(lines) == 1, result
+            assert f"listens on 0.0.0.0 port {port}" in lines[0] and "ROS_IP=127.0.0.1" in lines[0]
+            assert f"cryptoros run --config {master.config} -- rosmaster --core -p {port}" in lines[0]
+            assert "Traceback" not in result.stderr
+        assert not (tmp_path / "master.state").exists() or not list((tmp_path / "master.state").glob("*.json"))
+
+        # the fix the line gives: rosmaster through cryptoros run, on loopback only
+        stop(exposed)
+        private = _rosmaster(net, port, through_cryptoros_run=True)
+        assert not _reaches(net, "stranger", master.address, port)
+        check = _on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), "--check"])
+        assert "rosmaster" not in check.stderr, check
+        net.start("master")
+        net.start("robot_a")
+        net.start("robot_b")
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "120"],
+                     env=net.ros_env("robot_a")) as pub:
+            read_lines(pub, "READY", 20)
+            _wait_rosmaster_holds(net, "/talker_a")
+
+            # rosmaster restarted exposed while everything runs
+            stop(private)
+            exposed = _rosmaster(net, port, through_cryptoros_run=False)
+            _wait_log(net, "master", "master streams refused (exposed_master)")
+            with net.inside("robot_b"):
+                code, message, _ = xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).getSystemState("/probe")
+            assert code != 1, message
+            assert "exposed_master" in net.hosts["master"].logs().split("master streams refused", 1)[1]
+            status = _status(net, "master")
+            assert "warning   master streams refused (exposed_master)" in status, status
+            # not healthy while it refuses: status exits 1 with the reason, /healthz 503
+            result = _on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)])
+            assert result.returncode == 1 and "exposed_master" in result.stdout.splitlines()[0], result
+            # the stranger reaches this rosmaster, but it holds no robot: nothing was replayed to it
+            with net.inside("stranger"):
+                state = xmlrpc.client.ServerProxy(f"http://{master.address}:{port}/").getSystemState("/stranger")
+            assert "/talker_a" not in str(state), state
+            assert "registrations replayed" not in net.hosts["master"].logs()
+
+            # the operator overrides: served, with a warning in every status
+            master.config.write_text("allow_exposed_master = true\n" + master.config.read_text())
+            master.proc.send_signal(signal.SIGHUP)
+            _wait_log(net, "master", "registrations replayed")
+            status = _status(net, "master")
+            assert "warning   allow_exposed_master = true, served anyway" in status, status
+
+            # fixed: rosmaster back on loopback, override gone; served, replayed, no warning
+            master.config.write_text(master.config.read_text().replace("allow_exposed_master = true\n", ""))
+            master.proc.send_signal(signal.SIGHUP)
+            stop(exposed)
+            _rosmaster(net, port, through_cryptoros_run=True)
+            _wait_log(net, "master", "answers on loopback only now")
+            _wait_rosmaster_holds(net, "/talker_a")  # replayed to the new rosmaster
+            assert "warning" not in _status(net, "master")
+            assert _on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)]).returncode == 0
+            assert not _reaches(net, "stranger", master.address, port)
+        assert stranger.address  # the stranger's host was there all along
+
+
+def test_a_node_other_hosts_reach_is_refused_and_the_same_node_through_cryptoros_run_works(tmp_path):
+    separate_hosts()
+    with robot_network(tmp_path, netns=True) as net:
+        exposed_env = net.ros_env("robot_a")
+        del exposed_env["ROS_IP"]  # as a node's shell is by default: rospy binds every address
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100", "20", "5"], env=exposed_env) as pub:
+            lines = read_lines(pub, "SENT", 30)
+        refusals = [line for line in lines if "exposed_endpoint" in line]
+        assert refusals, lines
+        assert "denied by cryptoros: exposed_endpoint: node /talker_a's XML-RPC API listens on 0.0.0.0 port" in \
+            refusals[0] and "ROS_IP=127.0.0.1" in refusals[0] and "Traceback" not in "".join(lines)
+        assert "DENY local-master from local node: exposed_endpoint" in net.hosts["robot_a"].logs()
+
+        config_a, config_b = net.hosts["robot_a"].config, net.hosts["robot_b"].config
+        home = {"ROS_HOME": str(net.workdir / "ros_home"), "PYTHONUNBUFFERED": "1"}
+        listener = net.argv("robot_b", ["bash", "-c", f'eval "$({tool("cryptoros")} env --config {config_b})" && '
+                                                      f"exec {SYS_PY} {NODE} sub /rospy_listener /chatter 60"])
+        talker = net.argv("robot_a", [tool("cryptoros"), "run", "--config", str(config_a), "--",
+                                      SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"])
+        with running(listener, env=clean_env(ROS_IP="10.9.9.9", ROS_HOSTNAME="robot-b", **home)) as sub, \
+                running(talker, env=clean_env(ROS_HOSTNAME="robot-a", **home)) as pub:
+            read_lines(sub, "READY", 30)
+            read_lines(pub, "READY", 30)
+            assert got(read_lines(sub, "GOT", 30)), "no message through cryptoros run / cryptoros env"
+        assert net.hosts["robot_a"].logs().count("exposed_endpoint") == \
+            net.hosts["robot_a"].logs().count("DENY local-master from local node: exposed_endpoint")
+
+
+def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_changes_nothing(tmp_path):
+    separate_hosts()
+    with robot_network(tmp_path, start=("master", "robot_a"), netns=True) as net:
+        host = net.hosts["robot_a"]
+        state = tmp_path / "robot_a.state"  # the default state_dir: beside the configuration
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "3", "20", "60"],
+                     env=net.ros_env("robot_a")) as pub:
+            read_lines(pub, "SENT", 30)
+            saved = state / "robot_a.state.json"
+            deadline = time.monotonic() + 10
+            while not saved.exists():
+                assert time.monotonic() < deadline, "no state file"
+                time.sleep(0.1)
+            before = saved.read_bytes(), saved.stat().st_mtime_ns
+            assert oct(state.stat().st_mode & 0o777) == "0o700"
+            for where in ("robot_a", "robot_b"):  # the same host, or another by mistake
+                second = _on(net, where, [tool("cryptoros-interceptor"), "--config", str(host.config)])
+                lines = second.stderr.strip().splitlines()
+                assert second.returncode == 1 and len(lines) == 1, second
+                assert f"pid {host.proc.pid}" in lines[0] and "nothing was changed" in lines[0]
+                assert (saved.read_bytes(), saved.stat().st_mtime_ns) == before
+            assert host.proc.poll() is None
+        stop(host.proc)
+        net.start("robot_a")  # the lock went with the process: a restart takes it
+        assert (state / "robot_a.lock").read_text().strip() == str(host.proc.pid)
+
+
+def test_the_embedded_master_binds_loopback_and_refuses_another_address_without_the_unsafe_flag():
+    from cryptoros.exposure import read_listeners
+    from cryptoros.lab.netns import NetnsLab
+
+    separate_hosts()
+    with NetnsLab() as lab:
+        host = lab.add_host("m")
+        refused = subprocess.run(host.argv([tool("cryptoros"), "master", "--host", "0.0.0.0", "--port", "11311"]),
+                                 capture_output=True, text=True, timeout=60)
+        lines = refused.stderr.strip().splitlines()
+        assert refused.returncode == 1 and len(lines) == 1 and "--unsafe-expose" in lines[0], refused
+        proc = subprocess.Popen(host.argv([tool("cryptoros"), "master", "--port", "11311"]),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            with host.inside():
+                wait_port("127.0.0.1", 11311, 20, proc, "cryptoros master")
+                assert {str(one.address) for one in read_listeners(11311)} == {"127.0.0.1"}
+        finally:
+            stop(proc)

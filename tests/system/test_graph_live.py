@@ -1,0 +1,204 @@
+"""Issue 30 (items 5 and 7, ROS 1): grants take effect for running nodes both ways, and
+restarts never break the graph. Real rosmaster, rospy nodes, interceptors and authz
+daemon; grants changed only with ``cryptoros-authz grant/revoke``; no node is restarted.
+Every wait is bounded and ends on something observed (a message received, a line
+logged, a registration listed), never on a sleep.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from tests.interceptor_harness import NODE, NODES, SYS_PY, got, read_lines, robot_network, wait_registered
+from tests.support import running
+
+pytestmark = [pytest.mark.ros1]
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    with robot_network(tmp_path_factory.mktemp("graph"), start=("master", "robot_a", "robot_b")) as net:
+        yield net
+
+
+def wait_logged(network, host: str, text: str, timeout: float = 15) -> None:
+    logs = network.hosts[host].logs
+    deadline = time.monotonic() + timeout
+    while text not in logs():
+        assert time.monotonic() < deadline, f"{host} never logged {text!r}:\n" + logs()[-3000:]
+        time.sleep(0.1)
+
+
+def first_message_within(proc, seconds: float, since: float | None = None) -> float:
+    """Seconds from ``since`` (now) until the node printed its next GOT line (fails
+    past ``seconds`` from now)."""
+    started = time.monotonic() if since is None else since
+    assert got(read_lines(proc, "GOT", seconds)), f"nothing received within {seconds} s"
+    return time.monotonic() - started
+
+
+def test_a_subscriber_running_before_its_grant_receives_once_it_is_granted(network):
+    """robot B's listener starts with no grant (its registerSubscriber is refused); the
+    grant is added: it receives robot A's talker, the listener never restarted."""
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "90"],
+                 env=network.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_early", "/secret", "90"], env=network.ros_env("robot_b")) as sub:
+        read_lines(pub, "READY", 20)
+        read_lines(sub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        wait_logged(network, "robot_b", "/listener_early may not subscribe")  # refused: no grant yet
+        granted = time.monotonic()
+        network.cli("grant", "robot_b", "subscribe", "/listener_early", "/secret", "std_msgs/String")
+        took = first_message_within(sub, 15, since=granted)
+        print(f"subscriber before its grant: first message {took:.2f} s after `grant`")
+        assert sub.poll() is None
+
+
+def test_a_publisher_running_before_its_grant_reaches_its_subscriber_once_granted(network):
+    """robot A's talker starts with no publish grant; robot B's listener (granted) waits;
+    the grant is added: rosmaster learns the publication and the listener receives."""
+    with running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "90"], env=network.ros_env("robot_b")) as sub, \
+            running([SYS_PY, NODE, "pub", "/talker_early", "/chatter", "100000", "20", "90"],
+                    env=network.ros_env("robot_a")) as pub:
+        read_lines(sub, "READY", 20)
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/rospy_listener")
+        granted = time.monotonic()
+        network.cli("grant", "robot_a", "publish", "/talker_early", "/chatter", "std_msgs/String")
+        took = first_message_within(sub, 15, since=granted)
+        print(f"publisher before its grant: first message {took:.2f} s after `grant`")
+        assert pub.poll() is None
+
+
+def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10_s(network):
+    network.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "120"],
+                 env=network.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_back", "/secret", "120"], env=network.ros_env("robot_b")) as sub:
+        read_lines(pub, "READY", 20)
+        read_lines(sub, "READY", 20)
+        first_message_within(sub, 20)
+        network.cli("revoke", "robot_b", "subscribe", "/listener_back", "/secret")
+        wait_logged(network, "robot_a", "grant_removed")  # robot A cut the stream the removed grant covered
+        read_lines(sub, None, 1.0)  # what was in flight
+        assert not got(read_lines(sub, None, 1.0)), "still receiving after the grant was removed"
+        granted = time.monotonic()
+        network.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
+        took = first_message_within(sub, 10, since=granted)
+        print(f"grant removed and added back: first message {took:.2f} s after `grant`")
+        assert sub.poll() is None and pub.poll() is None
+
+
+def test_a_publish_grant_removed_and_added_back_reaches_the_running_subscriber_within_10_s(network):
+    """The publisher's side: robot B cuts the stream when robot A's publish grant goes;
+    when it comes back, robot A makes the running talker's registration again and
+    rosmaster tells the listener, which receives again."""
+    network.cli("grant", "robot_a", "publish", "/talker_back", "/chatter", "std_msgs/String")
+    with running([SYS_PY, NODE, "sub", "/listener_pb", "/chatter", "120"], env=network.ros_env("robot_b")) as sub, \
+            running([SYS_PY, NODE, "pub", "/talker_back", "/chatter", "100000", "20", "120"],
+                    env=network.ros_env("robot_a")) as pub:
+        read_lines(sub, "READY", 20)
+        read_lines(pub, "READY", 20)
+        first_message_within(sub, 20)
+        network.cli("revoke", "robot_a", "publish", "/talker_back", "/chatter")
+        wait_logged(network, "robot_b", "grant_removed")  # robot B cut the stream the removed grant covered
+        read_lines(sub, None, 1.0)  # what was in flight
+        granted = time.monotonic()
+        network.cli("grant", "robot_a", "publish", "/talker_back", "/chatter", "std_msgs/String")
+        took = first_message_within(sub, 10, since=granted)
+        print(f"publish grant removed and added back: first message {took:.2f} s after `grant`")
+        assert sub.poll() is None and pub.poll() is None
+
+
+def test_a_registration_waiting_for_its_grant_is_kept_across_its_interceptors_restart(tmp_path):
+    """robot B's listener is refused (no grant); robot B's interceptor stops, the grant is
+    added meanwhile, and it starts again from its state directory: it makes the waiting
+    registration, and the listener (never restarted) receives."""
+    with robot_network(tmp_path, extra={"robot_b": f'state_dir = "{tmp_path / "state"}"'}) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "90"],
+                    env=net.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_wait", "/secret", "90"], env=net.ros_env("robot_b")) as sub:
+        read_lines(pub, "READY", 20)
+        read_lines(sub, "READY", 20)
+        wait_logged(net, "robot_b", "/listener_wait may not subscribe")
+        net.stop("robot_b")
+        net.cli("grant", "robot_b", "subscribe", "/listener_wait", "/secret", "std_msgs/String")
+        net.start("robot_b")
+        took = first_message_within(sub, 15)
+        print(f"a registration kept across a restart: first message {took:.2f} s after the restart")
+        assert sub.poll() is None
+
+
+def call_service(net, host: str) -> str:
+    """A rospy service client on ``host`` calls robot A's /rospy_loggers: its LOGGERS line."""
+    with running([SYS_PY, str(NODES / "services.py"), "call", "/rospy_loggers"], env=net.ros_env(host)) as client:
+        return read_lines(client, "LOGGERS", 20)[-1]
+
+
+@pytest.mark.parametrize("state", ["state_dir", "no_state_dir"])
+@pytest.mark.parametrize("restarted", ["master", "robot_a", "robot_b"])
+def test_after_an_interceptor_restart_the_graph_works(tmp_path, restarted, state):
+    """robot A's talker and service server and robot B's listener keep running while one
+    interceptor restarts, with its state directory or with none: the listener receives
+    again within 15 s, and a listener started after the restart receives and a service
+    call answers, each within its first bounded wait."""
+    extra = ({name: f'state_dir = "{tmp_path / "state" / name}"' for name in ("master", "robot_a", "robot_b")}
+             if state == "state_dir" else None)
+    with robot_network(tmp_path, extra=extra) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "120"],
+                    env=net.ros_env("robot_a")) as pub, \
+            running([SYS_PY, str(NODES / "services.py"), "serve", "0", "120"], env=net.ros_env("robot_a")) as server, \
+            running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "120"], env=net.ros_env("robot_b")) as sub:
+        for proc in (pub, server, sub):
+            read_lines(proc, "READY", 20)
+        first_message_within(sub, 20)
+        assert "rospy.server=debug" in call_service(net, "robot_b")
+        net.stop(restarted)
+        net.start(restarted)
+        restarted_at = time.monotonic()
+        read_lines(sub, None, 0.2)  # what arrived before the restart
+        took = first_message_within(sub, 15, since=restarted_at)
+        with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "60"], env=net.ros_env("robot_b")) as late:
+            read_lines(late, "READY", 20)
+            late_took = first_message_within(late, 10)
+        assert "rospy.server=debug" in call_service(net, "robot_b")
+        print(f"{restarted} restarted ({state}): the running listener again after {took:.2f} s, "
+              f"a new one {late_took:.2f} s after READY")
+        assert pub.poll() is None and server.poll() is None and sub.poll() is None
+
+
+def test_parameters_set_before_a_rosmaster_restart_are_there_after_it(tmp_path):
+    """Past plain ROS: rosmaster dies and a new one starts on the same port; the master's
+    interceptor sets again what peers set through it (a key deleted stays deleted)."""
+    import subprocess
+
+    from cryptoros.lab.network import clean_env, stop
+    from tests.support import require, run
+
+    require("rosparam")
+    with robot_network(tmp_path, start=("master", "robot_b")) as net:
+        net.cli("grant-tools", "robot_b", "--param-ns", "/")
+
+        def rosparam(*argv: str) -> subprocess.CompletedProcess:
+            return run(["rosparam", *argv], env=net.ros_env("robot_b"), timeout=20)
+
+        deadline = time.monotonic() + 15
+        while rosparam("set", "/robot/speed", "1.5").returncode != 0:  # the grant reaches robot B live
+            assert time.monotonic() < deadline, "rosparam set still refused"
+            time.sleep(0.5)
+        assert rosparam("set", "/robot/name", "r1").returncode == 0
+        assert rosparam("set", "/gone", "x").returncode == 0
+        assert rosparam("delete", "/gone").returncode == 0
+        old = next(p for p in net.procs if "--core" in p.args)  # Debian's rosmaster
+        stop(old)
+        new = subprocess.Popen(old.args, env=clean_env(ROS_MASTER_URI=net.rosmaster_uri, ROS_IP="127.0.0.1",
+                                                         ROS_HOME=str(tmp_path)),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        net.procs.append(new)
+        wait_logged(net, "master", "parameters replayed")
+        got_speed = rosparam("get", "/robot/speed")
+        assert got_speed.returncode == 0 and got_speed.stdout.strip() == "1.5", got_speed
+        assert rosparam("get", "/robot/name").stdout.strip() == "r1"
+        assert rosparam("get", "/gone").returncode != 0  # deleted before the restart: not replayed

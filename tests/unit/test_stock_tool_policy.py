@@ -1,0 +1,187 @@
+"""What stock ROS 1 tools and libraries meet behind an interceptor, decided without a
+network: refusals as ROS error triples, unreadable parameters answered as unset, the
+measured default-readable parameters, the endpoints libraries serve under a node's own
+name, the grant hint, and denials aggregated for the log."""
+
+from __future__ import annotations
+
+import pytest
+
+from cryptoros.errors import PolicyDenied
+from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allows, ros1_topic_param
+from cryptoros.policy.ros1 import (
+    check_master_call,
+    filter_param_reply,
+    grant_hint,
+    may_read_param,
+    may_write_param,
+    node_pattern,
+    refusal_answer,
+    refusal_text,
+)
+from cryptoros.tokens import Grant, Grants
+from interceptor.denials import DenialTable
+
+ROBOT = Grants([
+    Grant(node="/talker", action="publish", name="/chatter", type="std_msgs/String"),
+    Grant(node="/action_server", action="publish", name="/move_base/status", type="actionlib_msgs/GoalStatusArray"),
+    Grant(node="/camera", action="publish", name="/image_raw", type="sensor_msgs/Image"),
+    Grant(node="/roslaunch", action="write_param", name="/run_id", type="param"),
+])
+
+
+def master(method, *params, grants=ROBOT):
+    check_master_call(method, params, manager="robot_b", grants=grants, owner_of=lambda _n: None)
+
+
+def refused(method, *params, grants=ROBOT) -> str:
+    with pytest.raises(PolicyDenied) as info:
+        master(method, *params, grants=grants)
+    return info.value.reason
+
+
+# ------------------------------------------------------------------ answers
+def test_a_refusal_is_a_ros_error_triple_with_its_reason_code():
+    assert refusal_answer("param_write_denied", "setParam", ("/n", "/x", 1)) == \
+        [-1, "denied by cryptoros: param_write_denied", 0]
+    assert refusal_answer("shutdown_dropped", "shutdown", ("/rosnode", "user request")) == \
+        [-1, "denied by cryptoros: shutdown_dropped", 0]
+    assert refusal_answer("not_granted", "registerPublisher", ("/n", "/t", "T", "http://x:1/"))[0] == -1
+
+
+def test_a_reason_outside_the_shown_list_is_not_told():
+    assert refusal_text("some_internal_reason") == "denied by cryptoros"
+    assert refusal_text(None) == "denied by cryptoros"
+
+
+@pytest.mark.parametrize("method, params, answer", [
+    ("hasParam", ("/action_server", "/secret"), [1, "/secret", False]),
+    ("hasParam", ("/ns/node", "rel"), [1, "/ns/rel", False]),  # resolved as rosmaster resolves it
+    ("getParam", ("/n", "/secret"), [-1, "Parameter [/secret] is not set", 0]),
+    ("searchParam", ("/n", "secret"), [-1, "Cannot find parameter [secret] in an upwards search", ""]),
+    ("subscribeParam", ("/n", "http://127.0.0.1:1/", "/secret"), [1, "Subscribed to parameter [/secret]", {}]),
+])
+def test_a_probe_of_an_unreadable_parameter_is_answered_as_unset(method, params, answer):
+    assert refusal_answer("param_read_denied", method, params) == answer
+
+
+def test_a_found_but_unreadable_search_result_is_not_found():
+    reply = filter_param_reply("searchParam", ("/talker", "secret"), [1, "Found [/secret]", "/secret"], grants=ROBOT)
+    assert reply == [-1, "Cannot find parameter [secret] in an upwards search", ""]
+
+
+# ------------------------------------------------------------------ default reads
+@pytest.mark.parametrize("key", ["/use_sim_time", "/rosout_disable_topics_generation", "/tcp_keepalive",
+                                 "/enable_statistics", "/statistics_window_max_size", "/run_id",
+                                 "/actionlib_server_pub_queue_size", "/actionlib_client_sub_queue_size"])
+def test_what_the_libraries_read_is_readable_by_any_own_node(key):
+    assert key in ROS1_DEFAULT_PARAM_READS
+    assert may_read_param(ROBOT, "/talker", key)
+    master("getParam", "/talker", key)
+    master("hasParam", "/talker", key)
+
+
+def test_a_default_readable_parameter_is_not_writable():
+    assert not may_write_param(ROBOT, "/talker", "/use_sim_time")
+    assert refused("setParam", "/talker", "/use_sim_time", True) == "param_write_denied"
+
+
+def test_an_action_servers_and_an_image_publishers_own_topic_parameters_are_readable():
+    assert ros1_topic_param("/move_base/status_frequency") == ("/move_base/status", "status_frequency")
+    assert may_read_param(ROBOT, "/action_server", "/move_base/status_frequency")
+    assert may_read_param(ROBOT, "/action_server", "/move_base/status_list_timeout")
+    assert may_read_param(ROBOT, "/camera", "/image_raw/disable_pub_plugins")
+    # not by a node that does not publish that topic
+    assert not may_read_param(ROBOT, "/talker", "/move_base/status_frequency")
+    assert not may_read_param(ROBOT, "/talker", "/image_raw/disable_pub_plugins")
+
+
+def test_the_private_namespace_of_a_node_the_manager_names_exactly_is_its_own():
+    # roslaunch (caller /roslaunch) sets a launched node's <param>; a nodelet manager reads its nodelet's
+    assert may_write_param(ROBOT, "/roslaunch", "/talker/rate")
+    assert may_read_param(ROBOT, "/camera", "/talker/rate")
+    # not a node of another manager, and not for a caller the manager's grants do not name
+    assert not may_write_param(ROBOT, "/roslaunch", "/other_robots_node/rate")
+    assert not may_write_param(ROBOT, "/stranger", "/talker/rate")
+
+
+# ------------------------------------------------------------------ own-name endpoints
+@pytest.mark.parametrize("action, name, type_name", [
+    ("serve", "/cam/set_parameters", "dynamic_reconfigure/Reconfigure"),
+    ("publish", "/cam/parameter_descriptions", "dynamic_reconfigure/ConfigDescription"),
+    ("publish", "/cam/parameter_updates", "dynamic_reconfigure/Config"),
+    ("serve", "/cam/load_nodelet", "nodelet/NodeletLoad"),
+    ("serve", "/cam/pause_playback", "std_srvs/SetBool"),
+    ("serve", "/cam/get_loggers", "roscpp/GetLoggers"),
+])
+def test_endpoints_libraries_serve_under_the_nodes_own_name_are_infrastructure(action, name, type_name):
+    assert ros1_allows(action, "/cam", name, type_name)
+    assert not ros1_allows(action, "/other", name, type_name)  # only under its own name
+    assert not ros1_allows(action, "/cam", name, "std_msgs/String")  # only with the library's type
+
+
+# ------------------------------------------------------------------ hints
+def test_the_grant_hint_names_what_to_grant_with_the_tools_node_pattern():
+    assert node_pattern("/rosparam-4711") == "/rosparam-*"
+    assert node_pattern("/rostopic_4711_1795791784006") == "/rostopic_*"
+    assert node_pattern("/camera_1") == "/camera_1"
+    assert grant_hint("param_write_denied", "setParam", ("/rosparam-4711", "/x", 1), "robot_b") == \
+        "cryptoros-authz grant robot_b write_param /rosparam-* /x"
+    assert grant_hint("not_granted", "registerPublisher", ("/play_1795791817872", "/clock", "rosgraph_msgs/Clock",
+                                                           "http://127.0.0.1:1/"), "robot_b") == \
+        "cryptoros-authz grant robot_b publish /play_* /clock rosgraph_msgs/Clock"
+    assert grant_hint("shutdown_dropped", "shutdown", ("/rosnode", "x"), "robot_b") is None
+    assert grant_hint("param_write_denied", "setParam", ("/n", "/x", 1), None) is None
+
+
+# ------------------------------------------------------------------ aggregation
+def test_a_node_refused_at_5_hz_for_10_s_adds_at_most_two_lines():
+    table = DenialTable(interval=10.0)
+    lines = []
+    for i in range(50):  # 5 Hz for 10 s
+        lines += table.record("master", "robot_b subscribeParam", "param_read_denied", "x may not read /y",
+                              now=100.0 + i * 0.2, hint="cryptoros-authz grant robot_b read_param /x /y")
+    assert 1 <= len(lines) <= 2, lines
+    assert lines[0].startswith("DENY master from robot_b subscribeParam: x may not read /y")
+    assert "to allow: cryptoros-authz grant robot_b read_param /x /y" in lines[0]
+    later = table.record("master", "robot_b subscribeParam", "param_read_denied", "x may not read /y", now=111.0)
+    assert len(later) == 1 and "in all" in later[0]
+    [row] = table.table(now=112.0)
+    assert row["count"] == 51 and row["grant"].endswith("read_param /x /y")
+
+
+def test_distinct_refusals_are_each_logged_and_the_table_is_bounded():
+    table = DenialTable(interval=10.0, max_keys=3)
+    for n in range(5):
+        assert len(table.record("master", "robot_b", "not_granted", f"/t{n}", now=1.0)) == 1
+    assert [r["target"] for r in table.table(now=2.0)] == ["/t4", "/t3", "/t2"]
+
+
+def test_roslaunchs_refusals_point_at_its_bundle():
+    assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/run_id", "x"), "robot_b") == \
+        "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
+    assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/roslaunch/uris/host_1", "x"), "robot_b") == \
+        "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
+    assert "--launch-param-ns /global_setting" in grant_hint("param_write_denied", "setParam",
+                                                             ("/roslaunch", "/global_setting", 3), "robot_b")
+
+
+def test_no_hint_for_what_any_grant_naming_the_node_allows():
+    node = "/rostopic_4711_1795791784"
+    assert grant_hint("not_granted", "registerPublisher", (node, "/rosout", "rosgraph_msgs/Log", "http://x:1/"),
+                      "robot_b") is None
+    assert grant_hint("not_granted", "registerService", (node, node + "/get_loggers", "rosrpc://x:1",
+                                                         "http://x:1/"), "robot_b") is None
+
+
+def test_a_launched_nodes_parameters_are_not_writable_while_another_manager_holds_its_name():
+    # robot_b's grants name /talker, but robot_a registered it: roslaunch of robot_b may not write it
+    def owner_of(node):
+        return "robot_a" if node == "/talker" else None
+
+    with pytest.raises(PolicyDenied) as info:
+        check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
+                          owner_of=owner_of)
+    assert info.value.reason == "name_taken"
+    check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
+                      owner_of=lambda _n: None)
