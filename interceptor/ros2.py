@@ -43,7 +43,7 @@ from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
 from cryptoros.ros2.profile import localhost_env
 from cryptoros.policy.infrastructure import ros2_stays_local
-from cryptoros.policy.ros2 import Offer, local_offer, manager_may, may_learn
+from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
@@ -385,10 +385,11 @@ class Ros2Role(Role):
                 continue
             action = "publish" if kind == "topic" else "serve"
             held = sorted({s["node"] for s in sources if suspect(s["node"])}) if exposed else []
+            named = [node for node in held if UNKNOWN_NODE_MARK not in node]  # the others: not named by discovery yet
             if held and not ros2_stays_local(name, types):
                 # a participant reachable from the network: its names are not carried (for a
                 # service, none of its servers is: a call cannot be steered to one server)
-                for node in held:
+                for node in named:
                     exc = PolicyDenied("exposed_participant", f"{node} on this robot's domain is reachable from the "
                                        f"network (not started with the localhost DDS settings): {name} from it is "
                                        "not carried ([ros2] require_private_domain)")
