@@ -30,7 +30,7 @@ RATE, FLOOD = 1000, 20_000
 BIG_FLOOD = 200_000
 #: unthrottled, the flood overruns robot B's listener, which Fast DDS wedges: robot B's
 #: bridge makes the flooded writer anew after PUBLISH_PATIENCE (3 s), the reader delivers
-#: again, and the flood may wedge it again (measured: 3.4 to 12.5 s of silence). Only a
+#: again, and the flood may wedge it again (measured: 0.8 to 12.5 s of silence). Only a
 #: rate limit holds robot A's flow during a flood; after it, it is back within 5 s either way.
 DURING_UNTHROTTLED = 20.0
 
