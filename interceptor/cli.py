@@ -213,6 +213,11 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
             if problem:
                 click.echo(f"warning: {problem}: ROS 2 nodes started from this environment answer discovery from "
                            "other hosts; write the profile with --ros2-profile FILE and export it", err=True)
+            from cryptoros.ros2.exposure import ExposureScan
+
+            for item in ExposureScan(cfg.ros2.domain_id).scan():
+                click.echo(f"warning: a DDS participant on domain {cfg.ros2.domain_id} is reachable from the network: "
+                           f"{item.describe()}; start it with the localhost profile (docs/ros2.md)", err=True)
         return
     _raise_descriptor_limit()
     runner = asyncio.run

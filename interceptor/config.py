@@ -67,6 +67,7 @@ Example::
     depth = 10                        # history depth of bridged topics (the graph does not report it)
     transient_local = ["/map"]        # topics kept for late joiners here (else republished volatile)
     max_kept_bytes_per_peer = 67108864  # what one peer may make this robot keep for late joiners
+    require_private_domain = true     # topics of a participant reachable from the network are not carried
     local = ["/tf", "/robot_a/*"]     # topics/services that never leave this robot (fnmatch
                                       # patterns): not offered, not logged as denials
 
@@ -264,6 +265,9 @@ class Ros2Settings:
     #: what one peer's streams may make this robot keep for late joiners: the sum over its
     #: transient_local streams of depth x the topic's max_message_size (bytes)
     max_kept_bytes_per_peer: int = 64 * 1024 * 1024
+    #: a participant on this robot's domain reachable from the network (not started with
+    #: the localhost DDS settings) is reported, and its topics are not carried
+    require_private_domain: bool = True
 
     def is_local(self, name: str) -> bool:
         return any(fnmatch.fnmatchcase(name, pattern) for pattern in self.local)
@@ -344,7 +348,7 @@ _SECTIONS = {
 #: key (for new streams and connections: an open stream keeps the limits it started with;
 #: ``handshake_timeout`` on the public listener, re-bound with the new configuration);
 #: ``[ros2] peers``, ``depth``, ``local``, ``transient_local``,
-#: ``max_kept_bytes_per_peer``; every ``[monitor]`` key (the model too);
+#: ``max_kept_bytes_per_peer``, ``require_private_domain``; every ``[monitor]`` key (the model too);
 #: ``unsafe_plaintext_upstream`` (only checked when the file is loaded);
 #: ``allow_exposed_master`` (read by the master role's rosmaster watch each second),
 #: ``allow_exposed_nodes`` (read per registration).
@@ -380,7 +384,8 @@ RELOAD: dict[str, tuple[str, Callable[[InterceptorConfig], Any]]] = {
     **{f"[ros2] {name}": (RESTART, lambda c, name=name: getattr(c.ros2, name, None))
        for name in ("domain_id", "python", "node_name", "graph_interval", "max_message_size")},
     **{f"[ros2] {name}": (APPLY, lambda c, name=name: getattr(c.ros2, name, None))
-       for name in ("peers", "depth", "local", "transient_local", "max_kept_bytes_per_peer")},
+       for name in ("peers", "depth", "local", "transient_local", "max_kept_bytes_per_peer",
+                    "require_private_domain")},
     "[monitor]": (RESTART, lambda c: c.monitor is not None),  # the section added or removed
     **{f"[monitor] {f.name}": (APPLY, lambda c, name=f.name: getattr(c.monitor, name, None))
        for f in fields(MonitorSettings)},
@@ -689,6 +694,7 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
         transient_local=tuple(latched),
         max_kept_bytes_per_peer=_typed(raw.get("max_kept_bytes_per_peer", 64 * 1024 * 1024), int,
                                        "[ros2] max_kept_bytes_per_peer"),
+        require_private_domain=_typed(raw.get("require_private_domain", True), bool, "[ros2] require_private_domain"),
     )
 
 

@@ -40,8 +40,10 @@ import cryptoros.ros2
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
+from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
 from cryptoros.ros2.profile import localhost_env
-from cryptoros.policy.ros2 import Offer, local_offer, manager_may, may_learn
+from cryptoros.policy.infrastructure import ros2_stays_local
+from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
@@ -55,8 +57,12 @@ BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py
 #: ROS 2 plumbing every node has; never bridged, never logged as a denial.
 BRIDGE_START_TIMEOUT = 30.0
 RECONCILE_INTERVAL = 1.0
-#: a peer that may not receive a stream is asked for a fresh token (a new grant) this often
-PEER_RECHECK = 10.0
+#: a peer that may not receive a stream is asked for a fresh token (a new grant) this often;
+#: a token learnt within RECHECK_MARGIN before a recheck is fresh enough for it. A grant
+#: re-added to the peer therefore reaches its stream within PEER_RECHECK + RECHECK_MARGIN
+#: + the peer's own token refresh + one stream opening (tested: under 10 s)
+PEER_RECHECK = 5.0
+RECHECK_MARGIN = 1.0
 #: denials remembered (to log each once) before the memory starts over
 MAX_NOTED = 10_000
 #: Flow control of outbound topics: while a peer stream's send buffer is above
@@ -156,17 +162,18 @@ class Ros2Role(Role):
         self._outbound: dict[tuple[str, str, str], Outbound] = {}  # (kind, name, type)
         self._out_by_chan: dict[int, Outbound] = {}
         self._calls: dict[int, tuple[asyncio.StreamWriter, int, set[int]]] = {}
-        #: (topic, type) -> [chan, refcount, {stream id: its last samples kept for late joiners}]
-        self._adverts: dict[tuple[str, str], list] = {}
         self._proxies: dict[str, Proxy] = {}
         self._proxy_by_chan: dict[int, Proxy] = {}
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
-        self._peer_learnt: dict[Endpoint, float] = {}  # when a peer's token was last asked for
-        self._peer_lookups: dict[Endpoint, asyncio.Future] = {}
+        self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
+        self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         self._stopping = False
         self.dropped = 0
+        self._exposure = ExposureScan(cfg.ros2.domain_id)
+        self._exposed: tuple[Exposed, ...] = ()
+        self._exposed_nodes: frozenset[str] = frozenset()
         self._paused: asyncio.Task | None = None
         gateway.serve("ros2", self._check_ros2_target, self._serve_ros2_stream)
 
@@ -262,7 +269,6 @@ class Ros2Role(Role):
             self._withdraw(out, tell_bridge=False)
         for writer in list(self._inbound):
             writer.transport.abort()
-        self._adverts.clear()
         self._graph = {"topics": [], "services": []}
 
     # ================================================================ bridge frames
@@ -366,11 +372,29 @@ class Ros2Role(Role):
         want: dict[tuple[str, str, str], Offer] = {}
         entries = [("topic", t, t.get("publishers", [])) for t in self._graph.get("topics", [])]
         entries += [("service", s, [{"node": n} for n in s.get("servers", [])]) for s in self._graph.get("services", [])]
+        exposed = self._check_exposure()
+        if not self.cfg.ros2.require_private_domain:
+            exposed = frozenset()
+
+        def suspect(node: str) -> bool:
+            return "*" in exposed or node in exposed
+
         for kind, entry, sources in entries:
             name, types = entry["name"], entry["types"]
             if self.cfg.ros2.is_local(name):  # [ros2] local: stays on this robot, by the operator's choice
                 continue
             action = "publish" if kind == "topic" else "serve"
+            held = sorted({s["node"] for s in sources if suspect(s["node"])}) if exposed else []
+            named = [node for node in held if UNKNOWN_NODE_MARK not in node]  # the others: not named by discovery yet
+            if held and not ros2_stays_local(name, types):
+                # a participant reachable from the network: its names are not carried (for a
+                # service, none of its servers is: a call cannot be steered to one server)
+                for node in named:
+                    exc = PolicyDenied("exposed_participant", f"{node} on this robot's domain is reachable from the "
+                                       f"network (not started with the localhost DDS settings): {name} from it is "
+                                       "not carried ([ros2] require_private_domain)")
+                    self._note_deny((kind, name, node, "exposed"), f"ros2_{action}", exc, me)
+                sources = [] if kind == "service" else [s for s in sources if not suspect(s["node"])]
             try:
                 offer = local_offer(kind, name, types, sources, grants=grants, depth=self.cfg.ros2.depth)
             except PolicyDenied as exc:
@@ -387,6 +411,47 @@ class Ros2Role(Role):
                 self._note_deny((kind, name, node, "not_granted"), f"ros2_{action}", exc, me)
             want[(kind, name, offer.target.type)] = offer
         return want
+
+    def _check_exposure(self) -> frozenset[str]:
+        """The nodes of this robot's domain whose participant is reachable from the
+        network (``*``: one whose process this user cannot read, so any node may be);
+        each such participant logged once as it appears."""
+        found = self._exposure.scan()
+        if found != self._exposed:
+            for item in set(found) - set(self._exposed):
+                log.warning("DDS participant on domain %d reachable from the network: %s (not started with the "
+                            "localhost DDS settings: %s); %s", self.cfg.ros2.domain_id, item.describe(),
+                            "FASTRTPS_DEFAULT_PROFILES_FILE, see docs/ros2.md",
+                            "its topics and services are not carried" if self.cfg.ros2.require_private_domain
+                            else "carried anyway ([ros2] require_private_domain = false)")
+            self._exposed = found
+        if not found:
+            self._exposed_nodes = frozenset()
+            return self._exposed_nodes
+        pids = {item.pid16 for item in found}
+        nodes = {"*"} if None in pids else set()
+        for topic in self._graph.get("topics", []):
+            for pub in topic.get("publishers", []):
+                if gid_pid16(pub.get("gid", "")) in pids:
+                    nodes.add(pub["node"])
+        self._exposed_nodes = frozenset(nodes)
+        return self._exposed_nodes
+
+    def status(self) -> dict:
+        carried = ("not carried" if self.cfg.ros2.require_private_domain
+                   else "carried anyway ([ros2] require_private_domain = false)")
+        return {
+            "ros2": {
+                "domain": self.cfg.ros2.domain_id,
+                "require_private_domain": self.cfg.ros2.require_private_domain,
+                "exposed_participants": [{"pid": e.pid, "command": e.command, "sockets": list(e.sockets)}
+                                         for e in self._exposed],
+                "exposed_nodes": sorted(self._exposed_nodes),
+            },
+            "warnings": [f"DDS participant on domain {self.cfg.ros2.domain_id} reachable from the network: "
+                         f"{e.describe()}; its topics are {carried} (start it with the localhost profile: "
+                         "docs/ros2.md)" for e in self._exposed],
+        }
 
     def _reconcile(self) -> None:
         if self._stopping or self._link is None or not self._bridge_ready.is_set():
@@ -445,11 +510,13 @@ class Ros2Role(Role):
         """Keep one stream to one peer for one outbound topic or service."""
         target = out.target
         backoff = 0.25
+        recheck: float | None = None  # after a recheck's wait: when (monotonic) it ended
         while True:
             try:
                 # need to know: the target (name, type, node, QoS) goes only to a peer whose
                 # grants let it receive the stream, learnt from its token first
-                known = await self._peer_token(endpoint, target)
+                known = await self._peer_token(endpoint, target, recheck=recheck)
+                recheck = None
                 if not may_learn(known.grants, target):
                     key = ("not_offered", endpoint, target.name)
                     if key not in self._noted:
@@ -458,6 +525,7 @@ class Ros2Role(Role):
                             "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
                             f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}")
                     await asyncio.sleep(PEER_RECHECK)
+                    recheck = time.monotonic()
                     continue
                 self._noted.discard(("not_offered", endpoint, target.name))
                 tunnel = await self.gw.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
@@ -513,29 +581,35 @@ class Ros2Role(Role):
                     self._calls.pop(bid, None)
             await asyncio.sleep(backoff)
 
-    async def _peer_token(self, endpoint: Endpoint, target: StreamTarget) -> AccessToken:
+    async def _peer_token(self, endpoint: Endpoint, target: StreamTarget, *,
+                          recheck: float | None = None) -> AccessToken:
         """The peer's freshest verified token: the last one it showed us (any stream, any
-        purpose) while unexpired and either granting ``target`` or learnt within
-        PEER_RECHECK; else one token exchange (purpose ``refresh``: tokens both ways, no
-        target), shared by every stream waiting on that peer."""
-        now = time.time()
+        purpose) while unexpired and either granting ``target`` or learnt recently enough
+        (:func:`reusable`; ``recheck``: the monotonic time a recheck's wait ended); else
+        one token exchange (purpose ``refresh``: tokens both ways, no target), shared by
+        every stream waiting on that peer."""
         known = self.gw.peer_token(endpoint.host, endpoint.port)
         if known is not None:
             known = self.verifier.freshest(known)
-            fresh = known.expires_at > now + 5
-            if fresh and (may_learn(known.grants, target) or now - self._peer_learnt.get(endpoint, 0.0) < PEER_RECHECK):
+            fresh = known.expires_at > time.time() + 5
+            if fresh and (may_learn(known.grants, target)
+                          or reusable(self._peer_learnt.get(endpoint), now=time.monotonic(), recheck=recheck)):
                 return known
-        task = self._peer_lookups.get(endpoint)
-        if task is None:
+        started, task = self._peer_lookups.get(endpoint, (None, None))
+        if task is None or not reusable(started, now=time.monotonic(), recheck=recheck):
+            started = time.monotonic()  # the token it brings is at least this fresh
+
             async def exchange() -> AccessToken:
                 try:
                     access = await self.gw.exchange_tokens(endpoint.host, endpoint.port)
-                    self._peer_learnt[endpoint] = time.time()
+                    self._peer_learnt[endpoint] = max(started, self._peer_learnt.get(endpoint, started))
                     return access
                 finally:
-                    self._peer_lookups.pop(endpoint, None)
+                    if self._peer_lookups.get(endpoint, (None, None))[1] is task:
+                        del self._peer_lookups[endpoint]
 
-            task = self._peer_lookups[endpoint] = asyncio.ensure_future(exchange())
+            task = asyncio.ensure_future(exchange())
+            self._peer_lookups[endpoint] = (started, task)
         return await asyncio.shield(task)
 
     async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int], first: bytes = b"") -> None:
@@ -607,19 +681,9 @@ class Ros2Role(Role):
 
     async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer,
                          first: bytes = b"", watched: WatchedStream | None = None) -> None:
-        key = (target.name, target.type)
-        advert = self._adverts.get(key)
-        if advert is None:
-            advert = self._adverts[key] = [next(self._chans), 0, {}]
-            link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
-                         qos=self._receiver_qos(target).to_dict())
-        advert[1] += 1
         qos = self._receiver_qos(target)
         kept_depth = qos.depth if qos.durability == "transient_local" else 0
         kept = 0  # what this stream makes this robot keep for late joiners: depth x largest sample
-        mine: collections.deque = collections.deque(maxlen=kept_depth or 1)  # its samples now kept
-        if kept_depth:
-            advert[2][id(mine)] = mine
         kept_limit = self.cfg.ros2.max_kept_bytes_per_peer
         log.info("republishing %s [%s] from %s (%s)", target.name, target.type, peer.manager, target.node)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
@@ -636,6 +700,12 @@ class Ros2Role(Role):
         # an 80 KB image would cost a pause/resume per message. Topic streams read big.
         if getattr(reader, "_limit", None) is not None:
             reader._limit = max(reader._limit, TOPIC_READ_SIZE)
+        # Each inbound stream has a DDS publisher of its own on this robot's domain, never
+        # one shared by every peer sending the topic: what one peer's stream does to its
+        # writer (a flood that wedges it and its readers: docs/ros2.md, samples kept for
+        # late joiners) is its own, and ends with the stream (its publisher is destroyed).
+        chan = next(self._chans)
+        link.control(op="advertise", chan=chan, topic=target.name, type=target.type, qos=qos.to_dict())
         try:
             async for data in read_chunks(reader, TOPIC_READ_SIZE, first):
                 rx.inc(len(data))
@@ -653,13 +723,6 @@ class Ros2Role(Role):
                                     peer.manager, target.name, target.type, bad[0])
                     refused += len(bad)
                     self.metrics.denied.labels("ros2_sample", "malformed_sample").inc(len(bad))
-                n = sum(run[2] for run in runs)
-                if budget is not None:
-                    # throttle, never stall: a batch larger than the bucket passes once the
-                    # bucket is full and leaves a debt the next reads wait out
-                    while (wait := budget.delay(n)) > 0:
-                        budget.throttled += 1
-                        await asyncio.sleep(wait)
                 if writer.transport.is_closing():
                     break  # cut (revoked, reloaded away): what is still buffered is not republished
                 if runs and kept_depth:
@@ -673,13 +736,26 @@ class Ros2Role(Role):
                                 "([ros2] max_kept_bytes_per_peer)"))
                         self._kept[peer.manager] = held
                         kept = largest * kept_depth
-                    mine.extend(p for run in runs for p in fr.payloads(run[3]))
                 if runs and watched is not None and gate is None:  # the monitor queues them; it scores later
                     watched.feed_messages([bytes(p) for run in runs for p in fr.payloads(run[3])])
-                if runs:
-                    chan = advert[0]
-                    blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
-                    link.send(blocks[0] if len(blocks) == 1 else b"".join(blocks))
+                if not runs:
+                    continue
+                blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
+                whole = blocks[0] if len(blocks) == 1 else bytearray(b"".join(blocks))
+                n = sum(run[2] for run in runs)
+                # throttled, never stalled: a read of a flood holds thousands of messages, and
+                # handing them to the domain at once is a flood of the local readers in itself
+                # (a reliable reader overrun by one writer stops delivering every writer's
+                # samples: docs/ros2.md). So a read goes on in pieces of at most the bucket,
+                # each when the peer's budget lets it; the rate holds within every second.
+                for count, piece in fr.pieces(whole, n, max(1, int(budget.burst)) if budget else n):
+                    if budget is not None:
+                        while (wait := budget.delay(count)) > 0:
+                            budget.throttled += 1
+                            await asyncio.sleep(wait)
+                    if writer.transport.is_closing():
+                        break  # cut while it waited: the rest is not republished
+                    link.send(piece)
                     # flow control: while the bridge is behind, stop reading this stream (TLS and
                     # TCP then hold the sender back) instead of buffering without bound
                     transport = link.transport
@@ -692,30 +768,14 @@ class Ros2Role(Role):
             peer.cut.setdefault("reason", "kept_budget")
             raise
         finally:
-            advert[2].pop(id(mine), None)
+            # its publisher goes with it, and with it every sample it kept for late joiners
+            link.control(op="unadvertise", chan=chan)
             if kept:
                 left = self._kept.get(peer.manager, 0) - kept
                 if left > 0:
                     self._kept[peer.manager] = left
                 else:
                     self._kept.pop(peer.manager, None)
-            advert[1] -= 1
-            if advert[1] <= 0 and self._adverts.get(key) is advert:
-                del self._adverts[key]
-                link.control(op="unadvertise", chan=advert[0])
-            elif kept and peer.cut and self._adverts.get(key) is advert:
-                # cut by authority (revoked, grant removed) or over budget: the samples it
-                # brought must not be replayed to late joiners. The topic's publisher is made
-                # anew and given only the other streams' kept samples again.
-                old, advert[0] = advert[0], next(self._chans)
-                link.control(op="unadvertise", chan=old)
-                link.control(op="advertise", chan=advert[0], topic=target.name, type=target.type,
-                             qos=qos.to_dict())
-                again = [fr.encode(fr.PUBLISH, advert[0], p) for other in advert[2].values() for p in other]
-                if again:
-                    link.send(b"".join(again))
-                log.info("dropped the samples kept for late joiners on %s (%s's stream was cut: %s)",
-                         target.name, peer.manager, peer.cut.get("reason"))
 
     def _receiver_qos(self, target: StreamTarget) -> QoS:
         """The sender's QoS is a request: this robot caps the depth at its own ``depth``
@@ -752,6 +812,19 @@ class Ros2Role(Role):
             link.control(op="unserve", chan=proxy.chan)
             for rid in proxy.pending:
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
+
+
+def reusable(learnt_at: float | None, *, now: float, recheck: float | None) -> bool:
+    """Whether a peer token learnt at ``learnt_at`` (monotonic) may answer "may it receive
+    this stream?" without asking the peer again. Between rechecks, one learnt within
+    PEER_RECHECK; at a recheck (``recheck``: when its wait ended), only one learnt at most
+    RECHECK_MARGIN before it, whatever the timer's precision: a grant re-added during the
+    wait is never answered by a token older than the wait."""
+    if learnt_at is None:
+        return False
+    if recheck is not None:
+        return learnt_at >= recheck - RECHECK_MARGIN
+    return now - learnt_at < PEER_RECHECK
 
 
 class _Gated(CdrError):
@@ -791,4 +864,4 @@ def _checked_runs(runs: list, check) -> tuple[list, list[str]]:
     return out, bad
 
 
-__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Role"]
+__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Role", "reusable"]

@@ -110,8 +110,20 @@ def ros2_env(domain: int, *, localhost_profile: bool = True) -> dict[str, str]:
     return localhost_env(env) if localhost_profile else env
 
 
+class Line(str):
+    """One line of a node's output, with ``at``: when (monotonic) it was read from the pipe."""
+
+    at: float
+
+    def __new__(cls, text: str) -> "Line":
+        line = super().__new__(cls, text)
+        line.at = time.monotonic()
+        return line
+
+
 class Lines:
-    """A process's stdout lines, read by a thread so every wait can be bounded."""
+    """A process's stdout lines (:class:`Line`), read by a thread so every wait can be
+    bounded, and timed as they come even while the test is busy elsewhere."""
 
     def __init__(self, proc: subprocess.Popen) -> None:
         self.proc = proc
@@ -120,7 +132,7 @@ class Lines:
 
     def _pump(self) -> None:
         for line in self.proc.stdout:
-            self.queue.put(line.rstrip("\n"))
+            self.queue.put(Line(line.rstrip("\n")))
         self.queue.put(None)
 
     def until(self, wanted: str | None, timeout: float) -> list[str]:
@@ -166,6 +178,87 @@ def got(lines: list[str]) -> list[int]:
     return [int(line.split()[1]) for line in lines if line.startswith("GOT ")]
 
 
+#: sequence numbers of an attacker's messages start here (robot A's talker counts from 0)
+INSIDER = 500_000
+#: every legitimate flow is back within this long after an attack ends
+BACK_WITHIN = 5.0
+
+
+class Arrivals:
+    """A listener's GOT lines, timed as they left its pipe (:class:`Line`), split by sender."""
+
+    def __init__(self, lines: Lines) -> None:
+        self.lines = lines
+        self.a: list[tuple[float, int]] = []  # (arrival, seq) of robot A's messages
+        self.insider: list[tuple[float, int]] = []
+        self.bad: list[str] = []
+        self.other: list[str] = []  # the last lines that were neither (errors, READY, END)
+
+    def _read(self, timeout: float) -> bool:
+        try:
+            line = self.lines.queue.get(timeout=timeout)
+        except Exception:  # queue.Empty
+            return False
+        if line is None:
+            raise AssertionError(f"robot B's listener ended; its last other lines: {self.other[-5:]}")
+        if line.startswith("GOT "):
+            seq = int(line.split()[1])
+            (self.insider if seq >= INSIDER else self.a).append((getattr(line, "at", time.monotonic()), seq))
+        elif line.startswith("BAD"):
+            self.bad.append(line)
+        else:
+            self.other = [*self.other[-9:], line]
+        return True
+
+    def until(self, done, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            left = deadline - time.monotonic()
+            assert left > 0, f"{what} within {timeout} s (robot A: {len(self.a)}, insider: {len(self.insider)})"
+            self._read(min(left, 0.2))
+
+    def more_from_a(self, count: int, timeout: float, what: str, *, since: float | None = None) -> None:
+        """Until ``count`` more of robot A's messages (``since``: printed after that time)."""
+        if since is None:
+            target = len(self.a) + count
+            self.until(lambda: len(self.a) >= target, timeout, what)
+        else:
+            self.until(lambda: sum(t > since for t, _ in self.a[-count:]) >= count, timeout, what)
+
+    def a_silence(self, start: float, stop: float | None = None) -> float:
+        """The longest silence of robot A's flow from ``start`` to ``stop`` (None: to its
+        last message), both ends counted."""
+        times = [start] + [t for t, _ in self.a if t > start and (stop is None or t < stop)]
+        times += [stop] if stop is not None else []
+        return max((b - a for a, b in zip(times, times[1:])), default=float("inf"))
+
+
+def assert_flow_held(seen: Arrivals, start: float, end: float, *, during_bound: float = BACK_WITHIN) -> None:
+    """Robot A's flow during an attack (``start`` to ``end``): never silent ``during_bound``
+    seconds; after it: back within BACK_WITHIN and never silent that long again."""
+    assert not seen.bad, seen.bad[:3]
+    during, after = seen.a_silence(start, end), seen.a_silence(end)
+    print(f"robot A's longest silence: {during:.2f} s during the attack, {after:.2f} s after it")
+    assert during < during_bound, f"robot A's flow was silent for {during:.1f} s during the attack"
+    assert after < BACK_WITHIN, f"robot A's flow was silent for {after:.1f} s after the attack"
+
+
+def flow_around(network, attack, *, during_bound: float = BACK_WITHIN) -> None:
+    """Robot A's talker (20 Hz) to robot B's listener on ``/chatter``, before, during
+    ``attack(seen)`` (it returns once the attack ended) and after it: never silent
+    BACK_WITHIN seconds (:func:`assert_flow_held`)."""
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        seen = Arrivals(sub)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+            seen.more_from_a(10, 40, "robot A's /chatter did not reach robot B before the attack")
+            start = time.monotonic()
+            attack(seen)
+            end = time.monotonic()
+            seen.more_from_a(60, 40, "robot A's flow did not come back after the attack", since=end)
+    assert_flow_held(seen, start, end, during_bound=during_bound)
+
+
 @dataclass
 class Robot:
     name: str
@@ -193,9 +286,11 @@ class Ros2Network:
     robots: dict[str, Robot] = field(default_factory=dict)
 
     @contextlib.contextmanager
-    def node(self, robot: str, script_name: str, *args: str, domain: int | None = None) -> Iterator[Lines]:
-        """An unmodified rclpy node on ``robot``'s domain; stopped on exit."""
-        env = ros2_env(self.robots[robot].domain if domain is None else domain)
+    def node(self, robot: str, script_name: str, *args: str, domain: int | None = None,
+             localhost_profile: bool = True) -> Iterator[Lines]:
+        """An unmodified rclpy node on ``robot``'s domain; stopped on exit. Without
+        ``localhost_profile`` it is started as a careless operator would, DDS on every interface."""
+        env = ros2_env(self.robots[robot].domain if domain is None else domain, localhost_profile=localhost_profile)
         proc = subprocess.Popen([str(self.python), str(NODES / script_name), *args], env=env, cwd=str(NODES),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
@@ -247,7 +342,8 @@ def robot_config(pki: TestPKIFactory, name: str, address: str, *, public: int, m
 
 @contextlib.contextmanager
 def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b", "robot_c"),
-                 policy: str = POLICY, extra: dict[str, str] | None = None) -> Iterator[Ros2Network]:
+                 policy: str = POLICY, extra: dict[str, str] | None = None,
+                 peers: dict[str, tuple[str, ...]] | None = None) -> Iterator[Ros2Network]:
     python = ros2_python()
     pki = TestPKIFactory(workdir / "pki")
     fingerprints = {}
@@ -268,7 +364,7 @@ def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b
             metrics = free_port("127.0.0.1", taken)
             config.write_text(robot_config(
                 pki, name, address, public=ports[name], metrics=metrics, domain=domain,
-                peers=[f"{HOSTS[p]}:{ports[p]}" for p in PEERS[name]], authz_url=daemon.base, python=python,
+                peers=[f"{HOSTS[p]}:{ports[p]}" for p in {**PEERS, **(peers or {})}[name]], authz_url=daemon.base, python=python,
                 extra=(extra or {}).get(name, ""),
             ))
             net.robots[name] = Robot(name, address, domain, ports[name], metrics, config)

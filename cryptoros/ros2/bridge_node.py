@@ -126,7 +126,9 @@ class Bridge:
         self.send_lock = threading.Lock()
         self.writers_lock = threading.Lock()
         self.max_size = max_size
-        self.pubs: dict[int, tuple[object, str, object]] = {}  # chan -> (publisher, topic, its C publish_raw)
+        #: chan -> (publisher, topic, its C publish_raw, message class, QoS)
+        self.pubs: dict[int, tuple[object, str, object, type, QoSProfile]] = {}
+        self.remade = 0  # writers made anew after they waited PUBLISH_PATIENCE
         self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
         #: chan -> the granted publisher nodes whose writers' samples are forwarded
         self.writer_nodes: dict[int, frozenset[str]] = {}
@@ -160,6 +162,7 @@ class Bridge:
                     "node": _fqn(i.node_name, i.node_namespace),
                     "reliability": "best_effort" if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT else "reliable",
                     "durability": "transient_local" if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
+                    "gid": bytes(i.endpoint_gid)[:8].hex(),  # its participant's GUID prefix starts it
                 }
                 for i in node.get_publishers_info_by_topic(name)
                 if _fqn(i.node_name, i.node_namespace) not in self.own_names
@@ -225,7 +228,7 @@ class Bridge:
         entry = self.pubs.get(chan)
         if entry is None:
             return
-        _, topic, publish_raw = entry
+        topic, publish_raw = entry[1], entry[2]
         now = time.monotonic()
         probe_at = self.stalled.get(chan)
         if probe_at is not None and now < probe_at:
@@ -246,7 +249,30 @@ class Bridge:
                 if now >= give_up:
                     self.stalled[chan] = now + STALLED_PROBE_INTERVAL
                     self._drop(chan, topic, str(exc))
+                    if probe_at is None:
+                        self._remake(chan)
                     return
+
+    def _remake(self, chan: int) -> None:
+        """A writer that waited PUBLISH_PATIENCE for its readers is destroyed and made
+        anew. Fast DDS can wedge a reliable reader that one KEEP_ALL writer overran: the
+        reader then waits for a repair that never comes and delivers nobody's samples
+        (every writer's on that topic), and the writer waits for its acknowledgement,
+        until the writer is gone (measured: docs/ros2.md). Its unsent samples are lost
+        with it; a reader that really stopped taking stops the new one too, and is probed."""
+        publisher, topic, _, cls, qos = self.pubs[chan]
+        self.node.destroy_publisher(publisher)
+        try:
+            fresh = self.node.create_publisher(cls, topic, qos)
+        except Exception as exc:
+            del self.pubs[chan]
+            self.error(f"cannot advertise {topic} again: {exc}", chan=chan)
+            return
+        self.pubs[chan] = (fresh, topic, fresh.handle.publish_raw, cls, qos)
+        self.remade += 1
+        if self.remade in (1, 10, 100) or self.remade % 1000 == 0:
+            self.error(f"{topic}: a writer waited {PUBLISH_PATIENCE:g} s for its local readers and was made anew "
+                       f"({self.remade} so far)", chan=chan)
 
     def _drop(self, chan: int, topic: str, why: str) -> None:
         self.dropped += 1
@@ -268,7 +294,7 @@ class Bridge:
             except Exception as exc:
                 self.error(f"cannot advertise {cmd.get('topic')}: {exc}", chan=chan)
                 return
-            self.pubs[chan] = (publisher, cmd["topic"], publisher.handle.publish_raw)
+            self.pubs[chan] = (publisher, cmd["topic"], publisher.handle.publish_raw, cls, qos)
         else:
             entry = self.pubs.pop(chan, None)
             self.stalled.pop(chan, None)

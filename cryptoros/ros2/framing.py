@@ -185,6 +185,24 @@ def retag(frames: bytearray, kind: int, channel: int) -> bytearray:
     return frames
 
 
+def pieces(frames: bytearray, count: int, most: int) -> list[tuple[int, bytearray]]:
+    """``count`` complete frames as pieces of at most ``most`` frames each, as
+    ``(frames in it, bytes)``; one piece (``frames`` itself) when they fit."""
+    if count <= most:
+        return [(count, frames)]
+    out, view = [], memoryview(frames)
+    pos, end, start, n = 0, len(frames), 0, 0
+    while pos < end:
+        (length,) = _LENGTH.unpack_from(view, pos)
+        pos += 4 + length
+        n += 1
+        if n == most or pos >= end:
+            out.append((n, bytearray(view[start:pos])))
+            start, n = pos, 0
+    view.release()
+    return out
+
+
 def payloads(frames: bytes | bytearray) -> list[bytes]:
     """The payloads of the complete frames in ``frames``."""
     out, view = [], memoryview(frames)
@@ -199,5 +217,5 @@ def payloads(frames: bytes | bytearray) -> list[bytes]:
 __all__ = [
     "CALL", "CONTROL", "DATA", "DEFAULT_MAX_SIZE", "FrameDecoder", "FrameError", "HEAD", "ID", "KINDS", "MESSAGE",
     "PUBLISH", "REPLY", "REQUEST", "RESULT", "SRV_REQUEST", "SRV_RESPONSE", "decode_control", "encode",
-    "encode_control", "payloads", "retag", "split_status",
+    "encode_control", "payloads", "pieces", "retag", "split_status",
 ]

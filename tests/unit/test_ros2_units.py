@@ -81,6 +81,31 @@ def test_runs_refuse_oversized_frames_from_the_header():
         decoder.runs()
 
 
+@given(st.lists(st.binary(max_size=40), min_size=1, max_size=60), st.integers(1, 70))
+def test_pieces_split_a_run_into_at_most_most_frames_each_and_lose_nothing(payloads, most):
+    frames = bytearray(b"".join(fr.encode(fr.DATA, 0, p) for p in payloads))
+    pieces = fr.pieces(frames, len(payloads), most)
+    assert all(0 < count <= most for count, _ in pieces)
+    assert sum(count for count, _ in pieces) == len(payloads)
+    assert [p for _, piece in pieces for p in fr.payloads(piece)] == payloads
+
+
+def test_a_recheck_never_reuses_a_peer_token_older_than_its_wait():
+    """A re-added grant reached its flow in 16 s once: the recheck's timer fired a hair
+    before PEER_RECHECK and reused the token learnt at its start. At a recheck only a
+    token learnt at most RECHECK_MARGIN before the wait ended counts, whatever the timer."""
+    from interceptor.ros2 import PEER_RECHECK, RECHECK_MARGIN, reusable
+
+    learnt = 100.0
+    ended = learnt + PEER_RECHECK - 0.001  # the timer fired early
+    assert not reusable(learnt, now=ended, recheck=ended)
+    assert reusable(ended - RECHECK_MARGIN, now=ended, recheck=ended)
+    assert not reusable(None, now=ended, recheck=ended)
+    # between rechecks, a token learnt within PEER_RECHECK answers
+    assert reusable(learnt, now=learnt + PEER_RECHECK - 0.1, recheck=None)
+    assert not reusable(learnt, now=learnt + PEER_RECHECK, recheck=None)
+
+
 def test_stream_target_round_trip_and_strict_decoding():
     t = StreamTarget(kind="topic", name="/scan", type="sensor_msgs/msg/LaserScan", node="/lidar",
                      qos=QoS(reliability="best_effort", durability="transient_local", depth=5))
@@ -192,3 +217,32 @@ def test_ros2_local_patterns_keep_names_on_the_robot(tmp_path):
     assert settings.is_local("/tf") and settings.is_local("/r0/pose") and settings.is_local("/r0/scan")
     assert not settings.is_local("/tf_static") and not settings.is_local("/team/map") and not settings.is_local("/r01")
     assert not _config(tmp_path, {"domain_id": 1, "python": "python"}).ros2.is_local("/tf")
+
+
+def test_the_exposure_scan_finds_a_participant_bound_beyond_loopback_and_its_process(tmp_path):
+    """A synthetic /proc: domain 55 is ports 21150..21399. Process 4242 has a metatraffic
+    port on 0.0.0.0 (no profile), 4243 only loopback ones (the profile), and a socket of
+    the domain's range on [::] belongs to nobody this user can read."""
+    import os
+
+    from cryptoros.ros2.exposure import ExposureScan, gid_pid16
+
+    header = "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
+    row = "   1: {addr}:{port:04X} 00000000:0000 07 00000000:00000000 00:00000000 00000000     0        0 {inode} 2\n"
+    net = tmp_path / "net"
+    net.mkdir()
+    (net / "udp").write_text(header + "".join(row.format(addr=a, port=p, inode=i) for a, p, i in (
+        ("00000000", 21160, 11), ("0100007F", 21162, 12), ("00000000", 46266, 13), ("0100007F", 21163, 14))))
+    (net / "udp6").write_text(header + row.format(addr="0" * 32, port=21170, inode=15))
+    for pid, inodes in ((4242, (11, 13)), (4243, (12, 14))):
+        (tmp_path / str(pid) / "fd").mkdir(parents=True)
+        (tmp_path / str(pid) / "cmdline").write_bytes(b"python3\0talker.py\0")
+        for n, inode in enumerate(inodes):
+            os.symlink(f"socket:[{inode}]", tmp_path / str(pid) / "fd" / str(n))
+    found = ExposureScan(55, proc=tmp_path).scan()
+    assert [(e.pid, e.sockets) for e in found] == [(4242, ("0.0.0.0:21160",)), (None, ("[::]:21170",))]
+    assert found[0].command == "python3 talker.py" and found[0].pid16 == 4242
+    assert ExposureScan(56, proc=tmp_path).scan() == ()
+    # Fast DDS puts the pid's low 16 bits in bytes 4-5 of the GUID prefix (pid 27809 = 0x6ca1)
+    assert gid_pid16("010f4037a16c13c0") == 27809
+    assert gid_pid16("0000000000000000") is None and gid_pid16("zz") is None

@@ -1,0 +1,159 @@
+"""Which participants of a robot's DDS domain are reachable from the network.
+
+rclpy (the PyPI wheels: Fast DDS, no DDS Security) tells nothing of a participant's
+locators: the graph has node names, endpoint GIDs and QoS only, and Fast DDS's builtin
+participant topic is not exposed. What the host does tell is where each process's
+sockets are bound. A participant on domain ``d`` binds its RTPS ports in
+``7400 + 250 d`` to ``7400 + 250 d + 249`` (the RTPS port mapping); with cryptoros's
+localhost profile every one of them is on 127.0.0.1, and one started without it (the
+built-in transports) binds them on every interface, which is also what it announces
+in discovery. So a socket of that range bound to anything but loopback is a
+participant of the domain that a stranger on the network can talk to.
+
+The process is then matched to the graph through the endpoint GID: Fast DDS puts the
+low 16 bits of its process id in bytes 4 and 5 (little-endian) of every GUID prefix
+(measured on Fast DDS 2.14: pid 27809 = 0x6ca1, prefix ``010f 4037 a16c ...``). Two
+processes sharing those 16 bits are both treated as reachable (fail closed).
+
+Linux only (``/proc/net/udp``, ``/proc/<pid>/fd``); another user's processes are seen
+by root only: an interceptor run as another user reports such a socket with pid None.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+PORT_BASE, DOMAIN_GAIN, PORTS_PER_DOMAIN = 7400, 250, 250
+
+
+@dataclass(frozen=True)
+class Exposed:
+    """One process with sockets of the domain bound beyond loopback."""
+
+    pid: int | None
+    command: str
+    sockets: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def pid16(self) -> int | None:
+        return None if self.pid is None else self.pid & 0xFFFF
+
+    def describe(self) -> str:
+        who = f"pid {self.pid} ({self.command})" if self.pid is not None else "a process of another user"
+        return f"{who} bound to {', '.join(self.sockets)}"
+
+
+def domain_ports(domain: int) -> range:
+    base = PORT_BASE + DOMAIN_GAIN * domain
+    return range(base, base + PORTS_PER_DOMAIN)
+
+
+def _address(hex_addr: str) -> str:
+    raw = bytes.fromhex(hex_addr)
+    if len(raw) == 4:
+        return ".".join(str(b) for b in raw[::-1])
+    words = [raw[i : i + 4][::-1] for i in range(0, 16, 4)]  # /proc prints each 32-bit word in host order
+    full = b"".join(words)
+    if full[:12] == b"\x00" * 10 + b"\xff\xff":
+        return ".".join(str(b) for b in full[12:])
+    return ":".join(full[i : i + 2].hex() for i in range(0, 16, 2))
+
+
+def parse_udp(text: str) -> list[tuple[str, int, int]]:
+    """``(address, port, inode)`` of every socket in a ``/proc/net/udp`` or ``udp6`` text."""
+    out = []
+    for line in text.splitlines()[1:]:
+        fields = line.split()
+        if len(fields) < 10 or ":" not in fields[1]:
+            continue
+        addr, port = fields[1].rsplit(":", 1)
+        out.append((_address(addr), int(port, 16), int(fields[9])))
+    return out
+
+
+def is_loopback(address: str) -> bool:
+    return address.startswith("127.") or address == "0000:0000:0000:0000:0000:0000:0000:0001"
+
+
+def _pretty(address: str) -> str:
+    if address == "0000:0000:0000:0000:0000:0000:0000:0000":
+        return "[::]"
+    return f"[{address}]" if ":" in address else address
+
+
+def exposed_inodes(sockets: list[tuple[str, int, int]], domain: int) -> dict[int, str]:
+    """inode -> ``address:port`` of the sockets of ``domain``'s RTPS ports not on loopback."""
+    ports = domain_ports(domain)
+    return {inode: f"{_pretty(addr)}:{port}" for addr, port, inode in sockets
+            if port in ports and not is_loopback(addr)}
+
+
+def socket_owners(inodes: set[int], proc: Path) -> dict[int, int]:
+    """inode -> pid of the processes (that this user may read) holding those sockets."""
+    wanted = {f"socket:[{i}]": i for i in inodes}
+    owners: dict[int, int] = {}
+    for entry in os.scandir(proc):
+        if not entry.name.isdigit():
+            continue
+        try:
+            for fd in os.scandir(f"{entry.path}/fd"):
+                inode = wanted.get(os.readlink(fd.path))
+                if inode is not None:
+                    owners[inode] = int(entry.name)
+        except OSError:  # gone, or another user's
+            continue
+    return owners
+
+
+def _command(pid: int, proc: Path) -> str:
+    try:
+        argv = (proc / str(pid) / "cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return "?"
+    return " ".join(a.decode(errors="replace") for a in argv if a)[:120]
+
+
+class ExposureScan:
+    """The domain's participants reachable from the network, read from ``proc``. The
+    socket tables are read on every :meth:`scan` (a few KB); processes' descriptors only
+    when the set of exposed sockets changed."""
+
+    def __init__(self, domain: int, proc: Path = Path("/proc")) -> None:
+        self.domain = domain
+        self.proc = proc
+        self._last: dict[int, str] = {}
+        self._found: tuple[Exposed, ...] = ()
+
+    def scan(self) -> tuple[Exposed, ...]:
+        sockets: list[tuple[str, int, int]] = []
+        for name in ("udp", "udp6"):
+            try:
+                sockets += parse_udp((self.proc / "net" / name).read_text())
+            except OSError:
+                continue
+        inodes = exposed_inodes(sockets, self.domain)
+        if inodes != self._last:
+            self._last = inodes
+            owners = socket_owners(set(inodes), self.proc) if inodes else {}
+            by_pid: dict[int | None, list[str]] = {}
+            for inode, where in sorted(inodes.items(), key=lambda kv: kv[1]):
+                by_pid.setdefault(owners.get(inode), []).append(where)
+            self._found = tuple(Exposed(pid, _command(pid, self.proc) if pid is not None else "?", tuple(where))
+                                for pid, where in sorted(by_pid.items(), key=lambda kv: (kv[0] is None, kv[0] or 0)))
+        return self._found
+
+
+def gid_pid16(gid_hex: str) -> int | None:
+    """The low 16 bits of the process id a Fast DDS endpoint GID carries (bytes 4-5)."""
+    try:
+        raw = bytes.fromhex(gid_hex)
+    except ValueError:
+        return None
+    if len(raw) < 6 or raw[:2] != b"\x01\x0f":  # eProsima's vendor id: only Fast DDS lays it out so
+        return None
+    return int.from_bytes(raw[4:6], "little")
+
+
+__all__ = ["Exposed", "ExposureScan", "domain_ports", "exposed_inodes", "gid_pid16", "is_loopback", "parse_udp"]

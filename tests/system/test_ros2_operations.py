@@ -1,0 +1,156 @@
+"""The ROS 2 role's timing bounds while an operator changes grants and restarts things.
+
+Robot A's rclpy talker publishes ``/chatter`` to robot B's never-restarted listener
+through the interceptors. Each bound is measured from the operator's action to the
+first message robot B's listener receives after it, with a bounded wait:
+
+- a grant re-added to robot B reaches its flow within 10 s, every time (two rounds, at
+  two phases of robot A's peer recheck);
+- flows resume within 15 s after the authorization server returns from an outage long
+  enough to make every interceptor's revocation feed stale (new streams refused);
+- flows resume within 20 s after either robot's interceptor restarts.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+
+from tests.ros2_support import collect, ros2_network
+
+#: robots refuse new streams once their revocation feed is this old (default 60 s)
+FEED_AGE = 8
+
+
+@pytest.fixture(scope="module")
+def network(tmp_path_factory):
+    limits = f"[limits]\nmax_feed_age = {FEED_AGE}"
+    with ros2_network(tmp_path_factory.mktemp("ros2-ops"), start=("robot_a", "robot_b"),
+                      extra={"robot_a": limits, "robot_b": limits}) as net:
+        yield net
+
+
+def _silent(sub, seconds: float, timeout: float) -> None:
+    """Until robot B's listener received nothing for ``seconds`` (bounded by ``timeout``)."""
+    deadline = time.monotonic() + timeout
+    quiet_since = time.monotonic()
+    while time.monotonic() - quiet_since < seconds:
+        assert time.monotonic() < deadline, f"the flow never stopped within {timeout} s"
+        lines = sub.until(None, 0.2)
+        if any(line.startswith("GOT") for line in lines):
+            quiet_since = time.monotonic()
+
+
+def _first_message_within(sub, start: float, bound: float, what: str) -> None:
+    """Robot B's listener receives a message within ``bound`` seconds of ``start``."""
+    collect(sub, 1, max(0.0, start + bound - time.monotonic()))  # AssertionError past the bound
+    took = time.monotonic() - start
+    print(f"{what}: first message after {took:.1f} s")
+    assert took < bound, f"{what}: the first message came after {took:.1f} s"
+
+
+def test_a_re_added_grant_reaches_its_flow_within_10_s_every_time(network):
+    try:
+        with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+            sub.until("READY", 20)
+            with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+                collect(sub, 10, 40)
+                for extra_wait in (0.0, 2.5):  # two phases of robot A's 5 s recheck
+                    network.cli("revoke", "robot_b", "subscribe", "*", "/chatter")
+                    _silent(sub, 2.0, 20)  # robot A cut its stream and no longer offers it to B
+                    time.sleep(extra_wait)
+                    start = time.monotonic()
+                    network.cli("grant", "robot_b", "subscribe", "*", "/chatter", "std_msgs/msg/String")
+                    _first_message_within(sub, start, 10, "re-added grant")
+    finally:
+        network.cli("grant", "robot_b", "subscribe", "*", "/chatter", "std_msgs/msg/String")
+
+
+def _health(network, name: str) -> str:
+    """``status`` of the robot's /healthz: ok, or why not (503: feed_stale, ...)."""
+    url = f"http://127.0.0.1:{network.robots[name].metrics_port}/healthz"
+    try:
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return json.loads(reply.read())["status"]
+    except urllib.error.HTTPError as exc:
+        return json.loads(exc.read())["status"]
+
+
+def test_flows_resume_within_15_s_after_the_authorization_server_returns(network):
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+            collect(sub, 5, 40)
+        _silent(sub, 1.0, 10)
+        network.daemon.stop()
+        try:
+            deadline = time.monotonic() + FEED_AGE + 30
+            while _health(network, "robot_b") != "feed_stale":
+                assert time.monotonic() < deadline, "robot B's feed never went stale"
+                time.sleep(0.5)
+            with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "1000"):
+                # the new talker's stream is refused while the feed is stale (fail closed)
+                assert not [line for line in sub.until(None, 4) if line.startswith("GOT")]
+                start = time.monotonic()
+                network.daemon.start()
+                _first_message_within(sub, start, 15, "authorization server back")
+                collect(sub, 20, 10)  # and it keeps flowing
+        finally:
+            if network.daemon.proc is None or network.daemon.proc.poll() is not None:
+                network.daemon.start()
+    assert "feed_stale" in network.robots["robot_b"].denials()
+
+
+@pytest.mark.parametrize("robot", ["robot_a", "robot_b"])
+def test_flows_resume_within_20_s_after_a_robots_interceptor_restarts(network, robot):
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+            collect(sub, 5, 40)
+            network.stop(robot)
+            _silent(sub, 1.0, 10)
+            start = time.monotonic()
+            network.start(robot)
+            _first_message_within(sub, start, 20, f"{robot}'s interceptor restarted")
+            collect(sub, 20, 10)
+
+
+def test_a_participant_reachable_from_the_network_is_reported_and_its_topics_not_carried(network):
+    """A talker under robot A's granted name, started without the localhost DDS settings
+    (its RTPS sockets on every interface): robot A reports it in its log, ``/status``
+    (``cryptoros status``) and ``--check``, and carries none of its messages; the same
+    talker started with the profile flows (the control)."""
+    import subprocess
+
+    from tests.support import script
+
+    a = network.robots["robot_a"]
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "7000",
+                          localhost_profile=False) as talker:
+            talker.until("READY", 20)
+            deadline = time.monotonic() + 30
+            # reported as soon as its sockets exist; its node once discovery names it
+            while "reachable from the network" not in a.logs() or "/talker on this robot" not in a.denials():
+                assert time.monotonic() < deadline, "robot A never reported the exposed participant"
+                time.sleep(0.2)
+            assert "DENY ros2_publish from local domain" in a.denials() and "exposed_participant" in a.denials()
+            with urllib.request.urlopen(f"http://127.0.0.1:{a.metrics_port}/status", timeout=5) as reply:
+                ros2 = json.loads(reply.read())["ros2"]
+            assert [e["pid"] for e in ros2["exposed_participants"]] == [talker.proc.pid]
+            assert "/talker" in ros2["exposed_nodes"]
+            check = subprocess.run([script("cryptoros-interceptor"), "--config", str(a.config), "--check"],
+                                   capture_output=True, text=True, timeout=60)
+            assert f"pid {talker.proc.pid}" in check.stderr and "reachable from the network" in check.stderr
+            shown = subprocess.run([script("cryptoros"), "status", "--config", str(a.config)],
+                                   capture_output=True, text=True, timeout=60)
+            assert f"warning   DDS participant on domain {a.domain} reachable from the network: pid {talker.proc.pid}" \
+                in shown.stdout, shown.stdout + shown.stderr
+            assert not [line for line in sub.until(None, 4) if line.startswith("GOT")]
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "8000"):
+            collect(sub, 5, 40)  # the control: the same talker with the profile is carried
