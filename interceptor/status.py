@@ -63,19 +63,7 @@ def render(status: dict) -> list[str]:
 @click.option("--json", "as_json", is_flag=True, help="Print the raw JSON.")
 def status(config_path: str | None, url: str | None, as_json: bool) -> None:
     """Show this host's interceptor: token subject, grants, expiry, feed and CRL age, peers."""
-    if not url:
-        if not config_path:
-            raise click.UsageError("give --config FILE (or --url http://127.0.0.1:PORT/status)")
-        try:
-            url = _url_from_config(config_path)
-        except ConfigError as exc:
-            raise click.ClickException(str(exc)) from None
-    try:
-        with urllib.request.urlopen(url, timeout=5) as resp:
-            body = json.loads(resp.read())
-    except (urllib.error.URLError, OSError, ValueError) as exc:
-        click.echo(f"cryptoros status: error: cannot read {url}: {getattr(exc, 'reason', exc)}", err=True)
-        raise SystemExit(2) from None
+    body = _read_status(config_path, url, "cryptoros status")
     click.echo(json.dumps(body, indent=2) if as_json else "\n".join(render(body)))
     raise SystemExit(0 if body.get("health") == "ok" else 1)
 
@@ -95,7 +83,7 @@ def render_denials(status: dict) -> list[str]:
     return lines
 
 
-def _read_status(config_path: str | None, url: str | None) -> dict:
+def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoros") -> dict:
     if not url:
         if not config_path:
             raise click.UsageError("give --config FILE (or --url http://127.0.0.1:PORT/status)")
@@ -107,7 +95,7 @@ def _read_status(config_path: str | None, url: str | None) -> dict:
         with urllib.request.urlopen(url, timeout=5) as resp:
             return json.loads(resp.read())
     except (urllib.error.URLError, OSError, ValueError) as exc:
-        click.echo(f"cryptoros: error: cannot read {url}: {getattr(exc, 'reason', exc)}", err=True)
+        click.echo(f"{prog}: error: cannot read {url}: {getattr(exc, 'reason', exc)}", err=True)
         raise SystemExit(2) from None
 
 
@@ -119,7 +107,7 @@ def denials(config_path: str | None, url: str | None, as_json: bool) -> None:
     """Show the refusals this host's interceptor made lately, grouped by who, why and
     what, with the `cryptoros-authz grant ...` that would allow each (run it on the
     authorization server's host; nothing is granted from here)."""
-    body = _read_status(config_path, url)
+    body = _read_status(config_path, url, "cryptoros denials")
     click.echo(json.dumps(body.get("denials") or [], indent=2) if as_json else "\n".join(render_denials(body)))
 
 

@@ -37,6 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from cryptoros.errors import PolicyDenied
+from cryptoros.exposure import is_loopback_host
 
 SCHEME = "cryptoros"
 MASTER = "cryptoros://master"
@@ -86,14 +87,8 @@ def is_loopback(host: str) -> bool:
     return isinstance(host, str) and _is_loopback_name(host)
 
 
-@functools.lru_cache(maxsize=256)  # every registration asks (ipaddress parses a string in ~15 us)
-def _is_loopback_name(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+# every registration asks (ipaddress parses a string in ~15 us)
+_is_loopback_name = functools.lru_cache(maxsize=256)(is_loopback_host)
 
 
 def _parse_ros_uri(uri: str) -> tuple[str, str, int]:

@@ -142,9 +142,9 @@ class Deployment:
             state = self.local_master("master").getSystemState("/test")[2]
         return {n for section in state for _name, nodes in section for n in nodes}
 
-    def token(self, manager: str) -> int:
-        """The HTTP status of a token request with ``manager``'s certificate (0: the
-        handshake itself was refused)."""
+    def token_reply(self, manager: str) -> tuple[int, dict]:
+        """(HTTP status, body) of a token request with ``manager``'s certificate
+        (0: the handshake itself was refused)."""
         ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
         ctx.check_hostname = False
         ctx.load_verify_locations(cafile=str(self.work / "pki" / "ca.crt"))
@@ -154,24 +154,20 @@ class Deployment:
         opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=ctx))
         try:
             with opener.open(urllib.request.Request(url, data=b"grant_type=client_credentials"), timeout=10) as reply:
-                return reply.status
+                return reply.status, json.loads(reply.read())
         except urllib.error.HTTPError as exc:
-            return exc.code
+            return exc.code, {}
         except OSError:
-            return 0
+            return 0, {}
+
+    def token(self, manager: str) -> int:
+        return self.token_reply(manager)[0]
 
     def token_kid(self, manager: str) -> str | None:
         import jwt
 
-        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        ctx.check_hostname = False
-        ctx.load_verify_locations(cafile=str(self.work / "pki" / "ca.crt"))
-        ctx.load_cert_chain(str(self.work / "pki" / "issued" / f"{manager}.crt"),
-                            str(self.work / "pki" / "private" / f"{manager}.key"))
-        url = f"https://{self.hosts['master'].address}:{PORTS['AUTHZ_PORT']}/token"
-        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=ctx))
-        with opener.open(urllib.request.Request(url, data=b"grant_type=client_credentials"), timeout=10) as reply:
-            return jwt.get_unverified_header(json.loads(reply.read())["access_token"])["kid"]
+        status, body = self.token_reply(manager)
+        return jwt.get_unverified_header(body["access_token"])["kid"] if status == 200 else None
 
     def receives(self, within: float = 15) -> None:
         """Robot B's listener gets robot A's talker's messages (again)."""
