@@ -24,7 +24,7 @@ from pathlib import Path
 
 import click
 
-from cryptoros.bench.replay import LABELS, MACHINES, SENSORS
+from cryptoros.bench.replay_spec import LABELS, MACHINES, SENSORS
 
 #: quoted from seed 002, never computed
 PAPER = {
