@@ -185,7 +185,7 @@ def summarize(runs: list[dict]) -> dict:
 
 @click.command("cipher-replay")
 @click.option("--quick", is_flag=True, help="A 6 s bag, one repetition, plain and AES only on both computers (the test).")
-@click.option("--seconds", type=click.FloatRange(4, 3600), default=30.0, show_default=True, help="Length of the bag.")
+@click.option("--seconds", type=click.FloatRange(4, 3600), default=20.0, show_default=True, help="Length of the bag.")
 @click.option("--reps", type=click.IntRange(1, 20), default=3, show_default=True, help="Repetitions (the paper: 3).")
 @click.option("--ciphers", "cipher_list", default=",".join(CIPHERS), show_default=True, help="Comma-separated.")
 @click.option("--machines", "machine_list", default="full,atom", show_default=True,
@@ -217,6 +217,7 @@ def cipher_replay(quick: bool, seconds: float, reps: int, cipher_list: str, mach
 
     if report_path is not None:
         report = json.loads(report_path.read_text())
+        report["derived"] = rr.derive(report)
     else:
         started = time.monotonic()
         say = _progress(started)

@@ -53,15 +53,16 @@ CU = {"full": "CU A", "i7": "CU A", "atom": "CU B"}
 
 
 def share_symbol(delivered: float, published: float) -> str:
-    """Table 2: ✓ at least 95 % of the messages delivered; ∅ at least 40 %; ⇌ fewer."""
+    """Table 2: ✓ at least 90 % of the messages delivered (the pipeline without a cipher
+    loses 1 to 3 %); ∅ at least 40 %; ⇌ fewer."""
     s = delivered / published
-    return "✓" if s >= 0.95 else "∅" if s >= 0.40 else "⇌"
+    return "✓" if s >= 0.90 else "∅" if s >= 0.40 else "⇌"
 
 
 def table4_symbol(delivered: float, published: float) -> str:
-    """Table 4: ✓ (no problem) at least 95 % delivered; ○ (minor adjustments) at least 40 %; ▼ fewer."""
+    """Table 4: ✓ (no problem) at least 90 % delivered; ○ (minor adjustments) at least 40 %; ▼ fewer."""
     s = delivered / published
-    return "✓" if s >= 0.95 else "○" if s >= 0.40 else "▼"
+    return "✓" if s >= 0.90 else "○" if s >= 0.40 else "▼"
 
 
 def score(value: float, limits: tuple[float, float, float]) -> int:
@@ -185,9 +186,10 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                 extra = f" (paper {paper}" + (f"; our rule on the paper's figures {rule}" if rule else "") + ")" if paper else ""
                 row.append(v[cat] + extra)
             rows.append(row)
-        rows.append([MACHINES[machine], "custom", *(["not measured (the paper's replay had none either)"] * len(by))])
+        rows.append([MACHINES[machine], "custom", *(["not measured"] * len(by))])
     if t2:
-        blocks.append(("Table 2 in the paper's categories (✓ >= 95 % delivered, ∅ >= 40 %, ⇌ fewer)",
+        blocks.append(("Table 2 in the paper's categories (✓ >= 90 % delivered, ∅ >= 40 %, ⇌ fewer; custom messages: "
+                        "none in the paper's replay either)",
                        ["computer", "messages", *(LABELS[c] for c in next(iter(t2.values())))], rows))
     t4 = der.get("table4", {})
     rows = []
@@ -199,7 +201,7 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                 row.append(v[mode] + (f" (paper {paper})" if paper else ""))
             rows.append(row)
     if t4:
-        blocks.append(("Table 4 (navigation = the laser topic, perception = the camera; ✓ >= 95 % delivered, "
+        blocks.append(("Table 4 (navigation = the laser topic, perception = the camera; ✓ >= 90 % delivered, "
                        "○ >= 40 %, ▼ fewer; dialog: no stream in the paper's bag)",
                        ["computer", "robot system", *(LABELS[c] for c in next(iter(t4.values())))], rows))
     en = der.get("energy", {})
@@ -284,7 +286,7 @@ def plots(report: dict, out: Path) -> list[Path]:
         return v["mean"], (v["mean"] - v["min"], v["max"] - v["mean"])
 
     # delivered of 30/s (and of 10/s) per cipher, with the CPU of the four nodes
-    fig, axes = plt.subplots(1, len(machines), figsize=(6.5 * len(machines), 4.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(machines), figsize=(6.5 * len(machines), 5.6), squeeze=False)
     for ax, machine in zip(axes[0], machines):
         ciphers = list(s[machine])
         x = np.arange(len(ciphers))
@@ -308,10 +310,10 @@ def plots(report: dict, out: Path) -> list[Path]:
         ax.set_xticks(x, [LABELS[c] for c in ciphers], rotation=20, fontsize=8)
         ax.set_ylim(0, 34)
         ax.set_ylabel("messages delivered per second")
-        ax.set_title(MACHINES[machine], fontsize=10)
+        ax.set_title(MACHINES[machine] + (f" (images: {report['config'].get('image', 'compressed')})"), fontsize=10)
         h1, l1 = ax.get_legend_handles_labels()
         h2, l2 = ax2.get_legend_handles_labels()
-        ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="lower left")
+        ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2)
     fig.suptitle("Seed 002 replayed: messages delivered through encrypting + decrypting rospy nodes", fontsize=11)
     fig.tight_layout()
     paths.append(out / "replay-delivered.png")

@@ -19,8 +19,9 @@ Two ways to train and score, ``mode``:
   Every clean message of an attacked window is then flagged too.
 * ``"message"``: what the paper names as the better approach ("a classification for
   each message individually ... a single flag to be set": Keras's
-  ``return_sequences``): one output per row, trained on each message's own label, run
-  over a whole recording causally (each message's output sees only the rows before it).
+  ``return_sequences``): one output per row, trained on each message's own label over
+  windows of ``window`` rows side by side, and run over a recording the same way (each
+  message's output sees the rows before it in its window).
 
 Both: the positive class weighted by negatives over positives (``pos_weight``), Adam,
 mini-batches of 64, and, when validation sequences are given, early stopping on the
@@ -195,7 +196,9 @@ class LstmBaseline:
 
     def _data(self, sequences: Iterable[Sequence]) -> tuple[np.ndarray, np.ndarray]:
         per_message = self.mode == "message"
-        stride = max(1, self.window // 2)
+        # windows: half-overlapping (the paper's one label each); per message: side by side
+        # (every message has its own label either way)
+        stride = self.window if per_message else max(1, self.window // 2)
         xs, ys = [], []
         for seq in sequences:
             if len(seq.rows) < self.window:
@@ -274,17 +277,22 @@ class LstmBaseline:
 
     def outputs(self, seq: Sequence) -> tuple[np.ndarray, float]:
         """Per message, the network's output (a probability), and the CPU seconds per
-        message. ``message`` mode: the whole recording in one causal pass."""
+        message. ``message`` mode: the recording in windows side by side."""
         torch = _torch()
         flags = np.zeros(len(seq.rows), dtype=np.float32)
         if self._net is None or len(seq.rows) == 0:
             return flags, 0.0
         rows = seq.inputs(self.inputs) / self._scale
         if self.mode == "message":
+            # in chunks of ``window`` rows, each from a zero state: what the network was
+            # trained on (a whole recording in one pass drifts past the lengths it saw)
+            n, w = len(rows), self.window
+            padded = np.zeros((-(-n // w) * w, rows.shape[1]), dtype=np.float32)
+            padded[:n] = rows
             start = time.process_time()
             with torch.no_grad():
-                out = torch.sigmoid(self._net(torch.from_numpy(np.ascontiguousarray(rows[None], dtype=np.float32))))[0]
-            return out.numpy().astype(np.float32), (time.process_time() - start) / len(rows)
+                out = torch.sigmoid(self._net(torch.from_numpy(padded.reshape(-1, w, rows.shape[1])))).reshape(-1)[:n]
+            return out.numpy().astype(np.float32), (time.process_time() - start) / n
         if len(rows) < self.window:
             return flags, 0.0
         x = np.lib.stride_tricks.sliding_window_view(rows, (self.window, rows.shape[1]))[:, 0]
