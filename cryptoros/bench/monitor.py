@@ -118,6 +118,7 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, val_se
         # allows: detectors compared at the same false-positive rate, not only as published
         matched = evaluate_lstm(lstm, sequences, threshold_for(sequences, outputs, MATCHED_FPR), outputs)
         variants = _ablation(train_seqs, val_seqs, sequences, window, epochs, patience, say) if ablation else []
+        by_kind = _by_kind(lstm, sequences, outputs)
         if plots_dir is not None:
             say("ROC curves and delays ...")
             _plots(plots_dir, model, lstm, eval_runs, sequences, robot, ours, theirs, matched)
@@ -143,6 +144,11 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, val_se
     click.echo(f"LSTM training: {theirs['train_cpu_s']} CPU s, {lstm.epochs_run} epochs (best {lstm.best_epoch}); "
                f"{theirs['parameters']:,} trainable parameters (the paper: {PAPER_PARAMETERS:,}, which is 150 cells "
                f"on its 367-float rows; 160 cells make 338,081)")
+    click.echo("\nLSTM per message, per kind of run (each kind's runs with the clean runs; the paper's attacks were "
+               "spoofed positions, noise scans and a stop flood):")
+    for kind, f in by_kind.items():
+        click.echo(f"  {kind:46s} accuracy {f['accuracy']}  F1 {f['f1']}  FP rate {f['false_positive_rate']}  "
+                   f"recall {f['recall']}  ({f['messages']} messages)")
     if variants:
         click.echo("\nLSTM variants (per message, held-out runs, threshold 0.5):")
         click.echo(f"{'variant':58s} {'params':>8s} {'epochs':>7s} {'acc':>6s} {'F1':>6s} {'FP rate':>8s} {'recall':>7s} "
@@ -155,7 +161,28 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, val_se
         json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "lstm_matched": matched, "train_seeds": train_list,
                                          "lstm_train_seeds": lstm_train_list, "val_seeds": val_list,
                                          "eval_seeds": eval_list, "robot": robot, "epochs": epochs, "window": window,
-                                         "lstm_history": lstm.history, "variants": variants}, indent=1))
+                                         "lstm_history": lstm.history, "variants": variants, "lstm_by_kind": by_kind}, indent=1))
+
+
+def _by_kind(lstm, sequences: list, outputs: list) -> dict:
+    """The LSTM's per-message figures on each kind of run (with the clean runs), and on
+    the paper's three kinds of attack together."""
+    from cryptoros.monitor.lstm import evaluate_lstm
+
+    def kind(name: str) -> str:
+        return name.split("-", 1)[1] if "-" in name else name
+
+    clean = [i for i, seq in enumerate(sequences) if not seq.attack.any()]
+    groups = {k: [i for i, seq in enumerate(sequences) if kind(seq.name) == k and seq.attack.any()]
+              for k in sorted({kind(seq.name) for seq in sequences})}
+    groups = {k: v for k, v in groups.items() if v}
+    groups["the paper's three (spoof-pose, scan-noise, cmd-flood)"] = [
+        i for i, seq in enumerate(sequences) if kind(seq.name) in ("spoof-pose", "scan-noise", "cmd-flood")]
+    out = {}
+    for k, idx in groups.items():
+        pick = idx + clean
+        out[k] = evaluate_lstm(lstm, [sequences[i] for i in pick], outputs=[outputs[i] for i in pick])
+    return out
 
 
 def _ablation(train_seqs: list, val_seqs: list, sequences: list, window: int, epochs: int, patience: int,
@@ -171,7 +198,8 @@ def _ablation(train_seqs: list, val_seqs: list, sequences: list, window: int, ep
         ("each message's label, no weights, no early stopping", dict(balance=False, epochs=min(epochs, 60)),
          train_seqs, []),
         ("  + time since the previous message as input", dict(inputs="paper+dt"), train_seqs, val_seqs),
-        ("  + 150 cells (the paper's parameter count)", dict(inputs="paper+dt", hidden=150), train_seqs, val_seqs),
+        ("each message's label, weights, early stopping, 150 cells (310,951 parameters)", dict(hidden=150),
+         train_seqs, val_seqs),
         ("  + half the training runs", dict(inputs="paper+dt"), half, val_seqs),
     ]
     out = []
