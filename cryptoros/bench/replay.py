@@ -200,8 +200,10 @@ def summarize(runs: list[dict]) -> dict:
               help="Also time the paper's ciphers per image under PYTHON with PyCrypto (Crypto) and pycryptodome "
                    "(Cryptodome) importable, unthrottled and in the Atom stand-in (why drop rates differ).")
 @click.option("--check/--no-check", "do_check", default=True, help="Time a reference workload in the stand-in first.")
-@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None)
-@click.option("--plots", "plots_dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write every run and figure as JSON.")
+@click.option("--plots", "plots_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also draw replay-delivered, -cpu, -bytes and -fig9 .png into this directory.")
 @click.option("--markdown", is_flag=True, help="Print the tables as Markdown.")
 @click.option("--report", "report_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Measure nothing: print (and --plots) an earlier run's --json.")
