@@ -25,8 +25,9 @@ from pathlib import Path
 from cryptoros.errors import ConfigError
 
 #: Published single-thread ratings (PassMark's CPU benchmark pages, cpubenchmark.net,
-#: "Single Thread Rating"; approximate, read off those pages, not measured here): the
-#: paper's two computers and the CPU family of this machine (AMD EPYC 9004, Zen 4).
+#: "Single Thread Rating"; approximate figures recalled from those pages, not re-checked
+#: from this machine, not measured here): the paper's two computers and the CPU family of
+#: this machine (AMD EPYC 9004, Zen 4).
 #: Cross-check from a retrieved source: Tom's Hardware ("Intel Fires Up New Atom
 #: Processors") quotes SPECint2000 653 for a 1.6 GHz Atom core against about 1,900 for
 #: a 1.86 GHz Core 2 Duo E6300 core: an Atom core at 1.8 GHz is about 0.39 of a Core 2
