@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "authz": "cryptoros.bench.authz:authz",
     "fleet": "cryptoros.bench.fleet:fleet",
     "ciphers": "cryptoros.bench.ciphers:ciphers",
+    "cipher-replay": "cryptoros.bench.replay:cipher_replay",
     "insider": "cryptoros.bench.insider:insider",
     "monitor": "cryptoros.bench.monitor:monitor",
     "interceptor": "cryptoros.bench.interceptor:interceptor",

@@ -3,13 +3,22 @@ by side in one run, on a dataset of ``cryptoros monitor dataset``.
 
 Both are trained on the runs of ``--train-seeds`` (ours on their clean runs only: it
 learns what normal looks like; the LSTM on all of them: it is a supervised classifier,
-as in the paper) and scored on every run of ``--eval-seeds``, on the messages of one
+as in the paper; the runs of ``--val-seeds`` decide when its training stops) and scored
+on every run of ``--eval-seeds``, on the messages of one
 robot (``--robot``, the compromised one: what seed 001's detector watches; ours also
 reads the robot's team packets, which the paper's rows have no place for). Figures:
 per-message accuracy, precision, recall, F1, false positives among clean messages,
 per-run accuracy, median detection delay after the onset, and the CPU per message
-(ours: decode + features + score, message by message; the LSTM: its sliding window per
-message, batched). The issue's targets are printed beside them.
+(ours: decode + features + score, message by message; the LSTM: one causal pass over a
+recording, or its sliding window per message in ``window`` mode). The issue's targets
+are printed beside them, and the LSTM's parameter count beside the paper's 310,951.
+
+``--ablation`` also trains and scores the LSTM variants that say where it loses (the
+main one is each message's own label, class weights, early stopping): the paper's proof
+of concept (one label per window, no class weights, all epochs), window labels with
+class weights and early stopping, each message's label without weights or early
+stopping, with the time between messages as input, with 150 cells (the paper's
+parameter count), and on half the training runs.
 """
 
 from __future__ import annotations
@@ -54,22 +63,38 @@ def _seeds(text: str, option: str) -> list[int]:
 @click.option("--train-seeds", default="1", show_default=True, help="Seeds whose runs train both detectors.")
 @click.option("--eval-seeds", default="2", show_default=True, help="Seeds whose runs score them (held out).")
 @click.option("--robot", default="r0", show_default=True, help="The robot whose messages are scored.")
-@click.option("--epochs", default=250, show_default=True, type=click.IntRange(1, 10000), help="LSTM epochs (paper: 250).")
+@click.option("--val-seeds", default="", help="Seeds whose runs stop the LSTM's training (early stopping); none: "
+              "the last train seed's runs when there are two or more, else the full --epochs.")
+@click.option("--epochs", default=250, show_default=True, type=click.IntRange(1, 10000),
+              help="LSTM epochs at most (paper: 250).")
+@click.option("--patience", default=15, show_default=True, type=click.IntRange(1, 1000),
+              help="Epochs without a better validation loss before the LSTM stops.")
 @click.option("--window", default=200, show_default=True, type=click.IntRange(10, 2000),
-              help="LSTM sequence length in messages (paper: 2,000 rows of a 20 s bag).")
+              help="LSTM sequence length in messages for training (paper: 2,000 rows of a 20 s bag).")
+@click.option("--hidden", default=160, show_default=True, type=click.IntRange(1, 4096),
+              help="LSTM cells (the paper's text: 160; its parameter count fits 150).")
+@click.option("--mode", type=click.Choice(["message", "window"]), default="message", show_default=True,
+              help="message: one output per message, each message's own label; window: the paper's one label per sequence.")
+@click.option("--inputs", type=click.Choice(["paper", "paper+dt"]), default="paper", show_default=True,
+              help="The paper's 367-float row, or with the time since the previous message.")
+@click.option("--ablation", is_flag=True, help="Also train and score the LSTM's variants (where it loses).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the figures as JSON.")
 @click.option("--plots", "plots_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also draw roc.png (both detectors) and delays.png (per attack) into this directory.")
-def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs: int, window: int,
-            json_path: Path | None, plots_dir: Path | None) -> None:
+def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, val_seeds: str, epochs: int, patience: int,
+            window: int, hidden: int, mode: str, inputs: str, ablation: bool, json_path: Path | None,
+            plots_dir: Path | None) -> None:
     """Our monitor against seed 001's LSTM on DATASET (from `cryptoros monitor dataset`)."""
     from cryptoros.monitor.dataset import evaluate, scoring_cost_us, train
-    from cryptoros.monitor.lstm import LstmBaseline, evaluate_lstm, paper_rows, threshold_for
+    from cryptoros.monitor.lstm import PAPER_PARAMETERS, LstmBaseline, evaluate_lstm, paper_rows, threshold_for
 
     train_list, eval_list = _seeds(train_seeds, "--train-seeds"), _seeds(eval_seeds, "--eval-seeds")
-    clean, train_runs, eval_runs = (_bags(dataset, train_list, clean_only=True), _bags(dataset, train_list),
+    val_list = _seeds(val_seeds, "--val-seeds") if val_seeds else (train_list[-1:] if len(train_list) > 1 else [])
+    lstm_train_list = [s for s in train_list if s not in val_list]
+    clean, train_runs, eval_runs = (_bags(dataset, train_list, clean_only=True), _bags(dataset, lstm_train_list),
                                     _bags(dataset, eval_list))
+    val_runs = _bags(dataset, val_list)
     if not clean or not eval_runs:
         raise click.ClickException(f"{dataset}: no clean run of seeds {train_seeds} or no run of seeds {eval_seeds}")
     say = lambda m: click.echo(m, err=True)  # noqa: E731
@@ -78,14 +103,22 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
         model = train(clean)
         ours = evaluate(model, eval_runs, robot=robot).figures()
         ours["cpu_us_per_message"] = scoring_cost_us(model, eval_runs, robot)["p50"]
-        say(f"seed 001's LSTM: {epochs} epochs on {len(train_runs)} run(s) (windows of {window}) ...")
-        lstm = LstmBaseline(window=window, epochs=epochs).fit(paper_rows(b, robot) for b in train_runs)
+        train_seqs = [paper_rows(b, robot) for b in train_runs]
+        val_seqs = [paper_rows(b, robot) for b in val_runs]
         sequences = [paper_rows(b, robot) for b in eval_runs]
+        lstm = LstmBaseline(window=window, epochs=epochs, hidden=hidden, mode=mode, inputs=inputs, patience=patience)
+        say(f"seed 001's LSTM ({mode} mode, {inputs} inputs, {hidden} cells: {lstm.parameters():,} trainable parameters, "
+            f"the paper's {PAPER_PARAMETERS:,}): at most {epochs} epochs on {len(train_runs)} run(s), early stopping on "
+            f"{len(val_runs)} run(s) of seeds {val_list or 'none'} ...")
+        lstm.fit(train_seqs, val_seqs, progress=say)
+        say(f"  stopped after {lstm.epochs_run} epochs, best {lstm.best_epoch}")
         outputs = [lstm.outputs(seq) for seq in sequences]
         theirs = evaluate_lstm(lstm, sequences, outputs=outputs)
         # the LSTM's threshold raised until it flags no more clean messages than the target
         # allows: detectors compared at the same false-positive rate, not only as published
         matched = evaluate_lstm(lstm, sequences, threshold_for(sequences, outputs, MATCHED_FPR), outputs)
+        variants = _ablation(train_seqs, val_seqs, sequences, window, epochs, patience, say) if ablation else []
+        by_kind = _by_kind(lstm, sequences, outputs)
         if plots_dir is not None:
             say("ROC curves and delays ...")
             _plots(plots_dir, model, lstm, eval_runs, sequences, robot, ours, theirs, matched)
@@ -108,11 +141,75 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, epochs
     click.echo("delays after onset, ours: " + json.dumps(ours["delays_s"]))
     click.echo("delays after onset, LSTM: " + json.dumps(theirs["delays_s"]))
     click.echo("delays after onset, LSTM <=0.5% FP: " + json.dumps(matched["delays_s"]))
-    click.echo(f"LSTM training: {theirs['train_cpu_s']} CPU s")
+    click.echo(f"LSTM training: {theirs['train_cpu_s']} CPU s, {lstm.epochs_run} epochs (best {lstm.best_epoch}); "
+               f"{theirs['parameters']:,} trainable parameters (the paper: {PAPER_PARAMETERS:,}, which is 150 cells "
+               f"on its 367-float rows; 160 cells make 338,081)")
+    click.echo("\nLSTM per message, per kind of run (each kind's runs with the clean runs; the paper's attacks were "
+               "spoofed positions, noise scans and a stop flood):")
+    for kind, f in by_kind.items():
+        click.echo(f"  {kind:46s} accuracy {f['accuracy']}  F1 {f['f1']}  FP rate {f['false_positive_rate']}  "
+                   f"recall {f['recall']}  ({f['messages']} messages)")
+    if variants:
+        click.echo("\nLSTM variants (per message, held-out runs, threshold 0.5):")
+        click.echo(f"{'variant':58s} {'params':>8s} {'epochs':>7s} {'acc':>6s} {'F1':>6s} {'FP rate':>8s} {'recall':>7s} "
+                   f"{'run acc':>8s} {'median delay':>12s}")
+        for v in variants:
+            f = v["figures"]
+            click.echo(f"{v['name']:58s} {f['parameters']:>8,} {f['epochs_run']:>7} {f['accuracy']:>6} {f['f1']:>6} "
+                       f"{f['false_positive_rate']:>8} {f['recall']:>7} {f['run_accuracy']:>8} {str(f['median_delay_s']):>12s}")
     if json_path is not None:
         json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "lstm_matched": matched, "train_seeds": train_list,
-                                         "eval_seeds": eval_list, "robot": robot, "epochs": epochs,
-                                         "window": window}, indent=1))
+                                         "lstm_train_seeds": lstm_train_list, "val_seeds": val_list,
+                                         "eval_seeds": eval_list, "robot": robot, "epochs": epochs, "window": window,
+                                         "lstm_history": lstm.history, "variants": variants, "lstm_by_kind": by_kind}, indent=1))
+
+
+def _by_kind(lstm, sequences: list, outputs: list) -> dict:
+    """The LSTM's per-message figures on each kind of run (with the clean runs), and on
+    the paper's three kinds of attack together."""
+    from cryptoros.monitor.lstm import evaluate_lstm
+
+    def kind(name: str) -> str:
+        return name.split("-", 1)[1] if "-" in name else name
+
+    clean = [i for i, seq in enumerate(sequences) if not seq.attack.any()]
+    groups = {k: [i for i, seq in enumerate(sequences) if kind(seq.name) == k and seq.attack.any()]
+              for k in sorted({kind(seq.name) for seq in sequences})}
+    groups = {k: v for k, v in groups.items() if v}
+    groups["the paper's three (spoof-pose, scan-noise, cmd-flood)"] = [
+        i for i, seq in enumerate(sequences) if kind(seq.name) in ("spoof-pose", "scan-noise", "cmd-flood")]
+    out = {}
+    for k, idx in groups.items():
+        pick = idx + clean
+        out[k] = evaluate_lstm(lstm, [sequences[i] for i in pick], outputs=[outputs[i] for i in pick])
+    return out
+
+
+def _ablation(train_seqs: list, val_seqs: list, sequences: list, window: int, epochs: int, patience: int,
+              say) -> list[dict]:
+    """The LSTM's variants, each trained and scored on the same runs."""
+    from cryptoros.monitor.lstm import LstmBaseline, evaluate_lstm
+
+    half = [s for i, s in enumerate(train_seqs) if i % 2 == 0]
+    plans = [
+        ("paper's proof of concept: window labels, no weights, 250 epochs",
+         dict(mode="window", balance=False, epochs=epochs), train_seqs, []),
+        ("window labels, class weights, early stopping", dict(mode="window"), train_seqs, val_seqs),
+        ("each message's label, no weights, no early stopping", dict(balance=False, epochs=min(epochs, 60)),
+         train_seqs, []),
+        ("  + time since the previous message as input", dict(inputs="paper+dt"), train_seqs, val_seqs),
+        ("each message's label, weights, early stopping, 150 cells (310,951 parameters)", dict(hidden=150),
+         train_seqs, val_seqs),
+        ("  + half the training runs", dict(inputs="paper+dt"), half, val_seqs),
+    ]
+    out = []
+    for name, options, train, val in plans:
+        say(f"ablation: {name.strip()} ...")
+        kwargs = {"window": window, "epochs": epochs, "patience": patience, **options}
+        model = LstmBaseline(**kwargs).fit(train, val)
+        out.append({"name": name, "options": options, "train_runs": len(train),
+                    "figures": evaluate_lstm(model, sequences)})
+    return out
 
 
 def _plots(out: Path, model, lstm, eval_runs: list[Path], sequences, robot: str, ours: dict, theirs: dict,
