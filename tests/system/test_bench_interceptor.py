@@ -73,7 +73,10 @@ def test_bench_interceptor_quick(tmp_path):
     checks = setup["interceptor"]["checks"]
     accepted = checks.get("in_full", 0) + checks.get("in_resumed", 0) - spares_waiting(checks)
     assert checks.get("in_resumed", 0) >= 1, checks
-    assert checks["certificate"] >= 2 * accepted and checks["token"] >= 2 * accepted, checks
+    # a spare connection that expired became a token exchange: one token check, not two
+    # (seen in 1 of 4 runs: certificate 19, token 17 with 9 accepted and spare_expired 1)
+    assert checks["certificate"] >= 2 * accepted, checks
+    assert checks["token"] >= 2 * accepted - checks.get("spare_expired", 0), checks
     assert "resumed" in result.stdout and "peer certificate (validity + CRL) checked" in result.stdout
 
     assert report["targets"] and all(isinstance(t["met"], bool) for t in report["targets"])
