@@ -7,8 +7,12 @@ master's error escape as an exception: ros_comm 1.15's ``rosparam set`` catches 
 cryptoros refuses would end in a traceback whose last line is the refusal. This hook
 prints such an uncaught error as the tools print their own errors, ``ERROR: denied by
 cryptoros: <reason>`` (exit status 1, as any uncaught exception); every other exception
-is reported as before. It then runs the installation's own ``sitecustomize`` (Debian
-ships one), which this file would otherwise hide.
+is reported as before. ``rosnode kill`` ignores the node's answer to ``shutdown`` and
+prints ``killed`` whatever it was: when ``rosnode`` is imported, its ``kill_nodes`` is
+wrapped so that a node whose ``shutdown`` cryptoros refused is reported as not killed
+(``ERROR: Failed to kill``, exit status 1) after the refusal's line. It then runs the
+installation's own ``sitecustomize`` (Debian ships one), which this file would otherwise
+hide.
 
 Standalone on purpose: the tools run under the system's Python, without cryptoros.
 """
@@ -30,6 +34,65 @@ def _one_line_refusal(kind, value, tb):
     _previous_hook(kind, value, tb)
 
 
+def _shutdown(module, name):
+    """(code, message) of node ``name``'s answer to ``shutdown``, or None when it could
+    not be asked (gone, or it went down while answering)."""
+    from xmlrpc.client import ServerProxy
+
+    try:
+        uri = module.rosgraph.Master(module.ID).lookupNode(name)
+        code, message, _value = ServerProxy(uri).shutdown(module.ID, "user request")
+    except Exception:
+        return None
+    return code, str(message)
+
+
+def _patch_rosnode(module):
+    original = module.kill_nodes
+
+    def kill_nodes(node_names):
+        success, fail, unasked = [], [], []
+        for name in node_names:
+            answer = _shutdown(module, name)
+            if answer is None:
+                unasked.append(name)  # rosnode's own way: looked up again, its failure reported
+            elif answer[0] != 1 and _REFUSED in answer[1]:
+                sys.stderr.write(f"ERROR: {answer[1]}\n")
+                fail.append(name)
+            else:  # shut down (or an error rosnode itself would not report)
+                success.append(name)
+        if unasked:
+            more_success, more_fail = original(unasked)
+            success += more_success
+            fail += more_fail
+        return success, fail
+
+    module.kill_nodes = kill_nodes
+
+
+class _PatchOnImport:
+    """A finder that lets ``rosnode`` load as usual, then wraps its ``kill_nodes``."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname != "rosnode":
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
+        if spec is None or spec.loader is None:
+            return None
+        loader = spec.loader
+        run = loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            try:
+                _patch_rosnode(module)
+            except AttributeError:  # another rosnode than ros_comm 1.15's: left as it is
+                pass
+
+        loader.exec_module = exec_module
+        return spec
+
+
 def _run_next_sitecustomize():
     here = os.path.dirname(os.path.abspath(__file__))
     rest = [p for p in sys.path if os.path.abspath(p or os.curdir) != here]
@@ -44,4 +107,5 @@ def _run_next_sitecustomize():
 
 
 sys.excepthook = _one_line_refusal
+sys.meta_path.insert(0, _PatchOnImport())
 _run_next_sitecustomize()

@@ -267,7 +267,14 @@ def test_refusals_read_like_ros_errors_and_unreadable_parameters_like_unset_ones
         assert code == 1
         assert xmlrpc.client.ServerProxy(relay).shutdown("/rosnode", "user request") == \
             [-1, "denied by cryptoros: shutdown_dropped", 0]
-        tool(net, "rosnode", "kill", "/talker_a")  # ros_comm prints "killed" whatever the answer
+        plain = tool(net, "rosnode", "kill", "/talker_a")  # ros_comm prints "killed" whatever the answer
+        assert "killed" in plain.stdout, plain
+        # through cryptoros run (its hook wraps rosnode's kill_nodes): the refusal and a failure
+        killed = run([str(VENV_BIN / "cryptoros"), "run", "--config", str(net.hosts["robot_b"].config), "--",
+                      "rosnode", "kill", "/talker_a"], env=net.ros_env("robot_b"), timeout=20)
+        assert killed.returncode == 1 and "killed" not in killed.stdout, killed
+        assert "ERROR: denied by cryptoros: shutdown_dropped" in killed.stderr.splitlines(), killed
+        assert "ERROR: Failed to kill:" in killed.stderr and "Traceback" not in killed.stderr, killed
         ping = tool(net, "rosnode", "ping", "-c", "1", "/talker_a")
         assert ping.returncode == 0 and pub.poll() is None, ping
 
