@@ -798,6 +798,15 @@ def relay_rows(report: dict) -> list[list[str]]:
     return out
 
 
+def echo_markdown_table(title: str, headers: list[str], rows: list[list[str]]) -> None:
+    """One titled Markdown table on standard output (the benches' --markdown)."""
+    click.echo(f"\n**{title}**\n")
+    click.echo("| " + " | ".join(headers) + " |")
+    click.echo("|" + "---|" * len(headers))
+    for row in rows:
+        click.echo("| " + " | ".join(row) + " |")
+
+
 def render(report: dict, markdown: bool) -> None:
     blocks = [
         ("Per message: encrypt + decrypt, one core, this machine and the Atom stand-in", TABLE_HEADERS, table_rows(report)),
@@ -817,11 +826,7 @@ def render(report: dict, markdown: bool) -> None:
                        ["run", "negotiated", "frames", "msgs/s", "MB/s", "CPU us/msg, both interceptors", "received"], relay_rows(report)))
     if markdown:
         for title, headers, rows in blocks:
-            click.echo(f"\n**{title}**\n")
-            click.echo("| " + " | ".join(headers) + " |")
-            click.echo("|" + "---|" * len(headers))
-            for row in rows:
-                click.echo("| " + " | ".join(row) + " |")
+            echo_markdown_table(title, headers, rows)
     else:
         from rich.console import Console
         from rich.table import Table

@@ -260,13 +260,11 @@ def tables(report: dict) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def render(report: dict, markdown: bool) -> None:
+    from cryptoros.bench.ciphers import echo_markdown_table
+
     for title, headers, rows in tables(report):
         if markdown:
-            click.echo(f"\n**{title}**\n")
-            click.echo("| " + " | ".join(headers) + " |")
-            click.echo("|" + "---|" * len(headers))
-            for row in rows:
-                click.echo("| " + " | ".join(row) + " |")
+            echo_markdown_table(title, headers, rows)
         else:
             click.echo(f"\n{title}")
             widths = [max(len(str(x)) for x in col) for col in zip(headers, *rows)]
