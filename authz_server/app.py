@@ -12,8 +12,12 @@ CA never gets past the handshake):
   manager is granted too (``invalid_target`` for an unknown or disabled peer).
 - ``GET /.well-known/jwks.json``: the active key and every retired key a still-valid
   token may have been signed with.
-- ``GET /revocations``: revoked token ids (unexpired) and disabled managers, with a
-  monotonic serial and an ``ETag`` so polls are cheap.
+- ``GET /revocations``: revoked token ids (unexpired), disabled managers and the
+  managers in learning mode (until when), with a monotonic serial and an ``ETag`` so
+  polls are cheap.
+- ``POST /observations``: what an interceptor saw its own manager's nodes do (learning
+  mode, unused grants; :mod:`authz_server.learning`), filed under the manager of the
+  certificate that sends it.
 - ``GET /healthz`` and ``GET /metrics`` (Prometheus text format).
 
 Database calls run in a small thread pool, never on the event loop; the JWKS and the
@@ -47,8 +51,9 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from authz_server import keys as keymod
 from authz_server.config import ServeConfig
-from authz_server.registry import AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
-from cryptoros.errors import ConfigError, CryptorosError, PKIError, TokenError
+from authz_server.learning import checked_observations
+from authz_server.registry import MAX_OBSERVATIONS, AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
+from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
@@ -67,6 +72,8 @@ log = logging.getLogger("cryptoros.authz")
 T = TypeVar("T")
 
 MAX_BODY = 16 * 1024
+#: ``POST /observations`` per certificate: a rate a second and a burst
+OBSERVE_RATE, OBSERVE_BURST = 2.0, 30
 #: how often each replica reads the feed from the registry (long-polls wake on a change)
 FEED_WATCH_INTERVAL = 0.25
 #: the longest ``?wait=`` a client may ask for; it is held at most ``max_feed_wait`` (config)
@@ -401,6 +408,8 @@ class AuthzService:
         self._signer: _Signer | None = None
         self.audit = _AuditWriter(self)
         self._token_bucket = TokenBuckets(cfg.token_rate, cfg.token_burst)
+        #: reports of observations per certificate (an interceptor sends one every few seconds)
+        self._observe_bucket = TokenBuckets(OBSERVE_RATE, OBSERVE_BURST)
         self._rate_log = OncePer(60.0)
         self._pruner: asyncio.Task | None = None
         self._watcher: asyncio.Task | None = None
@@ -525,7 +534,8 @@ class AuthzService:
 
     def _stable(self, feed: RevocationFeed) -> tuple[dict, str]:
         stable: dict[str, Any] = {"serial": feed.serial, "revoked_jtis": list(feed.revoked_jtis),
-                                  "disabled_managers": list(feed.disabled_managers)}
+                                  "disabled_managers": list(feed.disabled_managers),
+                                  "learning": dict(feed.learning)}
         if self.crl is not None:  # certificates the CA revoked reach interceptors with no SIGHUP
             self.crl.refresh()
             stable["revoked_serials"] = sorted(format(n, "x") for n in self.crl.revoked)
@@ -678,6 +688,30 @@ class AuthzService:
         )
 
 
+    async def observe(self, request: web.Request) -> web.Response:
+        """``POST /observations``: what the caller's interceptor saw its own nodes do
+        (:mod:`authz_server.learning`), filed under the manager its certificate belongs
+        to and no other. Learned requests are taken only while that manager learns;
+        nothing here can start learning mode (only ``cryptoros-authz learn start``)."""
+        der = peer_cert_der(request.transport.get_extra_info("ssl_object") if request.transport else None)
+        fp = cert_fingerprint_sha256(der)
+        if not self._observe_bucket.allow(fp):
+            return _oauth_error(429, "slow_down")
+        info, _grants = await self.manager_for(fp)
+        if info is None or not info.enabled:
+            return _oauth_error(401 if info is None else 403, "invalid_client" if info is None else "access_denied")
+        if request.content_type != "application/json":
+            return _oauth_error(400, "invalid_request")
+        try:
+            rows = checked_observations(await request.json(), now=time.time())
+        except (ValueError, RegistryError) as exc:
+            return web.json_response({"error": "invalid_request", "error_description": str(exc)[:200]}, status=400)
+        accepted, refused = await self.db(self.registry.record_observations, info.name, rows)
+        if refused:
+            log.info("observations from %s: %d refused (not learning, or over its %d rows)", info.name, refused,
+                     MAX_OBSERVATIONS)
+        return web.json_response({"accepted": accepted, "refused": refused})
+
     async def _narrowed(self, resource: str, grants: Grants, manager: str) -> tuple[str, Grants, str]:
         """Audience, grants and audit note of a token for the peer ``resource`` names
         (``urn:cryptoros:peer:<x5t#S256>``): only the grants on topics and services the
@@ -765,6 +799,9 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
 
     async def token(request: web.Request) -> web.Response:
         return await service.issue(request)
+
+    async def observations(request: web.Request) -> web.Response:
+        return await service.observe(request)
 
     async def jwks(request: web.Request) -> web.Response:
         body = json.dumps(await service.jwks(), sort_keys=True).encode()
@@ -861,6 +898,7 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         return app
     app = web.Application(middlewares=[guard], client_max_size=MAX_BODY)
     app.router.add_post("/token", token)
+    app.router.add_post("/observations", observations)
     app.router.add_get("/.well-known/jwks.json", jwks)
     app.router.add_get("/revocations", revocations)
     app.router.add_get("/healthz", healthz)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -24,8 +23,9 @@ from pathlib import Path
 import click
 
 from authz_server import keys as keymod
-from authz_server.changes import ChangeSource, parse_since, summary
-from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, open_registry
+from authz_server.changes import parse_since, summary
+from authz_server.cli_context import registry as _registry
+from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
@@ -61,25 +61,6 @@ class _Group(click.Group):
 def main(ctx: click.Context, db_url: str) -> None:
     """cryptoros-authz: the authorization registry and access-token issuer."""
     ctx.obj = {"db": db_url}
-
-
-def _registry(ctx: click.Context, *, create: bool = False) -> Registry:
-    engine = open_registry(ctx.obj["db"], create=create)
-    ctx.call_on_close(engine.dispose)
-    return Registry(engine, source=ChangeSource.here(_command_line(ctx)))
-
-
-def _command_line(ctx: click.Context) -> str:
-    """The command a change is recorded with: the verb and its arguments as typed,
-    without the group's options (``--db`` may hold a password)."""
-    verb = ctx.command_path.split()[1:2]
-    args = sys.argv[1:]
-    i = 0
-    while i < len(args) and args[i].startswith("-"):
-        i += 2 if args[i] == "--db" else 1
-    if verb and args[i:i + 1] == verb:
-        return shlex.join([PROG, *args[i:]])
-    return ctx.command_path  # run in-process (not from a command line)
 
 
 def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
@@ -645,9 +626,10 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
 
 
 # ---------------------------------------------------------------------- policy authoring
+from authz_server.learn_cli import COMMANDS as _LEARN_COMMANDS  # noqa: E402
 from authz_server.policy_cli import COMMANDS as _POLICY_COMMANDS  # noqa: E402
 
-for _command in _POLICY_COMMANDS:  # policy from-graph, import-sros2, export-sros2
+for _command in (*_POLICY_COMMANDS, *_LEARN_COMMANDS):  # policy from-graph, import-sros2, export-sros2; learn, unused
     main.add_command(_command)
 
 

@@ -51,6 +51,9 @@ class Manager(Base):
     previous_until: Mapped[int | None] = mapped_column(Integer, nullable=True)
     enabled: Mapped[bool] = mapped_column(Boolean, nullable=False, default=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), nullable=False)
+    #: learning mode (``cryptoros-authz learn start``): the window, in Unix seconds
+    learning_since: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    learning_until: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
     publishers: Mapped[list[Publisher]] = relationship(
         back_populates="manager", cascade="all, delete-orphan", order_by="Publisher.id"
@@ -157,6 +160,28 @@ GRANT_TABLES: dict[str, tuple[type, str, str]] = {
     "read_param": (ParamReader, "namespace", "param_readers"),
     "write_param": (ParamWriter, "namespace", "param_writers"),
 }
+
+
+class Observation(Base):
+    """What a manager's interceptors saw its nodes do (``POST /observations``): a request a
+    grant allowed (``allowed``), or one only learning mode let through. One row per
+    (manager, allowed, action, node, name, type); ``data_type`` is ``""`` when the
+    request did not tell it (a service registration)."""
+
+    __tablename__ = "observation"
+    __table_args__ = (UniqueConstraint("manager_id", "allowed", "action", "node", "name", "data_type",
+                                       name="uq_observation"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
+    allowed: Mapped[bool] = mapped_column(Boolean, nullable=False)
+    action: Mapped[str] = mapped_column(String(16), nullable=False)
+    node: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    count: Mapped[int] = mapped_column(Integer, nullable=False)
+    first_seen: Mapped[int] = mapped_column(Integer, nullable=False)
+    last_seen: Mapped[int] = mapped_column(Integer, nullable=False, index=True)
 
 
 class RevokedToken(Base):

@@ -15,20 +15,14 @@ from pathlib import Path
 
 import click
 
-from authz_server.db import open_registry
+from authz_server.cli_context import registry as _registry
 from authz_server.graph_policy import ManagerMap, draft_policy, read_graph
-from authz_server.registry import GrantRow, Registry
+from authz_server.registry import GrantRow
 from cryptoros.errors import RegistryError
 
 PROG = "cryptoros-authz"
 _MAP_HELP = ("PATTERN=MANAGER (repeatable, first match wins): an fnmatch pattern on the {what} "
              "('/robot_a/*=robot_a'; '*' matches '/' too){extra}.")
-
-
-def _registry(ctx: click.Context, *, create: bool = False) -> Registry:
-    engine = open_registry(ctx.find_root().obj["db"], create=create)
-    ctx.call_on_close(engine.dispose)
-    return Registry(engine)
 
 
 def _write(output: str | None, text: str) -> None:

@@ -46,6 +46,7 @@ from authz_server.models import (
     GRANT_TABLES,
     AuditLog,
     Manager,
+    Observation,
     RegistryChange,
     RegistryState,
     RevokedToken,
@@ -55,6 +56,12 @@ from cryptoros.errors import ConfigError, RegistryError
 from cryptoros.names import PARAM_TYPE, validate_graph_name, validate_namespace, validate_node_name, validate_type
 
 ACTIONS = ("publish", "subscribe", "serve", "call", "read_param", "write_param")
+#: the longest learning window (seconds)
+MAX_LEARNING_S = 24 * 3600
+#: a learned request reported this long after its window ended is still taken (seconds)
+LEARNING_REPORT_SLACK = 60
+#: observations kept per manager
+MAX_OBSERVATIONS = 20_000
 PARAM_ACTIONS = ("read_param", "write_param")
 
 
@@ -139,6 +146,21 @@ class ManagerInfo:
 
 
 @dataclass(frozen=True)
+class ObservationRow:
+    """One observation (:class:`~authz_server.models.Observation`) as read."""
+
+    manager: str
+    allowed: bool
+    action: str
+    node: str
+    name: str
+    type: str | None
+    count: int
+    first_seen: int
+    last_seen: int
+
+
+@dataclass(frozen=True)
 class ActiveKey:
     kid: str
     private_pem: bytes
@@ -161,6 +183,8 @@ class RevocationFeed:
     disabled_managers: tuple[str, ...]
     #: the registry's REGISTRY_VERSION when this was read (not served: the replicas' own)
     registry_version: int = 0
+    #: (manager, until) of every learning window not ended yet
+    learning: tuple[tuple[str, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -779,7 +803,89 @@ class Registry:
             jtis = tuple(s.scalars(select(RevokedToken.jti).where(RevokedToken.expires_at > int(now))
                                    .order_by(RevokedToken.jti)))
             disabled = tuple(s.scalars(select(Manager.name).where(Manager.enabled.is_(False)).order_by(Manager.name)))
-            return RevocationFeed(serial, jtis, disabled, counters.get(REGISTRY_VERSION) or 0)
+            learning = tuple(s.execute(select(Manager.name, Manager.learning_until)
+                                       .where(Manager.learning_until > int(now)).order_by(Manager.name)).tuples())
+            return RevocationFeed(serial, jtis, disabled, counters.get(REGISTRY_VERSION) or 0, learning)
+
+    # ------------------------------------------------------------------ learning mode
+    def set_learning(self, name: str, seconds: float | None, *, now: float | None = None) -> tuple[int, int] | None:
+        """Put ``name`` in learning mode for ``seconds`` (at most :data:`MAX_LEARNING_S`),
+        or end it (None). The feed carries the window to every interceptor. Returns the
+        window (since, until), or None when it ended one (or there was none)."""
+        now = int(time.time() if now is None else now)
+        if seconds is not None and not 0 < seconds <= MAX_LEARNING_S:
+            raise RegistryError(f"a learning window lasts 1 s to {MAX_LEARNING_S // 3600} h, not {seconds!r} s")
+        with self._changing() as s:
+            m = self._manager(s, name)
+            active = m.learning_until is not None and m.learning_until > now
+            if seconds is None and not active:
+                return None
+            before = {"learning_since": m.learning_since, "learning_until": m.learning_until}
+            if seconds is None:
+                m.learning_until = now
+            else:
+                m.learning_since = m.learning_since if active else now
+                m.learning_until = now + int(seconds)
+            self._bump_serial(s)
+            self._log_change(s, f"manager {name} learning", before,
+                             {"learning_since": m.learning_since, "learning_until": m.learning_until})
+            return None if seconds is None else (m.learning_since, m.learning_until)
+
+    def learning_window(self, name: str) -> tuple[int | None, int | None]:
+        """``name``'s last learning window (since, until), ended or not."""
+        with self._session() as s:
+            m = self._manager(s, name)
+            return m.learning_since, m.learning_until
+
+    def record_observations(self, name: str, rows: Iterable[Mapping], *, now: float | None = None) -> tuple[int, int]:
+        """Add what ``name``'s interceptor reports (rows validated by the caller:
+        :func:`authz_server.learning.checked_observation`). A learned request is taken
+        only while the manager learns (a report sent just after the end included:
+        :data:`LEARNING_REPORT_SLACK`); a manager keeps at most :data:`MAX_OBSERVATIONS`
+        rows. Returns (accepted, refused)."""
+        now = int(time.time() if now is None else now)
+        accepted = refused = 0
+        with self._session.begin() as s:
+            m = self._manager(s, name)
+            learning = m.learning_until is not None and m.learning_until + LEARNING_REPORT_SLACK > now
+            held = s.scalar(select(func.count(Observation.id)).where(Observation.manager_id == m.id)) or 0
+            for r in rows:
+                if not r["allowed"] and not learning:
+                    refused += 1
+                    continue
+                key = (Observation.manager_id == m.id, Observation.allowed.is_(bool(r["allowed"])),
+                       Observation.action == r["action"], Observation.node == r["node"],
+                       Observation.name == r["name"], Observation.data_type == (r["type"] or ""))
+                row = s.scalars(select(Observation).where(*key)).first()
+                if row is None:
+                    if held >= MAX_OBSERVATIONS:
+                        refused += 1
+                        continue
+                    held += 1
+                    s.add(Observation(manager_id=m.id, allowed=bool(r["allowed"]), action=r["action"], node=r["node"],
+                                      name=r["name"], data_type=r["type"] or "", count=r["count"],
+                                      first_seen=int(r["first"]), last_seen=int(r["last"])))
+                else:
+                    row.count = min(row.count + r["count"], 2**31 - 1)
+                    row.first_seen, row.last_seen = min(row.first_seen, int(r["first"])), max(row.last_seen, int(r["last"]))
+                accepted += 1
+        return accepted, refused
+
+    def observations(self, name: str | None = None, *, allowed: bool | None = None,
+                     since: float | None = None) -> list[ObservationRow]:
+        """Recorded observations (of one manager, of one kind, last seen at ``since`` or later)."""
+        with self._session() as s:
+            q = select(Manager.name, Observation).join(Manager, Manager.id == Observation.manager_id)
+            if name is not None:
+                q = q.where(Manager.name == validate_manager_name(name))
+            if allowed is not None:
+                q = q.where(Observation.allowed.is_(allowed))
+            if since is not None:
+                q = q.where(Observation.last_seen >= int(since))
+            return [ObservationRow(mname, o.allowed, o.action, o.node, o.name, o.data_type or None, o.count,
+                                   o.first_seen, o.last_seen)
+                    for mname, o in s.execute(q.order_by(Manager.name, Observation.action, Observation.node,
+                                                         Observation.name))]
 
     # ------------------------------------------------------------------ audit
     def record(self, entries: Iterable[AuditEntry]) -> None:

@@ -125,6 +125,10 @@ class Grants:
         """Exact match on action, name and type; the node by :func:`node_matches`."""
         return any(node_matches(granted, node) for granted in self._index.get((action, name, type), ()))
 
+    def any_node_allows(self, action: str, name: str, type_name: str) -> bool:
+        """Whether some node of the manager may ``action`` ``name`` with ``type_name``."""
+        return (action, name, type_name) in self._index
+
     def types_for(self, action: str, node: str, name: str) -> frozenset[str]:
         """The types ``node`` may ``action`` the topic or service ``name`` with."""
         return frozenset(
@@ -237,6 +241,9 @@ class Revocations:
     #: the registry's version (the feed's ``serial``): it moves with every change of
     #: the registry (a grant, a manager, a revocation); None when the feed has none
     serial: int | None = None
+    #: managers in learning mode and when each window ends (Unix seconds):
+    #: :mod:`cryptoros.learning`
+    learning: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True)

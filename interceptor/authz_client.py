@@ -48,11 +48,13 @@ import socket
 import ssl
 import time
 from collections.abc import Callable
+import dataclasses
 from dataclasses import dataclass
 
 import aiohttp
 from cryptoros import pemfiles
-from cryptoros.errors import PKIError, TokenError
+from cryptoros.errors import PKIError, PolicyDenied, TokenError
+from cryptoros.learning import LearningState
 from cryptoros.tokens import AccessToken, KeySet, Revocations, VerifiedTokenCache, peer_audience
 from interceptor.config import AuthzSettings
 
@@ -267,6 +269,14 @@ class AuthzClient:
             raise AuthzUnavailable("token answer lacks access_token or expires_in")
         return OwnToken(token=token, expires_at=asked_at + lifetime)
 
+    async def post_observations(self, rows: list[dict]) -> dict:
+        """Report requests seen (:mod:`interceptor.learning`); the server's answer
+        (``accepted``, ``refused``)."""
+        status, body, _headers = await self._json("POST", "/observations", json={"observations": rows})
+        if status != 200 or body is None:
+            raise AuthzUnavailable(f"observations: HTTP {status}: {(body or {}).get('error_description', '')}")
+        return body
+
     async def fetch_jwks(self) -> KeySet:
         status, body, _ = await self._json("GET", "/.well-known/jwks.json")
         if status != 200 or body is None:
@@ -310,10 +320,15 @@ class AuthzClient:
         serial = body.get("serial")
         if serial is not None and (not isinstance(serial, int) or isinstance(serial, bool)):
             raise AuthzUnavailable("revocation feed: serial is not an integer")
+        learning = body.get("learning", {})
+        if not (isinstance(learning, dict) and all(isinstance(m, str) and isinstance(u, (int, float))
+                                                   and not isinstance(u, bool) for m, u in learning.items())):
+            raise AuthzUnavailable("revocation feed: learning is not a map of manager to end time")
         self._feed_etag = resp_headers.get("ETag")
         return Revocations(
             revoked_jtis=frozenset(str(j) for j in jtis), disabled_subjects=frozenset(str(m) for m in managers),
             revoked_serials=revoked_serials, serial=serial,
+            learning=tuple(sorted((m, float(u)) for m, u in learning.items())),
         )
 
 
@@ -597,6 +612,10 @@ class PeerVerifier:
         #: ``grace`` ago, every open stream is cut, whatever the peers' tokens say.
         self.own_expiry: Callable[[], float | None] = lambda: None
         self._down_since: float | None = None  # the feed has not answered since then
+        #: learning mode (:mod:`cryptoros.learning`): every verified token's grants are
+        #: seen through it; None: grants as they are
+        self.learning: LearningState | None = None
+        self._widened: frozenset[str] = frozenset()  # managers widened at the last look
 
     def reconfigure(self, *, poll_interval: float, grace: float, revocation_grace: float, feed_wait: float,
                     feed_heartbeat: float) -> None:
@@ -625,6 +644,8 @@ class PeerVerifier:
             now=self._clock(),
             revocations=self.revocations,
         )
+        if self.learning is not None:
+            access = dataclasses.replace(access, grants=self.learning.grants(access.subject, access.grants))
         if access.thumbprint not in self._serials:  # so a CA revocation in the feed can cut its streams
             try:
                 serial = pemfiles.cert_serial(peer_cert_der)
@@ -703,8 +724,6 @@ class PeerVerifier:
             log.exception("closing a stream failed")
 
     def _rejudge(self, key: tuple[str, str], access: AccessToken) -> None:
-        from cryptoros.errors import PolicyDenied
-
         for entry in list(self._watches):
             if _peer_key(entry.access) != key:
                 continue
@@ -724,7 +743,7 @@ class PeerVerifier:
         must hold); forget tokens no stream needs. Returns how many streams were cut."""
         now = self._clock()
         own = self.own_expiry()
-        cut = 0
+        cut = self._rejudge_learning()
         for entry in list(self._watches):
             if entry.access.expires_at + self.grace < now:
                 self._cut(entry, f"token_expired: no fresh token {now - entry.access.expires_at:.0f} s after expiry")
@@ -739,6 +758,30 @@ class PeerVerifier:
         for key, access in list(self._freshest.items()):
             if key not in live and access.expires_at + self.grace < now:
                 del self._freshest[key]
+        return cut
+
+    def _rejudge_learning(self) -> int:
+        """Streams let through by learning mode are judged again once it ended for their
+        peer's manager or for ours (a window ran out, or the feed dropped it); the ones
+        no grant covers are cut (``learning_ended``). Returns how many were cut."""
+        state = self.learning
+        if state is None:
+            return 0
+        widened = frozenset(m for m, _until in state.windows.items() if state.widens(m))
+        ended, self._widened = self._widened - widened, widened
+        if not ended:
+            return 0
+        if state.own in ended:
+            state.table.forget_learned()
+        cut = 0
+        for entry in list(self._watches):
+            if entry.recheck is None or not (entry.access.subject in ended or state.own in ended):
+                continue
+            try:
+                entry.recheck(entry.access)
+            except PolicyDenied as exc:
+                self._cut(entry, f"learning_ended: {exc.detail}")
+                cut += 1
         return cut
 
     def streams_by_peer(self) -> dict[str, int]:
@@ -766,7 +809,9 @@ class PeerVerifier:
         whose token is revoked gets ``revocation_grace`` seconds for its peer to show a
         fresh one (see the module docstring). Returns how many were cut now."""
         self.revocations = revocations
-        cut = 0
+        if self.learning is not None:
+            self.learning.windows = dict(revocations.learning)
+        cut = self._rejudge_learning()
         stale: dict[tuple[str, str], AccessToken] = {}
         deadline = self._clock() + self.revocation_grace
         for entry in list(self._watches):

@@ -61,6 +61,7 @@ from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply,
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
 from interceptor.config import InterceptorConfig, check_reload
 from interceptor.denials import DenialTable
+from interceptor.learning import Learner
 from interceptor.gate import REFRESH, PendingStreams, StreamGate, TargetCheck, feed_problem, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
@@ -340,6 +341,10 @@ class Gateway:
             feed_wait=self._held_feed_wait(cfg),
             feed_heartbeat=cfg.authz.feed_heartbeat,
         )
+        #: learning mode (interceptor/learning.py): the verifier sees every token's grants through it
+        self.learner = Learner(cfg.manager, serves_everyone="master" in cfg.roles, authz=self.authz,
+                               registry=self.metrics.registry)
+        self.verifier.learning = self.learner.state
         self._own_cert_der = cert_der(cfg.tls.cert_file)
         self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed
         self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
@@ -459,6 +464,8 @@ class Gateway:
         self.keeper.listeners.append(self._on_own_token)
         self.spawn(self.keeper.run(), "token-keeper")
         self.spawn(self.verifier.run(), "revocation-feed")
+        self.learner.install_log_marker()
+        self.spawn(self.learner.run(), "learning")
         with listening("public", self.cfg.public):
             self._public_server = await self._listen_public(self._server_ctx, self.cfg)
         if self.cfg.metrics is not None:
@@ -582,6 +589,9 @@ class Gateway:
             await role.stopped()
         if self._metrics_runner is not None:
             await self._metrics_runner.cleanup()
+        with contextlib.suppress(Exception):  # what was learned last is not lost with the process
+            await asyncio.wait_for(self.learner.report(), 2.0)
+        self.learner.remove_log_marker()
         await self.authz.close()
 
     def _tls_state(self, cfg: InterceptorConfig):
@@ -740,6 +750,7 @@ class Gateway:
             "open_streams": len(self._streams),
             "monitor": self.monitor.status() if self.monitor is not None else None,
             "denials": self.denials.table(time.monotonic()),
+            "learning": self.learner.status(),
             **{key: value for role in self._roles for key, value in role.status().items()},
         }
 
@@ -760,8 +771,10 @@ class Gateway:
             except (TokenError, PolicyDenied) as exc:
                 return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
             last = self.verifier.last_feed_at
+            learning = self.learner.health_note()
             return web.json_response({"status": "ok", "open_streams": len(self._streams),
-                                      "feed_age": None if last is None else round(time.time() - last, 1)})
+                                      "feed_age": None if last is None else round(time.time() - last, 1),
+                                      **({"learning": learning} if learning else {})})
 
         async def status(_request: web.Request) -> web.Response:
             return web.json_response(self.status())

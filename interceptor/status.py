@@ -31,6 +31,10 @@ def render(status: dict) -> list[str]:
     token, cert, feed, crl = status.get("token"), status["certificate"], status["feed"], status.get("crl")
     lines = [f"manager {status['manager']} ({', '.join(status['roles'])}), public {status['public']}: "
              f"{status['health']}"]
+    learning = status.get("learning")
+    if learning:
+        lines.append(f"LEARNING  {learning['left']} s left: {learning['learned']} requests no grant covers let "
+                     f"through and recorded (cryptoros-authz learn propose {status['manager']})")
     if token:
         lines.append(f"token     subject {token['subject']}, expires in {token['expires_in']} s, jti {token['jti']}")
         lines.append(f"grants    {len(token['grants'])}")

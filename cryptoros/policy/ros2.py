@@ -85,7 +85,7 @@ def manager_may(grants: Grants, action: str, name: str, type_name: str) -> bool:
 
     A receiving robot cannot tell DDS which of its own nodes may read a republished
     topic (its domain is one trust zone), so the receiving side is decided per manager."""
-    return any(g.action == action and g.name == name and g.type == type_name for g in grants)
+    return grants.any_node_allows(action, name, type_name)
 
 
 def may_learn(peer_grants: Grants, target: StreamTarget) -> bool:

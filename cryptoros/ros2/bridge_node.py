@@ -179,17 +179,20 @@ class Bridge:
                 continue
             try:
                 served = node.get_service_names_and_types_by_node(n, ns)
+                called = node.get_client_names_and_types_by_node(n, ns)
             except Exception:  # the node left between the two calls
                 continue
-            for sname, stypes in served:
-                entry = services.setdefault(sname, {"name": sname, "types": set(), "servers": []})
-                entry["types"].update(stypes)
-                entry["servers"].append(fqn)
+            for names, role in ((served, "servers"), (called, "clients")):
+                for sname, stypes in names:
+                    entry = services.setdefault(sname, {"name": sname, "types": set(), "servers": [], "clients": []})
+                    entry["types"].update(stypes)
+                    entry[role].append(fqn)
         graph = {
             "op": "graph",
             "topics": sorted(topics, key=lambda t: t["name"]),
             "services": [
-                {"name": s["name"], "types": sorted(s["types"]), "servers": sorted(s["servers"])}
+                {"name": s["name"], "types": sorted(s["types"]), "servers": sorted(s["servers"]),
+                 "clients": sorted(s["clients"])}
                 for s in sorted(services.values(), key=lambda s: s["name"])
             ],
         }
