@@ -193,9 +193,12 @@ class LearningGrants(Grants):
 
     def types_for(self, action: str, node: str, name: str) -> frozenset[str]:
         types = super().types_for(action, node, name)
-        if types or not self._miss(action, node, name, None):
+        if types:
+            if self._own:
+                for type_name in types:
+                    self._state.note(True, action, node, name, type_name)
             return types
-        return ANY_TYPES
+        return ANY_TYPES if self._miss(action, node, name, None) else types
 
     def param_allows(self, access: str, node: str, key: str) -> bool:
         action = f"{access}_param"

@@ -52,8 +52,13 @@ def _sigterm(_sig: int, _frame: Any) -> None:
 @click.option("--netns", is_flag=True,
               help="Protected mode on separate hosts: each robot, the master and the stranger in its own network "
                    "namespace, as robots on a LAN (needs root).")
+@click.option("--learn", is_flag=True,
+              help="Protected modes with every robot's manager in learning mode (cryptoros-authz learn start) for "
+                   "the whole mission: the stranger's attacks must still fail (certificates are checked as "
+                   "always); an insider's reach robots that learn too, which is what learning means (ROS 1).")
 def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, isolate: bool, master_uri: str | None, keep: bool,
-         json_path: Path | None, out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None, netns: bool) -> None:
+         json_path: Path | None, out_dir: Path, scale: float, seed: int, size: int, workdir: Path | None, netns: bool,
+         learn: bool) -> None:
     """A live robot team under attack: plain ROS, then behind cryptoros interceptors.
 
     Starts a throwaway PKI, the authorization server, a ROS master and one robot
@@ -93,6 +98,8 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, isolate
             raise click.ClickException(f"--netns: {reason}")
         if ros == "2" or master_uri:
             raise click.BadParameter("runs the ROS 1 demo with its embedded master", param_hint="--netns")
+    if learn and ros == "2":
+        raise click.BadParameter("the learning demo runs ROS 1 (ROS 2 learning: docs/policy.md)", param_hint="--learn")
     if ros == "2" and mode == "monitored":
         raise click.BadParameter("the monitored demo runs ROS 1 (the ROS 2 role's monitor: docs/monitor.md)",
                                  param_hint="--mode")
@@ -100,7 +107,8 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, isolate
              }.get(mode, (mode,))
     opts = DemoOptions(robots=robots, attacks=chosen, seconds=seconds, modes=modes, master_uri=master_uri, keep=keep,
                        seed=seed, width=size, height=size, scale=scale, ros=int(ros),
-                       workdir=str(workdir) if workdir else None, netns=netns, isolate=isolate)
+                       workdir=str(workdir) if workdir else None, netns=netns, isolate=isolate,
+                       learn=learn)
     console = Console(stderr=False)
     signal.signal(signal.SIGTERM, _sigterm)
     # Ctrl-C stops every child even when the demo was started with SIGINT ignored (a shell

@@ -82,6 +82,8 @@ class DemoOptions:
     monitor_model: str | None = None
     #: each attack in its own missions (effects do not mix)
     isolate: bool = False
+    #: protected modes: every robot's manager in learning mode for the whole mission
+    learn: bool = False
 
     def needs_ops(self) -> bool:
         return any(ATTACKS[k]["as"] == "holder" for k in self.attacks if k in ATTACKS)
@@ -320,6 +322,8 @@ class Mission:
                 if h.metrics_port:
                     ports.append(("127.0.0.1", h.metrics_port))
             stranger = net.lab.add_host("stranger") if net.lab is not None else None
+            for r in self.team if self.opts.learn else ():
+                net.learn(r, self.opts.seconds + 120)  # the whole mission: a window ends by itself
 
             def on_host(host: str | None, argv: list[str]) -> list[str]:
                 if host is None:
@@ -343,6 +347,7 @@ class Mission:
             setup_s = time.monotonic() - t_setup
             res = self._mission(g, setup_s)
             res["ports"] = [list(p) for p in g.ports]
+            res["learning"] = list(self.team) if self.opts.learn and self.mode != "plain" else []
             return res
 
     def _start_robots(self, g: Graph) -> dict[str, subprocess.Popen]:

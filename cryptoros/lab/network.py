@@ -27,6 +27,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 from dataclasses import dataclass, field
@@ -176,6 +177,24 @@ class Network:
         if ns_host is not None:
             extra = {**extra, NETNS_ENV: ns_host.ns}
         return clean_env(ROS_MASTER_URI=uri, ROS_IP="127.0.0.1", ROS_HOME=str(home), PYTHONUNBUFFERED="1", **extra)
+
+    def learn(self, manager: str, seconds: float, timeout: float = 30) -> None:
+        """Put ``manager`` in learning mode (``cryptoros-authz learn start``) and wait until
+        its interceptor's ``/status`` says so (it needs a metrics endpoint)."""
+        done = subprocess.run([tool("cryptoros-authz"), "--db", self.db, "learn", "start", manager, "--for",
+                               f"{seconds:.0f}s"], capture_output=True, text=True, timeout=30)
+        if done.returncode != 0:
+            raise NetworkError(f"cryptoros-authz learn start {manager}: {done.stderr.strip() or done.stdout.strip()}")
+        host = self.hosts[manager]
+        deadline = time.monotonic() + timeout
+        while True:
+            with self.inside(manager), urllib.request.urlopen(
+                    f"http://127.0.0.1:{host.metrics_port}/status", timeout=5) as reply:
+                if json.loads(reply.read()).get("learning"):
+                    return
+            if time.monotonic() > deadline:
+                raise NetworkError(f"interceptor {manager} did not say LEARNING within {timeout:g} s")
+            time.sleep(0.2)
 
     def cert(self, name: str) -> tuple[Path, Path]:
         return self.pki.cert_path_for(name), self.pki.key_path_for(name)

@@ -109,6 +109,27 @@ def test_demo_plain_attacks_succeed_protected_blocked_and_mission_completes(venv
     assert not Path(result["workdir"]).exists()
 
 
+def test_the_strangers_attacks_fail_while_every_robot_learns(tmp_path):
+    """`cryptoros demo --learn`: every robot's manager in learning mode for the whole
+    protected mission (each interceptor said LEARNING before it started); learning widens
+    grants only, so the stranger (no certificate) still reaches nothing."""
+    from tests.support import script
+
+    out = tmp_path / "out.json"
+    stranger = ("scan-noise", "cmd-flood", "false-map", "eavesdrop")
+    r = subprocess.run([script("cryptoros"), "demo", "--mode", "protected", "--learn", "--seconds", "30",
+                        "--attacks", ",".join(stranger), "--json", str(out), "--out", str(tmp_path / "report")],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert result["modes"]["protected"]["learning"] == ["r0", "r1", "r2"]
+    for name in stranger:
+        a = result["attacks"][name]
+        assert a["protected_attacker"].startswith("stranger"), a
+        assert a["protected"]["succeeded"] is False, (name, a["protected"]["evidence"])
+    assert result["modes"]["protected"]["coverage"] > 0
+
+
 def test_demo_isolate_runs_each_attack_in_its_own_missions(tmp_path):
     """`--isolate`: a mission per attack and mode, so that effects do not mix; each
     attack is judged from its own mission."""

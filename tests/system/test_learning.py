@@ -164,6 +164,7 @@ def test_a_graph_learned_applied_and_enforced_runs_with_no_denial(tmp_path):
             cli_ok(net, "learn", "stop", robot)
         for robot in ("robot_a", "robot_b"):
             until(lambda robot=robot: not status(net, robot).get("learning"), 20, f"{robot} no longer LEARNING")
+        cli_ok(net, "grant", "robot_a", "publish", "/talker", "/never", "std_msgs/String")  # for `unused`
         changes = cli_ok(net, "audit", "--changes")
         assert "learn apply robot_a" in changes and "learning" in changes, changes
 
@@ -184,6 +185,11 @@ def test_a_graph_learned_applied_and_enforced_runs_with_no_denial(tmp_path):
             for host, count in before.items():
                 new = policy_denials(net, host)[count:]
                 assert not new, f"{host} refused something the learned policy should allow: {new[:5]}"
+
+            # least privilege kept: the grant nothing used is listed for removal, the used ones are not
+            listed = cli_ok(net, "unused", "--since", "10m")
+            assert "robot_a publish /talker /never std_msgs/String" in listed, listed
+            assert "/chatter" not in listed and "/robot_loggers" not in listed and "/fleet" not in listed, listed
 
             # a node that was not there while learning is refused
             with running([SYS_PY, GRAPH, "talker", "/intruder", "/chatter"], env=net.ros_env("robot_a")) as intruder:

@@ -1,0 +1,157 @@
+"""Learning mode's decisions and proposals, without processes: grants widened only while
+a window lasts and only for whom it should, what is recorded, the proposal's smallest
+grants, the unused grants, and what a report may carry."""
+
+from __future__ import annotations
+
+import pytest
+
+from authz_server.learning import MAX_OBSERVATION_ROWS, checked_observations, known_types, propose, proposal_yaml, unused
+from authz_server.registry import GrantRow, ObservationRow
+from cryptoros.errors import RegistryError
+from cryptoros.learning import ANY_TYPES, LearningState, ObservationTable, Seen
+from cryptoros.policy.ros1 import check_master_call, check_service_client_header
+from cryptoros.tokens import Grant, Grants
+
+NOW = 1_000_000.0
+TALKER = Grant(node="/talker", action="publish", name="/chatter", type="std_msgs/String")
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = NOW
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def state(own: str = "robot_a", *, master: bool = False, learning: dict[str, float] | None = None):
+    clock = Clock()
+    s = LearningState(own, serves_everyone=master, clock=clock)
+    s.windows = learning or {}
+    return s, clock
+
+
+def test_without_a_window_grants_answer_as_they_are_and_record_what_they_allowed():
+    s, _ = state()
+    grants = s.grants("robot_a", Grants([TALKER]))
+    assert grants.allows("publish", "/talker", "/chatter", "std_msgs/String")
+    assert not grants.allows("publish", "/talker", "/cmd_vel", "geometry_msgs/Twist")
+    assert not grants.types_for("call", "/client", "/srv")
+    assert [r["allowed"] for r in s.table.due(NOW)] == [True]
+    assert s.table.learned() == []
+
+
+def test_while_its_own_manager_learns_what_no_grant_covers_is_let_through_and_recorded():
+    s, clock = state(learning={"robot_a": NOW + 60})
+    grants = s.grants("robot_a", Grants())
+    check_master_call("registerPublisher", ("/intruder", "/cmd_vel", "geometry_msgs/Twist", "http://x:1/"),
+                      manager="robot_a", grants=grants, owner_of=lambda _n: None)
+    assert grants.types_for("call", "/client", "/srv") is ANY_TYPES
+    assert check_service_client_header({"callerid": "/client", "service": "/srv", "md5sum": "*"}, grants=grants)
+    assert grants.param_allows("write", "/conf", "/fleet/speed")
+    learned = {(r["action"], r["node"], r["name"], r["type"]) for r in s.table.learned()}
+    assert learned == {("publish", "/intruder", "/cmd_vel", "geometry_msgs/Twist"), ("call", "/client", "/srv", None),
+                       ("write_param", "/conf", "/fleet/speed", None)}
+    # a name another manager may hold is never widened: ownership is the registry's
+    assert not grants.names_node_exactly("/intruder")
+    # the window ends by itself
+    clock.now = NOW + 61
+    assert not grants.allows("publish", "/intruder", "/cmd_vel", "geometry_msgs/Twist")
+
+
+def test_a_peer_is_widened_only_while_both_learn_or_at_the_masters_interceptor():
+    s, _ = state(learning={"robot_b": NOW + 60})
+    peer = s.grants("robot_b", Grants())
+    assert not peer.allows("subscribe", "/listener", "/chatter", "std_msgs/String")  # we do not learn
+    s.windows = {"robot_b": NOW + 60, "robot_a": NOW + 60}
+    assert peer.allows("subscribe", "/listener", "/chatter", "std_msgs/String")
+    assert s.table.learned() == []  # a peer's requests are its own interceptor's to record
+    master, _ = state("master", master=True, learning={"robot_b": NOW + 60})
+    assert master.grants("robot_b", Grants()).allows("publish", "/talker", "/chatter", "std_msgs/String")
+    assert not master.grants("robot_c", Grants()).allows("publish", "/talker", "/chatter", "std_msgs/String")
+
+
+def test_the_observation_table_is_bounded_and_a_failed_report_is_due_again():
+    table = ObservationTable(max_keys=2, used_every=300)
+    for i in range(5):
+        table.record(Seen(False, "publish", f"/n{i}", "/t", "std_msgs/String"), NOW)
+    assert table.dropped == 3
+    rows = table.due(NOW)
+    assert len(rows) == 2 and table.due(NOW) == []
+    table.unreport(rows)
+    assert [r["count"] for r in table.due(NOW)] == [1, 1]
+    used = Seen(True, "publish", "/n9", "/t", "std_msgs/String")
+    table = ObservationTable(max_keys=4, used_every=300)
+    table.record(used, NOW)
+    assert len(table.due(NOW)) == 1
+    table.record(used, NOW + 1)
+    assert table.due(NOW + 1) == []  # a used key is reported again only after used_every
+    assert len(table.due(NOW + 301)) == 1
+
+
+def obs(action, node, name, type_=None, *, manager="robot_a", allowed=False, count=1, last=NOW):
+    return ObservationRow(manager, allowed, action, node, name, type_, count, int(NOW) - 10, int(last))
+
+
+def test_a_proposal_is_the_smallest_set_of_exact_grants():
+    learned = [
+        obs("publish", "/talker", "/chatter", "std_msgs/String", count=40),
+        obs("publish", "/talker", "/rosout", "rosgraph_msgs/Log"),  # ROS's own: the node is named otherwise
+        obs("serve", "/server", "/srv"),  # a registration tells no type...
+        obs("serve", "/server", "/srv", "roscpp/GetLoggers"),  # ...its stream does
+        obs("call", "/client", "/srv"),  # the type the server's side told
+        obs("call", "/client", "/other"),  # nothing knows its type: reported, not guessed
+        obs("subscribe", "/rostopic_4711_1795000000000", "/chatter", "std_msgs/String"),
+        obs("write_param", "/roslaunch", "/roslaunch/uris/host_10_0_0_1__41234"),
+        obs("write_param", "/conf", "/fleet/speed"),
+        obs("read_param", "/conf", "/fleet/speed"),  # covered by its write
+        obs("read_param", "/conf", "/fleet/mode"),
+        obs("publish", "/held", "/held", "std_msgs/String"),  # granted already
+    ]
+    current = [GrantRow("publish", "/held", "/held", "std_msgs/String")]
+    proposal = propose("robot_a", learned, current, known_types(learned, current))
+    grants = {(p.grant.action, p.grant.node, p.grant.name, p.grant.type) for p in proposal.grants}
+    assert grants == {
+        ("publish", "/talker", "/chatter", "std_msgs/String"),
+        ("serve", "/server", "/srv", "roscpp/GetLoggers"),
+        ("call", "/client", "/srv", "roscpp/GetLoggers"),
+        ("subscribe", "/rostopic_*", "/chatter", "std_msgs/String"),
+        ("write_param", "/roslaunch", "/roslaunch/uris", "param"),
+        ("write_param", "/conf", "/fleet/speed", "param"),
+        ("read_param", "/conf", "/fleet/mode", "param"),
+    }
+    assert len(proposal.notes) == 1 and "/other" in proposal.notes[0]
+    text = proposal_yaml(proposal)
+    assert "seen 40 times" in text and "covers /rostopic_4711_1795000000000 /chatter" in text
+    import yaml
+
+    from authz_server.registry import parse_policy
+
+    assert len(parse_policy(yaml.safe_load(text))["robot_a"].grants) == 7  # what `import --merge` reads
+
+
+def test_unused_lists_the_grants_no_allowed_request_fell_under():
+    grants = [GrantRow("publish", "/talker", "/chatter", "std_msgs/String"),
+              GrantRow("subscribe", "*", "/chatter", "std_msgs/String"),
+              GrantRow("write_param", "/conf", "/fleet", "param"),
+              GrantRow("read_param", "/conf", "/other", "param")]
+    used = [obs("publish", "/talker", "/chatter", "std_msgs/String", allowed=True),
+            obs("subscribe", "/anyone", "/chatter", "std_msgs/String", allowed=True),
+            obs("read_param", "/conf", "/fleet/speed", allowed=True)]
+    assert unused(grants, used) == [GrantRow("read_param", "/conf", "/other", "param")]
+
+
+@pytest.mark.parametrize("row", [
+    {"allowed": "yes"}, {"action": "shutdown"}, {"node": "no slash"}, {"name": "bad name!"}, {"type": "not a type"},
+    {"count": 0}, {"count": True}, {"first": NOW - 3 * 86400}, {"first": NOW + 5, "last": NOW},
+    {"action": "read_param", "type": "std_msgs/String"}, {"extra": 1},
+])
+def test_a_report_with_any_bad_row_is_refused_whole(row):
+    good = {"allowed": False, "action": "publish", "node": "/n", "name": "/t", "type": "std_msgs/String",
+            "count": 1, "first": NOW, "last": NOW}
+    assert checked_observations({"observations": [good]}, now=NOW)[0]["node"] == "/n"
+    with pytest.raises(RegistryError):
+        checked_observations({"observations": [good, {**good, **row}]}, now=NOW)
+    with pytest.raises(RegistryError):
+        checked_observations({"observations": [good] * (MAX_OBSERVATION_ROWS + 1)}, now=NOW)
