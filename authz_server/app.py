@@ -51,7 +51,7 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from authz_server import keys as keymod
 from authz_server.config import ServeConfig
-from authz_server.learning import checked_observations
+from authz_server.learning import checked_observations, granted
 from authz_server.registry import MAX_OBSERVATIONS, AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros.ratelimit import OncePer, TokenBuckets
@@ -697,7 +697,7 @@ class AuthzService:
         fp = cert_fingerprint_sha256(der)
         if not self._observe_bucket.allow(fp):
             return _oauth_error(429, "slow_down")
-        info, _grants = await self.manager_for(fp)
+        info, grants = await self.manager_for(fp)
         if info is None or not info.enabled:
             return _oauth_error(401 if info is None else 403, "invalid_client" if info is None else "access_denied")
         if request.content_type != "application/json":
@@ -706,7 +706,10 @@ class AuthzService:
             rows = checked_observations(await request.json(), now=time.time())
         except (ValueError, RegistryError) as exc:
             return web.json_response({"error": "invalid_request", "error_description": str(exc)[:200]}, status=400)
-        accepted, refused = await self.db(self.registry.record_observations, info.name, rows)
+        # a request a grant allowed names a grant the manager holds: nothing else is kept as "used"
+        kept = [r for r in rows if not r["allowed"] or granted(grants, r)]
+        accepted, refused = await self.db(self.registry.record_observations, info.name, kept)
+        refused += len(rows) - len(kept)
         if refused:
             log.info("observations from %s: %d refused (not learning, or over its %d rows)", info.name, refused,
                      MAX_OBSERVATIONS)

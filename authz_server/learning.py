@@ -34,7 +34,7 @@ from cryptoros.errors import RegistryError
 from cryptoros.names import PARAM_TYPE, validate_graph_name, validate_namespace, validate_node_name, validate_type
 from cryptoros.policy.infrastructure import ros1_allows
 from cryptoros.policy.ros1 import node_pattern
-from cryptoros.tokens import ACTIONS, in_namespace, node_matches
+from cryptoros.tokens import ACTIONS, Grants, in_namespace, node_matches
 
 #: rows one report may carry
 MAX_OBSERVATION_ROWS = 64
@@ -80,6 +80,13 @@ def _checked(row: object, now: float, i: int) -> dict:
         raise RegistryError(f"{where}: 'first' is after 'last'")
     return {"allowed": allowed, "action": action, "node": row["node"], "name": row["name"], "type": type_,
             "count": count, "first": first, "last": last}
+
+
+def granted(grants: Grants, row: Mapping) -> bool:
+    """Whether a reported row of a request a grant allowed falls under one of ``grants``."""
+    if row["action"] in PARAM_ACTIONS:
+        return grants.param_allows("write" if row["action"] == "write_param" else "read", row["node"], row["name"])
+    return row["type"] is not None and grants.allows(row["action"], row["node"], row["name"], row["type"])
 
 
 # ---------------------------------------------------------------------- proposals
@@ -234,5 +241,5 @@ def unused(grants: Iterable[GrantRow], used: Iterable[ObservationRow]) -> list[G
     return out
 
 
-__all__ = ["MAX_OBSERVATION_ROWS", "Proposal", "Proposed", "checked_observations", "known_types", "propose",
+__all__ = ["MAX_OBSERVATION_ROWS", "Proposal", "Proposed", "checked_observations", "granted", "known_types", "propose",
            "proposal_diff", "proposal_yaml", "unused"]

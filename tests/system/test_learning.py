@@ -224,6 +224,8 @@ def test_learning_cannot_be_started_by_a_certificate_and_learned_rows_are_refuse
                "type": "geometry_msgs/Twist", "count": 1, "first": now, "last": now}
         code, answer = post("/observations", {"observations": [row]})
         assert (code, answer) == (200, {"accepted": 0, "refused": 1}), (code, answer)
+        code, answer = post("/observations", {"observations": [{**row, "allowed": True}]})  # no grant allowed it
+        assert (code, answer) == (200, {"accepted": 0, "refused": 1}), (code, answer)
         code, answer = post("/observations", {"observations": [{**row, "node": "not a node"}]})
         assert code == 400, (code, answer)
         learn_status = cli_ok(net, "learn", "status", "robot_a")

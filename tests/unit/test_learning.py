@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from authz_server.learning import MAX_OBSERVATION_ROWS, checked_observations, known_types, propose, proposal_yaml, unused
+from authz_server.learning import (MAX_OBSERVATION_ROWS, checked_observations, granted, known_types, propose,
+                                   proposal_yaml, unused)
 from authz_server.registry import GrantRow, ObservationRow
 from cryptoros.errors import RegistryError
 from cryptoros.learning import ANY_TYPES, LearningState, ObservationTable, Seen
@@ -155,3 +156,12 @@ def test_a_report_with_any_bad_row_is_refused_whole(row):
         checked_observations({"observations": [good, {**good, **row}]}, now=NOW)
     with pytest.raises(RegistryError):
         checked_observations({"observations": [good] * (MAX_OBSERVATION_ROWS + 1)}, now=NOW)
+
+
+def test_a_used_row_is_kept_only_under_a_grant_the_manager_holds():
+    grants = Grants([TALKER, Grant(node="/conf", action="write_param", name="/fleet", type="param")])
+    row = {"action": "publish", "node": "/talker", "name": "/chatter", "type": "std_msgs/String"}
+    assert granted(grants, row)
+    assert not granted(grants, {**row, "name": "/cmd_vel"}) and not granted(grants, {**row, "type": None})
+    assert granted(grants, {"action": "read_param", "node": "/conf", "name": "/fleet/speed", "type": None})
+    assert not granted(grants, {"action": "write_param", "node": "/other", "name": "/fleet/speed", "type": None})
