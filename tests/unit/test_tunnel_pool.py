@@ -6,7 +6,6 @@ import asyncio
 
 import pytest
 
-import interceptor.ros1 as ros1
 from interceptor.ros1 import TunnelPool
 
 
@@ -33,22 +32,20 @@ class FakeTunnel:
 
 
 @pytest.fixture(autouse=True)
-def fake_tunnels(monkeypatch):
+def fake_tunnels():
     FakeTunnel.made = []
-    monkeypatch.setattr(ros1, "XmlRpcTunnel", FakeTunnel)
 
 
 async def test_a_burst_of_calls_shares_max_busy_tunnels():
-    pool = TunnelPool(None, "127.0.0.2", 1, "master", "", max_idle=4, max_busy=3)
+    pool = TunnelPool(FakeTunnel, max_idle=4, max_busy=3)
     results = await asyncio.gather(*(pool.call(0.01) for _ in range(20)))
     assert results == ["ok"] * 20
     assert len(FakeTunnel.made) == 3  # not one handshake per call
     assert sum(t.calls for t in FakeTunnel.made) == 20
 
 
-async def test_a_call_waits_at_most_pool_wait_for_a_busy_tunnel(monkeypatch):
-    monkeypatch.setattr(ros1, "POOL_WAIT", 0.05)
-    pool = TunnelPool(None, "127.0.0.2", 1, "master", "", max_idle=4, max_busy=2)
+async def test_a_call_waits_at_most_pool_wait_for_a_busy_tunnel():
+    pool = TunnelPool(FakeTunnel, max_idle=4, max_busy=2, wait=0.05)
     slow = [asyncio.ensure_future(pool.call(1.0)) for _ in range(2)]
     await asyncio.sleep(0)
     started = asyncio.get_running_loop().time()
@@ -60,7 +57,7 @@ async def test_a_call_waits_at_most_pool_wait_for_a_busy_tunnel(monkeypatch):
 
 
 async def test_a_failed_call_closes_its_tunnel_and_lets_a_waiter_open_one():
-    pool = TunnelPool(None, "127.0.0.2", 1, "master", "", max_idle=4, max_busy=1)
+    pool = TunnelPool(FakeTunnel, max_idle=4, max_busy=1)
     failing = asyncio.ensure_future(pool.call(-0.01))
     await asyncio.sleep(0)
     waiting = asyncio.ensure_future(pool.call(0.0))
@@ -79,7 +76,7 @@ async def _until(condition, timeout: float = 5.0) -> None:
 
 
 async def test_an_idle_tunnel_is_closed_after_the_idle_timeout_and_a_used_one_is_kept():
-    pool = TunnelPool(None, "127.0.0.2", 1, "node", "7", max_idle=4, max_busy=2, idle_timeout=0.2)
+    pool = TunnelPool(FakeTunnel, max_idle=4, max_busy=2, idle_timeout=0.2)
     await asyncio.gather(pool.call(0.0), pool.call(0.0))
     old, recent = FakeTunnel.made
     assert pool.idle_count == 2 and not old.closed
@@ -90,7 +87,7 @@ async def test_an_idle_tunnel_is_closed_after_the_idle_timeout_and_a_used_one_is
 
 
 async def test_a_closed_pool_keeps_no_tunnel_even_one_coming_back_from_a_call():
-    pool = TunnelPool(None, "127.0.0.2", 1, "node", "7", max_idle=4, max_busy=2, idle_timeout=60.0)
+    pool = TunnelPool(FakeTunnel, max_idle=4, max_busy=2, idle_timeout=60.0)
     await asyncio.gather(pool.call(0.0), pool.call(0.0))
     idle, taken = FakeTunnel.made
     under_way = asyncio.ensure_future(pool.call(0.05))  # takes the most recently used

@@ -1,0 +1,454 @@
+"""The master role: peers' master calls judged and forwarded to rosmaster, who owns
+which node name, parameter quotas, rosmaster watched and replayed after its restarts."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.policy.ros1 import (
+    NAME_BINDING,
+    check_master_call,
+)
+from cryptoros.ros1.rewrite import rewrite_call, rewrite_response
+from cryptoros.ros1.uri import split_uri
+from cryptoros.ros1.xmlrpc import (
+    ConnectionClosed,
+    Fault,
+    Request,
+    Response,
+    Role,
+    XmlRpcConnection,
+    request_path,
+)
+from cryptoros.tokens import Grants
+from interceptor.gateway import READ_SIZE, InboundStream
+from interceptor.exposure import master_problem
+from interceptor.translate import Canonical
+
+from interceptor.ros1.wire import (
+    CALL_TIMEOUT,
+    MASTER_WATCH_INTERVAL,
+    MASTER_WATCH_TIMEOUT,
+    MAX_PARAM_SUBSCRIPTIONS_PER_NODE,
+    MAX_REGISTRATIONS,
+    RATE_LOG_INTERVAL,
+    RELAY_URI_INDEX,
+    RELEASING_CALLS,
+    caller_api,
+    filtered_param_reply,
+    local_endpoint,
+    log,
+    param_subscription_key,
+    read_xmlrpc,
+    registration_key,
+    resolved_param_call,
+    rewrite_param_api,
+    ros_ok,
+    writes_params,
+)
+
+
+class MasterSide:
+    """The master role of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
+
+    # ---------------------------------------------------------------- master role
+    def _owner_of(self, node: str, grants: Grants | None = None) -> str | None:
+        """The manager that has ``node`` registered, or released it within
+        ``[limits] name_hold_seconds`` (:mod:`interceptor.name_holds`). A hold does not
+        stand against a caller whose ``grants`` name that very node (the registry gives
+        it the name: one tool name granted to two robots): it keeps the name from
+        managers that would take it through ``*`` or a pattern. Nor does a registration
+        made through ``*`` or a pattern: a manager holding such a grant cannot squat a
+        name the registry gives another manager before that one's node starts (rosmaster
+        then drops the squatter's registrations, :meth:`_forget_replaced_node`)."""
+        entry = self._owners.get(node)
+        if entry:
+            if node in self._owned_by_pattern and grants is not None and grants.names_node_exactly(node):
+                return None
+            return entry[0]
+        holder = self._holds.holder(node)
+        if holder is not None and grants is not None and grants.names_node_exactly(node):
+            return None
+        return holder
+
+    def _check_node_limit(self, call: Request, manager: str) -> None:
+        """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
+        if call.method not in NAME_BINDING or not call.params or call.params[0] in self._owners:
+            return
+        cap = self.cfg.limits.max_nodes_per_peer
+        if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
+            raise PolicyDenied("node_limit", f"{manager} has {cap} nodes registered already (max_nodes_per_peer)")
+
+    def _check_param_subscription(self, call: Request, manager: str) -> None:
+        """A peer holds at most ``max_param_keys_per_peer`` parameter subscriptions (rosmaster
+        keeps each), and one node at most :data:`MAX_PARAM_SUBSCRIPTIONS_PER_NODE`."""
+        key = param_subscription_key(call.method, call.params) if call.method == "subscribeParam" else None
+        if key is None:
+            return
+        _kind, node, name = key
+        subs = self._param_subs_of_node.get(node, {})
+        if name in subs:
+            return  # a repeat: nothing more is kept
+        cap = self.cfg.limits.max_param_keys_per_peer
+        held = sum(len(s) for n, s in self._param_subs_of_node.items() if self._owners.get(n, ("",))[0] == manager)
+        if held >= cap or len(subs) >= MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
+            raise PolicyDenied("param_quota", f"{manager} holds {held} parameter subscriptions ({len(subs)} of {node}): "
+                               f"max_param_keys_per_peer {cap}, {MAX_PARAM_SUBSCRIPTIONS_PER_NODE} per node")
+
+    def _charge_param_write(self, call: Request, manager: str) -> None:
+        """A parameter write allowed (key resolved): charged to ``manager`` before it is
+        sent, refused past its quota (:mod:`interceptor.param_quota`)."""
+        if call.method == "setParam" and len(call.params) >= 3:
+            self._params.set(manager, call.params[1], call.params[2])
+        elif call.method == "deleteParam" and len(call.params) >= 2:
+            self._params.delete(call.params[1])
+
+    def _note_registration(self, call: Request, response: Response | Fault, manager: str,
+                           exact: bool = True) -> None:
+        """What a call rosmaster accepted changes: owners, kept registrations, relay
+        counts (and the state file, when one of them changed). ``exact``: the caller's
+        grants name the node itself (not ``*`` or a pattern).
+
+        rosmaster keeps one registration per node and topic (service, parameter key):
+        the same registration made again changes nothing, here either (it used to count
+        again, keeping the node's name and relays after its one unregister, and to
+        rewrite the state file each time)."""
+        if not ros_ok(response) or not call.params:
+            return
+        node = call.params[0]
+        registering = call.method.startswith("register") or call.method == "subscribeParam"
+        if registering:
+            api = caller_api(call.method, call.params)
+            if api is not None and self._api_of_node.setdefault(node, api) != api:
+                self._forget_replaced_node(node)
+                self._api_of_node[node] = api
+        kept = self._kept(call.method, call.params)
+        if registering and node in self._owners and kept == (call.method, tuple(call.params)):
+            return  # an identical repeat
+        self._record_registration(call.method, call.params)
+        if registering:
+            self._count_relay_refs(call.method, call.params, +1)
+            if kept is not None and node in self._owners:
+                # made again with other values (a topic's type, a service's URI): it
+                # replaces the one kept, and the relays behind that one lose its count
+                self._count_relay_refs(kept[0], kept[1], -1)
+            else:
+                entry = self._owners.setdefault(node, [manager, 0])
+                if entry[1] == 0 and exact:
+                    self._owned_by_pattern.discard(node)
+                elif entry[1] == 0:
+                    self._owned_by_pattern.add(node)
+                entry[1] += 1
+                self._holds.claim(node)
+            self._note_param_subscription(call.method, call.params)
+            self._save_state_soon()
+        elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
+                isinstance(response.value[2], int) and response.value[2] > 0:
+            entry = self._owners.get(node)
+            if entry is not None:
+                entry[1] -= 1
+                if entry[1] <= 0:
+                    del self._owners[node]
+                    self._owned_by_pattern.discard(node)
+                    self._api_of_node.pop(node, None)
+                    self._param_subs_of_node.pop(node, None)
+                    self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
+            if entry is not None or kept is not None:
+                self._save_state_soon()
+            # the relays behind the registration as it was made: unregisterService names
+            # the service's URI, not the node API its registration counted too
+            self._count_relay_refs(*(kept or (call.method, call.params)), -1)
+            self._note_param_subscription(call.method, call.params)
+
+    def _kept(self, method: str, params: tuple) -> tuple[str, tuple] | None:
+        """The registration (or parameter subscription) a master call makes or releases,
+        as it was forwarded when made ((method, params)), if it is kept."""
+        key = registration_key(method, params)
+        if key is not None:
+            return self._registrations.get(key)
+        key = param_subscription_key(method, params)
+        if key is not None:
+            params = self._param_subs_of_node.get(key[1], {}).get(key[2])
+            return None if params is None else ("subscribeParam", params)
+        return None
+
+    def _note_param_subscription(self, method: str, params: tuple) -> None:
+        key = param_subscription_key(method, params)
+        if key is None:
+            return
+        _kind, node, name = key
+        if method == "subscribeParam":
+            subs = self._param_subs_of_node.setdefault(node, {})
+            if name in subs or len(subs) < MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
+                subs[name] = tuple(params)
+        else:
+            subs = self._param_subs_of_node.get(node)
+            if subs is not None:
+                subs.pop(name, None)
+                if not subs:
+                    del self._param_subs_of_node[node]
+
+    def _record_registration(self, method: str, params: tuple) -> None:
+        """Keep (or drop) one registration as it was forwarded to rosmaster."""
+        key = registration_key(method, params)
+        if key is None:
+            return
+        node = key[1]
+        if method.startswith("register"):
+            if key not in self._registrations and len(self._registrations) >= MAX_REGISTRATIONS:
+                if not self._registrations_full_logged:
+                    self._registrations_full_logged = True
+                    log.warning("%d registrations kept for rosmaster replay: more are not kept "
+                                "(a restarted rosmaster will not learn them)", MAX_REGISTRATIONS)
+                return
+            self._registrations[key] = (method, tuple(params))
+            self._keys_of_node.setdefault(node, set()).add(key)
+            api = caller_api(method, params)
+            if api is not None:
+                self._api_of_node.setdefault(node, api)
+        elif self._registrations.pop(key, None) is not None:
+            keys = self._keys_of_node.get(node)
+            if keys is not None:
+                keys.discard(key)
+                if not keys:
+                    del self._keys_of_node[node]
+
+    def _forget_replaced_node(self, node: str) -> None:
+        """``node`` registered from another API: rosmaster dropped every registration of
+        the old one (a restarted node, or a name taken from a ``*`` holder), so the kept
+        registrations, its parameter subscriptions, the relay counts behind them and the
+        owner go too."""
+        for key in self._keys_of_node.pop(node, ()):
+            kept = self._registrations.pop(key, None)
+            if kept is not None:
+                self._count_relay_refs(kept[0], kept[1], -1)
+        for params in self._param_subs_of_node.pop(node, {}).values():
+            self._count_relay_refs("subscribeParam", params, -1)
+        entry = self._owners.pop(node, None)
+        self._owned_by_pattern.discard(node)
+        log.info("node %s registered from another API: rosmaster dropped what it had registered before%s", node,
+                 f" (by {entry[0]})" if entry else "")
+
+    async def _watch_master(self) -> None:
+        """Go past plain ROS: when rosmaster comes back with a new pid (restarted), every
+        registration it held through this interceptor is replayed, so the graph comes
+        back without restarting a node (rosmaster then tells subscribers their
+        publishers with ``publisherUpdate``, as at first)."""
+        while True:
+            if self._judge_master_exposure():  # nothing replayed to a rosmaster other hosts reach
+                await asyncio.sleep(MASTER_WATCH_INTERVAL)
+                continue
+            try:
+                reply = await asyncio.wait_for(
+                    self._call_upstream_master(Request(method="getPid", params=("/cryptoros",))), MASTER_WATCH_TIMEOUT)
+                pid = reply.value[2] if ros_ok(reply) and isinstance(reply.value[2], int) else None
+            except (CryptorosError, OSError, asyncio.TimeoutError):
+                pid = None
+            if pid is not None and pid != self._master_pid:
+                # a new pid, or the first one seen after a restart of ours with registrations
+                # from state_dir (a repeated registration is harmless to rosmaster)
+                if self._master_pid is not None:  # a new rosmaster holds no parameter
+                    await self._replay_parameters(pid)
+                if self._master_pid is not None or self._registrations:
+                    await self._replay_registrations(pid)
+                elif not self._relay_refs:  # restarted with no state: rosmaster still names our relays
+                    await self._adopt_master_state()
+                self._master_pid = pid
+            await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    def _judge_master_exposure(self) -> bool:
+        """Deployment check, each turn of the watch: True while rosmaster answers other
+        hosts and ``allow_exposed_master`` is not set (master streams are refused then)."""
+        problem = master_problem(self.cfg.master.upstream, self._exposure, self.cfg.source)
+        if problem != self._master_exposed:
+            if problem is None:
+                log.warning("rosmaster answers on loopback only now: master streams are served again")
+            elif self.cfg.allow_exposed_master:
+                log.warning("allow_exposed_master = true, serving anyway: %s", problem)
+            else:
+                log.error("master streams refused (exposed_master) until fixed: %s", problem)
+            self._master_exposed = problem
+        return problem is not None and not self.cfg.allow_exposed_master
+
+    async def _adopt_master_state(self) -> None:
+        """Restarted with no state (master role): open again, on their old ports, the
+        relays whose names rosmaster holds (every node API and service URI carries its
+        canonical name, :meth:`Translator.from_master`), each counted once per
+        registration behind it, so rosmaster reaches every node again at once. Who owns
+        each name is not known again until the node registers anew."""
+        try:
+            state = await self._call_upstream_master(Request(method="getSystemState", params=("/cryptoros",)))
+            if not ros_ok(state):
+                return
+            publishers, subscribers, services = state.value[2]
+            counts: dict[str, int] = {}
+            for _name, nodes in (*publishers, *subscribers, *services):
+                for node in nodes:
+                    counts[node] = counts.get(node, 0) + 1
+            uris = []
+            for node, count in counts.items():
+                reply = await self._call_upstream_master(Request(method="lookupNode", params=("/cryptoros", node)))
+                if ros_ok(reply) and isinstance(reply.value[2], str):
+                    uris.append((reply.value[2], count))
+            for service, _nodes in services:
+                reply = await self._call_upstream_master(Request(method="lookupService", params=("/cryptoros", service)))
+                if ros_ok(reply) and isinstance(reply.value[2], str):
+                    uris.append((reply.value[2], 1))
+        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+            log.warning("cannot read rosmaster's graph to re-open our relays: %s", exc)
+            return
+        adopted = 0
+        for uri, count in uris:
+            with contextlib.suppress(CryptorosError):
+                self.translator.from_master(uri)
+            endpoint = local_endpoint(uri)
+            if endpoint is not None and self.translator.relay_target(*endpoint) is not None:
+                self._relay_refs[endpoint] = self._relay_refs.get(endpoint, 0) + count
+                adopted += 1
+        if uris:
+            log.warning("restarted with no state: %d relays rosmaster names re-opened (%d nodes, %d services)",
+                        adopted, len(counts), len(services))
+
+    async def _replay_parameters(self, pid: int) -> None:
+        """Set again what peers set through us and did not delete (the parameter quota's
+        table, :meth:`ParamQuota.items`: bounded per peer), in the order of the tree,
+        before any new write of a peer."""
+        async with self._param_writes:
+            items = self._params.items()
+            failed = 0
+            for key, value in items:
+                try:
+                    reply = await self._call_upstream_master(Request(method="setParam", params=("/cryptoros", key, value)))
+                    failed += not ros_ok(reply)
+                except (CryptorosError, OSError, asyncio.TimeoutError):
+                    failed += 1
+        log.warning("rosmaster (pid %d) is new: %d parameters replayed%s", pid, len(items),
+                    f", {failed} failed" if failed else "")
+
+    async def _replay_registrations(self, pid: int) -> None:
+        calls = [Request(method=method, params=params) for method, params in self._registrations.values()]
+        calls.sort(key=lambda c: c.method != "registerService")  # services, then topics
+        failed = 0
+        for call in calls:
+            try:
+                reply = await self._call_upstream_master(call)
+                failed += not ros_ok(reply)
+            except (CryptorosError, OSError, asyncio.TimeoutError):
+                failed += 1
+        log.warning("rosmaster (pid %d) is new: %d registrations replayed%s", pid, len(calls),
+                    f", {failed} failed" if failed else "")
+
+    def _count_relay_refs(self, method: str, params: tuple, delta: int) -> None:
+        """Relays the master holds URIs of: one count per registration behind each;
+        a relay whose last registration was released is closed (its fd freed)."""
+        for index in RELAY_URI_INDEX.get(method, ()):
+            uri = params[index] if len(params) > index else None
+            endpoint = local_endpoint(uri)
+            if endpoint is None or self.translator.relay_target(*endpoint) is None:
+                continue
+            count = self._relay_refs.get(endpoint, 0) + delta
+            if count > 0:
+                self._relay_refs[endpoint] = count
+                continue
+            self._relay_refs.pop(endpoint, None)
+            if delta < 0:
+                self._release_relay(endpoint)
+
+    def _release_relay(self, endpoint: tuple[str, int]) -> None:
+        target = self.translator.relay_target(*endpoint)
+        self.translator.forget_relay(*endpoint)
+        pool = self._pools.pop((target.host, target.port, "node", target.id), None) if target else None
+        if pool is not None:  # its tunnels to the node's interceptor are closed with it
+            pool.close()
+        server = self._relay_servers.pop(endpoint, None)
+        if server is not None:
+            server.close()
+        sock = self._relay_socket_of.pop(endpoint, None)
+        if sock is not None:
+            sock.close()
+        log.debug("relay %s:%d released (no registration behind it)", *endpoint)
+
+    async def _serve_master_stream(self, stream: InboundStream) -> None:
+        peer = stream.peer
+
+        def to_local_from_peer(uri: str) -> str:
+            target = Canonical.parse(uri)
+            if target is None or target.host not in peer.hosts:
+                raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
+            return self.translator.to_local(uri, named=True)  # named: rosmaster keeps it across our restarts
+
+        def existing_from_peer(uri: str) -> str:
+            # unregister*/unsubscribeParam never open a relay: an endpoint no relay was
+            # opened for was never registered, so the call could match nothing.
+            target = Canonical.parse(uri)
+            if target is None or target.host not in peer.hosts:
+                raise PolicyDenied("endpoint_not_peer", f"{uri!r:.80} is not an endpoint of {peer.manager}")
+            local = self.translator.existing_local(uri, named=True)
+            if local is None:
+                raise PolicyDenied("unknown_endpoint", f"{uri!r:.80} was never registered through this interceptor")
+            return local
+
+        def decide(call: Request) -> Request:
+            self._refuse_exposed_master()  # on streams opened before rosmaster was exposed too
+            if not self._master_calls.allow(peer.manager):
+                limits = self.cfg.limits
+                raise PolicyDenied("rate_limited", f"{peer.manager} makes master calls faster than "
+                                   f"{limits.max_master_calls_per_second:g} a second after {limits.master_call_burst} "
+                                   f"(max_master_calls_per_second, master_call_burst; this is logged once per "
+                                   f"{RATE_LOG_INTERVAL:g} s, every refusal counted)")
+            grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
+            check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
+                              owner_of=functools.partial(self._owner_of, grants=grants))
+            call = resolved_param_call(call, grants)
+            self._check_node_limit(call, peer.manager)
+            self._check_param_subscription(call, peer.manager)
+            uri_map = existing_from_peer if call.method in RELEASING_CALLS else to_local_from_peer
+            call = rewrite_call(call, caller_api=uri_map, service_api=uri_map)
+            call = rewrite_param_api(call, uri_map)
+            self._charge_param_write(call, peer.manager)  # last: only a call sent on is charged
+            return call
+
+        def after(call: Request, response: Response | Fault) -> Response | Fault:
+            grants = self.verifier.freshest(peer.access).grants
+            self._note_registration(call, response, peer.manager, exact=bool(call.params) and
+                                    isinstance(call.params[0], str) and grants.names_node_exactly(call.params[0]))
+            response = filtered_param_reply(call, response, self.verifier.freshest(peer.access).grants)
+            return rewrite_response(call, response, uri=self.translator.from_master)
+
+        async def handle(request: Request) -> Response | Fault:
+            if not writes_params(request):
+                return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
+                                                peer.manager)
+            # parameter writes reach rosmaster one request at a time, in the order they
+            # were charged: a deleteParam racing a setParam cannot free what rosmaster keeps
+            async with self._param_writes:
+                return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
+                                                peer.manager)
+
+        await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
+
+    async def _call_upstream_master(self, request: Request) -> Response | Fault:
+        return await self._call_plain(self.cfg.master.upstream, request)
+
+    async def _call_plain(self, uri: str, request: Request) -> Response | Fault:
+        """One XML-RPC call to a local process (one connection per call)."""
+        where = split_uri(uri, ("http",))
+        host, port = where.host, where.port
+        reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port, limit=READ_SIZE), CALL_TIMEOUT)
+        try:
+            conn = XmlRpcConnection(Role.CLIENT, host=f"{host}:{port}", max_body_size=self.cfg.limits.max_xmlrpc_body)
+            # The path is the one the node advertised, never one a peer wrote.
+            outgoing = Request(method=request.method, params=request.params,
+                               path=request_path(where.path), keep_alive=False, accept_gzip=True)
+            writer.write(conn.send(outgoing))
+            await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
+            event = await read_xmlrpc(reader, conn, CALL_TIMEOUT)
+            if isinstance(event, ConnectionClosed):
+                raise RemoteProtocolError(f"{uri} closed without answering")
+            return type(event)(**{**event.__dict__, "keep_alive": True})
+        finally:
+            writer.close()
+

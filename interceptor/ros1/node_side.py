@@ -1,0 +1,559 @@
+"""The node role: this host's nodes behind the local master, their exported node APIs
+and TCPROS servers judged per peer stream, grants reaching running nodes, subscribers
+reconnected after restarts."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.policy.ros1 import (
+    check_master_call,
+    check_node_call,
+    check_publisher_header,
+    check_service_client_header,
+    check_service_server_header,
+    check_subscriber_header,
+    ros_error,
+)
+from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
+from cryptoros.ros1.tcpros import canonical_header, encode_header
+from cryptoros.ros1.xmlrpc import (
+    MULTICALL,
+    Fault,
+    Request,
+    Response,
+    assemble_multicall,
+    expand_multicall,
+)
+from interceptor.gateway import READ_SIZE, InboundStream
+from interceptor.gate import REFRESH
+from interceptor.pump import FrameCounter
+from interceptor.registrations import REGISTER, RELEASE, Registration, covers
+from interceptor.translate import MASTER
+
+from interceptor.ros1.wire import (
+    CALL_TIMEOUT,
+    LOCAL_REGISTRATIONS,
+    LOCAL_TOKEN_WAIT,
+    OPAQUE,
+    filtered_param_reply,
+    local_endpoint,
+    log,
+    md5_or_none,
+    param_subscription_key,
+    pass_refusal,
+    read_tcpros_header,
+    registration_key,
+    resolved_param_call,
+    rewrite_param_api,
+    ros_ok,
+)
+
+
+class NodeSide:
+    """The node role of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
+
+    # ---------------------------------------------------------------- node side
+    async def _serve_node_stream(self, stream: InboundStream) -> None:
+        peer = stream.peer
+        endpoint = stream.resolved  # resolved once, by the gate's target check
+
+        def decide(call: Request) -> Request:
+            check_node_call(
+                call.method,
+                call.params,
+                grants=self.verifier.freshest(peer.access).grants,
+                peer_is_master=peer.manager == self.cfg.master.manager,
+                topic_types=self.topic_types,
+            )
+            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
+
+        def tcpros_to_canonical(host: str, port: int) -> tuple[str, int]:
+            self._check_local_port(lambda: self._node_of_api(stream.target), port, "TCPROS port")
+            canonical, public_port = self.translator.tcpros_to_canonical(host, port)
+            child = self.translator.own_id(canonical)
+            if child is not None:  # this node's TCPROS server: released with its API
+                self._note_export_child(stream.target, child)
+            return canonical, public_port
+
+        def after(call: Request, response: Response | Fault) -> Response | Fault:
+            response = redact_node_reply(call, response, MASTER)
+            return rewrite_response(call, response, tcpros=tcpros_to_canonical)
+
+        async def handle(request: Request) -> Response | Fault:
+            return await self._decide_calls(
+                request, decide, lambda r: self._call_plain(endpoint.uri, r), after, "node", peer.manager
+            )
+
+        await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
+
+    async def _serve_tcpros_stream(self, stream: InboundStream) -> None:
+        reader, writer, peer, purpose = stream.reader, stream.writer, stream.peer, stream.purpose
+        endpoint = stream.resolved  # resolved once, by the gate's target check
+        limits = self.cfg.limits
+        header, rest = await read_tcpros_header(
+            reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields, pending=stream.pending
+        )
+        fields = header.as_dict()
+
+        def judge(grants) -> frozenset[str] | None:
+            """The peer's side of this stream against its grants (again whenever it shows
+            a fresher token: a removed grant cuts exactly the streams it covered)."""
+            if purpose == "topic":
+                if "topic" not in fields:
+                    raise PolicyDenied("malformed", "topic stream without a topic header")
+                published = self.topic_types.get(fields["topic"])
+                check_subscriber_header(
+                    fields, grants=grants, published_type=published, published_md5=md5_or_none(published)
+                )
+                return None
+            if "service" not in fields:
+                raise PolicyDenied("malformed", "service stream without a service header")
+            return check_service_client_header(fields, grants=grants)
+
+        try:
+            client_types = judge(self.verifier.freshest(peer.access).grants)
+            if peer.watch is not None:
+                peer.watch.set_recheck(lambda fresh: judge(fresh.grants))
+        except PolicyDenied:
+            writer.write(encode_header({"error": OPAQUE}))
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(writer.drain(), 1)
+            raise
+        local_reader, local_writer = await asyncio.wait_for(
+            asyncio.open_connection(endpoint.host, endpoint.port, limit=READ_SIZE), limits.handshake_timeout
+        )
+        try:
+            # Only the known fields, rebuilt from the parsed values, reach the node; what
+            # followed the header (a service request) goes through the frame check below.
+            local_writer.write(encode_header(canonical_header(header)))
+            reply, reply_rest = await read_tcpros_header(local_reader, CALL_TIMEOUT, limits.max_header_size)
+            reply_fields = reply.as_dict()
+            if "error" in reply_fields:  # the node refused the stream on its own
+                await pass_refusal(writer, reply_fields["error"])
+                local_writer.close()
+                return
+            own = self.gw.own_access()
+            if purpose == "topic":
+                check_publisher_header(reply_fields, grants=own.grants, topic=fields["topic"])
+            else:
+                check_service_server_header(
+                    reply_fields, service=fields["service"], server_grants=own.grants, client_types=client_types
+                )
+        except BaseException as exc:
+            local_writer.close()
+            if isinstance(exc, PolicyDenied):
+                writer.write(encode_header({"error": OPAQUE}))
+            raise
+        self.metrics.allowed.labels(purpose).inc()
+        writer.write(encode_header(canonical_header(reply)))
+        if purpose == "topic":
+            # A subscriber sends nothing after its header: whatever it sends is dropped.
+            # The monitor reads this host's own beacons (what its peers' poses are checked against).
+            monitor = self.gw.monitor
+            reference = monitor.watch_reference(
+                manager=self.cfg.manager, publisher=reply_fields.get("callerid", "?"), topic=fields["topic"],
+                typename=reply_fields.get("type", ""),
+            ) if monitor is not None else None
+            try:
+                await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=b"",
+                                   right_pending=reply_rest, left_discard=True, endless=True,
+                                   right_tap=reference.feed if reference is not None else None)
+            finally:
+                if reference is not None:
+                    reference.close()
+        else:
+            # Service requests from the peer: size-checked, and counted against its budget.
+            name = fields["service"]
+            frames = FrameCounter(max_size=limits.message_size_for(name), what=f"{peer.manager} {name}")
+            await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=rest, right_pending=reply_rest,
+                             left_budget=self.gw.budget(peer), left_frames=frames,
+                             on_deny=lambda exc: self.gw.deny(purpose, exc, peer.manager))
+
+    # ---------------------------------------------------------------- local master
+    async def _on_local_master(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            await self._serve_xmlrpc(reader, writer, self._local_master_request)
+        except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
+            log.warning("local master connection dropped: %s", exc)
+        finally:
+            writer.close()
+
+    def _exposed_registration(self, request: Request) -> Response | None:
+        """A local node registering endpoints other hosts reach: one ROS error line to
+        it (each call of a multicall), naming the node, the port and the fix."""
+        try:
+            calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
+            for warning in self._nodes_exposed.check_registrations(calls, allow=self.cfg.allow_exposed_nodes,
+                                                                   config=self.cfg.source):
+                log.warning("%s", warning)
+        except RemoteProtocolError:
+            return None  # _decide_calls refuses it
+        except PolicyDenied as exc:
+            self.gw.deny("local-master", exc, "local node")
+            error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
+            return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
+        return None
+
+    def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
+        warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,
+                                                 config=self.cfg.source)
+        if warning:
+            log.warning("%s", warning)
+
+    def _node_of_api(self, api_id: str) -> str:
+        return next((node for node, api in self._node_apis.items() if api == api_id), f"with API export {api_id}")
+
+    async def _local_master_request(self, request: Request) -> Response | Fault:
+        """One request of a local node to its master (a registration made again on a
+        node's behalf goes the same way: :meth:`_regrant`)."""
+        refusal = self._exposed_registration(request)
+        if refusal is not None:
+            return refusal
+        # no token this instant (our manager re-enabled a moment ago): wait for one
+        # refresh attempt rather than refuse a node that starts now
+        await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+        return await self._decide_calls(request, self._local_decide, tunnel.call, self._local_after, "local-master",
+                                        "local node")
+
+    def _local_decide(self, call: Request) -> Request:
+        own = self.gw.own_access()
+        try:
+            check_master_call(
+                call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
+            )
+        except PolicyDenied as exc:
+            if exc.reason == "not_granted" and self._ledger.refused(call.method, call.params):
+                self._save_state_soon()  # kept: made if a grant comes while the node runs
+            raise
+        call = resolved_param_call(call, own.grants)
+        if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
+            self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
+            self._topics_registering.add(call.params[1])
+        call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
+        return rewrite_param_api(call, self.translator.to_canonical)
+
+    def _local_after(self, call: Request, response: Response | Fault) -> Response | Fault:
+        if call.method == "registerPublisher":
+            registering = call.params[1] in self._topics_registering
+            self._topics_registering.discard(call.params[1])
+            if not ros_ok(response):
+                if registering:  # the master refused it: not published here after all
+                    self.topic_types.pop(call.params[1], None)
+            elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
+                self.topic_types[call.params[1]] = call.params[2]
+                self._save_state()
+        elif call.method in ("registerSubscriber", "unregisterSubscriber") and ros_ok(response):
+            self._note_local_subscriber(call)
+        if call.method in LOCAL_REGISTRATIONS and ros_ok(response):
+            self._note_local_node(call)
+        if ros_ok(response):
+            self._track_local_registration(call)
+        self._note_ledger(call, response)
+        response = filtered_param_reply(call, response, self.gw.own_access().grants)
+        return rewrite_response(call, response, uri=self.translator.to_local)
+
+    # ---------------------------------------------------------------- exports of restarted nodes
+    def _note_local_node(self, call: Request) -> None:
+        """A local node registered (call as forwarded: canonical URIs). A node that
+        registers from a new API export was restarted: its old exports are released."""
+        if len(call.params) < 4:
+            return
+        node, api_id = call.params[0], self.translator.own_id(call.params[3])
+        if api_id is None:
+            return
+        if call.method == "registerService":
+            service_id = self.translator.own_id(call.params[2])
+            if service_id is not None:
+                self._note_export_child(api_id, service_id)
+        previous = self._node_apis.get(node)
+        if previous == api_id:
+            return
+        if previous is not None:
+            self._release_node_exports(previous)
+        if len(self._node_apis) < self.translator.MAX_EXPORTS:
+            self._node_apis[node] = api_id
+        self._save_state_soon()
+
+    def _track_local_registration(self, call: Request) -> None:
+        """Count a local node's registrations; when the last one is released (a clean
+        shutdown unregisters everything), its exports are released too."""
+        key = registration_key(call.method, call.params) or param_subscription_key(call.method, call.params)
+        if key is None:
+            return
+        kind, node, name = key
+        if call.method.startswith(("register", "subscribe")):
+            regs = self._node_registrations.setdefault(node, set())
+            if len(regs) < 4096 and len(self._node_registrations) <= self.translator.MAX_EXPORTS:
+                regs.add((kind, name))
+            return
+        regs = self._node_registrations.get(node)
+        if regs is None:
+            return
+        regs.discard((kind, name))
+        if regs:
+            return
+        del self._node_registrations[node]
+        api_id = self._node_apis.get(node)
+        if api_id is not None:
+            self._release_node_exports(api_id, why="unregistered everything")
+            self._save_state_soon()
+
+    def _note_export_child(self, api_id: str, child: str) -> None:
+        children = self._export_children.setdefault(api_id, set())
+        if len(children) < 1024:  # a node's own servers; more is not remembered (kept, not released)
+            children.add(child)
+
+    def _release_node_exports(self, api_id: str, why: str = "restarted") -> None:
+        released = [i for i in (*self._export_children.pop(api_id, ()), api_id) if self.translator.release(i)]
+        for node in [n for n, i in self._node_apis.items() if i == api_id]:
+            del self._node_apis[node]
+        if released:
+            log.info("released %d exports of a node that %s (API export %s)", len(released), why, api_id)
+
+    # ---------------------------------------------------------------- a restart with no state
+    async def _adopt_local_graph(self, patience: float = 120.0) -> None:
+        """Started with no state (node role): this host's nodes may be running, registered
+        under names of ours that rosmaster still holds. Take back their exports (an id
+        says which loopback endpoint it names, :meth:`Translator.adopt`), the topics they
+        publish, their subscriptions and registrations, and tell each subscriber its
+        publishers, as after a restart with state. Only what the master's interceptor
+        answers is adopted."""
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+
+        async def ask(method: str, *params):
+            reply = await tunnel.call(Request(method=method, params=("/cryptoros", *params)))
+            return reply.value[2] if ros_ok(reply) else None
+
+        deadline, backoff = time.monotonic() + patience, 0.25
+        while True:
+            try:
+                state = await ask("getSystemState")
+                if state is None:
+                    raise PolicyDenied("master_refused", "getSystemState")
+                break
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                if time.monotonic() + backoff > deadline:
+                    log.warning("started with no state, and rosmaster's graph cannot be read (%s): running nodes "
+                                "of this host are not reached until they register again", exc)
+                    return
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 4.0)
+        started = time.monotonic()
+        try:
+            publishers, subscribers, services = state
+            types = dict(await ask("getTopicTypes") or [])
+            own: dict[str, str] = {}  # node -> its local API
+            for node in {n for _name, nodes in (*publishers, *subscribers, *services) for n in nodes}:
+                uri = await ask("lookupNode", node)
+                endpoint = self.translator.adopt(uri) if isinstance(uri, str) else None
+                if endpoint is not None:
+                    own[node] = endpoint.uri
+                    self._node_apis.setdefault(node, self.translator.own_id(uri))
+            for service, nodes in services:
+                mine = [n for n in nodes if n in own]
+                uri = await ask("lookupService", service) if mine else None
+                if isinstance(uri, str) and self.translator.adopt(uri) is not None:
+                    for node in mine:
+                        self._node_registrations.setdefault(node, set()).add(("srv", service))
+            for kind, section in (("pub", publishers), ("sub", subscribers)):
+                for topic, nodes in section:
+                    for node in (n for n in nodes if n in own):
+                        self._node_registrations.setdefault(node, set()).add((kind, topic))
+                        if kind == "pub" and topic in types:
+                            self.topic_types.setdefault(topic, types[topic])
+                            self._ledger.made("registerPublisher", (node, topic, types[topic], own[node]))
+                        elif kind == "sub":
+                            self._local_subscribers.setdefault(topic, {}).setdefault(node, own[node])
+                            if topic in types:
+                                self._ledger.made("registerSubscriber", (node, topic, types[topic], own[node]))
+        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+            log.warning("started with no state; rosmaster's graph could not be read whole (%s)", exc)
+            return
+        log.log(logging.WARNING if own else logging.INFO,
+                "started with no state: %d running nodes of this host adopted from rosmaster's graph "
+                "(%d subscribed topics) in %.2f s", len(own), len(self._local_subscribers), time.monotonic() - started)
+        self._save_state_soon()
+        for topic in list(self._local_subscribers):
+            self._resubscribe_soon(topic, delay=0.0)
+
+    # ---------------------------------------------------------------- grants for running nodes
+    def _note_ledger(self, call: Request, response: Response | Fault) -> None:
+        """Keep a local node's registration (as the node sent it) made or refused by the
+        master, and forget one it released (:mod:`interceptor.registrations`)."""
+        if call.method in RELEASE:
+            self._ledger.released(call.method, call.params)
+        elif call.method in REGISTER:
+            try:
+                local = rewrite_call(call, caller_api=self.translator.to_local, service_api=self.translator.to_local)
+            except CryptorosError:
+                return
+            if ros_ok(response):
+                waiting = self._ledger.get(local.method, local.params)
+                self._ledger.made(local.method, local.params)
+                if waiting is not None and waiting.refused:
+                    self._save_state_soon()
+            elif self._ledger.refused(local.method, local.params):
+                self._save_state_soon()
+
+    def _own_token_changed(self) -> None:
+        """Our token changed (keeper listener): the grants it carries may cover
+        registrations of running nodes they did not cover before."""
+        if self.gw.started:
+            self._regrant_wanted = True
+            if not self._regranting:
+                self._regranting = True
+                self.gw.spawn(self._regrant(), "regrant")
+
+    async def _regrant(self) -> None:
+        """Make again, on their nodes' behalf, the registrations our new grants cover and
+        the old ones did not (a grant added, or removed and added back), and every one
+        refused that they cover now; tell each subscriber its publishers
+        (``publisherUpdate``, as rosmaster does for a registration it accepts). Nodes
+        that do not answer any more are forgotten."""
+        try:
+            while self._regrant_wanted:
+                self._regrant_wanted = False
+                try:
+                    own = self.gw.own_access()
+                except CryptorosError:
+                    return
+                before, self._grants_seen = self._grants_seen, own.grants
+                if before == own.grants and not self._ledger.refused_count:
+                    continue
+                todo = self._ledger.to_resend(
+                    lambda reg: covers(own.grants, own.subject, reg.method, reg.params),
+                    None if before is None else lambda reg: covers(before, own.subject, reg.method, reg.params))
+                if not todo:
+                    continue
+                started = time.monotonic()
+                master = self.cfg.master.interceptor or self.cfg.public
+                try:  # the master's interceptor judges by our freshest whole token: show it first
+                    shown = await self.gw.open_tunnel(master.host, master.port, REFRESH, "", whole=True)
+                    shown.writer.close()
+                except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                    log.warning("cannot show the master's interceptor our new token (%s): %d registrations of "
+                                "running nodes wait for the next one", exc, len(todo))
+                    self._grants_seen = before
+                    return
+                made = 0
+                for reg in todo:
+                    made += await self._make_again(reg)
+                log.warning("our grants changed: %d of %d registrations of running nodes made again in %.2f s",
+                            made, len(todo), time.monotonic() - started)
+        finally:
+            self._regranting = False
+
+    async def _make_again(self, reg: Registration) -> bool:
+        api = reg.node_api
+        try:
+            if api is None or not ros_ok(await self._call_plain(api, Request(method="getPid", params=("/master",)))):
+                raise ConnectionError("no answer")
+        except (CryptorosError, OSError, asyncio.TimeoutError):
+            log.info("%s %s of %s not made again: the node does not answer", reg.method, reg.params[1], reg.params[0])
+            self._ledger.released(reg.method, reg.params)
+            return False
+        response = await self._local_master_request(Request(method=reg.method, params=reg.params))
+        if not ros_ok(response):
+            log.info("%s %s of %s made again: refused (%s)", reg.method, reg.params[1], reg.params[0],
+                     response.value[1] if isinstance(response, Response) else response)
+            return False
+        if reg.method == "registerSubscriber":
+            await self._tell_publishers(api, reg.params[1], response.value[2])
+        return True
+
+    async def _tell_publishers(self, api: str, topic: str, uris: list) -> None:
+        """``publisherUpdate`` to a local subscriber, once each publisher's interceptor
+        has our freshest token (it judges the subscriber's requestTopic by it)."""
+        peers = {(t.host, t.port) for t in (self.translator.relay_target(*e) for e in map(local_endpoint, uris) if e)
+                 if t is not None}
+        for peer in peers:
+            with contextlib.suppress(CryptorosError, OSError, asyncio.TimeoutError):
+                await self.gw.exchange_tokens(*peer)
+        try:
+            await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, list(uris))))
+        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            log.info("publisherUpdate of %s to %s failed: %s", topic, api, exc)
+
+    # ---------------------------------------------------------------- subscribers reconnect
+    def _note_local_subscriber(self, call: Request) -> None:
+        """Which local nodes subscribe what, and their node APIs (to nudge them)."""
+        node, topic = call.params[0], call.params[1]
+        api = call.params[3] if call.method == "registerSubscriber" else call.params[2]
+        subscribers = self._local_subscribers.setdefault(topic, {})
+        before = subscribers.get(node)
+        if call.method == "registerSubscriber":
+            subscribers[node] = self.translator.to_local(api)
+        else:
+            subscribers.pop(node, None)
+            if not subscribers:
+                del self._local_subscribers[topic]
+        if subscribers.get(node) != before:  # a repeat changes nothing, and writes nothing
+            self._save_state()
+
+    def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
+        """A topic stream into this host ended: tell the topic's local subscribers the
+        current publishers (``publisherUpdate``, as the master would), so rospy and
+        roscpp connect again once the publisher's side is back (they retry a failed
+        connect by themselves, but not a connection the other side closed). ``via``
+        is the publisher's interceptor: waited for (a token exchange, backing off up
+        to a minute) before the subscribers are told."""
+        if topic not in self._local_subscribers or topic in self._resubscribing or not self.gw.started:
+            return
+        self._resubscribing.add(topic)
+
+        async def nudge() -> None:
+            try:
+                await asyncio.sleep(delay)
+                if via is not None:
+                    await self._wait_reachable(via)
+                uris = await self._publishers_of(topic)
+                for node, api in list(self._local_subscribers.get(topic, {}).items()):
+                    try:
+                        await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, uris)))
+                    except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                        log.info("publisherUpdate of %s to %s failed: %s", topic, node, exc)
+            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                log.info("cannot list the publishers of %s: %s", topic, exc)
+            finally:
+                self._resubscribing.discard(topic)
+
+        self.gw.spawn(nudge())
+
+    async def _wait_reachable(self, endpoint: tuple[str, int], patience: float = 60.0) -> None:
+        """Until a token exchange with a peer interceptor succeeds (or ``patience`` ends)."""
+        deadline = time.monotonic() + patience
+        backoff = 0.25
+        while True:
+            try:
+                await self.gw.exchange_tokens(*endpoint)
+                return
+            except (CryptorosError, OSError, asyncio.TimeoutError):
+                if time.monotonic() + backoff > deadline:
+                    raise
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 4.0)
+
+    async def _publishers_of(self, topic: str) -> list[str]:
+        """The topic's publishers as the master knows them, as URIs local nodes can call."""
+        master = self.cfg.master.interceptor or self.cfg.public
+        tunnel = self.pool(master.host, master.port, "master", "")
+        state = await tunnel.call(Request(method="getSystemState", params=("/cryptoros",)))
+        if not ros_ok(state):
+            raise PolicyDenied("master_refused", f"getSystemState: {state!r:.80}")
+        nodes = next((names for name, names in state.value[2][0] if name == topic), [])
+        uris = []
+        for node in nodes:
+            reply = await tunnel.call(Request(method="lookupNode", params=("/cryptoros", node)))
+            if ros_ok(reply) and isinstance(reply.value[2], str):
+                uris.append(self.translator.to_local(reply.value[2]))
+        return uris
+

@@ -1,0 +1,211 @@
+"""Relays: one loopback listener per remote endpoint a local process was handed, each
+tunnelling to the endpoint's owner (XML-RPC node APIs, TCPROS topics and services)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import socket
+from collections.abc import Callable
+
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.policy.ros1 import (
+    check_local_subscriber_header,
+    check_publisher_header,
+    check_service_client_header,
+    check_service_server_header,
+    check_subscribed_type,
+)
+from cryptoros.ros1.rewrite import rewrite_call, rewrite_response, tcpros_only
+from cryptoros.ros1.tcpros import canonical_header, encode_header
+from cryptoros.ros1.xmlrpc import (
+    Fault,
+    Request,
+    Response,
+)
+from interceptor.gateway import READ_SIZE, Tunnel
+from interceptor.pump import FrameCounter
+from interceptor.translate import KIND_XMLRPC, Canonical
+
+from interceptor.ros1.wire import (
+    CALL_TIMEOUT,
+    OPAQUE,
+    log,
+    monitor_hooks,
+    pass_refusal,
+    read_tcpros_header,
+)
+
+
+class Relays:
+    """The relays of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
+
+    def _open_relay(self, target: Canonical, port: int = 0) -> tuple[str, int]:
+        """Bind a loopback listener for ``target`` now (so its URI exists at once), on
+        ``port`` if given and free (a relay kept across a restart); it starts
+        accepting on the next turn of the loop."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            if not port:
+                sock.close()
+                raise
+            sock.bind(("127.0.0.1", 0))
+        sock.listen(128)
+        sock.setblocking(False)
+        handler = self._on_xmlrpc_relay if target.kind == KIND_XMLRPC else self._on_tcpros_relay
+
+        host, port = sock.getsockname()[:2]
+
+        async def serve() -> None:
+            server = await self.gw.start_local_server("relay", f"{host}:{port}", lambda r, w: handler(r, w, target),
+                                                      sock=sock, limit=READ_SIZE)
+            if sock.fileno() < 0:  # released before it started
+                server.close()
+            else:
+                self._relay_servers[(host, port)] = server
+
+        self._relay_socket_of[(host, port)] = sock
+        asyncio.get_running_loop().create_task(serve())
+        log.debug("relay %s:%d -> %s", host, port, target)
+        return host, port
+
+
+    # ---------------------------------------------------------------- relays
+    async def _on_xmlrpc_relay(self, reader, writer, target: Canonical) -> None:
+        """A local process calls a remote node's API (or the master calls a node's)."""
+        tunnel = self.pool(target.host, target.port, "node", target.id)
+
+        def decide(call: Request) -> Request:
+            if call.method == "shutdown":
+                raise PolicyDenied("shutdown_dropped", "node shutdown is never forwarded")
+            # rosmaster's publisherUpdate through the relay of a subscriber: its relay names
+            return tcpros_only(rewrite_call(call, publisher_uri=self.translator.from_master))
+
+        # the publisher's address must be the answering interceptor's own (see tcpros_to_local)
+        tcpros = functools.partial(self.translator.tcpros_to_local, via=(target.host, target.port))
+
+        def after(call: Request, response: Response | Fault) -> Response | Fault:
+            return rewrite_response(call, response, tcpros=tcpros)
+
+        async def handle(request: Request) -> Response | Fault:
+            return await self._decide_calls(request, decide, tunnel.call, after, "relay", str(target))
+
+        try:
+            await self._serve_xmlrpc(reader, writer, handle)
+        except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
+            log.warning("relay %s dropped: %s", target, exc)
+        finally:
+            writer.close()
+
+    async def _on_tcpros_relay(self, reader, writer, target: Canonical) -> None:
+        """A local subscriber or service client connects to a remote TCPROS server."""
+        self.gw.track(self._tcpros_relay(reader, writer, target))
+
+    async def _tcpros_relay(self, reader, writer, target: Canonical) -> None:
+        limits = self.cfg.limits
+        tunnel_writer = None
+        tunnel: Tunnel | None = None
+        unwatch: Callable[[], None] = lambda: None  # noqa: E731  (until the peer's stream is watched)
+        try:
+            header, rest = await read_tcpros_header(
+                reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
+            )
+            fields = header.as_dict()
+            own = self.gw.own_access()
+            if "topic" in fields:
+                purpose = "topic"
+                check_local_subscriber_header(fields, grants=own.grants)
+            elif "service" in fields:
+                purpose = "service"
+                client_types = check_service_client_header(fields, grants=own.grants)
+            else:
+                raise PolicyDenied("malformed", "TCPROS header with neither topic nor service")
+            tunnel = await self.gw.open_tunnel(
+                target.host, target.port, purpose, target.id, first=encode_header(canonical_header(header)) + rest,
+                settles=True,
+            )
+            tunnel_reader, tunnel_writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
+            unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
+            reply, reply_rest = await read_tcpros_header(
+                tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields, pending=tunnel.pending
+            )
+            reply_fields = reply.as_dict()
+            if "error" in reply_fields:  # the far side refused the stream: nothing is pumped
+                await pass_refusal(writer, reply_fields["error"])
+                tunnel_writer.close()
+                writer.close()
+                return
+
+            if purpose == "topic":  # a subscriber of any type: what it gets
+                check_subscribed_type(fields, reply_fields.get("type", ""), grants=own.grants)
+
+            def judge(grants) -> None:
+                """The publisher's (server's) side against its grants, again on each fresher token."""
+                if purpose == "topic":
+                    check_publisher_header(reply_fields, grants=grants, topic=fields["topic"])
+                else:
+                    check_service_server_header(
+                        reply_fields, service=fields["service"], server_grants=grants, client_types=client_types
+                    )
+
+            judge(self.verifier.freshest(peer.access).grants)
+            unwatch.set_recheck(lambda fresh: judge(fresh.grants))
+            monitor, watched, unregister = self.gw.monitor, None, None
+            if monitor is not None and purpose == "topic":
+                publisher = reply_fields["callerid"]
+                monitor.check_admission(peer.manager, publisher)
+                unregister = monitor.register(peer.manager, publisher, tunnel_writer.transport.abort)
+                watched = monitor.watch(manager=peer.manager, publisher=publisher, topic=fields["topic"],
+                                        typename=reply_fields.get("type") or fields["type"],
+                                        cut=tunnel_writer.transport.abort)
+                if watched is None and monitor.settings.gates(fields["topic"]):  # never unscored
+                    raise PolicyDenied("monitor_busy", f"{fields['topic']} is gated by the monitor, which "
+                                                       "watches as many streams as it may")
+            writer.write(encode_header(canonical_header(reply)))
+            tunnel.settle()  # set up: the spare for the next stream to this peer may be made now
+            self.metrics.open_streams.labels(purpose).inc()
+            try:
+                # What the peer sends into this host (messages it publishes, replies of
+                # its service) is size-checked frame by frame before a byte is relayed;
+                # published messages count against its budget.
+                name = fields.get("topic") or fields["service"]
+                frames = FrameCounter(
+                    max_size=limits.message_size_for(name), service_response=purpose == "service",
+                    what=f"{peer.manager} {name}",
+                )
+                budget = self.gw.budget(peer) if purpose == "topic" else None
+                await self.gw.pump(tunnel_reader, tunnel_writer, reader, writer, left_pending=reply_rest,
+                                 right_pending=b"", left_budget=budget, left_frames=frames,
+                                 on_deny=lambda exc: self.gw.deny("relay", exc, str(target)),
+                                 endless=purpose == "topic",
+                                 **monitor_hooks(watched, monitor is not None and monitor.settings.gates(name)))
+            finally:
+                if watched is not None:
+                    watched.close()
+                if unregister is not None:
+                    unregister()
+                unwatch()
+                self.metrics.open_streams.labels(purpose).dec()
+                if purpose == "topic":
+                    self._resubscribe_soon(fields["topic"], via=(target.host, target.port))
+        except (CryptorosError, asyncio.TimeoutError, ConnectionError, OSError) as exc:
+            if isinstance(exc, CryptorosError):
+                self.gw.deny("relay", exc, str(target))
+                with contextlib.suppress(Exception):
+                    writer.write(encode_header({"error": OPAQUE}))
+            if tunnel_writer is not None:
+                tunnel_writer.close()
+            writer.close()
+        finally:
+            if tunnel is not None:
+                tunnel.settle()
+            # a stream refused after its peer's token was watched (a publisher header not
+            # granted, a quarantined publisher) must not stay in the verifier's watch list:
+            # a subscriber retries such a stream every few seconds, for as long as it runs
+            unwatch()
+
+

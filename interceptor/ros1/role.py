@@ -1,0 +1,360 @@
+"""The ROS 1 role composed: its purposes served, its life cycle, status and the XML-RPC
+serving loop every part uses."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import contextlib
+import socket
+from collections.abc import Awaitable, Callable
+
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.ratelimit import OncePer, TokenBuckets
+from cryptoros.policy.ros1 import (
+    grant_hint,
+    refusal_answer,
+    refusal_text,
+    ros_error,
+)
+from cryptoros.ros1 import msgs
+from cryptoros.ros1.node import tune_malloc
+from cryptoros.ros1.xmlrpc import (
+    MULTICALL,
+    ConnectionClosed,
+    Fault,
+    Request,
+    Response,
+    Role,
+    XmlRpcConnection,
+    assemble_multicall,
+    expand_multicall,
+    make_multicall,
+    split_multicall_response,
+)
+from cryptoros.tokens import Grants
+from cryptoros.tunnel import Preamble
+from interceptor.gateway import Gateway, read_into
+from interceptor.gateway import Role as GatewayRole
+from interceptor.exposure import NodeGuard, PortExposure
+from interceptor.name_holds import NameHolds
+from interceptor.param_quota import ParamQuota
+from interceptor.registrations import LocalRegistrations
+from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, LocalEndpoint, Translator
+
+from interceptor.ros1.wire import (
+    CALL_TIMEOUT,
+    IDLE_TIMEOUT,
+    MAX_POOLS,
+    OPAQUE,
+    RATE_LOG_INTERVAL,
+    UNANSWERED,
+    UNANSWERED_REASONS,
+    log,
+    read_xmlrpc,
+)
+from interceptor.ros1.master_side import MasterSide
+from interceptor.ros1.node_side import NodeSide
+from interceptor.ros1.relays import Relays
+from interceptor.ros1.state import PersistedState
+from interceptor.ros1.tunnels import TunnelPool, XmlRpcTunnel
+
+
+class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
+    """The ROS 1 purposes and listeners of one interceptor (node role, master role, or both)."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        super().__init__(gateway)
+        cfg = gateway.cfg
+        local_master = (
+            f"http://{cfg.local_master.host}:{cfg.local_master.port}/" if cfg.local_master is not None else None
+        )
+        self.translator = Translator(
+            public_host=cfg.public.host,
+            public_port=cfg.public.port,
+            local_master_uri=local_master,
+            open_relay=self._open_relay,
+            max_relays_per_host=cfg.limits.max_relays_per_peer,
+            on_change=self._save_state,
+        )
+        if local_master:
+            self.translator.add_master_uri(local_master)
+        if "master" in cfg.roles and cfg.master.upstream:
+            self.translator.add_master_uri(cfg.master.upstream)
+        self.topic_types: dict[str, str] = {}  # topics published by this host's nodes
+        #: topics first known from a publisher registration still on its way to the master:
+        #: rosmaster tells subscribers at once, and their requestTopic can come back before
+        #: the master's answer does (refused as unknown_topic, the subscriber never connected)
+        self._topics_registering: set[str] = set()
+        self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
+        #: master role: names released by their owner, kept for it a while (a restart)
+        self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
+        #: master role: master calls per peer manager ([limits] max_master_calls_per_second)
+        self._master_calls = self._master_call_buckets()
+        self._rate_log = OncePer(RATE_LOG_INTERVAL, max_keys=1024)
+        #: master role: what each peer manager stored in rosmaster through setParam, and the
+        #: lock its parameter writes go to rosmaster under (in the order they are charged)
+        self._params = ParamQuota(cfg.limits.max_param_keys_per_peer, cfg.limits.max_param_bytes_per_peer)
+        self._param_writes = asyncio.Lock()
+        #: one per peer endpoint called, the least recently used first (see pool())
+        self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
+        self._tunnels_closed_idle = 0
+        self._servers: list[asyncio.AbstractServer] = []
+        self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
+        self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
+        self._relay_refs: dict[tuple[str, int], int] = {}  # master role: registrations behind each relay
+        self._state_loaded = False
+        self._save_pending = False
+        self._state_saves = 0  # state files written (/status: a repeat registration writes none)
+        self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
+        self._resubscribing: set[str] = set()
+        #: master role: the registrations rosmaster holds through us, as forwarded, so a
+        #: restarted rosmaster gets them replayed: (kind, node, name) -> (method, params)
+        self._registrations: dict[tuple[str, str, str], tuple[str, tuple]] = {}
+        self._registrations_full_logged = False
+        #: master role: each registered node's API as rosmaster has it (its relay here) and
+        #: the keys of its kept registrations. A node that registers from another API was
+        #: restarted or replaced: rosmaster then drops all the old API had registered, and
+        #: so do we (with the relays behind it)
+        self._api_of_node: dict[str, str] = {}
+        self._keys_of_node: dict[str, set[tuple[str, str, str]]] = {}
+        #: master role: nodes whose owner holds the name only through ``*`` or a pattern (a
+        #: manager whose grants name the node itself takes it from such an owner)
+        self._owned_by_pattern: set[str] = set()
+        #: master role: each node's parameter subscriptions (key -> the call as forwarded),
+        #: not replayed to a restarted rosmaster but counted behind their relays
+        self._param_subs_of_node: dict[str, dict[str, tuple]] = {}
+        self._master_pid: int | None = None
+        #: node role: each local node's API export, and the exports (TCPROS servers,
+        #: service servers) that came from it: released when the node registers again
+        #: from new ports (restarted), so restarts do not use up export_limit
+        self._node_apis: dict[str, str] = {}
+        self._export_children: dict[str, set[str]] = {}
+        #: node role: what each local node has registered now ((kind, name): pub, sub, srv,
+        #: param); a node whose last registration goes (it shut down cleanly) has its
+        #: exports released, so nodes that come and go under new names (rostopic, rosbag)
+        #: do not use up export_limit either
+        self._node_registrations: dict[str, set[tuple[str, str]]] = {}
+        #: deployment checks (interceptor/exposure.py): which ports answer other hosts, and
+        #: (master role) why rosmaster must not be served now, or None
+        self._exposure = PortExposure()
+        self._nodes_exposed = NodeGuard(self._exposure)
+        self._master_exposed: str | None = None
+        #: node role: each registration a local node made or had refused, as it sent it, so a
+        #: grant that comes while it runs is made for it (:meth:`_regrant`)
+        self._ledger = LocalRegistrations()
+        self._grants_seen: Grants | None = None  # the grants of our token the ledger was last judged by
+        self._regrant_wanted = False
+        self._regranting = False
+        gateway.serve("master", self._check_master_target, self._serve_master_stream)
+        gateway.serve("node", self._check_node_target, self._serve_node_stream)
+        gateway.serve("topic", self._check_tcpros_target, self._serve_tcpros_stream)
+        gateway.serve("service", self._check_tcpros_target, self._serve_tcpros_stream)
+
+    # ================================================================ life cycle (Role)
+    async def prepare(self) -> None:
+        # Large reads are copied out of the pump's buffer: keep glibc from mmap-ing
+        # (and page-faulting) each one (measured on 2 cores: +30 to 100 % on 1 MB frames).
+        tune_malloc()
+        # The message typestore (md5sums of published types) loads in ~50 ms: now, not
+        # during the first TCPROS stream (measured: the first set-up 62-97 ms, the rest 2-3).
+        msgs.typestore()
+        self._load_state()
+
+    async def start(self) -> None:
+        if "node" in self.cfg.roles:
+            lm = self.cfg.local_master
+            self._servers.append(await self.gw.start_local_server("local master", lm, self._on_local_master,
+                                                                  host=lm.host, port=lm.port))
+            with contextlib.suppress(CryptorosError):
+                self._grants_seen = self.gw.own_access().grants
+            self.gw.keeper.listeners.append(self._own_token_changed)
+            if self._ledger.refused_count:  # kept from before our restart: our token may cover them now
+                self._own_token_changed()
+            if not self.translator.export_count:
+                self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
+        for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
+            self._resubscribe_soon(topic, delay=0.5)
+        if "master" in self.cfg.roles and self.cfg.master.upstream:
+            self.gw.spawn(self._watch_master(), "rosmaster-watch")
+
+    async def stopping(self) -> None:
+        for server in (*self._servers, *self._relay_servers.values()):
+            server.close()
+
+    async def stopped(self) -> None:
+        for server in self._servers:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(server.wait_closed(), 1)
+        for pool in self._pools.values():
+            pool.close()
+        for sock in self._relay_socket_of.values():
+            sock.close()
+        self._relay_socket_of.clear()
+
+    def reloaded(self) -> None:
+        """The limits this role keeps a copy of: the next relay, held name, master call and
+        parameter write count by the new ones."""
+        limits = self.cfg.limits
+        self.translator.max_relays_per_host = limits.max_relays_per_peer
+        self._holds.per_manager = limits.max_nodes_per_peer
+        if (self._master_calls.rate, self._master_calls.burst) != (limits.max_master_calls_per_second,
+                                                                   float(limits.master_call_burst)):
+            self._master_calls = self._master_call_buckets()
+        self._params.max_keys, self._params.max_bytes = limits.max_param_keys_per_peer, limits.max_param_bytes_per_peer
+
+    def _master_call_buckets(self) -> TokenBuckets:
+        limits = self.cfg.limits
+        return TokenBuckets(limits.max_master_calls_per_second, limits.master_call_burst, max_keys=4096)
+
+    def status(self) -> dict:
+        pools = list(self._pools.values())
+        return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
+                         "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
+                         "state_saves": self._state_saves,
+                         "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
+                "warnings": self._deployment_warnings()}
+
+    def _deployment_warnings(self) -> list[str]:
+        warnings = self._nodes_exposed.warnings()
+        if self._master_exposed:
+            what = ("allow_exposed_master = true, served anyway" if self.cfg.allow_exposed_master
+                    else "master streams refused (exposed_master)")
+            warnings.append(f"{what}: {self._master_exposed}")
+        return warnings
+
+    def _count_idle_close(self) -> None:
+        self._tunnels_closed_idle += 1
+
+    # ================================================================ targets the gate checks
+    def _check_master_target(self, preamble: Preamble) -> None:
+        if "master" not in self.cfg.roles:
+            raise PolicyDenied("no_master_here", "this interceptor does not front a master")
+        self._refuse_exposed_master()
+
+    def _refuse_exposed_master(self) -> None:
+        problem = self.problem()
+        if problem is not None:
+            raise problem
+
+    def problem(self) -> PolicyDenied | None:
+        if self._master_exposed and not self.cfg.allow_exposed_master:
+            return PolicyDenied("exposed_master", self._master_exposed)
+        return None
+
+    def _check_node_target(self, preamble: Preamble) -> LocalEndpoint:
+        return self.translator.resolve(KIND_XMLRPC, preamble.target)
+
+    def _check_tcpros_target(self, preamble: Preamble) -> LocalEndpoint:
+        return self.translator.resolve(KIND_TCPROS, preamble.target)
+
+
+
+    def pool(self, host: str, port: int, purpose: str, target: str) -> TunnelPool:
+        """The tunnel pool to one peer endpoint (the least recently used of more than
+        :data:`MAX_POOLS` is closed)."""
+        key = (host, port, purpose, target)
+        pool = self._pools.pop(key, None)
+        if pool is None:
+            limits = self.cfg.limits
+            pool = TunnelPool(functools.partial(XmlRpcTunnel, self.gw.open_tunnel, host, port, purpose, target,
+                                                max_body=limits.max_xmlrpc_body),
+                              idle_timeout=limits.tunnel_idle_timeout, on_idle_close=self._count_idle_close)
+        self._pools[key] = pool
+        while len(self._pools) > MAX_POOLS:
+            self._pools.pop(next(iter(self._pools))).close()
+        return pool
+
+
+    async def _serve_xmlrpc(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        handle: Callable[[Request], Awaitable[Response | Fault]],
+        pending: bytes = b"",
+    ) -> None:
+        """Answer XML-RPC requests on a stream until it closes (``pending``: bytes
+        already read from it, parsed first). A request that does not parse (bad head,
+        oversized declared body, bad XML) is answered with one ROS error triple and the
+        connection is cut without reading the rest."""
+        limits = self.cfg.limits
+        conn = XmlRpcConnection(Role.SERVER, max_body_size=limits.max_xmlrpc_body, gzip_threshold=1400)
+        if pending:
+            conn.receive_data(pending)
+        while True:
+            try:
+                if not conn.trailing_data.data:  # between requests: a stop need not wait for this stream
+                    with self.gw.cuttable():
+                        await read_into(reader, conn.receive_data, IDLE_TIMEOUT)
+                event = await read_xmlrpc(reader, conn, CALL_TIMEOUT)  # the request's first bytes are in
+            except RemoteProtocolError:
+                writer.transport.pause_reading()
+                with contextlib.suppress(Exception):
+                    writer.write(conn.send(Response(value=ros_error(OPAQUE), keep_alive=False)))
+                    await asyncio.wait_for(writer.drain(), 1)
+                writer.transport.abort()
+                raise
+            if isinstance(event, ConnectionClosed):
+                return
+            response = await handle(event)
+            if not event.keep_alive:
+                response = type(response)(**{**response.__dict__, "keep_alive": False})
+            writer.write(conn.send(response))
+            await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
+            if not event.keep_alive:
+                return
+
+    async def _decide_calls(
+        self,
+        request: Request,
+        decide: Callable[[Request], Request],
+        forward: Callable[[Request], Awaitable[Response | Fault]],
+        after: Callable[[Request, Response | Fault], Response | Fault],
+        kind: str,
+        who: str,
+    ) -> Response | Fault:
+        """Decide each call of a request (a multicall call by call), forward the
+        allowed ones in one request, and answer refused ones with a ROS error."""
+        try:
+            calls = expand_multicall(request, max_calls=self.cfg.limits.max_multicall)
+        except RemoteProtocolError as exc:
+            self.gw.deny(kind, exc, who)
+            return Response(value=ros_error(refusal_text("malformed")))
+        results: list[Response | Fault | None] = [None] * len(calls)
+        allowed: list[tuple[int, Request]] = []
+        # whose grants a refusal lacks: the calling peer's, or (local nodes) our own manager's
+        manager = who if kind in ("master", "node") else self.cfg.manager if kind == "local-master" else None
+        for i, call in enumerate(calls):
+            try:
+                allowed.append((i, decide(call)))
+                self.metrics.allowed.labels(kind).inc()
+            except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
+                reason = getattr(exc, "reason", None)
+                flood = reason == "rate_limited"
+                self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who),
+                             hint=grant_hint(reason, call.method, call.params, manager))
+                # as rosmaster answers an error ([-1, "denied by cryptoros: <reason>", 0], never
+                # a fault, which tools print as a traceback); a probe of a parameter the caller
+                # may not read as if it were not set
+                results[i] = Response(value=refusal_answer(reason, call.method, call.params))
+        if allowed:
+            multicall = request.method == MULTICALL
+            outgoing = make_multicall([c for _, c in allowed], like=request) if multicall else allowed[0][1]
+            try:
+                reply = await forward(outgoing)
+                parts = split_multicall_response(reply, len(allowed)) if multicall else [reply]
+                for (i, call), part in zip(allowed, parts, strict=True):
+                    results[i] = after(call, part)
+            except (CryptorosError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
+                unanswered = getattr(exc, "reason", None) in UNANSWERED_REASONS or not isinstance(exc, CryptorosError)
+                if unanswered:
+                    log.warning("%s call from %s got no answer: %s", kind, who, exc or type(exc).__name__)
+                else:
+                    self.gw.deny(kind, exc, who)
+                for i, _ in allowed:
+                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else
+                                                          refusal_text(getattr(exc, "reason", None))))
+        if request.method == MULTICALL:
+            return assemble_multicall(results)  # type: ignore[arg-type]
+        return results[0]  # type: ignore[return-value]
+
