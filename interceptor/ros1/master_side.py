@@ -33,17 +33,13 @@ from interceptor.ros1.wire import (
     MASTER_WATCH_INTERVAL,
     MASTER_WATCH_TIMEOUT,
     MAX_PARAM_SUBSCRIPTIONS_PER_NODE,
-    MAX_REGISTRATIONS,
     RATE_LOG_INTERVAL,
-    RELAY_URI_INDEX,
     RELEASING_CALLS,
-    caller_api,
     filtered_param_reply,
     local_endpoint,
     log,
     param_subscription_key,
     read_xmlrpc,
-    registration_key,
     resolved_param_call,
     rewrite_param_api,
     ros_ok,
@@ -63,23 +59,15 @@ class MasterSide:
         managers that would take it through ``*`` or a pattern. Nor does a registration
         made through ``*`` or a pattern: a manager holding such a grant cannot squat a
         name the registry gives another manager before that one's node starts (rosmaster
-        then drops the squatter's registrations, :meth:`_forget_replaced_node`)."""
-        entry = self._owners.get(node)
-        if entry:
-            if node in self._owned_by_pattern and grants is not None and grants.names_node_exactly(node):
-                return None
-            return entry[0]
-        holder = self._holds.holder(node)
-        if holder is not None and grants is not None and grants.names_node_exactly(node):
-            return None
-        return holder
+        then drops the squatter's registrations: :class:`~interceptor.ros1.ledger.MasterLedger`)."""
+        return self._master_ledger.owner_of(node, grants is not None and grants.names_node_exactly(node))
 
     def _check_node_limit(self, call: Request, manager: str) -> None:
         """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
-        if call.method not in NAME_BINDING or not call.params or call.params[0] in self._owners:
+        if call.method not in NAME_BINDING or not call.params or call.params[0] in self._master_ledger.owners:
             return
         cap = self.cfg.limits.max_nodes_per_peer
-        if sum(1 for owner, _count in self._owners.values() if owner == manager) >= cap:
+        if self._master_ledger.nodes_of(manager) >= cap:
             raise PolicyDenied("node_limit", f"{manager} has {cap} nodes registered already (max_nodes_per_peer)")
 
     def _check_param_subscription(self, call: Request, manager: str) -> None:
@@ -89,11 +77,11 @@ class MasterSide:
         if key is None:
             return
         _kind, node, name = key
-        subs = self._param_subs_of_node.get(node, {})
+        subs = self._master_ledger.param_subs_of_node.get(node, {})
         if name in subs:
             return  # a repeat: nothing more is kept
         cap = self.cfg.limits.max_param_keys_per_peer
-        held = sum(len(s) for n, s in self._param_subs_of_node.items() if self._owners.get(n, ("",))[0] == manager)
+        held = self._master_ledger.param_subscriptions_of(manager)
         if held >= cap or len(subs) >= MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
             raise PolicyDenied("param_quota", f"{manager} holds {held} parameter subscriptions ({len(subs)} of {node}): "
                                f"max_param_keys_per_peer {cap}, {MAX_PARAM_SUBSCRIPTIONS_PER_NODE} per node")
@@ -108,129 +96,25 @@ class MasterSide:
 
     def _note_registration(self, call: Request, response: Response | Fault, manager: str,
                            exact: bool = True) -> None:
-        """What a call rosmaster accepted changes: owners, kept registrations, relay
-        counts (and the state file, when one of them changed). ``exact``: the caller's
-        grants name the node itself (not ``*`` or a pattern).
-
-        rosmaster keeps one registration per node and topic (service, parameter key):
-        the same registration made again changes nothing, here either (it used to count
-        again, keeping the node's name and relays after its one unregister, and to
-        rewrite the state file each time)."""
-        if not ros_ok(response) or not call.params:
-            return
-        node = call.params[0]
-        registering = call.method.startswith("register") or call.method == "subscribeParam"
-        if registering:
-            api = caller_api(call.method, call.params)
-            if api is not None and self._api_of_node.setdefault(node, api) != api:
-                self._forget_replaced_node(node)
-                self._api_of_node[node] = api
-        kept = self._kept(call.method, call.params)
-        if registering and node in self._owners and kept == (call.method, tuple(call.params)):
-            return  # an identical repeat
-        self._record_registration(call.method, call.params)
-        if registering:
-            self._count_relay_refs(call.method, call.params, +1)
-            if kept is not None and node in self._owners:
-                # made again with other values (a topic's type, a service's URI): it
-                # replaces the one kept, and the relays behind that one lose its count
-                self._count_relay_refs(kept[0], kept[1], -1)
-            else:
-                entry = self._owners.setdefault(node, [manager, 0])
-                if entry[1] == 0 and exact:
-                    self._owned_by_pattern.discard(node)
-                elif entry[1] == 0:
-                    self._owned_by_pattern.add(node)
-                entry[1] += 1
-                self._holds.claim(node)
-            self._note_param_subscription(call.method, call.params)
+        """What a call rosmaster accepted changes in the ledger (owners, kept registrations,
+        relay counts); the relays left with no registration are released, the state file
+        written when something changed. ``exact``: the caller's grants name the node itself."""
+        ok = ros_ok(response)
+        released = response.value[2] if ok and isinstance(response.value[2], int) else 0
+        ledger = self._master_ledger
+        not_kept = ledger.not_kept
+        noted = ledger.note(call.method, call.params, ok=ok, released=released, manager=manager, exact=exact,
+                            hold_seconds=self.cfg.limits.name_hold_seconds)
+        if noted.replaced is not None:
+            log.info("node %s registered from another API: rosmaster dropped what it had registered before%s",
+                     call.params[0], f" (by {noted.replaced})" if noted.replaced else "")
+        if ledger.not_kept and not not_kept:
+            log.warning("%d registrations kept for rosmaster replay: more are not kept "
+                        "(a restarted rosmaster will not learn them)", ledger.max_registrations)
+        for endpoint in noted.released:
+            self._release_relay(endpoint)
+        if noted.changed:
             self._save_state_soon()
-        elif (call.method.startswith("unregister") or call.method == "unsubscribeParam") and \
-                isinstance(response.value[2], int) and response.value[2] > 0:
-            entry = self._owners.get(node)
-            if entry is not None:
-                entry[1] -= 1
-                if entry[1] <= 0:
-                    del self._owners[node]
-                    self._owned_by_pattern.discard(node)
-                    self._api_of_node.pop(node, None)
-                    self._param_subs_of_node.pop(node, None)
-                    self._holds.release(node, entry[0], self.cfg.limits.name_hold_seconds)
-            if entry is not None or kept is not None:
-                self._save_state_soon()
-            # the relays behind the registration as it was made: unregisterService names
-            # the service's URI, not the node API its registration counted too
-            self._count_relay_refs(*(kept or (call.method, call.params)), -1)
-            self._note_param_subscription(call.method, call.params)
-
-    def _kept(self, method: str, params: tuple) -> tuple[str, tuple] | None:
-        """The registration (or parameter subscription) a master call makes or releases,
-        as it was forwarded when made ((method, params)), if it is kept."""
-        key = registration_key(method, params)
-        if key is not None:
-            return self._registrations.get(key)
-        key = param_subscription_key(method, params)
-        if key is not None:
-            params = self._param_subs_of_node.get(key[1], {}).get(key[2])
-            return None if params is None else ("subscribeParam", params)
-        return None
-
-    def _note_param_subscription(self, method: str, params: tuple) -> None:
-        key = param_subscription_key(method, params)
-        if key is None:
-            return
-        _kind, node, name = key
-        if method == "subscribeParam":
-            subs = self._param_subs_of_node.setdefault(node, {})
-            if name in subs or len(subs) < MAX_PARAM_SUBSCRIPTIONS_PER_NODE:
-                subs[name] = tuple(params)
-        else:
-            subs = self._param_subs_of_node.get(node)
-            if subs is not None:
-                subs.pop(name, None)
-                if not subs:
-                    del self._param_subs_of_node[node]
-
-    def _record_registration(self, method: str, params: tuple) -> None:
-        """Keep (or drop) one registration as it was forwarded to rosmaster."""
-        key = registration_key(method, params)
-        if key is None:
-            return
-        node = key[1]
-        if method.startswith("register"):
-            if key not in self._registrations and len(self._registrations) >= MAX_REGISTRATIONS:
-                if not self._registrations_full_logged:
-                    self._registrations_full_logged = True
-                    log.warning("%d registrations kept for rosmaster replay: more are not kept "
-                                "(a restarted rosmaster will not learn them)", MAX_REGISTRATIONS)
-                return
-            self._registrations[key] = (method, tuple(params))
-            self._keys_of_node.setdefault(node, set()).add(key)
-            api = caller_api(method, params)
-            if api is not None:
-                self._api_of_node.setdefault(node, api)
-        elif self._registrations.pop(key, None) is not None:
-            keys = self._keys_of_node.get(node)
-            if keys is not None:
-                keys.discard(key)
-                if not keys:
-                    del self._keys_of_node[node]
-
-    def _forget_replaced_node(self, node: str) -> None:
-        """``node`` registered from another API: rosmaster dropped every registration of
-        the old one (a restarted node, or a name taken from a ``*`` holder), so the kept
-        registrations, its parameter subscriptions, the relay counts behind them and the
-        owner go too."""
-        for key in self._keys_of_node.pop(node, ()):
-            kept = self._registrations.pop(key, None)
-            if kept is not None:
-                self._count_relay_refs(kept[0], kept[1], -1)
-        for params in self._param_subs_of_node.pop(node, {}).values():
-            self._count_relay_refs("subscribeParam", params, -1)
-        entry = self._owners.pop(node, None)
-        self._owned_by_pattern.discard(node)
-        log.info("node %s registered from another API: rosmaster dropped what it had registered before%s", node,
-                 f" (by {entry[0]})" if entry else "")
 
     async def _watch_master(self) -> None:
         """Go past plain ROS: when rosmaster comes back with a new pid (restarted), every
@@ -252,9 +136,9 @@ class MasterSide:
                 # from state_dir (a repeated registration is harmless to rosmaster)
                 if self._master_pid is not None:  # a new rosmaster holds no parameter
                     await self._replay_parameters(pid)
-                if self._master_pid is not None or self._registrations:
+                if self._master_pid is not None or self._master_ledger.registrations:
                     await self._replay_registrations(pid)
-                elif not self._relay_refs:  # restarted with no state: rosmaster still names our relays
+                elif not self._master_ledger.relay_refs:  # restarted with no state: rosmaster still names our relays
                     await self._adopt_master_state()
                 self._master_pid = pid
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
@@ -300,14 +184,14 @@ class MasterSide:
         except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
             log.warning("cannot read rosmaster's graph to re-open our relays: %s", exc)
             return
-        adopted = 0
+        counted = []
         for uri, count in uris:
             with contextlib.suppress(CryptorosError):
                 self.translator.from_master(uri)
             endpoint = local_endpoint(uri)
-            if endpoint is not None and self.translator.relay_target(*endpoint) is not None:
-                self._relay_refs[endpoint] = self._relay_refs.get(endpoint, 0) + count
-                adopted += 1
+            if endpoint is not None:
+                counted.append((endpoint, count))
+        adopted = self._master_ledger.adopt(counted)
         if uris:
             log.warning("restarted with no state: %d relays rosmaster names re-opened (%d nodes, %d services)",
                         adopted, len(counts), len(services))
@@ -329,7 +213,7 @@ class MasterSide:
                     f", {failed} failed" if failed else "")
 
     async def _replay_registrations(self, pid: int) -> None:
-        calls = [Request(method=method, params=params) for method, params in self._registrations.values()]
+        calls = [Request(method=method, params=params) for method, params in self._master_ledger.registrations.values()]
         calls.sort(key=lambda c: c.method != "registerService")  # services, then topics
         failed = 0
         for call in calls:
@@ -340,22 +224,6 @@ class MasterSide:
                 failed += 1
         log.warning("rosmaster (pid %d) is new: %d registrations replayed%s", pid, len(calls),
                     f", {failed} failed" if failed else "")
-
-    def _count_relay_refs(self, method: str, params: tuple, delta: int) -> None:
-        """Relays the master holds URIs of: one count per registration behind each;
-        a relay whose last registration was released is closed (its fd freed)."""
-        for index in RELAY_URI_INDEX.get(method, ()):
-            uri = params[index] if len(params) > index else None
-            endpoint = local_endpoint(uri)
-            if endpoint is None or self.translator.relay_target(*endpoint) is None:
-                continue
-            count = self._relay_refs.get(endpoint, 0) + delta
-            if count > 0:
-                self._relay_refs[endpoint] = count
-                continue
-            self._relay_refs.pop(endpoint, None)
-            if delta < 0:
-                self._release_relay(endpoint)
 
     def _release_relay(self, endpoint: tuple[str, int]) -> None:
         target = self.translator.relay_target(*endpoint)

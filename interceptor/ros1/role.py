@@ -53,6 +53,7 @@ from interceptor.ros1.wire import (
     log,
     read_xmlrpc,
 )
+from interceptor.ros1.ledger import MasterLedger
 from interceptor.ros1.master_side import MasterSide
 from interceptor.ros1.node_side import NodeSide
 from interceptor.ros1.relays import Relays
@@ -86,9 +87,10 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: rosmaster tells subscribers at once, and their requestTopic can come back before
         #: the master's answer does (refused as unknown_topic, the subscriber never connected)
         self._topics_registering: set[str] = set()
-        self._owners: dict[str, list] = {}  # master role: node -> [manager, registrations]
-        #: master role: names released by their owner, kept for it a while (a restart)
-        self._holds = NameHolds(cfg.limits.max_nodes_per_peer)
+        #: master role: owners of node names (and names released, held for their owner a
+        #: while), the registrations kept for a restarted rosmaster, relay counts
+        self._master_ledger = MasterLedger(NameHolds(cfg.limits.max_nodes_per_peer),
+                                           lambda endpoint: self.translator.relay_target(*endpoint) is not None)
         #: master role: master calls per peer manager ([limits] max_master_calls_per_second)
         self._master_calls = self._master_call_buckets()
         self._rate_log = OncePer(RATE_LOG_INTERVAL, max_keys=1024)
@@ -102,28 +104,11 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._servers: list[asyncio.AbstractServer] = []
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
-        self._relay_refs: dict[tuple[str, int], int] = {}  # master role: registrations behind each relay
         self._state_loaded = False
         self._save_pending = False
         self._state_saves = 0  # state files written (/status: a repeat registration writes none)
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         self._resubscribing: set[str] = set()
-        #: master role: the registrations rosmaster holds through us, as forwarded, so a
-        #: restarted rosmaster gets them replayed: (kind, node, name) -> (method, params)
-        self._registrations: dict[tuple[str, str, str], tuple[str, tuple]] = {}
-        self._registrations_full_logged = False
-        #: master role: each registered node's API as rosmaster has it (its relay here) and
-        #: the keys of its kept registrations. A node that registers from another API was
-        #: restarted or replaced: rosmaster then drops all the old API had registered, and
-        #: so do we (with the relays behind it)
-        self._api_of_node: dict[str, str] = {}
-        self._keys_of_node: dict[str, set[tuple[str, str, str]]] = {}
-        #: master role: nodes whose owner holds the name only through ``*`` or a pattern (a
-        #: manager whose grants name the node itself takes it from such an owner)
-        self._owned_by_pattern: set[str] = set()
-        #: master role: each node's parameter subscriptions (key -> the call as forwarded),
-        #: not replayed to a restarted rosmaster but counted behind their relays
-        self._param_subs_of_node: dict[str, dict[str, tuple]] = {}
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
         #: service servers) that came from it: released when the node registers again
@@ -197,7 +182,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         parameter write count by the new ones."""
         limits = self.cfg.limits
         self.translator.max_relays_per_host = limits.max_relays_per_peer
-        self._holds.per_manager = limits.max_nodes_per_peer
+        self._master_ledger.holds.per_manager = limits.max_nodes_per_peer
         if (self._master_calls.rate, self._master_calls.burst) != (limits.max_master_calls_per_second,
                                                                    float(limits.master_call_burst)):
             self._master_calls = self._master_call_buckets()

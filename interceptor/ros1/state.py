@@ -9,7 +9,6 @@ import json
 from interceptor.statefile import write_private_json
 
 from interceptor.ros1.wire import (
-    MAX_REGISTRATIONS,
     log,
 )
 
@@ -27,11 +26,10 @@ class PersistedState:
         if path is None or not self._state_loaded:
             return
         data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
-                "owners": self._owners, "owned_by_pattern": sorted(self._owned_by_pattern),
+                **self._master_ledger.snapshot(),
                 "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
-                "registrations": [[method, list(params)] for method, params in self._registrations.values()],
                 "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()]}
         try:
             write_private_json(path, data)
@@ -61,12 +59,7 @@ class PersistedState:
                 raise ValueError(f"unknown state version {data.get('version')!r}")
             problems = self.translator.restore(data["translator"])
             self.topic_types.update({str(k): str(v) for k, v in data.get("topic_types", {}).items()})
-            self._owners.update({str(k): [str(v[0]), int(v[1])] for k, v in data.get("owners", {}).items()})
-            self._owned_by_pattern.update(str(n) for n in data.get("owned_by_pattern", ()) if str(n) in self._owners)
-            for method, params in data.get("registrations", [])[:MAX_REGISTRATIONS]:
-                self._record_registration(str(method), tuple(str(p) for p in params))
-            for method, params in self._registrations.values():  # the counts behind each restored relay
-                self._count_relay_refs(method, params, +1)
+            self._master_ledger.restore(data)
             for method, params in data.get("waiting", [])[:self._ledger.max_refused]:
                 self._ledger.refused(str(method), tuple(str(p) for p in params))
             for topic, subscribers in data.get("local_subscribers", {}).items():
