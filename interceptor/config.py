@@ -346,7 +346,7 @@ _SECTIONS = {
 #: ``revocation_poll_interval``, ``feed_wait``, ``feed_heartbeat`` (from the next feed
 #: request), ``request_timeout``, ``token_grace``, ``revocation_grace``; every ``[limits]``
 #: key (for new streams and connections: an open stream keeps the limits it started with;
-#: ``handshake_timeout`` on the public listener, re-bound with the new configuration);
+#: ``handshake_timeout`` read at each accept; the public port is never re-bound);
 #: ``[ros2] peers``, ``depth``, ``local``, ``transient_local``,
 #: ``max_kept_bytes_per_peer``, ``require_private_domain``; every ``[monitor]`` key (the model too);
 #: ``unsafe_plaintext_upstream`` (only checked when the file is loaded);

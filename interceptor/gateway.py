@@ -44,21 +44,16 @@ from cryptography import x509
 
 from cryptoros.errors import ConfigError, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.monitor.model import MonitorModel
-from cryptoros.pemfiles import cert_der, cert_serial
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tls import (
-    FullHandshakes,
-    PeerCertificateCheck,
-    SessionCache,
     cert_thumbprint_s256,
-    client_context,
     offering,
     peer_cert_der,
-    server_context,
 )
-from cryptoros.tokens import AccessToken, peer_audience
+from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
+from interceptor.certsource import CertSource
 from interceptor.config import InterceptorConfig, check_reload
 from interceptor.denials import DenialTable
 from interceptor.learning import Learner
@@ -327,9 +322,9 @@ class Gateway:
         self.monitor = Monitor(cfg.monitor, self.metrics.registry, deny=self.deny,
                                state_path=quarantine_path(cfg.state_dir, cfg.manager) if cfg.state_dir else None
                                ) if cfg.monitor is not None else None
-        self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = (
-            self._tls_state(cfg))
-        self.authz = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
+        #: every TLS context, session cache and certificate fact, from one [tls] (interceptor/certsource.py)
+        self.certs = self._load_certs(cfg)
+        self.authz = AuthzClient(cfg.authz, self.certs.authz_ctx)
         self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin)
         self.verifier = PeerVerifier(
             self.authz,
@@ -345,9 +340,7 @@ class Gateway:
         self.learner = Learner(cfg.manager, serves_everyone="master" in cfg.roles, authz=self.authz,
                                registry=self.metrics.registry)
         self.verifier.learning = self.learner.state
-        self._own_cert_der = cert_der(cfg.tls.cert_file)
-        self._own_serial = cert_serial(self._own_cert_der)  # parsed once, not per feed
-        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(self._own_cert_der))
+        self.verifier.own_audience = self.certs.own_audience
         self._own_access: AccessToken | None = None
         self._own_token: str | None = None
         #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
@@ -467,7 +460,8 @@ class Gateway:
         self.learner.install_log_marker()
         self.spawn(self.learner.run(), "learning")
         with listening("public", self.cfg.public):
-            self._public_server = await self._listen_public(self._server_ctx, self.cfg)
+            self._public_server = await PublicListener.start(self.cfg.public.host, self.cfg.public.port,
+                                                             self._on_public)
         if self.cfg.metrics is not None:
             with listening("metrics", self.cfg.metrics):
                 await self._start_metrics()
@@ -497,27 +491,20 @@ class Gateway:
                 log.warning("waiting for the authorization server: %s", exc)
                 await asyncio.sleep(0.5)
 
-    async def _listen_public(self, ctx: ssl.SSLContext, cfg: InterceptorConfig) -> PublicListener:
-        """The public listener of ``cfg`` (a reload's new one, before ``self.cfg`` is
-        swapped). It accepts TCP, counted against the unauthenticated-stream caps from
-        its accept, and only then makes the TLS handshake (:meth:`_on_public`): a
-        connection that never sends a ClientHello holds a slot, not an unbounded
-        descriptor."""
-        ctx.sslobject_class = self._counting_sslobject_class()
-        return await PublicListener.start(cfg.public.host, cfg.public.port, lambda sock: self._on_public(sock, ctx))
-
-    async def _accept_tls(self, sock: socket.socket, ctx: ssl.SSLContext,
+    async def _accept_tls(self, sock: socket.socket,
                           who: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
         """The server side of the mutual TLS handshake on an accepted socket, within
-        ``handshake_timeout``: a stream pair, or None for a failed or late handshake
-        (counted and logged like every other denial, the socket closed)."""
+        ``handshake_timeout``, with the certificate source's context as it is now: a
+        stream pair, or None for a failed or late handshake (counted and logged like
+        every other denial, the socket closed)."""
         loop = asyncio.get_running_loop()
         reader = asyncio.StreamReader(limit=READ_SIZE)
         protocol = asyncio.StreamReaderProtocol(reader)
         try:
             with self.cuttable():  # nothing in flight yet: a stop need not wait for it
                 transport, _ = await loop.connect_accepted_socket(
-                    lambda: protocol, sock, ssl=ctx, ssl_handshake_timeout=self.cfg.limits.handshake_timeout)
+                    lambda: protocol, sock, ssl=self.certs.server_ctx,
+                    ssl_handshake_timeout=self.cfg.limits.handshake_timeout)
         except asyncio.CancelledError:
             sock.close()
             raise
@@ -555,7 +542,7 @@ class Gateway:
                     raise
                 if self.server_side:
                     try:
-                        gateway._cert_check.check(peer_cert_der(self))
+                        gateway.certs.cert_check.check(peer_cert_der(self))
                     except TokenError as exc:
                         gateway.metrics.denied.labels("tls", exc.reason).inc()
                         log.warning("DENY tls handshake: %s", exc)
@@ -594,19 +581,11 @@ class Gateway:
         self.learner.remove_log_marker()
         await self.authz.close()
 
-    def _tls_state(self, cfg: InterceptorConfig):
-        """Everything TLS between interceptors, built from one configuration: both
-        contexts, the client's kept sessions (for that client context only), the
-        server's record of full handshakes and the per-handshake certificate check (the
-        CRL as loaded with the contexts, and the serials the revocation feed lists now).
-        A new server context draws new ticket keys, so a reload makes every earlier
-        session worthless."""
-        lifetime = cfg.limits.tls_session_lifetime
-        client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
-        return (server_context(cfg.tls, tickets=1 if lifetime > 0 else 0), client_ctx,
-                SessionCache(client_ctx, lifetime=lifetime), FullHandshakes(lifetime),
-                PeerCertificateCheck(cfg.tls.crl_file,
-                                     revoked_serials=lambda: self.verifier.revocations.revoked_serials))
+    def _load_certs(self, cfg: InterceptorConfig) -> CertSource:
+        """The certificate source of ``cfg``: its handshakes counted and checked here
+        (:meth:`_counting_sslobject_class`), the CA's revocations from the feed."""
+        return CertSource.load(cfg, revoked_serials=lambda: self.verifier.revocations.revoked_serials,
+                               sslobject_class=self._counting_sslobject_class())
 
     @staticmethod
     def _held_feed_wait(cfg: InterceptorConfig) -> float:
@@ -634,9 +613,9 @@ class Gateway:
         self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
         self.metrics.stream_checks.labels("certificate").inc()
         if direction == "in":
-            self._full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+            self.certs.full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
         else:
-            self._cert_check.check(der)
+            self.certs.cert_check.check(der)
         return der
 
     async def reload(self, cfg: InterceptorConfig) -> None:
@@ -646,9 +625,9 @@ class Gateway:
         :data:`interceptor.config.RELOAD`). A key that needs a restart ([authz] url,
         [listen] public, manager, roles...) refuses the whole reload with a ConfigError
         naming it, before anything is read or swapped. Otherwise all or nothing: the new
-        TLS material is loaded, the public listener re-bound with the new context and
-        limits, and a token bound to the new certificate fetched and verified before
-        anything is swapped, so a failure (a renewed certificate the registry does not
+        TLS material is loaded (a new :class:`~interceptor.certsource.CertSource`) and a
+        token bound to the new certificate fetched and verified before anything is
+        swapped, so a failure (a renewed certificate the registry does not
         know yet, the authorization server down) keeps the old state everywhere (the
         caller catches and logs). Then the new configuration is swapped in and handed to
         the holders that keep a copy (authorization client, token keeper, verifier, the
@@ -657,41 +636,27 @@ class Gateway:
         for role in self._roles:
             role.check_reload(cfg)
         monitor_model = MonitorModel.load(cfg.monitor.model) if cfg.monitor is not None else None
-        # one certificate source: every holder below is built from cfg.tls
-        tls_state = self._tls_state(cfg)
-        server_ctx = tls_state[0]
-        authz_ctx = client_context(cfg.tls, check_hostname=True)
-        own_der = cert_der(cfg.tls.cert_file)
-        probe = AuthzClient(cfg.authz, authz_ctx)
+        certs = self._load_certs(cfg)  # one certificate source: every holder reads it by reference
+        probe = AuthzClient(cfg.authz, certs.authz_ctx)
         try:
             token = await probe.fetch_token()
         finally:
             await probe.close()
-        self.verifier.verify(token.token, own_der)  # bound to the new certificate, not revoked
-        old = self._public_server
-        if old is not None:
-            old.close()
-        try:
-            self._public_server = await self._listen_public(server_ctx, cfg)
-        except OSError:
-            self._public_server = await self._listen_public(self._server_ctx, self.cfg)
-            raise
-        self._server_ctx, self._client_ctx, self._sessions, self._full_handshakes, self._cert_check = tls_state
+        self.verifier.verify(token.token, certs.own_der)  # bound to the new certificate, not revoked
+        self.certs = certs  # the next handshake, in or out, uses it; the public port stays as it is
         self._drop_spares()  # made with the old certificate: a token bound to the new one fails on them
         if cfg.limits.max_new_connections_per_second != self.cfg.limits.max_new_connections_per_second:
             self._new_stream_limiter = self._stream_limiter(cfg)
         self.cfg = cfg  # what is read per use (most [limits]) applies from here
-        # every holder of the certificate reads the new one: the authorization server
-        # binds the next token to it, and our own token is checked against it
-        self._own_cert_der = own_der
-        self._own_serial = cert_serial(own_der)
-        self.verifier.own_audience = peer_audience(cert_thumbprint_s256(own_der))
+        # the authorization server binds the next token to the new certificate, and our
+        # own token is checked against it
+        self.verifier.own_audience = certs.own_audience
         self.verifier.reconfigure(poll_interval=cfg.authz.revocation_poll_interval, grace=cfg.authz.token_grace,
                                   revocation_grace=cfg.authz.revocation_grace, feed_wait=self._held_feed_wait(cfg),
                                   feed_heartbeat=cfg.authz.feed_heartbeat)
         self.keeper.refresh_margin = cfg.authz.refresh_margin
         self.authz.settings = cfg.authz  # same servers (check_reload): request_timeout from the new session on
-        await self.authz.use_ssl_context(authz_ctx)
+        await self.authz.use_ssl_context(certs.authz_ctx)
         self.keeper.install(token)  # new grants, bound to the new certificate; peers' tokens anew
         self._own_access = None
         self.own_access()
@@ -732,7 +697,7 @@ class Gateway:
             self.check_roles()
         except (TokenError, PolicyDenied) as exc:
             health = f"{exc.reason}: {exc.detail}"
-        cert = x509.load_der_x509_certificate(self._own_cert_der)
+        cert = x509.load_der_x509_certificate(self.certs.own_der)
         crl = self.cfg.tls.crl_file
         last = self.verifier.last_feed_at
         return {
@@ -791,7 +756,7 @@ class Gateway:
         """When the feed revokes our own token or disables our manager, drop the token
         (nothing is allowed on it any more) and ask for a new one at once."""
         own = self._own_access
-        serial = self._own_serial
+        serial = self.certs.own_serial
         if serial in revocations.revoked_serials:
             log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
                       "renew it (cryptoros-certs renew, set-cert, SIGHUP)", serial)
@@ -837,7 +802,7 @@ class Gateway:
         """Our own token, verified like a peer's (it carries our grants)."""
         token = self.keeper.current()
         if self._own_access is None or self._own_token != token:
-            self._own_access = self.verifier.verify(token, self._own_cert_der)
+            self._own_access = self.verifier.verify(token, self.certs.own_der)
             self._own_token = token
         return self._own_access
 
@@ -1091,13 +1056,14 @@ class Gateway:
 
     async def _connect(self, host: str, port: int) -> _Connected:
         """Mutual TLS to a peer interceptor, resuming the session kept for it if any."""
-        sessions = self._sessions
+        certs = self.certs
+        sessions = certs.sessions
         offer = sessions.get((host, port))
         try:
-            with offering(self._client_ctx, offer):
+            with offering(certs.client_ctx, offer):
                 reader, writer = await asyncio.wait_for(
                     asyncio.open_connection(
-                        host, port, ssl=self._client_ctx, server_hostname=host,
+                        host, port, ssl=certs.client_ctx, server_hostname=host,
                         local_addr=(self.cfg.public.host, 0), limit=READ_SIZE,
                     ),
                     self.cfg.limits.handshake_timeout,
@@ -1114,7 +1080,7 @@ class Gateway:
         """Our token in the preamble (``first`` right behind it), the peer's reply and
         its token verified and bound to its certificate, checked again on this stream."""
         reader, writer, ssl_object, offer = connected.reader, connected.writer, connected.ssl_object, connected.offer
-        sessions = self._sessions
+        sessions = self.certs.sessions
         try:
             der = self._check_peer_certificate(ssl_object, "out")
             token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
@@ -1145,7 +1111,7 @@ class Gateway:
         return Tunnel(reader, writer, Peer(access=access, hosts=cert_hosts(der)), pending)
 
     # ================================================================ public side
-    async def _on_public(self, sock: socket.socket, ctx: ssl.SSLContext) -> None:
+    async def _on_public(self, sock: socket.socket) -> None:
         task = asyncio.current_task()
         if task is not None:
             self._streams.add(task)
@@ -1175,7 +1141,7 @@ class Gateway:
             return
         writer: asyncio.StreamWriter | None = None
         try:
-            streams = await self._accept_tls(sock, ctx, who)
+            streams = await self._accept_tls(sock, who)
             if streams is None:
                 return
             reader, writer = streams

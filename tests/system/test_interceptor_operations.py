@@ -12,6 +12,7 @@ import struct
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 import pytest
 
@@ -199,6 +200,26 @@ def test_sighup_reload_keeps_open_streams_and_disabled_manager_is_cut_off_within
     assert re.search(r'^cryptoros_interceptor_revocation_cutoffs_total\{reason="(subject_disabled|revoked)"\} [1-9]', text,
                      re.M), "the cut is not counted with its reason"
     network.cli("enable-manager", "robot_b")
+
+
+def listening_inode(host) -> str:
+    """The kernel's inode of the socket listening on ``host``'s public port."""
+    want = f"{socket.inet_aton(host.address)[::-1].hex().upper()}:{host.public_port:04X}"
+    rows = [line.split() for line in Path(f"/proc/{host.proc.pid}/net/tcp").read_text().splitlines()[1:]]
+    inodes = [row[9] for row in rows if row[1] == want and row[3] == "0A"]
+    assert len(inodes) == 1, inodes
+    return inodes[0]
+
+
+def test_a_reload_swaps_the_certificate_source_and_never_rebinds_the_public_port(network):
+    """SIGHUP reads [tls] again into a new certificate source; the listening socket is the
+    same one before and after (no window where the port is closed or taken), and the next
+    handshake is served."""
+    a = network.hosts["robot_a"]
+    before = listening_inode(a)
+    assert "reloaded" in sighup(a)
+    assert listening_inode(a) == before
+    assert token_exchanges(network, "robot_a", "robot_b", 2) == [True, True]
 
 
 def sighup(host, timeout: float = 20) -> str:
