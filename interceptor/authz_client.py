@@ -55,7 +55,7 @@ import aiohttp
 from cryptoros import pemfiles
 from cryptoros.errors import PKIError, PolicyDenied, TokenError
 from cryptoros.learning import LearningState
-from cryptoros.tokens import AccessToken, KeySet, Revocations, VerifiedTokenCache, peer_audience
+from cryptoros.tokens import AccessToken, Grants, KeySet, Revocations, VerifiedTokenCache, peer_audience
 from interceptor.config import AuthzSettings
 
 log = logging.getLogger("cryptoros.interceptor.authz")
@@ -542,6 +542,32 @@ class _Watch:
     recheck: Callable[[AccessToken], None] | None = None
     #: When the token it was judged by was revoked: cut at this time unless a fresh one comes.
     revoked_deadline: float | None = None
+    #: why the verifier cut it, once it did
+    reason: str | None = None
+
+
+class StreamWatch:
+    """One open stream as the verifier watches it (:meth:`PeerVerifier.watch`): its judge
+    declared, its end told, and why it was cut, if it was."""
+
+    __slots__ = ("_entry", "_watches")
+
+    def __init__(self, entry: _Watch, watches: set[_Watch]) -> None:
+        self._entry, self._watches = entry, watches
+
+    def judge_by(self, judge: Callable[[Grants], None]) -> None:
+        """Re-judge the stream with ``judge`` (raises PolicyDenied when the grants no
+        longer cover it) on every fresher token its peer shows."""
+        self._entry.recheck = lambda access: judge(access.grants)
+
+    def close(self) -> None:
+        """The stream ended: no more watching."""
+        self._watches.discard(self._entry)
+
+    @property
+    def reason(self) -> str | None:
+        """Why the verifier cut the stream (``revoked``, ``grant_removed: ...``), or None."""
+        return self._entry.reason
 
 
 def _peer_key(access: AccessToken) -> tuple[str, str, str]:
@@ -667,24 +693,17 @@ class PeerVerifier:
         await self.refresh_jwks()
         return self.verify(token, peer_cert_der)
 
-    def watch(
-        self, access: AccessToken, on_revoked: Callable[[str], None],
-        recheck: Callable[[AccessToken], None] | None = None,
-    ) -> Callable[[], None]:
-        """Register an open stream judged by ``access`` (``recheck`` may be set later on
-        the returned handle); returns the function to call when it closes."""
-        entry = _Watch(self.freshest(access), on_revoked, recheck)
+    def watch(self, access: AccessToken, on_cut: Callable[[str], None],
+              judge: Callable[[Grants], None] | None = None) -> StreamWatch:
+        """Register an open stream judged by ``access``: ``on_cut`` is called with the
+        reason when the verifier cuts it; ``judge`` (or one declared later on the
+        returned watch) re-judges it on every fresher token of its peer."""
+        entry = _Watch(self.freshest(access), on_cut)
+        watch = StreamWatch(entry, self._watches)
+        if judge is not None:
+            watch.judge_by(judge)
         self._watches.add(entry)
-        watches = self._watches
-
-        class Handle:
-            def __call__(self) -> None:
-                watches.discard(entry)
-
-            def set_recheck(self, fn: Callable[[AccessToken], None]) -> None:
-                entry.recheck = fn
-
-        return Handle()
+        return watch
 
     # ------------------------------------------------------------ freshest tokens
     def note(self, access: AccessToken) -> AccessToken:
@@ -715,6 +734,7 @@ class PeerVerifier:
 
     def _cut(self, entry: _Watch, reason: str) -> None:
         self._watches.discard(entry)
+        entry.reason = reason
         log.warning("cutting off stream of manager=%s jti=%s: %s", entry.access.subject, entry.access.jti, reason)
         for listener in self.cut_listeners:
             listener(reason.split(":", 1)[0])
@@ -895,4 +915,4 @@ class PeerVerifier:
             await asyncio.sleep(max(0.0, self._poll - (time.monotonic() - started)))
 
 
-__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "PeerVerifier", "TokenKeeper"]
+__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "PeerVerifier", "StreamWatch", "TokenKeeper"]

@@ -22,7 +22,7 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 
 from cryptoros.errors import LocalProtocolError, PolicyDenied
-from cryptoros.tokens import AccessToken
+from cryptoros.tokens import AccessToken, Grants
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 
 #: The purpose with which two interceptors only show each other their tokens.
@@ -45,6 +45,21 @@ class Admitted:
     target: str
     #: what the role's target check resolved the target to (an exported endpoint), if anything
     resolved: object = None
+    #: the stream's judge, when its target alone tells which grant it needs (:class:`Target`)
+    judge: Callable[[Grants], None] | None = None
+
+
+@dataclass(frozen=True)
+class Target:
+    """What a role's target check returns: the target resolved (handed to the role with
+    the stream) and, when the target alone tells which of the peer's grants the stream
+    needs, its judge: run by the gate on the peer's token before the reply, and by the
+    verifier again on every fresher token it shows (a removed grant cuts the stream).
+    A stream whose grant is known only later (a TCPROS header) declares its judge on its
+    watch then (:meth:`~interceptor.authz_client.StreamWatch.judge_by`)."""
+
+    resolved: object = None
+    judge: Callable[[Grants], None] | None = None
 
 
 class _State(enum.Enum):
@@ -56,8 +71,8 @@ class _State(enum.Enum):
 
 
 #: Checks a role registers per purpose: raise PolicyDenied for a target it does not
-#: serve, else return what the target resolves to (handed to the role with the stream).
-TargetCheck = Callable[[Preamble], object]
+#: serve, else return the :class:`Target` it resolves to.
+TargetCheck = Callable[[Preamble], Target]
 
 
 class StreamGate:
@@ -114,18 +129,21 @@ class StreamGate:
         if feed is not None:
             raise feed
         preamble = self._preamble
-        resolved = None
+        target = Target()
         if preamble.purpose != REFRESH:
             check = self._purposes.get(preamble.purpose)
             if check is None:
                 raise PolicyDenied("bad_purpose", f"purpose {preamble.purpose} is not served here")
-            resolved = check(preamble)
+            target = check(preamble)
+            if target.judge is not None:
+                target.judge(access.grants)
         if not allow_new_stream(access.subject):
             raise PolicyDenied("rate_limited", "too many new streams per second")
         if open_streams >= max_streams:
             raise PolicyDenied("connection_limit", f"{max_streams} streams open")
         self._state = _State.ADMITTED
-        return Admitted(access=access, purpose=preamble.purpose, target=preamble.target, resolved=resolved)
+        return Admitted(access=access, purpose=preamble.purpose, target=preamble.target, resolved=target.resolved,
+                        judge=target.judge)
 
     def accept(self, own_token: str) -> bytes:
         """The reply to an admitted stream: our token (narrowed for this peer)."""

@@ -52,7 +52,7 @@ from cryptoros.tls import (
 )
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
-from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
+from interceptor.authz_client import AuthzClient, PeerVerifier, StreamWatch, TokenKeeper
 from interceptor.certsource import CertSource
 from interceptor.config import InterceptorConfig, check_reload
 from interceptor.denials import DenialTable
@@ -101,15 +101,11 @@ def _remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
 
 @dataclass(frozen=True, slots=True)
 class Peer:
-    """A verified peer interceptor: the token it opened the stream with, the addresses
-    its certificate names, and the stream's registration with the verifier (which
-    re-judges it when the peer shows a fresher token)."""
+    """A verified peer interceptor: the token it opened the stream with and the
+    addresses its certificate names."""
 
     access: AccessToken
     hosts: frozenset[str]
-    watch: Any = field(default=None, compare=False)
-    #: why the gateway cut the stream ("reason" key), if it did (revoked, grant removed, expired)
-    cut: dict = field(default_factory=dict, compare=False)
 
     @property
     def manager(self) -> str:
@@ -163,6 +159,9 @@ class InboundStream:
     pending: bytes = b""
     #: what the role's target check resolved the target to (checked before the reply)
     resolved: Any = None
+    #: the stream as the verifier watches it: its judge (declared by the target check, or
+    #: by the role once it read what the stream is for), why it was cut
+    watch: StreamWatch | None = field(default=None, compare=False)
 
 
 class Role:
@@ -1156,8 +1155,7 @@ class Gateway:
                     while (event := gate.next_event()) is NEED_DATA:
                         await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
-            access = await self.verifier.verify_fresh(event.preamble.token, der)
-            self.verifier.note(access)
+            access = self.verifier.note(await self.verifier.verify_fresh(event.preamble.token, der))  # its freshest
             who = f"{access.subject}@{who}"
             admitted = gate.admit(
                 access, feed=self.feed_problem(), allow_new_stream=self._new_stream_limiter.allow,
@@ -1198,25 +1196,19 @@ class Gateway:
         self.metrics.open_streams.labels(purpose).inc()
         self._open_per_peer[access.subject] = self._open_per_peer.get(access.subject, 0) + 1
 
-        cut_by: dict[str, str] = {}
-
-        def cut(reason: str) -> None:
-            cut_by.setdefault("reason", reason)
-            writer.transport.abort()
-
-        unwatch = self.verifier.watch(access, cut)
-        peer = Peer(access=access, hosts=cert_hosts(der), watch=unwatch, cut=cut_by)
+        watch = self.verifier.watch(access, lambda _reason: writer.transport.abort(), admitted.judge)
+        peer = Peer(access=access, hosts=cert_hosts(der))
         _check, serve = self._purposes[purpose]
         try:
             await serve(InboundStream(reader, writer, peer, purpose, admitted.target, gate.trailing_data,
-                                      admitted.resolved))
+                                      admitted.resolved, watch))
         except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
             if isinstance(exc, CryptorosError):
                 self.deny(purpose, exc, who)
         except asyncio.CancelledError:
             pass  # stop(): the grace period is over
         finally:
-            unwatch()
+            watch.close()
             self.metrics.open_streams.labels(purpose).dec()
             left = self._open_per_peer[access.subject] - 1
             if left > 0:

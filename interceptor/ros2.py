@@ -48,6 +48,8 @@ from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint
+from interceptor.authz_client import StreamWatch
+from interceptor.gate import Target
 from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks
 from interceptor.monitor import WatchedStream
 
@@ -558,7 +560,7 @@ class Ros2Role(Role):
                 backoff = min(backoff * 2, 5.0)
                 continue
             self._noted.discard(("unreachable", endpoint, target.name))
-            unwatch: Callable[[], None] = lambda: None  # noqa: E731
+            watch: StreamWatch | None = None
             pending: set[int] = set()
             try:
                 if not manager_may(peer.access.grants, target.peer_action, target.name, target.type):
@@ -569,7 +571,7 @@ class Ros2Role(Role):
                 def cut(reason: str, writer=writer) -> None:
                     writer.transport.abort()  # counted by the verifier, with its reason
 
-                unwatch = self.verifier.watch(peer.access, cut)
+                watch = self.verifier.watch(peer.access, cut)
                 self.metrics.allowed.labels(f"ros2_{target.kind}_out").inc()
                 self.metrics.open_streams.labels("ros2").inc()
                 for frame in out.history or ():
@@ -594,7 +596,8 @@ class Ros2Role(Role):
                 if isinstance(exc, CryptorosError):
                     self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
             finally:
-                unwatch()
+                if watch is not None:
+                    watch.close()
                 writer.close()
                 for bid in pending:
                     self._calls.pop(bid, None)
@@ -648,23 +651,23 @@ class Ros2Role(Role):
                 self._link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
 
     # ================================================================ inbound
-    def _check_ros2_target(self, preamble: Preamble) -> None:
-        StreamTarget.decode(preamble.target)  # malformed targets are refused before the reply
+    def _check_ros2_target(self, preamble: Preamble) -> Target:
+        """The stream's target (malformed ones refused before the reply) and its judge:
+        the peer's grant for the node, name and type it names, run before the reply and
+        again on each fresher token the peer shows."""
+        target = StreamTarget.decode(preamble.target)
         if not self._bridge_ready.is_set():
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
 
-    async def _serve_ros2_stream(self, stream: InboundStream) -> None:
-        reader, writer, peer = stream.reader, stream.writer, stream.peer
-        target = StreamTarget.decode(stream.target)
-
         def judge(grants) -> None:
-            """The peer's grant for this stream (again on each fresher token it shows)."""
             if not grants.allows(target.action, target.node, target.name, target.type):
                 raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
 
-        judge(self.verifier.freshest(peer.access).grants)
-        if peer.watch is not None:
-            peer.watch.set_recheck(lambda fresh: judge(fresh.grants))
+        return Target(target, judge)
+
+    async def _serve_ros2_stream(self, stream: InboundStream) -> None:
+        reader, writer, peer = stream.reader, stream.writer, stream.peer
+        target: StreamTarget = stream.resolved  # decoded and judged by the gate (_check_ros2_target)
         own = self.gw.own_access()
         if not manager_may(own.grants, target.peer_action, target.name, target.type):
             raise PolicyDenied(
@@ -784,7 +787,6 @@ class Ros2Role(Role):
                                and asyncio.get_running_loop().time() < until):
                             await asyncio.sleep(0.002)
         except PolicyDenied:
-            peer.cut.setdefault("reason", "kept_budget")
             raise
         finally:
             # its publisher goes with it, and with it every sample it kept for late joiners

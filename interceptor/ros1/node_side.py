@@ -118,8 +118,8 @@ class NodeSide:
 
         try:
             client_types = judge(self.verifier.freshest(peer.access).grants)
-            if peer.watch is not None:
-                peer.watch.set_recheck(lambda fresh: judge(fresh.grants))
+            if stream.watch is not None:
+                stream.watch.judge_by(judge)
         except PolicyDenied:
             writer.write(encode_header({"error": OPAQUE}))
             with contextlib.suppress(Exception):

@@ -7,7 +7,6 @@ import asyncio
 import contextlib
 import functools
 import socket
-from collections.abc import Callable
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
@@ -24,6 +23,7 @@ from cryptoros.ros1.xmlrpc import (
     Request,
     Response,
 )
+from interceptor.authz_client import StreamWatch
 from interceptor.gateway import READ_SIZE, Tunnel
 from interceptor.pump import FrameCounter
 from interceptor.translate import KIND_XMLRPC, Canonical
@@ -109,7 +109,7 @@ class Relays:
         limits = self.cfg.limits
         tunnel_writer = None
         tunnel: Tunnel | None = None
-        unwatch: Callable[[], None] = lambda: None  # noqa: E731  (until the peer's stream is watched)
+        watch: StreamWatch | None = None  # until the peer's stream is watched
         try:
             header, rest = await read_tcpros_header(
                 reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
@@ -129,7 +129,7 @@ class Relays:
                 settles=True,
             )
             tunnel_reader, tunnel_writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
-            unwatch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
+            watch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
             reply, reply_rest = await read_tcpros_header(
                 tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields, pending=tunnel.pending
             )
@@ -153,7 +153,7 @@ class Relays:
                     )
 
             judge(self.verifier.freshest(peer.access).grants)
-            unwatch.set_recheck(lambda fresh: judge(fresh.grants))
+            watch.judge_by(judge)
             monitor, watched, unregister = self.gw.monitor, None, None
             if monitor is not None and purpose == "topic":
                 publisher = reply_fields["callerid"]
@@ -188,7 +188,7 @@ class Relays:
                     watched.close()
                 if unregister is not None:
                     unregister()
-                unwatch()
+                watch.close()
                 self.metrics.open_streams.labels(purpose).dec()
                 if purpose == "topic":
                     self._resubscribe_soon(fields["topic"], via=(target.host, target.port))
@@ -206,6 +206,7 @@ class Relays:
             # a stream refused after its peer's token was watched (a publisher header not
             # granted, a quarantined publisher) must not stay in the verifier's watch list:
             # a subscriber retries such a stream every few seconds, for as long as it runs
-            unwatch()
+            if watch is not None:
+                watch.close()
 
 

@@ -34,13 +34,14 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tokens import Grants
 from cryptoros.tunnel import Preamble
+from interceptor.gate import Target
 from interceptor.gateway import Gateway, read_into
 from interceptor.gateway import Role as GatewayRole
 from interceptor.exposure import NodeGuard, PortExposure
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.registrations import LocalRegistrations
-from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, LocalEndpoint, Translator
+from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Translator
 
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
@@ -212,10 +213,12 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._tunnels_closed_idle += 1
 
     # ================================================================ targets the gate checks
-    def _check_master_target(self, preamble: Preamble) -> None:
+    def _check_master_target(self, preamble: Preamble) -> Target:
+        """Master streams: each call is judged as it comes (no judge for the stream)."""
         if "master" not in self.cfg.roles:
             raise PolicyDenied("no_master_here", "this interceptor does not front a master")
         self._refuse_exposed_master()
+        return Target()
 
     def _refuse_exposed_master(self) -> None:
         problem = self.problem()
@@ -227,11 +230,14 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             return PolicyDenied("exposed_master", self._master_exposed)
         return None
 
-    def _check_node_target(self, preamble: Preamble) -> LocalEndpoint:
-        return self.translator.resolve(KIND_XMLRPC, preamble.target)
+    def _check_node_target(self, preamble: Preamble) -> Target:
+        """An exported node API: each call is judged as it comes."""
+        return Target(self.translator.resolve(KIND_XMLRPC, preamble.target))
 
-    def _check_tcpros_target(self, preamble: Preamble) -> LocalEndpoint:
-        return self.translator.resolve(KIND_TCPROS, preamble.target)
+    def _check_tcpros_target(self, preamble: Preamble) -> Target:
+        """An exported TCPROS server: its judge is declared once the header is read
+        (:meth:`~interceptor.ros1.node_side.NodeSide._serve_tcpros_stream`)."""
+        return Target(self.translator.resolve(KIND_TCPROS, preamble.target))
 
 
 

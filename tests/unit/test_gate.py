@@ -9,7 +9,7 @@ from cryptoros.errors import LocalProtocolError, PolicyDenied, RemoteProtocolErr
 from cryptoros.policy.ros1 import check_local_subscriber_header
 from cryptoros.tokens import AccessToken, Grant, Grants
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
-from interceptor.gate import REFRESH, PendingStreams, PreambleReceived, StreamGate, feed_problem
+from interceptor.gate import REFRESH, PendingStreams, PreambleReceived, StreamGate, Target, feed_problem
 
 def _access() -> AccessToken:
     grants = Grants([Grant(node="/listener", action="subscribe", name="/chatter", type="std_msgs/String")])
@@ -22,7 +22,7 @@ def _preamble(purpose: str = "topic", target: str = "7") -> bytes:
 
 
 def _gate(**purposes):
-    return StreamGate(purposes or {"topic": lambda preamble: ("endpoint", preamble.target)})
+    return StreamGate(purposes or {"topic": lambda preamble: Target(("endpoint", preamble.target))})
 
 
 def _admit(gate: StreamGate, **kw):
@@ -112,6 +112,30 @@ def test_the_role_target_check_refuses_unknown_targets():
     with pytest.raises(PolicyDenied) as info:
         _admit(gate)
     assert info.value.reason == "unknown_target"
+
+
+def test_a_judge_declared_by_the_target_check_runs_before_the_reply():
+    """The target tells which grant the stream needs: judged on the peer's token before
+    any reply, and handed on to be run again on each fresher token."""
+    judged = []
+
+    def judge(grants):
+        judged.append(grants)
+        raise PolicyDenied("not_granted", "/talker may not publish /chatter")
+
+    gate = StreamGate({"topic": lambda preamble: Target(preamble.target, judge)})
+    gate.receive_data(_preamble())
+    gate.next_event()
+    with pytest.raises(PolicyDenied) as info:
+        _admit(gate)
+    assert info.value.reason == "not_granted" and judged == [_access().grants]
+    with pytest.raises(LocalProtocolError):
+        gate.accept("token")  # refused: no reply but the refusal
+    admitted_gate = StreamGate({"topic": lambda preamble: Target(preamble.target, lambda grants: None)})
+    admitted_gate.receive_data(_preamble())
+    admitted_gate.next_event()
+    admitted = _admit(admitted_gate)
+    assert admitted.resolved == "7" and admitted.judge is not None
 
 
 def test_refresh_needs_no_role_and_no_target():
