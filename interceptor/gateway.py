@@ -236,6 +236,15 @@ def take_buffered(reader: asyncio.StreamReader) -> bytes:
     return data
 
 
+def widen_reader(reader: asyncio.StreamReader, limit: int) -> None:
+    """Let ``reader`` buffer up to ``limit`` bytes before it pauses its transport (a
+    topic stream of large messages; the public listener's readers start at
+    :data:`READ_SIZE`). The one place the edge writes a StreamReader's internals:
+    asyncio sets the limit only when the reader is made, before the purpose is known."""
+    if getattr(reader, "_limit", None) is not None:
+        reader._limit = max(reader._limit, limit)
+
+
 async def read_into(reader: asyncio.StreamReader, feed: Callable[[bytes], None], timeout: float) -> None:
     """One read (within ``timeout``) handed to a sans-IO codec's ``receive_data``."""
     data = await asyncio.wait_for(reader.read(READ_SIZE), timeout)

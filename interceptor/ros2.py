@@ -50,7 +50,7 @@ from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint
 from interceptor.authz_client import StreamWatch
 from interceptor.gate import Target
-from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks
+from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks, widen_reader
 from interceptor.monitor import WatchedStream
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
@@ -720,8 +720,7 @@ class Ros2Role(Role):
         rx = self.metrics.bytes.labels("rx")
         # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
         # an 80 KB image would cost a pause/resume per message. Topic streams read big.
-        if getattr(reader, "_limit", None) is not None:
-            reader._limit = max(reader._limit, TOPIC_READ_SIZE)
+        widen_reader(reader, TOPIC_READ_SIZE)
         # Each inbound stream has a DDS publisher of its own on this robot's domain, never
         # one shared by every peer sending the topic: what one peer's stream does to its
         # writer (a flood that wedges it and its readers: docs/ros2.md, samples kept for

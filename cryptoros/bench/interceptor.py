@@ -128,7 +128,8 @@ def _our_worker() -> None:
     subscriber receives it at once: the bring-up row)."""
     from cryptoros.bench.ros1 import publish_workload, record_message
     from cryptoros.ros1 import msgs
-    from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
+    from cryptoros.memory import tune_malloc
+    from cryptoros.ros1.node import Node, install_uvloop
 
     role = sys.argv[1]
     install_uvloop()

@@ -99,7 +99,8 @@ else:
 
 def _our_worker() -> None:
     """Entry point of our sender/receiver processes (argv: role mode n size master)."""
-    from cryptoros.ros1.node import Node, install_uvloop, tune_malloc
+    from cryptoros.memory import tune_malloc
+    from cryptoros.ros1.node import Node, install_uvloop
 
     role, mode, n, size, master = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
     typename = "sensor_msgs/Image" if mode == "image" else "std_msgs/String"

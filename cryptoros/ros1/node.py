@@ -49,21 +49,7 @@ __all__ = [
     "RosApiError",
     "call",
     "install_uvloop",
-    "tune_malloc",
 ]
-
-
-def tune_malloc(threshold: int = 16 << 20) -> bool:
-    """Keep glibc from mmap-ing (and page-faulting) every buffer of 128 KiB or more:
-    large messages then reuse heap memory (perf-baselines.md: +30 to 100 % on 1 MB)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        m_mmap_threshold, m_trim_threshold = -3, -1
-        return bool(libc.mallopt(m_mmap_threshold, threshold)) and bool(libc.mallopt(m_trim_threshold, 4 * threshold))
-    except (OSError, AttributeError):
-        return False
 
 
 def install_uvloop() -> bool:
@@ -112,7 +98,7 @@ class Node:
         self.xmlrpc = XmlRpcServer(self._handle_api, self.host, xmlrpc_port)
         self._tcpros_port = tcpros_port
         self._tcpros_server: asyncio.base_events.Server | None = None
-        self._tcpros_conns: set = set()
+        self._tcpros_conns: set = set()  # the TCPROS server's accepted connections (track_tcpros)
         self._publishers: dict[str, Publisher] = {}
         self._subscribers: dict[str, Subscriber] = {}
         self._services: dict[str, ServiceServer] = {}
@@ -209,11 +195,18 @@ class Node:
             raise
         return pub
 
+    def track_tcpros(self, transport) -> None:
+        """A connection accepted on the TCPROS port (closed with the node)."""
+        self._tcpros_conns.add(transport)
+
+    def untrack_tcpros(self, transport) -> None:
+        self._tcpros_conns.discard(transport)
+
     async def unadvertise(self, topic: str) -> None:
         pub = self._publishers.pop(topic, None)
         if pub is None:
             return
-        for link in list(pub._links):
+        for link in pub.links:
             link.flush()
             link.transport.close()
         await self.master("unregisterPublisher", topic, self.uri)
@@ -326,11 +319,11 @@ class Node:
             info = []
             n = 0
             for t, pb in self._publishers.items():
-                for link in pb._links:
+                for link in pb.links:
                     n += 1
                     info.append([n, link.peer, "o", "TCPROS", t, True, ""])
             for t, s in self._subscribers.items():
-                for uri, link in s._links.items():
+                for uri, link in s.links.items():
                     n += 1
                     info.append([n, uri, "i", "TCPROS", t, link.header is not None, ""])
             return ok(info)

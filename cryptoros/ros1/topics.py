@@ -128,7 +128,7 @@ class _Outgoing(asyncio.Protocol):
         pass  # subscribers send nothing after their header
 
     def connection_lost(self, exc) -> None:
-        self.pub._links.discard(self)
+        self.pub.remove_link(self)
         self.resume_writing()
 
 
@@ -143,10 +143,10 @@ class _TcprosServerProtocol(asyncio.Protocol):
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
         self.transport = transport
-        self.node._tcpros_conns.add(transport)
+        self.node.track_tcpros(transport)
 
     def connection_lost(self, exc) -> None:
-        self.node._tcpros_conns.discard(self.transport)
+        self.node.untrack_tcpros(self.transport)
         if isinstance(self.delegate, _Outgoing):
             self.delegate.connection_lost(exc)
         elif isinstance(self.delegate, _ServiceConn):
@@ -227,9 +227,9 @@ class _TcprosServerProtocol(asyncio.Protocol):
         )
         link = _Outgoing(pub, self.transport, d["callerid"])
         self.delegate = link
-        pub._links.add(link)
-        if pub.latch and pub._last is not None:
-            link.write(pub._last)
+        pub.add_link(link)
+        if pub.latch and pub.last_frame is not None:
+            link.write(pub.last_frame)
         pub._connected()
 
     def _service(self, header: ConnectionHeader) -> None:
@@ -278,6 +278,22 @@ class Publisher:
     @property
     def num_connections(self) -> int:
         return len(self._links)
+
+    @property
+    def links(self) -> frozenset[_Outgoing]:
+        """The subscribers' connections, as they are now."""
+        return frozenset(self._links)
+
+    @property
+    def last_frame(self) -> bytes | None:
+        """The last message sent (a latched topic's, for a subscriber that connects later)."""
+        return self._last
+
+    def add_link(self, link: _Outgoing) -> None:
+        self._links.add(link)
+
+    def remove_link(self, link: _Outgoing) -> None:
+        self._links.discard(link)
 
     def _connected(self) -> None:
         for f in self._waiters:
@@ -550,6 +566,11 @@ class Subscriber:
     @property
     def num_connections(self) -> int:
         return sum(1 for c in self._links.values() if c.header is not None)
+
+    @property
+    def links(self) -> dict[str, _Incoming]:
+        """The connections to publishers by their URI, as they are now (a copy)."""
+        return dict(self._links)
 
     @property
     def publishers(self) -> list[str]:

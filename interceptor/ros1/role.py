@@ -18,7 +18,7 @@ from cryptoros.policy.ros1 import (
     ros_error,
 )
 from cryptoros.ros1 import msgs
-from cryptoros.ros1.node import tune_malloc
+from cryptoros.memory import tune_malloc
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
     ConnectionClosed,

@@ -13,18 +13,26 @@ PACKAGES = ("cryptoros", "interceptor", "authz_server", "certs")
 #: cryptoros's own sub-packages above the core, each its own layer
 UPPER = ("cli", "lazy", "demo", "bench", "lab", "attack", "sim")
 CORE = "cryptoros.core"
+#: the asyncio ROS 1 node client (and the monitor's recorder and CLI, which run one): a
+#: layer of its own above the sans-IO core, which has no event loop inside
+NODE_CLIENT = "cryptoros.node_client"
+NODE_CLIENT_MODULES = frozenset({"cryptoros.ros1.node", "cryptoros.ros1.topics", "cryptoros.ros1.services",
+                                 "cryptoros.ros1.rpc", "cryptoros.ros1.master", "cryptoros.ros1.cli",
+                                 "cryptoros.monitor.record", "cryptoros.monitor.cli"})
 #: layer -> the layers it may import (besides itself)
 ALLOWED = {
     CORE: set(),
+    NODE_CLIENT: {CORE},
     "certs": {CORE},
-    "authz_server": {CORE},
-    "interceptor": {CORE},
+    "authz_server": {CORE, NODE_CLIENT},  # policy from-graph asks a live master
+    "interceptor": {CORE},  # a proxy, never a ROS node itself
     "cryptoros.sim": {CORE},
-    "cryptoros.attack": {CORE, "cryptoros.sim"},
+    "cryptoros.attack": {CORE, NODE_CLIENT, "cryptoros.sim"},
     "cryptoros.lazy": set(),
     "cryptoros.lab": {CORE, "certs"},
-    "cryptoros.demo": {CORE, "cryptoros.lab", "cryptoros.sim", "cryptoros.attack", "interceptor"},
-    "cryptoros.bench": {CORE, "cryptoros.lab", "cryptoros.sim", "cryptoros.lazy", "interceptor", "certs"},
+    "cryptoros.demo": {CORE, NODE_CLIENT, "cryptoros.lab", "cryptoros.sim", "cryptoros.attack", "interceptor"},
+    "cryptoros.bench": {CORE, NODE_CLIENT, "cryptoros.lab", "cryptoros.sim", "cryptoros.lazy", "interceptor",
+                        "certs"},
     "cryptoros.cli": {"cryptoros.lazy"},  # every subcommand is named by string and imported on use
 }
 
@@ -64,6 +72,8 @@ def _graph() -> dict[str, set[str]]:
 
 
 def layer(module: str) -> str:
+    if module in NODE_CLIENT_MODULES:
+        return NODE_CLIENT
     parts = module.split(".")
     if parts[0] != "cryptoros":
         return parts[0]
@@ -126,3 +136,25 @@ def test_no_test_module_imports_another_test_module():
                 names = [a.name for a in node.names]
             offenders += [f"{path.name}: {n}" for n in names if n.startswith(("tests.test_", "tests.unit.", "tests.system."))]
     assert not offenders, offenders
+
+
+def test_the_core_has_no_event_loop_inside():
+    """Core modules are sans-IO or plain blocking helpers: none imports asyncio (the
+    node client, the services and the tools above it do)."""
+    offenders = []
+    for name, path in _modules().items():
+        if layer(name) != CORE:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+            offenders += [f"{name}: {n}" for n in names if n == "asyncio" or n.startswith("asyncio.")]
+    assert not offenders, offenders
+
+
+def test_the_two_roles_do_not_import_each_other():
+    graph = _graph()
+    ros1 = {m for m in graph if m == "interceptor.ros1" or m.startswith("interceptor.ros1.")}
+    crossing = [f"{a} -> {d}" for a, deps in graph.items() for d in deps
+                if (a in ros1 and d == "interceptor.ros2") or (a == "interceptor.ros2" and d in ros1)]
+    assert not crossing, crossing
