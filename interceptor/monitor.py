@@ -10,7 +10,8 @@ wake-up per message ran the scoring code cold each time, at several times the co
 the same code run over a batch; an alert comes at most that much later. A stream that
 queues :data:`BATCH_EARLY_CHUNKS` chunks before the timer (a flood, a burst of spoofed
 poses) has the batch scored at once: at such rates a batch fills by itself, and the
-stream is cut within a few messages. The scoring splits the chunks into TCPROS frames,
+stream is cut within a few messages; a gated message's scoring (below) is followed by
+the queued batch on the loop's next turn. The scoring splits the chunks into TCPROS frames,
 computes the message's features (:mod:`cryptoros.monitor.features`) and scores them
 with the model (:mod:`cryptoros.monitor.model`); ``consecutive`` suspicious messages in
 a row make an alert: a log line (``MONITOR alert``) and
@@ -187,7 +188,9 @@ class Monitor:
     def _score_soon(self) -> None:
         """Score the batch on the loop's next turn instead of waiting out ``batch_seconds``
         (a stream queued :data:`BATCH_EARLY_CHUNKS` chunks: a flood is a batch of its own,
-        cut within a few messages, not after a quarter of a second of them)."""
+        cut within a few messages, not after a quarter of a second of them; a gated
+        message was just scored: the batch runs right after it, while the monitor's code
+        and data are still in the CPU's caches, instead of on a wake-up of its own)."""
         if self._batch_soon:
             return
         if self._batch is not None:
@@ -492,7 +495,10 @@ class WatchedStream:
         try:
             return self._gate_timed(body)
         finally:
-            self.monitor.metrics.busy.inc(time.thread_time() - t0)
+            monitor = self.monitor
+            if monitor._due:  # the queued batch on the loop's next turn, while the monitor's code is warm
+                monitor._score_soon()
+            monitor.metrics.busy.inc(time.thread_time() - t0)
 
     def _gate_timed(self, body: bytes) -> bool:
         monitor = self.monitor

@@ -594,7 +594,8 @@ class StreamFeatures:
         # of the grid (each numpy call costs 10-20 us on the interceptor's cold path)
         view = self._reach.window(row0, col0, len(row_cells), len(col_cells))
         in_reach = view if view is not None else self._reach.lookup(row0, col0, len(row_cells), len(col_cells))
-        if view is None or not view.all():  # (all: every cell in reach: nothing unseen)
+        # (every cell in reach: nothing unseen; count_nonzero is one C call, all() a ufunc reduction)
+        if view is None or np.count_nonzero(view) != view.size:
             known = cells != -1
             total = int(np.count_nonzero(known))
             if total:
