@@ -14,7 +14,11 @@ this client only counts frames.
 
 ``streams``  N streams of one topic (N subscribers of ``/scale/s``) from one peer;
 ``topics``   N topics (``/scale/tNNNN``) per peer, one stream each, that peer's token
-             granting exactly those N topics (its size grows with them).
+             granting exactly those N topics (its size grows with them);
+``token``    N streams of one topic (``/scale/t0000``) from the peer whose token grants
+             the most topics (the ``topics`` curve's last point): the streams curve with
+             that curve's largest token, which tells the cost of the streams from that of
+             the token each stream's preamble carries.
 
 At every point the publisher sends ``--rate`` messages a second in all (a message to N
 subscribers counts N times; topics are published round-robin), so every point carries
@@ -43,12 +47,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import ssl
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,6 +61,7 @@ from cryptoros.lab.network import HOSTS, Network, NetworkError, cpu_seconds, lab
 #: the counts of the interceptor curves (``--quick``: the first two)
 COUNTS = (10, 100, 1000)
 QUICK_COUNTS = (10, 100)
+CURVES = ("streams", "topics", "token")
 REPLICAS = (1, 2, 4)
 QUICK_REPLICAS = (1, 2)
 #: a curve's cost per unit in its last step over that in its first: above this it grows faster than linear
@@ -69,6 +72,10 @@ STRING_MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"  # std_msgs/String
 #: whose certificates the light client holds (their interceptors are never started)
 PEER_STREAMS = "peer_s"
 SCALE_HOSTS = {**{k: v for k, v in HOSTS.items() if k != "robot_b"}, PEER_STREAMS: "127.0.0.7"}
+
+
+CURVE_TITLES = {"streams": "open streams (one topic, one peer)", "topics": "topics per peer (a stream each)",
+                "token": "open streams (one topic), the peer's token of the most topics"}
 
 
 def _peer_topics(n: int) -> str:
@@ -123,9 +130,10 @@ def _publisher() -> None:
     """Entry point of the publisher process (argv: node name, topic count): advertises
     /scale/s and /scale/t0000.. behind robot A's interceptor, prints ``READY``, then on
     stdin: ``LINKS`` (prints ``LINKS n``, its subscriber connections), ``RUN RATE WHICH``
-    (publish RATE messages a second in all on /scale/s (``s``: a message reaches every
-    subscriber, so RATE / subscribers publications a second) or round-robin over the
-    topics (``t``)), ``STOP`` (prints ``STOPPED n``, publications made), ``quit``."""
+    (publish RATE messages a second in all on /scale/s (``s``) or /scale/t0000 (``o``):
+    a message reaches every subscriber, so RATE / subscribers publications a second; or
+    round-robin over the topics (``t``)), ``STOP`` (prints ``STOPPED n``, publications
+    made), ``quit``."""
     from cryptoros.ros1.node import Node, install_uvloop
 
     name, count = sys.argv[1], int(sys.argv[2])
@@ -146,9 +154,9 @@ def _publisher() -> None:
             sent = [0]
 
             async def run(rate: float, which: str) -> None:
-                pubs = [single] if which == "s" else topics
+                pubs = [single] if which == "s" else topics[:1] if which == "o" else topics
                 links = max(1, sum(p.num_connections for p in pubs))
-                per_s = rate / links if which == "s" else rate
+                per_s = rate / links if which in ("s", "o") else rate
                 start, done, k = time.monotonic(), 0, 0
                 while True:
                     due = int((time.monotonic() - start) * per_s)
@@ -336,21 +344,23 @@ def _wait_links(pub, want: int, timeout: float) -> int:
         time.sleep(0.2)
 
 
-def measure_point(net: Network, workdir: Path, curve: str, n: int, rate: float, seconds: float) -> dict:
+def measure_point(net: Network, workdir: Path, curve: str, n: int, rate: float, seconds: float,
+                  token_peer: int = 0) -> dict:
     """One point: a fresh interceptor A and publisher, ``n`` streams opened, an idle
-    window and a load window."""
+    window and a load window. ``token_peer``: (``token`` curve) the topic count of the
+    peer whose token is used."""
     from cryptoros.bench.interceptor import Proc
 
     host = net.start("robot_a")
     pid = host.proc.pid
     name = f"/scale_pub_{curve}{n}"
-    topics = ["/scale/s"] * n if curve == "streams" else [_topic(i) for i in range(n)]
+    topics = {"streams": ["/scale/s"] * n, "topics": [_topic(i) for i in range(n)], "token": [_topic(0)] * n}[curve]
     pub = Proc(f"publisher {name}", [sys.executable, "-c", "from cryptoros.bench.scale import _publisher; _publisher()",
-                                      name, str(n if curve == "topics" else 0)],
+                                      name, str({"streams": 0, "topics": n, "token": 1}[curve])],
                net.ros_env("robot_a"), workdir / f"publisher-{curve}{n}.log")
     try:
         pub.expect("READY", 120)
-        peer = PEER_STREAMS if curve == "streams" else _peer_topics(n)
+        peer = {"streams": PEER_STREAMS, "topics": _peer_topics(n), "token": _peer_topics(token_peer)}[curve]
         ctx, token, target = _target_of(net, peer, name, topics[0])
         time.sleep(1.0)  # the interceptor's start-up work (token, feed) is over
         rss_before = rss_kib(pid)
@@ -367,7 +377,7 @@ def measure_point(net: Network, workdir: Path, curve: str, n: int, rate: float, 
             c0, t0 = cpu_seconds(pid), time.monotonic()
             await asyncio.sleep(idle_s)
             idle = ((cpu_seconds(pid) or 0.0) - (c0 or 0.0)) / (time.monotonic() - t0)
-            await asyncio.to_thread(pub.send, f"RUN {rate:g} {'s' if curve == 'streams' else 't'}")
+            await asyncio.to_thread(pub.send, f"RUN {rate:g} {dict(streams='s', topics='t', token='o')[curve]}")
             await asyncio.to_thread(pub.expect, "RUNNING", 10)
             await asyncio.sleep(0.5)  # the first publications are under way
             f0, c0, t0 = client.frames, cpu_seconds(pid), time.monotonic()
@@ -379,7 +389,7 @@ def measure_point(net: Network, workdir: Path, curve: str, n: int, rate: float, 
             await client.close()
             carried, cpu = f1 - f0, (c1 or 0.0) - (c0 or 0.0)
             return {
-                "count": n, "streams_open": links, "failed": len(client.failed), "first_failures": client.failed[:3],
+                "count": n, "peer": peer, "token_bytes": len(token), "streams_open": links, "failed": len(client.failed), "first_failures": client.failed[:3],
                 "open_s": round(open_s, 3), "open_ms_per_stream": round(1000 * open_s / n, 3),
                 "open_cpu_ms_per_stream": round(1000 * cpu_open / n, 3),
                 "rss_before_kib": rss_before, "rss_open_kib": rss_open, "rss_load_kib": rss_load,
@@ -453,11 +463,11 @@ def measure_authz(workdir: Path, replicas: tuple[int, ...], clients: int, second
                 for c in cs:
                     c.latencies.clear()
                     c.errors.clear()
-                cpu0, pg0 = fl.replica_cpu(), fl.postgres_cpu()
+                cpu0, pg0, own0 = fl.replica_cpu(), fl.postgres_cpu(), time.process_time()
                 start = time.monotonic()
                 await asyncio.gather(*(_token_loop(c, start + seconds) for c in cs))
                 elapsed = time.monotonic() - start
-                cpu1, pg1 = fl.replica_cpu(), fl.postgres_cpu()
+                cpu1, pg1, own1 = fl.replica_cpu(), fl.postgres_cpu(), time.process_time()
                 lat = [x for c in cs for x in c.latencies]
                 replica_cpu = sum(cpu1) - sum(cpu0)
                 return {"replicas": r, "clients": clients, "seconds": round(elapsed, 2), "tokens": len(lat),
@@ -466,6 +476,8 @@ def measure_authz(workdir: Path, replicas: tuple[int, ...], clients: int, second
                         "p50_ms": round(1000 * _pct(lat, 50), 2) if lat else None,
                         "p99_ms": round(1000 * _pct(lat, 99), 2) if lat else None,
                         "replica_cpu_ms_per_token": round(1000 * replica_cpu / len(lat), 3) if lat else None,
+                        # the clients' side (TLS, HTTP, JSON) runs in this process, on the same cores
+                        "client_cpu_ms_per_token": round(1000 * (own1 - own0) / len(lat), 3) if lat else None,
                         "postgres_cpu_ms_per_token": round(1000 * (pg1 - pg0) / len(lat), 3)
                         if lat and pg0 is not None and pg1 is not None else None}
             rows.append(asyncio.run(run()))
@@ -485,11 +497,11 @@ def render(report: dict) -> None:
                f"{report['seconds']:g} s windows)")
     click.echo("robot A's raised limits (the rest at their defaults): "
                + ", ".join(f"{k} = {v}" for k, v in report["limits"].items()))
-    for curve, unit in (("streams", "streams of one topic, one peer"), ("topics", "topics per peer, a stream each")):
+    for curve, unit in CURVE_TITLES.items():
         points = report["curves"].get(curve)
         if not points:
             continue
-        click.echo(f"\n{curve}: {unit}")
+        click.echo(f"\n{curve}: {unit} (the peer's token: {points[-1]['token_bytes']:,} bytes at the last point)")
         click.echo(f"{'N':>6} {'open':>6} {'msg/s':>8} {'CPU us/msg':>11} {'CPU share':>10} {'idle CPU':>9} "
                    f"{'RSS MiB':>8} {'+RSS MiB':>9} {'open ms/N':>10} {'open CPU ms/N':>14}")
         for p in points:
@@ -499,7 +511,7 @@ def render(report: dict) -> None:
                        f"{_fmt(p['rss_added_kib'] and p['rss_added_kib'] / 1024, '.2f'):>9} "
                        f"{p['open_ms_per_stream']:>10.2f} {p['open_cpu_ms_per_stream']:>14.2f}")
         f = report["fits"][curve]
-        per = "stream" if curve == "streams" else "topic"
+        per = "topic" if curve == "topics" else "stream"
         click.echo(f"cost per {per} (least squares over the points): RSS {_fmt(f['rss_kib']['slope'], '.1f')} KiB "
                    f"(+ {_fmt(f['rss_kib']['intercept'], '.0f')} KiB); CPU per message "
                    f"{_fmt(f['cpu_us_per_message']['slope'], '.4f')} us per {per} "
@@ -519,11 +531,11 @@ def render(report: dict) -> None:
             click.echo(f"  skipped: {authz['skipped']}")
         else:
             click.echo(f"{'replicas':>8} {'clients':>8} {'tokens/s':>9} {'p50 ms':>7} {'p99 ms':>7} {'errors':>7} "
-                       f"{'replica CPU ms/token':>21} {'PostgreSQL CPU ms/token':>24}")
+                       f"{'replica CPU ms/token':>21} {'PostgreSQL CPU ms/token':>24} {'client CPU ms/token':>20}")
             for r in authz["rows"]:
                 click.echo(f"{r['replicas']:>8} {r['clients']:>8} {r['tokens_per_s']:>9.1f} {_fmt(r['p50_ms']):>7} "
                            f"{_fmt(r['p99_ms']):>7} {r['errors']:>7} {_fmt(r['replica_cpu_ms_per_token']):>21} "
-                           f"{_fmt(r['postgres_cpu_ms_per_token']):>24}")
+                           f"{_fmt(r['postgres_cpu_ms_per_token']):>24} {_fmt(r['client_cpu_ms_per_token']):>20}")
 
 
 def write_plots(report: dict, out: Path) -> list[Path]:
@@ -536,7 +548,7 @@ def write_plots(report: dict, out: Path) -> list[Path]:
 
     out.mkdir(parents=True, exist_ok=True)
     made = []
-    for curve, label in (("streams", "open streams (one topic, one peer)"), ("topics", "topics per peer (a stream each)")):
+    for curve, label in CURVE_TITLES.items():
         points = report["curves"].get(curve)
         if not points:
             continue
@@ -599,7 +611,8 @@ def _loadavg() -> str:
               help="Messages a second the publisher sends in all at every point (default 2000; --quick 1000).")
 @click.option("--seconds", type=click.FloatRange(0.5, 600), default=None,
               help="Length of each point's load window (default 8; --quick 2).")
-@click.option("--curves", default="streams,topics", show_default=True, help="Which interceptor curves to run.")
+@click.option("--curves", default=None, help="Which interceptor curves to run (default streams,topics,token; "
+              "--quick streams,topics).")
 @click.option("--counts", "count_text", default=None, help="Streams and topics per point (default 10,100,1000; "
               "--quick 10,100).")
 @click.option("--replicas", "replica_text", default=None, help="Authorization replica counts (default 1,2,4; --quick 1,2; "
@@ -610,7 +623,7 @@ def _loadavg() -> str:
               help="Also write every figure as JSON.")
 @click.option("--plots", "plots_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also draw scale-streams.png, scale-topics.png and scale-authz.png into this directory.")
-def scale(quick: bool, rate: float | None, seconds: float | None, curves: str, count_text: str | None,
+def scale(quick: bool, rate: float | None, seconds: float | None, curves: str | None, count_text: str | None,
           replica_text: str | None,
           authz_clients: int | None, json_path: Path | None, plots_dir: Path | None) -> None:
     """An interceptor's CPU per message and RSS against open streams and topics per
@@ -626,9 +639,10 @@ def scale(quick: bool, rate: float | None, seconds: float | None, curves: str, c
             raise click.BadParameter(f"{count_text!r}: counts from 1 to 5000", param_hint="--counts")
     rate = rate or (1000.0 if quick else 2000.0)
     seconds = seconds or (2.0 if quick else 8.0)
+    curves = curves if curves is not None else "streams,topics" if quick else ",".join(CURVES)
     wanted = [c.strip() for c in curves.split(",") if c.strip()]
-    if any(c not in ("streams", "topics") for c in wanted):
-        raise click.BadParameter(f"{curves!r}: expected streams, topics or both", param_hint="--curves")
+    if any(c not in CURVES for c in wanted):
+        raise click.BadParameter(f"{curves!r}: expected some of {', '.join(CURVES)}", param_hint="--curves")
     if replica_text is None:
         replicas = QUICK_REPLICAS if quick else REPLICAS
     else:
@@ -655,7 +669,7 @@ def scale(quick: bool, rate: float | None, seconds: float | None, curves: str, c
                         points = []
                         for n in counts:
                             _progress(f"{curve}: {n} ... (load {_loadavg()})")
-                            p = measure_point(net, work, curve, n, rate, seconds)
+                            p = measure_point(net, work, curve, n, rate, seconds, token_peer=max(counts))
                             _progress(f"{curve}: {n}: {p['streams_open']} open, {p['msg_per_s']:.0f} msg/s, "
                                       f"{_fmt(p['cpu_us_per_message'])} us/msg, +{_fmt(p['rss_added_kib'])} KiB")
                             points.append(p)
