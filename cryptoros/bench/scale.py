@@ -548,7 +548,9 @@ def write_plots(report: dict, out: Path) -> list[Path]:
 
     out.mkdir(parents=True, exist_ok=True)
     made = []
-    for curve, label in CURVE_TITLES.items():
+    axis = {"streams": "open streams (one topic, one peer)", "topics": "topics per peer (a stream each)",
+            "token": "open streams (one topic), the largest token"}
+    for curve, label in axis.items():
         points = report["curves"].get(curve)
         if not points:
             continue
@@ -561,7 +563,7 @@ def write_plots(report: dict, out: Path) -> list[Path]:
             ax.plot(xs, ys, "o-", label="measured")
             f = report["fits"][curve][fkey]
             if f["slope"] is not None:
-                grid = [min(xs), max(xs)]
+                grid = [min(xs) * (max(xs) / min(xs)) ** (i / 60) for i in range(61)]  # a line, on a log axis
                 ax.plot(grid, [(f["slope"] * x + f["intercept"]) * scale for x in grid], "k:",
                         label=f"fit: {f['slope'] * scale:.3g} per unit + {f['intercept'] * scale:.3g}")
             ax.set_xscale("log")
@@ -589,8 +591,8 @@ def write_plots(report: dict, out: Path) -> list[Path]:
         ax2.plot(xs, [r["p99_ms"] for r in rows], "s--", color="tab:red", label="p99 ms")
         ax2.set_ylabel("p99 latency (ms)")
         ax1.grid(alpha=0.3)
-        fig.legend(loc="upper left", fontsize=8)
-        fig.tight_layout()
+        fig.legend(loc="lower center", fontsize=8, ncol=2)
+        fig.tight_layout(rect=(0, 0.08, 1, 1))
         path = out / "scale-authz.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
