@@ -10,7 +10,8 @@ wake-up per message ran the scoring code cold each time, at several times the co
 the same code run over a batch; an alert comes at most that much later. A stream that
 queues :data:`BATCH_EARLY_CHUNKS` chunks before the timer (a flood, a burst of spoofed
 poses) has the batch scored at once: at such rates a batch fills by itself, and the
-stream is cut within a few messages. The scoring splits the chunks into TCPROS frames,
+stream is cut within a few messages; a gated message's scoring (below) is followed by
+the queued batch on the loop's next turn. The scoring splits the chunks into TCPROS frames,
 computes the message's features (:mod:`cryptoros.monitor.features`) and scores them
 with the model (:mod:`cryptoros.monitor.model`); ``consecutive`` suspicious messages in
 a row make an alert: a log line (``MONITOR alert``) and
@@ -151,6 +152,7 @@ class Monitor:
         self.wall = wall  # arrival times: clock (rates, quarantine) and wall (the age of a stamp)
         self.deny = deny
         self.model = MonitorModel.load(settings.model)
+        self.model.prepare()  # its per-kind tables: at start-up, not on the first message
         # numpy (scans, team maps) and the decoders of the known types are made at start-up
         # (0.1-0.2 s of CPU here), not on the first message a peer sends, where they would
         # stall the event loop
@@ -186,7 +188,9 @@ class Monitor:
     def _score_soon(self) -> None:
         """Score the batch on the loop's next turn instead of waiting out ``batch_seconds``
         (a stream queued :data:`BATCH_EARLY_CHUNKS` chunks: a flood is a batch of its own,
-        cut within a few messages, not after a quarter of a second of them)."""
+        cut within a few messages, not after a quarter of a second of them; a gated
+        message was just scored: the batch runs right after it, while the monitor's code
+        and data are still in the CPU's caches, instead of on a wake-up of its own)."""
         if self._batch_soon:
             return
         if self._batch is not None:
@@ -220,11 +224,16 @@ class Monitor:
                     continue
                 heapq.heappush(heap, (stream._chunks[0][1], i, stream))
         finally:
+            for stream in due:  # the messages scored, counted once per stream and batch
+                if stream._uncounted:
+                    stream._messages_counted.inc(stream._uncounted)
+                    stream._uncounted = 0
             self.metrics.busy.inc(time.thread_time() - t0)
 
     def reconfigure(self, settings: MonitorSettings, model: MonitorModel) -> None:
         """SIGHUP: new settings and model (loaded and checked by the caller). Open streams
         are scored with the new model from their next message; quarantines stay."""
+        model.prepare()
         self.settings, self.model = settings, model
         for stream in self._streams:
             stream.alerts.needed = model.consecutive
@@ -430,6 +439,7 @@ class WatchedStream:
         self.logged_at = -ALERT_LOG_INTERVAL
         self._scored = 0
         self._messages_counted = monitor.metrics.messages.labels(topic)
+        self._uncounted = 0  # scored in this batch, added to the counter at its end
 
     def feed(self, data: bytes) -> None:
         """The pump's tap: queue a forwarded chunk of TCPROS frames (no copy, no parsing)."""
@@ -485,7 +495,10 @@ class WatchedStream:
         try:
             return self._gate_timed(body)
         finally:
-            self.monitor.metrics.busy.inc(time.thread_time() - t0)
+            monitor = self.monitor
+            if monitor._due:  # the queued batch on the loop's next turn, while the monitor's code is warm
+                monitor._score_soon()
+            monitor.metrics.busy.inc(time.thread_time() - t0)
 
     def _gate_timed(self, body: bytes) -> bool:
         monitor = self.monitor
@@ -521,26 +534,33 @@ class WatchedStream:
         monitor = self.monitor
         data, now, wall, whole = self._chunks.popleft()
         self._backlog -= len(data)
+        buffer = self._buffer
         if whole:
             bodies, stop, error = [data], 0, None
+        elif not buffer:  # the chunk starts with a frame (the common case): its bodies sliced from it
+            spans, stop, _pending, error = self._walker.split(data)
+            bodies = [data[start:end] for start, end in spans]
+            if stop < len(data):
+                buffer += memoryview(data)[stop:]
+            stop = 0
         else:
-            buffer = self._buffer
             buffer += data
             spans, stop, _pending, error = self._walker.split(buffer)
             bodies = [bytes(buffer[start:end]) for start, end in spans]
         if self.reference:  # read only while a pose stream of its robot is followed
             if monitor.crosscheck.follows(self.manager):
                 for body in bodies:
-                    self.features.observe(body, now, wall)
+                    self.features.reference(body, now, wall)
         else:
-            self._messages_counted.inc(len(bodies))
+            self._uncounted += len(bodies)
             for body in bodies:
                 self._score(body, now, wall)
                 if self.closed:
                     return len(bodies)
         if whole:
             return len(bodies)
-        del buffer[:stop]
+        if stop:
+            del buffer[:stop]
         if error is not None:
             self._give_up("malformed")
         elif len(buffer) > monitor.settings.max_backlog_bytes:  # one frame bigger than the backlog

@@ -21,6 +21,7 @@ BENCHMARKS: dict[str, str] = {
     "ros1": "cryptoros.bench.ros1:ros1",
     "ros2": "cryptoros.bench.ros2:ros2",
     "ros2-insider": "cryptoros.bench.ros2_insider:ros2_insider",
+    "scale": "cryptoros.bench.scale:scale",
     "sim": "cryptoros.bench.sim:sim",
     "soak": "cryptoros.bench.soak:soak",
 }
@@ -28,4 +29,4 @@ BENCHMARKS: dict[str, str] = {
 
 @click.group(cls=LazyGroup, subcommands=BENCHMARKS)
 def bench() -> None:
-    """Benchmarks: token issuing, a fleet against authz replicas, ROS 1 transport, cipher costs, simulator scale."""
+    """Benchmarks: token issuing, a fleet against authz replicas, ROS 1 transport, cipher costs, simulator scale, an interceptor's growth with streams and topics."""

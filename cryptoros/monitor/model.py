@@ -25,6 +25,7 @@ import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 from cryptoros.errors import ConfigError
 from cryptoros.monitor.features import FEATURES
@@ -37,8 +38,10 @@ FLOORS = {"rate_hz": 2.0, "burst_hz": 2.0, "size_change": 0.05, "malformed": 0.5
           "walls_erased": 0.05}
 
 
-@dataclass(frozen=True)
-class Score:
+class Score(NamedTuple):
+    """One message's score (a named tuple: made for every message scored, at a
+    tuple's cost rather than a frozen dataclass's)."""
+
     value: float  # worst feature value / its limit
     feature: str  # the worst feature
 
@@ -54,6 +57,12 @@ class MonitorModel:
     margin: float = 1.5
     #: what the model was fitted on (messages per kind), for ``cryptoros monitor eval``
     trained_on: Mapping[str, int] = field(default_factory=dict)
+
+    def prepare(self) -> MonitorModel:
+        """Build the per-kind tables :meth:`score` reads now (an interceptor's start-up),
+        not on the first message scored."""
+        self._limits_by_kind  # noqa: B018  (a cached property: computed once)
+        return self
 
     def score(self, kind: str, values: tuple[float, ...]) -> Score:
         worst, name = 0.0, ""

@@ -921,3 +921,21 @@ def test_a_team_map_stream_keeps_bounded_grids_whatever_it_claims():
     assert huge["malformed"] == 1.0  # too many cells to check: malformed, not checked at a cost
     far_off = named("team_map", f.observe(team_map(3.0, 3.0, (2 ** 21, 0), walled), 1401.0, 1401.0))
     assert far_off["malformed"] == 1.0
+
+
+async def test_a_gated_message_has_the_queued_batch_scored_right_after_it(tmp_path):
+    """A gate's scoring is followed by the batch on the loop's next turn (the monitor's
+    code is still warm), not by a wake-up of its own after batch_seconds."""
+    clock = Clock()
+    monitor, _ = monitor_for(tmp_path, action="log", clock=clock, batch_seconds=1.0, gate=("/r9/pose",))
+    queued = monitor.watch(manager="m", publisher="/q", topic="/r1/pose", typename=POSE, cut=lambda: None)
+    gated = monitor.watch(manager="m", publisher="/g", topic="/r9/pose", typename=POSE, cut=lambda: None)
+    queued.feed(frame(pose(0.0, 0.0, clock.t)))
+    await drain()
+    counted = monitor.metrics.messages
+    assert counted.labels("/r1/pose")._value.get() == 0 and monitor._due  # waiting for its timer (1 s)
+    assert gated.gate(pose(0.0, 0.0, clock.t))
+    assert counted.labels("/r9/pose")._value.get() == 1 and counted.labels("/r1/pose")._value.get() == 0
+    await drain()  # the next turn of the loop, not a second later
+    assert counted.labels("/r1/pose")._value.get() == 1
+    assert monitor._batch is None and not monitor._due
