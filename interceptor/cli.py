@@ -125,7 +125,7 @@ async def _preflight(cfg) -> list[str]:
     from cryptoros.tokens import verify_access_token
     from interceptor.authz_client import AuthzClient
     from cryptoros.pemfiles import cert_der
-    from interceptor.gateway import cert_hosts
+    from interceptor.streams import cert_hosts
 
     der = cert_der(cfg.tls.cert_file)
     hosts = cert_hosts(der)

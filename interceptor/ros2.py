@@ -50,7 +50,8 @@ from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint
 from interceptor.authz_client import StreamWatch
 from interceptor.gate import Target
-from interceptor.gateway import READ_SIZE, Gateway, InboundStream, Peer, Role, read_chunks, widen_reader
+from interceptor.gateway import Gateway, Role
+from interceptor.streams import READ_SIZE, InboundStream, Peer, read_chunks, widen_reader
 from interceptor.monitor import WatchedStream
 
 log = logging.getLogger("cryptoros.interceptor.ros2")

@@ -24,7 +24,7 @@ from cryptoros.ros1.xmlrpc import (
     request_path,
 )
 from cryptoros.tokens import Grants
-from interceptor.gateway import READ_SIZE, InboundStream
+from interceptor.streams import READ_SIZE, InboundStream
 from interceptor.exposure import master_problem
 from interceptor.translate import Canonical
 

@@ -30,7 +30,7 @@ from cryptoros.ros1.xmlrpc import (
     assemble_multicall,
     expand_multicall,
 )
-from interceptor.gateway import READ_SIZE, InboundStream
+from interceptor.streams import READ_SIZE, InboundStream
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
 from interceptor.registrations import REGISTER, RELEASE, Registration, covers

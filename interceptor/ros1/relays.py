@@ -24,7 +24,7 @@ from cryptoros.ros1.xmlrpc import (
     Response,
 )
 from interceptor.authz_client import StreamWatch
-from interceptor.gateway import READ_SIZE, Tunnel
+from interceptor.streams import READ_SIZE, Tunnel
 from interceptor.pump import FrameCounter
 from interceptor.translate import KIND_XMLRPC, Canonical
 

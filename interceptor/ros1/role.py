@@ -35,8 +35,9 @@ from cryptoros.ros1.xmlrpc import (
 from cryptoros.tokens import Grants
 from cryptoros.tunnel import Preamble
 from interceptor.gate import Target
-from interceptor.gateway import Gateway, read_into
+from interceptor.gateway import Gateway
 from interceptor.gateway import Role as GatewayRole
+from interceptor.streams import read_into
 from interceptor.exposure import NodeGuard, PortExposure
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota

@@ -15,7 +15,7 @@ from cryptoros.ros1.xmlrpc import (
     Role,
     XmlRpcConnection,
 )
-from interceptor.gateway import Tunnel
+from interceptor.streams import Tunnel
 
 #: ``Gateway.open_tunnel``: a stream to a peer interceptor, the first request behind its preamble
 OpenTunnel = Callable[..., Awaitable[Tunnel]]

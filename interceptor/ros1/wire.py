@@ -30,7 +30,7 @@ from cryptoros.ros1.xmlrpc import (
     Response,
     XmlRpcConnection,
 )
-from interceptor.gateway import read_into
+from interceptor.streams import read_into
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
 
 

@@ -11,7 +11,6 @@ import queue
 import time
 import urllib.request
 
-import pytest
 
 from tests.ros2_support import ros2_network
 

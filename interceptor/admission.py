@@ -1,0 +1,211 @@
+"""The public side: every stream a peer opens to this interceptor, from its accept
+through the TLS handshake (counted, deadline, certificate checked inside it) and the
+sans-IO :class:`~interceptor.gate.StreamGate` (preamble, token, limits, the role's
+target and judge) to the role that serves its purpose."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import socket
+import ssl
+
+
+from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
+from cryptoros.tls import (
+    cert_thumbprint_s256,
+    peer_cert_der,
+)
+from cryptoros.tunnel import NEED_DATA
+from interceptor.gate import REFRESH, StreamGate
+
+from interceptor.streams import (
+    READ_SIZE, InboundStream, Peer, cert_hosts, log, read_into,
+)
+
+
+class Admission:
+    """The public side of :class:`~interceptor.gateway.Gateway` (a part of it)."""
+
+    # ================================================================ public side
+    async def _on_public(self, sock: socket.socket) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._streams.add(task)
+            task.add_done_callback(self._streams.discard)
+        try:
+            peername = sock.getpeername()
+        except OSError:  # gone already
+            sock.close()
+            return
+        who = f"{peername[0]}:{peername[1]}" if peername else "?"
+        limits = self.cfg.limits
+        entered: list[tuple[str, ...]] = []
+        gate = StreamGate(self._checks)
+        try:
+            # Until its token is verified a stream is bounded per source address and in
+            # all from its accept (through the TLS handshake), then per certificate too.
+            for key, cap in ((("source", peername[0] if peername else "?"), limits.max_pending_per_source),
+                             (("all",), limits.max_pending_streams)):
+                self._pending.enter(key, cap, "interceptor" if key == ("all",) else key[0])
+                entered.append(key)
+        except PolicyDenied as exc:
+            for key in entered:
+                self._pending.leave(key)
+            self.metrics.denied.labels("tls", exc.reason).inc()
+            log.warning("DENY connection from %s: %s", who, exc)
+            sock.close()
+            return
+        writer: asyncio.StreamWriter | None = None
+        try:
+            streams = await self._accept_tls(sock, who)
+            if streams is None:
+                return
+            reader, writer = streams
+            der = self._check_peer_certificate(writer.get_extra_info("ssl_object"), "in")
+            key = ("certificate", hashlib.sha256(der).hexdigest())
+            self._pending.enter(key, limits.max_pending_per_certificate, "certificate")
+            entered.append(key)
+            # nothing in flight until the preamble (a peer's spare connection waits here):
+            # a stop cuts it at once instead of waiting out its grace period
+            async with asyncio.timeout(limits.preamble_timeout):
+                with self.cuttable():
+                    while (event := gate.next_event()) is NEED_DATA:
+                        await read_into(reader, gate.receive_data, limits.preamble_timeout)
+            self.metrics.stream_checks.labels("token").inc()
+            access = self.verifier.note(await self.verifier.verify_fresh(event.preamble.token, der))  # its freshest
+            who = f"{access.subject}@{who}"
+            admitted = gate.admit(
+                access, feed=self.feed_problem(), allow_new_stream=self._new_stream_limiter.allow,
+                open_streams=self._open_per_peer.get(access.subject, 0), max_streams=limits.max_connections_per_peer,
+            )
+            own_token = await self.keeper.for_peer(cert_thumbprint_s256(der))  # what this peer needs, no more
+        except asyncio.CancelledError:
+            if writer is not None:
+                writer.transport.abort()  # stop(): no preamble yet, nothing to finish
+            raise
+        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
+            if isinstance(exc, CryptorosError):
+                self.deny("stream", exc, who)
+            else:
+                reason = "preamble_timeout" if isinstance(exc, asyncio.TimeoutError) else type(exc).__name__
+                self.metrics.denied.labels("stream", reason).inc()
+                log.warning("DENY stream from %s: %s", who, reason)
+            with contextlib.suppress(Exception):
+                writer.write(gate.refuse())
+                await asyncio.wait_for(writer.drain(), 1)
+            if isinstance(exc, asyncio.TimeoutError) or getattr(exc, "reason", "") == "pending_limit":
+                writer.transport.abort()  # no graceful TLS close for a peer that dribbles
+            else:
+                writer.close()
+            return
+        finally:
+            for key in entered:
+                self._pending.leave(key)
+        writer.write(gate.accept(own_token))
+        purpose = admitted.purpose
+        if purpose == REFRESH:  # tokens shown both ways: nothing more to do
+            self.metrics.connections.labels(REFRESH, "in").inc()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(writer.drain(), limits.handshake_timeout)
+            writer.close()
+            return
+        self.metrics.connections.labels(purpose, "in").inc()
+        self.metrics.open_streams.labels(purpose).inc()
+        self._open_per_peer[access.subject] = self._open_per_peer.get(access.subject, 0) + 1
+
+        watch = self.verifier.watch(access, lambda _reason: writer.transport.abort(), admitted.judge)
+        peer = Peer(access=access, hosts=cert_hosts(der))
+        _check, serve = self._purposes[purpose]
+        try:
+            await serve(InboundStream(reader, writer, peer, purpose, admitted.target, gate.trailing_data,
+                                      admitted.resolved, watch))
+        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
+            if isinstance(exc, CryptorosError):
+                self.deny(purpose, exc, who)
+        except asyncio.CancelledError:
+            pass  # stop(): the grace period is over
+        finally:
+            watch.close()
+            self.metrics.open_streams.labels(purpose).dec()
+            left = self._open_per_peer[access.subject] - 1
+            if left > 0:
+                self._open_per_peer[access.subject] = left
+            else:
+                del self._open_per_peer[access.subject]
+            writer.close()
+
+    async def _accept_tls(self, sock: socket.socket,
+                          who: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
+        """The server side of the mutual TLS handshake on an accepted socket, within
+        ``handshake_timeout``, with the certificate source's context as it is now: a
+        stream pair, or None for a failed or late handshake (counted and logged like
+        every other denial, the socket closed)."""
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader(limit=READ_SIZE)
+        protocol = asyncio.StreamReaderProtocol(reader)
+        try:
+            with self.cuttable():  # nothing in flight yet: a stop need not wait for it
+                transport, _ = await loop.connect_accepted_socket(
+                    lambda: protocol, sock, ssl=self.certs.server_ctx,
+                    ssl_handshake_timeout=self.cfg.limits.handshake_timeout)
+        except asyncio.CancelledError:
+            sock.close()
+            raise
+        except OSError as exc:  # an SSLError, a reset, the handshake deadline (TimeoutError)
+            sock.close()
+            if isinstance(exc, ssl.SSLError):
+                return None  # counted and logged as it happened (_counting_sslobject_class)
+            if isinstance(exc, TimeoutError) or "longer than" in str(exc):
+                self.metrics.denied.labels("tls", "handshake_timeout").inc()
+                log.warning("DENY tls handshake from %s: %s", who, str(exc) or "handshake_timeout")
+            else:  # closed before or during the handshake (a port probe, a peer gone): no denial
+                log.debug("connection from %s closed in its TLS handshake: %s", who, exc)
+            return None
+        return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
+
+    def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
+        """An SSLObject whose failed handshakes are counted and logged like every other
+        denial (asyncio itself only logs them in debug mode), and whose handshake fails
+        for a client certificate :class:`~cryptoros.tls.PeerCertificateCheck` refuses:
+        one the CA revoked after the CRL was loaded (the feed's serials), one out of its
+        validity period or on the CRL on a resumed handshake (which OpenSSL does not
+        verify again). The client's connection then closes before any stream begins."""
+        gateway = self
+
+        class CountingSSLObject(ssl.SSLObject):
+            def do_handshake(self) -> None:
+                try:
+                    super().do_handshake()
+                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+                    raise
+                except ssl.SSLError as exc:
+                    reason = (exc.reason or type(exc).__name__).lower()
+                    gateway.metrics.denied.labels("tls", reason).inc()
+                    log.warning("DENY tls handshake: %s", exc)
+                    raise
+                if self.server_side:
+                    try:
+                        gateway.certs.cert_check.check(peer_cert_der(self))
+                    except TokenError as exc:
+                        gateway.metrics.denied.labels("tls", exc.reason).inc()
+                        log.warning("DENY tls handshake: %s", exc)
+                        raise ssl.SSLError(ssl.SSL_ERROR_SSL, f"{exc.reason}: {exc.detail}") from None
+
+        return CountingSSLObject
+
+    def _check_peer_certificate(self, ssl_object, direction: str) -> bytes:
+        """The peer's certificate, checked on every stream (resumed or not): validity
+        period, CRL and the CA's revocations in the feed (for a stream in, inside the
+        handshake: :meth:`_counting_sslobject_class`), then its token. Returns its DER."""
+        der = peer_cert_der(ssl_object)
+        resumed = bool(ssl_object.session_reused)
+        self.metrics.handshakes.labels(direction, "resumed" if resumed else "full").inc()
+        self.metrics.stream_checks.labels("certificate").inc()
+        if direction == "in":
+            self.certs.full_handshakes.admit(der, resumed=resumed, version=ssl_object.version())
+        else:
+            self.certs.cert_check.check(der)
+        return der
+
