@@ -738,6 +738,9 @@ class Gateway:
                                              if os.path.exists(crl) else None},
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
+            "message_rate": self.cfg.limits.max_messages_per_second,
+            "throttled": {manager: budget.throttled for manager, budget in sorted(self._budgets.items())
+                          if budget.throttled},
             "monitor": self.monitor.status() if self.monitor is not None else None,
             "denials": self.denials.table(time.monotonic()),
             **{key: value for role in self._roles for key, value in role.status().items()},

@@ -90,10 +90,27 @@ def test_an_insiders_flood_on_its_own_stream_never_stops_robot_as_flow(network):
     span = seen.insider[-1][1] - seen.insider[0][1]
     assert span > 1000, f"the flood was too small to test anything (seq {seen.insider[0][1]}..{seen.insider[-1][1]})"
     assert_flow_held(seen, attack_start, attack_end, during_bound=_during(network))
+    _held_back_only_the_insider(network)
 
 
 def _during(network) -> float:
     return BACK_WITHIN if network.throttled else DURING_UNTHROTTLED
+
+
+def _held_back_only_the_insider(network) -> None:
+    """Robot B's status (``cryptoros status``'s JSON) says whose streams its rate held
+    back: the insider's, never robot A's 20 Hz flow; with no limit, nobody's."""
+    import json
+    import urllib.request
+
+    url = f"http://127.0.0.1:{network.robots['robot_b'].metrics_port}/status"
+    with urllib.request.urlopen(url, timeout=5) as reply:
+        status = json.loads(reply.read())
+    if network.throttled:
+        assert status["message_rate"] and "robot_c" in status["throttled"] and "robot_a" not in status["throttled"], \
+            (status["message_rate"], status["throttled"])
+    else:
+        assert status["message_rate"] is None and status["throttled"] == {}, (status["message_rate"], status["throttled"])
 
 
 def _string_sample(seq: int) -> bytes:
@@ -142,6 +159,7 @@ def test_an_insiders_flood_on_a_stream_it_opened_itself_never_stops_robot_as_flo
             seen.more_from_a(100, 60, "robot A's flow did not come back after the flood", since=attack_end)
     assert sent[0] == network.flood
     assert_flow_held(seen, attack_start, attack_end, during_bound=_during(network))
+    _held_back_only_the_insider(network)
 
 
 def test_a_strangers_half_open_connections_never_stop_robot_as_flow(network):
