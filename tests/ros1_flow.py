@@ -8,7 +8,8 @@ thread and timed as they leave its pipe. :meth:`Flow.held` wraps an attack: duri
 the flow is never silent :data:`BACK_WITHIN` seconds, and after it the flow is back
 within :data:`BACK_WITHIN` and never that silent again, with the same nodes and
 interceptors (no restart). Its node names and topic are its own (rosmaster shuts a node
-down when another registers its name).
+down when another registers its name), and name the host (the master's interceptor holds
+a released name for its manager a while: ``name_hold_seconds``).
 """
 
 from __future__ import annotations
@@ -23,7 +24,17 @@ from dataclasses import dataclass, field
 from tests.interceptor_harness import DEFAULT_POLICY, NODE, SYS_PY
 from tests.support import on_host, stop
 
-TOPIC, TALKER, LISTENER = "/flow", "/flow_talker", "/flow_listener"
+TOPIC = "/flow"
+
+
+def talker_name(host: str) -> str:
+    return f"/flow_talker_{host}"
+
+
+def listener_name(host: str) -> str:
+    return f"/flow_listener_{host}"
+
+
 HZ = 20
 #: every legitimate flow is back within this long after an attack ends, and is never
 #: silent this long during one
@@ -34,10 +45,10 @@ AFTER = 60
 
 def flow_policy(policy: str = DEFAULT_POLICY, *, talker: str = "robot_a", listener: str = "robot_c") -> str:
     """``policy`` (the harness's default layout) with the flow's grants: ``talker`` may
-    publish ``/flow`` from ``/flow_talker``, ``listener`` subscribe to it from
-    ``/flow_listener``; nothing else changes."""
-    pub = f"    - {{{{node: {TALKER}, topic: {TOPIC}, type: std_msgs/String}}}}\n"
-    sub = f"    - {{{{node: {LISTENER}, topic: {TOPIC}, type: std_msgs/String}}}}\n"
+    publish ``/flow`` from its flow talker, ``listener`` subscribe to it from its flow
+    listener; nothing else changes."""
+    pub = f"    - {{{{node: {talker_name(talker)}, topic: {TOPIC}, type: std_msgs/String}}}}\n"
+    sub = f"    - {{{{node: {listener_name(listener)}, topic: {TOPIC}, type: std_msgs/String}}}}\n"
     return _add_grant(_add_grant(policy, talker, "publish", pub), listener, "subscribe", sub)
 
 
@@ -138,18 +149,22 @@ class Flow:
 
 @contextlib.contextmanager
 def legit_flow(network, talker: str = "robot_a", listener: str = "robot_c") -> Iterator[Flow]:
-    """The flow from ``talker``'s host to ``listener``'s (both interceptors running, the
-    policy from :func:`flow_policy`), delivering before this yields; stopped after."""
-    for name in (talker, listener):
-        if network.hosts[name].proc is None or network.hosts[name].proc.poll() is not None:
-            network.start(name)
+    """The flow from ``talker``'s host to ``listener``'s (the policy from
+    :func:`flow_policy`), delivering before this yields; stopped after, with the
+    interceptors this started for it."""
+    started: list[str] = []
     procs: list[subprocess.Popen] = []
     try:
-        sub = subprocess.Popen(on_host([SYS_PY, NODE, "sub", LISTENER, TOPIC, "86400"], network.ros_env(listener)),
+        for name in (talker, listener):
+            if network.hosts[name].proc is None or network.hosts[name].proc.poll() is not None:
+                network.start(name)
+                started.append(name)
+        sub = subprocess.Popen(on_host([SYS_PY, NODE, "sub", listener_name(listener), TOPIC, "86400"],
+                                       network.ros_env(listener)),
                                env=network.ros_env(listener), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                text=True)
         procs.append(sub)
-        pub = subprocess.Popen(on_host([SYS_PY, NODE, "pub", TALKER, TOPIC, "100000000", str(HZ)],
+        pub = subprocess.Popen(on_host([SYS_PY, NODE, "pub", talker_name(talker), TOPIC, "100000000", str(HZ)],
                                        network.ros_env(talker)),
                                env=network.ros_env(talker), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                text=True)
@@ -163,6 +178,8 @@ def legit_flow(network, talker: str = "robot_a", listener: str = "robot_c") -> I
     finally:
         for proc in reversed(procs):
             stop(proc, timeout=5)
+        for name in started:
+            network.stop(name)
 
 
 def _drain(proc: subprocess.Popen) -> None:
