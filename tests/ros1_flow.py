@@ -141,7 +141,11 @@ class Flow:
         end = time.monotonic()
         self.until(lambda: self.since(end) >= AFTER, 40, f"the flow did not come back after {what}")
         during, after = self.silence(start, end), self.silence(end)
-        print(f"the flow's longest silence: {during:.2f} s during {what} ({end - start:.1f} s), {after:.2f} s after it")
+        with self._cond:
+            seqs = [seq for t, seq in self.arrivals if t > start]
+        lost = seqs[-1] - seqs[0] + 1 - len(seqs)
+        print(f"the flow's longest silence: {during:.2f} s during {what} ({end - start:.1f} s), {after:.2f} s after it"
+              f" ({len(seqs)} messages since it began, {lost} missing from their sequence)")
         assert during < BACK_WITHIN, f"the flow was silent {during:.1f} s during {what}"
         assert after < BACK_WITHIN, f"the flow was silent {after:.1f} s after {what}"
         self.alive()
