@@ -23,6 +23,7 @@ from tests.interceptor_harness import (
     dribble,
     robot_network,
     rogue_preamble,
+    rogue_tcpros,
     rogue_xmlrpc,
     rss_kib,
     separate_hosts,
@@ -186,6 +187,40 @@ def _silent_connections(network, a) -> None:
     finally:
         for s in socks:
             s.close()
+
+
+def test_an_insiders_topic_streams_opened_and_closed_by_the_hundred_leave_other_flows_alone(network, flow):
+    """The insider (valid certificate, token, a subscribe grant on /chatter) opens a
+    TCPROS stream to robot A's talker through robot A's interceptor, takes the header
+    reply and closes it, 150 times as fast as robot A lets it (new streams per second
+    are limited per peer), while robot A's /flow to robot C goes on."""
+    from tests.interceptor_harness import STRING_MD5
+
+    token = token_of(network, "robot_b")
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "60"],
+                 env=network.ros_env("robot_a")) as pub:
+        read_lines(pub, "READY", 20)
+        wait_registered(network, "/talker_a")
+        with rogue(network, "master", "robot_b") as s:
+            assert rogue_preamble(s, token, "master").ok
+            node_api = rogue_xmlrpc(s, "lookupNode", "/spy", "/talker_a").value[2]
+        with rogue(network, "robot_a", "robot_b") as s:
+            assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
+            t_host = rogue_xmlrpc(s, "requestTopic", "/rospy_listener", "/chatter", [["TCPROS"]]).value[2][1]
+        header = {"callerid": "/rospy_listener", "topic": "/chatter", "type": "std_msgs/String",
+                  "md5sum": STRING_MD5, "tcp_nodelay": "1"}
+        opened = 0
+        with flow.held("150 streams opened and closed"):
+            for _ in range(150):
+                try:
+                    with rogue(network, "robot_a", "robot_b") as s:
+                        reply = rogue_preamble(s, token, "topic", t_host.rsplit("/", 1)[1])
+                        if reply is not None and reply.ok and rogue_tcpros(s, header).get("md5sum") == STRING_MD5:
+                            opened += 1
+                except OSError:
+                    pass
+        assert opened >= 20, f"only {opened} of the insider's streams were opened (the test would test nothing)"
+        assert pub.poll() is None
 
 
 # ---------------------------------------------------------------- finding 5: endpoint leaks
