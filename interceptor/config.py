@@ -42,7 +42,7 @@ Example::
     [limits]
     max_connections_per_peer = 64
     max_new_connections_per_second = 50.0
-    max_messages_per_second = 2000.0  # per peer, over TCPROS; absent = unlimited
+    max_messages_per_second = 10000.0  # per peer, all its streams in (default 5000; 0 = unlimited)
     max_message_size = 16777216       # bytes per TCPROS message from a peer (default 16 MiB)
     preamble_timeout = 5.0            # seconds from the TLS handshake until the peer's preamble is verified
     max_pending_per_source = 16       # unauthenticated streams per source address
@@ -104,6 +104,8 @@ from interceptor.monitor import MonitorSettings
 PASSPHRASE_ENV = "CRYPTOROS_KEY_PASSPHRASE"
 #: seconds an inbound XML-RPC stream may sit idle between two requests before it is closed
 XMLRPC_IDLE_TIMEOUT = 600.0
+#: [limits] max_messages_per_second unless the file says otherwise (0 there: no limit).
+DEFAULT_MESSAGES_PER_SECOND = 5_000.0
 ROLES = ("node", "master", "ros2")
 
 
@@ -175,9 +177,13 @@ class Limits:
     max_xmlrpc_body: int = 1 << 20
     max_header_size: int = 1 << 20
     handshake_timeout: float = 10.0
-    #: Messages per second one peer may send into this host over TCPROS (all its
-    #: streams together); absent = no limit. Excess is throttled, not parsed or dropped.
-    max_messages_per_second: float | None = None
+    #: Messages per second one peer manager may send into this host (all its streams
+    #: together: ROS 1 topic messages and service requests, ROS 2 samples), after a
+    #: burst of one second's worth. Excess is throttled by backpressure, not dropped.
+    #: None (``0`` in the file): no limit. The default is 5x a busy robot's traffic
+    #: from one peer and holds another peer's flow during an insider's flood
+    #: (docs/interceptor.md, "Message rate").
+    max_messages_per_second: float | None = DEFAULT_MESSAGES_PER_SECOND
     #: Largest TCPROS message (topic message, service request or response) a peer may
     #: send into this host; a larger declared frame cuts the stream before a byte of
     #: it is relayed. Per-topic exceptions: ``[limits.message_size]``.
@@ -582,6 +588,10 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
     hold = limits_raw.pop("name_hold_seconds", Limits.name_hold_seconds)
     if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold <= 86400:
         raise ConfigError(f"[limits] name_hold_seconds must be seconds from 0 (off) to 86400, got {hold!r}")
+    rate = limits_raw.pop("max_messages_per_second", Limits.max_messages_per_second)
+    if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate >= 0):
+        raise ConfigError(f"[limits] max_messages_per_second must be messages a second, 0 (no limit) or more, "
+                          f"got {rate!r}")
     idle = limits_raw.pop("tunnel_idle_timeout", Limits.tunnel_idle_timeout)
     if isinstance(idle, bool) or not isinstance(idle, (int, float)) or not 0 < idle < XMLRPC_IDLE_TIMEOUT:
         raise ConfigError(f"[limits] tunnel_idle_timeout must be seconds over 0 and under {XMLRPC_IDLE_TIMEOUT:g} "
@@ -592,6 +602,7 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         tls_session_lifetime=float(lifetime),
         name_hold_seconds=float(hold),
         tunnel_idle_timeout=float(idle),
+        max_messages_per_second=float(rate) if rate else None,
         spare_connections=spare,
         **{k: _typed(v, limit_types[k], f"[limits] {k}") for k, v in limits_raw.items()},
     )

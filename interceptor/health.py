@@ -65,6 +65,9 @@ class Health:
                                              if os.path.exists(crl) else None},
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
+            "message_rate": self.cfg.limits.max_messages_per_second,
+            "throttled": {manager: budget.throttled for manager, budget in sorted(self._budgets.items())
+                          if budget.throttled},
             "monitor": self.monitor.status() if self.monitor is not None else None,
             "denials": self.denials.table(time.monotonic()),
             "learning": self.learner.status(),

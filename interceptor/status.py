@@ -49,6 +49,10 @@ def render(status: dict) -> list[str]:
     peers = status.get("peers") or {}
     lines.append(f"peers     {', '.join(f'{m} ({n} streams)' for m, n in peers.items()) or 'none'}; "
                  f"{status['open_streams']} open streams in all")
+    if "message_rate" in status:
+        rate, held = status["message_rate"], status.get("throttled") or {}
+        lines.append(f"rate      {f'{rate:g} messages a second per peer' if rate else 'no limit (max_messages_per_second = 0)'}"
+                     f"; held back: {', '.join(f'{m} ({n} waits)' for m, n in held.items()) or 'none'}")
     lines += [f"warning   {warning}" for warning in status.get("warnings", ())]
     refusals = status.get("denials") or []
     lines.append(f"denials   {sum(r['count'] for r in refusals)} refused, {len(refusals)} distinct"

@@ -36,7 +36,7 @@ real ROS 1 wire bytes (serialized with :mod:`cryptoros.ros1.msgs`, rosbags):
 * ``--relay``: the interceptor pair itself (:mod:`cryptoros.bench.interceptor`'s
   machinery): LaserScan- and image-sized frames relayed through two interceptors for
   each allowed TLS 1.3 suite and TLS 1.2: messages per second, MB/s and the two
-  interceptors' CPU per message.
+  interceptors' CPU per message (unthrottled: ``[limits] max_messages_per_second = 0``).
 """
 
 from __future__ import annotations
@@ -822,7 +822,8 @@ def render(report: dict, markdown: bool) -> None:
          ["figure", "paper (seed 002)", "ours"], headline_rows(report)),
     ]
     if report.get("relay"):
-        blocks.append(("Relayed through the interceptor pair (our node client, loopback; frames of the message's size)",
+        blocks.append(("Relayed through the interceptor pair (our node client, loopback; frames of the message's size; "
+                       "interceptors unthrottled, [limits] max_messages_per_second = 0)",
                        ["run", "negotiated", "frames", "msgs/s", "MB/s", "CPU us/msg, both interceptors", "received"], relay_rows(report)))
     if markdown:
         for title, headers, rows in blocks:
@@ -903,9 +904,10 @@ def len_b(report: dict, key: str) -> int:
 def relay_throughput(sizes: dict[str, int], n: int, workdir: Path, progress) -> dict:
     """Frames of each size relayed talker -> A's interceptor == TLS ==> B's -> listener,
     once per allowed TLS 1.3 suite (OPENSSL_CONF in the interceptors' environment) and
-    once with TLS 1.2 pinned (the suite the interceptors negotiate), plus plain ROS."""
+    once with TLS 1.2 pinned (the suite the interceptors negotiate), plus plain ROS. The
+    interceptors run unthrottled (``[limits] max_messages_per_second = 0``)."""
     from cryptoros.bench.interceptor import BENCH_HOSTS, Mode, _policy, run_pair
-    from cryptoros.lab.network import NetworkError, cpu_seconds, lab_network
+    from cryptoros.lab.network import UNTHROTTLED, NetworkError, cpu_seconds, lab_network
 
     # small frames: 10 times as many, so a run lasts long enough to time
     modes = [Mode(key, f"{key} {size} B", "image", n * 10 if size < 16384 else n, size) for key, size in sizes.items()]
@@ -931,7 +933,8 @@ def relay_throughput(sizes: dict[str, int], n: int, workdir: Path, progress) -> 
             os.environ["OPENSSL_CONF"] = str(_openssl_conf(workdir, suite))
         try:
             sub = workdir / label.replace(" ", "_")
-            with lab_network(sub, _policy(), hosts=BENCH_HOSTS, start=[] if pin12 else None) as net:
+            with lab_network(sub, _policy(), hosts=BENCH_HOSTS, start=[] if pin12 else None,
+                             limits=UNTHROTTLED) as net:
                 if pin12:
                     for name, host in net.hosts.items():
                         host.config.write_text(host.config.read_text().replace("[tls]\n", "[tls]\npin_tls12 = true\n"))

@@ -58,7 +58,7 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.capture import Capture, CaptureError, flows
-from cryptoros.lab.network import HOSTS, Network, NetworkError, lab_network, free_port, stop, wait_port
+from cryptoros.lab.network import HOSTS, UNTHROTTLED, Network, NetworkError, lab_network, free_port, stop, wait_port
 from cryptoros.ros1.uri import host_port
 
 SYS_PY = "/usr/bin/python3"
@@ -1161,16 +1161,17 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
                                 "tls_session_lifetime": ("300 s (default)" if tls_session_lifetime is None else
                                                          f"{tls_session_lifetime:g} s" if tls_session_lifetime else
                                                          "0 (off: a full handshake on every stream)"),
-                                "spare_connections": "on (default)" if spares is None else spares}}
+                                "spare_connections": "on (default)" if spares is None else spares,
+                                "max_messages_per_second": "0 (unthrottled)"}}
     try:
-        limits: dict[str, float | bool] = {}
+        limits: dict[str, float | bool] = dict(UNTHROTTLED)  # throughput rows: no per-peer rate
         if tls_session_lifetime is not None:
             limits["tls_session_lifetime"] = tls_session_lifetime
         if spares is not None:
             limits["spare_connections"] = spares
         with lab_network(workdir, _policy(), hosts=BENCH_HOSTS, extra_certs=[("stunnel_a", HOSTS["robot_a"]),
                                                             ("stunnel_b", "127.0.0.1")], progress=progress,
-                         metrics=True, limits=limits or None) as net:
+                         metrics=True, limits=limits) as net:
             progress("network up")
             results["setup"] = measure_setup(net, probes, workdir, progress)
             if bringups:
@@ -1280,6 +1281,8 @@ def _legend() -> str:
         "client caches TLS sessions, so its set-ups after the first are resumed handshakes (no certificates); so\n"
         "do the interceptors (unless --tls-session-lifetime 0), which also keep spare connections per peer\n"
         "(unless --no-spares): the lines above the table say which handshakes and checks ran.\n"
+        "The interceptors run with [limits] max_messages_per_second = 0 (no per-peer rate; the default would\n"
+        "throttle the unthrottled sender of the throughput rows).\n"
         "bring-up: N subscriber nodes of our node client start at once in one process (register, requestTopic,\n"
         "TCPROS) against a latched publisher; time from the start until the last one received its message.\n"
         "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."

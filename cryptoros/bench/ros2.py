@@ -10,7 +10,9 @@ in a ``finally``.
 Method (identical for both paths; see ``cryptoros/ros2/bench_node.py``): reliable +
 KEEP_ALL on both ends, serialized messages, a warm-up handshake before the count starts,
 a subscriber that only records (raw take loop on its own thread), rates over the
-subscriber's receive window and counts of what it really received.
+subscriber's receive window and counts of what it really received. The interceptors run
+with ``[limits] max_messages_per_second = 0`` (no per-peer rate: the default would throttle
+the unthrottled sender of the throughput rows).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from pathlib import Path
 
 import click
 
-from cryptoros.lab.network import NetworkError, lab_network, clean_env, cpu_seconds, stop
+from cryptoros.lab.network import UNTHROTTLED, NetworkError, lab_network, clean_env, cpu_seconds, stop
 from cryptoros.ros2 import default_ros2_python
 
 NODE = Path(__file__).resolve().parent.parent / "ros2" / "bench_node.py"
@@ -111,7 +113,7 @@ def interceptor_pair(workdir: Path, python: Path, domains: tuple[int, int], dept
     """Robot A's and robot B's interceptors (``ros2`` role, peers of each other) with their
     PKI, registry and authorization server; yields the two interceptors' pids."""
     with lab_network(workdir, POLICY, hosts=HOSTS, master="none", ros2=dict(zip(HOSTS, domains, strict=True)),
-                       ros2_python=python, ros2_depth=depth) as net:
+                       ros2_python=python, ros2_depth=depth, limits=UNTHROTTLED) as net:
         yield {"interceptor_a": net.hosts["robot_a"].proc.pid, "interceptor_b": net.hosts["robot_b"].proc.pid}
 
 
@@ -206,6 +208,7 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: st
     if as_json:
         click.echo(json.dumps(results, indent=2))
         return
+    click.echo("\nInterceptors: [limits] max_messages_per_second = 0 (unthrottled).")
     click.echo("\n| measurement | direct (one domain) | through the interceptor pair | ratio / added |")
     click.echo("|---|---|---|---|")
     for label, kind, count, hz in rows:

@@ -224,6 +224,12 @@ class Network:
 ROSCPP_NODES = ("/roscpp_talker", "/roscpp_udp_listener", "/record_*", "/play_*")
 
 
+#: The ``limits`` of a network whose benches measure throughput: no per-peer message rate
+#: (the interceptors' default throttles a peer at ``DEFAULT_MESSAGES_PER_SECOND``, which a
+#: sender publishing as fast as it can exceeds); every bench that uses it says so.
+UNTHROTTLED: dict[str, float | bool] = {"max_messages_per_second": 0}
+
+
 def _interceptor_config(
     pki: PKI, name: str, address: str, *, public_port: int, local_master_port: int, master_endpoint: str | None,
     authz_url: str, upstream: str | None, metrics_port: int | None = None, limits: dict[str, float | bool] | None = None,

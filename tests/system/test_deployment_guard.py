@@ -32,6 +32,7 @@ import pytest
 
 from cryptoros.lab.network import clean_env, stop, tool, wait_port
 from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, separate_hosts
+from tests.ros1_flow import flow_policy, legit_flow
 from tests.support import require, running
 
 pytestmark = [pytest.mark.ros1]
@@ -193,11 +194,13 @@ def test_a_node_other_hosts_reach_is_refused_and_the_same_node_through_cryptoros
 
 def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_changes_nothing(tmp_path):
     separate_hosts()
-    with robot_network(tmp_path, start=("master", "robot_a"), netns=True) as net:
+    with robot_network(tmp_path, start=("master", "robot_a"), policy=flow_policy(), netns=True) as net:
         host = net.hosts["robot_a"]
         state = tmp_path / "robot_a.state"  # the default state_dir: beside the configuration
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "3", "20", "60"],
-                     env=net.ros_env("robot_a")) as pub:
+        # robot A's /flow to robot C runs through the first instance all along
+        with legit_flow(net, "robot_a", "robot_c") as flow, \
+                running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "3", "20", "60"],
+                        env=net.ros_env("robot_a")) as pub:
             read_lines(pub, "SENT", 30)
             saved = state / "robot_a.state.json"
             deadline = time.monotonic() + 10
@@ -206,12 +209,13 @@ def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_ch
                 time.sleep(0.1)
             before = saved.read_bytes(), saved.stat().st_mtime_ns
             assert oct(state.stat().st_mode & 0o777) == "0o700"
-            for where in ("robot_a", "robot_b"):  # the same host, or another by mistake
-                second = _on(net, where, [tool("cryptoros-interceptor"), "--config", str(host.config)])
-                lines = second.stderr.strip().splitlines()
-                assert second.returncode == 1 and len(lines) == 1, second
-                assert f"pid {host.proc.pid}" in lines[0] and "nothing was changed" in lines[0]
-                assert (saved.read_bytes(), saved.stat().st_mtime_ns) == before
+            with flow.held("the second starts"):
+                for where in ("robot_a", "robot_b"):  # the same host, or another by mistake
+                    second = _on(net, where, [tool("cryptoros-interceptor"), "--config", str(host.config)])
+                    lines = second.stderr.strip().splitlines()
+                    assert second.returncode == 1 and len(lines) == 1, second
+                    assert f"pid {host.proc.pid}" in lines[0] and "nothing was changed" in lines[0]
+                    assert (saved.read_bytes(), saved.stat().st_mtime_ns) == before
             assert host.proc.poll() is None
         stop(host.proc)
         net.start("robot_a")  # the lock went with the process: a restart takes it

@@ -4,7 +4,8 @@ checks, against real rosmaster, rospy and roscpp behind real interceptors.
 The insider is robot B (valid certificate, token, subscribe grants only on B's side
 of the policy); robot A runs the talkers. Each test reproduces one finding and shows
 it no longer gets through, and that the victims (rosmaster, the talker, the stream
-between A and B) are unharmed.
+between A and B) are unharmed; and around each attack robot A's ``/flow`` keeps
+reaching robot C (tests/ros1_flow.py): never silent 5 s during it, back within 5 s after.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from tests.interceptor_harness import (
 from tests.interceptor_harness import rogue_to as rogue
 from tests.support import require, run, running
 from tests.interceptor_harness import got, master_state, nodes_in_state, read_lines
+from tests.ros1_flow import flow_policy, legit_flow
 
 pytestmark = [pytest.mark.ros1]
 
@@ -53,9 +55,17 @@ GETPID = b"<?xml version='1.0'?><methodCall><methodName>getPid</methodName><para
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("insider"), start=("master", "robot_a", "robot_b"),
-                       netns=separate_hosts()) as net:
+    with robot_network(tmp_path_factory.mktemp("insider"), start=("master", "robot_a", "robot_b", "robot_c"),
+                       policy=flow_policy(), netns=separate_hosts()) as net:
         yield net
+
+
+@pytest.fixture(scope="module")
+def flow(network):
+    """Robot A's /flow to robot C's listener: two honest robots; the insider attacks
+    robot A and the master, which that flow goes through."""
+    with legit_flow(network, "robot_a", "robot_c") as running_flow:
+        yield running_flow
 
 
 def smuggling(hidden: bytes) -> bytes:
@@ -102,7 +112,13 @@ def master_alive(network) -> bool:
 # ---------------------------------------------------------------- finding 1: request-line smuggling
 
 
-def test_calls_hidden_in_the_request_path_never_reach_rosmaster(network):
+def test_calls_hidden_in_the_request_path_never_reach_rosmaster(network, flow):
+    with flow.held():
+        _hidden_calls(network)
+    assert "control character, bare CR/LF" in denials(network, "master")
+
+
+def _hidden_calls(network) -> None:
     master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
     host, port = network.hosts["robot_b"].master_uri[len("http://"):].rstrip("/").split(":")
     # through the insider's own interceptor's local master port (plain HTTP on loopback)
@@ -119,15 +135,14 @@ def test_calls_hidden_in_the_request_path_never_reach_rosmaster(network):
     with network.inside("master"):
         assert master.hasParam("/t", "/robot_a/owned") == [1, "/robot_a/owned", False]
     assert master_alive(network), "rosmaster was shut down"
-    assert "control character, bare CR/LF" in denials(network, "master")
 
 
-def test_a_shutdown_hidden_in_the_path_to_a_relay_leaves_the_talker_running(network):
+def test_a_shutdown_hidden_in_the_path_to_a_relay_leaves_the_talker_running(network, flow):
     with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"],
                  env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
         wait_registered(network, "/talker_a")
-        with network.inside("robot_b"):
+        with flow.held(), network.inside("robot_b"):
             local_master = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
             code, _, relay = local_master.lookupNode("/spy", "/talker_a")
             assert code == 1 and relay.startswith("http://127.0.0.1:")
@@ -164,7 +179,7 @@ def roscpp_nodes(request, tmp_path_factory):
     return built
 
 
-def test_udpros_is_never_offered_and_a_udp_listener_gets_tcpros_through_the_tunnel(network, roscpp_nodes):
+def test_udpros_is_never_offered_and_a_udp_listener_gets_tcpros_through_the_tunnel(network, roscpp_nodes, flow):
     # the stranger listens for datagrams on its own host (127.0.0.9 on a shared loopback)
     stranger_host = network.lab.add_host(f"udp{time.monotonic_ns() % 10000}") if network.lab else None
     stranger_address = stranger_host.address if stranger_host else "127.0.0.9"
@@ -176,16 +191,18 @@ def test_udpros_is_never_offered_and_a_udp_listener_gets_tcpros_through_the_tunn
     with closing(stranger), running([roscpp_nodes["talker"], "/chatter", "200000"], env=network.ros_env("robot_a")):
         wait_registered(network, "/roscpp_talker", timeout=30)
         token = token_of(network, "robot_b")
-        with rogue(network, "master", "robot_b") as s:
-            assert rogue_preamble(s, token, "master").ok
-            node_api = rogue_xmlrpc_value(s, "lookupNode", "/spy", "/roscpp_talker")
-        header = b"callerid=/spy"  # what a UDPROS offer carries, as the attacker wrote it
-        with rogue(network, "robot_a", "robot_b") as s:
-            assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
-            udp_only = rogue_xmlrpc_value(s, "requestTopic", "/spy", "/chatter",
-                                          [["UDPROS", header, stranger_address, udp_port, 1500]], whole=True)
-            both = rogue_xmlrpc_value(s, "requestTopic", "/spy", "/chatter",
-                                      [["UDPROS", header, stranger_address, udp_port, 1500], ["TCPROS"]], whole=True)
+        with flow.held("the UDPROS offers"):
+            with rogue(network, "master", "robot_b") as s:
+                assert rogue_preamble(s, token, "master").ok
+                node_api = rogue_xmlrpc_value(s, "lookupNode", "/spy", "/roscpp_talker")
+            header = b"callerid=/spy"  # what a UDPROS offer carries, as the attacker wrote it
+            with rogue(network, "robot_a", "robot_b") as s:
+                assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
+                udp_only = rogue_xmlrpc_value(s, "requestTopic", "/spy", "/chatter",
+                                              [["UDPROS", header, stranger_address, udp_port, 1500]], whole=True)
+                both = rogue_xmlrpc_value(s, "requestTopic", "/spy", "/chatter",
+                                          [["UDPROS", header, stranger_address, udp_port, 1500], ["TCPROS"]],
+                                          whole=True)
         assert udp_only[0] == -1
         assert both[0] == 1 and both[2][0] == "TCPROS" and both[2][1].startswith("cryptoros://")
         # a real roscpp listener that prefers UDP receives over TCPROS, through the interceptors
@@ -221,7 +238,7 @@ def _bomb_header(count: int) -> bytes:
     return struct.pack("<I", len(body)) + body
 
 
-def test_headers_of_many_fields_are_refused_and_the_talker_to_listener_stream_keeps_flowing(network):
+def test_headers_of_many_fields_are_refused_and_the_talker_to_listener_stream_keeps_flowing(network, flow):
     with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "50", "60"], env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
         with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "60"], env=network.ros_env("robot_b")) as sub:
@@ -236,20 +253,21 @@ def test_headers_of_many_fields_are_refused_and_the_talker_to_listener_stream_ke
                 t_host = rogue_xmlrpc_value(s, "requestTopic", "/listener_b", "/chatter", [["TCPROS"]])[1]
             a_proc = network.hosts["robot_a"].proc
             rss_before = rss_kib(a_proc.pid)
-            socks = []
-            for _ in range(16):
-                s = rogue(network, "robot_a", "robot_b")
-                socks.append(s)
-                assert rogue_preamble(s, token, "topic", t_host.rsplit("/", 1)[1]).ok
-                s.sendall(_bomb_header(60_000))
-            closed = 0
-            for s in socks:
-                s.settimeout(10)
-                try:
-                    closed += s.recv(1) == b""
-                except (OSError, ConnectionError):
-                    closed += 1
-                s.close()
+            with flow.held("the header bombs"):
+                socks = []
+                for _ in range(16):
+                    s = rogue(network, "robot_a", "robot_b")
+                    socks.append(s)
+                    assert rogue_preamble(s, token, "topic", t_host.rsplit("/", 1)[1]).ok
+                    s.sendall(_bomb_header(60_000))
+                closed = 0
+                for s in socks:
+                    s.settimeout(10)
+                    try:
+                        closed += s.recv(1) == b""
+                    except (OSError, ConnectionError):
+                        closed += 1
+                    s.close()
             assert closed == 16, "a header bomb was not refused"
             # the legitimate stream still delivers, and the interceptor did not balloon
             read_lines(sub, None, 0.5)
@@ -259,7 +277,7 @@ def test_headers_of_many_fields_are_refused_and_the_talker_to_listener_stream_ke
     assert "more than 32 fields" in denials(network, "robot_a")
 
 
-def test_a_genuine_header_with_an_extra_field_reaches_the_node_without_it(network):
+def test_a_genuine_header_with_an_extra_field_reaches_the_node_without_it(network, flow):
     with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"], env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
         token = token_of(network, "robot_b")
@@ -269,7 +287,7 @@ def test_a_genuine_header_with_an_extra_field_reaches_the_node_without_it(networ
         with rogue(network, "robot_a", "robot_b") as s:
             assert rogue_preamble(s, token, "node", node_api.rsplit("/", 1)[1]).ok
             t_host = rogue_xmlrpc_value(s, "requestTopic", "/listener_b", "/chatter", [["TCPROS"]])[1]
-        with rogue(network, "robot_a", "robot_b") as s:
+        with flow.held(), rogue(network, "robot_a", "robot_b") as s:
             assert rogue_preamble(s, token, "topic", t_host.rsplit("/", 1)[1]).ok
             answer = rogue_tcpros(s, {"callerid": "/listener_b", "topic": "/chatter", "type": "std_msgs/String",
                                       "md5sum": STRING_MD5, "tcp_nodelay": "1", "x_evil": "1"})
@@ -280,12 +298,14 @@ def test_a_genuine_header_with_an_extra_field_reaches_the_node_without_it(networ
 # ---------------------------------------------------------------- finding 4: frame size
 
 
-def test_a_frame_declaring_2_gib_is_cut_before_it_reaches_the_listener(network):
+def test_a_frame_declaring_2_gib_is_cut_before_it_reaches_the_listener(network, flow):
+    """A rogue publisher on robot A (an insider there) declares a 2 GiB frame to robot
+    B's listener; robot A's /flow to robot C goes on around it."""
     b_proc = network.hosts["robot_b"].proc
     with running([SYS_PY, NODE, "sub", "/listener_b", "/chatter", "60"], env=network.ros_env("robot_b")) as sub:
         read_lines(sub, "READY", 20)
         rss_before = rss_kib(b_proc.pid)
-        with running([SYS_PY, str(ATTACK_NODES / "big_frame_publisher.py"), "/talker_a", "/chatter",
+        with flow.held("the 2 GiB frame"), running([SYS_PY, str(ATTACK_NODES / "big_frame_publisher.py"), "/talker_a", "/chatter",
                       str(2**31), str(32 << 20)], env=network.ros_env("robot_a")) as rogue_pub:
             read_lines(rogue_pub, "CONNECTED", 30)
             ended = read_lines(rogue_pub, None, 30)

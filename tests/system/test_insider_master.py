@@ -5,7 +5,11 @@ registration), the XML-RPC tunnels to their nodes (closed when idle, and with th
 they serve).
 
 The insiders have valid certificates and tokens: robot B (subscribe grants on /chatter,
-for any node name) and robot C (no grant at all: it may still read the graph).
+for any node name) and robot C (no grant at all: it may still read the graph). Around
+each test's attack robot A's ``/flow`` keeps reaching a listener on robot B
+(tests/ros1_flow.py): never silent 5 s during it, back within 5 s after. Robot A is the
+only robot here that attacks nothing; the flow's listener is on robot B, an insider whose
+other streams must not harm its own honest ones either.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from tests.interceptor_harness import (
     token_of,
     wait_registered,
 )
+from tests.ros1_flow import flow_policy, legit_flow
 from tests.support import running
 
 pytestmark = [pytest.mark.ros1]
@@ -52,8 +57,15 @@ def network(tmp_path_factory):
                        f"max_master_calls_per_second = {RATE}\nmaster_call_burst = {BURST}\n"
                        f"max_param_keys_per_peer = {KEYS}\nmax_param_bytes_per_peer = {BYTES}\n"}
     with robot_network(workdir, start=("master", "robot_a", "robot_b"), extra=extra,
-                       netns=separate_hosts()) as net:
+                       policy=flow_policy(listener="robot_b"), netns=separate_hosts()) as net:
         yield net
+
+
+@pytest.fixture(scope="module")
+def flow(network):
+    """Robot A's /flow to a listener on robot B (robot C holds no grant here)."""
+    with legit_flow(network, "robot_a", "robot_b") as running_flow:
+        yield running_flow
 
 
 def status(network, host: str) -> dict:
@@ -101,13 +113,14 @@ print("END", flush=True)
 """
 
 
-def test_tunnels_to_a_node_close_when_idle_and_its_pool_goes_with_its_relay(network):
+def test_tunnels_to_a_node_close_when_idle_and_its_pool_goes_with_its_relay(network, flow):
     """rosmaster tells robot B's subscriber of a new publisher through the master's
     interceptor (a relay there, a pooled tunnel to B's interceptor). Idle, the tunnel
     is closed after tunnel_idle_timeout, the pool kept while the node is registered;
     once the node unregisters, its relay is released and the pool with it."""
     before = status(network, "master")["ros1"]
-    with running([SYS_PY, "-c", LISTENER], env=network.ros_env("robot_b"), stdin=subprocess.PIPE) as listener:
+    with flow.held("tunnels opened and closed"), \
+            running([SYS_PY, "-c", LISTENER], env=network.ros_env("robot_b"), stdin=subprocess.PIPE) as listener:
         read_lines(listener, "READY", 20)
         wait_registered(network, "/rospy_listener")
         with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "20", "20", "0.5"],
@@ -138,7 +151,7 @@ def test_tunnels_to_a_node_close_when_idle_and_its_pool_goes_with_its_relay(netw
     assert connections_to(network, "master", "robot_b") == 0
 
 
-def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_registers(network):
+def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_registers(network, flow):
     """Robot C floods the master with multicalls of getPid (allowed to anyone): past the
     burst its calls are refused (rate_limited: a ROS error each, counted, logged once a
     while), and robot A's nodes still register and talk."""
@@ -146,7 +159,7 @@ def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_regis
     before = metric(network, "master", refused_metric)
     calls = [Request(method="getPid", params=("/flood",))] * 256
     answers = []
-    with rogue_to(network, "master", "robot_c") as s:
+    with flow.held("robot C's flood of master calls"), rogue_to(network, "master", "robot_c") as s:
         assert rogue_preamble(s, token_of(network, "robot_c"), "master").ok
         started = time.monotonic()
         for _ in range(4):
@@ -169,13 +182,13 @@ def test_a_flood_of_master_calls_is_rate_limited_and_another_manager_still_regis
             assert got(read_lines(sub, "GOT", 20))
 
 
-def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(network):
+def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(network, flow):
     """Robot B needs no parameter grant to write under its nodes' names: 100 fresh keys
     are refused past max_param_keys_per_peer (rosmaster holds no more), deleteParam
     frees the quota, a value past max_param_bytes_per_peer is refused, and so are
     parameter subscriptions past the quota."""
     b = network.hosts["robot_b"]
-    with rogue_to(network, "master", "robot_b") as s:
+    with flow.held("robot B's parameter flood"), rogue_to(network, "master", "robot_b") as s:
         assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
         answers = [rogue_xmlrpc(s, "setParam", "/rospy_listener", f"~flood/k{i}", "x" * 100) for i in range(100)]
         stored = [a for a in answers if a.value[0] == 1]
@@ -201,7 +214,7 @@ def test_an_insider_flooding_its_private_namespace_is_stopped_at_its_quota(netwo
     assert denials(network, "master").count("param_quota") >= len(refused)
 
 
-def test_a_repeated_registration_changes_nothing_and_rewrites_no_state_file(network):
+def test_a_repeated_registration_changes_nothing_and_rewrites_no_state_file(network, flow):
     """rosmaster keeps one registration per node and topic: the same registerSubscriber
     50 times over writes the master's state file once, and one unregisterSubscriber
     releases it (its relay too)."""
@@ -210,7 +223,7 @@ def test_a_repeated_registration_changes_nothing_and_rewrites_no_state_file(netw
     api = f"cryptoros://{b.address}:{b.public_port}/x/980001"
     call = ("registerSubscriber", "/repeat_listener", "/chatter", "std_msgs/String", api)
     before = status(network, "master")["ros1"]
-    with rogue_to(network, "master", "robot_b") as s:
+    with flow.held("robot B's repeated registrations"), rogue_to(network, "master", "robot_b") as s:
         assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
         assert rogue_xmlrpc(s, *call).value[0] == 1
         assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1  # the save after it has run

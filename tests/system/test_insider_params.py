@@ -3,7 +3,9 @@ rosmaster, rospy and Debian's rosparam behind real interceptors.
 
 The insider is robot B (valid certificate, subscribe grants on /chatter, no parameter
 grants); robot A runs the talker and owns ``/robot_a``; an operator's
-``/secrets/db_password`` sits in rosmaster.
+``/secrets/db_password`` sits in rosmaster. Around each attack robot A's ``/flow``
+keeps reaching robot C (tests/ros1_flow.py): never silent 5 s during it, back within
+5 s after.
 """
 
 from __future__ import annotations
@@ -26,14 +28,15 @@ from tests.interceptor_harness import (
 )
 from tests.support import require, run, running
 from tests.interceptor_harness import got, master_state, nodes_in_state, read_lines
+from tests.ros1_flow import flow_policy, legit_flow
 
 pytestmark = [pytest.mark.ros1]
 
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
-    with robot_network(tmp_path_factory.mktemp("params"), start=("master", "robot_a", "robot_b"),
-                       netns=separate_hosts()) as net:
+    with robot_network(tmp_path_factory.mktemp("params"), start=("master", "robot_a", "robot_b", "robot_c"),
+                       policy=flow_policy(), netns=separate_hosts()) as net:
         with net.inside("master"):
             master = xmlrpc.client.ServerProxy(net.rosmaster_uri)
             master.setParam("/operator", "/robot_a/api_key", "A-KEY-123")
@@ -42,20 +45,26 @@ def network(tmp_path_factory):
         yield net
 
 
+@pytest.fixture(scope="module")
+def flow(network):
+    """Robot A's /flow to robot C's listener: two honest robots, through the master the
+    insider's parameter calls go to."""
+    with legit_flow(network, "robot_a", "robot_c") as running_flow:
+        yield running_flow
 
 
-def test_subscribe_param_cannot_rebind_another_robots_node(network):
+def test_subscribe_param_cannot_rebind_another_robots_node(network, flow):
     with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "40"], env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
         wait_registered(network, "/talker_a")
         local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
         # on the insider's own local master port, and by hand over a master stream
-        with network.inside("robot_b"):
+        with flow.held(), network.inside("robot_b"):
             # (a key every node may read: an unreadable one would be answered as unset, unforwarded)
             assert local_b.subscribeParam("/talker_a", "http://127.0.0.1:9/", "/use_sim_time")[0] == -1
         b = network.hosts["robot_b"]
         m = network.hosts["master"]
-        with rogue_tls(m.address, m.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for("robot_b"),
+        with flow.held(), rogue_tls(m.address, m.public_port, ca=network.pki.ca_cert, cert=network.pki.pki.cert_path_for("robot_b"),
                        key=network.pki.pki.key_path_for("robot_b")) as s:
             assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
             reply = rogue_xmlrpc(s, "subscribeParam", "/talker_a", f"cryptoros://{b.address}:{b.public_port}/x/1", "/x")
@@ -70,8 +79,8 @@ def test_subscribe_param_cannot_rebind_another_robots_node(network):
     assert "name_taken" in log or "is not one of its nodes" in log
 
 
-def test_parameter_reads_are_narrowed_to_what_the_caller_may_read(network):
-    with network.inside("robot_b"):
+def test_parameter_reads_are_narrowed_to_what_the_caller_may_read(network, flow):
+    with flow.held(), network.inside("robot_b"):
         _narrowed_reads(network)
     log = network.hosts["robot_b"].logs()
     assert "param_read_denied" in log and "param_write_denied" in log
@@ -103,7 +112,7 @@ def _narrowed_reads(network):
         assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
 
 
-def test_rosparam_set_get_and_list_work_with_a_grant(network):
+def test_rosparam_set_get_and_list_work_with_a_grant(network, flow):
     require("rosparam")
     network.cli("grant", "robot_b", "write_param", "*", "/shared")
     env = network.ros_env("robot_b")
@@ -118,7 +127,8 @@ def test_rosparam_set_get_and_list_work_with_a_grant(network):
     assert got_value.returncode == 0 and got_value.stdout.strip() == "3"
     listed = run(["rosparam", "list"], env=env, timeout=30)
     assert listed.returncode == 0 and "/shared/speed" in listed.stdout and "/secrets/db_password" not in listed.stdout
-    denied = run(["rosparam", "set", "/secrets/db_password", "x"], env=env, timeout=30)
+    with flow.held("a refused rosparam set"):
+        denied = run(["rosparam", "set", "/secrets/db_password", "x"], env=env, timeout=30)
     assert denied.returncode != 0
     with network.inside("master"):
         assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/o", "/secrets/db_password")[2] == "hunter2"
@@ -137,12 +147,13 @@ except Exception as exc:
 """
 
 
-def test_a_denied_parameter_write_of_an_unmodified_rospy_node_writes_nothing_and_is_logged(network):
+def test_a_denied_parameter_write_of_an_unmodified_rospy_node_writes_nothing_and_is_logged(network, flow):
     """A refused write is answered as rosmaster answers an error ([-1, "denied by
     cryptoros: param_write_denied", 0], never a fault, which tools print as a
     traceback). rospy's set_param ignores that answer, as it ignores any error of
     rosmaster's: nothing is written, and the interceptor's log names the grant."""
-    result = run([SYS_PY, "-c", SET_PARAM_NODE, "/robot_a/api_key"], env=network.ros_env("robot_b"), timeout=60)
+    with flow.held("a refused parameter write"):
+        result = run([SYS_PY, "-c", SET_PARAM_NODE, "/robot_a/api_key"], env=network.ros_env("robot_b"), timeout=60)
     assert "OWN_OK" in result.stdout, result.stdout + result.stderr
     assert "Traceback" not in result.stdout + result.stderr
     assert "to allow: cryptoros-authz grant robot_b write_param /rospy_listener /robot_a/api_key" in \

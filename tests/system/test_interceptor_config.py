@@ -57,6 +57,19 @@ def test_valid_file_loads_frozen(material, tmp_path):
         cfg.manager = "intruder"  # type: ignore[misc]
 
 
+def test_a_peers_message_rate_is_limited_by_default_and_0_turns_the_limit_off(material, tmp_path):
+    """Secure by default: with no line a peer is held to the default rate; ``0`` is no
+    limit (what the throughput benches set); a number is that rate."""
+    from interceptor.config import DEFAULT_MESSAGES_PER_SECOND
+
+    assert load(write(tmp_path, good(material))).limits.max_messages_per_second == DEFAULT_MESSAGES_PER_SECOND
+    assert DEFAULT_MESSAGES_PER_SECOND == 5000
+    off = good(material, **{"max_connections_per_peer = 8": "max_messages_per_second = 0"})
+    assert load(write(tmp_path, off)).limits.max_messages_per_second is None
+    set_ = good(material, **{"max_connections_per_peer = 8": "max_messages_per_second = 250"})
+    assert load(write(tmp_path, set_)).limits.max_messages_per_second == 250.0
+
+
 def test_relative_paths_are_relative_to_the_file(material, tmp_path):
     text = good(material).replace(str(material["ca"]), "pki/ca.crt")
     cfg = load(write(tmp_path, text))
@@ -80,6 +93,9 @@ def test_relative_paths_are_relative_to_the_file(material, tmp_path):
         ({"manager = \"robot1\"": "manager = \"robot1\"\nroles2 = 1"}, "unknown key 'roles2'"),
         ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 600"}, "tunnel_idle_timeout must be seconds"),
         ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 0"}, "tunnel_idle_timeout must be seconds"),
+        ({"max_connections_per_peer = 8": "max_messages_per_second = -5"}, "max_messages_per_second must be messages"),
+        ({"max_connections_per_peer = 8": "max_messages_per_second = true"}, "max_messages_per_second must be messages"),
+        ({"max_connections_per_peer = 8": 'max_messages_per_second = "off"'}, "max_messages_per_second must be messages"),
     ],
 )
 def test_mistakes_are_one_line_config_errors(material, tmp_path, edit, message):

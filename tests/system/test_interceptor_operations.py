@@ -18,6 +18,7 @@ import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, rogue_preamble, rogue_tls
 from tests.interceptor_harness import denials, got, read_lines, rogue_to, token_of
+from tests.ros1_flow import flow_policy, legit_flow
 from tests.support import Capture, running
 
 pytestmark = [pytest.mark.ros1]
@@ -29,7 +30,9 @@ FLOOD_LIMIT = 100.0  # messages per second robot B accepts from any one peer
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
     limits = f"[limits]\nmax_messages_per_second = {FLOOD_LIMIT}"
-    with robot_network(tmp_path_factory.mktemp("net"), extra={"robot_b": limits}) as net:
+    # the legitimate flows around the attacks: robot C to robot B, robot A to robot C
+    policy = flow_policy(flow_policy(talker="robot_c", listener="robot_b"), talker="robot_a", listener="robot_c")
+    with robot_network(tmp_path_factory.mktemp("net"), extra={"robot_b": limits}, policy=policy) as net:
         yield net
 
 
@@ -93,6 +96,13 @@ def with_timeout_read(s) -> None:
 
 
 def test_hostile_bytes_on_every_port_leave_it_serving(network):
+    """A stranger's and an insider's garbage on every port of robot A, while robot A's
+    /flow to robot C goes on (tests/ros1_flow.py)."""
+    with legit_flow(network, "robot_a", "robot_c") as flow:
+        _hostile_bytes(network, flow)
+
+
+def _hostile_bytes(network, flow) -> None:
     rng = random.Random(7)
     a = network.hosts["robot_a"]
     b = network.hosts["robot_b"]
@@ -115,7 +125,7 @@ def test_hostile_bytes_on_every_port_leave_it_serving(network):
              *(("127.0.0.1", p) for p in relays[:4])]
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=16) as pool:  # all at once: a small flood too
+    with flow.held("garbage on every port"), ThreadPoolExecutor(max_workers=16) as pool:  # all at once: a small flood
         list(pool.map(lambda job: send_garbage(*job), [(h, p, pl) for h, p in ports for pl in payloads]))
     # TLS with a valid certificate, then garbage in place of the preamble and stream.
     token = token_of(network, "robot_b")
@@ -133,7 +143,7 @@ def test_hostile_bytes_on_every_port_leave_it_serving(network):
 
     jobs = [(pl, None) for pl in payloads]
     jobs += [(struct.pack("<I", 0x7FFFFFFF) + os.urandom(64), p) for p in (("topic", "2"), ("node", "1"), ("master", ""))]
-    with ThreadPoolExecutor(max_workers=8) as pool:
+    with flow.held("garbage over TLS"), ThreadPoolExecutor(max_workers=8) as pool:
         list(pool.map(lambda job: over_tls(*job), jobs))
     for host in network.hosts.values():
         assert host.proc is None or host.proc.poll() is None, f"{host.name} died:\n{host.logs()[-2000:]}"
@@ -153,9 +163,11 @@ def count_received(network, host_pub, host_sub, count, seconds) -> int:
 
 def test_message_flood_from_a_peer_is_throttled_to_the_configured_rate(network):
     """Seed 001's denial of service (a flooded command topic): without interceptors the
-    victim takes all of it; behind them, at most the configured rate per peer."""
+    victim takes all of it; behind them, at most the configured rate per peer; and robot
+    C's /flow to robot B goes on through the flood and after it (tests/ros1_flow.py)."""
     plain = count_received(network, None, None, 5000, 3.0)
-    protected = count_received(network, "robot_a", "robot_b", 5000, 3.0)
+    with legit_flow(network, "robot_c", "robot_b") as flow, flow.held("robot A's flood"):
+        protected = count_received(network, "robot_a", "robot_b", 5000, 3.0)
     assert plain >= 2000, plain
     assert protected <= FLOOD_LIMIT * (1 + 3.0) + 50, protected
     assert protected >= FLOOD_LIMIT, protected  # throttled, not cut off

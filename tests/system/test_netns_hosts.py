@@ -19,6 +19,7 @@ from cryptoros.lab.netns import NetnsLab
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, separate_hosts
 from tests.support import running
 from tests.interceptor_harness import got, read_lines
+from tests.ros1_flow import flow_policy, legit_flow
 
 pytestmark = [pytest.mark.ros1]
 
@@ -26,8 +27,17 @@ pytestmark = [pytest.mark.ros1]
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
     separate_hosts()
-    with robot_network(tmp_path_factory.mktemp("netns"), start=("master", "robot_a", "robot_b"), netns=True) as net:
+    with robot_network(tmp_path_factory.mktemp("netns"), start=("master", "robot_a", "robot_b", "robot_c"),
+                       policy=flow_policy(), netns=True) as net:
         yield net
+
+
+@pytest.fixture(scope="module")
+def flow(network):
+    """Robot A's /flow to robot C's listener, held around what the stranger and the
+    insider (robot B) do (tests/ros1_flow.py)."""
+    with legit_flow(network, "robot_a", "robot_c") as running_flow:
+        yield running_flow
 
 
 def test_the_lab_isolates_loopbacks_and_cleans_up():
@@ -86,7 +96,7 @@ def wait_registered(network, node, timeout=20):
         time.sleep(0.1)
 
 
-def test_talker_and_listener_on_separate_hosts_and_a_stranger_reaches_only_public_ports(network):
+def test_talker_and_listener_on_separate_hosts_and_a_stranger_reaches_only_public_ports(network, flow):
     with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "40"], env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
         wait_registered(network, "/talker_a")
@@ -106,7 +116,7 @@ def test_talker_and_listener_on_separate_hosts_and_a_stranger_reaches_only_publi
             "metrics": a.metrics_port,
         }
         stranger = network.lab.add_host("stranger")
-        with stranger.inside():
+        with flow.held("the stranger's probes"), stranger.inside():
             for what, port in private.items():
                 for address in (a.address, "127.0.0.1"):
                     with pytest.raises(OSError):
@@ -122,15 +132,16 @@ def test_talker_and_listener_on_separate_hosts_and_a_stranger_reaches_only_publi
         assert pub.poll() is None
 
 
-def test_denials_hold_across_hosts(network):
+def test_denials_hold_across_hosts(network, flow):
     """A subscriber without a grant receives nothing; shutdown through a relay is dropped."""
     with running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "40"], env=network.ros_env("robot_a")) as pub:
         read_lines(pub, "READY", 20)
         wait_registered(network, "/talker_a")
-        with running([SYS_PY, NODE, "sub", "/listener_b", "/secret", "30"], env=network.ros_env("robot_b")) as sub:
+        with flow.held("robot B's ungranted subscriber"), \
+                running([SYS_PY, NODE, "sub", "/listener_b", "/secret", "30"], env=network.ros_env("robot_b")) as sub:
             read_lines(sub, "READY", 20)
             assert got(read_lines(sub, None, 3)) == []
-        with network.inside("robot_b"):
+        with flow.held("robot B's shutdown calls"), network.inside("robot_b"):
             local = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
             relay = local.lookupNode("/evil", "/talker_a")[2]
             assert xmlrpc.client.ServerProxy(relay).shutdown("/evil", "bye")[0] == -1

@@ -4,8 +4,10 @@ its own streams never stops another peer's flow, during the attack or after it.
 Robot A's rclpy talker publishes ``/chatter`` (sequence numbers from 0) to robot B's
 listener through the interceptors; an insider, robot C, holds a valid certificate and
 a publish grant on ``/chatter`` and floods robot B through its own interceptor (its
-sequence numbers from 500000). Robot B throttles each peer to 1,000 messages a second.
-Every assertion is on robot A's messages, told apart by content, with bounded waits.
+sequence numbers from 500000). Three variants of robot B's per-peer message rate
+(``[limits] max_messages_per_second``): throttled (1,000 a second), the default, and
+unthrottled (``0``, set explicitly). Every assertion is on robot A's messages, told
+apart by content, with bounded waits.
 """
 
 from __future__ import annotations
@@ -21,17 +23,21 @@ import pytest
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.target import StreamTarget
 
+from interceptor.config import DEFAULT_MESSAGES_PER_SECOND
 from tests.ros2_support import BACK_WITHIN, INSIDER, POLICY, Arrivals, assert_flow_held, flow_around, ros2_network
 
 #: the insider's flood: 20 s of robot B's per-peer rate
 RATE, FLOOD = 1000, 20_000
 #: unthrottled, a flood large enough to overrun robot B's listener (Fast DDS wedges it
-#: after some 45,000 samples at full speed here)
+#: after some 45,000 samples at full speed here); with the default rate, as many seconds
+#: of it as the throttled flood
 BIG_FLOOD = 200_000
+DEFAULT_FLOOD = int(20 * DEFAULT_MESSAGES_PER_SECOND)
 #: unthrottled, the flood overruns robot B's listener, which Fast DDS wedges: robot B's
 #: bridge makes the flooded writer anew after PUBLISH_PATIENCE (3 s), the reader delivers
 #: again, and the flood may wedge it again (measured: 0.8 to 12.5 s of silence). Only a
-#: rate limit holds robot A's flow during a flood; after it, it is back within 5 s either way.
+#: rate limit (the default one included) holds robot A's flow during a flood; after it, it
+#: is back within 5 s either way.
 DURING_UNTHROTTLED = 20.0
 
 FLOOD_POLICY = POLICY.replace(
@@ -41,16 +47,18 @@ FLOOD_POLICY = POLICY.replace(
 )
 
 
-@pytest.fixture(scope="module", params=[RATE, None], ids=["throttled", "unthrottled"])
+@pytest.fixture(scope="module", params=[RATE, None, 0], ids=["throttled", "default", "unthrottled"])
 def network(request, tmp_path_factory):
     """Robot C may publish ``/chatter`` and is robot B's peer too. Throttled: robot B lets
-    each peer 1,000 messages a second; unthrottled: no limit, so a flood reaches robot B's
-    domain as fast as its bridge publishes (the case that overruns a local reader)."""
+    each peer 1,000 messages a second; default: no ``max_messages_per_second`` line, the
+    default rate; unthrottled: ``max_messages_per_second = 0``, no limit, so a flood
+    reaches robot B's domain as fast as its bridge publishes (the case that overruns a
+    local reader)."""
     rate = request.param
-    extra = {"robot_b": f"[limits]\nmax_messages_per_second = {rate}"} if rate else {}
+    extra = {"robot_b": f"[limits]\nmax_messages_per_second = {rate}"} if rate is not None else {}
     with ros2_network(tmp_path_factory.mktemp("ros2-aftermath"), policy=FLOOD_POLICY,
                       peers={"robot_c": ("robot_a", "robot_b")}, extra=extra) as net:
-        net.flood, net.throttled = (FLOOD, True) if rate else (BIG_FLOOD, False)
+        net.flood, net.throttled = {RATE: (FLOOD, True), None: (DEFAULT_FLOOD, True), 0: (BIG_FLOOD, False)}[rate]
         yield net
 
 
@@ -82,10 +90,27 @@ def test_an_insiders_flood_on_its_own_stream_never_stops_robot_as_flow(network):
     span = seen.insider[-1][1] - seen.insider[0][1]
     assert span > 1000, f"the flood was too small to test anything (seq {seen.insider[0][1]}..{seen.insider[-1][1]})"
     assert_flow_held(seen, attack_start, attack_end, during_bound=_during(network))
+    _held_back_only_the_insider(network)
 
 
 def _during(network) -> float:
     return BACK_WITHIN if network.throttled else DURING_UNTHROTTLED
+
+
+def _held_back_only_the_insider(network) -> None:
+    """Robot B's status (``cryptoros status``'s JSON) says whose streams its rate held
+    back: the insider's, never robot A's 20 Hz flow; with no limit, nobody's."""
+    import json
+    import urllib.request
+
+    url = f"http://127.0.0.1:{network.robots['robot_b'].metrics_port}/status"
+    with urllib.request.urlopen(url, timeout=5) as reply:
+        status = json.loads(reply.read())
+    if network.throttled:
+        assert status["message_rate"] and "robot_c" in status["throttled"] and "robot_a" not in status["throttled"], \
+            (status["message_rate"], status["throttled"])
+    else:
+        assert status["message_rate"] is None and status["throttled"] == {}, (status["message_rate"], status["throttled"])
 
 
 def _string_sample(seq: int) -> bytes:
@@ -134,6 +159,7 @@ def test_an_insiders_flood_on_a_stream_it_opened_itself_never_stops_robot_as_flo
             seen.more_from_a(100, 60, "robot A's flow did not come back after the flood", since=attack_end)
     assert sent[0] == network.flood
     assert_flow_held(seen, attack_start, attack_end, during_bound=_during(network))
+    _held_back_only_the_insider(network)
 
 
 def test_a_strangers_half_open_connections_never_stop_robot_as_flow(network):
