@@ -82,6 +82,7 @@ def test_random_and_mutated_payloads_raise_cdr_errors_and_nothing_else(type_name
         raw = raw[: data.draw(st.integers(0, len(raw) - 1))]
     else:
         raw += data.draw(st.binary(min_size=4, max_size=50))
+    # fuzz: a CdrError or nothing, never another exception (a crash of the receiving role)
     try:
         checker_for(type_name)(bytes(raw))
     except CdrError:
