@@ -17,21 +17,9 @@ import aiohttp
 import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
-from tests.authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
+from tests.authz_support import authz, build_team, ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
-
-
-@pytest.fixture(scope="module")
-def daemon(tmp_path_factory):
-    team = build_team(tmp_path_factory.mktemp("authz-daemon"))
-    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
-    try:
-        d.start()
-        d.team = team
-        yield d
-    finally:
-        d.stop()
 
 
 def claims_of(token: str) -> dict:
