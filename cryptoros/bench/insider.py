@@ -2,8 +2,8 @@
 
 Builds the test bed of the interceptor tests (real rosmaster, a master's interceptor
 and two robots' interceptors, each with its own certificate and manager) and lets
-robot B, an insider with a valid certificate and a wildcard subscribe grant, try the
-attacks of issue 11 by hand over mutual TLS:
+robot B, an insider with a valid certificate and a wildcard subscribe grant, try two
+exhaustion attacks by hand over mutual TLS:
 
 - relay exhaustion: ``--names`` fresh node names registered with fresh endpoint
   names, and as many ``unregisterSubscriber`` calls naming endpoints never seen, in

@@ -1,4 +1,4 @@
-"""Issue 19 (part): every ROS 2 sample checked before it is republished, rate limits
+"""Every ROS 2 sample checked before it is republished, rate limits
 that throttle and never stall, the receiver's QoS, and a stream cut when the grant
 that carried it is revoked. Unit tests of the pure parts, and real rclpy processes
 behind real interceptors for the system behaviour.

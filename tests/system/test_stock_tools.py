@@ -1,4 +1,4 @@
-"""Issue 13, stock tools: Debian's own rostopic, rosparam, rosservice and rosnode run on
+"""Stock tools: Debian's own rostopic, rosparam, rosservice and rosnode run on
 robot B's host against robot B's interceptor, with real rosmaster behind the
 master's interceptor and a rospy talker (and service) on robot A.
 
@@ -149,7 +149,7 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# Issue 31: refusals read like ROS errors, what libraries read is readable, roslaunch and
+# Refusals read like ROS errors, what libraries read is readable, roslaunch and
 # rosbag play with their bundles, actionlib, and quiet, useful denial logs.
 
 #: robot B's own nodes: a prober, two launched nodes, an action server and its client.

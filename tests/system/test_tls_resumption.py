@@ -1,4 +1,4 @@
-"""TLS 1.3 session resumption between interceptors (issue 16), over real TLS sockets:
+"""TLS 1.3 session resumption between interceptors, over real TLS sockets:
 asyncio and uvloop clients resume through :class:`cryptoros.tls.ResumingContext`, a
 session the server cannot use falls back to a full handshake, the certificate checks a
 resumed handshake skips run on every stream, and between real interceptor processes

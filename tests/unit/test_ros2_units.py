@@ -96,9 +96,9 @@ def test_pieces_split_a_run_into_at_most_most_frames_each_and_lose_nothing(paylo
 
 
 def test_a_recheck_never_reuses_a_peer_token_older_than_its_wait():
-    """A re-added grant reached its flow in 16 s once: the recheck's timer fired a hair
-    before PEER_RECHECK and reused the token learnt at its start. At a recheck only a
-    token learnt at most RECHECK_MARGIN before the wait ended counts, whatever the timer."""
+    """At a recheck only a peer token learnt at most RECHECK_MARGIN before the wait ended
+    counts, whatever the timer: one firing a hair before PEER_RECHECK does not reuse the
+    token learnt at its start (a re-added grant would reach its flow a recheck late)."""
     from interceptor.ros2 import PEER_RECHECK, RECHECK_MARGIN, reusable
 
     learnt = 100.0
