@@ -15,6 +15,7 @@ classes must match them (a test compares the two).
 from __future__ import annotations
 
 from datetime import datetime
+from typing import ClassVar
 
 from sqlalchemy import (
     Boolean,
@@ -27,7 +28,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
 )
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.orm import DeclarativeBase, Mapped, declared_attr, mapped_column, relationship
 
 NAME_LEN = 256
 
@@ -75,90 +76,76 @@ class Manager(Base):
     )
 
 
-class Publisher(Base):
+class _Grant:
+    """A grant row, the columns every grant table has in this order: ``id``,
+    ``manager_id``, ``name`` (a node name or pattern), the table's own target column
+    (``topic``, ``service`` or ``namespace``: :attr:`TARGET`), ``data_type``; unique on
+    ``(manager_id, name, <target>, data_type)`` as ``uq_<table>``. :attr:`RELATION` is
+    the list on :class:`Manager` the row belongs to."""
+
+    TARGET: ClassVar[str]
+    RELATION: ClassVar[str]
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, sort_order=-3)
+    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True,
+                                            sort_order=-2)
+    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False, sort_order=-1)
+    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False, sort_order=1)
+
+    @declared_attr.directive
+    def __table_args__(cls) -> tuple:
+        return (UniqueConstraint("manager_id", "name", cls.TARGET, "data_type", name=f"uq_{cls.__tablename__}"),)
+
+    @declared_attr
+    def manager(cls) -> Mapped[Manager]:
+        return relationship(back_populates=cls.RELATION)
+
+
+class Publisher(_Grant, Base):
     __tablename__ = "publisher"
-    __table_args__ = (UniqueConstraint("manager_id", "name", "topic", "data_type", name="uq_publisher"),)
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
-    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)  # node name
+    TARGET, RELATION = "topic", "publishers"
     topic: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    manager: Mapped[Manager] = relationship(back_populates="publishers")
 
 
-class Subscriber(Base):
+class Subscriber(_Grant, Base):
     __tablename__ = "subscriber"
-    __table_args__ = (UniqueConstraint("manager_id", "name", "topic", "data_type", name="uq_subscriber"),)
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
-    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    TARGET, RELATION = "topic", "subscribers"
     topic: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    manager: Mapped[Manager] = relationship(back_populates="subscribers")
 
 
-class Service(Base):
+class Service(_Grant, Base):
     __tablename__ = "service"
-    __table_args__ = (UniqueConstraint("manager_id", "name", "service", "data_type", name="uq_service"),)
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
-    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    TARGET, RELATION = "service", "services"
     service: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    manager: Mapped[Manager] = relationship(back_populates="services")
 
 
-class ServiceClient(Base):
+class ServiceClient(_Grant, Base):
     __tablename__ = "service_client"
-    __table_args__ = (UniqueConstraint("manager_id", "name", "service", "data_type", name="uq_service_client"),)
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
-    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    TARGET, RELATION = "service", "service_clients"
     service: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    manager: Mapped[Manager] = relationship(back_populates="service_clients")
 
 
-class ParamReader(Base):
+class ParamReader(_Grant, Base):
     """``name`` (a node) may read the parameters in ``namespace`` (data_type is ``param``)."""
 
     __tablename__ = "param_reader"
-    __table_args__ = (UniqueConstraint("manager_id", "name", "namespace", "data_type", name="uq_param_reader"),)
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
-    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    TARGET, RELATION = "namespace", "param_readers"
     namespace: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    manager: Mapped[Manager] = relationship(back_populates="param_readers")
 
 
-class ParamWriter(Base):
+class ParamWriter(_Grant, Base):
     """``name`` (a node) may read and write the parameters in ``namespace``."""
 
     __tablename__ = "param_writer"
-    __table_args__ = (UniqueConstraint("manager_id", "name", "namespace", "data_type", name="uq_param_writer"),)
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manager_id: Mapped[int] = mapped_column(ForeignKey("manager.id", ondelete="CASCADE"), nullable=False, index=True)
-    name: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
+    TARGET, RELATION = "namespace", "param_writers"
     namespace: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    data_type: Mapped[str] = mapped_column(String(NAME_LEN), nullable=False)
-    manager: Mapped[Manager] = relationship(back_populates="param_writers")
 
 
 #: action -> (ORM class, name of the topic/service column, relationship on Manager)
-GRANT_TABLES: dict[str, tuple[type, str, str]] = {
-    "publish": (Publisher, "topic", "publishers"),
-    "subscribe": (Subscriber, "topic", "subscribers"),
-    "serve": (Service, "service", "services"),
-    "call": (ServiceClient, "service", "service_clients"),
-    "read_param": (ParamReader, "namespace", "param_readers"),
-    "write_param": (ParamWriter, "namespace", "param_writers"),
+GRANT_TABLES: dict[str, tuple[type[_Grant], str, str]] = {
+    action: (cls, cls.TARGET, cls.RELATION)
+    for action, cls in (("publish", Publisher), ("subscribe", Subscriber), ("serve", Service),
+                        ("call", ServiceClient), ("read_param", ParamReader), ("write_param", ParamWriter))
 }
 
 

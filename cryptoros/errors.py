@@ -5,13 +5,31 @@ The split follows h11: :class:`RemoteProtocolError` means a peer sent something 
 refuse (garbage, a bad token, a forbidden request); :class:`LocalProtocolError` means
 our own code misused an API. A peer is only ever told an opaque denial; the log gets
 the reason carried by the exception.
+
+Every error carries ``reason``, a short machine-readable code for logs and metrics, and
+``detail``, the human-readable rest. A refusal (:class:`Refusal`: :class:`TokenError`,
+:class:`PolicyDenied`) is raised with its code first; any other error with a message
+alone, which becomes its ``detail`` (its class name is its ``reason``).
 """
 
 from __future__ import annotations
 
 
 class CryptorosError(Exception):
-    """Root of every error cryptoros raises on purpose."""
+    """Root of every error cryptoros raises on purpose. ``str()`` of it is
+    ``"<reason>: <detail>"`` when raised with a code, else the message."""
+
+    def __init__(self, detail: str = "", *, reason: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if reason and detail else detail or reason)
+        self.reason = reason or type(self).__name__
+        self.detail = detail
+
+
+#: What a peer, or the network to it, can make one operation fail with: an error of ours
+#: (a refusal, a protocol error) or a socket error, which covers a reset
+#: (ConnectionError), a timeout (asyncio.TimeoutError is TimeoutError, an OSError) and a
+#: TLS failure (ssl.SSLError). Catch it where such a failure ends that operation alone.
+PEER_FAILURES: tuple[type[Exception], ...] = (CryptorosError, OSError)
 
 
 class ConfigError(CryptorosError):
@@ -30,23 +48,21 @@ class PKIError(CryptorosError):
     """A certificate, key, CSR or CRL operation failed (bad file, wrong passphrase...)."""
 
 
-class TokenError(CryptorosError):
-    """An access token was refused. ``reason`` is a short machine-readable code for
-    logs and metrics; the peer only ever sees an opaque denial."""
+class Refusal(CryptorosError):
+    """Something a peer asked for or showed was refused; raised with its reason code
+    first (``Refusal("not_granted", "no grant for /chatter")``). The peer only ever sees
+    an opaque denial."""
 
     def __init__(self, reason: str, detail: str = "") -> None:
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
-        self.detail = detail
+        super().__init__(detail, reason=reason)
 
 
-class PolicyDenied(CryptorosError):
+class TokenError(Refusal):
+    """An access token was refused."""
+
+
+class PolicyDenied(Refusal):
     """A request was checked against the registry or a token's grants and refused."""
-
-    def __init__(self, reason: str, detail: str = "") -> None:
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
-        self.detail = detail
 
 
 class RegistryError(CryptorosError):
@@ -55,6 +71,8 @@ class RegistryError(CryptorosError):
 
 __all__ = [
     "CryptorosError",
+    "PEER_FAILURES",
+    "Refusal",
     "ConfigError",
     "LocalProtocolError",
     "RemoteProtocolError",

@@ -51,13 +51,19 @@ class Listener:
     @property
     def exposed(self) -> bool:
         """Reachable from other hosts: bound to a wildcard or a non-loopback address."""
-        address = self.address
-        if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
-            address = address.ipv4_mapped
-        return not address.is_loopback
+        return is_exposed(self.address)
 
 
-def _address(hex_text: str, byteorder: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+def is_exposed(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
+    """A socket bound to ``address`` is reachable from other hosts: a wildcard or a
+    non-loopback address (an IPv4-mapped IPv6 address judged as its IPv4 one)."""
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        address = address.ipv4_mapped
+    return not address.is_loopback
+
+
+def proc_net_address(hex_text: str, byteorder: str = sys.byteorder) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+    """The address of a ``/proc/net/{tcp,udp}{,6}`` line (ValueError when it is not one)."""
     # The kernel prints each 32-bit word of the address as a number in host byte order.
     raw = bytes.fromhex(hex_text)
     if len(raw) not in (4, 16):
@@ -81,7 +87,7 @@ def parse_proc_net_tcp(text: str, *, byteorder: str = sys.byteorder) -> list[Lis
         try:
             if not colon:
                 raise ValueError("no port")
-            listeners.append(Listener(address=_address(address_hex, byteorder), port=int(port_hex, 16)))
+            listeners.append(Listener(address=proc_net_address(address_hex, byteorder), port=int(port_hex, 16)))
         except ValueError as exc:
             raise ExposureError(f"line {number} of the socket table does not parse ({exc}): {line.strip()[:80]}") from None
     return listeners
@@ -197,5 +203,6 @@ def exposed_addresses(listeners: list[Listener], port: int) -> list[str]:
     return sorted({str(one.address) for one in listeners if one.port == port and one.exposed})
 
 
-__all__ = ["ExposureError", "Listener", "PROC_NET", "exposed_addresses", "is_loopback_host", "parse_proc_net_tcp",
+__all__ = ["ExposureError", "Listener", "PROC_NET", "exposed_addresses", "is_exposed", "is_loopback_host",
+           "parse_proc_net_tcp", "proc_net_address",
            "parse_sock_diag", "read_listeners", "sock_diag_request"]

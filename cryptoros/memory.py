@@ -5,7 +5,7 @@ from __future__ import annotations
 
 def tune_malloc(threshold: int = 16 << 20) -> bool:
     """Keep glibc from mmap-ing (and page-faulting) every buffer of 128 KiB or more:
-    large messages then reuse heap memory (perf-baselines.md: +30 to 100 % on 1 MB)."""
+    large messages then reuse heap memory (+30 to 100 % on 1 MB messages; docs/ros1-wire.md)."""
     try:
         import ctypes
 

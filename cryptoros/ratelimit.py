@@ -11,6 +11,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Hashable
 
+from cryptoros.lru import remember
+
 
 class TokenBuckets:
     """A token bucket per key: ``rate`` per second, up to ``burst`` at once."""
@@ -26,9 +28,7 @@ class TokenBuckets:
         tokens, last = self._state.pop(key, (self.burst, now))
         tokens = min(self.burst, tokens + (now - last) * self.rate)
         allowed = tokens >= 1.0
-        self._state[key] = (tokens - 1.0 if allowed else tokens, now)
-        while len(self._state) > self.max_keys:
-            del self._state[next(iter(self._state))]
+        remember(self._state, key, (tokens - 1.0 if allowed else tokens, now), self.max_keys)
         return allowed
 
 
@@ -44,9 +44,7 @@ class OncePer:
         now = self._clock()
         last = self._last.pop(key, None)
         due = last is None or now - last >= self.seconds
-        self._last[key] = now if due else last  # type: ignore[assignment]
-        while len(self._last) > self.max_keys:
-            del self._last[next(iter(self._last))]
+        remember(self._last, key, now if due else last, self.max_keys)  # type: ignore[arg-type]
         return due
 
 

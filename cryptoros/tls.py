@@ -34,6 +34,7 @@ from pathlib import Path
 
 from cryptoros.errors import ConfigError, CryptorosError, TokenError
 from cryptoros import pemfiles
+from cryptoros.lru import remember
 
 #: The paper's cipher configuration string (seed 003, Eq. 5), kept for reference.
 PAPER_CIPHER_STRING = "TLSv1.2:!LOW:!EXPORT:!MD5:!aNULL:!ADH:!AECDH:!DES:!eNULL:!RC2:!RC4"
@@ -228,10 +229,7 @@ class SessionCache:
             return  # TLS 1.2 resumes without a fresh key exchange: never offered
         reused = offered is not None and ssl_object.session_reused
         origin = offered.origin if reused else (time.monotonic() if now is None else now)
-        self._offers.pop(endpoint, None)
-        self._offers[endpoint] = Offer(session, origin)
-        while len(self._offers) > self.max_entries:
-            del self._offers[next(iter(self._offers))]
+        remember(self._offers, endpoint, Offer(session, origin), self.max_entries)
 
     def forget(self, endpoint: tuple[str, int]) -> None:
         self._offers.pop(endpoint, None)
@@ -258,10 +256,7 @@ class FullHandshakes:
         current = time.monotonic() if now is None else now
         key = hashlib.sha256(der).digest()
         if not resumed:
-            self._last.pop(key, None)
-            self._last[key] = current
-            while len(self._last) > self.max_entries:
-                del self._last[next(iter(self._last))]
+            remember(self._last, key, current, self.max_entries)
             return
         if version != "TLSv1.3":
             raise TokenError("session_not_tls13", f"a resumed {version} session (only TLS 1.3 resumes)")
@@ -307,9 +302,7 @@ class PeerCertificateCheck:
                 raise TokenError("bad_peer_certificate", str(exc)) from exc
             facts = (cert.serial_number, cert.not_valid_before_utc.timestamp(), cert.not_valid_after_utc.timestamp(),
                      cert.issuer.public_bytes())
-            if len(self._seen) >= self.MAX_CERTIFICATES:
-                del self._seen[next(iter(self._seen))]
-            self._seen[key] = facts
+            remember(self._seen, key, facts, self.MAX_CERTIFICATES)
         serial, not_before, not_after, issuer = facts
         current = time.time() if now is None else now
         if current > not_after:

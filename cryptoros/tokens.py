@@ -36,6 +36,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from jwt.algorithms import RSAAlgorithm
 
 from cryptoros.errors import TokenError
+from cryptoros.lru import remember
 from cryptoros.names import (
     NODE_WILDCARD,
     PARAM_TYPE,
@@ -228,6 +229,11 @@ def fingerprint_of_thumbprint(thumbprint: str) -> str:
 def in_namespace(key: str, namespace: str) -> bool:
     """``/a/b`` is in ``/a`` and in ``/``; ``/ab`` is not in ``/a``."""
     return namespace == "/" or key == namespace or key.startswith(namespace + "/")
+
+
+#: the response header that marks a streamed long-poll of the revocation feed (spaces as
+#: heartbeats, then one JSON object); the authorization server sets it, clients read it
+FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -571,10 +577,7 @@ class VerifiedTokenCache:
         self.misses += 1
         decoded = decode_access_token(token, keys=keys, issuer=issuer, audience=audience)
         access = check_decoded_token(decoded, **checks)  # only a token that passed everything is kept
-        self._entries[digest] = decoded
-        self._entries.move_to_end(digest)
-        while len(self._entries) > self.max_entries:
-            self._entries.popitem(last=False)
+        remember(self._entries, digest, decoded, self.max_entries)
         return access
 
 

@@ -55,7 +55,9 @@ import aiohttp
 from cryptoros import pemfiles
 from cryptoros.errors import PKIError, PolicyDenied, TokenError
 from cryptoros.learning import LearningState
-from cryptoros.tokens import AccessToken, Grants, KeySet, Revocations, VerifiedTokenCache, peer_audience
+from cryptoros.lru import remember
+from cryptoros.tokens import (FEED_STREAM_HEADER, AccessToken, Grants, KeySet, Revocations, VerifiedTokenCache,
+                              peer_audience)
 from interceptor.config import AuthzSettings
 
 log = logging.getLogger("cryptoros.interceptor.authz")
@@ -63,8 +65,6 @@ log = logging.getLogger("cryptoros.interceptor.authz")
 Clock = Callable[[], float]
 
 
-#: marks a streamed long-poll of the feed (the server's ``FEED_STREAM_HEADER``)
-FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
 #: the most a feed answer may weigh (a feed of many revoked tokens is still far under)
 MAX_FEED_BYTES = 16 << 20
 
@@ -450,10 +450,7 @@ class TokenKeeper:
 
     async def _fetch_for_peer(self, thumbprint: str) -> OwnToken:
         token = await self._client.fetch_token(clock=self._clock, resource=peer_audience(thumbprint))
-        self._peer_tokens.pop(thumbprint, None)
-        self._peer_tokens[thumbprint] = token
-        while len(self._peer_tokens) > self.MAX_PEERS:
-            del self._peer_tokens[next(iter(self._peer_tokens))]
+        remember(self._peer_tokens, thumbprint, token, self.MAX_PEERS)
         return token
 
     async def refresh(self) -> None:
@@ -677,9 +674,7 @@ class PeerVerifier:
                 serial = pemfiles.cert_serial(peer_cert_der)
             except PKIError:  # not a certificate (the TLS layer hands us only real ones)
                 return access
-            if len(self._serials) >= self.MAX_CERTIFICATES:
-                del self._serials[next(iter(self._serials))]
-            self._serials[access.thumbprint] = serial
+            remember(self._serials, access.thumbprint, serial, self.MAX_CERTIFICATES)
         return access
 
     async def verify_fresh(self, token: str, peer_cert_der: bytes | None) -> AccessToken:

@@ -241,8 +241,8 @@ class Limits:
     #: After streams in a row to a peer, have up to two spare connections to it ready
     #: (TLS done, no preamble: the next stream skips the handshake; its preamble, token
     #: and certificate checks run when it is used). Unused, one carries a token exchange
-    #: and closes. On by default since issue 16: made between bursts, they take the
-    #: handshake off a stream's set-up (README).
+    #: and closes. On by default: made between bursts, they take the handshake off a
+    #: stream's set-up (README).
     spare_connections: bool = True
 
     def message_size_for(self, name: str) -> int:

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from cryptoros.lru import remember
+
 #: seconds between two log lines of one key
 INTERVAL = 10.0
 #: keys kept (each a few hundred bytes)
@@ -49,9 +51,7 @@ class DenialTable:
         entry = self._entries.pop(key, None)
         if entry is None:
             entry = _Entry(kind, peer, reason, target, hint, first=now, last=now, logged_at=now)
-            self._entries[key] = entry
-            while len(self._entries) > self.max_keys:
-                self._entries.pop(next(iter(self._entries)))
+            remember(self._entries, key, entry, self.max_keys)
             return [f"DENY {kind} from {peer}: {target}{_hint(hint)}"]
         self._entries[key] = entry  # most recently seen last
         entry.total += 1

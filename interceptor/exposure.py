@@ -21,6 +21,7 @@ from pathlib import Path
 
 from cryptoros.errors import PolicyDenied
 from cryptoros.exposure import ExposureError, Listener, is_loopback_host, read_listeners
+from cryptoros.lru import remember
 from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.ros1.xmlrpc import Request
 
@@ -51,11 +52,10 @@ class PortExposure:
         listeners = [one for one in self._read(port) if one.port == port]
         self.reads += 1
         addresses = sorted({str(one.address) for one in listeners if one.exposed})
-        self._answers.pop(port, None)
-        if listeners:  # not listening: asked again next time (a port is announced once it listens)
-            self._answers[port] = (now, addresses)
-            if len(self._answers) > MAX_PORTS:
-                del self._answers[next(iter(self._answers))]
+        if listeners:
+            remember(self._answers, port, (now, addresses), MAX_PORTS)
+        else:  # not listening: asked again next time (a port is announced once it listens)
+            self._answers.pop(port, None)
         return addresses
 
 

@@ -41,6 +41,7 @@ from pathlib import Path
 from prometheus_client import Counter, Histogram
 
 from cryptoros.errors import ConfigError, PolicyDenied
+from cryptoros.lru import remember
 from cryptoros.monitor.features import Crosscheck, StreamFeatures, kind_of, warm_up
 from cryptoros.monitor.model import AlertTracker, MonitorModel
 from cryptoros.ros1.tcpros import FrameWalker
@@ -341,11 +342,7 @@ class Monitor:
                     cut()
 
     def _put(self, manager: str, publisher: str, until: float) -> None:
-        key = (manager, publisher)
-        self._quarantine[key] = until
-        self._quarantine.move_to_end(key)
-        while len(self._quarantine) > MAX_QUARANTINED:
-            self._quarantine.popitem(last=False)
+        remember(self._quarantine, (manager, publisher), until, MAX_QUARANTINED)
         self.metrics.quarantined.inc()
         self._save_quarantines()
 

@@ -1,6 +1,6 @@
 """The byte pump: relays a stream between two transports after its header was checked.
 
-The hot path of the interceptor. Measured on this machine (perf-baselines.md), an
+The hot path of the interceptor. Measured (docs/performance.md has the figures), an
 ``asyncio.BufferedProtocol`` that reads into a reused buffer and issues one
 ``write()`` per read keeps up with or beats stunnel, while reading frame by frame
 (``readexactly`` + ``drain``) is thirty times slower on small messages. So: no

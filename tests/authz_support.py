@@ -18,6 +18,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cryptoros.lab.policy import policy_yaml
 from cryptoros.tls import TLSConfig, client_context
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import free_port, run, script, stop, wait_for_port
@@ -155,31 +156,14 @@ def running_daemon(pki: TestPKIFactory, db: str, workdir: Path, extra: Sequence[
         d.stop()
 
 
-TEAM_POLICY = """\
-version: 1
-managers:
-- name: alice
-  fingerprint_sha256: {alice}
-  grants:
-    publish:
-    - {{node: /talker, topic: /chatter, type: std_msgs/String}}
-    subscribe:
-    - {{node: /listener, topic: /chatter, type: std_msgs/String}}
-    serve:
-    - {{node: /adder, service: /add_two_ints, type: rospy_tutorials/AddTwoInts}}
-- name: bob
-  fingerprint_sha256: {bob}
-  grants:
-    call:
-    - {{node: /client, service: /add_two_ints, type: rospy_tutorials/AddTwoInts}}
-- name: carol
-  fingerprint_sha256: {carol}
-  grants:
-    subscribe:
-    - {{node: '*', topic: /scan, type: sensor_msgs/msg/LaserScan}}
-- name: mallory
-  fingerprint_sha256: {mallory}
-"""
+TEAM_POLICY = policy_yaml({
+    "alice": {"publish": [("/talker", "/chatter", "std_msgs/String")],
+              "subscribe": [("/listener", "/chatter", "std_msgs/String")],
+              "serve": [("/adder", "/add_two_ints", "rospy_tutorials/AddTwoInts")]},
+    "bob": {"call": [("/client", "/add_two_ints", "rospy_tutorials/AddTwoInts")]},
+    "carol": {"subscribe": [("*", "/scan", "sensor_msgs/msg/LaserScan")]},
+    "mallory": {},
+})
 
 
 @dataclass

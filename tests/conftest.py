@@ -30,3 +30,19 @@ def roscpp_talker(request) -> str:
         run(["g++", "-O2", "-o", str(tmp), str(src), *flags.stdout.split()], timeout=180, check=True)
         tmp.rename(out)
     return str(out)
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    """``cryptoros-authz serve`` as a real subprocess, one per test module, serving
+    :func:`tests.authz_support.build_team`'s registry (``daemon.team``)."""
+    from tests.authz_support import AuthzDaemon, build_team
+
+    team = build_team(tmp_path_factory.mktemp("authz-daemon"))
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
+    try:
+        d.start()
+        d.team = team
+        yield d
+    finally:
+        d.stop()

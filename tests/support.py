@@ -131,3 +131,14 @@ def processes_using(path: Path) -> list[str]:
         if str(path) in cmd:
             found.append(f"{pid}: {cmd[:200]}")
     return found
+
+
+class Clock:
+    """A clock for code that takes one (``clock=``): it stands still until the test
+    moves ``t``."""
+
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t

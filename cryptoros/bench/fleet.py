@@ -51,6 +51,7 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.network import clean_env, cpu_seconds, tool
+from cryptoros.lab.policy import policy_yaml
 from cryptoros.lab.processes import NetworkError, free_port, log_tail, stop, wait_port
 
 SIGNING_PASSPHRASE = "bench-fleet-signing-passphrase"
@@ -132,12 +133,9 @@ class Fleet:
 
 
 def _policy(managers: list[tuple[str, str]]) -> str:
-    lines = ["version: 1", "managers:"]
-    for i, (name, fingerprint) in enumerate(managers):
-        lines += [f"- name: {name}", f"  fingerprint_sha256: {fingerprint}", "  grants:",
-                  "    publish:", f"    - {{node: /robot{i}/talker, topic: /robot{i}/pose, type: std_msgs/String}}",
-                  "    subscribe:", f"    - {{node: /robot{i}/planner, topic: /fleet/goals, type: std_msgs/String}}"]
-    return "\n".join(lines) + "\n"
+    return policy_yaml({name: {"publish": [(f"/robot{i}/talker", f"/robot{i}/pose", "std_msgs/String")],
+                               "subscribe": [(f"/robot{i}/planner", "/fleet/goals", "std_msgs/String")]}
+                        for i, (name, _fingerprint) in enumerate(managers)}, fingerprints=dict(managers))
 
 
 @contextlib.contextmanager

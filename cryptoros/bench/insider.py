@@ -2,8 +2,8 @@
 
 Builds the test bed of the interceptor tests (real rosmaster, a master's interceptor
 and two robots' interceptors, each with its own certificate and manager) and lets
-robot B, an insider with a valid certificate and a wildcard subscribe grant, try the
-attacks of issue 11 by hand over mutual TLS:
+robot B, an insider with a valid certificate and a wildcard subscribe grant, try two
+exhaustion attacks by hand over mutual TLS:
 
 - relay exhaustion: ``--names`` fresh node names registered with fresh endpoint
   names, and as many ``unregisterSubscriber`` calls naming endpoints never seen, in
@@ -29,23 +29,13 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.network import NetworkError, open_stream
+from cryptoros.lab.policy import policy_yaml
 
-POLICY = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {master}
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /talker_a, topic: /chatter, type: std_msgs/String}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-  grants:
-    subscribe:
-    - {{node: '*', topic: /chatter, type: std_msgs/String}}
-"""
+POLICY = policy_yaml({
+    "master": {},
+    "robot_a": {"publish": [("/talker_a", "/chatter", "std_msgs/String")]},
+    "robot_b": {"subscribe": [("*", "/chatter", "std_msgs/String")]},
+})
 HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
 
 

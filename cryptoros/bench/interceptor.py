@@ -59,6 +59,7 @@ import click
 
 from cryptoros.lab.capture import Capture, CaptureError, flows
 from cryptoros.lab.network import HOSTS, UNTHROTTLED, Network, NetworkError, lab_network, free_port, stop, wait_port
+from cryptoros.lab.policy import policy_yaml
 from cryptoros.ros1.uri import host_port
 
 SYS_PY = "/usr/bin/python3"
@@ -72,49 +73,18 @@ PAPER_SLOTS = 24
 #: the grants those need); robot_c/robot_d run the paper's experiment.
 BENCH_HOSTS = {**HOSTS, "robot_c": "127.0.0.5", "robot_d": "127.0.0.6"}
 
-POLICY_HEAD = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {{master}}
-- name: robot_a
-  fingerprint_sha256: {{robot_a}}
-  grants:
-    publish:
-    - {{{{node: '*', topic: /bench_str, type: std_msgs/String}}}}
-    - {{{{node: '*', topic: /bench_img, type: sensor_msgs/Image}}}}
-    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
-    serve:
-    - {{{{node: '*', service: /bench_srv, type: std_srvs/Trigger}}}}
-- name: robot_b
-  fingerprint_sha256: {{robot_b}}
-  grants:
-    publish:
-    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
-    subscribe:
-    - {{{{node: '*', topic: /bench_str, type: std_msgs/String}}}}
-    - {{{{node: '*', topic: /bench_img, type: sensor_msgs/Image}}}}
-    call:
-    - {{{{node: '*', service: /bench_srv, type: std_srvs/Trigger}}}}
-- name: robot_c
-  fingerprint_sha256: {{robot_c}}
-  grants:
-    publish:
-    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
-{paper}
-- name: robot_d
-  fingerprint_sha256: {{robot_d}}
-  grants:
-    publish:
-    - {{{{node: '*', topic: /rosout, type: rosgraph_msgs/Log}}}}
-    subscribe:
-{paper}
-"""
-
-
 def _policy() -> str:
-    pub = "\n".join(f"    - {{{{node: '*', topic: /paper_{i}, type: std_msgs/String}}}}" for i in range(PAPER_SLOTS))
-    return POLICY_HEAD.format(paper=pub)
+    rosout = ("*", "/rosout", "rosgraph_msgs/Log")
+    string, image = ("*", "/bench_str", "std_msgs/String"), ("*", "/bench_img", "sensor_msgs/Image")
+    trigger = ("*", "/bench_srv", "std_srvs/Trigger")
+    paper = [("*", f"/paper_{i}", "std_msgs/String") for i in range(PAPER_SLOTS)]
+    return policy_yaml({
+        "master": {},
+        "robot_a": {"publish": [string, image, rosout], "serve": [trigger]},
+        "robot_b": {"publish": [rosout], "subscribe": [string, image], "call": [trigger]},
+        "robot_c": {"publish": [rosout, *paper]},
+        "robot_d": {"publish": [rosout], "subscribe": paper},
+    })
 
 
 # ============================================================ our node client's worker

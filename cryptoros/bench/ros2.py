@@ -30,26 +30,16 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.network import UNTHROTTLED, NetworkError, lab_network, clean_env, cpu_seconds, stop
+from cryptoros.lab.policy import policy_yaml
 from cryptoros.ros2 import default_ros2_python
 
 NODE = Path(__file__).resolve().parent.parent / "ros2" / "bench_node.py"
 HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
-POLICY = """\
-version: 1
-managers:
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /bench_pub, topic: /bench, type: std_msgs/msg/String}}
-    - {{node: /bench_pub, topic: /bench, type: sensor_msgs/msg/Image}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-  grants:
-    subscribe:
-    - {{node: '*', topic: /bench, type: std_msgs/msg/String}}
-    - {{node: '*', topic: /bench, type: sensor_msgs/msg/Image}}
-"""
+POLICY = policy_yaml({
+    "robot_a": {"publish": [("/bench_pub", "/bench", "std_msgs/msg/String"),
+                            ("/bench_pub", "/bench", "sensor_msgs/msg/Image")]},
+    "robot_b": {"subscribe": [("*", "/bench", "std_msgs/msg/String"), ("*", "/bench", "sensor_msgs/msg/Image")]},
+})
 
 
 def _ros_env(domain: int) -> dict[str, str]:

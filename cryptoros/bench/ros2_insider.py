@@ -1,11 +1,11 @@
-"""``cryptoros bench ros2-insider``: what two of the ROS 2 attack run's findings cost now.
+"""``cryptoros bench ros2-insider``: what two attacks of a compromised ROS 2 robot cost.
 
 Builds the pair of ``cryptoros bench ros2`` (robot A's and robot B's interceptors,
 ``ros2`` role, each with its DDS bridge) with ``[limits] max_messages_per_second`` on
 both, and lets robot A's certificate (a compromised robot A: it may publish
 ``/bench``) speak to robot B's public port by hand:
 
-- **depth attack** (issue 19, finding 2): a ``/bench`` stream asking for
+- **depth attack**: a ``/bench`` stream asking for
   ``transient_local`` with depth 1000, then ``--depth-samples`` samples of
   ``--sample-kib`` KiB. Robot B republishes it volatile with its own depth (it keeps
   nothing for late joiners on a topic its configuration does not name): printed are

@@ -41,27 +41,17 @@ from pathlib import Path
 
 import click
 
+from cryptoros.lab.policy import policy_yaml
 from cryptoros.ros1.uri import host_port
 
-POLICY = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {master}
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /soak_talker, topic: /chatter, type: std_msgs/String}}
-    - {{node: '/churn_pub_*', topic: /churn, type: std_msgs/String}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-  grants:
-    subscribe:
-    - {{node: /soak_listener, topic: /chatter, type: std_msgs/String}}
-    - {{node: '/churn_sub_*', topic: /churn, type: std_msgs/String}}
-    - {{node: /flip_listener, topic: /flip, type: std_msgs/String}}
-"""
+POLICY = policy_yaml({
+    "master": {},
+    "robot_a": {"publish": [("/soak_talker", "/chatter", "std_msgs/String"),
+                            ("/churn_pub_*", "/churn", "std_msgs/String")]},
+    "robot_b": {"subscribe": [("/soak_listener", "/chatter", "std_msgs/String"),
+                              ("/churn_sub_*", "/churn", "std_msgs/String"),
+                              ("/flip_listener", "/flip", "std_msgs/String")]},
+})
 HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
 FLIP = ("robot_b", "subscribe", "/flip_listener", "/flip")
 ROS_PYTHON = "/usr/bin/python3"

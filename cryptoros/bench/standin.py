@@ -18,7 +18,6 @@ import contextlib
 import os
 import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -37,7 +37,7 @@ ATTACKS: dict[str, dict[str, Any]] = {
     "eavesdrop": {"seed": "000", "what": "every topic read and recorded to a rosbag", "target": None, "as": "stranger"},
     "shutdown": {"seed": "-", "what": "XML-RPC shutdown of node /{t}", "target": -1, "as": "insider"},
     "hijack": {"seed": "-", "what": "node-name hijack of /{t} (register the same name)", "target": 1, "as": "insider"},
-    # misuse of held grants (issue 14): the attacker holds the grant it abuses, so only the
+    # misuse of held grants: the attacker holds the grant it abuses, so only the
     # runtime monitor can stop it. "holder" runs on the operations host, whose manager
     # (``ops``) may publish r0's pose (a motion-capture bridge, seed 001's Vicon), its scan
     # (a scan filter) and its cmd_vel (a teleop console); held-false-map is robot r1's own

@@ -1,4 +1,4 @@
-"""A compromised robot: its own software misuses the grants it holds (issue 14).
+"""A compromised robot: its own software misuses the grants it holds.
 
 Authorization lets these through: the messages go out under the robot's own node names,
 on its own topics. What changes is their content or rate, from ``onset`` on (Unix

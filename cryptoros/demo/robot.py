@@ -561,8 +561,8 @@ def _wrap_schedule(robot: Robot, step: Callable[[], None]) -> Callable[[float], 
 
     class _Step:
         # recognised by LiveHost as a motion step: a halted base obeys the stop commands it
-        # received. (It used to say ``__func__ = Robot._step``, which an instance reads as a
-        # bound method, never ``Robot._step`` itself: stop floods halted nothing.)
+        # received. A flag, not ``__func__ = Robot._step``: an instance reads that as a bound
+        # method, never ``Robot._step`` itself, and a stop flood would halt nothing.
         is_motion_step = True
 
         def __call__(self) -> None:

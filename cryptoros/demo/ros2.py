@@ -35,6 +35,7 @@ from typing import Any
 from cryptoros.demo.attackers import ATTACKS, ROS2_ATTACKS, insider_host, target_of
 from cryptoros.demo.robot import SHORT
 from cryptoros.demo.run import DemoError, Graph, Mission, robot_addr
+from cryptoros.lab.policy import policy_yaml
 
 WHAT = {"eavesdrop": "every topic read (DDS discovery, raw subscriptions of any type)"}
 TEAM_TYPE = "std_msgs/msg/UInt8MultiArray"
@@ -48,15 +49,9 @@ def policy(n: int) -> str:
     """Each robot's manager may publish and subscribe the team topics, nothing else.
     A robot's own pose, scan and command topics (``/rN/*``) are also ``[ros2] local`` on
     its interceptor: they stay on its domain without a denial for each of them."""
-    lines = ["version: 1", "managers:"]
-    for i in range(n):
-        r = f"r{i}"
-        topics = [(f"/team/{short}", TEAM_TYPE) for short in SHORT.values()] + [PRESENCE]
-        lines += [f"- name: {r}", f"  fingerprint_sha256: {{{r}}}", "  grants:"]
-        for action in ("publish", "subscribe"):
-            lines.append(f"    {action}:")
-            lines += [f"    - {{{{node: /{r}, topic: {topic}, type: {ty}}}}}" for topic, ty in topics]
-    return "\n".join(lines) + "\n"
+    topics = [(f"/team/{short}", TEAM_TYPE) for short in SHORT.values()] + [PRESENCE]
+    return policy_yaml({f"r{i}": {action: [(f"/r{i}", topic, ty) for topic, ty in topics]
+                                  for action in ("publish", "subscribe")} for i in range(n)})
 
 
 @functools.cache

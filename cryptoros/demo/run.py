@@ -46,6 +46,7 @@ import numpy as np
 
 from cryptoros.demo.attackers import ATTACKS, FALSE_MAP_ONSET, HELD_ATTACKS, OPS_HOST, insider_host, target_of
 from cryptoros.errors import CryptorosError
+from cryptoros.lab.policy import policy_yaml
 
 MASTER_ADDR = "127.0.0.10"
 OPS_ADDR = "127.0.0.40"
@@ -104,32 +105,26 @@ def robot_addr(i: int) -> str:
 
 
 def policy(n: int, ops: bool = False) -> str:
-    lines = ["version: 1", "managers:", "- name: master", "  fingerprint_sha256: {master}"]
+    managers: dict = {"master": {}}
+    pose, scan, twist = "geometry_msgs/PoseStamped", "sensor_msgs/LaserScan", "geometry_msgs/Twist"
     if ops:  # the operations host: a motion-capture bridge, a scan filter, a teleop console
-        lines += [f"- name: {OPS_HOST}", f"  fingerprint_sha256: {{{OPS_HOST}}}", "  grants:", "    publish:"]
-        for i in range(n):
-            lines += [f"    - {{{{node: '/mocap_*', topic: /r{i}/pose, type: geometry_msgs/PoseStamped}}}}",
-                      f"    - {{{{node: /scan_filter, topic: /r{i}/scan, type: sensor_msgs/LaserScan}}}}",
-                      f"    - {{{{node: /teleop, topic: /r{i}/cmd_vel, type: geometry_msgs/Twist}}}}"]
-        lines.append("    subscribe:")
-        for i in range(n):
-            lines += [f"    - {{{{node: '/mocap_*', topic: /r{i}/pose, type: geometry_msgs/PoseStamped}}}}",
-                      f"    - {{{{node: /scan_filter, topic: /r{i}/scan, type: sensor_msgs/LaserScan}}}}"]
+        managers[OPS_HOST] = {
+            "publish": [grant for i in range(n) for grant in (("/mocap_*", f"/r{i}/pose", pose),
+                                                              ("/scan_filter", f"/r{i}/scan", scan),
+                                                              ("/teleop", f"/r{i}/cmd_vel", twist))],
+            "subscribe": [grant for i in range(n) for grant in (("/mocap_*", f"/r{i}/pose", pose),
+                                                                ("/scan_filter", f"/r{i}/scan", scan))],
+        }
     for i in range(n):
         r = f"r{i}"
-        lines += [f"- name: {r}", f"  fingerprint_sha256: {{{r}}}", "  grants:", "    publish:"]
-        for short, ty in TEAM_TYPES.items():
-            lines.append(f"    - {{{{node: /{r}, topic: /team/{short}, type: {ty}}}}}")
-        lines += [f"    - {{{{node: /{r}, topic: /{r}/cmd_vel, type: geometry_msgs/Twist}}}}",
-                  f"    - {{{{node: /{r}_base, topic: /{r}/pose, type: geometry_msgs/PoseStamped}}}}",
-                  f"    - {{{{node: /{r}_base, topic: /{r}/scan, type: sensor_msgs/LaserScan}}}}",
-                  "    subscribe:"]
-        for short, ty in TEAM_TYPES.items():
-            lines.append(f"    - {{{{node: /{r}, topic: /team/{short}, type: {ty}}}}}")
-        lines += [f"    - {{{{node: /{r}, topic: /{r}/pose, type: geometry_msgs/PoseStamped}}}}",
-                  f"    - {{{{node: /{r}, topic: /{r}/scan, type: sensor_msgs/LaserScan}}}}",
-                  f"    - {{{{node: /{r}_base, topic: /{r}/cmd_vel, type: geometry_msgs/Twist}}}}"]
-    return "\n".join(lines) + "\n"
+        team = [(f"/{r}", f"/team/{short}", ty) for short, ty in TEAM_TYPES.items()]
+        managers[r] = {
+            "publish": [*team, (f"/{r}", f"/{r}/cmd_vel", twist), (f"/{r}_base", f"/{r}/pose", pose),
+                        (f"/{r}_base", f"/{r}/scan", scan)],
+            "subscribe": [*team, (f"/{r}", f"/{r}/pose", pose), (f"/{r}", f"/{r}/scan", scan),
+                          (f"/{r}_base", f"/{r}/cmd_vel", twist)],
+        }
+    return policy_yaml(managers)
 
 
 # ----------------------------------------------------------------------------- processes

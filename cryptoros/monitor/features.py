@@ -71,6 +71,7 @@ if TYPE_CHECKING:
     import numpy as np
 
 from cryptoros.errors import CryptorosError, RemoteProtocolError
+from cryptoros.lru import remember
 from cryptoros.ros1 import msgs
 
 KIND_OF_TYPE = {
@@ -237,16 +238,14 @@ class Crosscheck:
         beacon gap (0 when no beacon of the last :data:`GAP_HOLD_S` found one)."""
         streams = self._robots.get(robot)
         if streams is None:
-            streams = self._robots[robot] = OrderedDict()
-            while len(self._robots) > MAX_CROSSCHECK_ROBOTS:
-                self._robots.popitem(last=False)
+            streams = OrderedDict()
+            remember(self._robots, robot, streams, MAX_CROSSCHECK_ROBOTS)
         else:
             self._robots.move_to_end(robot)
         track = streams.get(stream)
         if track is None:
-            track = streams[stream] = _PoseTrack(now, x, y)
-            while len(streams) > MAX_POSE_STREAMS:
-                streams.popitem(last=False)
+            track = _PoseTrack(now, x, y)
+            remember(streams, stream, track, MAX_POSE_STREAMS)
         else:
             streams.move_to_end(stream)
             track.at, track.x, track.y = now, x, y

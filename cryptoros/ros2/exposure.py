@@ -21,11 +21,15 @@ by root only: an interceptor run as another user reports such a socket with pid 
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cryptoros.exposure import is_exposed, proc_net_address
+
 PORT_BASE, DOMAIN_GAIN, PORTS_PER_DOMAIN = 7400, 250, 250
+Address = ipaddress.IPv4Address | ipaddress.IPv6Address
 
 
 @dataclass(frozen=True)
@@ -50,18 +54,7 @@ def domain_ports(domain: int) -> range:
     return range(base, base + PORTS_PER_DOMAIN)
 
 
-def _address(hex_addr: str) -> str:
-    raw = bytes.fromhex(hex_addr)
-    if len(raw) == 4:
-        return ".".join(str(b) for b in raw[::-1])
-    words = [raw[i : i + 4][::-1] for i in range(0, 16, 4)]  # /proc prints each 32-bit word in host order
-    full = b"".join(words)
-    if full[:12] == b"\x00" * 10 + b"\xff\xff":
-        return ".".join(str(b) for b in full[12:])
-    return ":".join(full[i : i + 2].hex() for i in range(0, 16, 2))
-
-
-def parse_udp(text: str) -> list[tuple[str, int, int]]:
+def parse_udp(text: str) -> list[tuple[Address, int, int]]:
     """``(address, port, inode)`` of every socket in a ``/proc/net/udp`` or ``udp6`` text."""
     out = []
     for line in text.splitlines()[1:]:
@@ -69,25 +62,20 @@ def parse_udp(text: str) -> list[tuple[str, int, int]]:
         if len(fields) < 10 or ":" not in fields[1]:
             continue
         addr, port = fields[1].rsplit(":", 1)
-        out.append((_address(addr), int(port, 16), int(fields[9])))
+        out.append((proc_net_address(addr), int(port, 16), int(fields[9])))
     return out
 
 
-def is_loopback(address: str) -> bool:
-    return address.startswith("127.") or address == "0000:0000:0000:0000:0000:0000:0000:0001"
+def _pretty(address: Address) -> str:
+    if isinstance(address, ipaddress.IPv6Address):
+        return str(address.ipv4_mapped) if address.ipv4_mapped is not None else f"[{address}]"
+    return str(address)
 
 
-def _pretty(address: str) -> str:
-    if address == "0000:0000:0000:0000:0000:0000:0000:0000":
-        return "[::]"
-    return f"[{address}]" if ":" in address else address
-
-
-def exposed_inodes(sockets: list[tuple[str, int, int]], domain: int) -> dict[int, str]:
+def exposed_inodes(sockets: list[tuple[Address, int, int]], domain: int) -> dict[int, str]:
     """inode -> ``address:port`` of the sockets of ``domain``'s RTPS ports not on loopback."""
     ports = domain_ports(domain)
-    return {inode: f"{_pretty(addr)}:{port}" for addr, port, inode in sockets
-            if port in ports and not is_loopback(addr)}
+    return {inode: f"{_pretty(addr)}:{port}" for addr, port, inode in sockets if port in ports and is_exposed(addr)}
 
 
 def socket_owners(inodes: set[int], proc: Path) -> dict[int, int]:
@@ -127,7 +115,7 @@ class ExposureScan:
         self._found: tuple[Exposed, ...] = ()
 
     def scan(self) -> tuple[Exposed, ...]:
-        sockets: list[tuple[str, int, int]] = []
+        sockets: list[tuple[Address, int, int]] = []
         for name in ("udp", "udp6"):
             try:
                 sockets += parse_udp((self.proc / "net" / name).read_text())
@@ -156,4 +144,4 @@ def gid_pid16(gid_hex: str) -> int | None:
     return int.from_bytes(raw[4:6], "little")
 
 
-__all__ = ["Exposed", "ExposureScan", "domain_ports", "exposed_inodes", "gid_pid16", "is_loopback", "parse_udp"]
+__all__ = ["Exposed", "ExposureScan", "domain_ports", "exposed_inodes", "gid_pid16", "parse_udp"]

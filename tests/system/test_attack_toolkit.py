@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from cryptoros.lab.policy import policy_yaml
 from tests.interceptor_harness import SYS_PY, robot_network, separate_hosts
 from tests.support import on_host, require, running
 
@@ -26,28 +27,15 @@ pytestmark = pytest.mark.timeout(300)
 VICTIM = str(Path(__file__).parents[1] / "attack_nodes" / "victim.py")
 CRYPTOROS = str(Path(sys.executable).parent / "cryptoros")
 
-POLICY = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {master}
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /victim, topic: /victim/pose, type: geometry_msgs/PoseStamped}}
-    - {{node: /victim, topic: /victim/scan, type: sensor_msgs/LaserScan}}
-    - {{node: /victim, topic: /victim/cmd_vel, type: geometry_msgs/Twist}}
-    - {{node: /victim, topic: /rosout, type: rosgraph_msgs/Log}}
-    subscribe:
-    - {{node: /victim, topic: /victim/pose, type: geometry_msgs/PoseStamped}}
-    - {{node: /victim, topic: /victim/scan, type: sensor_msgs/LaserScan}}
-    - {{node: /victim, topic: /victim/cmd_vel, type: geometry_msgs/Twist}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-- name: robot_c
-  fingerprint_sha256: {robot_c}
-"""
+VICTIM_TOPICS = [("/victim", "/victim/pose", "geometry_msgs/PoseStamped"),
+                 ("/victim", "/victim/scan", "sensor_msgs/LaserScan"),
+                 ("/victim", "/victim/cmd_vel", "geometry_msgs/Twist")]
+POLICY = policy_yaml({
+    "master": {},
+    "robot_a": {"publish": [*VICTIM_TOPICS, ("/victim", "/rosout", "rosgraph_msgs/Log")], "subscribe": VICTIM_TOPICS},
+    "robot_b": {},
+    "robot_c": {},
+})
 
 
 @pytest.fixture(scope="module")

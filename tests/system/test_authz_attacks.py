@@ -29,21 +29,9 @@ from authz_server.registry import Registry
 from cryptoros.errors import TokenError
 from cryptoros.tokens import KeySet, Revocations, sign_token, verify_access_token
 from tests.support import client_hello, require
-from tests.authz_support import AuthzDaemon, build_team, ok, read_pem_der
+from tests.authz_support import ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
-
-
-@pytest.fixture(scope="module")
-def daemon(tmp_path_factory):
-    team = build_team(tmp_path_factory.mktemp("authz-attacks"))
-    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
-    try:
-        d.start()
-        d.team = team
-        yield d
-    finally:
-        d.stop()
 
 
 @pytest.fixture(scope="module")

@@ -17,21 +17,9 @@ import aiohttp
 import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
-from tests.authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
+from tests.authz_support import authz, build_team, ok, read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
-
-
-@pytest.fixture(scope="module")
-def daemon(tmp_path_factory):
-    team = build_team(tmp_path_factory.mktemp("authz-daemon"))
-    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
-    try:
-        d.start()
-        d.team = team
-        yield d
-    finally:
-        d.stop()
 
 
 def claims_of(token: str) -> dict:
@@ -393,7 +381,7 @@ def test_certificate_revoked_while_running_is_refused_within_seconds(daemon):
 
 def test_sighup_reloads_the_tls_material_and_a_bad_one_is_kept_out(daemon):
     """Day 2: the authorization server's certificate is renewed and the daemon gets
-    SIGHUP: it keeps running (it used to die, rc 129), new connections get the new
+    SIGHUP: it keeps running (not killed by the signal), new connections get the new
     certificate and tokens are issued; a broken file on the next SIGHUP is one log line
     and the daemon keeps serving with what it had."""
     import signal

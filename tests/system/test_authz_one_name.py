@@ -1,4 +1,4 @@
-"""Issue 17: replicas behind ONE DNS name. Two ``cryptoros-authz serve`` replicas, each
+"""Replicas behind ONE DNS name. Two ``cryptoros-authz serve`` replicas, each
 on its own host (a Linux network namespace with its own address on a bridge), over one
 registry; an interceptor's client on a third host whose resolver gives the name
 ``authz.fleet.test`` both addresses (that host's own /etc/hosts: ``ip netns exec``

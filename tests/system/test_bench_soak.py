@@ -1,7 +1,8 @@
 """``cryptoros bench soak`` smoke test: a short soak runs every kind of churn (nodes
 come and go, grant flips, the master's interceptor and the authorization server
 restart) and prints its figures as JSON. Figures are printed, not asserted, except
-that the watched stream delivered and its nodes survived."""
+that the watched stream delivered, its nodes survived, every process is still there and
+no stopped node stays registered with rosmaster."""
 
 from __future__ import annotations
 
@@ -26,7 +27,9 @@ def test_bench_soak_quick():
     procs = figures["processes"]
     assert set(procs) == {"master", "robot_a", "robot_b", "authz"}
     assert all(p["fds_start"] > 0 and p["fds_end"] > 0 and p["rss_kib_end"] > 0 for p in procs.values())
-    assert procs["robot_b"]["tcp_end"]["listen"] >= 2 and figures["stale_churn_registrations"] >= 0
+    assert procs["robot_b"]["tcp_end"]["listen"] >= 2
+    # every churn node was stopped with SIGTERM, which unregisters it (the bench waits up to 10 s)
+    assert figures["stale_churn_registrations"] == 0, figures
     assert procs["master"]["pid_end"] != procs["master"]["pid_start"]  # it was restarted
     assert procs["authz"]["pid_end"] != procs["authz"]["pid_start"]
     assert procs["robot_a"]["pid_end"] == procs["robot_a"]["pid_start"]

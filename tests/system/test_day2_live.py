@@ -1,4 +1,4 @@
-"""Issue 13 (first part): grants and revocations take effect live, and a stream never
+"""Grants and revocations take effect live, and a stream never
 outlives its authority. Real rosmaster, rospy nodes, interceptors and authz daemon;
 only the admin CLI is used, never SIGHUP or a restart.
 

@@ -208,7 +208,7 @@ def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
 
 def test_demo_netns_runs_the_protected_mission_on_separate_hosts(tmp_path):
     """`cryptoros demo --netns`: the master, every robot and the stranger each in its own
-    network namespace (issue 11): the mission reaches its target, every attack fails."""
+    network namespace: the mission reaches its target, every attack fails."""
     from tests.interceptor_harness import separate_hosts
     from tests.support import script
 

@@ -1,5 +1,5 @@
-"""What an interceptor sends on is rebuilt from what it parsed: the parsers' side of
-issue 20, without sockets.
+"""What an interceptor sends on is rebuilt from what it parsed: the parsers' side,
+without sockets.
 
 The invariant, checked with generated input: whatever the XML-RPC/HTTP parser
 accepts re-serializes to a canonical request that Python's ``http.server`` (the

@@ -1,4 +1,4 @@
-"""Issue 30 (items 5 and 7, ROS 1): grants take effect for running nodes both ways, and
+"""ROS 1: grants take effect for running nodes both ways, and
 restarts never break the graph. Real rosmaster, rospy nodes, interceptors and authz
 daemon; grants changed only with ``cryptoros-authz grant/revoke``; no node is restarted.
 Every wait is bounded and ends on something observed (a message received, a line

@@ -372,7 +372,7 @@ async def test_a_streamed_long_poll_shows_heartbeats_and_a_hung_replica_is_left(
 async def test_a_reload_under_a_held_long_poll_asks_again_on_the_new_session(team, tmp_path, heartbeat):
     """A reload gives the client a new certificate (``use_ssl_context``) while its feed
     long-poll is held on the old session: the poll is asked again on the new one, not
-    failed (it was logged as "cannot poll the revocation feed ... Connector is closed").
+    failed with "Connector is closed".
     One url: there is no other replica to fail over to."""
     from tests.authz_support import authz, ok
 

@@ -231,8 +231,8 @@ def test_a_name_squatted_through_a_wildcard_goes_to_the_manager_whose_grants_nam
 def test_a_node_killed_and_started_again_has_the_relays_of_its_old_api_released(network):
     """SIGKILL leaves no time to unregister: the restarted node registers the same name
     from a new API. rosmaster drops what the old API had registered; the master's
-    interceptor forgets it too and releases the relay it kept for the old API (before,
-    it was kept until the relay limit pushed it out)."""
+    interceptor forgets it too and releases the relay it kept for the old API at once,
+    not when the relay limit pushes it out."""
     log_before = len(network.hosts["master"].logs())
     with talker(network, node="/talker_a") as first:
         read_lines(first, "READY", 20)

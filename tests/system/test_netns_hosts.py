@@ -1,4 +1,4 @@
-"""Issue 11, finding 7: real separate hosts. Each host (the master's, robot A's, robot
+"""Real separate hosts. Each host (the master's, robot A's, robot
 B's, a stranger's) in its own Linux network namespace with its own loopback, on one
 bridge, as robots on a LAN: a node's ports are private to its host, and a stranger
 reaches nothing but the interceptors' public ports.

@@ -1,4 +1,4 @@
-"""Issue 13, stock tools: Debian's own rostopic, rosparam, rosservice and rosnode run on
+"""Stock tools: Debian's own rostopic, rosparam, rosservice and rosnode run on
 robot B's host against robot B's interceptor, with real rosmaster behind the
 master's interceptor and a rospy talker (and service) on robot A.
 
@@ -18,32 +18,27 @@ import time
 
 import pytest
 
+from cryptoros.lab.policy import policy_yaml
 from tests.interceptor_harness import NODE, NODES, SYS_PY, denials, read_lines, robot_network, wait_registered
 from tests.support import VENV_BIN, require, run, running
 
 pytestmark = [pytest.mark.ros1]
 
+S = "std_msgs/String"
+LOGGERS = ("/rospy_server", "/rospy_loggers", "roscpp/GetLoggers")
+
+
+def policy(robot_b: dict | None = None) -> str:
+    """Robot A's talker and logger service, robot B's listener (plus ``robot_b``'s grants)."""
+    grants_b = {"subscribe": [("/rospy_listener", "/chatter", S)]}
+    for action, rows in (robot_b or {}).items():
+        grants_b[action] = grants_b.get(action, []) + rows
+    return policy_yaml({"master": {}, "robot_a": {"publish": [("/talker_a", "/chatter", S)], "serve": [LOGGERS]},
+                        "robot_b": grants_b, "robot_c": {}})
+
+
 #: robot B holds no '*' grant: only its own listener's, and whatever grant-tools adds.
-POLICY = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {master}
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /talker_a, topic: /chatter, type: std_msgs/String}}
-    serve:
-    - {{node: /rospy_server, service: /rospy_loggers, type: roscpp/GetLoggers}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-  grants:
-    subscribe:
-    - {{node: /rospy_listener, topic: /chatter, type: std_msgs/String}}
-- name: robot_c
-  fingerprint_sha256: {robot_c}
-"""
+POLICY = policy()
 
 GRANT_TOOLS = ("grant-tools", "robot_b", "--topic", "/chatter:std_msgs/String",
                "--service", "/rospy_loggers:roscpp/GetLoggers", "--param-ns", "/")
@@ -154,31 +149,35 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# Issue 31: refusals read like ROS errors, what libraries read is readable, roslaunch and
+# Refusals read like ROS errors, what libraries read is readable, roslaunch and
 # rosbag play with their bundles, actionlib, and quiet, useful denial logs.
 
 #: robot B's own nodes: a prober, two launched nodes, an action server and its client.
-POLICY_LIBS = POLICY.replace("- name: robot_c", """\
-    - {{node: /prober, topic: /chatter, type: std_msgs/String}}
-    - {{node: /action_server, topic: /move_base/goal, type: move_base_msgs/MoveBaseActionGoal}}
-    - {{node: /action_server, topic: /move_base/cancel, type: actionlib_msgs/GoalID}}
-    - {{node: /action_client, topic: /move_base/status, type: actionlib_msgs/GoalStatusArray}}
-    - {{node: /action_client, topic: /move_base/feedback, type: move_base_msgs/MoveBaseActionFeedback}}
-    - {{node: /action_client, topic: /move_base/result, type: move_base_msgs/MoveBaseActionResult}}
-    - {{node: /dr_server, topic: /chatter, type: std_msgs/String}}
-    - {{node: /dr_client, topic: /dr_server/parameter_descriptions, type: dynamic_reconfigure/ConfigDescription}}
-    - {{node: /dr_client, topic: /dr_server/parameter_updates, type: dynamic_reconfigure/Config}}
-    call:
-    - {{node: /dr_client, service: /dr_server/set_parameters, type: dynamic_reconfigure/Reconfigure}}
-    publish:
-    - {{node: /launch_talker, topic: /launched, type: std_msgs/String}}
-    - {{node: /launch_other, topic: /chatter_other, type: std_msgs/String}}
-    - {{node: /action_server, topic: /move_base/status, type: actionlib_msgs/GoalStatusArray}}
-    - {{node: /action_server, topic: /move_base/feedback, type: move_base_msgs/MoveBaseActionFeedback}}
-    - {{node: /action_server, topic: /move_base/result, type: move_base_msgs/MoveBaseActionResult}}
-    - {{node: /action_client, topic: /move_base/goal, type: move_base_msgs/MoveBaseActionGoal}}
-    - {{node: /action_client, topic: /move_base/cancel, type: actionlib_msgs/GoalID}}
-- name: robot_c""")  # robot_b's grants above, robot_c as before
+POLICY_LIBS = policy({
+    "subscribe": [
+        ("/prober", "/chatter", "std_msgs/String"),
+        ("/action_server", "/move_base/goal", "move_base_msgs/MoveBaseActionGoal"),
+        ("/action_server", "/move_base/cancel", "actionlib_msgs/GoalID"),
+        ("/action_client", "/move_base/status", "actionlib_msgs/GoalStatusArray"),
+        ("/action_client", "/move_base/feedback", "move_base_msgs/MoveBaseActionFeedback"),
+        ("/action_client", "/move_base/result", "move_base_msgs/MoveBaseActionResult"),
+        ("/dr_server", "/chatter", "std_msgs/String"),
+        ("/dr_client", "/dr_server/parameter_descriptions", "dynamic_reconfigure/ConfigDescription"),
+        ("/dr_client", "/dr_server/parameter_updates", "dynamic_reconfigure/Config"),
+    ],
+    "call": [
+        ("/dr_client", "/dr_server/set_parameters", "dynamic_reconfigure/Reconfigure"),
+    ],
+    "publish": [
+        ("/launch_talker", "/launched", "std_msgs/String"),
+        ("/launch_other", "/chatter_other", "std_msgs/String"),
+        ("/action_server", "/move_base/status", "actionlib_msgs/GoalStatusArray"),
+        ("/action_server", "/move_base/feedback", "move_base_msgs/MoveBaseActionFeedback"),
+        ("/action_server", "/move_base/result", "move_base_msgs/MoveBaseActionResult"),
+        ("/action_client", "/move_base/goal", "move_base_msgs/MoveBaseActionGoal"),
+        ("/action_client", "/move_base/cancel", "actionlib_msgs/GoalID"),
+    ],
+})
 
 LIBS = str(NODES / "stock_libs.py")
 

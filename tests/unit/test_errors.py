@@ -3,10 +3,20 @@
 from __future__ import annotations
 
 import ast
+import asyncio
 import importlib
+import ssl
 from pathlib import Path
 
-from cryptoros.errors import CryptorosError
+from cryptoros.errors import (
+    PEER_FAILURES,
+    ConfigError,
+    CryptorosError,
+    PolicyDenied,
+    Refusal,
+    RemoteProtocolError,
+    TokenError,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("cryptoros", "certs", "authz_server")
@@ -42,3 +52,25 @@ def test_every_exception_class_is_a_cryptoros_error():
         if not issubclass(cls, CryptorosError):
             wrong.append(qualname)
     assert not wrong, f"exception classes outside CryptorosError: {wrong}"
+
+
+def test_every_error_carries_a_reason_and_a_detail():
+    """One base carries both: a refusal is raised with its code first, any other error
+    with a message, which is its detail (its class name the reason)."""
+    denied = PolicyDenied("not_granted", "no grant for /chatter")
+    assert (denied.reason, denied.detail, str(denied)) == ("not_granted", "no grant for /chatter",
+                                                           "not_granted: no grant for /chatter")
+    bare = TokenError("expired")
+    assert (bare.reason, bare.detail, str(bare)) == ("expired", "", "expired")
+    assert isinstance(denied, Refusal) and isinstance(bare, Refusal)
+    config = ConfigError("cannot read /etc/x.toml")
+    assert (config.reason, config.detail, str(config)) == ("ConfigError", "cannot read /etc/x.toml",
+                                                           "cannot read /etc/x.toml")
+    assert RemoteProtocolError().reason == "RemoteProtocolError" and str(RemoteProtocolError()) == ""
+
+
+def test_peer_failures_cover_what_a_peer_or_its_socket_raises():
+    for exc in (PolicyDenied("rate_limited"), ConnectionResetError(), asyncio.TimeoutError(),
+                ssl.SSLError(1, "bad certificate"), OSError(113, "no route to host")):
+        assert isinstance(exc, PEER_FAILURES), exc
+    assert not isinstance(ValueError("a bug of ours"), PEER_FAILURES)

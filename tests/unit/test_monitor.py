@@ -16,6 +16,7 @@ from cryptoros.monitor.features import FEATURES, StreamFeatures
 from cryptoros.monitor.model import FORMAT, AlertTracker, MonitorModel
 from cryptoros.ros1 import msgs
 from interceptor.monitor import Monitor, MonitorSettings
+from tests.support import Clock
 
 POSE, SCAN, TWIST = "geometry_msgs/PoseStamped", "sensor_msgs/LaserScan", "geometry_msgs/Twist"
 
@@ -354,16 +355,6 @@ def test_the_lstm_threshold_for_a_false_positive_rate_flags_at_most_that_share_o
 # ------------------------------------------------------------------ the watched stream
 
 
-class Clock:
-    """Arrival time for the monitor: both clocks the same, moved by the test."""
-
-    def __init__(self, t: float = 1000.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
-
-
 def monitor_for(tmp_path, *, action="quarantine", clock=None, state_path=None, **extra) -> tuple[Monitor, list]:
     from prometheus_client import CollectorRegistry
 
@@ -456,15 +447,21 @@ async def test_an_operator_lifts_one_quarantine_or_a_managers_and_the_request_is
 
     state = tmp_path / "state" / "robot_b.quarantine.json"
     clock = Clock()
-    monitor, _ = monitor_for(tmp_path, clock=clock, state_path=state)
-    for publisher in ("/a", "/b", WHOLE_MANAGER):
-        monitor._put("robot_a", publisher, clock.t + 30.0)
-    monitor._put("robot_c", "/c", clock.t + 30.0)
+    state.parent.mkdir()
+    kept = [("robot_a", "/a"), ("robot_a", "/b"), ("robot_a", WHOLE_MANAGER), ("robot_c", "/c")]
+    state.write_text(json.dumps({"version": 1, "quarantined": [{"manager": m, "publisher": p, "until": clock.t + 30.0}
+                                                                for m, p in kept]}))
+    monitor, _ = monitor_for(tmp_path, clock=clock, state_path=state)  # as a restarted interceptor has them
+
+    def quarantined(m) -> set:
+        return {(q["manager"], q["publisher"]) for q in m.status()["quarantined"]}
+
+    assert quarantined(monitor) == set(kept)
     release = release_path_for(state)
     release.write_text(json.dumps({"version": 1, "release": [{"manager": "robot_a", "publisher": "/a"}]}))
     assert monitor.apply_releases() == ["/a (robot_a)"]
     assert not release.exists() and monitor.apply_releases() == []
-    assert monitor._left(("robot_a", "/a")) == 0 and monitor.quarantined_for("robot_a", "/b") > 0
+    assert quarantined(monitor) == set(kept) - {("robot_a", "/a")}
     release.write_text(json.dumps({"version": 1, "release": [{"manager": "robot_a", "publisher": None}]}))
     restarted, _ = monitor_for(tmp_path, clock=clock, state_path=state)  # applied at start too
     assert restarted.quarantined_for("robot_a", "/b") == 0 and restarted.quarantined_for("robot_a", "/x") == 0

@@ -3,14 +3,7 @@
 from __future__ import annotations
 
 from interceptor.name_holds import NameHolds
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t = 1000.0
-
-    def __call__(self) -> float:
-        return self.t
+from tests.support import Clock
 
 
 def test_a_released_name_is_held_for_its_owner_until_the_hold_ends():

@@ -10,6 +10,7 @@ import pytest
 
 from cryptoros.tls import TLSConfig, client_context, server_context
 from interceptor.pump import HIGH_WATER, splice
+from tests.support import Clock
 
 
 @pytest.fixture(params=["asyncio", "uvloop"])
@@ -172,8 +173,17 @@ def test_frame_counter_stops_at_the_allowance():
 
 
 def test_budget_limits_a_flood_to_its_rate(run_loop):
-    """A sender flooding small frames through a budgeted pump gets its rate, not more."""
+    """A sender flooding small frames through a budgeted pump gets its budget, not more:
+    the burst at once, then rate x the time its clock moved (a test clock: no waiting
+    out real seconds), whole frames only."""
     run_loop(budget_limits_a_flood())
+
+
+async def wait_until(done, timeout: float, what: str) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not done():
+        assert asyncio.get_running_loop().time() < deadline, f"{what}: not within {timeout} s"
+        await asyncio.sleep(0.005)
 
 
 async def budget_limits_a_flood():
@@ -187,7 +197,8 @@ async def budget_limits_a_flood():
             received.extend(data)
 
     sink = await loop.create_server(Sink, "127.0.0.1", 0)
-    budget = MessageBudget(200.0)
+    clock = Clock()
+    budget = MessageBudget(200.0, clock=clock)
     spliced = []
 
     class Splicer(asyncio.Protocol):
@@ -205,16 +216,15 @@ async def budget_limits_a_flood():
     relay = await loop.create_server(Splicer, "127.0.0.1", 0)
     reader, writer = await asyncio.open_connection("127.0.0.1", relay.sockets[0].getsockname()[1])
     frame = (8).to_bytes(4, "little") + b"cmd_vel!"
-    started = loop.time()
     writer.write(frame * 20000)  # a flood: 20,000 messages at once
-    await asyncio.sleep(1.5)
-    elapsed = loop.time() - started
-    count = len(received) // len(frame)
-    # burst (200) + rate x time, with a little slack for timer granularity
-    assert count <= 200 + 200 * elapsed * 1.2 + 5, count
-    assert count >= 200, count
+    for allowed in (200, 300, 500):  # the burst, then 0.5 s and 1 s of the clock at 200 a second
+        await wait_until(lambda n=allowed: len(received) >= n * len(frame), 10, f"{allowed} messages through")
+        # the pump retries every 1/rate s of real time: a few retries, and not one frame more
+        # (the clock stands still)
+        await asyncio.sleep(20 / budget.rate)
+        assert len(received) == allowed * len(frame), (len(received) / len(frame), allowed)
+        clock.t += {200: 0.5, 300: 1.0, 500: 0.0}[allowed]
     assert budget.throttled >= 1
-    assert len(received) % len(frame) == 0 or count > 0
     writer.transport.abort()
     relay.close()
     sink.close()

@@ -40,12 +40,17 @@ def test_oversized_or_unexpected_frames_are_refused_before_buffering():
 
 @given(st.binary(max_size=64))
 def test_any_input_parses_or_raises_frame_error(data):
+    """Fuzz: any bytes give frames or a FrameError, never another exception; the frames
+    given are of a known kind and are exactly the bytes they were read from."""
     decoder = fr.FrameDecoder(max_size=1 << 16)
     decoder.feed(data)
     try:
-        decoder.frames()
+        frames = decoder.frames()
     except fr.FrameError:
-        pass
+        return
+    assert all(kind in fr.KINDS for kind, _chan, _payload in frames)
+    wire = b"".join(fr.encode(*frame) for frame in frames)
+    assert data[: len(wire)] == wire and decoder.buffered == len(data) - len(wire)
 
 
 @given(st.lists(st.tuples(st.sampled_from([fr.MESSAGE, fr.DATA, fr.CONTROL]), st.integers(0, 2), st.binary(max_size=40)),
@@ -91,9 +96,9 @@ def test_pieces_split_a_run_into_at_most_most_frames_each_and_lose_nothing(paylo
 
 
 def test_a_recheck_never_reuses_a_peer_token_older_than_its_wait():
-    """A re-added grant reached its flow in 16 s once: the recheck's timer fired a hair
-    before PEER_RECHECK and reused the token learnt at its start. At a recheck only a
-    token learnt at most RECHECK_MARGIN before the wait ended counts, whatever the timer."""
+    """At a recheck only a peer token learnt at most RECHECK_MARGIN before the wait ended
+    counts, whatever the timer: one firing a hair before PEER_RECHECK does not reuse the
+    token learnt at its start (a re-added grant would reach its flow a recheck late)."""
     from interceptor.ros2 import PEER_RECHECK, RECHECK_MARGIN, reusable
 
     learnt = 100.0

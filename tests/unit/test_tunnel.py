@@ -53,15 +53,23 @@ def test_reply_round_trips(reply):
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=300))
 def test_any_bytes_give_an_event_need_data_or_remote_error(data):
-    reader = PreambleReader(Preamble)
-    try:
-        reader.receive_data(data)
-        event = reader.next_event()
-        assert event is NEED_DATA or isinstance(event, Preamble)
-        reader.receive_data(b"")
-        reader.next_event()
-    except RemoteProtocolError:
-        pass
+    """Fuzz: any bytes give a Preamble, NEED_DATA or a RemoteProtocolError, never another
+    exception; and the same outcome fed whole or byte by byte."""
+
+    def outcome(chunks):
+        reader = PreambleReader(Preamble)
+        try:
+            for chunk in [*chunks, b""]:
+                reader.receive_data(chunk)
+                event = reader.next_event()
+                if event is not NEED_DATA:
+                    assert isinstance(event, Preamble), event
+                    return event
+            return NEED_DATA
+        except RemoteProtocolError:
+            return "refused"
+
+    assert outcome([data]) == outcome([data[i : i + 1] for i in range(len(data))])
 
 
 def test_declared_length_checked_before_buffering():
