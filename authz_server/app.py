@@ -59,6 +59,7 @@ from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
 from cryptoros.tls import peer_cert_der
 from cryptoros.tokens import (
+    FEED_STREAM_HEADER,
     Grant,
     Grants,
     build_claims,
@@ -81,8 +82,6 @@ MAX_FEED_WAIT = 3600.0
 #: a streamed long-poll's heartbeat interval bounds (``?heartbeat=``, seconds)
 MIN_HEARTBEAT = 0.2
 MAX_HEARTBEAT = 300.0
-#: the response header that marks a streamed long-poll (spaces, then one JSON object)
-FEED_STREAM_HEADER = "X-Cryptoros-Feed-Stream"
 #: a heartbeat on a streamed long-poll: one HTTP/1.1 chunk of one space
 HEARTBEAT_CHUNK = b"1\r\n \r\n"
 #: heartbeats fall due on this grid (seconds; half the interval if that is shorter), so one
@@ -382,8 +381,8 @@ class _Denied(CryptorosError):
     """A refused /token request; answered once, in the handler, as an OAuth error."""
 
     def __init__(self, status: int, error: str, reason: str, manager: str | None = None) -> None:
-        super().__init__(reason)
-        self.status, self.error, self.reason, self.manager = status, error, reason, manager
+        super().__init__(reason=reason)
+        self.status, self.error, self.manager = status, error, manager
 
 
 class AuthzService:

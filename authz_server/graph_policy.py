@@ -23,7 +23,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from authz_server.registry import ACTIONS, PARAM_ACTIONS, POLICY_VERSION, GrantRow, grant_key, validate_manager_name
-from cryptoros.errors import CryptorosError, RegistryError
+from cryptoros.errors import PEER_FAILURES, CryptorosError, RegistryError
 from cryptoros.policy.infrastructure import ros1_allows
 from cryptoros.policy.ros1 import DEFAULT_PARAM_READS
 
@@ -230,7 +230,7 @@ async def _probe_service_type(service: str, uri: str, timeout: float) -> str | N
             return None
         header = tcpros.decode_header(await asyncio.wait_for(reader.readexactly(size), timeout))
         return header.get("type")
-    except (OSError, asyncio.TimeoutError, asyncio.IncompleteReadError, CryptorosError):
+    except (*PEER_FAILURES, asyncio.IncompleteReadError):
         return None
     finally:
         if writer is not None:
@@ -240,7 +240,7 @@ async def _probe_service_type(service: str, uri: str, timeout: float) -> str | N
 async def read_graph(master_uri: str, *, timeout: float = 5.0) -> Graph:
     """Ask the master at ``master_uri`` for the graph; raises RegistryError (one line)
     when the master cannot be reached or answers what is not a ROS master's answer."""
-    from cryptoros.ros1.rpc import RosApiError, XmlRpcClient
+    from cryptoros.ros1.rpc import XmlRpcClient
 
     try:
         client = XmlRpcClient(master_uri, timeout=timeout)
@@ -256,20 +256,20 @@ async def read_graph(master_uri: str, *, timeout: float = 5.0) -> Graph:
             params = [_text(p) for p in await client.call("getParamNames", CALLER_ID)]
         except (OSError, asyncio.TimeoutError) as exc:
             raise RegistryError(f"cannot read the graph from {master_uri}: {exc or type(exc).__name__}") from None
-        except (RosApiError, CryptorosError, ValueError, TypeError) as exc:
+        except (CryptorosError, ValueError, TypeError) as exc:
             raise RegistryError(f"{master_uri} did not answer as a ROS master: {exc}") from None
         graph_nodes = {n for t in (pubs, subs, srvs) for nodes in t.values() for n in nodes}
         node_uris: dict[str, str | None] = {}
         for node in sorted(graph_nodes):
             try:
                 node_uris[node] = await client.call("lookupNode", CALLER_ID, node)
-            except (OSError, asyncio.TimeoutError, RosApiError, CryptorosError):
+            except PEER_FAILURES:
                 node_uris[node] = None
         service_types: dict[str, str | None] = {}
         for service in srvs:
             try:
                 uri = await client.call("lookupService", CALLER_ID, service)
-            except (OSError, asyncio.TimeoutError, RosApiError, CryptorosError):
+            except PEER_FAILURES:
                 service_types[service] = None
                 continue
             service_types[service] = await _probe_service_type(service, uri, timeout)

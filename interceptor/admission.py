@@ -11,7 +11,6 @@ import hashlib
 import socket
 import ssl
 
-
 from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
 from cryptoros.tls import (
     cert_thumbprint_s256,
@@ -19,9 +18,13 @@ from cryptoros.tls import (
 )
 from cryptoros.tunnel import NEED_DATA
 from interceptor.gate import REFRESH, StreamGate
-
 from interceptor.streams import (
-    READ_SIZE, InboundStream, Peer, cert_hosts, log, read_into,
+    READ_SIZE,
+    InboundStream,
+    Peer,
+    cert_hosts,
+    log,
+    read_into,
 )
 
 
@@ -95,7 +98,7 @@ class Admission:
             with contextlib.suppress(Exception):
                 writer.write(gate.refuse())
                 await asyncio.wait_for(writer.drain(), 1)
-            if isinstance(exc, asyncio.TimeoutError) or getattr(exc, "reason", "") == "pending_limit":
+            if isinstance(exc, asyncio.TimeoutError) or isinstance(exc, PolicyDenied) and exc.reason == "pending_limit":
                 writer.transport.abort()  # no graceful TLS close for a peer that dribbles
             else:
                 writer.close()

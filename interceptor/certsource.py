@@ -16,7 +16,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from cryptoros.pemfiles import cert_der, cert_serial, cert_thumbprint_s256
-from cryptoros.tls import FullHandshakes, PeerCertificateCheck, SessionCache, client_context, server_context
+from cryptoros.tls import (
+    FullHandshakes,
+    PeerCertificateCheck,
+    SessionCache,
+    client_context,
+    server_context,
+)
 from cryptoros.tokens import peer_audience
 from interceptor.config import InterceptorConfig
 

@@ -34,7 +34,7 @@ from typing import Any
 
 from aiohttp import web
 
-from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
+from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, TokenError
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tokens import AccessToken
@@ -438,7 +438,7 @@ class Gateway(Admission, Outbound, Health):
                 for whole in sorted(self._views.get(endpoint, {False})):
                     tunnel = await self.open_tunnel(*endpoint, REFRESH, "", whole=whole)
                     tunnel.writer.close()
-            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            except PEER_FAILURES as exc:
                 log.info("token exchange with %s:%d failed: %s", *endpoint, exc)
             finally:
                 self._exchanges.discard(endpoint)
@@ -468,7 +468,7 @@ class Gateway(Admission, Outbound, Health):
         first of a kind, peer, reason and target at once, then a count per interval).
         ``logged``: False for a flood the caller logs once in a while itself; ``hint``:
         the ``cryptoros-authz grant ...`` that would allow it (``cryptoros denials``)."""
-        reason = getattr(exc, "reason", type(exc).__name__)
+        reason = exc.reason
         self.metrics.denied.labels(kind, reason).inc()
         for line in self.denials.record(kind, who, reason, str(exc), time.monotonic(), hint=hint):
             if logged:

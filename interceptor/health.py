@@ -14,7 +14,6 @@ from cryptoros.errors import PolicyDenied, TokenError
 from interceptor.gate import feed_problem
 
 
-
 class Health:
     """The health side of :class:`~interceptor.gateway.Gateway` (a part of it)."""
 

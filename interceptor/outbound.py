@@ -11,18 +11,26 @@ import ssl
 import time
 from typing import Any
 
-
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.errors import PEER_FAILURES, PolicyDenied, RemoteProtocolError
+from cryptoros.lru import remember
 from cryptoros.tls import (
     cert_thumbprint_s256,
     offering,
 )
 from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
 from interceptor.gate import REFRESH
-
 from interceptor.streams import (
-    READ_SIZE, SPARE_AGE, SPARE_QUIET, SPARES_PER_PEER, Peer, Tunnel, _Connected,
-    cert_hosts, log, read_into, remember,
+    MAX_PEER_ENDPOINTS,
+    READ_SIZE,
+    SPARE_AGE,
+    SPARE_QUIET,
+    SPARES_PER_PEER,
+    Peer,
+    Tunnel,
+    _Connected,
+    cert_hosts,
+    log,
+    read_into,
 )
 
 
@@ -117,7 +125,7 @@ class Outbound:
     def _note_stream(self, endpoint: tuple[str, int]) -> None:
         now = time.monotonic()
         recent = [t for t in self._recent_streams.get(endpoint, ()) if now - t < self._spare_window()]
-        remember(self._recent_streams, endpoint, [*recent[-SPARES_PER_PEER:], now])
+        remember(self._recent_streams, endpoint, [*recent[-SPARES_PER_PEER:], now], MAX_PEER_ENDPOINTS)
 
     def _spare_window(self) -> float:
         return SPARE_AGE * self.cfg.limits.preamble_timeout
@@ -191,7 +199,7 @@ class Outbound:
                     tunnel.writer.close()
                 else:  # taken: its user holds the slot until the peer's reply is verified
                     await asyncio.wait_for(asyncio.shield(spare.used), self.cfg.limits.handshake_timeout)
-        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+        except PEER_FAILURES as exc:
             log.info("spare connection to %s:%d: %s", host, port, exc)
         except Exception:
             log.exception("spare connection to %s:%d", host, port)
@@ -286,7 +294,7 @@ class Outbound:
         try:
             der = self._check_peer_certificate(ssl_object, "out")
             token = self.keeper.current() if whole else await self.keeper.for_peer(cert_thumbprint_s256(der))
-            remember(self._views, (host, port), self._views.get((host, port), set()) | {whole})
+            remember(self._views, (host, port), self._views.get((host, port), set()) | {whole}, MAX_PEER_ENDPOINTS)
             writer.write(encode(Preamble(token=token, purpose=purpose, target=target)) + first)
             preamble_reader = PreambleReader(PreambleReply)
             reply = None
@@ -303,8 +311,8 @@ class Outbound:
             access = await self.verifier.verify_fresh(reply.token, der)
             self.verifier.note(access)
             sessions.put((host, port), ssl_object, offer)  # the ticket came before the reply
-            remember(self._peer_endpoints, (access.subject, access.thumbprint), (host, port))
-            remember(self._peer_tokens, (host, port), access)
+            remember(self._peer_endpoints, (access.subject, access.thumbprint), (host, port), MAX_PEER_ENDPOINTS)
+            remember(self._peer_tokens, (host, port), access, MAX_PEER_ENDPOINTS)
             pending = preamble_reader.trailing_data()
         except BaseException:
             writer.close()

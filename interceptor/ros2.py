@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import cryptoros.ros2
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
+from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
@@ -552,7 +552,7 @@ class Ros2Role(Role):
                 self._noted.discard(("not_offered", endpoint, target.name))
                 tunnel = await self.gw.open_tunnel(endpoint.host, endpoint.port, "ros2", target.encode())
                 reader, writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
-            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            except PEER_FAILURES as exc:
                 key = ("unreachable", endpoint, target.name)
                 if key not in self._noted:
                     self._noted.add(key)
@@ -593,7 +593,7 @@ class Ros2Role(Role):
             except PolicyDenied as exc:
                 self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
                 backoff = 5.0
-            except (CryptorosError, ConnectionError, OSError) as exc:
+            except PEER_FAILURES as exc:
                 if isinstance(exc, CryptorosError):
                     self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
             finally:

@@ -4,7 +4,6 @@ helpers that read a stream with a deadline or take what a StreamReader buffered.
 
 from __future__ import annotations
 
-
 import asyncio
 import contextlib
 import functools
@@ -48,14 +47,6 @@ def listening(what: str, endpoint: object) -> Iterator[None]:
     except OSError as exc:
         detail = os.strerror(exc.errno) if exc.errno else str(exc)
         raise ConfigError(f"cannot listen on {endpoint} ({what}): {detail}") from None
-
-
-def remember(table: dict, key, value, cap: int = MAX_PEER_ENDPOINTS) -> None:
-    """``table[key] = value`` as the most recent entry, keeping at most ``cap``."""
-    table.pop(key, None)
-    table[key] = value
-    while len(table) > cap:
-        del table[next(iter(table))]
 
 
 @dataclass(frozen=True, slots=True)

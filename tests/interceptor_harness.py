@@ -21,6 +21,7 @@ from pathlib import Path
 
 from cryptoros.lab.network import Network as BenchNetwork
 from cryptoros.lab.network import lab_network
+from cryptoros.lab.policy import policy_yaml
 from tests.authz_support import AuthzDaemon, authz
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import missing, require
@@ -33,35 +34,18 @@ STRING_MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"
 
 #: Policy of the default network: robot_a's talker publishes /chatter, robot_b's
 #: listener subscribes to it; robot_b may call robot_a's service.
-DEFAULT_POLICY = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {master}
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /rospy_talker, topic: /chatter, type: std_msgs/String}}
-    - {{node: /roscpp_talker, topic: /chatter, type: std_msgs/String}}
-    - {{node: /talker_a, topic: /chatter, type: std_msgs/String}}
-    - {{node: /talker_a, topic: /secret, type: std_msgs/String}}
-    subscribe:
-    - {{node: /victim, topic: /chatter, type: std_msgs/String}}
-    serve:
-    - {{node: /rospy_server, service: /rospy_loggers, type: roscpp/GetLoggers}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-  grants:
-    subscribe:
-    - {{node: /rospy_listener, topic: /chatter, type: std_msgs/String}}
-    - {{node: /victim, topic: /chatter, type: std_msgs/String}}
-    - {{node: '*', topic: /chatter, type: std_msgs/String}}
-    call:
-    - {{node: /rospy_client, service: /rospy_loggers, type: roscpp/GetLoggers}}
-- name: robot_c
-  fingerprint_sha256: {robot_c}
-"""
+DEFAULT_GRANTS = {
+    "master": {},
+    "robot_a": {"publish": [("/rospy_talker", "/chatter", STRING), ("/roscpp_talker", "/chatter", STRING),
+                            ("/talker_a", "/chatter", STRING), ("/talker_a", "/secret", STRING)],
+                "subscribe": [("/victim", "/chatter", STRING)],
+                "serve": [("/rospy_server", "/rospy_loggers", "roscpp/GetLoggers")]},
+    "robot_b": {"subscribe": [("/rospy_listener", "/chatter", STRING), ("/victim", "/chatter", STRING),
+                              ("*", "/chatter", STRING)],
+                "call": [("/rospy_client", "/rospy_loggers", "roscpp/GetLoggers")]},
+    "robot_c": {},
+}
+DEFAULT_POLICY = policy_yaml(DEFAULT_GRANTS)
 
 HOSTS = {"master": "127.0.0.4", "robot_a": "127.0.0.2", "robot_b": "127.0.0.3", "robot_c": "127.0.0.5"}
 

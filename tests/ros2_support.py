@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cryptoros.lab.policy import policy_yaml
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import REPO, free_port, missing, script, stop, wait_for_port
 from tests.authz_support import AuthzDaemon, authz, ok
@@ -29,45 +30,22 @@ NODES = Path(__file__).parent / "ros2_nodes"
 HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3", "robot_c": "127.0.0.5"}
 PEERS = {"robot_a": ("robot_b", "robot_c"), "robot_b": ("robot_a",), "robot_c": ("robot_a",)}
 
-POLICY = """\
-version: 1
-managers:
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-  grants:
-    publish:
-    - {{node: /talker, topic: /chatter, type: std_msgs/msg/String}}
-    - {{node: /talker, topic: /latched, type: std_msgs/msg/String}}
-    - {{node: /talker, topic: /twist, type: geometry_msgs/msg/Twist}}
-    - {{node: /talker, topic: /scan, type: sensor_msgs/msg/LaserScan}}
-    - {{node: /talker, topic: /image, type: sensor_msgs/msg/Image}}
-    - {{node: /talker, topic: /both, type: std_msgs/msg/String}}
-    - {{node: /talker, topic: /stuck, type: std_msgs/msg/String}}
-    subscribe:
-    - {{node: '*', topic: /back, type: std_msgs/msg/String}}
-    - {{node: '*', topic: /both, type: std_msgs/msg/String}}
-    serve:
-    - {{node: /flag_server, service: /set_flag, type: std_srvs/srv/SetBool}}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-  grants:
-    subscribe:
-    - {{node: '*', topic: /chatter, type: std_msgs/msg/String}}
-    - {{node: '*', topic: /latched, type: std_msgs/msg/String}}
-    - {{node: '*', topic: /secret, type: std_msgs/msg/String}}
-    - {{node: '*', topic: /twist, type: geometry_msgs/msg/Twist}}
-    - {{node: '*', topic: /scan, type: sensor_msgs/msg/LaserScan}}
-    - {{node: '*', topic: /image, type: sensor_msgs/msg/Image}}
-    - {{node: '*', topic: /both, type: std_msgs/msg/String}}
-    - {{node: '*', topic: /stuck, type: std_msgs/msg/String}}
-    publish:
-    - {{node: /talker, topic: /back, type: std_msgs/msg/String}}
-    - {{node: /talker_b, topic: /both, type: std_msgs/msg/String}}
-    call:
-    - {{node: '*', service: /set_flag, type: std_srvs/srv/SetBool}}
-- name: robot_c
-  fingerprint_sha256: {robot_c}
-"""
+STRING2, TWIST, SCAN, IMAGE = "std_msgs/msg/String", "geometry_msgs/msg/Twist", "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/Image"
+SET_BOOL = "std_srvs/srv/SetBool"
+GRANTS = {
+    "robot_a": {"publish": [("/talker", "/chatter", STRING2), ("/talker", "/latched", STRING2), ("/talker", "/twist", TWIST),
+                            ("/talker", "/scan", SCAN), ("/talker", "/image", IMAGE), ("/talker", "/both", STRING2),
+                            ("/talker", "/stuck", STRING2)],
+                "subscribe": [("*", "/back", STRING2), ("*", "/both", STRING2)],
+                "serve": [("/flag_server", "/set_flag", SET_BOOL)]},
+    "robot_b": {"subscribe": [("*", "/chatter", STRING2), ("*", "/latched", STRING2), ("*", "/secret", STRING2),
+                              ("*", "/twist", TWIST), ("*", "/scan", SCAN), ("*", "/image", IMAGE),
+                              ("*", "/both", STRING2), ("*", "/stuck", STRING2)],
+                "publish": [("/talker", "/back", STRING2), ("/talker_b", "/both", STRING2)],
+                "call": [("*", "/set_flag", SET_BOOL)]},
+    "robot_c": {},
+}
+POLICY = policy_yaml(GRANTS)
 
 
 @functools.cache

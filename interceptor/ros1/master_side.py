@@ -7,7 +7,7 @@ import asyncio
 import contextlib
 import functools
 
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
     NAME_BINDING,
     check_master_call,
@@ -24,10 +24,7 @@ from cryptoros.ros1.xmlrpc import (
     request_path,
 )
 from cryptoros.tokens import Grants
-from interceptor.streams import READ_SIZE, InboundStream
 from interceptor.exposure import master_problem
-from interceptor.translate import Canonical
-
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     MASTER_WATCH_INTERVAL,
@@ -45,6 +42,8 @@ from interceptor.ros1.wire import (
     ros_ok,
     writes_params,
 )
+from interceptor.streams import READ_SIZE, InboundStream
+from interceptor.translate import Canonical
 
 
 class MasterSide:
@@ -129,7 +128,7 @@ class MasterSide:
                 reply = await asyncio.wait_for(
                     self._call_upstream_master(Request(method="getPid", params=("/cryptoros",))), MASTER_WATCH_TIMEOUT)
                 pid = reply.value[2] if ros_ok(reply) and isinstance(reply.value[2], int) else None
-            except (CryptorosError, OSError, asyncio.TimeoutError):
+            except PEER_FAILURES:
                 pid = None
             if pid is not None and pid != self._master_pid:
                 # a new pid, or the first one seen after a restart of ours with registrations
@@ -181,7 +180,7 @@ class MasterSide:
                 reply = await self._call_upstream_master(Request(method="lookupService", params=("/cryptoros", service)))
                 if ros_ok(reply) and isinstance(reply.value[2], str):
                     uris.append((reply.value[2], 1))
-        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+        except (*PEER_FAILURES, ValueError, TypeError) as exc:
             log.warning("cannot read rosmaster's graph to re-open our relays: %s", exc)
             return
         counted = []
@@ -207,7 +206,7 @@ class MasterSide:
                 try:
                     reply = await self._call_upstream_master(Request(method="setParam", params=("/cryptoros", key, value)))
                     failed += not ros_ok(reply)
-                except (CryptorosError, OSError, asyncio.TimeoutError):
+                except PEER_FAILURES:
                     failed += 1
         log.warning("rosmaster (pid %d) is new: %d parameters replayed%s", pid, len(items),
                     f", {failed} failed" if failed else "")
@@ -220,7 +219,7 @@ class MasterSide:
             try:
                 reply = await self._call_upstream_master(call)
                 failed += not ros_ok(reply)
-            except (CryptorosError, OSError, asyncio.TimeoutError):
+            except PEER_FAILURES:
                 failed += 1
         log.warning("rosmaster (pid %d) is new: %d registrations replayed%s", pid, len(calls),
                     f", {failed} failed" if failed else "")

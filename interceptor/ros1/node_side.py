@@ -10,7 +10,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
     check_master_call,
     check_node_call,
@@ -20,7 +20,12 @@ from cryptoros.policy.ros1 import (
     check_subscriber_header,
     ros_error,
 )
-from cryptoros.ros1.rewrite import redact_node_reply, rewrite_call, rewrite_response, tcpros_only
+from cryptoros.ros1.rewrite import (
+    redact_node_reply,
+    rewrite_call,
+    rewrite_response,
+    tcpros_only,
+)
 from cryptoros.ros1.tcpros import canonical_header, encode_header
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
@@ -30,12 +35,9 @@ from cryptoros.ros1.xmlrpc import (
     assemble_multicall,
     expand_multicall,
 )
-from interceptor.streams import READ_SIZE, InboundStream
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
 from interceptor.registrations import REGISTER, RELEASE, Registration, covers
-from interceptor.translate import MASTER
-
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     LOCAL_REGISTRATIONS,
@@ -53,6 +55,8 @@ from interceptor.ros1.wire import (
     rewrite_param_api,
     ros_ok,
 )
+from interceptor.streams import READ_SIZE, InboundStream
+from interceptor.translate import MASTER
 
 
 class NodeSide:
@@ -340,7 +344,7 @@ class NodeSide:
                 if state is None:
                     raise PolicyDenied("master_refused", "getSystemState")
                 break
-            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            except PEER_FAILURES as exc:
                 if time.monotonic() + backoff > deadline:
                     log.warning("started with no state, and rosmaster's graph cannot be read (%s): running nodes "
                                 "of this host are not reached until they register again", exc)
@@ -375,7 +379,7 @@ class NodeSide:
                             self._local_subscribers.setdefault(topic, {}).setdefault(node, own[node])
                             if topic in types:
                                 self._ledger.made("registerSubscriber", (node, topic, types[topic], own[node]))
-        except (CryptorosError, OSError, asyncio.TimeoutError, ValueError, TypeError) as exc:
+        except (*PEER_FAILURES, ValueError, TypeError) as exc:
             log.warning("started with no state; rosmaster's graph could not be read whole (%s)", exc)
             return
         log.log(logging.WARNING if own else logging.INFO,
@@ -439,7 +443,7 @@ class NodeSide:
                 try:  # the master's interceptor judges by our freshest whole token: show it first
                     shown = await self.gw.open_tunnel(master.host, master.port, REFRESH, "", whole=True)
                     shown.writer.close()
-                except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                except PEER_FAILURES as exc:
                     log.warning("cannot show the master's interceptor our new token (%s): %d registrations of "
                                 "running nodes wait for the next one", exc, len(todo))
                     self._grants_seen = before
@@ -457,7 +461,7 @@ class NodeSide:
         try:
             if api is None or not ros_ok(await self._call_plain(api, Request(method="getPid", params=("/master",)))):
                 raise ConnectionError("no answer")
-        except (CryptorosError, OSError, asyncio.TimeoutError):
+        except PEER_FAILURES:
             log.info("%s %s of %s not made again: the node does not answer", reg.method, reg.params[1], reg.params[0])
             self._ledger.released(reg.method, reg.params)
             return False
@@ -480,7 +484,7 @@ class NodeSide:
                 await self.gw.exchange_tokens(*peer)
         try:
             await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, list(uris))))
-        except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+        except PEER_FAILURES as exc:
             log.info("publisherUpdate of %s to %s failed: %s", topic, api, exc)
 
     # ---------------------------------------------------------------- subscribers reconnect
@@ -519,9 +523,9 @@ class NodeSide:
                 for node, api in list(self._local_subscribers.get(topic, {}).items()):
                     try:
                         await self._call_plain(api, Request(method="publisherUpdate", params=("/master", topic, uris)))
-                    except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+                    except PEER_FAILURES as exc:
                         log.info("publisherUpdate of %s to %s failed: %s", topic, node, exc)
-            except (CryptorosError, OSError, asyncio.TimeoutError) as exc:
+            except PEER_FAILURES as exc:
                 log.info("cannot list the publishers of %s: %s", topic, exc)
             finally:
                 self._resubscribing.discard(topic)
@@ -536,7 +540,7 @@ class NodeSide:
             try:
                 await self.gw.exchange_tokens(*endpoint)
                 return
-            except (CryptorosError, OSError, asyncio.TimeoutError):
+            except PEER_FAILURES:
                 if time.monotonic() + backoff > deadline:
                     raise
                 await asyncio.sleep(backoff)

@@ -24,10 +24,7 @@ from cryptoros.ros1.xmlrpc import (
     Response,
 )
 from interceptor.authz_client import StreamWatch
-from interceptor.streams import READ_SIZE, Tunnel
 from interceptor.pump import FrameCounter
-from interceptor.translate import KIND_XMLRPC, Canonical
-
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     OPAQUE,
@@ -36,6 +33,8 @@ from interceptor.ros1.wire import (
     pass_refusal,
     read_tcpros_header,
 )
+from interceptor.streams import READ_SIZE, Tunnel
+from interceptor.translate import KIND_XMLRPC, Canonical
 
 
 class Relays:

@@ -4,21 +4,21 @@ serving loop every part uses."""
 from __future__ import annotations
 
 import asyncio
-import functools
 import contextlib
+import functools
 import socket
 from collections.abc import Awaitable, Callable
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
-from cryptoros.ratelimit import OncePer, TokenBuckets
+from cryptoros.memory import tune_malloc
 from cryptoros.policy.ros1 import (
     grant_hint,
     refusal_answer,
     refusal_text,
     ros_error,
 )
+from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros.ros1 import msgs
-from cryptoros.memory import tune_malloc
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
     ConnectionClosed,
@@ -34,16 +34,19 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tokens import Grants
 from cryptoros.tunnel import Preamble
+from interceptor.exposure import NodeGuard, PortExposure
 from interceptor.gate import Target
 from interceptor.gateway import Gateway
 from interceptor.gateway import Role as GatewayRole
-from interceptor.streams import read_into
-from interceptor.exposure import NodeGuard, PortExposure
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.registrations import LocalRegistrations
-from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Translator
-
+from interceptor.ros1.ledger import MasterLedger
+from interceptor.ros1.master_side import MasterSide
+from interceptor.ros1.node_side import NodeSide
+from interceptor.ros1.relays import Relays
+from interceptor.ros1.state import PersistedState
+from interceptor.ros1.tunnels import TunnelPool, XmlRpcTunnel
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     IDLE_TIMEOUT,
@@ -55,12 +58,8 @@ from interceptor.ros1.wire import (
     log,
     read_xmlrpc,
 )
-from interceptor.ros1.ledger import MasterLedger
-from interceptor.ros1.master_side import MasterSide
-from interceptor.ros1.node_side import NodeSide
-from interceptor.ros1.relays import Relays
-from interceptor.ros1.state import PersistedState
-from interceptor.ros1.tunnels import TunnelPool, XmlRpcTunnel
+from interceptor.streams import read_into
+from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Translator
 
 
 class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
@@ -321,7 +320,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 allowed.append((i, decide(call)))
                 self.metrics.allowed.labels(kind).inc()
             except CryptorosError as exc:  # a policy denial, a malformed call, no token of ours
-                reason = getattr(exc, "reason", None)
+                reason = exc.reason
                 flood = reason == "rate_limited"
                 self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who),
                              hint=grant_hint(reason, call.method, call.params, manager))
@@ -338,14 +337,14 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 for (i, call), part in zip(allowed, parts, strict=True):
                     results[i] = after(call, part)
             except (CryptorosError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
-                unanswered = getattr(exc, "reason", None) in UNANSWERED_REASONS or not isinstance(exc, CryptorosError)
+                unanswered = not isinstance(exc, CryptorosError) or exc.reason in UNANSWERED_REASONS
                 if unanswered:
                     log.warning("%s call from %s got no answer: %s", kind, who, exc or type(exc).__name__)
                 else:
                     self.gw.deny(kind, exc, who)
                 for i, _ in allowed:
                     results[i] = Response(value=ros_error(UNANSWERED if unanswered else
-                                                          refusal_text(getattr(exc, "reason", None))))
+                                                          refusal_text(exc.reason if isinstance(exc, CryptorosError) else None)))
         if request.method == MULTICALL:
             return assemble_multicall(results)  # type: ignore[arg-type]
         return results[0]  # type: ignore[return-value]

@@ -6,11 +6,10 @@ from __future__ import annotations
 import asyncio
 import json
 
-from interceptor.statefile import write_private_json
-
 from interceptor.ros1.wire import (
     log,
 )
+from interceptor.statefile import write_private_json
 
 
 class PersistedState:

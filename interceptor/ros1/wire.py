@@ -20,9 +20,8 @@ from cryptoros.policy.ros1 import (
     filter_param_reply,
 )
 from cryptoros.ros1 import msgs
-from cryptoros.sansio import NEED_DATA
-from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, encode_header
+from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.ros1.xmlrpc import (
     MULTICALL,
     Fault,
@@ -30,10 +29,9 @@ from cryptoros.ros1.xmlrpc import (
     Response,
     XmlRpcConnection,
 )
-from interceptor.streams import read_into
+from cryptoros.sansio import NEED_DATA
 from interceptor.config import XMLRPC_IDLE_TIMEOUT
-
-
+from interceptor.streams import read_into
 
 log = logging.getLogger("cryptoros.interceptor")
 
