@@ -1,5 +1,9 @@
 """The token issuer daemon: an aiohttp application behind mutual TLS.
 
+Why one long module: the endpoints share the service's caches, the feed's long-polls
+and heartbeats and the audit writer; the pure parts live in :mod:`authz_server.learning`,
+:mod:`cryptoros.tokens` and :mod:`authz_server.registry`.
+
 Endpoints (all behind the same mutual TLS; a client without a certificate from the
 CA never gets past the handshake):
 

@@ -1,5 +1,8 @@
 """``cryptoros-authz``: admin verbs over the registry, and ``serve`` for the daemon.
 
+The verbs of policy authoring and learning live in :mod:`authz_server.policy_cli` and
+:mod:`authz_server.learn_cli`; the rest are one screen each, kept together.
+
 Every verb takes the registry URL from ``--db`` or ``CRYPTOROS_AUTHZ_DB`` (default
 ``sqlite:///./cryptoros-authz.db``). Bad input (unknown manager, invalid ROS name or
 type, malformed policy, missing file) prints one line ``cryptoros-authz: error: ...``

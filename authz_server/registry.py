@@ -1,5 +1,9 @@
 """Operations over the registry: the one place that reads and writes its tables.
 
+Why one long module: it is the one place that writes the tables, and each write and its
+change row (below) share one transaction and one lock; what is pure (a policy's rows,
+proposals, SROS2, drafts) lives in the modules beside it.
+
 Both the admin CLI and the daemon go through :class:`Registry`. Every method runs in
 its own transaction and validates all of its input before it writes anything, so a
 refused operation changes nothing. Refusals raise :class:`RegistryError` with a

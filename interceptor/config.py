@@ -1,5 +1,8 @@
 """The interceptor's configuration: a TOML file loaded into frozen dataclasses.
 
+Why one long module: every key's parsing, default, check and reload rule (:data:`RELOAD`)
+sit side by side, so a key cannot be added in one place and forgotten in another.
+
 Everything is validated at start-up, in the spirit of ghostunnel: unknown keys,
 missing files, an interceptor with no CA, certificate, key or token source, and
 plaintext toward a non-loopback address without an explicit ``unsafe_*`` setting are

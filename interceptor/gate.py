@@ -56,7 +56,7 @@ class Target:
     needs, its judge: run by the gate on the peer's token before the reply, and by the
     verifier again on every fresher token it shows (a removed grant cuts the stream).
     A stream whose grant is known only later (a TCPROS header) declares its judge on its
-    watch then (:meth:`~interceptor.authz_client.StreamWatch.judge_by`)."""
+    watch then (:meth:`~interceptor.verifier.StreamWatch.judge_by`)."""
 
     resolved: object = None
     judge: Callable[[Grants], None] | None = None

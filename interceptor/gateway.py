@@ -9,7 +9,7 @@ One per process. It owns:
   streams per peer), the opaque reply; then the stream goes to the role registered for
   its purpose, with the bytes that followed the preamble handed on explicitly;
 - **tokens**: our own (:class:`~interceptor.authz_client.TokenKeeper`), peers'
-  (:class:`~interceptor.authz_client.PeerVerifier`, which also keeps the registry of
+  (:class:`~interceptor.verifier.PeerVerifier`, which also keeps the registry of
   live streams: which peer, which token, which grant covers each, and cuts them on
   revocation, a removed grant or expiry plus grace), token exchange with peers;
 - **outbound tunnels** to peer interceptors (:meth:`Gateway.open_tunnel`);
@@ -38,7 +38,8 @@ from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, TokenE
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tokens import AccessToken
-from interceptor.authz_client import AuthzClient, PeerVerifier, TokenKeeper
+from interceptor.authz_client import AuthzClient, TokenKeeper
+from interceptor.verifier import PeerVerifier
 from interceptor.certsource import CertSource
 from interceptor.config import InterceptorConfig, check_reload
 from interceptor.denials import DenialTable

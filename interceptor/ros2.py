@@ -1,6 +1,10 @@
 """The interceptor's ``ros2`` role: the asyncio edge between a robot's DDS domain and
 the other robots' interceptors.
 
+Why one long module: the outbound and inbound streams of the role share the bridge
+link, its channels and the calls in flight; split, each half would reach into the other's
+state (the ROS 1 role's parts are apart because they share only the role's tables).
+
 The :class:`~interceptor.gateway.Gateway` owns everything a role shares: the
 mutual-TLS public listener, the preamble, token verification bound to the
 certificate, the revocation feed that cuts watched streams, reload, limits and
@@ -48,7 +52,7 @@ from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
 from interceptor.config import Endpoint
-from interceptor.authz_client import StreamWatch
+from interceptor.verifier import StreamWatch
 from interceptor.gate import Target
 from interceptor.gateway import Gateway, Role
 from interceptor.streams import READ_SIZE, InboundStream, Peer, read_chunks, widen_reader

@@ -18,7 +18,7 @@ from cryptography import x509
 
 from cryptoros.errors import ConfigError
 from cryptoros.tokens import AccessToken
-from interceptor.authz_client import StreamWatch
+from interceptor.verifier import StreamWatch
 
 log = logging.getLogger("cryptoros.interceptor")
 

@@ -171,7 +171,8 @@ def authz(clients: int, total: int, db_url: str | None, verify_iterations: int, 
 
         # the interceptor's path: PeerVerifier.verify, once per stream; the same token on
         # many streams is decoded once (its cache), the per-stream checks run every time
-        from interceptor.authz_client import AuthzClient, PeerVerifier
+        from interceptor.authz_client import AuthzClient
+        from interceptor.verifier import PeerVerifier
         from interceptor.config import AuthzSettings
 
         verifier = PeerVerifier(AuthzClient(AuthzSettings(url=url), ctx), issuer="cryptoros-authz",

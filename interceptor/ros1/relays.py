@@ -23,7 +23,7 @@ from cryptoros.ros1.xmlrpc import (
     Request,
     Response,
 )
-from interceptor.authz_client import StreamWatch
+from interceptor.verifier import StreamWatch
 from interceptor.pump import FrameCounter
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,

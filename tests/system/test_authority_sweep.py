@@ -15,7 +15,8 @@ import time
 from cryptography.hazmat.primitives.asymmetric import rsa
 
 from cryptoros.tokens import Grant, Grants, KeySet, build_claims, public_jwk, sign_token
-from interceptor.authz_client import AuthzClient, PeerVerifier
+from interceptor.authz_client import AuthzClient
+from interceptor.verifier import PeerVerifier
 from interceptor.config import AuthzSettings
 
 KEY = rsa.generate_private_key(public_exponent=65537, key_size=2048)

@@ -15,7 +15,8 @@ import pytest
 
 from cryptoros.errors import TokenError
 from cryptoros.tls import TLSConfig, client_context
-from interceptor.authz_client import AuthzClient, AuthzUnavailable, PeerVerifier, TokenKeeper
+from interceptor.authz_client import AuthzClient, AuthzUnavailable, TokenKeeper
+from interceptor.verifier import PeerVerifier
 from interceptor.config import AuthzSettings
 from tests.authz_support import build_team, running_daemon
 

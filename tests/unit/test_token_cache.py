@@ -26,7 +26,7 @@ from cryptoros.tokens import (
     sign_token,
     verify_access_token,
 )
-from interceptor.authz_client import PeerVerifier
+from interceptor.verifier import PeerVerifier
 from tests.authz_support import read_pem_der
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
