@@ -53,11 +53,9 @@ class Relays:
                 sock.close()
                 raise
             sock.bind(("127.0.0.1", 0))
-            # kept from before a restart (state_dir), its port taken meanwhile: what holds
-            # it is named, and the relay's new port is what rosmaster and nodes get from now
+            # kept from before a restart (state_dir), its port taken meanwhile
             log.warning("relay for %s: its port 127.0.0.1:%d (kept from before the restart) is taken (%s): "
-                        "re-opened on 127.0.0.1:%d; nodes that hold the old URI reconnect through the master",
-                        target, port, exc.strerror or exc, sock.getsockname()[1])
+                        "re-opened on 127.0.0.1:%d", target, port, exc.strerror or exc, sock.getsockname()[1])
         sock.listen(128)
         sock.setblocking(False)
         handler = self._on_xmlrpc_relay if target.kind == KIND_XMLRPC else self._on_tcpros_relay
