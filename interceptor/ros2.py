@@ -425,18 +425,16 @@ class Ros2Role(Role):
         shows: nothing is decided by it (the receiving side is decided per manager), but
         a learning robot records what its nodes would need, and any robot which of its
         grants are used (cryptoros-authz learn propose, unused)."""
-        for topic in self._graph.get("topics", []):
-            for node in topic.get("subscribers", []):
-                for type_name in topic["types"]:
-                    if UNKNOWN_NODE_MARK not in node and not self.cfg.ros2.is_local(topic["name"]) \
-                            and not ros2_stays_local(topic["name"], topic["types"]):
-                        grants.allows("subscribe", node, topic["name"], type_name)
-        for service in self._graph.get("services", []):
-            for node in service.get("clients", []):
-                for type_name in service["types"]:
-                    if UNKNOWN_NODE_MARK not in node and not self.cfg.ros2.is_local(service["name"]) \
-                            and not ros2_stays_local(service["name"], service["types"]):
-                        grants.allows("call", node, service["name"], type_name)
+        receivers = [("subscribe", entry, entry.get("subscribers", [])) for entry in self._graph.get("topics", [])]
+        receivers += [("call", entry, entry.get("clients", [])) for entry in self._graph.get("services", [])]
+        for action, entry, nodes in receivers:
+            name, types = entry["name"], entry["types"]
+            if self.cfg.ros2.is_local(name) or ros2_stays_local(name, types):
+                continue
+            for node in nodes:
+                if UNKNOWN_NODE_MARK not in node:
+                    for type_name in types:
+                        grants.allows(action, node, name, type_name)
 
     def _check_exposure(self) -> frozenset[str]:
         """The nodes of this robot's domain whose participant is reachable from the

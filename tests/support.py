@@ -133,6 +133,30 @@ def processes_using(path: Path) -> list[str]:
     return found
 
 
+def until(condition, timeout: float, what: str, every: float = 0.1):
+    """Poll ``condition`` until it returns something true (returned), at most ``timeout``
+    seconds; the assertion names ``what`` did not happen."""
+    deadline = time.monotonic() + timeout
+    while not (value := condition()):
+        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
+        time.sleep(every)
+    return value
+
+
+def ros_package(root: Path, name: str, scripts: dict[str, str]) -> Path:
+    """A catkin package ``name`` under ``root`` (for ROS_PACKAGE_PATH) holding executable
+    ``scripts`` (file name -> text), as roslaunch's ``<node pkg= type=>`` finds them."""
+    pkg = root / name
+    pkg.mkdir(parents=True, exist_ok=True)
+    (pkg / "package.xml").write_text(
+        f'<?xml version="1.0"?><package format="2"><name>{name}</name><version>0.0.1</version>'
+        '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
+    for file_name, text in scripts.items():
+        (pkg / file_name).write_text(text)
+        (pkg / file_name).chmod(0o755)
+    return pkg
+
+
 class Clock:
     """A clock for code that takes one (``clock=``): it stands still until the test
     moves ``t``."""

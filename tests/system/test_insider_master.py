@@ -40,7 +40,7 @@ from tests.interceptor_harness import (
     wait_registered,
 )
 from tests.ros1_flow import flow_policy, legit_flow
-from tests.support import running
+from tests.support import running, until
 
 pytestmark = [pytest.mark.ros1]
 
@@ -90,14 +90,6 @@ def metric(network, host: str, name: str) -> float:
         with urllib.request.urlopen(url, timeout=5) as reply:
             body = reply.read().decode()
     return sum(float(line.rsplit(" ", 1)[1]) for line in body.splitlines() if line.startswith(name))
-
-
-def until(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
-        time.sleep(0.1)
-    return value
 
 
 #: a rospy subscriber that unregisters and exits when told to (a line on stdin)

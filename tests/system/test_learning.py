@@ -22,7 +22,8 @@ from pathlib import Path
 import pytest
 
 from tests.interceptor_harness import SYS_PY, denials, read_lines, robot_network, separate_hosts
-from tests.support import require, running
+from tests.authz_support import ok
+from tests.support import require, ros_package, running, until
 
 pytestmark = [pytest.mark.ros1]
 
@@ -58,18 +59,8 @@ def status(net, host: str) -> dict:
             return json.loads(reply.read())
 
 
-def until(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
-        time.sleep(0.25)
-    return value
-
-
 def cli_ok(net, *args: str) -> str:
-    done = net.cli(*args)
-    assert done.returncode == 0, f"cryptoros-authz {' '.join(args)}: {done.stdout}{done.stderr}"
-    return done.stdout
+    return ok(net.cli(*args))
 
 
 def policy_denials(net, host: str) -> list[str]:
@@ -88,15 +79,8 @@ class Graph:
     def running(self):
         net = self.net
         pkgs = self.workdir / "pkgs"
-        pkg = pkgs / "crlearn"
-        if not pkg.exists():
-            pkg.mkdir(parents=True)
-            (pkg / "package.xml").write_text(
-                '<?xml version="1.0"?><package format="2"><name>crlearn</name><version>0.0.1</version>'
-                '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
-            (pkg / "graph_node.py").write_text(Path(GRAPH).read_text())
-            (pkg / "graph_node.py").chmod(0o755)
-            (self.workdir / "odom.launch").write_text(LAUNCH)
+        ros_package(pkgs, "crlearn", {"graph_node.py": Path(GRAPH).read_text()})
+        (self.workdir / "odom.launch").write_text(LAUNCH)
         nodes = {
             "talker": ("robot_a", [SYS_PY, GRAPH, "talker", "/talker", "/chatter"]),
             "server": ("robot_a", [SYS_PY, GRAPH, "server", "/server", "/robot_loggers"]),

@@ -13,6 +13,8 @@ import urllib.request
 
 
 from tests.ros2_support import ros2_network
+from tests.authz_support import ok
+from tests.support import until
 
 
 
@@ -35,18 +37,8 @@ def status(net, robot: str) -> dict:
         return json.loads(reply.read())
 
 
-def until(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
-        time.sleep(0.25)
-    return value
-
-
 def cli_ok(net, *args: str) -> str:
-    done = net.cli(*args)
-    assert done.returncode == 0, f"cryptoros-authz {' '.join(args)}: {done.stdout}{done.stderr}"
-    return done.stdout
+    return ok(net.cli(*args))
 
 
 def first(lines, prefix: str, timeout: float) -> str:

@@ -20,7 +20,7 @@ import pytest
 
 from cryptoros.lab.policy import policy_yaml
 from tests.interceptor_harness import NODE, NODES, SYS_PY, denials, read_lines, robot_network, wait_registered
-from tests.support import VENV_BIN, require, run, running
+from tests.support import VENV_BIN, require, ros_package, run, running
 
 pytestmark = [pytest.mark.ros1]
 
@@ -306,14 +306,7 @@ def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
     a two-node launch file with <param>, <rosparam> and remappings runs. rosbag play
     --clock with ``--publish-topic`` and ``--clock``; its pause_playback service is its own."""
     require("roslaunch", "rosbag")
-    pkg = tmp_path / "pkgs" / "crtest"
-    pkg.mkdir(parents=True)
-    (pkg / "package.xml").write_text(
-        '<?xml version="1.0"?><package format="2"><name>crtest</name><version>0.0.1</version>'
-        '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
-    script = pkg / "stock_libs.py"
-    script.write_text(open(LIBS).read())
-    script.chmod(0o755)
+    ros_package(tmp_path / "pkgs", "crtest", {"stock_libs.py": open(LIBS).read()})
     launch = tmp_path / "two.launch"
     launch.write_text(LAUNCH)
     bag = tmp_path / "clock.bag"
@@ -373,13 +366,7 @@ def test_what_stock_libraries_read_is_on_the_default_list(tmp_path, roscpp_talke
     out = tmp_path / "reads.jsonl"
     env = {"ROS_MASTER_URI": f"http://127.0.0.1:{port}/", "ROS_IP": "127.0.0.1", "ROS_HOME": str(tmp_path),
            "PATH": "/usr/bin:/bin", "ROS_PACKAGE_PATH": str(tmp_path / "pkgs")}
-    pkg = tmp_path / "pkgs" / "crtest"
-    pkg.mkdir(parents=True)
-    (pkg / "package.xml").write_text(
-        '<?xml version="1.0"?><package format="2"><name>crtest</name><version>0.0.1</version>'
-        '<description>t</description><maintainer email="t@t.t">t</maintainer><license>BSD</license></package>')
-    (pkg / "stock_libs.py").write_text(open(LIBS).read())
-    (pkg / "stock_libs.py").chmod(0o755)
+    ros_package(tmp_path / "pkgs", "crtest", {"stock_libs.py": open(LIBS).read()})
     (tmp_path / "two.launch").write_text(LAUNCH)
     with running(["rosmaster", "--core", "-p", str(master_port)], env=env), \
             running([SYS_PY, str(NODES / "param_recorder.py"), f"http://127.0.0.1:{master_port}/", str(port), str(out)],
