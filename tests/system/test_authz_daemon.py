@@ -160,7 +160,8 @@ def test_revocation_feed_lists_revoked_jti_and_supports_etag(daemon):
     _, body = daemon.token("bob")
     jti = claims_of(body["access_token"])["jti"]
     feed = daemon.get_json("/revocations")
-    assert set(feed) == {"serial", "revoked_jtis", "disabled_managers", "revoked_serials", "generated_at"}
+    assert set(feed) == {"serial", "revoked_jtis", "disabled_managers", "learning", "revoked_serials", "generated_at"}
+    assert feed["learning"] == {}  # no manager learns
     assert jti not in feed["revoked_jtis"]
     cert, key = daemon.cert_of("probe")
     status, _ = daemon.request("GET", "/revocations", cert=cert, key=key)
