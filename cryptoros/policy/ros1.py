@@ -252,8 +252,26 @@ def _granted(grants: Grants, action: str, node: str, name: str, type_name: str, 
     return infrastructure and grants.names_node(node) and infrastructure_allows(action, node, name, type_name)
 
 
+def named_nodes(method: str, params: tuple) -> tuple[str, ...]:
+    """The node names whose owners a decision of this master call may consult: the
+    caller, and for a parameter write each node its key's path names (roslaunch writing
+    a launched node's parameter). The caller looks their owners up and passes them to
+    :func:`check_master_call` as values."""
+    if not params or not isinstance(params[0], str):
+        return ()
+    names = [params[0]]
+    if method in PARAM_WRITE:
+        try:
+            key = resolve_param_key(_str_param(params, 1, method, "a key"), params[0])
+        except PolicyDenied:
+            return tuple(names)
+        parts = key.split("/")[1:]
+        names += ["/" + "/".join(parts[:n]) for n in range(1, len(parts) + 1)]
+    return tuple(dict.fromkeys(names))
+
+
 def _check_sibling_owner(params: tuple, caller: str, manager: str, grants: Grants,
-                         owner_of: Callable[[str], str | None]) -> None:
+                         owners: Mapping[str, str]) -> None:
     """A write into the private namespace of another node its manager's grants name
     (roslaunch setting a launched node's parameter) is refused while that node is
     registered by another manager (one name granted to two robots)."""
@@ -262,7 +280,7 @@ def _check_sibling_owner(params: tuple, caller: str, manager: str, grants: Grant
     for n in range(1, len(parts) + 1):
         node = "/" + "/".join(parts[:n])
         if node != caller and grants.names_node_exactly(node):
-            owner = owner_of(node)
+            owner = owners.get(node)
             if owner is not None and owner != manager:
                 raise _deny("name_taken", f"node {node} is registered (or held) by manager {owner}")
 
@@ -273,23 +291,24 @@ def check_master_call(
     *,
     manager: str,
     grants: Grants,
-    owner_of: Callable[[str], str | None],
+    owners: Mapping[str, str],
     infrastructure: bool = True,
 ) -> None:
-    """Decide one master-API call (a multicall is decided call by call by the caller)."""
+    """Decide one master-API call (a multicall is decided call by call by the caller).
+    ``owners``: the manager holding each name :func:`named_nodes` lists, where one does."""
     if method in ALWAYS_DROPPED:
         raise _deny("shutdown_dropped", "master shutdown is never forwarded")
     if method in MASTER_READ_ONLY:
         return
     caller = _caller(params, method)
     if method in NAME_BINDING or method in PARAM_WRITE or method in ("unsubscribeParam",):
-        owner = owner_of(caller)
+        owner = owners.get(caller)
         if owner is not None and owner != manager:
             raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
     if method in ("subscribeParam", "unsubscribeParam") and not grants.names_node(caller):
         raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
     if method in PARAM_WRITE:
-        _check_sibling_owner(params, caller, manager, grants, owner_of)
+        _check_sibling_owner(params, caller, manager, grants, owners)
     if method in PARAM_READ or method in PARAM_WRITE or method == "getParamNames":
         check_param_call(method, params, grants=grants)
         return
@@ -314,7 +333,7 @@ def check_master_call(
             raise _deny("not_granted", f"{manager}: {caller} may not serve {service}")
         return
     if method in MASTER_UNREGISTER:
-        owner = owner_of(caller)
+        owner = owners.get(caller)
         if owner is not None and owner != manager:
             raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
         if owner is None and not grants.names_node(caller):
@@ -537,6 +556,7 @@ __all__ = [
     "check_local_subscriber_header",
     "PARAM_READ",
     "check_master_call",
+    "named_nodes",
     "check_param_call",
     "filter_param_reply",
     "may_read_param",

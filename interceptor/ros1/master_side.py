@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
+    named_nodes,
     NAME_BINDING,
     check_master_call,
 )
@@ -60,6 +60,11 @@ class MasterSide:
         name the registry gives another manager before that one's node starts (rosmaster
         then drops the squatter's registrations: :class:`~interceptor.ros1.ledger.MasterLedger`)."""
         return self._master_ledger.owner_of(node, grants is not None and grants.names_node_exactly(node))
+
+    def _owners_named(self, call: Request, grants: Grants) -> dict[str, str]:
+        """The owners of the names a decision of ``call`` may consult, as values."""
+        return {node: owner for node in named_nodes(call.method, call.params)
+                if (owner := self._owner_of(node, grants)) is not None}
 
     def _check_node_limit(self, call: Request, manager: str) -> None:
         """A peer registers at most ``max_nodes_per_peer`` node names at the master."""
@@ -268,7 +273,7 @@ class MasterSide:
                                    f"{RATE_LOG_INTERVAL:g} s, every refusal counted)")
             grants = self.verifier.freshest(peer.access).grants  # decisions use the peer's freshest token
             check_master_call(call.method, call.params, manager=peer.manager, grants=grants,
-                              owner_of=functools.partial(self._owner_of, grants=grants))
+                              owners=self._owners_named(call, grants))
             call = resolved_param_call(call, grants)
             self._check_node_limit(call, peer.manager)
             self._check_param_subscription(call, peer.manager)

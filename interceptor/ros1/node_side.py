@@ -231,7 +231,7 @@ class NodeSide:
         own = self.gw.own_access()
         try:
             check_master_call(
-                call.method, call.params, manager=own.subject, grants=own.grants, owner_of=lambda _node: None
+                call.method, call.params, manager=own.subject, grants=own.grants, owners={}
             )
         except PolicyDenied as exc:
             if exc.reason == "not_granted" and self._ledger.refused(call.method, call.params):

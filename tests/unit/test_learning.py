@@ -47,7 +47,7 @@ def test_while_its_own_manager_learns_what_no_grant_covers_is_let_through_and_re
     s, clock = state(learning={"robot_a": NOW + 60})
     grants = s.grants("robot_a", Grants())
     check_master_call("registerPublisher", ("/intruder", "/cmd_vel", "geometry_msgs/Twist", "http://x:1/"),
-                      manager="robot_a", grants=grants, owner_of=lambda _n: None)
+                      manager="robot_a", grants=grants, owners={})
     assert grants.types_for("call", "/client", "/srv") is ANY_TYPES
     assert check_service_client_header({"callerid": "/client", "service": "/srv", "md5sum": "*"}, grants=grants)
     assert grants.param_allows("write", "/conf", "/fleet/speed")

@@ -86,31 +86,27 @@ def test_patterns_survive_the_token_claim_and_narrowing():
     assert info.value.reason == "malformed"
 
 
-def owners(table):
-    return table.get
-
-
 def test_master_role_lets_a_pattern_register_matching_names_only():
     anon = "/rostopic_77_1700000000000"
     check_master_call("registerSubscriber", (anon, "/chatter", STRING, API), manager="bob", grants=TOOLS,
-                      owner_of=owners({}))
+                      owners={})
     check_master_call("unregisterSubscriber", (anon, "/chatter", API), manager="bob", grants=TOOLS,
-                      owner_of=owners({anon: "bob"}))
+                      owners={anon: "bob"})
     # a name matching the pattern that another manager registered first stays theirs
     with pytest.raises(PolicyDenied) as taken:
         check_master_call("registerSubscriber", (anon, "/chatter", STRING, API), manager="bob", grants=TOOLS,
-                          owner_of=owners({anon: "alice"}))
+                          owners={anon: "alice"})
     assert taken.value.reason == "name_taken"
     # the pattern's anonymous nodes get rospy's infrastructure (/rosout) like any own node
     check_master_call("registerPublisher", (anon, "/rosout", "rosgraph_msgs/Log", API), manager="bob", grants=TOOLS,
-                      owner_of=owners({}))
+                      owners={})
     with pytest.raises(PolicyDenied):
         check_master_call("registerPublisher", ("/rostopic", "/rosout", "rosgraph_msgs/Log", API), manager="bob",
-                          grants=TOOLS, owner_of=owners({}))
+                          grants=TOOLS, owners={})
     # rosparam's caller /rosparam-<pid> writes a global parameter under its write_param grant
-    check_master_call("setParam", ("/rosparam-4242", "/x", 1), manager="bob", grants=TOOLS, owner_of=owners({}))
+    check_master_call("setParam", ("/rosparam-4242", "/x", 1), manager="bob", grants=TOOLS, owners={})
     with pytest.raises(PolicyDenied) as refused:
-        check_master_call("setParam", ("/rostopic_1_2", "/x", 1), manager="bob", grants=TOOLS, owner_of=owners({}))
+        check_master_call("setParam", ("/rostopic_1_2", "/x", 1), manager="bob", grants=TOOLS, owners={})
     assert refused.value.reason == "param_write_denied"
 
 

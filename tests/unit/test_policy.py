@@ -30,7 +30,7 @@ OWNERS = {"/talker": "alice", "/victim": "bob"}
 
 def master(method, *params, manager="alice", grants=ALICE, infrastructure=True):
     return check_master_call(
-        method, params, manager=manager, grants=grants, owner_of=OWNERS.get, infrastructure=infrastructure
+        method, params, manager=manager, grants=grants, owners=OWNERS, infrastructure=infrastructure
     )
 
 
@@ -183,3 +183,12 @@ def test_a_subscriber_of_any_type_needs_a_subscribe_grant_on_the_topic_and_gets_
                   published_md5="x") == "not_granted"
     assert denied(check_subscriber_header, {**wildcard, "md5sum": "0" * 32}, grants=ALICE, published_type=STRING,
                   published_md5=MD5) == "type_mismatch"  # '*' type with a real md5sum is not a wildcard
+
+
+def test_the_owners_a_decision_consults_are_the_callers_and_those_of_the_nodes_a_written_key_names():
+    from cryptoros.policy.ros1 import named_nodes
+
+    assert named_nodes("registerPublisher", ("/talker", "/chatter", "std_msgs/String", "http://x:1/")) == ("/talker",)
+    assert named_nodes("setParam", ("/roslaunch", "/talker/rate", 5)) == ("/roslaunch", "/talker", "/talker/rate")
+    assert named_nodes("setParam", ("/roslaunch", "bad key!", 5)) == ("/roslaunch",)
+    assert named_nodes("getPid", ()) == ()

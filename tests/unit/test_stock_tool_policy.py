@@ -31,7 +31,7 @@ ROBOT = Grants([
 
 
 def master(method, *params, grants=ROBOT):
-    check_master_call(method, params, manager="robot_b", grants=grants, owner_of=lambda _n: None)
+    check_master_call(method, params, manager="robot_b", grants=grants, owners={})
 
 
 def refused(method, *params, grants=ROBOT) -> str:
@@ -176,12 +176,9 @@ def test_no_hint_for_what_any_grant_naming_the_node_allows():
 
 def test_a_launched_nodes_parameters_are_not_writable_while_another_manager_holds_its_name():
     # robot_b's grants name /talker, but robot_a registered it: roslaunch of robot_b may not write it
-    def owner_of(node):
-        return "robot_a" if node == "/talker" else None
-
     with pytest.raises(PolicyDenied) as info:
         check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
-                          owner_of=owner_of)
+                          owners={"/talker": "robot_a"})
     assert info.value.reason == "name_taken"
     check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
-                      owner_of=lambda _n: None)
+                      owners={})
