@@ -170,8 +170,8 @@ class Gateway(Admission, Outbound, Health):
         #: when the last few streams to each peer endpoint were opened, newest last (how
         #: many spares it gets; they wait for a quiet moment)
         self._recent_streams: dict[tuple[str, int], list[float]] = {}
-        #: incremented by :meth:`_drop_spares` (a reload, a stop): a spare whose connect
-        #: began before is not listed (made with the old client context; see _keep_spare)
+        #: incremented by :meth:`drop_spares` (a reload, a stop): a spare whose connect
+        #: began before is not listed (made with the old client context; see keep_spare)
         self._spare_generation = 0
         self._purposes: dict[str, tuple[TargetCheck, Callable[[InboundStream], Awaitable[None]]]] = {}
         self._checks: dict[str, TargetCheck] = {}  # what the gate of every stream is given
@@ -311,7 +311,7 @@ class Gateway(Admission, Outbound, Health):
         waiting = [s for s in self._streams if s not in self._cuttable]
         if waiting:
             await asyncio.wait(waiting, timeout=grace)
-        self._drop_spares()
+        self.drop_spares()
         for task in self._tasks:
             task.cancel()
         for stream in list(self._streams):
@@ -377,7 +377,7 @@ class Gateway(Admission, Outbound, Health):
             await probe.close()
         self.verifier.verify(token.token, certs.own_der)  # bound to the new certificate, not revoked
         self.certs = certs  # the next handshake, in or out, uses it; the public port stays as it is
-        self._drop_spares()  # made with the old certificate: a token bound to the new one fails on them
+        self.drop_spares()  # made with the old certificate: a token bound to the new one fails on them
         if cfg.limits.max_new_connections_per_second != self.cfg.limits.max_new_connections_per_second:
             self._new_stream_limiter = self._stream_limiter(cfg)
         self.cfg = cfg  # what is read per use (most [limits]) applies from here

@@ -158,9 +158,11 @@ class Outbound:
             return
         makers = self._spare_makers.setdefault(endpoint, set())
         while len(makers) < wanted:
-            makers.add(self.spawn(self._keep_spare(endpoint, after)))
+            makers.add(self.spawn(self.keep_spare(endpoint, after)))
 
-    async def _keep_spare(self, endpoint: tuple[str, int], after: asyncio.Future | None = None) -> None:
+    async def keep_spare(self, endpoint: tuple[str, int], after: asyncio.Future | None = None) -> None:
+        """Connect one spare to ``endpoint`` (after ``after``, a stream's set-up, is done)
+        and keep it ready until a stream takes it, it ages out, or :meth:`drop_spares`."""
         host, port = endpoint
         me = asyncio.current_task()
         spare: _Connected | None = None
@@ -227,7 +229,15 @@ class Outbound:
                 return True
         return False
 
-    def _drop_spares(self) -> None:
+    def spares_ready(self, endpoint: tuple[str, int]) -> list:
+        """The spare connections ready for ``endpoint`` now, oldest first."""
+        return list(self._spares.get(endpoint, ()))
+
+    def spares_connecting(self, endpoint: tuple[str, int]) -> list[asyncio.Future]:
+        """The spare connections to ``endpoint`` still in their TLS handshake."""
+        return list(self._spare_connecting.get(endpoint, ()))
+
+    def drop_spares(self) -> None:
         """Close every ready spare; one still connecting is closed once connected (generation)."""
         self._spare_generation += 1
         for spares in self._spares.values():

@@ -76,20 +76,20 @@ async def spare_made(gateway_cfg, pki, *, reload_meanwhile: bool):
     finished connecting, and the task keeping it."""
     gw = Gateway(gateway_cfg)
     async with held_peer(pki) as (endpoint, accepted, release):
-        keeper = asyncio.ensure_future(gw._keep_spare(endpoint))
+        keeper = asyncio.ensure_future(gw.keep_spare(endpoint))
         await asyncio.wait_for(accepted.wait(), 10)  # TCP connected, TLS handshake waiting
-        (connecting,) = gw._spare_connecting[endpoint]
+        (connecting,) = gw.spares_connecting(endpoint)
         if reload_meanwhile:
-            gw._drop_spares()
+            gw.drop_spares()
         release.set()
         await asyncio.wait_for(connecting, 10)  # handshake done: listed as a spare, or not
-        listed = list(gw._spares.get(endpoint, ()))
+        listed = gw.spares_ready(endpoint)
         if reload_meanwhile:
             await asyncio.wait_for(keeper, 10)  # nothing kept: the task ends at once
         keeper.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await keeper
-        gw._drop_spares()
+        gw.drop_spares()
         await gw.authz.close()
     return gw, listed
 
