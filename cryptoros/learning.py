@@ -140,6 +140,10 @@ class LearningState:
         self.clock = clock
         self.windows: Mapping[str, float] = {}
         self.table = table or ObservationTable()
+        #: the master's interceptor: who set what a parameter key holds (its value, those
+        #: below it, a value above it); a learning peer's parameter access is widened
+        #: only over what itself or other learning managers set
+        self.param_owners: Callable[[str], frozenset[str]] | None = None
 
     def until(self, manager: str) -> float | None:
         """When ``manager``'s window ends, while it lasts."""
@@ -154,6 +158,15 @@ class LearningState:
         if not self.learning(manager):
             return False
         return manager == self.own or self.serves_everyone or self.learning(self.own)
+
+    def widens_param(self, manager: str, key: str) -> bool:
+        """Whether ``manager``'s parameter access to ``key`` is widened here now: as
+        :meth:`widens`, and never over a value another manager that does not learn set."""
+        if not self.widens(manager):
+            return False
+        if manager == self.own or self.param_owners is None:
+            return True
+        return all(owner == manager or self.learning(owner) for owner in self.param_owners(key))
 
     def note(self, allowed: bool, action: str, node: str, name: str, type_: str | None) -> None:
         self.table.record(Seen(allowed, action, node, name, type_), self.clock())
@@ -206,9 +219,13 @@ class LearningGrants(Grants):
             if self._own:
                 self._state.note(True, action, node, key, None)
             return True
+        if not self._state.widens_param(self._subject, key):
+            return False
         return self._miss(action, node, key, None)
 
     def param_namespaces(self, node: str) -> frozenset[str]:
+        """What a namespace read may reach; every key in its answer is judged again by
+        :meth:`param_allows` (another manager's values are pruned from it)."""
         namespaces = super().param_namespaces(node)
         return namespaces | {"/"} if self._state.widens(self._subject) else namespaces
 

@@ -175,6 +175,22 @@ class ParamQuota:
         if gone is not None:
             self._uncharge(gone)
 
+    def owners(self, key: str) -> frozenset[str]:
+        """The managers that set ``key``, a namespace above it, or anything below it
+        through here (what a read of ``key`` could return, or a write replace)."""
+        found: set[str] = set()
+        node: _Node | None = self._root
+        for part in _parts(key):
+            node = node.children.get(part) if node is not None else None
+            if node is None:
+                break
+            if node.value:
+                found.add(node.owner)  # a value above the key holds the key's value too
+        if node is not None:
+            found.update(n.owner for n in _subtree(node))
+        found.discard("")
+        return frozenset(found)
+
     def items(self) -> list[tuple[str, Any]]:
         """What rosmaster holds through here, as ``setParam`` calls would make it again:
         (key, value) of every value, and ``{}`` for every namespace with nothing in it,

@@ -98,6 +98,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: master role: what each peer manager stored in rosmaster through setParam, and the
         #: lock its parameter writes go to rosmaster under (in the order they are charged)
         self._params = ParamQuota(cfg.limits.max_param_keys_per_peer, cfg.limits.max_param_bytes_per_peer)
+        if "master" in cfg.roles:  # learning mode never widens a peer over another manager's values
+            gateway.learner.state.param_owners = lambda key: self._params.owners(key)
         self._param_writes = asyncio.Lock()
         #: one per peer endpoint called, the least recently used first (see pool())
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}

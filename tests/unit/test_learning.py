@@ -165,3 +165,35 @@ def test_a_used_row_is_kept_only_under_a_grant_the_manager_holds():
     assert not granted(grants, {**row, "name": "/cmd_vel"}) and not granted(grants, {**row, "type": None})
     assert granted(grants, {"action": "read_param", "node": "/conf", "name": "/fleet/speed", "type": None})
     assert not granted(grants, {"action": "write_param", "node": "/other", "name": "/fleet/speed", "type": None})
+
+
+def test_the_masters_interceptor_never_widens_a_learner_over_another_managers_parameters():
+    """A learning robot may read and write, without a grant, what it or other learning
+    managers set; never a value a manager that enforces set (its secrets stay its own)."""
+    from cryptoros.policy.ros1 import filter_param_reply
+
+    s, _ = state("master", master=True, learning={"robot_b": NOW + 60})
+    owners = {"/robot_a/secret": {"robot_a"}, "/fleet/speed": {"robot_b"}, "/": {"robot_a", "robot_b"},
+              "/robot_a": {"robot_a"}, "/fleet": {"robot_b"}}
+    s.param_owners = lambda key: frozenset(owners.get(key, ()))
+    learner = s.grants("robot_b", Grants())
+    assert learner.param_allows("read", "/n", "/fleet/speed") and learner.param_allows("write", "/n", "/new/key")
+    assert not learner.param_allows("read", "/n", "/robot_a/secret")
+    assert not learner.param_allows("write", "/n", "/robot_a/secret")
+    tree = {"robot_a": {"secret": "s3cr3t"}, "fleet": {"speed": 3}}
+    reply = filter_param_reply("getParam", ("/n", "/"), [1, "", tree], grants=learner)
+    assert reply[2] == {"fleet": {"speed": 3}}  # robot A's value pruned from the learner's read
+    s.windows = {"robot_b": NOW + 60, "robot_a": NOW + 60}  # both learn: both are let through
+    assert learner.param_allows("read", "/n", "/robot_a/secret")
+
+
+def test_parameter_owners_are_those_of_the_key_what_lies_below_it_and_a_value_above_it():
+    from interceptor.param_quota import ParamQuota
+
+    quota = ParamQuota(100, 1 << 20)
+    quota.set("robot_a", "/robot_a/secret", "s")
+    quota.set("robot_b", "/fleet", {"speed": 3})
+    assert quota.owners("/robot_a/secret") == {"robot_a"}
+    assert quota.owners("/") == {"robot_a", "robot_b"}
+    assert quota.owners("/fleet/speed") == {"robot_b"}  # inside a value robot B set
+    assert quota.owners("/nothing/here") == frozenset()
