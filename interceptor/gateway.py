@@ -250,6 +250,10 @@ class Gateway(Admission, Outbound, Health):
 
     # ================================================================ life cycle
     async def start(self, *, token_wait: float = 10.0) -> None:
+        if self.cfg.limits.max_messages_per_second is None:
+            log.warning("[limits] max_messages_per_second = 0: no per-peer message rate; one peer's flood can "
+                        "stall other peers' flows into this host, during it and for a minute or more after it "
+                        "on ROS 2 (docs/interceptor.md, \"Message rate\"); only benchmarks should run so")
         for role in self._roles:
             await role.prepare()
         try:
