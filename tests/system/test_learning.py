@@ -21,26 +21,22 @@ from pathlib import Path
 
 import pytest
 
-from tests.interceptor_harness import SYS_PY, denials, read_lines, robot_network, separate_hosts
+from cryptoros.lab.policy import policy_yaml
 from tests.authz_support import ok
+from tests.interceptor_harness import (
+    SYS_PY,
+    denials,
+    read_lines,
+    robot_network,
+    separate_hosts,
+)
 from tests.support import require, ros_package, running, until
 
 pytestmark = [pytest.mark.ros1]
 
 GRAPH = str(Path(__file__).parents[1] / "ros1_nodes" / "graph_node.py")
 #: managers and certificates only: not one grant
-POLICY = """\
-version: 1
-managers:
-- name: master
-  fingerprint_sha256: {master}
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-- name: robot_c
-  fingerprint_sha256: {robot_c}
-"""
+POLICY = policy_yaml({"master": {}, "robot_a": {}, "robot_b": {}, "robot_c": {}})
 LAUNCH = """<launch>
   <param name="/fleet/mode" value="explore"/>
   <node name="odom_pub" pkg="crlearn" type="graph_node.py" args="talker /odom_pub /odom">

@@ -11,23 +11,12 @@ import queue
 import time
 import urllib.request
 
-
-from tests.ros2_support import ros2_network
+from cryptoros.lab.policy import policy_yaml
 from tests.authz_support import ok
+from tests.ros2_support import ros2_network
 from tests.support import until
 
-
-
-POLICY = """\
-version: 1
-managers:
-- name: robot_a
-  fingerprint_sha256: {robot_a}
-- name: robot_b
-  fingerprint_sha256: {robot_b}
-- name: robot_c
-  fingerprint_sha256: {robot_c}
-"""
+POLICY = policy_yaml({"robot_a": {}, "robot_b": {}, "robot_c": {}})
 CLEAN_RUN = 60.0
 
 
