@@ -102,6 +102,15 @@ class Proposed:
 
 
 @dataclass
+class _Seen:
+    """What calls for one proposed grant, summed over the requests it covers."""
+
+    count: int = 0
+    last: int = 0
+    covers: set[str] = field(default_factory=set)
+
+
+@dataclass
 class Proposal:
     manager: str
     grants: list[Proposed] = field(default_factory=list)
@@ -149,7 +158,7 @@ def propose(manager: str, learned: Iterable[ObservationRow], current: Iterable[G
     """The grants ``manager``'s ``learned`` requests call for, beyond ``current``."""
     current = list(current)
     proposal = Proposal(manager)
-    wanted: dict[GrantRow, list] = {}  # grant -> [count, last, {as seen}]
+    wanted: dict[GrantRow, _Seen] = {}
     typed = {(o.action, o.node, o.name) for o in learned if o.type}
     for o in sorted(learned, key=lambda o: (o.action, o.node, o.name, o.type or "")):
         node = node_pattern(o.node)
@@ -170,11 +179,11 @@ def propose(manager: str, learned: Iterable[ObservationRow], current: Iterable[G
         grant = GrantRow(o.action, node, name, type_)
         if _covered(current, grant.action, o.node, o.name if o.action in PARAM_ACTIONS else name, type_):
             continue
-        entry = wanted.setdefault(grant, [0, 0, set()])
-        entry[0] += o.count
-        entry[1] = max(entry[1], o.last_seen)
+        entry = wanted.setdefault(grant, _Seen())
+        entry.count += o.count
+        entry.last = max(entry.last, o.last_seen)
         if node != o.node or name != o.name:
-            entry[2].add(f"{o.node} {o.name}")
+            entry.covers.add(f"{o.node} {o.name}")
     rows = list(wanted)
     for grant in rows:
         if grant.action == "read_param" and _covered([g for g in rows if g.action == "write_param"] + current,
@@ -186,7 +195,7 @@ def propose(manager: str, learned: Iterable[ObservationRow], current: Iterable[G
         if any(g.node == grant.node and g != grant for g in wanted) or any(node_matches(c.node, grant.node)
                                                                              for c in current):
             del wanted[grant]  # the node is named otherwise: ROS's own topics and services need no grant
-    proposal.grants = [Proposed(g, c, last, tuple(sorted(seen))) for g, (c, last, seen) in sorted(wanted.items())]
+    proposal.grants = [Proposed(g, s.count, s.last, tuple(sorted(s.covers))) for g, s in sorted(wanted.items())]
     return proposal
 
 

@@ -68,6 +68,15 @@ class Seen:
     type: str | None
 
 
+@dataclass(slots=True)
+class _Row:
+    count: int = 0
+    first: float = 0.0
+    last: float = 0.0
+    unreported: int = 0  # seen since the last report
+    reported_at: float = 0.0  # 0: never reported
+
+
 class ObservationTable:
     """Requests seen, by :class:`Seen`: count, first and last seen (wall clock), and
     what is still to be reported. Bounded: a new key past ``max_keys`` is dropped and
@@ -76,7 +85,7 @@ class ObservationTable:
     def __init__(self, max_keys: int = MAX_KEYS, used_every: float = USED_REPORT_EVERY) -> None:
         self.max_keys = max_keys
         self.used_every = used_every
-        self._rows: dict[Seen, list[float]] = {}  # key -> [count, first, last, count unreported, reported at]
+        self._rows: dict[Seen, _Row] = {}
         self.dropped = 0
         #: nodes seen in a learned request (their own private parameters are theirs
         #: once the proposal names them, so they are theirs while learning too)
@@ -88,23 +97,23 @@ class ObservationTable:
             if len(self._rows) >= self.max_keys:
                 self.dropped += 1
                 return
-            self._rows[seen] = row = [0, now, now, 0, 0.0]
+            self._rows[seen] = row = _Row(first=now)
             if not seen.allowed:
                 self.learned_nodes.add(seen.node)
-        row[0] += 1
-        row[2] = now
-        row[3] += 1
+        row.count += 1
+        row.last = now
+        row.unreported += 1
 
     def due(self, now: float) -> list[dict]:
         """What to report now (learned keys with news; allowed keys with news not
         reported for :attr:`used_every`); marks them reported."""
         out = []
         for seen, row in self._rows.items():
-            if not row[3] or (seen.allowed and row[4] and now - row[4] < self.used_every):
+            if not row.unreported or (seen.allowed and row.reported_at and now - row.reported_at < self.used_every):
                 continue
             out.append({"allowed": seen.allowed, "action": seen.action, "node": seen.node, "name": seen.name,
-                        "type": seen.type, "count": int(row[3]), "first": row[1], "last": row[2]})
-            row[3], row[4] = 0, now
+                        "type": seen.type, "count": row.unreported, "first": row.first, "last": row.last})
+            row.unreported, row.reported_at = 0, now
         return out
 
     def unreport(self, rows: Iterable[Mapping]) -> None:
@@ -112,18 +121,18 @@ class ObservationTable:
         for r in rows:
             row = self._rows.get(Seen(r["allowed"], r["action"], r["node"], r["name"], r["type"]))
             if row is not None:
-                row[3] += r["count"]
-                row[4] = 0.0
+                row.unreported += r["count"]
+                row.reported_at = 0.0
 
     def learned(self) -> list[dict]:
         """The learned keys, most seen first (``status``)."""
-        rows = [{"action": s.action, "node": s.node, "name": s.name, "type": s.type, "count": int(r[0]),
-                 "first": r[1], "last": r[2]} for s, r in self._rows.items() if not s.allowed]
+        rows = [{"action": s.action, "node": s.node, "name": s.name, "type": s.type, "count": r.count,
+                 "first": r.first, "last": r.last} for s, r in self._rows.items() if not s.allowed]
         return sorted(rows, key=lambda r: -r["count"])
 
     def forget_learned(self) -> None:
         """A window ended: what it learned was reported (or is lost with it)."""
-        for seen in [s for s, r in self._rows.items() if not s.allowed and not r[3]]:
+        for seen in [s for s, r in self._rows.items() if not s.allowed and not r.unreported]:
             del self._rows[seen]
         self.learned_nodes.clear()
 
