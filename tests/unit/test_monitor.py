@@ -899,13 +899,17 @@ async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quar
     assert stream.gate(honest[0]) is False  # a cut stream lets nothing more through
 
 
-def test_the_team_map_features_match_a_cell_by_cell_count():
-    """The grids are bitsets (an integer a grid); the features they give are the shares
+@pytest.mark.parametrize("numpy_from", [None, 0])
+def test_the_team_map_features_match_a_cell_by_cell_count(numpy_from, monkeypatch):
+    """The grids are integers (a byte a place); the features they give are the shares
     counted cell by cell: known cells out of reach of every reported position, and walls
     claimed before that an update calls free, over a robot's honest updates (a growing
-    patch around its path) mixed with random patches, a false claim and an erasure."""
+    patch around its path) mixed with random patches, a false claim and an erasure. The
+    same with every patch checked as a big one (numpy arrays, ``numpy_from=0``)."""
     from cryptoros.monitor import features as F
 
+    if numpy_from is not None:
+        monkeypatch.setattr(F, "NUMPY_FROM_CELLS", numpy_from)
     rng = np.random.default_rng(7)
     f = StreamFeatures(MAP, topic="/team/map")
     visited: set[tuple[int, int]] = set()
