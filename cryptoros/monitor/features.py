@@ -195,8 +195,11 @@ class _Grid:
         return (b"\xff" * (width - w)).join([cells[i:i + w] for i in range(0, h * w, w)])
 
     def footprint(self, h: int, w: int) -> int:
-        """A covered (h, w) window's places, set, at shift 0."""
-        return _footprint(h, w, self.width)
+        """A covered (h, w) window's places, set, at shift 0 (kept for the next patch of
+        that shape while small: the cache's memory stays bounded)."""
+        if h * self.width <= _CACHED_MASK_BYTES:
+            return _footprint(h, w, self.width)
+        return _footprint.__wrapped__(h, w, self.width)
 
     def window(self, row0: int, col0: int, h: int, w: int) -> bytes:
         """The (h, w) window at (row0, col0) as row-major 0/1 bytes (its own row length);
@@ -265,6 +268,10 @@ class _Grid:
         return True
 
 
+#: laid-out masks up to this many bytes are cached (64 of them at most: 1 MiB)
+_CACHED_MASK_BYTES = 1 << 14
+
+
 @functools.lru_cache(maxsize=64)
 def _footprint(h: int, w: int, width: int) -> int:
     """(h, w) places set, laid out in rows of ``width`` places (a byte each)."""
@@ -277,9 +284,16 @@ _REACH_DISK = bytes(int(dr * dr + dc * dc <= _REACH_RADIUS ** 2)
                     for dc in range(-_REACH_RADIUS, _REACH_RADIUS + 1))
 
 
-@functools.lru_cache(maxsize=16)
 def _reach_disk_bits(width: int) -> int:
-    """:data:`_REACH_DISK` laid out in rows of ``width`` places, at shift 0."""
+    """:data:`_REACH_DISK` laid out in rows of ``width`` places, at shift 0 (cached
+    while small, as :meth:`_Grid.footprint`)."""
+    if (2 * _REACH_RADIUS + 1) * width <= _CACHED_MASK_BYTES:
+        return _laid_disk(width)
+    return _laid_disk.__wrapped__(width)
+
+
+@functools.lru_cache(maxsize=16)
+def _laid_disk(width: int) -> int:
     side = 2 * _REACH_RADIUS + 1
     return int.from_bytes(bytes(width - side).join([_REACH_DISK[i:i + side] for i in range(0, side * side, side)]),
                           "little")
