@@ -513,17 +513,20 @@ class WatchedStream:
         """Score one message (features, model, alert): whether it is suspicious. One
         message in :data:`TIMING_SAMPLE` is timed for ``cryptoros_monitor_score_seconds``."""
         monitor = self.monitor
-        model = monitor.model
+        model, features = monitor.model, self.features
         self._scored += 1
         if self._scored % TIMING_SAMPLE:
-            score = model.score(self.features.kind, self.features.observe(body, now, wall))
+            score = model.score(features.kind, features.observe(body, now, wall))
         else:
             t0 = time.perf_counter()
-            score = model.score(self.features.kind, self.features.observe(body, now, wall))
+            score = model.score(features.kind, features.observe(body, now, wall))
             monitor.metrics.seconds.observe(time.perf_counter() - t0)
-        if self.alerts.update(score.value > 1.0, model.is_severe(score)):
+        if not score.value > 1.0:  # the common case: not suspicious, so not severe either
+            self.alerts.update(False)
+            return False
+        if self.alerts.update(True, model.is_severe(score)):
             monitor._alert(self, score.feature, score.value)
-        return score.value > 1.0
+        return True
 
     def _score_next_chunk(self) -> int:
         """Score the oldest queued chunk (its whole messages; a frame still arriving stays
@@ -534,6 +537,8 @@ class WatchedStream:
         buffer = self._buffer
         if whole:
             bodies, stop, error = [data], 0, None
+        elif not buffer and len(data) >= 4 and int.from_bytes(data[:4], "little") + 4 == len(data):
+            bodies, stop, error = [data[4:]], 0, None  # one whole frame (the commonest chunk)
         elif not buffer:  # the chunk starts with a frame (the common case): its bodies sliced from it
             spans, stop, _pending, error = self._walker.split(data)
             bodies = [data[start:end] for start, end in spans]

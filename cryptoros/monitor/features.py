@@ -125,85 +125,178 @@ MAX_WALL_CELLS = 1 << 18
 _MAX_ORIGIN = 1 << 20
 #: a team map bigger than this is not checked: malformed (the demo's is 10,000 cells)
 MAX_TEAM_MAP_CELLS = 1 << 22
+#: a team map of more cells than this is checked with numpy arrays, not integers: numpy's
+#: cost per call (10-20 us on the interceptor's cold path) is paid back on a big patch,
+#: where the integers' cost per cell (about 7 ns, against numpy's 1) is not
+NUMPY_FROM_CELLS = 1 << 16
 CLAIM_HOLD_S = 5.0
 BEACON_MATCH_S = 0.4
 GAP_HOLD_S = 1.0
 #: robots one cross-check follows, and pose streams per robot (least recently heard of dropped first)
 MAX_CROSSCHECK_ROBOTS = 1024
 MAX_POSE_STREAMS = 16
+_REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
+
+
+#: per byte of an int8 team-map cell: 1 where the cell is a wall (> 0), free (0), known (not -1)
+_WALL = bytes(1 if 0 < b < 128 else 0 for b in range(256))
+_FREE = bytes(1 if b == 0 else 0 for b in range(256))
+_KNOWN = bytes(0 if b == 0xFF else 1 for b in range(256))
+
+
+def _ones(a: bytes, b: bytes) -> int:
+    """How many places are 1 in both of two equally long 0/1 byte strings (as integers:
+    one AND and one popcount, no per-cell work)."""
+    return (int.from_bytes(a, "little") & int.from_bytes(b, "little")).bit_count()
 
 
 class _Grid:
-    """A boolean grid over integer (row, column) places that grows to cover what is
-    marked, up to ``limit`` cells (a mark that would pass it is dropped: bounded)."""
+    """A 0/1 grid over integer (row, column) places that grows to cover what is marked,
+    up to ``limit`` places (a mark that would pass it is dropped: bounded). Kept as one
+    integer, a byte a place (row-major, ``width`` places a row), so that a patch laid out
+    with the grid's row length (:meth:`laid_out`, one slice per row) is read, counted and
+    marked with a handful of whole-integer operations (shift, ``&``, ``|``,
+    ``int.bit_count``): no per-cell Python work and no numpy call (each costs 10-20 us
+    on the interceptor's cold path)."""
 
-    __slots__ = ("cells", "row0", "col0", "limit")
+    __slots__ = ("bits", "row0", "col0", "height", "width", "limit", "made")
 
     def __init__(self, limit: int) -> None:
-        self.cells: np.ndarray | None = None
-        self.row0 = self.col0 = 0
+        self.bits = 0
+        self.row0 = self.col0 = self.height = self.width = 0
         self.limit = limit
+        self.made = False  # grown at least once (a grid of no place is still made)
 
-    def window(self, row0: int, col0: int, h: int, w: int) -> np.ndarray | None:
-        """The (h, w) window at (row0, col0) as a view of the grid when the grid covers
-        all of it (no copy, no new array), else None (see :meth:`lookup`)."""
-        cells = self.cells
-        if cells is None:
-            return None
-        r, c = row0 - self.row0, col0 - self.col0
-        if r < 0 or c < 0 or r + h > cells.shape[0] or c + w > cells.shape[1]:
-            return None
-        return cells[r:r + h, c:c + w]
+    @property
+    def size(self) -> int:
+        """Places the grid holds."""
+        return self.height * self.width
 
-    def lookup(self, row0: int, col0: int, h: int, w: int) -> np.ndarray:
-        """The (h, w) window at (row0, col0); False where the grid does not reach."""
+    def covers(self, row0: int, col0: int, h: int, w: int) -> bool:
+        return (self.made and self.row0 <= row0 and self.col0 <= col0 and row0 + h <= self.row0 + self.height
+                and col0 + w <= self.col0 + self.width)
+
+    def take(self, row0: int, col0: int, h: int, w: int) -> bool:
+        """Whether the grid covers the (h, w) window at (row0, col0), growing it if not (by
+        a quarter more than needed, so not on every step); False when that would pass
+        the limit (what is there is then neither remembered nor read as a whole)."""
+        return self.covers(row0, col0, h, w) or self._grow(row0, col0, h, w)
+
+    def shift(self, row0: int, col0: int) -> int:
+        """The bit where place (row0, col0) of a covered window starts."""
+        return ((row0 - self.row0) * self.width + col0 - self.col0) * 8
+
+    def laid_out(self, cells: bytes, h: int, w: int) -> bytes:
+        """A patch's (h, w) row-major team-map cells with the grid's row length (unknown
+        cells, -1, between the rows: neither free nor a wall)."""
+        width = self.width
+        if w == width or not h * w:
+            return cells
+        return (b"\xff" * (width - w)).join([cells[i:i + w] for i in range(0, h * w, w)])
+
+    def footprint(self, h: int, w: int) -> int:
+        """A covered (h, w) window's places, set, at shift 0 (kept for the next patch of
+        that shape while small: the cache's memory stays bounded)."""
+        if h * self.width <= _CACHED_MASK_BYTES:
+            return _footprint(h, w, self.width)
+        return _footprint.__wrapped__(h, w, self.width)
+
+    def window(self, row0: int, col0: int, h: int, w: int) -> bytes:
+        """The (h, w) window at (row0, col0) as row-major 0/1 bytes (its own row length);
+        0 where the grid does not reach."""
+        width = self.width
+        cells = self.bits.to_bytes(self.height * width, "little")
+        out = bytearray(h * w)
+        r0, c0 = max(row0, self.row0), max(col0, self.col0)
+        r1, c1 = min(row0 + h, self.row0 + self.height), min(col0 + w, self.col0 + width)
+        if self.made and r0 < r1 and c0 < c1:
+            n = c1 - c0
+            for r in range(r0, r1):
+                src = (r - self.row0) * width + c0 - self.col0
+                dst = (r - row0) * w + c0 - col0
+                out[dst:dst + n] = cells[src:src + n]
+        return bytes(out)
+
+    def array(self, row0: int, col0: int, h: int, w: int) -> np.ndarray:
+        """The (h, w) window at (row0, col0) as a boolean array; False where the grid
+        does not reach (a big patch's numpy check)."""
         import numpy as np
 
         out = np.zeros((h, w), dtype=bool)
-        if self.cells is None:
-            return out
-        H, W = self.cells.shape
         r0, c0 = max(row0, self.row0), max(col0, self.col0)
-        r1, c1 = min(row0 + h, self.row0 + H), min(col0 + w, self.col0 + W)
-        if r0 < r1 and c0 < c1:
+        r1, c1 = min(row0 + h, self.row0 + self.height), min(col0 + w, self.col0 + self.width)
+        if self.made and r0 < r1 and c0 < c1:
+            cells = np.frombuffer(self.bits.to_bytes(self.height * self.width, "little"), dtype=bool)
+            cells = cells.reshape(self.height, self.width)
             out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = \
-                self.cells[r0 - self.row0:r1 - self.row0, c0 - self.col0:c1 - self.col0]
+                cells[r0 - self.row0:r1 - self.row0, c0 - self.col0:c1 - self.col0]
         return out
 
-    def mark(self, row0: int, col0: int, mask: np.ndarray) -> None:
-        """OR ``mask`` into the grid at (row0, col0), growing it first if it does not
-        cover the mask (by a quarter more than needed, so not on every step)."""
+    def mark_array(self, row0: int, col0: int, mask: np.ndarray) -> None:
+        """OR a boolean (h, w) ``mask`` into the grid at (row0, col0) (a big patch's
+        walls), growing the grid as :meth:`take` does; dropped past the limit."""
         import numpy as np
 
         h, w = mask.shape
-        if self.cells is not None:
-            H, W = self.cells.shape
-            covered = (self.row0 <= row0 and self.col0 <= col0 and row0 + h <= self.row0 + H
-                       and col0 + w <= self.col0 + W)
-        if self.cells is None or not covered:
-            r0, c0, r1, c1 = row0, col0, row0 + h, col0 + w
-            if self.cells is not None:
-                r0, c0 = min(r0, self.row0), min(c0, self.col0)
-                r1, c1 = max(r1, self.row0 + H), max(c1, self.col0 + W)
-            pad_r, pad_c = (r1 - r0) // 4, (c1 - c0) // 4
-            if (r1 - r0 + 2 * pad_r) * (c1 - c0 + 2 * pad_c) <= self.limit:
-                r0, r1, c0, c1 = r0 - pad_r, r1 + pad_r, c0 - pad_c, c1 + pad_c
-            elif (r1 - r0) * (c1 - c0) > self.limit:
-                return  # bounded: a mark that would pass the limit is dropped
-            grown = np.zeros((r1 - r0, c1 - c0), dtype=bool)
-            if self.cells is not None:
-                grown[self.row0 - r0:self.row0 - r0 + H, self.col0 - c0:self.col0 - c0 + W] = self.cells
-            self.cells, self.row0, self.col0 = grown, r0, c0
-        self.cells[row0 - self.row0:row0 - self.row0 + h, col0 - self.col0:col0 - self.col0 + w] |= mask
+        if not self.take(row0, col0, h, w):
+            return
+        grid = np.zeros((self.height, self.width), dtype=np.uint8)
+        r, c = row0 - self.row0, col0 - self.col0
+        grid[r:r + h, c:c + w] = mask
+        self.bits |= int.from_bytes(grid.tobytes(), "little")
+
+    def _grow(self, row0: int, col0: int, h: int, w: int) -> bool:
+        r0, c0, r1, c1 = row0, col0, row0 + h, col0 + w
+        if self.made:
+            r0, c0 = min(r0, self.row0), min(c0, self.col0)
+            r1, c1 = max(r1, self.row0 + self.height), max(c1, self.col0 + self.width)
+        pad_r, pad_c = (r1 - r0) // 4, (c1 - c0) // 4
+        if (r1 - r0 + 2 * pad_r) * (c1 - c0 + 2 * pad_c) <= self.limit:
+            r0, r1, c0, c1 = r0 - pad_r, r1 + pad_r, c0 - pad_c, c1 + pad_c
+        elif (r1 - r0) * (c1 - c0) > self.limit:
+            return False
+        height, width = r1 - r0, c1 - c0
+        if self.made and self.bits:
+            old, ow = self.bits.to_bytes(self.height * self.width, "little"), self.width
+            grown = bytearray(height * width)
+            for r in range(self.height):
+                dst = (self.row0 - r0 + r) * width + self.col0 - c0
+                grown[dst:dst + ow] = old[r * ow:(r + 1) * ow]
+            self.bits = int.from_bytes(grown, "little")
+        self.row0, self.col0, self.height, self.width = r0, c0, height, width
+        self.made = True
+        return True
 
 
-@functools.cache
-def _reach_disk() -> np.ndarray:
-    """The coarse places within sensor reach of a place, as a square mask around it."""
-    import numpy as np
+#: laid-out masks up to this many bytes are cached (64 of them at most: 1 MiB)
+_CACHED_MASK_BYTES = 1 << 14
 
-    side = np.arange(-_REACH_RADIUS, _REACH_RADIUS + 1)
-    return side[:, None] ** 2 + side[None, :] ** 2 <= _REACH_RADIUS ** 2
+
+@functools.lru_cache(maxsize=64)
+def _footprint(h: int, w: int, width: int) -> int:
+    """(h, w) places set, laid out in rows of ``width`` places (a byte each)."""
+    return int.from_bytes(bytes(width - w).join([b"\x01" * w] * h), "little")
+
+
+#: the coarse places within sensor reach of a place, as a square 0/1 mask around it
+_REACH_DISK = bytes(int(dr * dr + dc * dc <= _REACH_RADIUS ** 2)
+                    for dr in range(-_REACH_RADIUS, _REACH_RADIUS + 1)
+                    for dc in range(-_REACH_RADIUS, _REACH_RADIUS + 1))
+
+
+def _reach_disk_bits(width: int) -> int:
+    """:data:`_REACH_DISK` laid out in rows of ``width`` places, at shift 0 (cached
+    while small, as :meth:`_Grid.footprint`)."""
+    if (2 * _REACH_RADIUS + 1) * width <= _CACHED_MASK_BYTES:
+        return _laid_disk(width)
+    return _laid_disk.__wrapped__(width)
+
+
+@functools.lru_cache(maxsize=16)
+def _laid_disk(width: int) -> int:
+    side = 2 * _REACH_RADIUS + 1
+    return int.from_bytes(bytes(width - side).join([_REACH_DISK[i:i + side] for i in range(0, side * side, side)]),
+                          "little")
 
 
 class _PoseTrack:
@@ -268,7 +361,6 @@ class Crosscheck:
                 track.beacon = (x, y, now, math.hypot(track.x - x, track.y - y))
 
 
-_REACH_RADIUS = math.ceil(SENSOR_REACH_M / REACH_CELL_M)
 #: team-map cells per coarse place along a side
 _CELLS_PER_PLACE = round(REACH_CELL_M / TEAM_MAP_RESOLUTION_M)
 assert math.isclose(_CELLS_PER_PLACE * TEAM_MAP_RESOLUTION_M, REACH_CELL_M), "a place is a whole number of cells"
@@ -283,6 +375,26 @@ def _places(origin: int, n: int) -> tuple[int, list[int]]:
     if first == last:
         return first, [n]
     return first, [k * (first + 1) - origin, *([k] * (last - first - 1)), origin + n - k * last]
+
+
+#: a coarse place's 0/1 byte as the bytes of the cells along a side of it
+_ACROSS_PLACE = (bytes(_CELLS_PER_PLACE), b"\x01" * _CELLS_PER_PLACE)
+
+
+def _spread(places: bytes, row_cells: list[int], col_cells: list[int]) -> bytes:
+    """A window of coarse places spread to the cells they cover (row-major 0/1 bytes):
+    each place repeated over its cells, each row of places over its rows of cells. (The
+    first and last place of a row may cover fewer cells: the patch's cells start
+    ``k - col_cells[0]`` cells into its first place.)"""
+    ncols, k = len(col_cells), _CELLS_PER_PLACE
+    start = k - col_cells[0]
+    stop = start + sum(col_cells)
+    rows = []
+    for i, n in enumerate(row_cells):
+        line = b"".join(map(_ACROSS_PLACE.__getitem__, places[i * ncols:(i + 1) * ncols]))
+        rows.append(line[start:stop] * n)
+    return b"".join(rows)
+
 
 def warm_up() -> None:
     """Load what scoring needs (numpy, the decoders of the known ROS 1 types) and run
@@ -454,11 +566,10 @@ def _decode_beacon(body: bytes | memoryview) -> tuple[str, float, float]:
     return _source_and_position(body)[:3]
 
 
-def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, np.ndarray]:
+def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, int, int, bytes]:
     """What the team-map features read of a ``cryptoros_sim/MapUpdate``: the sender's
-    position, the patch's origin (cells) and its cells as a (height, width) array."""
-    import numpy as np
-
+    position, the patch's origin (cells), its height and width, and its cells (int8,
+    row-major) as bytes."""
     _source, x, y, pos = _source_and_position(body)
     try:
         *_goal, _complete, origin_x, origin_y, width, height, count = _MAP_TAIL.unpack_from(body, pos)
@@ -470,8 +581,7 @@ def _decode_team_map(body: bytes | memoryview) -> tuple[float, float, int, int, 
     if not (abs(origin_x) < _MAX_ORIGIN - width and abs(origin_y) < _MAX_ORIGIN - height
             and abs(x) < 1e5 and abs(y) < 1e5):
         raise RemoteProtocolError("MapUpdate origin or position out of range")
-    cells = np.ndarray((height, width), dtype=np.int8, buffer=body, offset=pos)  # one call: a read-only view
-    return x, y, origin_x, origin_y, cells
+    return x, y, origin_x, origin_y, height, width, bytes(body[pos:pos + count])
 
 
 _DECODERS: dict[str, Callable[[Any], Any]] = {"pose": _decode_pose, "twist": _decode_twist, "scan": _decode_scan,
@@ -578,51 +688,80 @@ class StreamFeatures:
         return ()
 
     def _team_map(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
-        import numpy as np
-
-        x, y, origin_x, origin_y, cells = msg
+        x, y, origin_x, origin_y, h, w, cells = msg
         self._note_reach(x, y)
-        unseen = 0.0
-        # the grid of places in reach over the patch's coarse places (outside it: out of
-        # reach); when some are not, spread to the patch's cells (each place repeated over
-        # the cells it covers: the patch's places are consecutive), then the known cells
-        h, w = cells.shape
-        row0, row_cells = _places(origin_y, h)
-        col0, col_cells = _places(origin_x, w)
-        # the honest robot's case first: every place of the patch in reach, read as a view
-        # of the grid (each numpy call costs 10-20 us on the interceptor's cold path)
-        view = self._reach.window(row0, col0, len(row_cells), len(col_cells))
-        in_reach = view if view is not None else self._reach.lookup(row0, col0, len(row_cells), len(col_cells))
-        # (every cell in reach: nothing unseen; count_nonzero is one C call, all() a ufunc reduction)
-        if view is None or np.count_nonzero(view) != view.size:
-            known = cells != -1
-            total = int(np.count_nonzero(known))
-            if total:
-                reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
-                unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
-        erased = self._walls_erased(origin_x, origin_y, cells)
+        if h * w > NUMPY_FROM_CELLS:
+            unseen, erased = self._big_team_map(origin_x, origin_y, h, w, cells)
+        else:
+            unseen = self._unseen(origin_x, origin_y, h, w, cells)
+            erased = self._walls_erased(origin_x, origin_y, h, w, cells)
         claims = self._claims
         claims.append((now, unseen, erased))
         while claims and claims[0][0] < now - CLAIM_HOLD_S:
             claims.popleft()
         return max(c[1] for c in claims), max(c[2] for c in claims)
 
-    def _walls_erased(self, origin_x: int, origin_y: int, cells: np.ndarray) -> float:
+    def _unseen(self, origin_x: int, origin_y: int, h: int, w: int, cells: bytes) -> float:
+        """The share of the patch's known cells out of reach of every reported position."""
+        unseen = 0.0
+        # the grid of places in reach over the patch's coarse places (outside it: out of
+        # reach); when some are not, spread to the patch's cells (each place repeated over
+        # the cells it covers: the patch's places are consecutive), then the known cells
+        row0, row_cells = _places(origin_y, h)
+        col0, col_cells = _places(origin_x, w)
+        reach, rows, cols = self._reach, len(row_cells), len(col_cells)
+        if reach.covers(row0, col0, rows, cols):  # the honest robot's case: every place in reach, nothing unseen
+            every = reach.footprint(rows, cols)
+            in_reach = ((reach.bits >> reach.shift(row0, col0)) & every) == every
+        else:
+            in_reach = False
+        if not in_reach:
+            known = int.from_bytes(cells.translate(_KNOWN), "little")
+            total = known.bit_count()
+            if total:
+                places = _spread(reach.window(row0, col0, rows, cols), row_cells, col_cells)
+                unseen = (total - (known & int.from_bytes(places, "little")).bit_count()) / total
+        return unseen
+
+    def _big_team_map(self, origin_x: int, origin_y: int, h: int, w: int, cells: bytes) -> tuple[float, float]:
+        """:meth:`_unseen` and :meth:`_walls_erased` of a big patch, the same shares
+        computed with numpy arrays (the places in reach spread to the cells with
+        ``np.repeat``)."""
+        import numpy as np
+
+        patch = np.frombuffer(cells, dtype=np.int8).reshape(h, w)
+        row0, row_cells = _places(origin_y, h)
+        col0, col_cells = _places(origin_x, w)
+        in_reach = self._reach.array(row0, col0, len(row_cells), len(col_cells))
+        unseen = 0.0
+        if not in_reach.all():
+            known = patch != -1
+            total = int(np.count_nonzero(known))
+            if total:
+                reach_cells = np.repeat(np.repeat(in_reach, row_cells, axis=0), col_cells, axis=1)
+                unseen = (total - int(np.count_nonzero(known & reach_cells))) / total
+        before = self._walls.array(origin_y, origin_x, h, w)
+        n = int(np.count_nonzero(before))
+        erased = int(np.count_nonzero(before & (patch == 0))) / n if n else 0.0
+        self._walls.mark_array(origin_y, origin_x, patch > 0)
+        return unseen, erased
+
+    def _walls_erased(self, origin_x: int, origin_y: int, h: int, w: int, cells: bytes) -> float:
         """The share of the walls this stream claimed before (within this update's patch)
         that this update calls free: a robot's own observations only grow, and a wall it
         saw stays a wall. Remembers this update's walls (a grid of at most
         :data:`MAX_WALL_CELLS`: beyond it, walls are not remembered)."""
-        import numpy as np
-
-        h, w = cells.shape
-        erased = 0.0
-        before = self._walls.window(origin_y, origin_x, h, w)  # a view: read before the mark below
-        if before is None:
-            before = self._walls.lookup(origin_y, origin_x, h, w)
-        n = int(np.count_nonzero(before))
-        if n:
-            erased = int(np.count_nonzero(before & (cells == 0))) / n
-        self._walls.mark(origin_y, origin_x, cells > 0)
+        walls = self._walls
+        if not walls.take(origin_y, origin_x, h, w):  # past the bound: read what is there, remember nothing
+            before = walls.window(origin_y, origin_x, h, w)
+            n = before.count(1)
+            return _ones(before, cells.translate(_FREE)) / n if n else 0.0
+        at = walls.shift(origin_y, origin_x)
+        laid = walls.laid_out(cells, h, w)
+        before = (walls.bits >> at) & walls.footprint(h, w)
+        n = before.bit_count()
+        erased = (before & int.from_bytes(laid.translate(_FREE), "little")).bit_count() / n if n else 0.0
+        walls.bits |= int.from_bytes(laid.translate(_WALL), "little") << at
         return erased
 
     def _note_reach(self, x: float, y: float) -> None:
@@ -631,7 +770,10 @@ class StreamFeatures:
         if place in self._visited or len(self._visited) >= MAX_VISITED:
             return
         self._visited.add(place)
-        self._reach.mark(place[0] - _REACH_RADIUS, place[1] - _REACH_RADIUS, _reach_disk())
+        reach, side = self._reach, 2 * _REACH_RADIUS + 1
+        row0, col0 = place[0] - _REACH_RADIUS, place[1] - _REACH_RADIUS
+        if reach.take(row0, col0, side, side):
+            reach.bits |= _reach_disk_bits(reach.width) << reach.shift(row0, col0)
 
     def _scan(self, msg: Any, now: float, wall: float) -> tuple[float, ...]:
         """Means over the valid beams only (in range: NaN and inf never are), computed

@@ -899,6 +899,57 @@ async def test_a_gated_topic_drops_a_false_claim_before_it_is_forwarded_and_quar
     assert stream.gate(honest[0]) is False  # a cut stream lets nothing more through
 
 
+@pytest.mark.parametrize("numpy_from", [None, 0])
+def test_the_team_map_features_match_a_cell_by_cell_count(numpy_from, monkeypatch):
+    """The grids are integers (a byte a place); the features they give are the shares
+    counted cell by cell: known cells out of reach of every reported position, and walls
+    claimed before that an update calls free, over a robot's honest updates (a growing
+    patch around its path) mixed with random patches, a false claim and an erasure. The
+    same with every patch checked as a big one (numpy arrays, ``numpy_from=0``)."""
+    from cryptoros.monitor import features as F
+
+    if numpy_from is not None:
+        monkeypatch.setattr(F, "NUMPY_FROM_CELLS", numpy_from)
+    rng = np.random.default_rng(7)
+    f = StreamFeatures(MAP, topic="/team/map")
+    visited: set[tuple[int, int]] = set()
+    walls: set[tuple[int, int]] = set()
+    claims: list[tuple[float, float, float]] = []
+    radius, k = F._REACH_RADIUS, F._CELLS_PER_PLACE
+    x, y = 3.0, 3.0
+    for i in range(120):
+        t = 1000.0 + 0.7 * i
+        x, y = min(max(x + rng.uniform(-0.8, 1.0), 0.5), 30.0), min(max(y + rng.uniform(-0.8, 1.0), 0.5), 30.0)
+        if i % 7 == 3:  # anywhere, any size
+            origin = (int(rng.integers(-40, 160)), int(rng.integers(-40, 160)))
+            shape = (int(rng.integers(1, 70)), int(rng.integers(1, 70)))
+        else:  # the honest robot: a patch around where it is
+            origin = (int(x / 0.2) - 20, int(y / 0.2) - 18)
+            shape = (40 + i % 5, 36 + i % 3)
+        cells = rng.choice(np.array([-1, 0, 100], np.int8), size=shape, p=[0.4, 0.45, 0.15])
+        if i in (60, 90):  # a false "explored" claim; an update that frees every wall it saw
+            origin, cells = (0, 0), np.zeros((150, 150), np.int8)
+        got = named("team_map", f.observe(team_map(x, y, origin, cells), t, t))
+        visited.add((math.floor(y), math.floor(x)))
+        known = out_of_reach = before = erased = 0
+        for (r, c), v in np.ndenumerate(cells):
+            row, col = origin[1] + r, origin[0] + c
+            if v != -1:
+                known += 1
+                place = (row // k, col // k)
+                out_of_reach += not any((place[0] - a) ** 2 + (place[1] - b) ** 2 <= radius ** 2 for a, b in visited)
+            if (row, col) in walls:
+                before += 1
+                erased += v == 0
+        walls |= {(origin[1] + r, origin[0] + c) for (r, c), v in np.ndenumerate(cells) if v > 0}
+        claims = [c for c in claims if c[0] >= t - F.CLAIM_HOLD_S] + [(t, out_of_reach / known if known else 0.0,
+                                                                     erased / before if before else 0.0)]
+        assert got["unseen_claim"] == pytest.approx(max(c[1] for c in claims), abs=1e-12), i
+        assert got["walls_erased"] == pytest.approx(max(c[2] for c in claims), abs=1e-12), i
+        if i in (60, 90):  # both features are exercised, not only zeros
+            assert got["unseen_claim"] > 0.4 and (i == 60 or got["walls_erased"] > 0.5), (i, got)
+
+
 def test_a_team_map_stream_keeps_bounded_grids_whatever_it_claims():
     """What a team-map stream remembers (places in reach, walls) grows with what it
     reports, never past its bounds: a claim far away or huge costs no memory."""
@@ -910,10 +961,10 @@ def test_a_team_map_stream_keeps_bounded_grids_whatever_it_claims():
     for i in range(1, 51):  # walls claimed all over a 400 km line: only what fits the bound is kept
         far = named("team_map", f.observe(team_map(3.0, 3.0, (i * 20_000, 0), walled), 1001.0 + i, 1001.0 + i))
         assert far["unseen_claim"] == 1.0  # nobody at (3, 3) saw cells 4 km away
-    assert f._walls.cells.size <= F.MAX_WALL_CELLS and f._reach.cells.size <= F.MAX_REACH_CELLS
+    assert f._walls.size <= F.MAX_WALL_CELLS and f._reach.size <= F.MAX_REACH_CELLS
     for i in range(200):  # positions reported all over: the places in reach stay bounded too
         f.observe(team_map(i * 1000.0, 0.0, (0, 0), np.zeros((1, 1), np.int8)), 1100.0 + i, 1100.0 + i)
-    assert f._reach.cells.size <= F.MAX_REACH_CELLS and len(f._visited) <= F.MAX_VISITED
+    assert f._reach.size <= F.MAX_REACH_CELLS and len(f._visited) <= F.MAX_VISITED
     huge = named("team_map", f.observe(team_map(3.0, 3.0, (0, 0), np.zeros((2100, 2100), np.int8)), 1400.0, 1400.0))
     assert huge["malformed"] == 1.0  # too many cells to check: malformed, not checked at a cost
     far_off = named("team_map", f.observe(team_map(3.0, 3.0, (2 ** 21, 0), walled), 1401.0, 1401.0))
