@@ -267,5 +267,10 @@ def test_free_domains_skip_every_domain_with_a_bound_port(tmp_path):
     assert free_domains(3, 9, proc=tmp_path) == [13, 14, 15]
     assert free_domains(3, 0, proc=tmp_path) == [0, 1, 2]
     assert free_domains(3, 98, proc=tmp_path, top=101) == [98, 99, 100]
-    assert free_domains(3, 99, proc=tmp_path, top=101) == [0, 1, 2]  # 99..101 would pass the top: wraps
+    assert free_domains(3, 99, proc=tmp_path, top=101) == [99, 100, 101]
+    assert free_domains(3, 100, proc=tmp_path, top=101) == [0, 1, 2]  # 100..102 would pass the top: wraps
     assert free_domains(2, 10, proc=tmp_path) == [13, 14]
+    # a worker's own part of the range (11..15): never a domain outside it
+    assert free_domains(2, 11, proc=tmp_path, low=11, top=15) == [13, 14]
+    assert free_domains(2, 14, proc=tmp_path, low=11, top=15) == [14, 15]
+    assert free_domains(2, 15, proc=tmp_path, low=11, top=15) == [13, 14]  # 15..16 would pass the top: wraps
