@@ -66,15 +66,18 @@ def ros2_python() -> Path:
 
 
 def fresh_domains(count: int) -> list[int]:
-    """Domain ids in 0..101 unlikely to collide with another test session; each xdist
-    worker (``gwN``) draws from its own part of the range, so two workers never share one."""
+    """Domain ids in 0..101 no other session on this host is using now; each xdist worker
+    (``gwN``) draws from its own part of the range, so two workers never share one."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
     index = int(worker[2:]) if worker[2:].isdigit() else 0
     span = 102 // workers
     low = (index % workers) * span
-    base = low + (os.getpid() * 7) % max(1, span - count)
-    return [base + i for i in range(count)]
+    # ids whose ports no process on this host has bound: another session's endpoints on a
+    # shared domain would match this test's own (cryptoros.ros2.exposure.free_domains)
+    from cryptoros.ros2.exposure import free_domains
+
+    return free_domains(count, low + (os.getpid() * 7) % max(1, span - count), low=low, top=low + span - 1)
 
 
 def ros2_env(domain: int, *, localhost_profile: bool = True) -> dict[str, str]:

@@ -170,8 +170,10 @@ def ros2(n_small: int, n_100: int, n_1k: int, n_img: int, depth: int, python: st
     py = Path(python) if python else default_ros2_python()
     if not py.exists():
         raise click.ClickException(f"{py} does not exist: create the ROS 2 venv with scripts/ros2-venv")
-    base = (os.getpid() * 7) % 99
-    domains = (base, base + 1, base + 2)  # direct, robot A, robot B
+    from cryptoros.ros2.exposure import free_domains
+
+    # direct, robot A, robot B: domains no other session on this host is using now
+    domains = tuple(free_domains(3, (os.getpid() * 7) % 99))
     rows = [
         ("std_msgs/String 64 B, max rate", "small", n_small, 0.0),
         ("one-way latency at 100 Hz", "small", n_100, 100.0),

@@ -57,6 +57,23 @@ def _string(text: str) -> bytes:
     return CDR_HEADER + struct.pack("<I", len(body) + 1) + body + b"\x00"
 
 
+def _transport_cpu() -> dict[str, float]:
+    """CPU seconds of this process's Fast DDS receive threads, by transport (``dds.shm.<port>``,
+    ``dds.udp.<port>``): which one carried the row (shared memory, or UDP loopback)."""
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            stat = open(f"/proc/self/task/{tid}/stat").read()
+        except OSError:
+            continue
+        comm = stat[stat.index("(") + 1:stat.rindex(")")]
+        if comm.startswith(("dds.shm.", "dds.udp.")):
+            fields = stat[stat.rindex(")") + 2:].split()
+            out[comm[:7]] = out.get(comm[:7], 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
 def _publisher(node, kind: str, count: int, hz: float) -> None:
     msg_type = Image if kind == "image" else String
     pub = node.create_publisher(msg_type, "/bench", QOS)
@@ -88,8 +105,10 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
     start = time.monotonic()
     next_at = start
     retries = 0
+    longest, longest_at = 0.0, 0.0  # the longest wait for the path to accept one message, and when it began
     for _ in range(count):
         data = make(False)
+        began = time.monotonic()
         while True:
             try:
                 pub.publish(data)
@@ -99,6 +118,9 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
                     raise SystemExit(1)
                 retries += 1
                 time.sleep(0.0005)
+        waited = time.monotonic() - began
+        if waited > longest:
+            longest, longest_at = waited, time.time() - waited
         if period:
             next_at += period
             delay = next_at - time.monotonic()
@@ -107,7 +129,9 @@ def _publisher(node, kind: str, count: int, hz: float) -> None:
     elapsed = time.monotonic() - start
     cpu = time.process_time() - cpu0
     print(json.dumps({"sent": count, "send_rate": count / elapsed if elapsed else 0.0, "pub_cpu_s": cpu,
-                      "pub_retries": retries}), flush=True)
+                      "pub_transport_cpu_s": _transport_cpu(),
+                      "pub_retries": retries,
+                      "pub_longest_wait_ms": longest * 1e3, "pub_longest_wait_at": longest_at}), flush=True)
     time.sleep(3.0)  # keep the writer alive while reliable delivery finishes
 
 
@@ -171,9 +195,12 @@ def _subscriber(node, kind: str, count: int, idle: float) -> None:
         "p50": lat[n // 2] if n else None,
         "p99": lat[min(n - 1, int(n * 0.99))] if n else None,
         "sub_cpu_s": cpu,
+        "sub_transport_cpu_s": _transport_cpu(),
         # longest silence between two arrivals: a reliable DDS repair (heartbeat, NACK, resend) shows here
         "max_gap_ms": max(((b[0] - a[0]) / 1e6 for a, b in zip(got, got[1:])), default=0.0),
         "gaps_over_100ms": sum(1 for a, b in zip(got, got[1:]) if b[0] - a[0] > 100_000_000),
+        # when the longest silence began (epoch seconds), to line it up with other processes' logs
+        "max_gap_at": max(((b[0] - a[0], a[0] / 1e9) for a, b in zip(got, got[1:])), default=(0, 0.0))[1],
     }), flush=True)
 
 
@@ -181,10 +208,14 @@ def main() -> None:
     role, kind, count, arg = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
     rclpy.init()
     node = rclpy.create_node(f"bench_{role}")
-    if role == "pub":
-        _publisher(node, kind, count, arg)
-    else:
-        _subscriber(node, kind, count, arg)
+    try:
+        if role == "pub":
+            _publisher(node, kind, count, arg)
+        else:
+            _subscriber(node, kind, count, arg)
+    finally:  # say goodbye in discovery: a reader left matched would hold a KEEP_ALL writer of the next row
+        node.destroy_node()
+        rclpy.try_shutdown()
 
 
 if __name__ == "__main__":

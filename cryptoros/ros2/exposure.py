@@ -133,6 +133,38 @@ class ExposureScan:
         return self._found
 
 
+def busy_domains(sockets: list[tuple[Address, int, int]]) -> set[int]:
+    """Domains (0..232) with at least one socket bound in their RTPS port range."""
+    return {(port - PORT_BASE) // DOMAIN_GAIN for _, port, _ in sockets
+            if PORT_BASE <= port < PORT_BASE + DOMAIN_GAIN * 233}
+
+
+def bound_domains(proc: Path = Path("/proc")) -> set[int]:
+    """Domains with a socket bound in their RTPS port range on this host now."""
+    sockets: list[tuple[Address, int, int]] = []
+    for name in ("udp", "udp6"):
+        try:
+            sockets += parse_udp((proc / "net" / name).read_text())
+        except OSError:
+            continue
+    return busy_domains(sockets)
+
+
+def free_domains(count: int, start: int, proc: Path = Path("/proc"), top: int = 101, low: int = 0) -> list[int]:
+    """``count`` consecutive domain ids in ``low``..``top`` none of whose ports is bound
+    now, searched from ``start`` (wrapping): a benchmark or test on a shared host then does
+    not join another session's domain, whose endpoints would match its own (a reader that
+    stopped taking blocks a reliable KEEP_ALL writer). Falls back to ``start``'s run."""
+    busy = bound_domains(proc)
+    span = top + 2 - low - count
+    first = (start - low) % span
+    for offset in range(span):
+        base = low + (first + offset) % span
+        if not busy & set(range(base, base + count)):
+            return list(range(base, base + count))
+    return list(range(low + first, low + first + count))
+
+
 def gid_pid16(gid_hex: str) -> int | None:
     """The low 16 bits of the process id a Fast DDS endpoint GID carries (bytes 4-5)."""
     try:
@@ -144,4 +176,4 @@ def gid_pid16(gid_hex: str) -> int | None:
     return int.from_bytes(raw[4:6], "little")
 
 
-__all__ = ["Exposed", "ExposureScan", "domain_ports", "exposed_inodes", "gid_pid16", "parse_udp"]
+__all__ = ["Exposed", "ExposureScan", "bound_domains", "busy_domains", "domain_ports", "free_domains", "exposed_inodes", "gid_pid16", "parse_udp"]

@@ -251,3 +251,26 @@ def test_the_exposure_scan_finds_a_participant_bound_beyond_loopback_and_its_pro
     # Fast DDS puts the pid's low 16 bits in bytes 4-5 of the GUID prefix (pid 27809 = 0x6ca1)
     assert gid_pid16("010f4037a16c13c0") == 27809
     assert gid_pid16("0000000000000000") is None and gid_pid16("zz") is None
+
+
+def test_free_domains_skip_every_domain_with_a_bound_port(tmp_path):
+    """Domains 10 and 12 have a socket bound (ports 9900 and 10400+): three consecutive
+    free ids searched from 9 are 13..15; a start past the last fitting run wraps round to 0."""
+    from cryptoros.ros2.exposure import free_domains
+
+    header = "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
+    row = "   1: 0100007F:{port:04X} 00000000:0000 07 00000000:00000000 00:00000000 00000000     0        0 {inode} 2\n"
+    net = tmp_path / "net"
+    net.mkdir()
+    (net / "udp").write_text(header + row.format(port=7400 + 250 * 10, inode=1) + row.format(port=46266, inode=2))
+    (net / "udp6").write_text(header + row.format(port=7400 + 250 * 12 + 249, inode=3))
+    assert free_domains(3, 9, proc=tmp_path) == [13, 14, 15]
+    assert free_domains(3, 0, proc=tmp_path) == [0, 1, 2]
+    assert free_domains(3, 98, proc=tmp_path, top=101) == [98, 99, 100]
+    assert free_domains(3, 99, proc=tmp_path, top=101) == [99, 100, 101]
+    assert free_domains(3, 100, proc=tmp_path, top=101) == [0, 1, 2]  # 100..102 would pass the top: wraps
+    assert free_domains(2, 10, proc=tmp_path) == [13, 14]
+    # a worker's own part of the range (11..15): never a domain outside it
+    assert free_domains(2, 11, proc=tmp_path, low=11, top=15) == [13, 14]
+    assert free_domains(2, 14, proc=tmp_path, low=11, top=15) == [14, 15]
+    assert free_domains(2, 15, proc=tmp_path, low=11, top=15) == [13, 14]  # 15..16 would pass the top: wraps
