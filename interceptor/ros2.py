@@ -46,7 +46,7 @@ from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, Remote
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
-from cryptoros.ros2.profile import localhost_env
+from cryptoros.ros2.profile import localhost_env, segments_cleaned, shm_clean_command
 from cryptoros.policy.infrastructure import ros2_stays_local
 from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
@@ -64,6 +64,9 @@ log = logging.getLogger("cryptoros.interceptor.ros2")
 BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py"
 #: ROS 2 plumbing every node has; never bridged, never logged as a denial.
 BRIDGE_START_TIMEOUT = 30.0
+#: eProsima's ``fastdds shm clean`` before a bridge starts (0.1 s on a clean host, 0.5 s
+#: with 1,270 dead segments to remove)
+SHM_CLEAN_TIMEOUT = 15.0
 RECONCILE_INTERVAL = 1.0
 #: a peer that may not receive a stream is asked for a fresh token (a new grant) this often;
 #: a token learnt within RECHECK_MARGIN before a recheck is fresh enough for it. A grant
@@ -224,6 +227,7 @@ class Ros2Role(Role):
         # its heap back past 128 KiB free; images are read and joined in such buffers: keep
         # them on the heap, and the heap (measured: bridges 75 us less per 80 KB image)
         env.setdefault("GLIBC_TUNABLES", "glibc.malloc.mmap_threshold=16777216:glibc.malloc.trim_threshold=67108864")
+        await self._clean_dead_segments(env)
         self._bridge_ready.clear()
         try:
             self._bridge = await asyncio.create_subprocess_exec(
@@ -244,6 +248,37 @@ class Ros2Role(Role):
             raise CryptorosError(f"the DDS bridge ({settings.python}) did not start within {BRIDGE_START_TIMEOUT:.0f} s")
         log.info("DDS bridge up: pid %s, %s, domain %s", self._hello.get("pid"), self._hello.get("rmw"),
                  self._hello.get("domain"))
+
+    async def _clean_dead_segments(self, env: dict[str, str]) -> None:
+        """Before a bridge starts (the first, or one after its predecessor died): remove the
+        shared-memory files DDS processes on this host left when they died unclosed, the
+        dead bridge's among them. Each held RAM in /dev/shm for good (measured on a test
+        host: 1,270 segments, 1.4 GiB, in a day of killed nodes). Best effort: a robot
+        without eProsima's tool, or where it fails, starts its bridge all the same."""
+        command = shm_clean_command(self.cfg.ros2.python, env)
+        if command is None:
+            log.debug("no `fastdds` tool beside %s or on PATH: shared memory of dead DDS processes is left",
+                      self.cfg.ros2.python)
+            return
+        proc = None
+        try:
+            proc = await asyncio.create_subprocess_exec(*command, env=env, stdin=asyncio.subprocess.DEVNULL,
+                                                        stdout=asyncio.subprocess.PIPE,
+                                                        stderr=asyncio.subprocess.STDOUT)
+            report, _ = await asyncio.wait_for(proc.communicate(), SHM_CLEAN_TIMEOUT)
+        except (OSError, asyncio.TimeoutError) as exc:
+            if proc is not None and proc.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                await proc.wait()
+            log.warning("`%s` failed (%s): shared memory of dead DDS processes is left",
+                        " ".join(command), str(exc) or "timed out")
+            return
+        text = report.decode(errors="replace")
+        if proc.returncode:
+            log.warning("`%s` exited with %s: %s", " ".join(command), proc.returncode, text.strip()[-300:])
+        elif cleaned := segments_cleaned(text):
+            log.info("removed %d shared-memory segment(s) of DDS processes that died without closing them", cleaned)
 
     async def _stop_bridge(self) -> None:
         if self._link is not None and self._link.transport is not None:
@@ -268,6 +303,9 @@ class Ros2Role(Role):
             if self._stopping:
                 return
             log.error("the DDS bridge exited (status %s); restarting it", proc.returncode)
+            # streams are refused (bridge_down) until the new bridge is up: one accepted now
+            # would advertise its topic to the dead bridge and carry nothing, for good
+            self._bridge_ready.clear()
             await self._stop_bridge()
             self._reset_local_state()
             await asyncio.sleep(1.0)

@@ -13,11 +13,15 @@ writes a copy).
 from __future__ import annotations
 
 import os
+import re
+import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 LOCALHOST_PROFILE = Path(__file__).with_name("localhost_profile.xml")
 _MARKER = "<address>127.0.0.1</address>"
+_CLEANED = re.compile(r"(\d+) zombie segments cleaned")
 
 
 def localhost_env(env: dict[str, str]) -> dict[str, str]:
@@ -41,3 +45,21 @@ def environment_problem(environ: dict[str, str] | None = None) -> str | None:
 
 
 __all__ = ["LOCALHOST_PROFILE", "PROFILE_ENV", "environment_problem", "localhost_env"]
+
+
+def shm_clean_command(python: str | os.PathLike[str], environ: Mapping[str, str]) -> list[str] | None:
+    """eProsima's ``fastdds shm clean`` (beside the ROS 2 ``python``, as in a venv's or
+    ``/opt/ros/<distro>``'s ``bin/``, else on ``PATH``), or None if neither has it. It
+    removes the shared-memory files of DDS processes that died without closing them (a
+    SIGKILL, a crash): a live process holds a lock on each of its files, and until someone
+    removes a dead one's, they hold memory in /dev/shm."""
+    beside = Path(python).parent / "fastdds"
+    tool = str(beside) if beside.is_file() else shutil.which("fastdds", path=environ.get("PATH"))
+    return [tool, "shm", "clean"] if tool else None
+
+
+def segments_cleaned(report: str) -> int:
+    """How many dead processes' segments ``fastdds shm clean`` said it removed (0 if it
+    did not say)."""
+    found = _CLEANED.search(report)
+    return int(found.group(1)) if found else 0

@@ -8,15 +8,20 @@ first message robot B's listener receives after it, with a bounded wait:
   two phases of robot A's peer recheck);
 - flows resume within 15 s after the authorization server returns from an outage long
   enough to make every interceptor's revocation feed stale (new streams refused);
-- flows resume within 20 s after either robot's interceptor restarts.
+- flows resume within 20 s after either robot's interceptor restarts, and after robot
+  B's DDS bridge is killed (the dead bridge's shared memory removed).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 import pytest
 
@@ -154,3 +159,38 @@ def test_a_participant_reachable_from_the_network_is_reported_and_its_topics_not
             assert not [line for line in sub.until(None, 4) if line.startswith("GOT")]
         with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20", "--offset", "8000"):
             collect(sub, 5, 40)  # the control: the same talker with the profile is carried
+
+
+def _bridge_pids(network, robot: str) -> list[int]:
+    """The pids of the robot's DDS bridges so far, from its interceptor's log."""
+    return [int(pid) for pid in re.findall(r"DDS bridge up: pid (\d+)", network.robots[robot].logs())]
+
+
+def _segment_locks(pid: int) -> set[Path]:
+    """The lock files of the Fast DDS shared-memory segments process ``pid`` has open
+    (``/dev/shm/fastrtps_<16 hex>_el``: held while the segment's owner lives)."""
+    fds = Path(f"/proc/{pid}/fd")
+    return {Path(target) for fd in fds.iterdir() if re.fullmatch(
+        r"/dev/shm/fastrtps_[0-9a-f]{16}_el", target := os.readlink(fd))}
+
+
+def test_a_killed_bridge_is_restarted_its_dead_segments_removed_and_flows_resume_within_20_s(network):
+    """SIGKILL to robot B's DDS bridge: no goodbye, its shared-memory segments stay in
+    /dev/shm. The interceptor starts a new bridge, removing what dead DDS processes left
+    first (eProsima's ``fastdds shm clean``), and robot B's listener hears robot A again."""
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+            collect(sub, 5, 40)
+            (dead,) = _bridge_pids(network, "robot_b")[-1:]
+            left = _segment_locks(dead)
+            assert left, "robot B's bridge has no shared-memory segment open"
+            os.kill(dead, signal.SIGKILL)
+            start = time.monotonic()
+            assert all(lock.exists() and lock.with_name(lock.name[:-3]).exists() for lock in left)
+            _first_message_within(sub, start, 20, "robot B's bridge killed")
+            collect(sub, 20, 10)
+    assert _bridge_pids(network, "robot_b")[-1] != dead
+    assert not [lock for lock in left if lock.exists() or lock.with_name(lock.name[:-3]).exists()], \
+        "the dead bridge's segments are still in /dev/shm"
+    assert "shared-memory segment(s) of DDS processes that died" in network.robots["robot_b"].logs()

@@ -274,3 +274,20 @@ def test_free_domains_skip_every_domain_with_a_bound_port(tmp_path):
     assert free_domains(2, 11, proc=tmp_path, low=11, top=15) == [13, 14]
     assert free_domains(2, 14, proc=tmp_path, low=11, top=15) == [14, 15]
     assert free_domains(2, 15, proc=tmp_path, low=11, top=15) == [13, 14]  # 15..16 would pass the top: wraps
+
+
+def test_the_shm_clean_tool_is_found_beside_the_ros2_python_then_on_path(tmp_path):
+    from cryptoros.ros2.profile import segments_cleaned, shm_clean_command
+
+    venv, elsewhere = tmp_path / "venv" / "bin", tmp_path / "elsewhere"
+    venv.mkdir(parents=True)
+    elsewhere.mkdir()
+    (elsewhere / "fastdds").write_text("#!/bin/sh\n")
+    (elsewhere / "fastdds").chmod(0o755)
+    assert shm_clean_command(venv / "python", {"PATH": str(elsewhere)}) == [str(elsewhere / "fastdds"), "shm", "clean"]
+    (venv / "fastdds").write_text("#!/bin/sh\n")
+    assert shm_clean_command(venv / "python", {"PATH": str(elsewhere)}) == [str(venv / "fastdds"), "shm", "clean"]
+    assert shm_clean_command(tmp_path / "python", {"PATH": str(tmp_path / "none")}) is None
+    report = "shm.clean:\n0 ports in use\n1 segments in use\n115 zombie ports cleaned\n1270 zombie segments cleaned\n"
+    assert segments_cleaned(report) == 1270
+    assert segments_cleaned("usage: fastdds shm [<shm-command>]") == 0
