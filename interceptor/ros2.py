@@ -1,15 +1,17 @@
 """The interceptor's ``ros2`` role: the asyncio edge between a robot's DDS domain and
 the other robots' interceptors.
 
-Why one long module: the outbound and inbound streams of the role share the bridge
-link, its channels and the calls in flight; split, each half would reach into the other's
-state (the ROS 1 role's parts are apart because they share only the role's tables).
+Why one module of nearly 800 lines: the outbound and inbound streams of the role share
+the bridge link, its channels and the calls in flight; split, each half would reach into
+the other's state (the ROS 1 role's parts are apart because they share only the role's
+tables). The bridge child's life (start, restart, stop) is
+:class:`~interceptor.ros2_bridge.DdsBridge`'s.
 
 The :class:`~interceptor.gateway.Gateway` owns everything a role shares: the
 mutual-TLS public listener, the preamble, token verification bound to the
 certificate, the revocation feed that cuts watched streams, reload, limits and
 metrics. :class:`Ros2Role`, composed with it, serves one stream purpose (``ros2``)
-and runs a DDS bridge child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2 venv's python) over a local
+and talks to a DDS bridge child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2 venv's python) over a local
 socket.
 
 Outbound (this robot's publishers and servers): the bridge reports the local graph;
@@ -28,25 +30,19 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
 import functools
 import itertools
 import logging
-import os
-import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-import cryptoros.ros2
 from cryptoros.memory import tune_malloc
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
-from cryptoros.ros2.profile import localhost_env, segments_cleaned, shm_clean_command
 from cryptoros.policy.infrastructure import ros2_stays_local
 from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
@@ -56,17 +52,12 @@ from interceptor.config import Endpoint
 from interceptor.verifier import StreamWatch
 from interceptor.gate import Target
 from interceptor.gateway import Gateway, Role
+from interceptor.ros2_bridge import BridgeLink, DdsBridge
 from interceptor.streams import READ_SIZE, InboundStream, Peer, read_chunks, widen_reader
 from interceptor.monitor import WatchedStream
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
-BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py"
-#: ROS 2 plumbing every node has; never bridged, never logged as a denial.
-BRIDGE_START_TIMEOUT = 30.0
-#: eProsima's ``fastdds shm clean`` before a bridge starts (0.1 s on a clean host, 0.5 s
-#: with 1,270 dead segments to remove)
-SHM_CLEAN_TIMEOUT = 15.0
 RECONCILE_INTERVAL = 1.0
 #: a peer that may not receive a stream is asked for a fresh token (a new grant) this often;
 #: a token learnt within RECHECK_MARGIN before a recheck is fresh enough for it. A grant
@@ -87,48 +78,9 @@ BACKLOG_LOW = 4 * 1024 * 1024
 BACKLOG_STALL = 1.0
 MAX_STREAM_BACKLOG = 32 * 1024 * 1024
 MAX_PENDING_CALLS = 64
-LOCAL_SOCKET_BUFFER = 4 * 1024 * 1024
 TOPIC_READ_SIZE = 1024 * 1024
 
 
-class BridgeLink(asyncio.Protocol):
-    """The local socket to the bridge child: frames in, frames out."""
-
-    def __init__(self, on_frame: Callable[[int, int, bytes], None], max_size: int,
-                 on_messages: Callable[[int, int, bytearray], None] | None = None) -> None:
-        self._on_frame = on_frame
-        self._on_messages = on_messages
-        self._decoder = fr.FrameDecoder(max_size=max_size + 64)
-        self.transport: asyncio.Transport | None = None
-        self.closed = asyncio.get_running_loop().create_future()
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-
-    def data_received(self, data: bytes) -> None:
-        try:
-            self._decoder.feed(data)
-            # consecutive MESSAGE frames of one channel go on as one batch, kept whole (one copy)
-            for kind, chan, count, frames in self._decoder.runs():
-                if kind == fr.MESSAGE and self._on_messages is not None:
-                    self._on_messages(chan, count, frames)
-                    continue
-                for payload in fr.payloads(frames):
-                    self._on_frame(kind, chan, payload)
-        except fr.FrameError as exc:
-            log.error("the DDS bridge sent garbage (%s); restarting it", exc)
-            self.transport.abort()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if not self.closed.done():
-            self.closed.set_result(None)
-
-    def send(self, data: bytes) -> None:
-        if self.transport is not None and not self.transport.is_closing():
-            self.transport.write(data)
-
-    def control(self, **body: Any) -> None:
-        self.send(fr.encode_control(body))
 
 
 @dataclass(eq=False)
@@ -165,10 +117,7 @@ class Ros2Role(Role):
             raise CryptorosError("the ros2 role needs a [ros2] section")
         self._chans = itertools.count(1)
         self._call_ids = itertools.count(1)
-        self._link: BridgeLink | None = None
-        self._bridge: asyncio.subprocess.Process | None = None
-        self._bridge_ready = asyncio.Event()
-        self._hello: dict[str, Any] = {}
+        self.bridge = DdsBridge(cfg.ros2, self._on_bridge_frame, self._on_bridge_messages)
         self._graph: dict[str, Any] = {"topics": [], "services": []}
         self._outbound: dict[tuple[str, str, str], Outbound] = {}  # (kind, name, type)
         self._out_by_chan: dict[int, Outbound] = {}
@@ -193,10 +142,10 @@ class Ros2Role(Role):
         # Frames of images are read, checked and copied in buffers of 80 KB to 1 MiB: keep
         # glibc from mmap-ing (and page-faulting, zeroing, unmapping) each one (docs/ros2.md)
         tune_malloc()
-        await self._start_bridge()
+        await self.bridge.start()
 
     async def start(self) -> None:
-        self.gw.spawn(self._supervise(), "ros2-bridge")
+        self.gw.spawn(self.bridge.supervise(self._reset_local_state, lambda: self._stopping), "ros2-bridge")
         self.gw.spawn(self._reconcile_loop(), "ros2-reconcile")
         log.info("ros2 role up: domain %d, peers %s", self.cfg.ros2.domain_id,
                  ", ".join(map(str, self.cfg.ros2.peers)) or "none")
@@ -207,112 +156,11 @@ class Ros2Role(Role):
             self._withdraw(out)
 
     async def stopped(self) -> None:
-        await self._stop_bridge()
+        await self.bridge.stop()
 
     def reloaded(self) -> None:
         self._noted.clear()
         self._reconcile()
-
-    async def _start_bridge(self) -> None:
-        settings = self.cfg.ros2
-        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        for sock in (parent, child):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, LOCAL_SOCKET_BUFFER)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, LOCAL_SOCKET_BUFFER)
-        env = dict(os.environ)
-        env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # the ROS 2 venv sets up its own libraries
-        env.update(ROS_DOMAIN_ID=str(settings.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        env = localhost_env(env)  # DDS on 127.0.0.1 and shared memory only: private to this host
-        # glibc mmaps (and page-faults) every buffer of 128 KiB or more, and gives the top of
-        # its heap back past 128 KiB free; images are read and joined in such buffers: keep
-        # them on the heap, and the heap (measured: bridges 75 us less per 80 KB image)
-        env.setdefault("GLIBC_TUNABLES", "glibc.malloc.mmap_threshold=16777216:glibc.malloc.trim_threshold=67108864")
-        await self._clean_dead_segments(env)
-        self._bridge_ready.clear()
-        try:
-            self._bridge = await asyncio.create_subprocess_exec(
-                str(settings.python), str(BRIDGE_SCRIPT), "--fd", str(child.fileno()), "--name", settings.node_name,
-                "--graph-interval", str(settings.graph_interval), "--max-size", str(settings.max_message_size),
-                pass_fds=(child.fileno(),), env=env, stdin=asyncio.subprocess.DEVNULL,
-            )
-        finally:
-            child.close()
-        loop = asyncio.get_running_loop()
-        _, self._link = await loop.connect_accepted_socket(
-            lambda: BridgeLink(self._on_bridge_frame, settings.max_message_size, self._on_bridge_messages), sock=parent
-        )
-        try:
-            await asyncio.wait_for(self._bridge_ready.wait(), BRIDGE_START_TIMEOUT)
-        except asyncio.TimeoutError:
-            await self._stop_bridge()
-            raise CryptorosError(f"the DDS bridge ({settings.python}) did not start within {BRIDGE_START_TIMEOUT:.0f} s")
-        log.info("DDS bridge up: pid %s, %s, domain %s", self._hello.get("pid"), self._hello.get("rmw"),
-                 self._hello.get("domain"))
-
-    async def _clean_dead_segments(self, env: dict[str, str]) -> None:
-        """Before a bridge starts (the first, or one after its predecessor died): remove the
-        shared-memory files DDS processes on this host left when they died unclosed, the
-        dead bridge's among them. Each held RAM in /dev/shm for good (measured on a test
-        host: 1,270 segments, 1.4 GiB, in a day of killed nodes). Best effort: a robot
-        without eProsima's tool, or where it fails, starts its bridge all the same."""
-        command = shm_clean_command(self.cfg.ros2.python, env)
-        if command is None:
-            log.debug("no `fastdds` tool beside %s or on PATH: shared memory of dead DDS processes is left",
-                      self.cfg.ros2.python)
-            return
-        proc = None
-        try:
-            proc = await asyncio.create_subprocess_exec(*command, env=env, stdin=asyncio.subprocess.DEVNULL,
-                                                        stdout=asyncio.subprocess.PIPE,
-                                                        stderr=asyncio.subprocess.STDOUT)
-            report, _ = await asyncio.wait_for(proc.communicate(), SHM_CLEAN_TIMEOUT)
-        except (OSError, asyncio.TimeoutError) as exc:
-            if proc is not None and proc.returncode is None:
-                with contextlib.suppress(ProcessLookupError):
-                    proc.kill()
-                await proc.wait()
-            log.warning("`%s` failed (%s): shared memory of dead DDS processes is left",
-                        " ".join(command), str(exc) or "timed out")
-            return
-        text = report.decode(errors="replace")
-        if proc.returncode:
-            log.warning("`%s` exited with %s: %s", " ".join(command), proc.returncode, text.strip()[-300:])
-        elif cleaned := segments_cleaned(text):
-            log.info("removed %d shared-memory segment(s) of DDS processes that died without closing them", cleaned)
-
-    async def _stop_bridge(self) -> None:
-        if self._link is not None and self._link.transport is not None:
-            self._link.transport.close()
-        proc = self._bridge
-        if proc is not None and proc.returncode is None:
-            with contextlib.suppress(ProcessLookupError):
-                proc.terminate()
-            try:
-                await asyncio.wait_for(proc.wait(), 3)
-            except asyncio.TimeoutError:
-                with contextlib.suppress(ProcessLookupError):
-                    proc.kill()
-                await proc.wait()
-
-    async def _supervise(self) -> None:
-        """Restart the bridge if it dies; what it carried is set up again from scratch."""
-        while True:
-            proc = self._bridge
-            await asyncio.wait([asyncio.ensure_future(proc.wait()), self._link.closed],
-                               return_when=asyncio.FIRST_COMPLETED)
-            if self._stopping:
-                return
-            log.error("the DDS bridge exited (status %s); restarting it", proc.returncode)
-            # streams are refused (bridge_down) until the new bridge is up: one accepted now
-            # would advertise its topic to the dead bridge and carry nothing, for good
-            self._bridge_ready.clear()
-            await self._stop_bridge()
-            self._reset_local_state()
-            await asyncio.sleep(1.0)
-            try:
-                await self._start_bridge()
-            except (CryptorosError, OSError) as exc:
-                log.error("cannot restart the DDS bridge: %s", exc)
 
     def _reset_local_state(self) -> None:
         for out in list(self._outbound.values()):
@@ -341,9 +189,9 @@ class Ros2Role(Role):
             transport.write(data)
             high = high or backlog + len(data) > BACKLOG_HIGH
         self.metrics.bytes.labels("tx").inc(len(data) * len(out.writers))
-        if high and self._paused is None and self._link is not None and self._link.transport is not None:
-            self._link.transport.pause_reading()
-            self._paused = asyncio.get_running_loop().create_task(self._resume_link(self._link))
+        if high and self._paused is None and self.bridge.link is not None and self.bridge.link.transport is not None:
+            self.bridge.link.transport.pause_reading()
+            self._paused = asyncio.get_running_loop().create_task(self._resume_link(self.bridge.link))
 
     async def _resume_link(self, link: BridgeLink) -> None:
         """Read the bridge again once every peer stream drained (or after BACKLOG_STALL)."""
@@ -367,7 +215,7 @@ class Ros2Role(Role):
             rid, cdr = fr.ID.unpack_from(payload)[0], payload[4:]
             proxy = self._proxy_by_chan.get(chan)
             if proxy is None or len(proxy.pending) >= MAX_PENDING_CALLS:
-                self._link.send(fr.encode(fr.REPLY, chan, fr.ID.pack(rid) + b"\x00"))
+                self.bridge.link.send(fr.encode(fr.REPLY, chan, fr.ID.pack(rid) + b"\x00"))
                 return
             proxy.pending.add(rid)
             log.debug("request %d for proxy channel %d goes to the serving robot", rid, chan)
@@ -392,8 +240,7 @@ class Ros2Role(Role):
                 self._graph = body
                 self._reconcile()
             elif op == "hello":
-                self._hello = body
-                self._bridge_ready.set()
+                self.bridge.said_hello(body)
             elif op == "refused_writer":  # a sample on a forwarded topic from a publisher under no grant
                 exc = PolicyDenied("not_granted", f"{body.get('node')} (writer {body.get('gid')}) may not publish "
                                    f"{body.get('topic')}: its samples are dropped")
@@ -521,9 +368,9 @@ class Ros2Role(Role):
         }
 
     def _reconcile(self) -> None:
-        if self._stopping or self._link is None or not self._bridge_ready.is_set():
+        if self._stopping or self.bridge.link is None or not self.bridge.ready:
             return
-        want = {} if self._link.transport is None or self._link.transport.is_closing() else self._desired()
+        want = {} if self.bridge.link.transport is None or self.bridge.link.transport.is_closing() else self._desired()
         for key, out in list(self._outbound.items()):
             if key not in want or want[key].target != out.target:
                 self._withdraw(out)
@@ -533,17 +380,17 @@ class Ros2Role(Role):
             out = self._outbound.get(key)
             if out is not None and target.kind == "topic" and offer.writers != out.granted_writers:
                 out.granted_writers = offer.writers
-                self._link.control(op="writers", chan=out.chan, nodes=sorted(offer.writers))
+                self.bridge.link.control(op="writers", chan=out.chan, nodes=sorted(offer.writers))
             if out is None:
                 out = self._outbound[key] = Outbound(target=target, chan=next(self._chans), granted_writers=offer.writers)
                 if target.qos.durability == "transient_local":
                     out.history = collections.deque(maxlen=target.qos.depth)
                 self._out_by_chan[out.chan] = out
                 if target.kind == "topic":
-                    self._link.control(op="subscribe", chan=out.chan, topic=target.name, type=target.type,
+                    self.bridge.link.control(op="subscribe", chan=out.chan, topic=target.name, type=target.type,
                                        qos=target.qos.to_dict(), nodes=sorted(offer.writers))
                 else:
-                    self._link.control(op="client", chan=out.chan, service=target.name, type=target.type)
+                    self.bridge.link.control(op="client", chan=out.chan, service=target.name, type=target.type)
                 log.info("offering %s %s [%s] to %d peer(s)", target.kind, target.name, target.type, len(peers))
             for endpoint in peers - set(out.tasks):
                 out.tasks[endpoint] = asyncio.create_task(self._forward(out, endpoint))
@@ -565,8 +412,8 @@ class Ros2Role(Role):
             task.cancel()
         for writer in out.writers.values():
             writer.transport.abort()
-        if tell_bridge and self._link is not None:
-            self._link.control(op="unsubscribe" if out.target.kind == "topic" else "unclient", chan=out.chan)
+        if tell_bridge and self.bridge.link is not None:
+            self.bridge.link.control(op="unsubscribe" if out.target.kind == "topic" else "unclient", chan=out.chan)
 
     async def _reconcile_loop(self) -> None:
         while True:
@@ -694,7 +541,7 @@ class Ros2Role(Role):
                 log.debug("call %d (request %d) to the local server of %s", bid, rid, out.target.name)
                 pending.add(bid)
                 self._calls[bid] = (writer, rid, pending)
-                self._link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
+                self.bridge.link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
 
     # ================================================================ inbound
     def _check_ros2_target(self, preamble: Preamble) -> Target:
@@ -702,7 +549,7 @@ class Ros2Role(Role):
         the peer's grant for the node, name and type it names, run before the reply and
         again on each fresher token the peer shows."""
         target = StreamTarget.decode(preamble.target)
-        if not self._bridge_ready.is_set():
+        if not self.bridge.ready:
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
 
         def judge(grants) -> None:
@@ -719,8 +566,8 @@ class Ros2Role(Role):
             raise PolicyDenied(
                 "not_granted_here", f"this robot's manager {own.subject} may not {target.peer_action} {target.name}"
             )
-        link = self._link
-        if link is None or not self._bridge_ready.is_set():
+        link = self.bridge.link
+        if link is None or not self.bridge.ready:
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
         monitor, watched, unregister = self.gw.monitor, None, None
         if monitor is not None and target.kind == "topic":
@@ -930,4 +777,4 @@ def _checked_runs(runs: list, check) -> tuple[list, list[str]]:
     return out, bad
 
 
-__all__ = ["BRIDGE_SCRIPT", "BridgeLink", "Ros2Role", "reusable"]
+__all__ = ["Ros2Role", "reusable"]
