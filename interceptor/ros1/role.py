@@ -77,7 +77,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             local_master_uri=local_master,
             open_relay=self._open_relay,
             max_relays_per_host=cfg.limits.max_relays_per_peer,
-            on_change=self._save_state,
+            on_change=self._save_state_soon,
         )
         if local_master:
             self.translator.add_master_uri(local_master)
@@ -108,7 +108,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
         self._state_loaded = False
-        self._save_pending = False
+        self._state_dirty = False  # changed since last written
+        self._save_task: asyncio.Task | None = None  # the write to come (_save_state_soon)
         self._state_saves = 0  # state files written (/status: a repeat registration writes none)
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         self._resubscribing: set[str] = set()
@@ -179,6 +180,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()
+        await self._flush_state()
 
     def reloaded(self) -> None:
         """The limits this role keeps a copy of: the next relay, held name, master call and
@@ -200,6 +202,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
                          "state_saves": self._state_saves,
+                         "state_save_pending": self._state_dirty or self._save_task is not None,
                          "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
                 "warnings": self._deployment_warnings()}
 
