@@ -149,7 +149,8 @@ def widen_reader(reader: asyncio.StreamReader, limit: int) -> None:
 
 async def read_into(reader: asyncio.StreamReader, feed: Callable[[bytes], None], timeout: float) -> None:
     """One read (within ``timeout``) handed to a sans-IO codec's ``receive_data``."""
-    data = await asyncio.wait_for(reader.read(READ_SIZE), timeout)
+    async with asyncio.timeout(timeout):  # no task per read, as wait_for would make
+        data = await reader.read(READ_SIZE)
     feed(data)
 
 

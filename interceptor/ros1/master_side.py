@@ -25,6 +25,7 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tokens import Grants
 from interceptor.exposure import master_problem
+from interceptor.ros1.upstream import UpstreamMaster
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     MASTER_WATCH_INTERVAL,
@@ -303,7 +304,14 @@ class MasterSide:
         await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
     async def _call_upstream_master(self, request: Request) -> Response | Fault:
-        return await self._call_plain(self.cfg.master.upstream, request)
+        upstream = self._upstream
+        if upstream is None or upstream[0] != self.cfg.master.upstream:  # first call, or a reload changed it
+            if upstream is not None:
+                upstream[1].close()
+            upstream = self._upstream = (self.cfg.master.upstream,
+                                         UpstreamMaster(self.cfg.master.upstream,
+                                                        max_body=self.cfg.limits.max_xmlrpc_body))
+        return await upstream[1].call(request)
 
     async def _call_plain(self, uri: str, request: Request) -> Response | Fault:
         """One XML-RPC call to a local process (one connection per call)."""

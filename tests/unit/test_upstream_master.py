@@ -1,0 +1,116 @@
+"""Master calls over kept-alive connections: reused, and made again on a new one when the
+master closed a kept connection meanwhile (a real loopback server speaking our codec)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from cryptoros.errors import RemoteProtocolError
+from cryptoros.ros1.xmlrpc import ConnectionClosed, Request, Response, Role, XmlRpcConnection
+from cryptoros.sansio import NEED_DATA
+from interceptor.ros1.upstream import UpstreamMaster
+
+
+class Master:
+    """Answers ``[1, "", <connection number>]``; ``close_after``: close each connection
+    after that many answers (as a restarted or impatient master would)."""
+
+    def __init__(self, close_after: int | None = None, answer: bool = True) -> None:
+        self.connections = 0
+        self.requests = 0
+        self.close_after = close_after
+        self.answer = answer
+        self.writers: list[asyncio.StreamWriter] = []
+
+    async def serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.connections += 1
+        me = self.connections
+        self.writers.append(writer)
+        conn = XmlRpcConnection(Role.SERVER)
+        answered = 0
+        try:
+            while True:
+                event = conn.next_event()
+                if event is NEED_DATA:
+                    conn.receive_data(await reader.read(65536))
+                    continue
+                if isinstance(event, ConnectionClosed):
+                    return
+                self.requests += 1
+                if not self.answer:
+                    return  # closes without answering
+                writer.write(conn.send(Response(value=[1, "", me])))
+                await writer.drain()
+                answered += 1
+                if self.close_after is not None and answered >= self.close_after:
+                    return
+        finally:
+            writer.close()
+
+
+@pytest.fixture
+async def running():
+    servers = []
+
+    async def start(master: Master) -> str:
+        server = await asyncio.start_server(master.serve, "127.0.0.1", 0)
+        servers.append(server)
+        return f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}/"
+
+    yield start
+    for server in servers:
+        server.close()
+
+
+def call(n: int = 0) -> Request:
+    return Request(method="getPid", params=(f"/caller{n}",))
+
+
+async def test_calls_in_a_row_share_one_connection(running):
+    master = Master()
+    upstream = UpstreamMaster(await running(master), max_body=1 << 20)
+    replies = [await upstream.call(call(i)) for i in range(5)]
+    assert [r.value for r in replies] == [[1, "", 1]] * 5
+    assert master.connections == upstream.opened == 1
+    upstream.close()
+
+
+async def test_a_burst_opens_a_few_and_keeps_at_most_max_idle(running):
+    master = Master()
+    upstream = UpstreamMaster(await running(master), max_body=1 << 20, max_idle=3)
+    replies = await asyncio.gather(*(upstream.call(call(i)) for i in range(10)))
+    assert all(r.value[0] == 1 for r in replies) and master.requests == 10
+    again = await asyncio.gather(*(upstream.call(call(i)) for i in range(3)))
+    assert {r.value[2] for r in again} <= {r.value[2] for r in replies}  # kept ones reused
+    assert master.connections == 10  # the burst: one each; then the 3 kept
+    upstream.close()
+
+
+async def test_a_connection_the_master_closed_while_idle_is_replaced_and_the_call_made(running):
+    master = Master(close_after=1)
+    upstream = UpstreamMaster(await running(master), max_body=1 << 20)
+    first = await upstream.call(call())
+    await asyncio.sleep(0.05)  # the master's close reaches us
+    second = await upstream.call(call())
+    assert (first.value[2], second.value[2]) == (1, 2) and master.requests == 2
+    upstream.close()
+
+
+async def test_calls_right_behind_a_master_that_closes_each_connection_are_all_answered(running):
+    """No pause: the close may arrive before the next call (the kept connection is
+    dropped) or after its request was written (the call is made again on a new one)."""
+    master = Master(close_after=1)
+    upstream = UpstreamMaster(await running(master), max_body=1 << 20, idle_seconds=60)
+    replies = [await upstream.call(call(i)) for i in range(20)]
+    assert [r.value[2] for r in replies] == list(range(1, 21))
+    upstream.close()
+
+
+async def test_a_new_connection_closed_without_an_answer_is_an_error_not_a_loop(running):
+    master = Master(answer=False)
+    upstream = UpstreamMaster(await running(master), max_body=1 << 20)
+    with pytest.raises(RemoteProtocolError):
+        await upstream.call(call())
+    assert master.connections == 1
