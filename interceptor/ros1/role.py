@@ -43,7 +43,7 @@ from interceptor.param_quota import ParamQuota
 from interceptor.registrations import LocalRegistrations
 from interceptor.ros1.ledger import MasterLedger
 from interceptor.ros1.master_side import MasterSide
-from interceptor.ros1.upstream import UpstreamMaster
+from interceptor.ros1.localcalls import LocalCalls
 from interceptor.ros1.node_side import NodeSide
 from interceptor.ros1.relays import Relays
 from interceptor.ros1.state import PersistedState
@@ -106,8 +106,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._tunnels_closed_idle = 0
         self._servers: list[asyncio.AbstractServer] = []
-        #: master role: the upstream master's URI and its kept-alive connections
-        self._upstream: tuple[str, UpstreamMaster] | None = None
+        #: connections kept alive to local XML-RPC servers (the master, local nodes' APIs)
+        self._local_calls = LocalCalls(max_body=cfg.limits.max_xmlrpc_body)
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
         self._state_loaded = False
@@ -180,8 +180,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 await asyncio.wait_for(server.wait_closed(), 1)
         for pool in self._pools.values():
             pool.close()
-        if self._upstream is not None:
-            self._upstream[1].close()
+        self._local_calls.close()
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()

@@ -1,4 +1,4 @@
-"""Master calls over kept-alive connections: reused, and made again on a new one when the
+"""Calls to a local master or node over kept-alive connections: reused, and made again on a new one when the
 master closed a kept connection meanwhile (a real loopback server speaking our codec)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from cryptoros.errors import RemoteProtocolError
 from cryptoros.ros1.xmlrpc import ConnectionClosed, Request, Response, Role, XmlRpcConnection
 from cryptoros.sansio import NEED_DATA
-from interceptor.ros1.upstream import UpstreamMaster
+from interceptor.ros1.localcalls import LocalCalls, LocalXmlRpc
 
 
 class Master:
@@ -70,7 +70,7 @@ def call(n: int = 0) -> Request:
 
 async def test_calls_in_a_row_share_one_connection(running):
     master = Master()
-    upstream = UpstreamMaster(await running(master), max_body=1 << 20)
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20)
     replies = [await upstream.call(call(i)) for i in range(5)]
     assert [r.value for r in replies] == [[1, "", 1]] * 5
     assert master.connections == upstream.opened == 1
@@ -79,7 +79,7 @@ async def test_calls_in_a_row_share_one_connection(running):
 
 async def test_a_burst_opens_a_few_and_keeps_at_most_max_idle(running):
     master = Master()
-    upstream = UpstreamMaster(await running(master), max_body=1 << 20, max_idle=3)
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20, max_idle=3)
     replies = await asyncio.gather(*(upstream.call(call(i)) for i in range(10)))
     assert all(r.value[0] == 1 for r in replies) and master.requests == 10
     again = await asyncio.gather(*(upstream.call(call(i)) for i in range(3)))
@@ -90,7 +90,7 @@ async def test_a_burst_opens_a_few_and_keeps_at_most_max_idle(running):
 
 async def test_a_connection_the_master_closed_while_idle_is_replaced_and_the_call_made(running):
     master = Master(close_after=1)
-    upstream = UpstreamMaster(await running(master), max_body=1 << 20)
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20)
     first = await upstream.call(call())
     await asyncio.sleep(0.05)  # the master's close reaches us
     second = await upstream.call(call())
@@ -102,7 +102,7 @@ async def test_calls_right_behind_a_master_that_closes_each_connection_are_all_a
     """No pause: the close may arrive before the next call (the kept connection is
     dropped) or after its request was written (the call is made again on a new one)."""
     master = Master(close_after=1)
-    upstream = UpstreamMaster(await running(master), max_body=1 << 20, idle_seconds=60)
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20, idle_seconds=60)
     replies = [await upstream.call(call(i)) for i in range(20)]
     assert [r.value[2] for r in replies] == list(range(1, 21))
     upstream.close()
@@ -110,7 +110,28 @@ async def test_calls_right_behind_a_master_that_closes_each_connection_are_all_a
 
 async def test_a_new_connection_closed_without_an_answer_is_an_error_not_a_loop(running):
     master = Master(answer=False)
-    upstream = UpstreamMaster(await running(master), max_body=1 << 20)
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20)
     with pytest.raises(RemoteProtocolError):
         await upstream.call(call())
     assert master.connections == 1
+
+
+async def test_a_kept_connection_unused_for_idle_seconds_is_closed(running):
+    master = Master()
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20, idle_seconds=0.1)
+    await upstream.call(call())
+    assert len(upstream._idle) == 1
+    server_side = master.writers[0]
+    await asyncio.sleep(0.3)
+    assert not upstream._idle and server_side.transport.is_closing()  # the master saw it close
+
+
+async def test_local_calls_keep_one_server_per_uri_and_close_the_least_recently_used(running):
+    masters = [Master() for _ in range(3)]
+    uris = [await running(m) for m in masters]
+    calls = LocalCalls(max_body=1 << 20, max_servers=2)
+    for uri in (*uris, uris[2], uris[1]):
+        assert (await calls.call(uri, call())).value[0] == 1
+    assert [m.connections for m in masters] == [1, 1, 1]  # each reused its kept connection
+    assert (await calls.call(uris[0], call())).value[2] == 2  # the first was closed past max_servers
+    calls.close()
