@@ -154,6 +154,13 @@ async def read_into(reader: asyncio.StreamReader, feed: Callable[[bytes], None],
     feed(data)
 
 
+async def drain_within(writer: asyncio.StreamWriter, timeout: float) -> None:
+    """``writer.drain()`` within ``timeout`` seconds (``TimeoutError``), with no task of
+    its own (``wait_for`` wraps the drain in one: a task per message written)."""
+    async with asyncio.timeout(timeout):
+        await writer.drain()
+
+
 async def read_chunks(reader: asyncio.StreamReader, size: int, first: bytes = b""):
     """``first`` (bytes already read from the stream), then every read until EOF."""
     if first:

@@ -19,7 +19,7 @@ from cryptoros.ros1.xmlrpc import (
     request_path,
 )
 from interceptor.ros1.wire import CALL_TIMEOUT, read_xmlrpc
-from interceptor.streams import READ_SIZE
+from interceptor.streams import READ_SIZE, drain_within
 
 #: connections kept open to one server between calls (each may hold a thread there)
 MAX_IDLE = 8
@@ -62,7 +62,7 @@ class LocalXmlRpc:
                 kept = await self._open()
             try:
                 kept.writer.write(kept.conn.send(outgoing))
-                await asyncio.wait_for(kept.writer.drain(), CALL_TIMEOUT)
+                await drain_within(kept.writer, CALL_TIMEOUT)
                 event = await read_xmlrpc(kept.reader, kept.conn, CALL_TIMEOUT)
                 if isinstance(event, ConnectionClosed):
                     raise ConnectionResetError("closed without answering")

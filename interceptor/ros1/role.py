@@ -59,7 +59,7 @@ from interceptor.ros1.wire import (
     log,
     read_xmlrpc,
 )
-from interceptor.streams import read_into
+from interceptor.streams import drain_within, read_into
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Translator
 
 
@@ -300,7 +300,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             if not event.keep_alive:
                 response = type(response)(**{**response.__dict__, "keep_alive": False})
             writer.write(conn.send(response))
-            await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
+            await drain_within(writer, CALL_TIMEOUT)
             if not event.keep_alive:
                 return
 
