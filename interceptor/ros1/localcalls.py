@@ -74,7 +74,7 @@ class LocalXmlRpc:
             except BaseException:
                 kept.writer.close()
                 raise
-            if event.keep_alive:
+            if event.keep_alive and not kept.conn.trailing_data.data:  # nothing unasked-for behind it
                 self._park(kept)
             else:
                 kept.writer.close()

@@ -17,7 +17,8 @@ class Master:
     """Answers ``[1, "", <connection number>]``; ``close_after``: close each connection
     after that many answers (as a restarted or impatient master would)."""
 
-    def __init__(self, close_after: int | None = None, answer: bool = True) -> None:
+    def __init__(self, close_after: int | None = None, answer: bool = True, extra: bool = False) -> None:
+        self.extra = extra  # a second, unasked-for answer right behind each
         self.connections = 0
         self.requests = 0
         self.close_after = close_after
@@ -41,7 +42,8 @@ class Master:
                 self.requests += 1
                 if not self.answer:
                     return  # closes without answering
-                writer.write(conn.send(Response(value=[1, "", me])))
+                writer.write(conn.send(Response(value=[1, "", me])) +
+                             (conn.send(Response(value=[1, "unasked", me])) if self.extra else b""))
                 await writer.drain()
                 answered += 1
                 if self.close_after is not None and answered >= self.close_after:
@@ -105,6 +107,15 @@ async def test_calls_right_behind_a_master_that_closes_each_connection_are_all_a
     upstream = LocalXmlRpc(await running(master), max_body=1 << 20, idle_seconds=60)
     replies = [await upstream.call(call(i)) for i in range(20)]
     assert [r.value[2] for r in replies] == list(range(1, 21))
+    upstream.close()
+
+
+async def test_a_connection_with_an_unasked_for_answer_behind_its_answer_is_not_kept(running):
+    master = Master(extra=True)
+    upstream = LocalXmlRpc(await running(master), max_body=1 << 20)
+    first = await upstream.call(call())
+    second = await upstream.call(call())
+    assert (first.value[1:], second.value[1:]) == (["", 1], ["", 2])  # never the stray answer
     upstream.close()
 
 
