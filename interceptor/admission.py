@@ -23,6 +23,7 @@ from interceptor.streams import (
     InboundStream,
     Peer,
     cert_hosts,
+    drain_within,
     log,
     read_into,
 )
@@ -111,7 +112,7 @@ class Admission:
         if purpose == REFRESH:  # tokens shown both ways: nothing more to do
             self.metrics.connections.labels(REFRESH, "in").inc()
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.drain(), limits.handshake_timeout)
+                await drain_within(writer, limits.handshake_timeout)
             writer.close()
             return
         self.metrics.connections.labels(purpose, "in").inc()

@@ -18,14 +18,18 @@ class InstanceRunning(CryptorosError):
     exit_code = 1
 
 
-def write_private_json(path: Path, data: Any) -> None:
+def write_private_json(path: Path, data: Any, *, encoded: bool = False) -> None:
     """Write ``data`` as JSON to ``path`` atomically (a temporary file renamed over it),
-    mode 0600, creating the directory; OSError when it cannot."""
+    mode 0600, creating the directory; OSError when it cannot. ``encoded``: ``data``
+    is the JSON text already."""
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as f:
-        json.dump(data, f)
+        if encoded:
+            f.write(data)
+        else:
+            json.dump(data, f)
     os.replace(tmp, path)
 
 

@@ -149,8 +149,16 @@ def widen_reader(reader: asyncio.StreamReader, limit: int) -> None:
 
 async def read_into(reader: asyncio.StreamReader, feed: Callable[[bytes], None], timeout: float) -> None:
     """One read (within ``timeout``) handed to a sans-IO codec's ``receive_data``."""
-    data = await asyncio.wait_for(reader.read(READ_SIZE), timeout)
+    async with asyncio.timeout(timeout):  # no task per read, as wait_for would make
+        data = await reader.read(READ_SIZE)
     feed(data)
+
+
+async def drain_within(writer: asyncio.StreamWriter, timeout: float) -> None:
+    """``writer.drain()`` within ``timeout`` seconds (``TimeoutError``), with no task of
+    its own (``wait_for`` wraps the drain in one: a task per message written)."""
+    async with asyncio.timeout(timeout):
+        await writer.drain()
 
 
 async def read_chunks(reader: asyncio.StreamReader, size: int, first: bytes = b""):

@@ -58,7 +58,8 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.capture import Capture, CaptureError, flows
-from cryptoros.lab.network import HOSTS, UNTHROTTLED, Network, NetworkError, lab_network, free_port, stop, wait_port
+from cryptoros.lab.network import (HOSTS, UNTHROTTLED, Network, NetworkError, cpu_seconds, lab_network, free_port,
+                                   stop, wait_port)
 from cryptoros.lab.policy import policy_yaml
 from cryptoros.ros1.uri import host_port
 
@@ -266,10 +267,11 @@ def _worker_cmd(impl: str, role: str) -> list[str]:
 
 
 @contextlib.contextmanager
-def stunnel_chain(net: Network, target_port: int, workdir: Path, tag: str) -> Iterator[tuple[int, int]]:
+def stunnel_chain(net: Network, target_port: int, workdir: Path, tag: str,
+                  pids: list[int] | None = None) -> Iterator[tuple[int, int]]:
     """stunnel4 server on 127.0.0.2 (-> 127.0.0.1:target_port) and client on 127.0.0.1
     (-> the server), mutual certificates from the network's CA. Yields (client accept
-    port, server accept port)."""
+    port, server accept port); ``pids`` gets the two processes' ids."""
     binary = shutil.which("stunnel4") or shutil.which("stunnel")
     if binary is None:
         raise NetworkError("stunnel4 is not installed (scripts/install-system-parts)")
@@ -299,6 +301,8 @@ def stunnel_chain(net: Network, target_port: int, workdir: Path, tag: str) -> It
                 "ciphers = ECDHE+AESGCM:ECDHE+CHACHA20:!aNULL",
             ]) + "\n")
             procs.append(subprocess.Popen([binary, str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            if pids is not None:
+                pids.append(procs[-1].pid)
         wait_port(HOSTS["robot_a"], server_port, 10, procs[0], "stunnel server")
         wait_port("127.0.0.1", client_port, 10, procs[1], "stunnel client")
         yield client_port, server_port
@@ -747,20 +751,30 @@ def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress
     (our node client), time until all received its message, per transport, ``runs``
     times (median reported). Plain and stunnel take turns on one talker registered with
     rosmaster (stunnel: TCPROS through the chain, XML-RPC plain, as in the throughput
-    rows); interceptor: the talker on A, the subscribers registering through B."""
+    rows); interceptor: the talker on A, the subscribers registering through B. Also the
+    relays' CPU seconds per bring-up: the three interceptors' (master, A, B) against the
+    two stunnel4 processes' (rosmaster, the talker and the subscribers' own are left out)."""
     result: dict = {"subscribers": count, "runs": runs}
     raw: dict[str, list[dict]] = {t: [] for t in TRANSPORTS}
+    relay_cpu: dict[str, list[float]] = {"stunnel": [], "interceptor": []}
     talker_port = free_port()
+    stunnel_pids: list[int] = []
+    interceptor_pids = [net.hosts[h].proc.pid for h in ("master", "robot_a", "robot_b") if net.hosts[h].proc]
     pub = Proc("latched talker (plain)", _worker_cmd("ours", "latched"),
                net.ros_env(None, BENCH_TCPROS_PORT=str(talker_port)), workdir / "latched-plain.log")
     try:
         pub.expect("URI ", 30)
-        with stunnel_chain(net, talker_port, workdir, "bringup") as (client_port, _server_port):
+        with stunnel_chain(net, talker_port, workdir, "bringup", stunnel_pids) as (client_port, _server_port):
             for run in range(runs):
                 for transport in (("plain", "stunnel") if run % 2 == 0 else ("stunnel", "plain")):
                     via = ("127.0.0.1", client_port) if transport == "stunnel" else None
+                    before = _cpu(stunnel_pids)
                     raw[transport].append(asyncio.run(_bringup_once(net.rosmaster_uri, count, f"{transport}{run}", via)))
-                    progress(f"bring-up {transport:11s} run {run + 1}: {_bringup_short(raw[transport][-1], count)}")
+                    if transport == "stunnel":
+                        relay_cpu["stunnel"].append(_cpu(stunnel_pids) - before)
+                    cpu = (f", stunnel4's CPU {relay_cpu['stunnel'][-1] * 1e3:,.0f} ms"
+                           if transport == "stunnel" else "")
+                    progress(f"bring-up {transport:11s} run {run + 1}: {_bringup_short(raw[transport][-1], count)}{cpu}")
     finally:
         pub.close()
     pub = Proc("latched talker (A)", _worker_cmd("ours", "latched"), net.ros_env("robot_a"), workdir / "latched-a.log")
@@ -768,8 +782,11 @@ def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress
     try:
         pub.expect("URI ", 30)
         for run in range(runs):
+            before = _cpu(interceptor_pids)
             raw["interceptor"].append(asyncio.run(_bringup_once(net.hosts["robot_b"].master_uri, count, f"icpt{run}")))
-            progress(f"bring-up interceptor run {run + 1}: {_bringup_short(raw['interceptor'][-1], count)}")
+            relay_cpu["interceptor"].append(_cpu(interceptor_pids) - before)
+            progress(f"bring-up interceptor run {run + 1}: {_bringup_short(raw['interceptor'][-1], count)}, "
+                     f"the interceptors' CPU {relay_cpu['interceptor'][-1] * 1e3:,.0f} ms")
             time.sleep(2.0)  # the new-stream budget per peer (50/s, burst 100) refills between runs
     finally:
         pub.close()
@@ -782,9 +799,18 @@ def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress
             "median_ms": statistics.median(complete) if complete else None,
             "errors": sorted({e for r in rows for e in r["errors"]}),
         }
+        if transport in relay_cpu:  # the relays' CPU seconds per bring-up (from start to close)
+            result[transport]["relay_cpu_s"] = relay_cpu[transport]
+            result[transport]["relay_cpu_median_s"] = (statistics.median(relay_cpu[transport])
+                                                       if relay_cpu[transport] else None)
     result["interceptor"]["checks"] = checks_delta(checks_before, settled_checks(net))
     progress(f"bring-up interceptor checks: {describe_checks(result['interceptor']['checks'])}")
     return result
+
+
+def _cpu(pids: list[int]) -> float:
+    """CPU seconds (user + system) the processes ``pids`` have used so far."""
+    return sum(cpu_seconds(pid) or 0.0 for pid in pids)
 
 
 def _bringup_short(r: dict, count: int) -> str:
@@ -995,6 +1021,11 @@ def table_rows(report: dict) -> list[list[str]]:
             rows.append([f"{n} subscribers at once: until all receive (median of {runs})", "ours",
                          *(cell(t) for t in TRANSPORTS), _fmt(_ratio(v["interceptor"], v["stunnel"]), "{:.2f}x"),
                          _fmt(_ratio(v["interceptor"], v["plain"]), "{:.2f}x")])
+            cpu = {t: bringup.get(t, {}).get("relay_cpu_median_s") for t in TRANSPORTS}
+            if cpu["interceptor"] is not None and cpu["stunnel"] is not None:
+                rows.append(["  relays' CPU per bring-up (3 interceptors / 2 stunnel4)", "ours", "-",
+                             _fmt(cpu["interceptor"] * 1e3, "{:,.0f} ms"), _fmt(cpu["stunnel"] * 1e3, "{:,.0f} ms"),
+                             _fmt(_ratio(cpu["interceptor"], cpu["stunnel"]), "{:.2f}x"), "-"])
         tok = setup.get("token_bytes")
         if tok:
             rows.append(["access token per preamble (A / B)", "probe", "-",

@@ -6,27 +6,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied
 from cryptoros.policy.ros1 import (
     named_nodes,
     NAME_BINDING,
     check_master_call,
 )
 from cryptoros.ros1.rewrite import rewrite_call, rewrite_response
-from cryptoros.ros1.uri import split_uri
 from cryptoros.ros1.xmlrpc import (
-    ConnectionClosed,
     Fault,
     Request,
     Response,
-    Role,
-    XmlRpcConnection,
-    request_path,
 )
 from cryptoros.tokens import Grants
 from interceptor.exposure import master_problem
+from interceptor.ros1.localcalls import MAX_IDLE
 from interceptor.ros1.wire import (
-    CALL_TIMEOUT,
     MASTER_WATCH_INTERVAL,
     MASTER_WATCH_TIMEOUT,
     MAX_PARAM_SUBSCRIPTIONS_PER_NODE,
@@ -36,13 +31,12 @@ from interceptor.ros1.wire import (
     local_endpoint,
     log,
     param_subscription_key,
-    read_xmlrpc,
     resolved_param_call,
     rewrite_param_api,
     ros_ok,
     writes_params,
 )
-from interceptor.streams import READ_SIZE, InboundStream
+from interceptor.streams import InboundStream
 from interceptor.translate import Canonical
 
 
@@ -303,24 +297,10 @@ class MasterSide:
         await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
     async def _call_upstream_master(self, request: Request) -> Response | Fault:
-        return await self._call_plain(self.cfg.master.upstream, request)
+        # a burst of peers' registrations: up to MAX_IDLE connections kept to the master
+        return await self._local_calls.call(self.cfg.master.upstream, request, max_idle=MAX_IDLE)
 
     async def _call_plain(self, uri: str, request: Request) -> Response | Fault:
-        """One XML-RPC call to a local process (one connection per call)."""
-        where = split_uri(uri, ("http",))
-        host, port = where.host, where.port
-        reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port, limit=READ_SIZE), CALL_TIMEOUT)
-        try:
-            conn = XmlRpcConnection(Role.CLIENT, host=f"{host}:{port}", max_body_size=self.cfg.limits.max_xmlrpc_body)
-            # The path is the one the node advertised, never one a peer wrote.
-            outgoing = Request(method=request.method, params=request.params,
-                               path=request_path(where.path), keep_alive=False, accept_gzip=True)
-            writer.write(conn.send(outgoing))
-            await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
-            event = await read_xmlrpc(reader, conn, CALL_TIMEOUT)
-            if isinstance(event, ConnectionClosed):
-                raise RemoteProtocolError(f"{uri} closed without answering")
-            return type(event)(**{**event.__dict__, "keep_alive": True})
-        finally:
-            writer.close()
-
+        """One XML-RPC call to a local process (a local node's API), over a connection
+        kept alive to it."""
+        return await self._local_calls.call(uri, request)

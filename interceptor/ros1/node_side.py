@@ -253,7 +253,7 @@ class NodeSide:
                     self.topic_types.pop(call.params[1], None)
             elif registering or self.topic_types.get(call.params[1]) != call.params[2]:
                 self.topic_types[call.params[1]] = call.params[2]
-                self._save_state()
+                self._save_state_soon()
         elif call.method in ("registerSubscriber", "unregisterSubscriber") and ros_ok(response):
             self._note_local_subscriber(call)
         if call.method in LOCAL_REGISTRATIONS and ros_ok(response):
@@ -501,7 +501,7 @@ class NodeSide:
             if not subscribers:
                 del self._local_subscribers[topic]
         if subscribers.get(node) != before:  # a repeat changes nothing, and writes nothing
-            self._save_state()
+            self._save_state_soon()
 
     def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
         """A topic stream into this host ended: tell the topic's local subscribers the

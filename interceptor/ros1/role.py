@@ -43,6 +43,7 @@ from interceptor.param_quota import ParamQuota
 from interceptor.registrations import LocalRegistrations
 from interceptor.ros1.ledger import MasterLedger
 from interceptor.ros1.master_side import MasterSide
+from interceptor.ros1.localcalls import LocalCalls
 from interceptor.ros1.node_side import NodeSide
 from interceptor.ros1.relays import Relays
 from interceptor.ros1.state import PersistedState
@@ -58,7 +59,7 @@ from interceptor.ros1.wire import (
     log,
     read_xmlrpc,
 )
-from interceptor.streams import read_into
+from interceptor.streams import drain_within, read_into
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Translator
 
 
@@ -77,7 +78,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             local_master_uri=local_master,
             open_relay=self._open_relay,
             max_relays_per_host=cfg.limits.max_relays_per_peer,
-            on_change=self._save_state,
+            on_change=self._save_state_soon,
         )
         if local_master:
             self.translator.add_master_uri(local_master)
@@ -105,10 +106,13 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._tunnels_closed_idle = 0
         self._servers: list[asyncio.AbstractServer] = []
+        #: connections kept alive to local XML-RPC servers (the master, local nodes' APIs)
+        self._local_calls = LocalCalls(max_body=cfg.limits.max_xmlrpc_body)
         self._relay_socket_of: dict[tuple[str, int], socket.socket] = {}
         self._relay_servers: dict[tuple[str, int], asyncio.AbstractServer] = {}
         self._state_loaded = False
-        self._save_pending = False
+        self._state_dirty = False  # changed since last written
+        self._save_task: asyncio.Task | None = None  # the write to come (_save_state_soon)
         self._state_saves = 0  # state files written (/status: a repeat registration writes none)
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         self._resubscribing: set[str] = set()
@@ -176,9 +180,11 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 await asyncio.wait_for(server.wait_closed(), 1)
         for pool in self._pools.values():
             pool.close()
+        self._local_calls.close()
         for sock in self._relay_socket_of.values():
             sock.close()
         self._relay_socket_of.clear()
+        await self._flush_state()
 
     def reloaded(self) -> None:
         """The limits this role keeps a copy of: the next relay, held name, master call and
@@ -200,6 +206,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
                          "state_saves": self._state_saves,
+                         "state_save_pending": self._state_dirty or self._save_task is not None,
                          "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
                 "warnings": self._deployment_warnings()}
 
@@ -293,7 +300,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             if not event.keep_alive:
                 response = type(response)(**{**response.__dict__, "keep_alive": False})
             writer.write(conn.send(response))
-            await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
+            await drain_within(writer, CALL_TIMEOUT)
             if not event.keep_alive:
                 return
 

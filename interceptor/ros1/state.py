@@ -4,12 +4,16 @@ owners, the registrations kept for rosmaster, local subscribers, refused registr
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 
 from interceptor.ros1.wire import (
     log,
 )
 from interceptor.statefile import write_private_json
+
+#: seconds from a change of the state to its write (changes in between join it)
+STATE_SAVE_DELAY = 0.05
 
 
 class PersistedState:
@@ -19,33 +23,70 @@ class PersistedState:
     def _state_path(self):
         return None if self.cfg.state_dir is None else self.cfg.state_dir / f"{self.cfg.manager}.state.json"
 
-    def _save_state(self) -> None:
-        """Keep the tables a restart would otherwise lose (written atomically)."""
-        path = self._state_path()
-        if path is None or not self._state_loaded:
-            return
-        data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
+    def _state_data(self) -> dict:
+        return {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
                 **self._master_ledger.snapshot(),
                 "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
                 "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()]}
+
+    def _save_state(self) -> None:
+        """Keep the tables a restart would otherwise lose (written atomically), now, on
+        this thread: at start and at stop; every change in between calls
+        :meth:`_save_state_soon`."""
+        path = self._state_path()
+        if path is None or not self._state_loaded:
+            return
+        self._state_dirty = False
         try:
-            write_private_json(path, data)
+            write_private_json(path, self._state_data())
             self._state_saves += 1
         except OSError as exc:
             log.error("cannot keep state in %s: %s", path, exc)
 
     def _save_state_soon(self) -> None:
-        """Save once after this turn of the loop (a multicall changes many owners)."""
-        if self._state_path() is not None and not self._save_pending:
-            self._save_pending = True
+        """Save :data:`STATE_SAVE_DELAY` after a change, off the event loop: a burst of
+        changes (a robot's nodes registering at once, a multicall) is one write, and a
+        disk slow to rename never holds a call. The tables are read on the loop; the
+        file is written and renamed in a thread, one write at a time, the newest last."""
+        if self._state_path() is None or not self._state_loaded:
+            return
+        self._state_dirty = True
+        if self._save_task is not None:
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no loop (start-up code, tests of the tables): now
+            self._save_state()
+            return
+        self._save_task = loop.create_task(self._save_state_later(), name="state-save")
 
-            def save() -> None:
-                self._save_pending = False
-                self._save_state()
+    async def _save_state_later(self) -> None:
+        path = self._state_path()
+        try:
+            while self._state_dirty:
+                await asyncio.sleep(STATE_SAVE_DELAY)
+                self._state_dirty = False
+                text = json.dumps(self._state_data())
+                try:
+                    await asyncio.to_thread(write_private_json, path, text, encoded=True)
+                    self._state_saves += 1
+                except OSError as exc:
+                    log.error("cannot keep state in %s: %s", path, exc)
+        finally:
+            self._save_task = None
 
-            asyncio.get_running_loop().call_soon(save)
+    async def _flush_state(self) -> None:
+        """At stop: the write under way finished, then what changed since written now."""
+        task = self._save_task
+        if task is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(asyncio.shield(task), 5)
+            if not task.done():
+                task.cancel()
+        if self._state_dirty:
+            self._save_state()
 
     def _load_state(self) -> None:
         path = self._state_path()

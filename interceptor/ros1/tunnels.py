@@ -15,7 +15,7 @@ from cryptoros.ros1.xmlrpc import (
     Role,
     XmlRpcConnection,
 )
-from interceptor.streams import Tunnel
+from interceptor.streams import Tunnel, drain_within
 
 #: ``Gateway.open_tunnel``: a stream to a peer interceptor, the first request behind its preamble
 OpenTunnel = Callable[..., Awaitable[Tunnel]]
@@ -59,7 +59,7 @@ class XmlRpcTunnel:
                 try:
                     if not fresh:
                         writer.write(self._conn.send(request))
-                        await asyncio.wait_for(writer.drain(), CALL_TIMEOUT)
+                        await drain_within(writer, CALL_TIMEOUT)
                     try:
                         event = await read_xmlrpc(reader, self._conn, CALL_TIMEOUT)
                     finally:

@@ -59,6 +59,9 @@ def test_bench_interceptor_quick(tmp_path):
     for transport in ("plain", "interceptor", "stunnel"):
         assert bringup[transport]["received"] == [50], (transport, bringup[transport])
         assert bringup[transport]["median_ms"] > 0
+    for transport in ("interceptor", "stunnel"):  # the relays' CPU per bring-up, side by side
+        assert len(bringup[transport]["relay_cpu_s"]) == 1 and bringup[transport]["relay_cpu_median_s"] > 0
+    assert "relays' CPU" in result.stdout  # the row (the table wraps its label)
 
     (paper,) = report["paper"]
     assert paper["messages"] == 30

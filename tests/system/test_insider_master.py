@@ -75,6 +75,15 @@ def status(network, host: str) -> dict:
             return json.loads(reply.read())
 
 
+def saved_after(network, saves: int | None) -> dict:
+    """The master's ROS 1 status once no state save is pending (and, given ``saves``,
+    more than that many were written): a change is written a moment after it."""
+    def settled():
+        ros1 = status(network, "master")["ros1"]
+        return ros1 if not ros1["state_save_pending"] and (saves is None or ros1["state_saves"] > saves) else None
+    return until(settled, 10, "the master's state file written")
+
+
 def connections_to(network, host: str, peer: str) -> int:
     """TCP connections established from ``host``'s network to ``peer``'s public port
     (the kernel's own table: every tunnel the interceptor there holds open to it)."""
@@ -218,18 +227,16 @@ def test_a_repeated_registration_changes_nothing_and_rewrites_no_state_file(netw
     with flow.held("robot B's repeated registrations"), rogue_to(network, "master", "robot_b") as s:
         assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
         assert rogue_xmlrpc(s, *call).value[0] == 1
-        assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1  # the save after it has run
-        first = status(network, "master")["ros1"]
+        first = saved_after(network, before["state_saves"])
         written = state.stat()
-        assert first["state_saves"] > before["state_saves"] and first["relays"] == before["relays"] + 1
+        assert first["relays"] == before["relays"] + 1
         assert all(rogue_xmlrpc(s, *call).value[0] == 1 for _ in range(50))
         assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1
-        repeated = status(network, "master")["ros1"]
+        repeated = saved_after(network, None)
         assert repeated["state_saves"] == first["state_saves"]
         assert (state.stat().st_mtime_ns, state.stat().st_ino) == (written.st_mtime_ns, written.st_ino)
         # one unregister undoes the one registration rosmaster kept: node and relay released
         assert rogue_xmlrpc(s, "unregisterSubscriber", "/repeat_listener", "/chatter", api).value[0] == 1
-        assert rogue_xmlrpc(s, "getPid", "/repeat_listener").value[0] == 1
-    after = status(network, "master")["ros1"]
-    assert after["relays"] == before["relays"] and after["state_saves"] > repeated["state_saves"]
+        after = saved_after(network, repeated["state_saves"])
+    assert after["relays"] == before["relays"]
     assert "/repeat_listener" not in json.loads(state.read_text())["owners"]

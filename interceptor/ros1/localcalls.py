@@ -1,0 +1,159 @@
+"""XML-RPC calls to local processes (the ROS master, a local node's API) over
+kept-alive connections: a burst of peers' calls (a robot's nodes registering and
+subscribing at once) reuses a few connections instead of a TCP connection and a server
+thread each."""
+
+from __future__ import annotations
+
+import asyncio
+
+from cryptoros.errors import RemoteProtocolError
+from cryptoros.ros1.uri import split_uri
+from cryptoros.ros1.xmlrpc import (
+    ConnectionClosed,
+    Fault,
+    Request,
+    Response,
+    Role,
+    XmlRpcConnection,
+    request_path,
+)
+from interceptor.ros1.wire import CALL_TIMEOUT, read_xmlrpc
+from interceptor.streams import READ_SIZE, drain_within
+
+#: connections kept open to one server between calls (each may hold a thread there)
+MAX_IDLE = 8
+#: a connection unused this long (seconds) is closed rather than reused
+IDLE_SECONDS = 10.0
+
+
+class _Kept:
+    __slots__ = ("reader", "writer", "conn", "since")
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, conn: XmlRpcConnection) -> None:
+        self.reader, self.writer, self.conn = reader, writer, conn
+        self.since = 0.0
+
+
+class LocalXmlRpc:
+    """Calls to one plain ``http://`` XML-RPC server on this host. A call takes the
+    connection used last (or opens one); a kept connection the server closed meanwhile
+    fails before any byte of an answer, and the call is made once more on a new one
+    (the server never read it: a restarted master or node, an idle connection closed)."""
+
+    def __init__(self, uri: str, *, max_body: int, max_idle: int = MAX_IDLE, idle_seconds: float = IDLE_SECONDS):
+        where = split_uri(uri, ("http",))
+        self._host, self._port, self._path = where.host, where.port, request_path(where.path)
+        self._max_body = max_body
+        self._max_idle = max_idle
+        self._idle_seconds = idle_seconds
+        self._idle: list[_Kept] = []
+        self._sweep: asyncio.TimerHandle | None = None
+        self.opened = 0  # connections opened (tests, status)
+
+    async def call(self, request: Request) -> Response | Fault:
+        # The path is the one the server was configured or registered with, never one a peer wrote.
+        outgoing = Request(method=request.method, params=request.params, path=self._path, keep_alive=True,
+                           accept_gzip=True)
+        while True:
+            kept = self._take()
+            reused = kept is not None
+            if kept is None:
+                kept = await self._open()
+            try:
+                kept.writer.write(kept.conn.send(outgoing))
+                await drain_within(kept.writer, CALL_TIMEOUT)
+                event = await read_xmlrpc(kept.reader, kept.conn, CALL_TIMEOUT)
+                if isinstance(event, ConnectionClosed):
+                    raise ConnectionResetError("closed without answering")
+            except (ConnectionError, RemoteProtocolError) as exc:
+                kept.writer.close()
+                if reused and not kept.conn.trailing_data.data:  # closed while idle: nothing was answered
+                    continue
+                raise RemoteProtocolError(f"http://{self._host}:{self._port}/: {exc}") from exc
+            except BaseException:
+                kept.writer.close()
+                raise
+            if event.keep_alive and not kept.conn.trailing_data.data:  # nothing unasked-for behind it
+                self._park(kept)
+            else:
+                kept.writer.close()
+            return type(event)(**{**event.__dict__, "keep_alive": True})
+
+    def _take(self) -> _Kept | None:
+        now = asyncio.get_running_loop().time()
+        while self._idle:
+            kept = self._idle.pop()
+            if now - kept.since < self._idle_seconds and not kept.reader.at_eof():
+                return kept
+            kept.writer.close()
+        return None
+
+    def _park(self, kept: _Kept) -> None:
+        if len(self._idle) >= self._max_idle:
+            kept.writer.close()
+            return
+        loop = asyncio.get_running_loop()
+        kept.since = loop.time()
+        self._idle.append(kept)
+        if self._sweep is None:
+            self._sweep = loop.call_later(self._idle_seconds, self._close_idle)
+
+    def _close_idle(self) -> None:
+        """Close the connections unused for ``idle_seconds``; come back for the rest."""
+        self._sweep = None
+        loop = asyncio.get_running_loop()
+        due = loop.time() - self._idle_seconds + 0.01  # the loop may wake a little early
+        for kept in [k for k in self._idle if k.since <= due]:
+            self._idle.remove(kept)
+            kept.writer.close()
+        if self._idle:
+            oldest = min(k.since for k in self._idle)
+            self._sweep = loop.call_at(oldest + self._idle_seconds, self._close_idle)
+
+    async def _open(self) -> _Kept:
+        reader, writer = await asyncio.wait_for(
+            asyncio.open_connection(self._host, self._port, limit=READ_SIZE), CALL_TIMEOUT)
+        self.opened += 1
+        return _Kept(reader, writer, XmlRpcConnection(Role.CLIENT, host=f"{self._host}:{self._port}",
+                                                      max_body_size=self._max_body))
+
+    def close(self) -> None:
+        if self._sweep is not None:
+            self._sweep.cancel()
+            self._sweep = None
+        while self._idle:
+            self._idle.pop().writer.close()
+
+
+class LocalCalls:
+    """One :class:`LocalXmlRpc` per local URI called, the least recently used closed
+    past ``max_servers`` (each keeps at most ``max_idle`` connections)."""
+
+    def __init__(self, *, max_body: int, max_servers: int = 256) -> None:
+        self._max_body = max_body
+        self._max_servers = max_servers
+        self._servers: dict[str, LocalXmlRpc] = {}
+
+    async def call(self, uri: str, request: Request, *, max_idle: int = 2) -> Response | Fault:
+        """``max_idle``: connections kept to ``uri`` (set by its first call)."""
+        server = self._servers.pop(uri, None)
+        if server is None:
+            server = LocalXmlRpc(uri, max_body=self._max_body, max_idle=max_idle)
+        self._servers[uri] = server  # the most recently used last
+        while len(self._servers) > self._max_servers:
+            self._servers.pop(next(iter(self._servers))).close()
+        return await server.call(request)
+
+    def forget(self, uri: str) -> None:
+        """Close the connections kept to ``uri`` (its node is gone)."""
+        server = self._servers.pop(uri, None)
+        if server is not None:
+            server.close()
+
+    def close(self) -> None:
+        while self._servers:
+            self._servers.popitem()[1].close()
+
+
+__all__ = ["IDLE_SECONDS", "MAX_IDLE", "LocalCalls", "LocalXmlRpc"]
