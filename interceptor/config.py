@@ -43,7 +43,7 @@ Example::
     upstream = "http://127.0.0.1:11311"  # master role: rosmaster or `cryptoros master`
 
     [limits]
-    max_connections_per_peer = 64
+    max_connections_per_peer = 256
     max_new_connections_per_second = 50.0
     max_messages_per_second = 10000.0  # per peer, all its streams in (default 5000; 0 = unlimited)
     max_message_size = 16777216       # bytes per TCPROS message from a peer (default 16 MiB)
@@ -175,7 +175,12 @@ class MasterSettings:
 
 @dataclass(frozen=True, kw_only=True)
 class Limits:
-    max_connections_per_peer: int = 64
+    #: Streams one peer manager may hold open into this host at once (topic and service
+    #: streams, pooled XML-RPC tunnels, spares). 64 was too few in the field: a 50-node
+    #: bring-up after a publisher restart met ``connection_limit`` while the old tunnels
+    #: idled out. Memory per stream: about 97 KiB plus 4x the peer's token
+    #: (docs/performance.md, "How an interceptor grows").
+    max_connections_per_peer: int = 256
     max_new_connections_per_second: float = 50.0
     max_xmlrpc_body: int = 1 << 20
     max_header_size: int = 1 << 20
