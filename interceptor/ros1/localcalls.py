@@ -18,6 +18,7 @@ from cryptoros.ros1.xmlrpc import (
     XmlRpcConnection,
     request_path,
 )
+from interceptor.idle import IdleKeeper
 from interceptor.ros1.wire import CALL_TIMEOUT, read_xmlrpc
 from interceptor.streams import READ_SIZE, drain_within
 
@@ -28,11 +29,10 @@ IDLE_SECONDS = 10.0
 
 
 class _Kept:
-    __slots__ = ("reader", "writer", "conn", "since")
+    __slots__ = ("reader", "writer", "conn")
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, conn: XmlRpcConnection) -> None:
         self.reader, self.writer, self.conn = reader, writer, conn
-        self.since = 0.0
 
 
 class LocalXmlRpc:
@@ -45,18 +45,21 @@ class LocalXmlRpc:
         where = split_uri(uri, ("http",))
         self._host, self._port, self._path = where.host, where.port, request_path(where.path)
         self._max_body = max_body
-        self._max_idle = max_idle
-        self._idle_seconds = idle_seconds
-        self._idle: list[_Kept] = []
-        self._sweep: asyncio.TimerHandle | None = None
+        self._idle: IdleKeeper[_Kept] = IdleKeeper(lambda kept: kept.writer.close(), max_idle=max_idle,
+                                                   idle_seconds=idle_seconds)
         self.opened = 0  # connections opened (tests, status)
+
+    @property
+    def idle_count(self) -> int:
+        """Connections kept open for the next call."""
+        return len(self._idle)
 
     async def call(self, request: Request) -> Response | Fault:
         # The path is the one the server was configured or registered with, never one a peer wrote.
         outgoing = Request(method=request.method, params=request.params, path=self._path, keep_alive=True,
                            accept_gzip=True)
         while True:
-            kept = self._take()
+            kept = self._idle.take(lambda kept: not kept.reader.at_eof())
             reused = kept is not None
             if kept is None:
                 kept = await self._open()
@@ -75,41 +78,10 @@ class LocalXmlRpc:
                 kept.writer.close()
                 raise
             if event.keep_alive and not kept.conn.trailing_data.data:  # nothing unasked-for behind it
-                self._park(kept)
+                self._idle.park(kept)
             else:
                 kept.writer.close()
             return type(event)(**{**event.__dict__, "keep_alive": True})
-
-    def _take(self) -> _Kept | None:
-        now = asyncio.get_running_loop().time()
-        while self._idle:
-            kept = self._idle.pop()
-            if now - kept.since < self._idle_seconds and not kept.reader.at_eof():
-                return kept
-            kept.writer.close()
-        return None
-
-    def _park(self, kept: _Kept) -> None:
-        if len(self._idle) >= self._max_idle:
-            kept.writer.close()
-            return
-        loop = asyncio.get_running_loop()
-        kept.since = loop.time()
-        self._idle.append(kept)
-        if self._sweep is None:
-            self._sweep = loop.call_later(self._idle_seconds, self._close_idle)
-
-    def _close_idle(self) -> None:
-        """Close the connections unused for ``idle_seconds``; come back for the rest."""
-        self._sweep = None
-        loop = asyncio.get_running_loop()
-        due = loop.time() - self._idle_seconds + 0.01  # the loop may wake a little early
-        for kept in [k for k in self._idle if k.since <= due]:
-            self._idle.remove(kept)
-            kept.writer.close()
-        if self._idle:
-            oldest = min(k.since for k in self._idle)
-            self._sweep = loop.call_at(oldest + self._idle_seconds, self._close_idle)
 
     async def _open(self) -> _Kept:
         reader, writer = await asyncio.wait_for(
@@ -119,11 +91,7 @@ class LocalXmlRpc:
                                                       max_body_size=self._max_body))
 
     def close(self) -> None:
-        if self._sweep is not None:
-            self._sweep.cancel()
-            self._sweep = None
-        while self._idle:
-            self._idle.pop().writer.close()
+        self._idle.close()
 
 
 class LocalCalls:

@@ -15,6 +15,7 @@ from cryptoros.ros1.xmlrpc import (
     Role,
     XmlRpcConnection,
 )
+from interceptor.idle import IdleKeeper
 from interceptor.streams import Tunnel, drain_within
 
 #: ``Gateway.open_tunnel``: a stream to a peer interceptor, the first request behind its preamble
@@ -106,13 +107,9 @@ class TunnelPool:
                  on_idle_close: Callable[[], None] = lambda: None):
         self._make_tunnel = make_tunnel
         self._wait = wait
-        self._on_idle_close = on_idle_close
-        #: idle tunnels and when each was put back (the loop's clock), oldest first
-        self._idle: list[tuple[XmlRpcTunnel, float]] = []
-        self._max_idle = max_idle
+        self._idle: IdleKeeper[XmlRpcTunnel] = IdleKeeper(
+            lambda tunnel: tunnel.close_now(), max_idle=max_idle, idle_seconds=idle_timeout, on_expired=on_idle_close)
         self._max_busy = max_busy
-        self._idle_timeout = idle_timeout
-        self._sweep: asyncio.TimerHandle | None = None
         self._busy = 0
         self.closed = False
         #: calls waiting for a tunnel: each gets one handed back, or None (open your own)
@@ -123,8 +120,8 @@ class TunnelPool:
         return len(self._idle)
 
     async def _acquire(self) -> XmlRpcTunnel:
-        if self._idle:
-            return self._idle.pop()[0]  # the most recently used: the others may go idle
+        if (tunnel := self._idle.take()) is not None:
+            return tunnel
         if self._busy >= self._max_busy:
             waiter = asyncio.get_running_loop().create_future()
             self._waiters.append(waiter)
@@ -166,33 +163,15 @@ class TunnelPool:
 
     def _park(self, tunnel: XmlRpcTunnel) -> None:
         """Keep an unused tunnel for the next call (closed after ``idle_timeout``)."""
-        if self.closed or len(self._idle) >= self._max_idle:
+        if self.closed:
             tunnel.close_now()
             return
-        loop = asyncio.get_running_loop()
-        self._idle.append((tunnel, loop.time()))
-        if self._sweep is None:
-            self._sweep = loop.call_later(self._idle_timeout, self._close_idle)
-
-    def _close_idle(self) -> None:
-        """Close the tunnels idle for ``idle_timeout``; come back for the next one."""
-        self._sweep = None
-        loop = asyncio.get_running_loop()
-        due = loop.time() - self._idle_timeout + 0.01  # the loop may wake a little early
-        while self._idle and self._idle[0][1] <= due:
-            self._idle.pop(0)[0].close_now()
-            self._on_idle_close()
-        if self._idle:
-            self._sweep = loop.call_at(self._idle[0][1] + self._idle_timeout, self._close_idle)
+        self._idle.park(tunnel)
 
     def close(self) -> None:
         """Close the idle tunnels now, and every tunnel that comes back from then on."""
         self.closed = True
-        if self._sweep is not None:
-            self._sweep.cancel()
-            self._sweep = None
-        while self._idle:
-            self._idle.pop()[0].close_now()
+        self._idle.close()
 
 
 __all__ = ["OpenTunnel", "TunnelPool", "XmlRpcTunnel"]

@@ -131,10 +131,13 @@ async def test_a_kept_connection_unused_for_idle_seconds_is_closed(running):
     master = Master()
     upstream = LocalXmlRpc(await running(master), max_body=1 << 20, idle_seconds=0.1)
     await upstream.call(call())
-    assert len(upstream._idle) == 1
+    assert upstream.idle_count == 1
     server_side = master.writers[0]
-    await asyncio.sleep(0.3)
-    assert not upstream._idle and server_side.transport.is_closing()  # the master saw it close
+    deadline = asyncio.get_running_loop().time() + 5
+    while not server_side.transport.is_closing():  # the master sees it close (bounded wait)
+        assert asyncio.get_running_loop().time() < deadline, "the idle connection was never closed"
+        await asyncio.sleep(0.02)
+    assert upstream.idle_count == 0
 
 
 async def test_local_calls_keep_one_server_per_uri_and_close_the_least_recently_used(running):
