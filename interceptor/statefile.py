@@ -3,9 +3,11 @@ and the lock that lets one instance of a configuration use them."""
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
+import tempfile
 from pathlib import Path
 from typing import IO, Any
 
@@ -19,18 +21,23 @@ class InstanceRunning(CryptorosError):
 
 
 def write_private_json(path: Path, data: Any, *, encoded: bool = False) -> None:
-    """Write ``data`` as JSON to ``path`` atomically (a temporary file renamed over it),
-    mode 0600, creating the directory; OSError when it cannot. ``encoded``: ``data``
-    is the JSON text already."""
+    """Write ``data`` as JSON to ``path`` atomically (a temporary file of its own renamed
+    over it: two writers at once, a thread's and a stop's, never share one), mode 0600,
+    creating the directory; OSError when it cannot. ``encoded``: ``data`` is the JSON
+    text already."""
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        if encoded:
-            f.write(data)
-        else:
-            json.dump(data, f)
-    os.replace(tmp, path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")  # mode 0600
+    try:
+        with os.fdopen(fd, "w") as f:
+            if encoded:
+                f.write(data)
+            else:
+                json.dump(data, f)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 def _private_dir(path: Path) -> None:
