@@ -211,7 +211,13 @@ def test_sighup_reload_keeps_open_streams_and_disabled_manager_is_cut_off_within
     text = metrics(network, "robot_a")
     assert re.search(r'^cryptoros_interceptor_revocation_cutoffs_total\{reason="(subject_disabled|revoked)"\} [1-9]', text,
                      re.M), "the cut is not counted with its reason"
-    network.cli("enable-manager", "robot_b")
+    assert network.cli("enable-manager", "robot_b").returncode == 0
+    # the tests after this one ask the daemon for robot B's token at once: wait out its
+    # cache of the managers (seen once: access_denied right after enable-manager)
+    deadline = time.monotonic() + 10
+    while network.daemon.token("robot_b")[0] != 200:
+        assert time.monotonic() < deadline, "the daemon still refuses robot B a token after enable-manager"
+        time.sleep(0.1)
 
 
 def listening_inode(host) -> str:
