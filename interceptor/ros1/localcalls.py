@@ -96,7 +96,8 @@ class LocalXmlRpc:
 
 class LocalCalls:
     """One :class:`LocalXmlRpc` per local URI called, the least recently used closed
-    past ``max_servers`` (each keeps at most ``max_idle`` connections)."""
+    past ``max_servers`` (each keeps at most ``max_idle`` connections, for at most
+    ``IDLE_SECONDS``: a node that went away holds nothing for long)."""
 
     def __init__(self, *, max_body: int, max_servers: int = 256) -> None:
         self._max_body = max_body
@@ -112,12 +113,6 @@ class LocalCalls:
         while len(self._servers) > self._max_servers:
             self._servers.pop(next(iter(self._servers))).close()
         return await server.call(request)
-
-    def forget(self, uri: str) -> None:
-        """Close the connections kept to ``uri`` (its node is gone)."""
-        server = self._servers.pop(uri, None)
-        if server is not None:
-            server.close()
 
     def close(self) -> None:
         while self._servers:
