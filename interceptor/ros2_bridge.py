@@ -175,8 +175,7 @@ class DdsBridge:
             if stopping():
                 return
             log.error("the DDS bridge exited (status %s); restarting it", proc.returncode)
-            self._ready.clear()
-            await self.stop()
+            await self.stop()  # not ready from here on
             on_lost()
             await asyncio.sleep(RESTART_PAUSE)
             try:
