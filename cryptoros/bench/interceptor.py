@@ -24,8 +24,8 @@ sensor_msgs/Image of 80 KB and 1 MB, TCPROS connection set-up time (connect to t
 publisher's header reply: TLS handshake + token check on the interceptor and stunnel
 rows), a non-persistent service call (connect + header + request + reply, the common
 case of ROS service clients) and requestTopic time, bytes on the wire per set-up (tcpdump on ``lo``), a robot's
-bring-up (50 subscribers starting at once against a latched publisher: time until all
-received its message, median of a few runs), and the
+bring-up (50 subscribers starting at once against a latched publisher, and a launch file of
+30 stock nodes: :mod:`cryptoros.bench.bringup`), and the
 paper's own experiment (section IV: N std_msgs/String at 10 Hz, the listener timed
 from launch to exit as with ``time``, with and without interceptors).
 
@@ -42,7 +42,6 @@ import asyncio
 import contextlib
 import json
 import os
-import queue
 import shutil
 import statistics
 import struct
@@ -51,21 +50,20 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import click
 
+from cryptoros.bench.chain import (NODES, SYS_PY, TRANSPORTS, Proc, checks_delta, describe_checks, interceptor_checks,
+                                   settled_checks, stunnel_chain, worker_cmd)
 from cryptoros.lab.capture import Capture, CaptureError, flows
-from cryptoros.lab.network import (HOSTS, UNTHROTTLED, Network, NetworkError, cpu_seconds, lab_network, free_port,
-                                   stop, wait_port)
+from cryptoros.lab.network import (HOSTS, UNTHROTTLED, Network, NetworkError, lab_network, free_port,
+                                   stop)
 from cryptoros.lab.policy import policy_yaml
 from cryptoros.ros1.uri import host_port
 
-SYS_PY = "/usr/bin/python3"
-NODES = Path(__file__).parent / "ros1_nodes"
-TRANSPORTS = ("plain", "interceptor", "stunnel")
 IMPLS = ("rospy", "ours")
 PAPER = {100: (10.534, 10.711), 250: (25.588, 25.713), 500: (50.628, 50.747)}
 PAPER_SETUP_BYTES = (2478, 14478)
@@ -82,7 +80,10 @@ def _policy() -> str:
     return policy_yaml({
         "master": {},
         "robot_a": {"publish": [string, image, rosout], "serve": [trigger]},
-        "robot_b": {"publish": [rosout], "subscribe": [string, image], "call": [trigger]},
+        # roslaunch's own parameters (the launch bring-up row): `grant-tools --roslaunch`
+        "robot_b": {"publish": [rosout], "subscribe": [string, image], "call": [trigger],
+                    "write_param": [("/roslaunch", ns, None)
+                                    for ns in ("/run_id", "/roslaunch", "/rosdistro", "/rosversion")]},
         "robot_c": {"publish": [rosout, *paper]},
         "robot_d": {"publish": [rosout], "subscribe": paper},
     })
@@ -192,7 +193,10 @@ def _our_worker() -> None:
                 pass
 
     async def latched() -> None:
-        async with Node("/bench_latched", tcpros_port=int(os.environ.get("BENCH_TCPROS_PORT", "0"))) as node:
+        from cryptoros.bench.bringup import worker_endpoint
+
+        async with Node("/bench_latched", tcpros_port=int(os.environ.get("BENCH_TCPROS_PORT", "0")),
+                        tcpros_endpoint=worker_endpoint()) as node:
             pub = await node.advertise("/bench_str", "std_msgs/String", latch=True)
             pub.publish(node.msg("std_msgs/String", data="bring-up"))
             out(f"URI {node.uri} {node.tcpros_port}")
@@ -200,115 +204,6 @@ def _our_worker() -> None:
                 pass
 
     asyncio.run({"listen": listen, "talk": talk, "idle": idle, "latched": latched}[role]())
-
-
-# ============================================================ processes
-
-
-class Proc:
-    """A subprocess whose stdout lines arrive through a thread (bounded waits)."""
-
-    def __init__(self, name: str, args: list[str], env: dict[str, str], log: Path) -> None:
-        self.name = name
-        self.log = log
-        self.lines: queue.Queue[str | None] = queue.Queue()
-        self.seen: list[str] = []
-        self.proc = subprocess.Popen(args, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=log.open("w"), text=True, bufsize=1)
-        self._thread = threading.Thread(target=self._read, daemon=True)
-        self._thread.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.put(line.rstrip("\n"))
-        self.lines.put(None)
-
-    def send(self, line: str) -> None:
-        assert self.proc.stdin is not None
-        with contextlib.suppress(BrokenPipeError, OSError):
-            self.proc.stdin.write(line + "\n")
-            self.proc.stdin.flush()
-
-    def expect(self, prefix: str, timeout: float) -> str:
-        deadline = time.monotonic() + timeout
-        while True:
-            remaining = deadline - time.monotonic()
-            try:
-                line = self.lines.get(timeout=max(0.0, remaining))
-            except queue.Empty:
-                break
-            if line is None:
-                break
-            self.seen.append(line)
-            if line.startswith(prefix):
-                return line
-        tail = self.log.read_text()[-1500:] if self.log.exists() else ""
-        raise NetworkError(f"{self.name}: no {prefix!r} within {timeout:.0f} s; output {self.seen[-5:]}; log:\n{tail}")
-
-    def close(self, timeout: float = 5.0) -> None:
-        """``quit`` (a clean unregistration), then SIGTERM/SIGKILL: bounded."""
-        self.send("quit")
-        with contextlib.suppress(OSError):
-            self.proc.stdin.close()  # type: ignore[union-attr]
-        try:
-            self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            stop(self.proc)
-
-
-def _worker_cmd(impl: str, role: str) -> list[str]:
-    if impl == "rospy":
-        return [SYS_PY, str(NODES / "rospy_worker.py"), role]
-    return [sys.executable, "-c", "from cryptoros.bench.interceptor import _our_worker; _our_worker()", role]
-
-
-# ============================================================ stunnel
-
-
-@contextlib.contextmanager
-def stunnel_chain(net: Network, target_port: int, workdir: Path, tag: str,
-                  pids: list[int] | None = None) -> Iterator[tuple[int, int]]:
-    """stunnel4 server on 127.0.0.2 (-> 127.0.0.1:target_port) and client on 127.0.0.1
-    (-> the server), mutual certificates from the network's CA. Yields (client accept
-    port, server accept port); ``pids`` gets the two processes' ids."""
-    binary = shutil.which("stunnel4") or shutil.which("stunnel")
-    if binary is None:
-        raise NetworkError("stunnel4 is not installed (scripts/install-system-parts)")
-    server_port, client_port = free_port(HOSTS["robot_a"]), free_port()
-    common = [
-        "foreground = yes", "pid =", "debug = 3", "syslog = no",
-        "socket = l:TCP_NODELAY=1", "socket = r:TCP_NODELAY=1",
-    ]
-    sides = {
-        "server": (net.cert("stunnel_a"), [
-            f"accept = {HOSTS['robot_a']}:{server_port}", f"connect = 127.0.0.1:{target_port}",
-        ]),
-        "client": (net.cert("stunnel_b"), [
-            "client = yes", f"accept = 127.0.0.1:{client_port}", f"connect = {HOSTS['robot_a']}:{server_port}",
-            f"checkIP = {HOSTS['robot_a']}",
-        ]),
-    }
-    procs = []
-    try:
-        for side, ((cert, key), lines) in sides.items():
-            conf = workdir / f"stunnel-{tag}-{side}.conf"
-            conf.write_text("\n".join([
-                *common, f"output = {workdir / f'stunnel-{tag}-{side}.log'}",
-                f"[{tag}-{side}]", *lines,
-                f"cert = {cert}", f"key = {key}", f"CAfile = {net.ca}", f"CRLfile = {net.pki.crl_path}",
-                "verifyChain = yes", "requireCert = yes", "sslVersionMin = TLSv1.2",
-                "ciphers = ECDHE+AESGCM:ECDHE+CHACHA20:!aNULL",
-            ]) + "\n")
-            procs.append(subprocess.Popen([binary, str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-            if pids is not None:
-                pids.append(procs[-1].pid)
-        wait_port(HOSTS["robot_a"], server_port, 10, procs[0], "stunnel server")
-        wait_port("127.0.0.1", client_port, 10, procs[1], "stunnel client")
-        yield client_port, server_port
-    finally:
-        for proc in procs:
-            stop(proc)
 
 
 # ============================================================ throughput and latency
@@ -355,11 +250,11 @@ def run_pair(net: Network, impl: str, transport: str, modes: list[Mode], workdir
             client_port, _server_port = stack.enter_context(stunnel_chain(net, talker_port, workdir, tag))
             listener_extra["BENCH_VIA"] = f"127.0.0.1:{client_port}"
             talker_extra["BENCH_TCPROS_PORT"] = str(talker_port)
-        listener = Proc(f"{tag} listener", _worker_cmd(impl, "listen"), net.ros_env(listener_env_host, **listener_extra),
+        listener = Proc(f"{tag} listener", worker_cmd(impl, "listen"), net.ros_env(listener_env_host, **listener_extra),
                         workdir / f"{tag}-listener.log")
         stack.callback(listener.close)
         listener.expect("SUBSCRIBED", 60)
-        talker = Proc(f"{tag} talker", _worker_cmd(impl, "talk"), net.ros_env(talker_env_host, **talker_extra),
+        talker = Proc(f"{tag} talker", worker_cmd(impl, "talk"), net.ros_env(talker_env_host, **talker_extra),
                       workdir / f"{tag}-talker.log")
         stack.callback(talker.close)
         talker.expect("READY", 60)
@@ -506,7 +401,7 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
         result["token_bytes"] = token_sizes(net)
     talker_port = free_port()
     # -------- plain and stunnel: one idle talker registered straight with rosmaster
-    idle = Proc("idle talker (plain)", _worker_cmd("ours", "idle"), net.ros_env(None, BENCH_TCPROS_PORT=str(talker_port)),
+    idle = Proc("idle talker (plain)", worker_cmd("ours", "idle"), net.ros_env(None, BENCH_TCPROS_PORT=str(talker_port)),
                 workdir / "idle-plain.log")
     try:
         _, uri, port_text = idle.expect("URI ", 30).split()
@@ -564,7 +459,7 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
              f"service call {result['stunnel']['service_call']['median_ms']:.2f} ms, "
              f"{result['stunnel']['bytes']['total']['frame_bytes']:,} B")
     # -------- interceptor: idle talker on A, probe on B
-    idle = Proc("idle talker (A)", _worker_cmd("ours", "idle"), net.ros_env("robot_a"), workdir / "idle-icpt.log")
+    idle = Proc("idle talker (A)", worker_cmd("ours", "idle"), net.ros_env("robot_a"), workdir / "idle-icpt.log")
     try:
         idle.expect("URI ", 30)
 
@@ -617,206 +512,6 @@ def measure_setup(net: Network, reps: int, workdir: Path, progress: Callable[[st
              f"{result['interceptor']['bytes']['total']['frame_bytes']:,} B")
     progress(f"set-up interceptor checks: {describe_checks(result['interceptor']['checks'])}")
     return result
-
-
-# ============================================================ which checks ran
-
-
-def interceptor_checks(net: Network, hosts: tuple[str, ...] = ("robot_a", "robot_b")) -> dict[str, float]:
-    """The interceptors' counters of TLS handshakes (full, resumed) and per-stream checks
-    (certificate: validity and CRL; token: signature or cache, time, binding, feed),
-    summed over ``hosts`` and both directions, read from their /metrics."""
-    import urllib.request
-
-    totals: dict[str, float] = {}
-    for name in hosts:
-        port = net.hosts[name].metrics_port
-        if port is None:
-            continue
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as reply:
-            text = reply.read().decode()
-        for line in text.splitlines():
-            for family, label in (("cryptoros_interceptor_tls_handshakes_total{", "kind"),
-                                  ("cryptoros_interceptor_stream_checks_total{", "check"),
-                                  ("cryptoros_interceptor_spare_connections_total{", "outcome")):
-                if line.startswith(family):
-                    labels, value = line[len(family):].split("} ")
-                    fields = dict(part.split("=", 1) for part in labels.split(","))
-                    key = fields[label].strip('"')
-                    if family.startswith("cryptoros_interceptor_tls"):
-                        key = f"{fields['direction'].strip(chr(34))}_{key}"
-                    elif family.startswith("cryptoros_interceptor_spare"):
-                        key = f"spare_{key}"
-                    totals[key] = totals.get(key, 0.0) + float(value)
-    return totals
-
-
-def settled_checks(net: Network, timeout: float = 5.0) -> dict[str, float]:
-    """:func:`interceptor_checks` once they held still for 0.4 s (three reads 0.2 s apart;
-    bounded by ``timeout``): the spare that replaces a used one is counted by the accepting
-    interceptor when its handshake ends and by the connecting one a moment later; read
-    between the two, one spare looks like a stream that skipped its token check."""
-    import time
-
-    deadline = time.monotonic() + timeout
-    last, still = interceptor_checks(net), 0
-    while still < 2 and time.monotonic() < deadline:
-        time.sleep(0.2)
-        now = interceptor_checks(net)
-        still = still + 1 if now == last else 0
-        last = now
-    return last
-
-
-def checks_delta(before: dict[str, float], after: dict[str, float]) -> dict[str, int]:
-    return {k: int(after.get(k, 0) - before.get(k, 0)) for k in sorted(set(before) | set(after))
-            if after.get(k, 0) - before.get(k, 0)}
-
-
-def describe_checks(delta: dict[str, int]) -> str:
-    """One line: handshakes accepted (full, resumed) and the checks every stream got
-    (a spare connection still waiting when the counters were read is accepted, its
-    certificate checked by the peer, but no stream yet: see :func:`spares_waiting`)."""
-    full, resumed = delta.get("in_full", 0), delta.get("in_resumed", 0)
-    waiting = spares_waiting(delta)
-    return (f"{full + resumed} streams accepted between interceptors: {full} full handshakes, {resumed} resumed"
-            f"{f' ({waiting} of them spare connections not used yet)' if waiting else ''}; "
-            f"peer certificate (validity + CRL) checked {delta.get('certificate', 0)} times, "
-            f"token (signature or cache, time, cnf binding, feed incl. revoked serials) {delta.get('token', 0)} times "
-            f"(both ends of each stream); spare connections made {delta.get('spare_made', 0)}, used "
-            f"{delta.get('spare_used', 0)}, expired into a token exchange {delta.get('spare_expired', 0)}")
-
-
-def spares_waiting(delta: dict[str, int]) -> int:
-    """Spare connections made but neither used nor expired yet when the counters were read."""
-    return max(0, delta.get("spare_made", 0) - delta.get("spare_used", 0) - delta.get("spare_expired", 0))
-
-
-# ============================================================ bring-up: many subscribers at once
-
-
-def _via_node(via: tuple[str, int]):
-    """Our node client whose TCPROS connections go to ``via`` (the stunnel client's
-    accept port) whatever requestTopic answers: the stunnel chain, as BENCH_VIA does
-    for the worker processes, but for these nodes only."""
-    from cryptoros.ros1.node import Node
-
-    class ViaNode(Node):
-        async def call_api(self, uri, method, *params):
-            reply = await super().call_api(uri, method, *params)
-            if method == "requestTopic" and isinstance(reply, list) and len(reply) == 3:
-                reply = [reply[0], via[0], via[1]]
-            return reply
-
-    return ViaNode
-
-
-async def _bringup_once(master_uri: str, count: int, tag: str, via: tuple[str, int] | None = None,
-                        timeout: float = 60.0) -> dict:
-    """``count`` subscriber nodes of our node client start at once in this process, each
-    registering with ``master_uri`` and subscribing to the latched /bench_str: seconds
-    from the start until each received the latched message (registerSubscriber,
-    requestTopic, TCPROS connection, the message)."""
-    from cryptoros.ros1.node import Node
-
-    cls = Node if via is None else _via_node(via)
-    nodes: list = []
-    received: list[float | None] = [None] * count
-    t0 = time.perf_counter()
-
-    async def one(i: int) -> None:
-        got = asyncio.Event()
-
-        def on_msg(_msg, i=i) -> None:
-            if received[i] is None:
-                received[i] = time.perf_counter() - t0
-            got.set()
-
-        node = cls(f"/bench_bringup_{tag}_{i}", master_uri)
-        nodes.append(node)
-        await node.start()
-        await node.subscribe("/bench_str", "std_msgs/String", on_msg)
-        await got.wait()
-
-    outcomes = await asyncio.gather(*(asyncio.wait_for(one(i), timeout) for i in range(count)), return_exceptions=True)
-    await asyncio.gather(*(node.close() for node in nodes), return_exceptions=True)
-    times = [t for t in received if t is not None]
-    errors = sorted({f"{type(o).__name__}: {o}"[:200] for o in outcomes if isinstance(o, BaseException)})
-    return {"all_s": max(times) if len(times) == count else None, "first_s": min(times) if times else None,
-            "received": len(times), "errors": errors}
-
-
-def measure_bringup(net: Network, count: int, runs: int, workdir: Path, progress: Callable[[str], None]) -> dict:
-    """A robot's bring-up: ``count`` subscribers connect at once to one latched publisher
-    (our node client), time until all received its message, per transport, ``runs``
-    times (median reported). Plain and stunnel take turns on one talker registered with
-    rosmaster (stunnel: TCPROS through the chain, XML-RPC plain, as in the throughput
-    rows); interceptor: the talker on A, the subscribers registering through B. Also the
-    relays' CPU seconds per bring-up: the three interceptors' (master, A, B) against the
-    two stunnel4 processes' (rosmaster, the talker and the subscribers' own are left out)."""
-    result: dict = {"subscribers": count, "runs": runs}
-    raw: dict[str, list[dict]] = {t: [] for t in TRANSPORTS}
-    relay_cpu: dict[str, list[float]] = {"stunnel": [], "interceptor": []}
-    talker_port = free_port()
-    stunnel_pids: list[int] = []
-    interceptor_pids = [net.hosts[h].proc.pid for h in ("master", "robot_a", "robot_b") if net.hosts[h].proc]
-    pub = Proc("latched talker (plain)", _worker_cmd("ours", "latched"),
-               net.ros_env(None, BENCH_TCPROS_PORT=str(talker_port)), workdir / "latched-plain.log")
-    try:
-        pub.expect("URI ", 30)
-        with stunnel_chain(net, talker_port, workdir, "bringup", stunnel_pids) as (client_port, _server_port):
-            for run in range(runs):
-                for transport in (("plain", "stunnel") if run % 2 == 0 else ("stunnel", "plain")):
-                    via = ("127.0.0.1", client_port) if transport == "stunnel" else None
-                    before = _cpu(stunnel_pids)
-                    raw[transport].append(asyncio.run(_bringup_once(net.rosmaster_uri, count, f"{transport}{run}", via)))
-                    if transport == "stunnel":
-                        relay_cpu["stunnel"].append(_cpu(stunnel_pids) - before)
-                    cpu = (f", stunnel4's CPU {relay_cpu['stunnel'][-1] * 1e3:,.0f} ms"
-                           if transport == "stunnel" else "")
-                    progress(f"bring-up {transport:11s} run {run + 1}: {_bringup_short(raw[transport][-1], count)}{cpu}")
-    finally:
-        pub.close()
-    pub = Proc("latched talker (A)", _worker_cmd("ours", "latched"), net.ros_env("robot_a"), workdir / "latched-a.log")
-    checks_before = interceptor_checks(net)
-    try:
-        pub.expect("URI ", 30)
-        for run in range(runs):
-            before = _cpu(interceptor_pids)
-            raw["interceptor"].append(asyncio.run(_bringup_once(net.hosts["robot_b"].master_uri, count, f"icpt{run}")))
-            relay_cpu["interceptor"].append(_cpu(interceptor_pids) - before)
-            progress(f"bring-up interceptor run {run + 1}: {_bringup_short(raw['interceptor'][-1], count)}, "
-                     f"the interceptors' CPU {relay_cpu['interceptor'][-1] * 1e3:,.0f} ms")
-            time.sleep(2.0)  # the new-stream budget per peer (50/s, burst 100) refills between runs
-    finally:
-        pub.close()
-    for transport, rows in raw.items():
-        complete = [r["all_s"] * 1e3 for r in rows if r["all_s"] is not None]
-        result[transport] = {
-            "all_ms": [None if r["all_s"] is None else r["all_s"] * 1e3 for r in rows],
-            "first_ms": [None if r["first_s"] is None else r["first_s"] * 1e3 for r in rows],
-            "received": [r["received"] for r in rows],
-            "median_ms": statistics.median(complete) if complete else None,
-            "errors": sorted({e for r in rows for e in r["errors"]}),
-        }
-        if transport in relay_cpu:  # the relays' CPU seconds per bring-up (from start to close)
-            result[transport]["relay_cpu_s"] = relay_cpu[transport]
-            result[transport]["relay_cpu_median_s"] = (statistics.median(relay_cpu[transport])
-                                                       if relay_cpu[transport] else None)
-    result["interceptor"]["checks"] = checks_delta(checks_before, settled_checks(net))
-    progress(f"bring-up interceptor checks: {describe_checks(result['interceptor']['checks'])}")
-    return result
-
-
-def _cpu(pids: list[int]) -> float:
-    """CPU seconds (user + system) the processes ``pids`` have used so far."""
-    return sum(cpu_seconds(pid) or 0.0 for pid in pids)
-
-
-def _bringup_short(r: dict, count: int) -> str:
-    if r["all_s"] is not None:
-        return f"all {count} received after {r['all_s'] * 1e3:,.0f} ms (first {r['first_s'] * 1e3:,.0f} ms)"
-    return f"{r['received']}/{count} received; {'; '.join(r['errors'][:2])}"
 
 
 # ============================================================ the paper's experiment
@@ -958,6 +653,14 @@ def build_report(results: dict) -> dict:
         icpt_t = setup["interceptor"]["bytes"]["total"]["frame_bytes"]
         targets.append({"target": "set-up bytes added per subscription (requestTopic + TCPROS) <= 6,000 B",
                         "measured": icpt_t - plain_t, "limit": limit, "unit": "B", "met": icpt_t - plain_t <= limit})
+    for key, label in (("bringup", "subscribers at once"), ("launch", "nodes in a launch file")):
+        rows = results.get(key)
+        if rows:
+            icpt, stun = rows["interceptor"]["median_ms"], rows["stunnel"]["median_ms"]
+            r = _ratio(icpt, stun)
+            count = rows.get("subscribers", rows.get("nodes"))
+            targets.append({"target": f"bring-up of {count} {label} <= 1.5x stunnel's", "measured": r,
+                            "limit": 1.5, "unit": "x", "met": r is not None and r <= 1.5})
     for row in results.get("paper", []):
         o = row.get("overhead_pct")
         targets.append({"target": f"paper experiment N={row['messages']}: overhead <= 0.2 %", "measured": o,
@@ -1026,6 +729,7 @@ def table_rows(report: dict) -> list[list[str]]:
                 rows.append(["  relays' CPU per bring-up (3 interceptors / 2 stunnel4)", "ours", "-",
                              _fmt(cpu["interceptor"] * 1e3, "{:,.0f} ms"), _fmt(cpu["stunnel"] * 1e3, "{:,.0f} ms"),
                              _fmt(_ratio(cpu["interceptor"], cpu["stunnel"]), "{:.2f}x"), "-"])
+        rows += _launch_rows(report.get("launch"))
         tok = setup.get("token_bytes")
         if tok:
             rows.append(["access token per preamble (A / B)", "probe", "-",
@@ -1043,6 +747,27 @@ def table_rows(report: dict) -> list[list[str]]:
         rows.append([f"  of which launch to first message (N={row['messages']})", "rospy", _fmt(fw, "{:.3f} s"),
                      _fmt(fwi, "{:.3f} s"), "-", "-",
                      _fmt((fwi - fw) * 1e3 if fw is not None and fwi is not None else None, "{:+.0f} ms")])
+    return rows
+
+
+def _launch_rows(launch: dict | None) -> list[list[str]]:
+    if not launch:
+        return []
+    v = {t: launch.get(t, {}).get("median_ms") for t in TRANSPORTS}
+    n, runs = launch["nodes"], launch["runs"]
+
+    def cell(t: str) -> str:
+        short = [g for g in launch.get(t, {}).get("received", []) if g != n]
+        return _fmt(v[t], "{:,.0f} ms") + (f" ({min(short)}/{n} finished)" if short else "")
+
+    rows = [[f"launch file of {n} rostopic echo nodes: roslaunch to exit (median of {runs})", "rospy",
+             *(cell(t) for t in TRANSPORTS), _fmt(_ratio(v["interceptor"], v["stunnel"]), "{:.2f}x"),
+             _fmt(_ratio(v["interceptor"], v["plain"]), "{:.2f}x")]]
+    cpu = {t: launch.get(t, {}).get("relay_cpu_median_s") for t in TRANSPORTS}
+    if cpu["interceptor"] is not None and cpu["stunnel"] is not None:
+        rows.append(["  relays' CPU per launch (3 interceptors / 2 stunnel4)", "rospy", "-",
+                     _fmt(cpu["interceptor"] * 1e3, "{:,.0f} ms"), _fmt(cpu["stunnel"] * 1e3, "{:,.0f} ms"),
+                     _fmt(_ratio(cpu["interceptor"], cpu["stunnel"]), "{:.2f}x"), "-"])
     return rows
 
 
@@ -1121,6 +846,8 @@ def _target_value(t: dict) -> str:
               help="Subscribers connecting at once in the bring-up row.")
 @click.option("--bringup-runs", type=click.IntRange(0, 50), default=None,
               help="Bring-ups per transport, median reported (default 3; --quick: 1; 0: skip).")
+@click.option("--launch-nodes", type=click.IntRange(0, 200), default=None,
+              help="Stock rostopic nodes in the launch-file bring-up row (default 30; --quick: 4; 0: skip).")
 @click.option("--only", type=click.Choice(IMPLS), default=None, help="Run one node client only.")
 @click.option("--no-throughput", is_flag=True, help="Skip the latency and throughput rows.")
 @click.option("--spares/--no-spares", default=None,
@@ -1136,7 +863,8 @@ def _target_value(t: dict) -> str:
                    "and service call) here: each sample's distribution for plain, interceptor and stunnel.")
 @click.option("--keep", is_flag=True, help="Keep the work directory (logs, pcaps, configs) and print its path.")
 def interceptor(quick: bool, messages: int | None, paper_counts: str | None, paper_repeat: int | None,
-                setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None, only: str | None,
+                setup_probes: int | None, bringup_subscribers: int, bringup_runs: int | None,
+                launch_nodes: int | None, only: str | None,
                 no_throughput: bool, spares: bool | None, tls_session_lifetime: float | None, json_path: str | None, markdown: bool,
                 plots_dir: str | None, keep: bool) -> None:
     """Plain ROS 1, our interceptors and stunnel4 side by side, rospy and our node client."""
@@ -1154,6 +882,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
     reps = paper_repeat or (1 if quick else 4)
     probes = setup_probes or (5 if quick else 20)
     bringups = bringup_runs if bringup_runs is not None else (1 if quick else 3)
+    launch_count = launch_nodes if launch_nodes is not None else (4 if quick else 30)
     scale = 0.2 if quick else 1.0
 
     def n(default: int) -> int:
@@ -1174,7 +903,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
     workdir = Path(tempfile.mkdtemp(prefix="cryptoros-bench-icpt-"))
     results: dict = {"config": {"messages": {m.key: m.n for m in modes}, "paper_counts": counts, "paper_repeat": reps,
                                 "setup_probes": probes, "bringup": {"subscribers": bringup_subscribers,
-                                                                    "runs": bringups},
+                                                                    "runs": bringups, "launch_nodes": launch_count},
                                 "cpus": os.cpu_count(),
                                 "tls_session_lifetime": ("300 s (default)" if tls_session_lifetime is None else
                                                          f"{tls_session_lifetime:g} s" if tls_session_lifetime else
@@ -1193,7 +922,11 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
             progress("network up")
             results["setup"] = measure_setup(net, probes, workdir, progress)
             if bringups:
+                from cryptoros.bench.bringup import measure_bringup, measure_launch
+
                 results["bringup"] = measure_bringup(net, bringup_subscribers, bringups, workdir, progress)
+                if launch_count:
+                    results["launch"] = measure_launch(net, launch_count, bringups, workdir, progress)
             tp: dict = {}
             for impl in impls if not no_throughput else ():
                 for transport in TRANSPORTS:
@@ -1303,8 +1036,10 @@ def _legend() -> str:
         "throttle the unthrottled sender of the throughput rows).\n"
         "bring-up: N subscriber nodes of our node client start at once in one process (register, requestTopic,\n"
         "TCPROS) against a latched publisher; time from the start until the last one received its message.\n"
+        "launch file: roslaunch of N stock `rostopic echo -n 1` nodes on host B against the latched publisher,\n"
+        "timed from its start until it exits (every node received the message and finished).\n"
         "paper experiment: the listener timed from launch to exit (as with `time`), mean of the repetitions."
     )
 
 
-__all__ = ["interceptor", "build_report", "flows", "spares_waiting"]
+__all__ = ["interceptor", "build_report", "flows"]

@@ -349,7 +349,7 @@ def measure_point(net: Network, workdir: Path, curve: str, n: int, rate: float, 
     """One point: a fresh interceptor A and publisher, ``n`` streams opened, an idle
     window and a load window. ``token_peer``: (``token`` curve) the topic count of the
     peer whose token is used."""
-    from cryptoros.bench.interceptor import Proc
+    from cryptoros.bench.chain import Proc
 
     host = net.start("robot_a")
     pid = host.proc.pid

@@ -87,6 +87,7 @@ class Node:
         max_header_size: int = tcpros.DEFAULT_MAX_HEADER_SIZE,
         max_frame_size: int = tcpros.DEFAULT_MAX_FRAME_SIZE,
         api_timeout: float = 10.0,
+        tcpros_endpoint: tuple[str, int] | None = None,
     ) -> None:
         self.name = _global(name)
         self.master_uri = master_uri or os.environ.get("ROS_MASTER_URI", "http://127.0.0.1:11311")
@@ -97,6 +98,9 @@ class Node:
         self.api_timeout = api_timeout
         self.xmlrpc = XmlRpcServer(self._handle_api, self.host, xmlrpc_port)
         self._tcpros_port = tcpros_port
+        #: what requestTopic names instead of (host, TCPROS port): a relay in front of
+        #: this node, e.g. a stunnel client whose far end connects to the TCPROS port
+        self.tcpros_endpoint = tcpros_endpoint
         self._tcpros_server: asyncio.base_events.Server | None = None
         self._tcpros_conns: set = set()  # the TCPROS server's accepted connections (track_tcpros)
         self._publishers: dict[str, Publisher] = {}
@@ -334,7 +338,8 @@ class Node:
                 return Response(value=[0, f"not a publisher of {p[1]}", []])
             if not any(isinstance(x, list) and x and x[0] == "TCPROS" for x in p[2]):
                 return Response(value=[0, "no supported protocol", []])
-            return ok(["TCPROS", self.host, self._tcpros_port], f"ready on {self.host}:{self._tcpros_port}")
+            host, port = self.tcpros_endpoint or (self.host, self._tcpros_port)
+            return ok(["TCPROS", host, port], f"ready on {host}:{port}")
         if m == "publisherUpdate":
             if len(p) != 3 or not isinstance(p[1], str) or not isinstance(p[2], list):
                 return Response(value=[-1, "publisherUpdate(caller_id, topic, publishers)", 0])

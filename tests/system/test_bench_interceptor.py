@@ -2,7 +2,7 @@
 
 Runs the whole benchmark (network, rospy and our node client over plain ROS,
 interceptors and stunnel4, set-up probes with tcpdump, a bring-up of 50 subscribers
-at once, the paper's experiment with few messages) and checks that the JSON holds every row with positive numbers. Speed
+at once and of a launch file of 4 stock nodes, the paper's experiment with few messages) and checks that the JSON holds every row with positive numbers. Speed
 is never asserted here.
 """
 
@@ -13,7 +13,7 @@ import os
 
 import pytest
 
-from cryptoros.bench.interceptor import spares_waiting
+from cryptoros.bench.chain import spares_waiting
 from tests.support import require, run, script
 
 pytestmark = [pytest.mark.ros1, pytest.mark.slow]
@@ -62,6 +62,14 @@ def test_bench_interceptor_quick(tmp_path):
     for transport in ("interceptor", "stunnel"):  # the relays' CPU per bring-up, side by side
         assert len(bringup[transport]["relay_cpu_s"]) == 1 and bringup[transport]["relay_cpu_median_s"] > 0
     assert "relays' CPU" in result.stdout  # the row (the table wraps its label)
+    launch = report["launch"]  # roslaunch of 4 stock rostopic echo nodes (--quick), per transport
+    assert (launch["nodes"], launch["runs"]) == (4, 1)
+    for transport in ("plain", "interceptor", "stunnel"):
+        assert launch[transport]["received"] == [4], (transport, launch[transport])
+        assert launch[transport]["median_ms"] > 0
+    assert all(len(launch[t]["relay_cpu_s"]) == 1 for t in ("interceptor", "stunnel"))
+    assert {t["target"] for t in report["targets"]} >= {"bring-up of 50 subscribers at once <= 1.5x stunnel's",
+                                                          "bring-up of 4 nodes in a launch file <= 1.5x stunnel's"}
 
     (paper,) = report["paper"]
     assert paper["messages"] == 30
