@@ -93,8 +93,17 @@ class Relays:
         def after(call: Request, response: Response | Fault) -> Response | Fault:
             return rewrite_response(call, response, tcpros=tcpros)
 
+        async def call(request: Request) -> Response | Fault:
+            # a subscriber this host registered shares the publisher's answer with the
+            # others starting with it (answers.py); any other caller asks the far side
+            caller, topic = (request.params + ("", ""))[:2]
+            if (request.method == "requestTopic" and isinstance(topic, str) and isinstance(caller, str)
+                    and caller in self._local_subscribers.get(topic, ())):
+                return await self._topic_answers.ask((target.id, topic), lambda: tunnel.call(request))
+            return await tunnel.call(request)
+
         async def handle(request: Request) -> Response | Fault:
-            return await self._decide_calls(request, decide, tunnel.call, after, "relay", str(target))
+            return await self._decide_calls(request, decide, call, after, "relay", str(target))
 
         try:
             await self._serve_xmlrpc(reader, writer, handle)

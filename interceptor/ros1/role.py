@@ -41,6 +41,7 @@ from interceptor.gateway import Role as GatewayRole
 from interceptor.name_holds import NameHolds
 from interceptor.param_quota import ParamQuota
 from interceptor.registrations import LocalRegistrations
+from interceptor.ros1.answers import TopicAnswers
 from interceptor.ros1.ledger import MasterLedger
 from interceptor.ros1.master_side import MasterSide
 from interceptor.ros1.localcalls import LocalCalls
@@ -115,6 +116,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._save_task: asyncio.Task | None = None  # the write to come (_save_state_soon)
         self._state_saves = 0  # state files written (/status: a repeat registration writes none)
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
+        #: publishers' requestTopic answers, shared by the subscribers starting at once
+        self._topic_answers = TopicAnswers()
         self._resubscribing: set[str] = set()
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
@@ -205,7 +208,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         pools = list(self._pools.values())
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
-                         "state_saves": self._state_saves,
+                         "state_saves": self._state_saves, "topic_answers_shared": self._topic_answers.shared,
                          "state_save_pending": self._state_dirty or self._save_task is not None,
                          "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
                 "warnings": self._deployment_warnings()}
