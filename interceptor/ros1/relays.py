@@ -99,7 +99,7 @@ class Relays:
             caller, topic = (request.params + ("", ""))[:2]
             if (request.method == "requestTopic" and isinstance(topic, str) and isinstance(caller, str)
                     and caller in self._local_subscribers.get(topic, ())):
-                return await self._topic_answers.ask((target.id, topic), lambda: tunnel.call(request))
+                return await self._topic_answers.ask((target, topic), lambda: tunnel.call(request))
             return await tunnel.call(request)
 
         async def handle(request: Request) -> Response | Fault:

@@ -9,10 +9,13 @@ row failed to register."""
 from __future__ import annotations
 
 import asyncio
+import json
+import urllib.request
 
 import pytest
 
 from cryptoros.ros1.node import Node
+from cryptoros.ros1.rpc import RosApiError, call
 from tests.interceptor_harness import STRING, denials, robot_network
 
 pytestmark = [pytest.mark.ros1]
@@ -54,3 +57,48 @@ def test_subscribers_starting_at_once_all_receive_and_none_is_refused(tmp_path):
         assert asyncio.run(bring_up()) == ["bring-up"] * SUBSCRIBERS
         for host in ("robot_a", "master"):
             assert "pending_limit" not in denials(net, host), denials(net, host)[-2000:]
+
+
+def _shared(net) -> int:
+    with net.inside("robot_b"):
+        url = f"http://127.0.0.1:{net.hosts['robot_b'].metrics_port}/status"
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return json.loads(reply.read())["ros1"]["topic_answers_shared"]
+
+
+@pytest.mark.timeout(120)
+def test_subscribers_registered_here_share_the_publishers_answer_and_other_callers_ask_the_far_side(tmp_path):
+    """requestTopic: the subscribers robot B registered share one tunnelled answer per
+    publisher and topic (interceptor/ros1/answers.py); a process that registered
+    nothing through B gets robot A's own decision, a refusal included."""
+    with robot_network(tmp_path) as net:
+        master_b = net.hosts["robot_b"].master_uri
+
+        async def bring_up() -> None:
+            async with Node("/talker_a", net.hosts["robot_a"].master_uri) as talker:
+                pub = await talker.advertise("/chatter", STRING, latch=True)
+                pub.publish(talker.msg(STRING, data="bring-up"))
+                nodes = [Node(f"/burst_{i}", master_b) for i in range(SUBSCRIBERS)]
+
+                async def one(node: Node) -> None:
+                    got = asyncio.Event()
+                    await node.start()
+                    await node.subscribe("/chatter", STRING, lambda _msg: got.set())
+                    await got.wait()
+
+                try:
+                    await asyncio.gather(*(asyncio.wait_for(one(n), 30) for n in nodes))
+                    # robot A's talker as B's nodes are handed it: a relay of robot B
+                    relay = await call(master_b, "lookupNode", "/probe", "/talker_a")
+                finally:
+                    await asyncio.gather(*(n.close() for n in nodes), return_exceptions=True)
+                # the burst asked robot A once (again each time it outlasted an answer's 2 s)
+                assert _shared(net) >= SUBSCRIBERS // 2
+                before = _shared(net)
+                answer = await call(relay, "requestTopic", "/unregistered", "/chatter", [["TCPROS"]])
+                assert answer[0] == "TCPROS"  # robot A's answer (its grant: any node of B)
+                with pytest.raises(RosApiError, match="denied by cryptoros"):  # robot A refuses /secret
+                    await call(relay, "requestTopic", "/unregistered", "/secret", [["TCPROS"]])
+                assert _shared(net) == before
+
+        asyncio.run(bring_up())
