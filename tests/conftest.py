@@ -6,11 +6,18 @@ from pathlib import Path
 
 import pytest
 
+from cryptoros.lab.processes import PORT_SLICE_ENV
 from tests.support import require, run
 
 pytest_plugins = ["tests.pki_fixtures"]
 
 ROS1_NODES = Path(__file__).parent / "ros1_nodes"
+
+# Each test worker's labs pick their ports in a slice of their own: two workers' labs
+# once picked the same port (cryptoros/lab/processes.py, free_port).
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _WORKER.startswith("gw") and _WORKER[2:].isdigit():
+    os.environ.setdefault(PORT_SLICE_ENV, f"{int(_WORKER[2:])}/{os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1')}")
 
 
 @pytest.fixture(scope="module")

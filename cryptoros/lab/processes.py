@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import random
 import signal
 import socket
@@ -37,6 +38,23 @@ def _ephemeral_low() -> int:
         return 32768
 
 
+#: ``i/n``: pick in the i-th of n equal slices of the range (labs run side by side on one
+#: host, e.g. parallel test workers: tests/conftest.py sets it per worker)
+PORT_SLICE_ENV = "CRYPTOROS_LAB_PORT_SLICE"
+
+
+def _pick_range(low: int) -> range | None:
+    span = range(_PICK_FROM, low)
+    try:
+        index, count = (int(x) for x in os.environ.get(PORT_SLICE_ENV, "").split("/"))
+    except ValueError:
+        index, count = 0, 1
+    if count > 1 and 0 <= index < count:
+        size = len(span) // count
+        span = range(span.start + index * size, span.start + (index + 1) * size)
+    return span if len(span) >= 1000 else None
+
+
 def free_port(host: str = "127.0.0.1", taken: set[int] | None = None) -> int:
     """A port nothing listens on now, for a child to listen on a moment later; with
     ``taken``, also one not handed out before (and it is added there).
@@ -45,9 +63,11 @@ def free_port(host: str = "127.0.0.1", taken: set[int] | None = None) -> int:
     (bind to 0) was often the local port of another process's outgoing connection by the
     time the child bound it ("address already in use": a fresh run's interceptor, with
     the other test worker's connections all around it). Outside that range no outgoing
-    connection takes it; only another such pick could, one in thousands."""
-    low = _ephemeral_low()
-    span = range(_PICK_FROM, low) if low - _PICK_FROM >= 1000 else None
+    connection takes it; only another such pick could: two labs side by side picked the
+    same port in one run of three test workers (one's local master, then the other's
+    authorization daemon, which could not listen), so each lab may be given its own
+    slice of the range (:data:`PORT_SLICE_ENV`)."""
+    span = _pick_range(_ephemeral_low())
     for _ in range(200):
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             try:
