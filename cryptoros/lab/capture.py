@@ -74,10 +74,17 @@ class Capture:
         self.stop()
         raise CaptureError(f"tcpdump never wrote a marker packet sent over {host}")
 
-    def stop(self, settle: float = 0.0) -> bytes:
+    def stop(self, settle: float = 0.0, *, until: bytes | None = None, timeout: float = 10.0) -> bytes:
         """After ``settle`` seconds (for the last ACKs in flight), SIGINT: tcpdump flushes
-        and reports its counts; bounded. The pcap's bytes."""
+        and reports its counts; bounded. The pcap's bytes. ``until``: the last bytes the
+        caller sent, waited for in the file first (up to ``timeout``): SIGINT ends
+        tcpdump without reading what is still in the kernel's ring, which on a busy
+        machine held a whole short exchange."""
         time.sleep(settle)
+        deadline = time.monotonic() + timeout
+        while (until is not None and self.proc.poll() is None and time.monotonic() < deadline
+               and until not in (self.path.read_bytes() if self.path.exists() else b"")):
+            time.sleep(0.02)
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
         stop(self.proc)

@@ -48,8 +48,9 @@ def test_the_network_module_uses_the_same_helpers():
 
 
 def test_capture_holds_the_last_packets_sent_before_stop(tmp_path):
-    """A short exchange, then an immediate stop: every payload byte is in the file (the
-    capture reads packets as they come, not in one-second blocks that SIGINT can cut)."""
+    """A short exchange, then a stop once its last bytes reached the file: every payload
+    byte is in it (the capture reads packets as they come, not in one-second blocks that
+    SIGINT can cut, and the stop waits for tcpdump to catch up rather than cut its ring)."""
     from cryptoros.lab.capture import Capture, flows
     from tests.support import require
 
@@ -82,7 +83,7 @@ def test_capture_holds_the_last_packets_sent_before_stop(tmp_path):
             peer.close()
     finally:
         server.close()
-        data = capture.stop()
+        data = capture.stop(until=b"payload-4;")
     assert all(f"payload-{i};".encode() in data for i in range(5)), capture.dropped
     flow = flows(capture.path)[-1]  # in order of their first packet: the probe's, then ours
     assert flow["payload_bytes"] == len(b"payload-0;") * 5 and flow["frames"] >= 4
