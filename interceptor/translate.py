@@ -332,6 +332,27 @@ class Translator:
             return str(target)
         return str(self.export(kind, host, port, uri))
 
+    def name_of(self, uri: str) -> str:
+        """Like :meth:`to_canonical`, but exports nothing: the name a local URI has, or
+        had before it was released. An ``unregister*`` sent late by a node's replaced
+        process names its old endpoint this way; rosmaster then finds nothing under it,
+        and no export slot is taken again for an endpoint that is gone."""
+        if isinstance(uri, str) and uri.rstrip("/") in self._master_uris:
+            return MASTER
+        kind, host, port = _parse_ros_uri(uri)
+        target = self._relay_targets.get((host, port))
+        if target is not None:
+            return str(target)
+        if not is_loopback(host):
+            raise PolicyDenied("foreign_uri", f"local endpoint {host}:{port} is not on loopback")
+        ident = self._export_ids.get((kind, host, port)) or _endpoint_number(kind, host, port) or "0"
+        return str(Canonical(host=self.public_host, port=self.public_port, kind=kind, id=ident))
+
+    def exported(self, text: str) -> bool:
+        """Whether ``text`` is one of our canonical names with a live export behind it."""
+        ident = self.own_id(text)
+        return ident is not None and ident in self._exports
+
     def to_local(self, text: str, *, named: bool = False) -> str:
         """A canonical name -> a URI a local process can call (``named``: a relay's URI
         carries the name in its path, for rosmaster: see :meth:`from_master`)."""

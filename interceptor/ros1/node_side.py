@@ -43,6 +43,7 @@ from interceptor.ros1.wire import (
     LOCAL_REGISTRATIONS,
     LOCAL_TOKEN_WAIT,
     OPAQUE,
+    RELEASING_CALLS,
     filtered_param_reply,
     local_endpoint,
     log,
@@ -51,6 +52,7 @@ from interceptor.ros1.wire import (
     pass_refusal,
     read_tcpros_header,
     registration_key,
+    released_uri,
     resolved_param_call,
     rewrite_param_api,
     ros_ok,
@@ -241,10 +243,18 @@ class NodeSide:
         if call.method == "registerPublisher" and call.params[1] not in self.topic_types:
             self.topic_types[call.params[1]] = call.params[2]  # checked strings (check_master_call)
             self._topics_registering.add(call.params[1])
-        call = rewrite_call(call, caller_api=self.translator.to_canonical, service_api=self.translator.to_canonical)
-        return rewrite_param_api(call, self.translator.to_canonical)
+        # a release names its URI without exporting it: a node's replaced process may
+        # unregister late, from an endpoint released when its new process registered
+        name = self.translator.name_of if call.method in RELEASING_CALLS else self.translator.to_canonical
+        call = rewrite_call(call, caller_api=name, service_api=name)
+        return rewrite_param_api(call, name)
 
     def _local_after(self, call: Request, response: Response | Fault) -> Response | Fault:
+        if call.method in RELEASING_CALLS and not self.translator.exported(released_uri(call.method, call.params)):
+            # from a process that is gone (its endpoint released): the node's name now
+            # belongs to its new process, whose registrations this must not forget
+            log.debug("%s from a released endpoint of %s changes nothing here", call.method, call.params[:1])
+            return rewrite_response(call, response, uri=self.translator.to_local)
         if call.method == "registerPublisher":
             registering = call.params[1] in self._topics_registering
             self._topics_registering.discard(call.params[1])

@@ -133,6 +133,14 @@ RELAY_URI_INDEX = {
 }
 
 
+def released_uri(method: str, params: tuple) -> str | None:
+    """The URI an ``unregister*``/``unsubscribeParam`` call names (rosmaster releases
+    only what was registered under it); None for other calls."""
+    index = 1 if method == "unsubscribeParam" else 2 if method in RELEASING_CALLS else None
+    value = params[index] if index is not None and len(params) > index else None
+    return value if isinstance(value, str) else None
+
+
 def caller_api(method: str, params: tuple) -> str | None:
     """The node API a registration gives rosmaster (None: not a registration): the last
     of the URIs :data:`RELAY_URI_INDEX` names (a service's own URI comes before it)."""
@@ -209,4 +217,4 @@ def md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-__all__ = ["CALL_TIMEOUT", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "registration_key", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]
+__all__ = ["CALL_TIMEOUT", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]

@@ -22,7 +22,7 @@ import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, wait_registered
 from cryptoros.lab.network import clean_env, stop
-from tests.support import running
+from tests.support import running, until
 from tests.interceptor_harness import got, read_lines
 
 pytestmark = [pytest.mark.ros1]
@@ -175,14 +175,27 @@ def test_a_restarted_rosmaster_gets_the_registrations_replayed(tmp_path):
         assert got(read_lines(sub, "GOT", 10)), "the old listener stopped receiving"
         assert sub.poll() is None and pub.poll() is None
 
+def saved_exports(state) -> dict:
+    """The exports in an interceptor's state file (id: [kind, host, port, uri])."""
+    return json.loads(next(state.glob("*.state.json")).read_text())["translator"]["exports"]
+
+
 def test_a_node_restarting_on_new_ports_releases_its_old_exports(tmp_path):
-    """A node restart costs no export slot for good: when robot A's talker registers again
-    from new ports, its old node API and TCPROS server exports are released (else about
-    5,000 restarts would use up export_limit and refuse every new node on the host)."""
+    """A node restart costs no export slot for good: when robot A's talker, killed with
+    no chance to unregister, registers again from new ports, its old node API and TCPROS
+    server exports are released (else about 5,000 restarts would use up export_limit and
+    refuse every new node on the host). An ``unregister*`` the old process sends late
+    (a node slow to shut down while its replacement starts) takes no export slot and
+    leaves the new process's registrations and exports alone."""
     state = tmp_path / "state"
     with robot_network(tmp_path, start=("master", "robot_a", "robot_b"),
                        extra={"robot_a": f'state_dir = "{state}"'}) as net:
-        counts = []
+        sizes, previous = [], {}
+
+        def released_and_new() -> dict | None:
+            exports = saved_exports(state)
+            return exports if len(exports) >= 2 and exports.keys().isdisjoint(previous) else None
+
         for _ in range(3):
             with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"],
                          env=net.ros_env("robot_a")) as pub:
@@ -192,10 +205,35 @@ def test_a_node_restarting_on_new_ports_releases_its_old_exports(tmp_path):
                              env=net.ros_env("robot_b")) as sub:
                     read_lines(sub, "READY", 20)
                     assert got(read_lines(sub, "GOT", 20))  # the talker's TCPROS server was exported too
-            saved = json.loads(next(state.glob("*.state.json")).read_text())
-            counts.append(len(saved["translator"]["exports"]))
-        assert counts[0] >= 2 and counts[-1] == counts[0], counts
+                exports = until(released_and_new, 10, f"the old exports released in the state file: {previous}")
+                sizes.append(len(exports))
+                previous = exports
+                pub.kill()  # no unregistration: the next process's registration releases them
+                pub.wait(10)
+        assert sizes[0] >= 2 and sizes == [sizes[0]] * 3, sizes
         assert "released" in net.hosts["robot_a"].logs()
+
+        old_api = next(uri for kind, _h, _p, uri in previous.values() if kind == "x")
+        old_rpc = next(uri for kind, _h, _p, uri in previous.values() if kind == "t")
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"],
+                     env=net.ros_env("robot_a")) as pub:
+            read_lines(pub, "READY", 20)
+            wait_registered(net, "/talker_a")
+            current = until(released_and_new, 10, "the killed talker's exports released")
+            local_a = xmlrpc.client.ServerProxy(net.hosts["robot_a"].master_uri)
+            with net.inside("robot_a"):
+                late = [local_a.unregisterPublisher("/talker_a", "/chatter", old_api),
+                        local_a.unregisterPublisher("/talker_a", "/rosout", old_api),
+                        local_a.unregisterService("/talker_a", "/talker_a/get_loggers", old_rpc),
+                        local_a.unregisterService("/talker_a", "/talker_a/set_logger_level", old_rpc)]
+            # nothing was registered under them: the master's interceptor has no relay for
+            # them any more (unknown_endpoint), and rosmaster would find nothing either
+            assert all(count == 0 and (code == 1 or "unknown_endpoint" in msg) for code, msg, count in late), late
+            with running([SYS_PY, NODE, "sub", "/late_listener", "/chatter", "30"], env=net.ros_env("robot_b")) as sub:
+                read_lines(sub, "READY", 20)
+                assert got(read_lines(sub, "GOT", 20)), "the new talker's exports went with the old one's late unregister"
+            assert saved_exports(state) == current  # nothing exported for the old endpoints
+
 
 def test_nodes_that_shut_down_cleanly_under_new_names_release_their_exports(tmp_path):
     """Nodes that come and go under names never used again (rostopic, rosbag record and

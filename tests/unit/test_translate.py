@@ -71,6 +71,25 @@ def test_released_exports_free_their_slot_and_their_id_names_only_their_endpoint
     assert restored.own_id("cryptoros://127.0.0.9:11400/x/1") is None  # another interceptor's name
 
 
+def test_a_released_endpoint_is_named_again_without_taking_an_export_slot():
+    """An ``unregister*`` a replaced process sends late names its released endpoint by
+    the name it had; nothing is exported for it, and it is not a live export."""
+    t = _translator()
+    old = t.to_canonical("http://127.0.0.1:5000/")
+    assert t.name_of("http://127.0.0.1:5000/") == old and t.exported(old)
+    t.release(t.own_id(old))
+    assert t.name_of("http://127.0.0.1:5000/") == old  # the name rosmaster held, if any
+    assert not t.exported(old) and t.export_count == 0
+    counted = t.name_of("http://localhost:5003/")  # no IPv4 address: an id never handed out
+    assert counted.endswith("/x/0") and not t.exported(counted) and t.export_count == 0
+    t.add_master_uri("http://127.0.0.1:11311/")
+    assert t.name_of("http://127.0.0.1:11311/") == "cryptoros://master"
+    with pytest.raises(PolicyDenied) as foreign:
+        t.name_of("http://10.1.2.3:5000/")
+    assert foreign.value.reason == "foreign_uri"
+    assert not t.exported("cryptoros://127.0.0.9:11400/x/1") and not t.exported(None)
+
+
 def test_a_restart_with_no_state_adopts_only_its_own_names_that_rosmaster_holds():
     t = _translator()
     tcpros = t.tcpros_to_canonical("127.0.0.5", 6000)[0]
