@@ -9,7 +9,7 @@ import pytest
 from cryptoros.lab.processes import PORT_SLICE_ENV
 from tests.support import require, run
 
-pytest_plugins = ["tests.pki_fixtures"]
+pytest_plugins = ["tests.pki_fixtures", "tests.scheduling"]
 
 ROS1_NODES = Path(__file__).parent / "ros1_nodes"
 
