@@ -157,8 +157,9 @@ def wire(impl, direction):
 
 
 def sample():
-    t = os.times()
-    samples.append([time.time(), t.user + t.system, wire(sub.impl, "in"),
+    # process_time: nanoseconds; os.times() counts 10 ms ticks, and a plain laser node's
+    # few ms in the steady window read 0 there (a fresh-clone run of the quick bench)
+    samples.append([time.time(), time.process_time(), wire(sub.impl, "in"),
                     wire(pub.impl, "out") if pub is not None else 0, state["received"]])
 
 
