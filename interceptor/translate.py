@@ -324,25 +324,24 @@ class Translator:
     # ------------------------------------------------------------ URIs
     def to_canonical(self, uri: str) -> str:
         """A URI written by a local process -> its canonical name."""
-        if isinstance(uri, str) and uri.rstrip("/") in self._master_uris:
-            return MASTER
-        kind, host, port = _parse_ros_uri(uri)
-        target = self._relay_targets.get((host, port))
-        if target is not None:
-            return str(target)
-        return str(self.export(kind, host, port, uri))
+        return self._canonical(uri, export=True)
 
     def name_of(self, uri: str) -> str:
         """Like :meth:`to_canonical`, but exports nothing: the name a local URI has, or
         had before it was released. An ``unregister*`` sent late by a node's replaced
         process names its old endpoint this way; rosmaster then finds nothing under it,
         and no export slot is taken again for an endpoint that is gone."""
+        return self._canonical(uri, export=False)
+
+    def _canonical(self, uri: str, *, export: bool) -> str:
         if isinstance(uri, str) and uri.rstrip("/") in self._master_uris:
             return MASTER
         kind, host, port = _parse_ros_uri(uri)
         target = self._relay_targets.get((host, port))
         if target is not None:
             return str(target)
+        if export:
+            return str(self.export(kind, host, port, uri))
         if not is_loopback(host):
             raise PolicyDenied("foreign_uri", f"local endpoint {host}:{port} is not on loopback")
         ident = self._export_ids.get((kind, host, port)) or _endpoint_number(kind, host, port) or "0"
