@@ -136,7 +136,7 @@ RELAY_URI_INDEX = {
 def released_uri(method: str, params: tuple) -> str | None:
     """The URI an ``unregister*``/``unsubscribeParam`` call names (rosmaster releases
     only what was registered under it); None for other calls."""
-    index = 1 if method == "unsubscribeParam" else 2 if method in RELEASING_CALLS else None
+    index = PARAM_CALLER_API_INDEX.get(method, 2) if method in RELEASING_CALLS else None
     value = params[index] if index is not None and len(params) > index else None
     return value if isinstance(value, str) else None
 
