@@ -2,11 +2,12 @@
 restarts.
 
 :class:`DdsBridge` starts :mod:`cryptoros.ros2.bridge_node` with the ROS 2 python on a
-socketpair, in this robot's domain and the localhost-only profile, waits for its hello,
-and when it dies starts another (after removing what dead DDS processes left in
-/dev/shm). What the bridge says goes to the role's callbacks; what the role sends goes
-down :attr:`DdsBridge.link`. Streams are the role's: this module knows nothing of peers,
-grants or topics.
+socketpair, in this robot's domain and the bridge's Fast DDS profile (the localhost-only
+one, its readers and writers capped at :data:`~cryptoros.ros2.profile.BRIDGE_MAX_SAMPLES`
+samples), waits for its hello, and when it dies starts another (after removing what dead
+DDS processes left in /dev/shm). What the bridge says goes to the role's callbacks; what
+the role sends goes down :attr:`DdsBridge.link`. Streams are the role's: this module
+knows nothing of peers, grants or topics.
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ import asyncio
 import contextlib
 import logging
 import os
+import shutil
 import socket
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,7 +26,7 @@ from typing import Any
 import cryptoros.ros2
 from cryptoros.errors import CryptorosError
 from cryptoros.ros2 import framing as fr
-from cryptoros.ros2.profile import localhost_env, segments_cleaned, shm_clean_command
+from cryptoros.ros2.profile import PROFILE_ENV, localhost_env, segments_cleaned, shm_clean_command, write_bridge_profile
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
@@ -92,6 +95,7 @@ class DdsBridge:
         self.hello: dict[str, Any] = {}
         self._proc: asyncio.subprocess.Process | None = None
         self._ready = asyncio.Event()
+        self._profile_dir: str | None = None
 
     @property
     def ready(self) -> bool:
@@ -109,6 +113,9 @@ class DdsBridge:
         env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # the ROS 2 venv sets up its own libraries
         env.update(ROS_DOMAIN_ID=str(settings.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         env = localhost_env(env)  # DDS on 127.0.0.1 and shared memory only: private to this host
+        if self._profile_dir is None:  # the same, with the bridge's readers and writers holding fewer samples
+            self._profile_dir = tempfile.mkdtemp(prefix="cryptoros-dds-")
+        env[PROFILE_ENV] = str(write_bridge_profile(Path(self._profile_dir)))
         # glibc mmaps (and page-faults) every buffer of 128 KiB or more, and gives the top of
         # its heap back past 128 KiB free; images are read and joined in such buffers: keep
         # them on the heap, and the heap (measured: bridges 75 us less per 80 KB image)
@@ -163,6 +170,9 @@ class DdsBridge:
                 with contextlib.suppress(ProcessLookupError):
                     proc.kill()
                 await proc.wait()
+        if self._profile_dir is not None:
+            shutil.rmtree(self._profile_dir, ignore_errors=True)
+            self._profile_dir = None
 
     async def supervise(self, on_lost: Callable[[], None], stopping: Callable[[], bool]) -> None:
         """Restart the bridge whenever it dies (its process or its link), unless

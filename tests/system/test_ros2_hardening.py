@@ -239,23 +239,26 @@ def test_the_localhost_profile_keeps_a_robots_domain_from_a_stranger_on_another_
     """Robot A's rclpy talker in its own network namespace; a stranger in another one,
     given A's address as a static peer. Without the profile (the control: what
     ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST alone gives) the stranger reads the topic;
-    with it, nothing."""
+    with it, or with the bridge's profile derived from it, nothing."""
     import os
     import subprocess
 
     from cryptoros.lab.netns import NetnsLab
-    from cryptoros.ros2.profile import localhost_env
+    from cryptoros.ros2.profile import PROFILE_ENV, localhost_env, write_bridge_profile
     from tests.interceptor_harness import separate_hosts
     from tests.ros2_support import NODES, fresh_domains, ros2_env, ros2_python
 
     separate_hosts()
     python = str(ros2_python())
     (domain,) = fresh_domains(1)
+    bridge_profile = write_bridge_profile(tmp_path)
     got = {}
     with NetnsLab() as lab:
         a, s = lab.add_host("a"), lab.add_host("s")
-        for profile in (False, True):
-            env_a = ros2_env(domain, localhost_profile=profile)
+        for profile in ("none", "localhost", "bridge"):
+            env_a = ros2_env(domain, localhost_profile=profile != "none")
+            if profile == "bridge":
+                env_a[PROFILE_ENV] = str(bridge_profile)
             env_s = {**ros2_env(domain, localhost_profile=False), "ROS_STATIC_PEERS": a.address}
             talker = subprocess.Popen(a.argv([python, str(NODES / "talker.py"), "string", "/secret", "100000", "20"]),
                                       env=env_a, cwd=str(NODES), stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
@@ -266,9 +269,44 @@ def test_the_localhost_profile_keeps_a_robots_domain_from_a_stranger_on_another_
                 talker.terminate()
                 talker.wait(timeout=10)
             got[profile] = [line for line in listener.stdout.splitlines() if line.startswith("GOT")]
-    assert got[False], "control: without the profile the stranger should read the topic (the test can fail)"
-    assert got[True] == [], f"with the profile the stranger read {len(got[True])} messages"
+    assert got["none"], "control: without the profile the stranger should read the topic (the test can fail)"
+    assert got["localhost"] == [], f"with the profile the stranger read {len(got['localhost'])} messages"
+    assert got["bridge"] == [], f"with the bridge's profile the stranger read {len(got['bridge'])} messages"
     assert os.path.exists(localhost_env({})["FASTRTPS_DEFAULT_PROFILES_FILE"])
+
+
+def test_the_bridges_profile_caps_the_samples_a_reliable_keep_all_path_holds(tmp_path):
+    """A reliable KEEP_ALL publisher and a subscriber that never takes: the publisher gets
+    out what the writer's and the reader's histories hold, then blocks. Fast DDS's default
+    (the robot's localhost profile) holds 5,000 each; the bridge's profile 1,000 each, so
+    a bridge never queues the backlog at which every message costs Fast DDS twice the
+    CPU (docs/ros2.md, "The slow mode"). Counted, so a profile Fast DDS ignored fails."""
+    import subprocess
+
+    from cryptoros.ros2.profile import BRIDGE_MAX_SAMPLES, PROFILE_ENV, write_bridge_profile
+    from tests.ros2_support import NODES, fresh_domains, ros2_env, ros2_python
+
+    python = str(ros2_python())
+    (domain,) = fresh_domains(1)
+    bridge_profile = write_bridge_profile(tmp_path)
+    sent = {}
+    for profile in ("localhost", "bridge"):
+        env = ros2_env(domain)
+        if profile == "bridge":
+            env[PROFILE_ENV] = str(bridge_profile)
+        hold = subprocess.Popen([python, str(NODES / "backlog.py"), "hold", "/backlog"], env=env, cwd=str(NODES),
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            assert hold.stdout.readline().strip() == "READY"
+            fill = subprocess.run([python, str(NODES / "backlog.py"), "fill", "/backlog", str(20 * BRIDGE_MAX_SAMPLES)],
+                                  env=env, cwd=str(NODES), capture_output=True, text=True, timeout=90)
+        finally:
+            hold.stdin.close()
+            hold.wait(timeout=15)
+        assert fill.stdout.startswith("SENT "), fill.stderr[-2000:]
+        sent[profile] = int(fill.stdout.split()[1])
+    assert sent["bridge"] == 2 * BRIDGE_MAX_SAMPLES, sent
+    assert sent["localhost"] > 4 * BRIDGE_MAX_SAMPLES, f"control: Fast DDS's default should hold more: {sent}"
 
 
 def test_dribbled_preambles_to_the_ros2_role_are_cut_at_the_deadline(network):

@@ -177,7 +177,8 @@ def _segment_locks(pid: int) -> set[Path]:
 def test_a_killed_bridge_is_restarted_its_dead_segments_removed_and_flows_resume_within_20_s(network):
     """SIGKILL to robot B's DDS bridge: no goodbye, its shared-memory segments stay in
     /dev/shm. The interceptor starts a new bridge, removing what dead DDS processes left
-    first (eProsima's ``fastdds shm clean``), and robot B's listener hears robot A again."""
+    first (eProsima's ``fastdds shm clean``), and robot B's listener hears robot A again.
+    The new bridge runs with the bridge's own Fast DDS profile, as the first did."""
     with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
         sub.until("READY", 20)
         with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
@@ -185,6 +186,7 @@ def test_a_killed_bridge_is_restarted_its_dead_segments_removed_and_flows_resume
             (dead,) = _bridge_pids(network, "robot_b")[-1:]
             left = _segment_locks(dead)
             assert left, "robot B's bridge has no shared-memory segment open"
+            _assert_bridge_profile(dead)
             os.kill(dead, signal.SIGKILL)
             start = time.monotonic()
             assert all(lock.exists() and lock.with_name(lock.name[:-3]).exists() for lock in left)
@@ -194,3 +196,16 @@ def test_a_killed_bridge_is_restarted_its_dead_segments_removed_and_flows_resume
     assert not [lock for lock in left if lock.exists() or lock.with_name(lock.name[:-3]).exists()], \
         "the dead bridge's segments are still in /dev/shm"
     assert "shared-memory segment(s) of DDS processes that died" in network.robots["robot_b"].logs()
+    _assert_bridge_profile(_bridge_pids(network, "robot_b")[-1])
+
+
+def _assert_bridge_profile(pid: int) -> None:
+    """Process ``pid`` (a live bridge) runs with the bridge's profile: the localhost one
+    with its readers' and writers' samples capped."""
+    from cryptoros.ros2.profile import BRIDGE_MAX_SAMPLES, PROFILE_ENV, environment_problem
+
+    environ = dict(item.split("=", 1) for item in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in item)
+    profile = Path(environ[PROFILE_ENV])
+    assert profile.name == "bridge_profile.xml", profile
+    assert environment_problem(environ) is None
+    assert profile.read_text().count(f"<max_samples>{BRIDGE_MAX_SAMPLES}</max_samples>") == 2
