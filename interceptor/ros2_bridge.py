@@ -113,9 +113,13 @@ class DdsBridge:
         env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)  # the ROS 2 venv sets up its own libraries
         env.update(ROS_DOMAIN_ID=str(settings.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         env = localhost_env(env)  # DDS on 127.0.0.1 and shared memory only: private to this host
-        if self._profile_dir is None:  # the same, with the bridge's readers and writers holding fewer samples
-            self._profile_dir = tempfile.mkdtemp(prefix="cryptoros-dds-")
-        env[PROFILE_ENV] = str(write_bridge_profile(Path(self._profile_dir)))
+        try:  # the same, with the bridge's readers and writers holding fewer samples
+            if self._profile_dir is None:
+                self._profile_dir = tempfile.mkdtemp(prefix="cryptoros-dds-")
+            env[PROFILE_ENV] = str(write_bridge_profile(Path(self._profile_dir)))
+        except OSError as exc:
+            raise CryptorosError(f"cannot write the DDS bridge's profile into {self._profile_dir or tempfile.gettempdir()}: "
+                                 f"{exc.strerror or exc}") from None
         # glibc mmaps (and page-faults) every buffer of 128 KiB or more, and gives the top of
         # its heap back past 128 KiB free; images are read and joined in such buffers: keep
         # them on the heap, and the heap (measured: bridges 75 us less per 80 KB image)

@@ -50,13 +50,17 @@ SECONDS = {HEAVY_UNIT: sum(HEAVY.values()), **LONG}
 class HeavyApartScheduling(LoadFileScheduling):
     """``--dist loadfile`` with the heavy files in one unit and the long units first."""
 
+    def __init__(self, config, log=None) -> None:
+        super().__init__(config, log)
+        self._ordered = False  # the queue is put longest first when the first unit is handed out
+
     def _split_scope(self, nodeid: str) -> str:
         path = nodeid.split("::", 1)[0]
         return HEAVY_UNIT if path in HEAVY else path
 
     def _assign_work_unit(self, node) -> None:
-        if not getattr(self, "_longest_first", False):  # the first unit handed out: order the queue once
-            self._longest_first = True
+        if not self._ordered:  # the first unit handed out: order the queue once
+            self._ordered = True
             for unit in sorted((u for u in self.workqueue if u in SECONDS), key=SECONDS.get):
                 self.workqueue.move_to_end(unit, last=False)  # shortest moved first: the longest ends in front
         super()._assign_work_unit(node)

@@ -37,3 +37,33 @@ def test_the_bridge_profile_caps_every_default_reader_and_writer_and_keeps_the_r
 def test_writing_the_bridge_profile_again_gives_the_same_file(tmp_path):
     first = write_bridge_profile(tmp_path).read_bytes()
     assert write_bridge_profile(tmp_path).read_bytes() == first
+
+
+def test_a_bridge_whose_profile_cannot_be_written_fails_with_one_clear_line(monkeypatch, tmp_path):
+    import tempfile
+    from types import SimpleNamespace
+
+    import pytest
+
+    from cryptoros.errors import CryptorosError
+    from interceptor.ros2_bridge import DdsBridge
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing"))
+    bridge = DdsBridge(SimpleNamespace(domain_id=7), lambda *_: None, lambda *_: None)
+    with pytest.raises(CryptorosError, match=r"cannot write the DDS bridge's profile into .*missing: No such file"):
+        bridge._env()
+
+
+def test_a_bridge_runs_with_the_bridge_profile_in_its_domain(monkeypatch, tmp_path):
+    import tempfile
+    from types import SimpleNamespace
+
+    from interceptor.ros2_bridge import DdsBridge
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    bridge = DdsBridge(SimpleNamespace(domain_id=7), lambda *_: None, lambda *_: None)
+    env = bridge._env()
+    assert env["ROS_DOMAIN_ID"] == "7" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert env[PROFILE_ENV].endswith("bridge_profile.xml") and environment_problem(env) is None
+    assert env[PROFILE_ENV] == bridge._env()[PROFILE_ENV]  # one file per bridge, written again on a restart
+    assert env[PROFILE_ENV].startswith(str(tmp_path))
