@@ -79,6 +79,10 @@ async def _run(config_path: str, grace: float) -> None:
     for warning in warnings:
         log.warning("%s", warning)
     interceptor = build_interceptor(cfg)
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()  # set before start-up ends (its ports are open): stopped right after
+    loop.add_signal_handler(signal.SIGTERM, stop.set)
+    loop.add_signal_handler(signal.SIGINT, stop.set)
     try:
         await interceptor.start()  # a listener that cannot bind: a ConfigError naming it and its address
     except (CryptorosError, OSError) as exc:
@@ -92,10 +96,6 @@ async def _run(config_path: str, grace: float) -> None:
     # 17 to 37 ms; after the freeze, the later ones took 0.1 to 4.8 ms.
     gc.collect()
     gc.freeze()
-    loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
-    loop.add_signal_handler(signal.SIGTERM, stop.set)
-    loop.add_signal_handler(signal.SIGINT, stop.set)
 
     async def reload() -> None:
         if interceptor.monitor is not None:  # an operator's release needs no valid configuration
