@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import tempfile
+from types import SimpleNamespace
 from xml.etree import ElementTree
 
+import pytest
+
+from cryptoros.errors import CryptorosError
 from cryptoros.ros2.profile import (BRIDGE_MAX_SAMPLES, LOCALHOST_PROFILE, PROFILE_ENV, environment_problem,
                                     write_bridge_profile)
+from interceptor.ros2_bridge import DdsBridge
 
 NS = "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}"
 
@@ -40,14 +46,6 @@ def test_writing_the_bridge_profile_again_gives_the_same_file(tmp_path):
 
 
 def test_a_bridge_whose_profile_cannot_be_written_fails_with_one_clear_line(monkeypatch, tmp_path):
-    import tempfile
-    from types import SimpleNamespace
-
-    import pytest
-
-    from cryptoros.errors import CryptorosError
-    from interceptor.ros2_bridge import DdsBridge
-
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing"))
     bridge = DdsBridge(SimpleNamespace(domain_id=7), lambda *_: None, lambda *_: None)
     with pytest.raises(CryptorosError, match=r"cannot write the DDS bridge's profile into .*missing: No such file"):
@@ -55,11 +53,6 @@ def test_a_bridge_whose_profile_cannot_be_written_fails_with_one_clear_line(monk
 
 
 def test_a_bridge_runs_with_the_bridge_profile_in_its_domain(monkeypatch, tmp_path):
-    import tempfile
-    from types import SimpleNamespace
-
-    from interceptor.ros2_bridge import DdsBridge
-
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     bridge = DdsBridge(SimpleNamespace(domain_id=7), lambda *_: None, lambda *_: None)
     env = bridge._env()
