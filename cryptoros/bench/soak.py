@@ -17,6 +17,9 @@ every interceptor with a ``state_dir``) and runs, for ``--seconds``:
   does not pass through it) a third of the way in;
 - the authorization server restarts two thirds of the way in.
 
+Every event runs: one that falls due while an earlier one is still running (a restart
+on a loaded host) runs late, and the soak ends after the last of them.
+
 It prints progress lines while it runs, then per process (the three interceptors and
 the authorization server) open fds (``/proc/PID/fd``) and RSS at start and end (and
 the TCP sockets among the fds at the end, listening and established), the messages
@@ -333,7 +336,7 @@ def _run(soak: Soak, seconds: float, hz: float, restart: str, say) -> dict:
     restarts: dict[str, float] = {}
     next_progress = start + 10
     i = 0
-    while (now := time.monotonic()) < end:
+    while (now := time.monotonic()) < end or events:  # every event runs, late if need be
         while events and events[0][0] <= now:
             _, kind = events.pop(0)
             if kind == "churn":
