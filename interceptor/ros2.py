@@ -370,9 +370,14 @@ class Ros2Role(Role):
     def _reconcile(self) -> None:
         if self._stopping or self.bridge.link is None or not self.bridge.ready:
             return
-        want = {} if self.bridge.link.transport is None or self.bridge.link.transport.is_closing() else self._desired()
+        link_down = self.bridge.link.transport is None or self.bridge.link.transport.is_closing()
+        want = {} if link_down else self._desired()
         for key, out in list(self._outbound.items()):
             if key not in want or want[key].target != out.target:
+                why = ("the bridge's link is down" if link_down else
+                       "its publisher, its server or the grant that carried it is gone" if key not in want else
+                       "its publisher's node or QoS changed")
+                log.info("no longer offering %s %s [%s]: %s", out.target.kind, out.target.name, out.target.type, why)
                 self._withdraw(out)
         peers = set(self.cfg.ros2.peers)
         for key, offer in want.items():
