@@ -29,7 +29,9 @@ real ROS 1 wire bytes (serialized with :mod:`cryptoros.ros1.msgs`, rosbags):
   measuring child runs under its own CPU quota (cgroup v2 ``cpu.max``, else cgroup v1
   ``cpu.cfs_quota_us``, else a SIGSTOP/SIGCONT duty cycle; which one is printed) of
   :data:`ATOM_QUOTA` of one core, with AES-NI, PCLMULQDQ and AVX masked off in OpenSSL
-  (``OPENSSL_ia32cap``): the D525 has none of them;
+  (``OPENSSL_ia32cap``): the D525 has none of them. A child the quota never stopped
+  (the cgroup's ``nr_throttled``, or the duty cycle's stops) is measured again, and a
+  second such run aborts: unthrottled figures are never reported as the stand-in's;
 * an energy estimate (:func:`energy_model`: busy core-seconds x watts per busy core from
   the CPU's TDP; battery time from the paper's battery, its plain battery time and an
   assumed 11.1 V pack) and the paper's Table 2 rebuilt from our figures;
@@ -403,6 +405,7 @@ class Throttle:
         self._paths: list[Path] = []
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
+        self._stops: dict[int, int] = {}  # the duty cycle's stops per child
 
     def _pick(self) -> tuple[str, Path | None]:
         if os.environ.get("CRYPTOROS_BENCH_THROTTLE") == "dutycycle":
@@ -454,6 +457,7 @@ class Throttle:
                 try:
                     time.sleep(run_s)
                     os.kill(pid, signal.SIGSTOP)
+                    self._stops[pid] = self._stops.get(pid, 0) + 1
                     time.sleep(off_s)
                     os.kill(pid, signal.SIGCONT)
                 except ProcessLookupError:
@@ -464,6 +468,19 @@ class Throttle:
         t = threading.Thread(target=cycle, daemon=True)
         t.start()
         self._threads.append(t)
+
+    def stalls(self, pid: int) -> int:
+        """How many times the quota stopped child ``pid`` (the cgroup's ``nr_throttled``,
+        or the duty cycle's stops): 0 means its figures are this machine's, unthrottled.
+        Read after the child exited (its cgroup stays until :meth:`close`)."""
+        if self.root is None:
+            return self._stops.get(pid, 0)
+        with contextlib.suppress(OSError, ValueError):
+            for line in (self.root / f"{self.prefix}-{pid}" / "cpu.stat").read_text().splitlines():
+                key, _, value = line.partition(" ")
+                if key == "nr_throttled":
+                    return int(value)
+        return 0
 
     def close(self) -> None:
         self._stop.set()
@@ -509,7 +526,14 @@ def run_worker(spec: dict, env_extra: dict[str, str], throttle: Throttle | None,
     bad = [r for r in rows if "error" in r]
     if bad:
         raise click.ClickException(f"{bad[0]['cipher']} on {bad[0]['message']}: {bad[0]['error']}")
+    if throttle is not None and throttle.stalls(proc.pid) == 0:
+        raise Unthrottled(f"the quota never stopped the measuring child of {', '.join(sorted({r['cipher'] for r in rows}))}")
     return rows
+
+
+class Unthrottled(click.ClickException):
+    """A throttled child that the quota never stopped: its figures would be this
+    machine's, not the stand-in's. It is measured again; twice in a row aborts the run."""
 
 
 def _make_pki(workdir: Path) -> dict:
@@ -554,7 +578,11 @@ def measure_all(profile: str, files: dict[str, str], pki: dict, windows: tuple[f
 
     def one(i: int) -> None:
         try:
-            results[i] = run_worker({**base, **groups[i][0]}, groups[i][1], throttle, timeout=1800)
+            try:
+                results[i] = run_worker({**base, **groups[i][0]}, groups[i][1], throttle, timeout=1800)
+            except Unthrottled as exc:
+                progress(f"{exc.message}: measured again")
+                results[i] = run_worker({**base, **groups[i][0]}, groups[i][1], throttle, timeout=1800)
         except BaseException as exc:  # re-raised in the caller's thread
             results[i] = exc
 

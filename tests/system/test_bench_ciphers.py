@@ -71,3 +71,27 @@ def test_bench_ciphers_quick(tmp_path):
     assert report["config"]["throttle"]["method"] in ("cgroup v2 cpu.max", "cgroup v1 cpu.cfs_quota_us", "dutycycle")
     assert (plots / "ciphers.png").stat().st_size > 10_000
     assert "Table 2 rebuilt" in result.stdout and "Energy model" in result.stdout
+
+
+@pytest.mark.parametrize("method", ["picked", "dutycycle"])
+def test_the_throttle_stops_a_busy_child_and_counts_it(monkeypatch, method):
+    """The Atom stand-in's quota: a child that needs 50 ms of CPU (about 0.4 s under 1/8
+    of a core) is stopped, and :meth:`Throttle.stalls` says so (a child it is 0 for is
+    measured again, then the bench aborts: its figures would be this machine's)."""
+    import subprocess
+    import sys
+
+    from cryptoros.bench.ciphers import Throttle
+
+    if method == "dutycycle":
+        monkeypatch.setenv("CRYPTOROS_BENCH_THROTTLE", "dutycycle")
+    throttle = Throttle(0.125)
+    try:
+        child = subprocess.Popen([sys.executable, "-c", "import time\nend = time.process_time() + 0.05\n"
+                                  "while time.process_time() < end: pass"])
+        throttle.attach(child.pid)
+        assert child.wait(timeout=30) == 0
+        assert throttle.stalls(child.pid) > 0, throttle.describe()
+        assert throttle.stalls(child.pid + 10**7) == 0  # a child it never had
+    finally:
+        throttle.close()
