@@ -18,7 +18,9 @@ Outbound (this robot's publishers and servers): the bridge reports the local gra
 every topic whose local publishers may all publish it (this interceptor's own grants,
 per node) gets a raw subscription and one stream per configured peer; a stream is
 used only once the peer's token (from the preamble reply) shows its manager may
-subscribe. Services alike (``serve`` here, ``call`` there).
+subscribe. Services alike (``serve`` here, ``call`` there). An offer whose publishers
+all left the graph is kept :data:`VANISHED_GRACE` first (a process that stalled past its
+DDS lease comes back with the same writer); anything decided against it ends it at once.
 
 Inbound: a ``ros2`` stream's target (:class:`~cryptoros.ros2.target.StreamTarget`)
 is checked against the sender's grants for the node it names and against this robot's
@@ -59,6 +61,13 @@ from interceptor.monitor import WatchedStream
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
 RECONCILE_INTERVAL = 1.0
+#: an offer whose name has no named publisher or server left in the graph, with nothing
+#: decided against it (its grant stands, the link is up), is kept this long before it is
+#: withdrawn: a process that stalls past its DDS lease (3 s in the localhost profile)
+#: drops out of the graph and comes back with the same writer, and withdrawing at once
+#: lost what the bridge had taken of a reliable burst. A grant taken away, an exposed
+#: participant, a changed node or QoS and a link down still withdraw at once.
+VANISHED_GRACE = 6.0
 #: a peer that may not receive a stream is asked for a fresh token (a new grant) this often;
 #: a token learnt within RECHECK_MARGIN before a recheck is fresh enough for it. A grant
 #: re-added to the peer therefore reaches its stream within PEER_RECHECK + RECHECK_MARGIN
@@ -96,6 +105,8 @@ class Outbound:
     history: collections.deque | None = None
     #: the local publisher nodes whose samples the bridge forwards (topics)
     granted_writers: frozenset[str] = frozenset()
+    #: when (monotonic) its name left the graph (None: on the air): see VANISHED_GRACE
+    vanished_at: float | None = None
 
 
 @dataclass(eq=False)
@@ -372,13 +383,32 @@ class Ros2Role(Role):
             return
         link_down = self.bridge.link.transport is None or self.bridge.link.transport.is_closing()
         want = {} if link_down else self._desired()
+        on_air = set() if link_down else self._on_air()
+        now = time.monotonic()
         for key, out in list(self._outbound.items()):
-            if key not in want or want[key].target != out.target:
-                why = ("the bridge's link is down" if link_down else
-                       "its publisher, its server or the grant that carried it is gone" if key not in want else
-                       "its publisher's node or QoS changed")
-                log.info("no longer offering %s %s [%s]: %s", out.target.kind, out.target.name, out.target.type, why)
-                self._withdraw(out)
+            if key in want and want[key].target == out.target:
+                if out.vanished_at is not None:  # back: the bridge held its writers, told again below
+                    out.vanished_at, out.granted_writers = None, frozenset()
+                    log.info("%s %s [%s] is back in the graph: offered on", out.target.kind, out.target.name,
+                             out.target.type)
+                continue
+            if key not in want and not link_down and out.target.name not in on_air and self._still_granted(out):
+                if out.vanished_at is None:
+                    out.vanished_at = now
+                    if out.target.kind == "topic":  # a writer let through goes on; a new one waits for
+                        self.bridge.link.control(op="hold", chan=out.chan)  # the offer's next decision
+                    log.info("%s %s [%s] has no named %s in the graph: offered %g s more, for a process that "
+                             "missed its DDS lease to come back", out.target.kind, out.target.name, out.target.type,
+                             "publisher" if out.target.kind == "topic" else "server", VANISHED_GRACE)
+                if now - out.vanished_at < VANISHED_GRACE:
+                    continue
+            why = ("the bridge's link is down" if link_down else
+                   f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
+                   if out.vanished_at is not None and key not in want and out.target.name not in on_air else
+                   "its publisher, its server or the grant that carried it is gone" if key not in want else
+                   "its publisher's node or QoS changed")
+            log.info("no longer offering %s %s [%s]: %s", out.target.kind, out.target.name, out.target.type, why)
+            self._withdraw(out)
         peers = set(self.cfg.ros2.peers)
         for key, offer in want.items():
             target = offer.target
@@ -407,6 +437,24 @@ class Ros2Role(Role):
             except TokenError:  # our own token is gone: nothing comes in either
                 for writer in list(self._inbound):
                     writer.transport.abort()
+
+    def _on_air(self) -> set[str]:
+        """The topics with a publisher and the services with a server that the graph names
+        (a publisher whose node discovery has not named yet does not count)."""
+        names = {t["name"] for t in self._graph.get("topics", [])
+                 if any(UNKNOWN_NODE_MARK not in p["node"] for p in t.get("publishers", []))}
+        return names | {s["name"] for s in self._graph.get("services", [])
+                        if any(UNKNOWN_NODE_MARK not in n for n in s.get("servers", []))}
+
+    def _still_granted(self, out: Outbound) -> bool:
+        """Whether this robot's own token still lets one of ``out``'s nodes publish or
+        serve it (an offer kept through its publisher's absence never outlives its grant)."""
+        try:
+            grants = self.gw.own_access().grants
+        except TokenError:
+            return False
+        action = "publish" if out.target.kind == "topic" else "serve"
+        return any(grants.allows(action, node, out.target.name, out.target.type) for node in out.granted_writers)
 
     def _withdraw(self, out: Outbound, *, tell_bridge: bool = True) -> None:
         key = (out.target.kind, out.target.name, out.target.type)

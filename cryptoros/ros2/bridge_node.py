@@ -57,6 +57,12 @@ _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Za-z][A-Za-z0-9_]*)$
 MAX_WRITERS_PER_TOPIC = 1024
 #: a writer the graph does not show yet is looked up again after this long (its samples dropped meanwhile)
 UNKNOWN_WRITER_RETRY = 0.1
+#: a writer's node name is remembered while the writer is in the graph and this long after:
+#: a process that missed its participant lease (stalled) comes back with the same writer but
+#: often without its node name (its discovery data is not sent again), and would stay
+#: unknown, so neither offered nor let through
+NAME_MEMORY_S = 60.0
+MAX_NAMED_WRITERS = 4096
 CALL_TIMEOUT = 30.0
 #: how long a republished message may wait for a full local reader before it is dropped
 PUBLISH_PATIENCE = 3.0
@@ -136,6 +142,9 @@ class Bridge:
         self.writer_ok: dict[int, dict[bytes, bool]] = {}
         self.refused_noted: set[tuple[int, bytes]] = set()
         self.unknown_until: dict[tuple[int, bytes], float] = {}  # writers the graph did not show yet
+        #: writer GID -> (its node, when the graph last showed the writer): see NAME_MEMORY_S
+        self.named: dict[bytes, tuple[str, float]] = {}
+        self.names_lock = threading.Lock()
         self.servers: dict[int, object] = {}
         self.clients: dict[int, tuple[object, type]] = {}
         self.pending: dict[int, list] = {}  # request id -> [threading.Event, (ok, cdr) or None]
@@ -153,13 +162,31 @@ class Bridge:
     def error(self, detail: str, **extra) -> None:
         self.send(fr.encode_control({"op": "error", "detail": detail, **extra}))
 
+    def _node_of(self, info) -> str:
+        """The node of a writer the graph shows (``info``): its own name, or the name it had
+        when discovery has lost it (:data:`NAME_MEMORY_S`)."""
+        node, gid, now = _fqn(info.node_name, info.node_namespace), bytes(info.endpoint_gid), time.monotonic()
+        with self.names_lock:
+            if "_UNKNOWN_" not in node:
+                if gid not in self.named and len(self.named) >= MAX_NAMED_WRITERS:
+                    for old in [g for g, (_n, seen) in self.named.items() if now - seen > NAME_MEMORY_S] \
+                            or list(self.named)[: MAX_NAMED_WRITERS // 4]:
+                        del self.named[old]
+                self.named[gid] = (node, now)
+                return node
+            known = self.named.get(gid)
+            if known is None or now - known[1] > NAME_MEMORY_S:
+                return node
+            self.named[gid] = (known[0], now)
+            return known[0]
+
     def _report_graph(self) -> None:
         node = self.node
         topics = []
         for name, types in node.get_topic_names_and_types():
             pubs = [
                 {
-                    "node": _fqn(i.node_name, i.node_namespace),
+                    "node": self._node_of(i),
                     "reliability": "best_effort" if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT else "reliable",
                     "durability": "transient_local" if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
                     "gid": bytes(i.endpoint_gid)[:8].hex(),  # its participant's GUID prefix starts it
@@ -348,6 +375,8 @@ class Bridge:
             self._set_writers(chan, None)
         elif op == "writers":
             self._set_writers(chan, cmd.get("nodes", ()))
+        elif op == "hold":
+            self._hold_writers(chan)
         elif op == "serve":
             cls = load_type(cmd["type"], "srv")
             self.servers[chan] = self.srv_node.create_service(
@@ -378,6 +407,15 @@ class Bridge:
                 self.writer_nodes[chan] = frozenset(str(n) for n in nodes) - self.own_names
             self.writer_ok.pop(chan, None)  # decided again from the graph, writer by writer
 
+    def _hold_writers(self, chan: int) -> None:
+        """``chan``'s publishers left the graph and the interceptor keeps the offer a while
+        (a stalled process comes back with the same writer): the writers already let
+        through go on, a new one is refused, silently, until the interceptor has decided
+        on it again (``writers``)."""
+        with self.writers_lock:
+            if chan in self.writer_nodes:
+                self.writer_nodes[chan] = frozenset()
+
     def _writer_granted(self, chan: int, topic: str, gid: bytes) -> bool:
         """Whether ``gid`` is the writer of a granted publisher node of ``chan``: looked up
         in the graph on its first sample (discovery tells the graph about a writer before
@@ -396,7 +434,7 @@ class Bridge:
         node = None
         for info in self.data_node.get_publishers_info_by_topic(topic):
             if bytes(info.endpoint_gid)[: len(gid)] == gid:
-                node = _fqn(info.node_name, info.node_namespace)
+                node = self._node_of(info)
                 break
         if node is None or "_UNKNOWN_" in node:  # not (fully) discovered yet: ask again a little later
             if len(self.unknown_until) >= MAX_WRITERS_PER_TOPIC:
@@ -409,7 +447,7 @@ class Bridge:
             if len(decided) >= MAX_WRITERS_PER_TOPIC:  # a flood of short-lived writers: start over
                 decided.clear()
             decided[gid] = ok
-        if not ok and node not in self.own_names and (chan, gid) not in self.refused_noted:
+        if not ok and nodes and node not in self.own_names and (chan, gid) not in self.refused_noted:
             if len(self.refused_noted) < MAX_WRITERS_PER_TOPIC:
                 self.refused_noted.add((chan, gid))
                 self.send(fr.encode_control({"op": "refused_writer", "chan": chan, "topic": topic, "node": node,

@@ -59,6 +59,43 @@ def test_reliable_burst_arrives_without_loss_through_the_interceptors(network):
     assert seqs == list(range(seqs[0], 2100)), f"{2100 - seqs[0] - len(seqs)} message(s) lost or reordered"
 
 
+def test_a_talker_frozen_past_its_dds_lease_keeps_its_offer_and_is_known_again(network):
+    """The talker is stopped (SIGSTOP: a process starved or paused) 50 ms into a burst for
+    longer than the localhost profile's 3 s lease: its participant drops out of bridge A's
+    graph and comes back with the same writer, but without its node name, when it goes on.
+    Robot A keeps the offer through the absence (VANISHED_GRACE: a withdrawn stream lost what
+    the bridge had taken) and its bridge knows the returning writer's node (NAME_MEMORY_S),
+    so the offer goes on. Withdrawn at once and not recognised, the listener got 1,214
+    messages and then none: never offered again. (Whether DDS then delivers the rest is
+    DDS's: on a quiet host all 20,000 arrived, on a loaded one the flow did not always
+    resume; docs/ros2.md.)"""
+    a = network.robots["robot_a"]
+    with network.node("robot_b", "listener.py", "string", "/chatter", "90", "--keep-all") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "20100", "20", "--keep-all",
+                          "--burst-on-signal") as talker:
+            collect(sub, 1, 60)  # the path is up: now the burst, and the freeze
+            log_before = len(a.logs())
+            talker.proc.send_signal(signal.SIGUSR1)
+            time.sleep(0.05)
+            talker.proc.send_signal(signal.SIGSTOP)
+            try:
+                deadline = time.monotonic() + 30
+                while not re.search(r"/chatter \[std_msgs/msg/String\] has no named publisher|no longer offering "
+                                    r"topic /chatter", a.logs()[log_before:]):
+                    assert time.monotonic() < deadline, "the frozen talker never left robot A's graph"
+                    time.sleep(0.1)
+                left_at = time.monotonic()
+            finally:
+                talker.proc.send_signal(signal.SIGCONT)
+            deadline = time.monotonic() + 20
+            while "/chatter [std_msgs/msg/String] is back in the graph" not in a.logs()[log_before:]:
+                assert "no longer offering topic /chatter" not in a.logs()[log_before:], \
+                    f"robot A withdrew the offer {time.monotonic() - left_at:.1f} s after the talker left its graph"
+                assert time.monotonic() < deadline, "robot A never knew the talker again"
+                time.sleep(0.1)
+
+
 def test_a_subscriber_on_robot_b_killed_mid_stream_costs_the_others_no_message(network):
     """Two KEEP_ALL listeners on robot B, a burst of 12,000 messages; one listener is
     killed (SIGKILL: no goodbye in discovery) after the first 1,000. Bridge B's KEEP_ALL
