@@ -87,9 +87,13 @@ def ros2_env(domain: int, pythonpath: Path | None) -> dict[str, str]:
     return env
 
 
-def base_domain() -> int:
-    """``D``: the shared (network) domain; robots use D+1 .. D+8 (all within 0..101)."""
-    return 10 + (os.getpid() * 7) % 80
+def base_domain(robots: int = 8) -> int:
+    """``D``: the shared (network) domain; robots use D+1 .. D+robots (all within 0..101),
+    where no process on this host has a port bound now: another session's participants on
+    one of these domains (a test, a second demo) would match the robots' own."""
+    from cryptoros.ros2.exposure import free_domains
+
+    return free_domains(robots + 1, 10 + (os.getpid() * 7) % 80)[0]
 
 
 def attacker_role(kind: str, n: int) -> str:
@@ -105,7 +109,7 @@ class Ros2Mission(Mission):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.python = ros2_python()
-        self.base = base_domain()
+        self.base = base_domain(len(self.team))
         # the robots import this package from a directory holding only it (not the main
         # venv's site-packages: the ROS 2 venv brings its own numpy and cryptography)
         self.pythonpath = self.dir / "pylib"
