@@ -59,6 +59,8 @@ from pathlib import Path
 
 import click
 
+from cryptoros.errors import CryptorosError
+
 # ============================================================ what is measured
 
 
@@ -531,7 +533,7 @@ def run_worker(spec: dict, env_extra: dict[str, str], throttle: Throttle | None,
     return rows
 
 
-class Unthrottled(click.ClickException):
+class Unthrottled(CryptorosError):
     """A throttled child that the quota never stopped: its figures would be this
     machine's, not the stand-in's. It is measured again; twice in a row aborts the run."""
 
@@ -581,8 +583,12 @@ def measure_all(profile: str, files: dict[str, str], pki: dict, windows: tuple[f
             try:
                 results[i] = run_worker({**base, **groups[i][0]}, groups[i][1], throttle, timeout=1800)
             except Unthrottled as exc:
-                progress(f"{exc.message}: measured again")
-                results[i] = run_worker({**base, **groups[i][0]}, groups[i][1], throttle, timeout=1800)
+                progress(f"{exc}: measured again")
+                try:
+                    results[i] = run_worker({**base, **groups[i][0]}, groups[i][1], throttle, timeout=1800)
+                except Unthrottled as again:
+                    raise click.ClickException(f"{again} twice: its figures would be this machine's, not the "
+                                               "Atom stand-in's") from None
         except BaseException as exc:  # re-raised in the caller's thread
             results[i] = exc
 
