@@ -447,7 +447,11 @@ class Mission:
                     quiet_since = None
                 elif quiet_since is None:
                     quiet_since = wall
-                if quiet_since is not None and wall - quiet_since >= 2.0:
+                # robots that all stopped (shut down, hijacked, halted, done on an insider's
+                # claim) still wait for the stranger's false map, FALSE_MAP_ONSET s after the
+                # other attacks: what it did is judged by what the robots received
+                if quiet_since is not None and wall - quiet_since >= 2.0 and \
+                        ("false-map" not in attackers or wall - fired_at >= FALSE_MAP_ONSET + 2.0):
                     end_reason = "robots_stopped"
                     break
                 if fired and stalled(timeline, wall - fired_at):
