@@ -68,8 +68,23 @@ def deployment_problems(cfg) -> tuple[list[str], list[str]]:
     return [problem], []
 
 
+def quiet_closed_transport(loop: asyncio.AbstractEventLoop, context: dict) -> None:
+    """The event loop's handler of errors nothing awaited. A write an SSL connection makes
+    to a transport already closed (TLS had bytes to send when a peer or the interceptor
+    closed it; seen when a failed start-up closed the authorization client's connections)
+    is a debug line, not an ERROR with uvloop's traceback under the operator's one-line
+    refusal; everything else goes to the default handler."""
+    exc = context.get("exception")
+    if isinstance(exc, RuntimeError) and "closed" in str(exc) and "protocol" in context:
+        log.debug("%s: %s", context.get("message", "transport error"), exc)
+        return
+    loop.default_exception_handler(context)
+
+
 async def _run(config_path: str, grace: float) -> None:
     from interceptor.statefile import lock_instance
+
+    asyncio.get_running_loop().set_exception_handler(quiet_closed_transport)
 
     cfg = load(config_path)
     lock = lock_instance(cfg.state_dir, cfg.manager) if cfg.state_dir is not None else None
