@@ -9,7 +9,7 @@ calls for :data:`ANSWER_SECONDS` more. A restarted publisher has a new node API 
 export, so a new key); what the answer names is checked again, against fresh grants at
 both ends, when the subscriber connects. Who may take a shared answer is the caller's
 business (:meth:`~interceptor.ros1.relays.Relays._on_xmlrpc_relay`: subscribers this
-host registered).
+host registered, while its manager's current token grants them the topic).
 """
 
 from __future__ import annotations

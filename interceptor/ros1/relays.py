@@ -94,11 +94,13 @@ class Relays:
             return rewrite_response(call, response, tcpros=tcpros)
 
         async def call(request: Request) -> Response | Fault:
-            # a subscriber this host registered shares the publisher's answer with the
-            # others starting with it (answers.py); any other caller asks the far side
+            # a subscriber this host registered, still granted the topic by its manager's
+            # current token, shares the publisher's answer with the others starting with it
+            # (answers.py); any other caller asks the far side, which decides
             caller, topic = (request.params + ("", ""))[:2]
             if (request.method == "requestTopic" and isinstance(topic, str) and isinstance(caller, str)
-                    and caller in self._local_subscribers.get(topic, ())):
+                    and caller in self._local_subscribers.get(topic, ())
+                    and self.gw.own_access().grants.types_for("subscribe", caller, topic)):
                 return await self._topic_answers.ask((target, topic), lambda: tunnel.call(request))
             return await tunnel.call(request)
 

@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 import urllib.request
 
 import pytest
 
 from cryptoros.ros1.node import Node
 from cryptoros.ros1.rpc import RosApiError, call
+from tests.authz_support import ok
 from tests.interceptor_harness import STRING, denials, robot_network
+from tests.support import until
 
 pytestmark = [pytest.mark.ros1]
 
@@ -59,11 +62,15 @@ def test_subscribers_starting_at_once_all_receive_and_none_is_refused(tmp_path):
             assert "pending_limit" not in denials(net, host), denials(net, host)[-2000:]
 
 
-def _shared(net) -> int:
+def _status(net) -> dict:
     with net.inside("robot_b"):
         url = f"http://127.0.0.1:{net.hosts['robot_b'].metrics_port}/status"
         with urllib.request.urlopen(url, timeout=5) as reply:
-            return json.loads(reply.read())["ros1"]["topic_answers_shared"]
+            return json.loads(reply.read())
+
+
+def _shared(net) -> int:
+    return _status(net)["ros1"]["topic_answers_shared"]
 
 
 @pytest.mark.timeout(120)
@@ -90,15 +97,41 @@ def test_subscribers_registered_here_share_the_publishers_answer_and_other_calle
                     await asyncio.gather(*(asyncio.wait_for(one(n), 30) for n in nodes))
                     # robot A's talker as B's nodes are handed it: a relay of robot B
                     relay = await call(master_b, "lookupNode", "/probe", "/talker_a")
+                    # the burst asked robot A once (again each time it outlasted an answer's 2 s)
+                    assert _shared(net) >= SUBSCRIBERS // 2
+                    before = _shared(net)
+                    answer = await call(relay, "requestTopic", "/unregistered", "/chatter", [["TCPROS"]])
+                    assert answer[0] == "TCPROS"  # robot A's answer (its grant: any node of B)
+                    with pytest.raises(RosApiError, match="denied by cryptoros"):  # robot A refuses /secret
+                        await call(relay, "requestTopic", "/unregistered", "/secret", [["TCPROS"]])
+                    assert _shared(net) == before
+                    await answers_end_with_the_grant(relay)
                 finally:
                     await asyncio.gather(*(n.close() for n in nodes), return_exceptions=True)
-                # the burst asked robot A once (again each time it outlasted an answer's 2 s)
-                assert _shared(net) >= SUBSCRIBERS // 2
-                before = _shared(net)
-                answer = await call(relay, "requestTopic", "/unregistered", "/chatter", [["TCPROS"]])
-                assert answer[0] == "TCPROS"  # robot A's answer (its grant: any node of B)
-                with pytest.raises(RosApiError, match="denied by cryptoros"):  # robot A refuses /secret
-                    await call(relay, "requestTopic", "/unregistered", "/secret", [["TCPROS"]])
-                assert _shared(net) == before
+
+        async def answers_end_with_the_grant(relay: str) -> None:
+            """Once robot B's token lost the grant that covered its subscribers, B shares no
+            answer with them, not even one kept less than 2 s: robot A decides (and refuses)."""
+            async def fresh_answer() -> None:  # a call that shared nothing asked robot A: kept from now
+                for _ in range(50):
+                    counted = _shared(net)
+                    await call(relay, "requestTopic", "/burst_0", "/chatter", [["TCPROS"]])
+                    if _shared(net) == counted:
+                        return
+                    await asyncio.sleep(0.1)
+                raise AssertionError("every requestTopic was shared for 5 s")
+
+            granted = ["*", "subscribe", "/chatter", STRING]
+            assert granted in _status(net)["token"]["grants"]
+            await fresh_answer()
+            kept_at = time.monotonic()
+            ok(net.cli("revoke", "robot_b", "subscribe", "*", "/chatter"))
+            until(lambda: granted not in _status(net)["token"]["grants"], 30, "robot B's token without the grant")
+            left = time.monotonic() - kept_at
+            before = _shared(net)
+            with pytest.raises(RosApiError, match="denied by cryptoros"):
+                await call(relay, "requestTopic", "/burst_1", "/chatter", [["TCPROS"]])
+            assert _shared(net) == before, f"robot B shared an answer kept {time.monotonic() - kept_at:.1f} s"
+            print(f"the grant left robot B's token {left:.2f} s after the answer was kept")
 
         asyncio.run(bring_up())
