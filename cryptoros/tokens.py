@@ -155,6 +155,11 @@ class Grants:
         node is this manager's, so it may register that name at the master."""
         return any(node_matches(g.node, node) for g in self._grants)
 
+    def names_node_beyond_wildcard(self, node: str) -> bool:
+        """Whether a grant other than the bare wildcard ``*`` covers ``node`` (its exact
+        name or a prefix pattern)."""
+        return any(g.node != NODE_WILDCARD and node_matches(g.node, node) for g in self._grants)
+
     def names_node_exactly(self, node: str) -> bool:
         """Whether a grant names ``node`` itself (not through ``*`` or a pattern): the
         registry gives this manager that very name."""

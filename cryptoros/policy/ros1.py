@@ -55,6 +55,15 @@ MASTER_UNREGISTER = frozenset({"unregisterPublisher", "unregisterSubscriber", "u
 #: Parameter-server methods, by the access they need; the key is parameter 1.
 PARAM_READ = frozenset({"getParam", "hasParam", "searchParam", "subscribeParam", "unsubscribeParam"})
 PARAM_WRITE = frozenset({"setParam", "deleteParam"})
+#: parameter calls about one key whose path may name other nodes (their private namespaces)
+_KEYED_PARAM_CALLS = PARAM_WRITE | {"getParam", "hasParam", "subscribeParam", "unsubscribeParam"}
+
+
+def _key_index(method: str) -> int:
+    """Where a parameter call's key is (after the caller, and the caller's API)."""
+    return 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+
+
 #: Master calls that bind the caller's node name to its caller_api at rosmaster
 #: (``_register_node_api`` in ros_comm's rosmaster/registrations.py, upstream): a name another manager
 #: registered is refused, and the caller must be one of the manager's nodes.
@@ -62,8 +71,8 @@ NAME_BINDING = MASTER_REGISTER | frozenset({"subscribeParam"})
 #: Parameters every node may read without a grant: what unmodified rospy, roscpp,
 #: roslaunch, rosbag, actionlib, image_transport, nodelet and dynamic_reconfigure read
 #: (one measured list: :data:`cryptoros.policy.infrastructure.ROS1_DEFAULT_PARAM_READS`).
-#: A node may also read and write its own private namespace (``/<node name>/...``) and
-#: that of any node its manager's grants name exactly (roslaunch sets a launched node's
+#: A node may also read and write its own private namespace (``/<node name>/...``; not a
+#: node covered only by ``*``) and that of any node its manager's grants name exactly (roslaunch sets a launched node's
 #: ``<param>``, a nodelet manager reads its nodelets'); everything else needs a
 #: ``read_param`` or ``write_param`` grant on a namespace holding the key.
 DEFAULT_PARAM_READS = ROS1_DEFAULT_PARAM_READS
@@ -121,10 +130,13 @@ def resolve_param_key(key: str, caller: str) -> str:
 def _own_private(grants: Grants, caller: str, key: str) -> bool:
     """``key`` is in the private namespace of ``caller``, one of the manager's nodes, or
     of a node the manager's grants name exactly (its own names: roslaunch writing a
-    launched node's parameters, a nodelet manager reading its nodelets')."""
+    launched node's parameters, a nodelet manager reading its nodelets'). A caller
+    covered only by the wildcard ``*`` has no private namespace: under ``*`` any name
+    is the manager's, ``/fleet`` or another robot's ``/talker/rate`` as much as its own,
+    so the caller's own name says nothing (a grant naming it, or a prefix pattern, does)."""
     if not grants.names_node(caller):
         return False
-    if key == caller or key.startswith(caller + "/"):
+    if (key == caller or key.startswith(caller + "/")) and grants.names_node_beyond_wildcard(caller):
         return True
     parts = key.split("/")[1:]
     return any(grants.names_node_exactly("/" + "/".join(parts[:n])) for n in range(1, len(parts) + 1))
@@ -153,26 +165,31 @@ def _may_read_below(grants: Grants, caller: str, key: str) -> bool:
     """Whether some readable key lies at or below the namespace ``key``."""
     from cryptoros.tokens import in_namespace
 
-    readable = set(DEFAULT_PARAM_READS) | grants.param_namespaces(caller) | {caller}
+    readable = set(DEFAULT_PARAM_READS) | grants.param_namespaces(caller)
+    if grants.names_node_beyond_wildcard(caller):  # its private namespace (see _own_private)
+        readable.add(caller)
     return any(in_namespace(ns, key) for ns in readable)
 
 
 def check_param_call(method: str, params: tuple, *, grants: Grants) -> tuple:
     """Decide one parameter-server call; returns its params with the key resolved
     (what is sent on). ``getParam`` of a namespace the caller may read only partly
-    is allowed here and pruned by :func:`filter_param_reply`."""
+    is allowed here and pruned by :func:`filter_param_reply`; ``subscribeParam`` of
+    one is refused (the updates that follow are not answers to prune)."""
     caller = _caller(params, method)
     if method == "getParamNames":
         return params
-    index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+    index = _key_index(method)
     key = resolve_param_key(_str_param(params, index, method, "a key"), caller)
     if method in PARAM_WRITE:
         if not may_write_param(grants, caller, key):
             raise _deny("param_write_denied", f"{caller} may not write {key}")
-    elif method in ("getParam", "subscribeParam"):
+    elif method == "getParam":
         if not (may_read_param(grants, caller, key) or _may_read_below(grants, caller, key)):
             raise _deny("param_read_denied", f"{caller} may not read {key}")
-    elif method in ("hasParam", "unsubscribeParam"):
+    elif method in ("hasParam", "subscribeParam", "unsubscribeParam"):
+        # subscribeParam: rosmaster's later paramUpdates of the key (values under it
+        # included) reach the node unpruned, so all of it must be readable
         if not may_read_param(grants, caller, key):
             raise _deny("param_read_denied", f"{caller} may not read {key}")
     # searchParam searches upwards from the caller's namespace: the answer is filtered
@@ -222,7 +239,7 @@ def unset_answer(method: str, params: tuple) -> list[Any]:
     an empty value): a node asking for a parameter it may not read gets this, so a
     library falls back to its default (actionlib's ``has_param`` would raise on an
     error) and nobody learns whether the key is set."""
-    index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+    index = _key_index(method)
     key = params[index] if len(params) > index and isinstance(params[index], str) else ""
     if method != "searchParam" and params and isinstance(params[0], str):
         try:  # rosmaster names the key as it resolved it (a refused call's key is as asked)
@@ -260,9 +277,9 @@ def named_nodes(method: str, params: tuple) -> tuple[str, ...]:
     if not params or not isinstance(params[0], str):
         return ()
     names = [params[0]]
-    if method in PARAM_WRITE:
+    if method in _KEYED_PARAM_CALLS:
         try:
-            key = resolve_param_key(_str_param(params, 1, method, "a key"), params[0])
+            key = resolve_param_key(_str_param(params, _key_index(method), method, "a key"), params[0])
         except PolicyDenied:
             return tuple(names)
         parts = key.split("/")[1:]
@@ -270,12 +287,12 @@ def named_nodes(method: str, params: tuple) -> tuple[str, ...]:
     return tuple(dict.fromkeys(names))
 
 
-def _check_sibling_owner(params: tuple, caller: str, manager: str, grants: Grants,
+def _check_sibling_owner(method: str, params: tuple, caller: str, manager: str, grants: Grants,
                          owners: Mapping[str, str]) -> None:
-    """A write into the private namespace of another node its manager's grants name
-    (roslaunch setting a launched node's parameter) is refused while that node is
+    """A call on a key in the private namespace of another node its manager's grants
+    name (roslaunch setting a launched node's parameter) is refused while that node is
     registered by another manager (one name granted to two robots)."""
-    key = resolve_param_key(_str_param(params, 1, "setParam", "a key"), caller)
+    key = resolve_param_key(_str_param(params, _key_index(method), method, "a key"), caller)
     parts = key.split("/")[1:]
     for n in range(1, len(parts) + 1):
         node = "/" + "/".join(parts[:n])
@@ -301,14 +318,16 @@ def check_master_call(
     if method in MASTER_READ_ONLY:
         return
     caller = _caller(params, method)
-    if method in NAME_BINDING or method in PARAM_WRITE or method in ("unsubscribeParam",):
+    # a parameter call names its caller too: its private namespace (and what it may read
+    # there) is the node's that holds the name, not an impersonator's
+    if method in NAME_BINDING or method in PARAM_WRITE or method in PARAM_READ or method == "getParamNames":
         owner = owners.get(caller)
         if owner is not None and owner != manager:
             raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
     if method in ("subscribeParam", "unsubscribeParam") and not grants.names_node(caller):
         raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
-    if method in PARAM_WRITE:
-        _check_sibling_owner(params, caller, manager, grants, owners)
+    if method in _KEYED_PARAM_CALLS:
+        _check_sibling_owner(method, params, caller, manager, grants, owners)
     if method in PARAM_READ or method in PARAM_WRITE or method == "getParamNames":
         check_param_call(method, params, grants=grants)
         return
@@ -517,7 +536,7 @@ def grant_hint(reason: str | None, method: str, params: tuple, manager: str | No
     prefix = f"cryptoros-authz grant {manager}"
     try:
         if reason in ("param_write_denied", "param_read_denied"):
-            index = 2 if method in ("subscribeParam", "unsubscribeParam") else 1
+            index = _key_index(method)
             key = resolve_param_key(_str_param(params, index, method, "a key"), params[0])
             if node == "/roslaunch":  # its own keys and the launched nodes' (named by grants): one bundle
                 own = any(key == ns or key.startswith(ns + "/") for ns in ("/run_id", "/roslaunch", "/rosdistro",

@@ -83,6 +83,53 @@ def test_read_only_and_own_params_pass():
     assert denied(master, "getParam", "/anyone", "/x") == "param_read_denied"
 
 
+#: bob's nodes are any nodes (one ``*`` grant); he may read /robot_b and nothing else
+BOB = Grants([Grant(node="*", action="subscribe", name="/chatter", type=STRING),
+              Grant(node="*", action="read_param", name="/robot_b", type="param"),
+              Grant(node="/rosparam-*", action="subscribe", name="/chatter", type=STRING)])
+
+
+def bob(method, *params):
+    return master(method, *params, manager="bob", grants=BOB)
+
+
+def test_a_name_covered_only_by_the_wildcard_has_no_private_namespace():
+    """Under ``*`` any name is the manager's, so a caller named after a global key, a
+    namespace or another robot's parameter would own it as its "private namespace"."""
+    for key in ("/fleet/mode", "/robot_description", "/talker/rate", "/fleet"):
+        assert denied(bob, "setParam", key, key, 1) == "param_write_denied"
+        assert denied(bob, "deleteParam", key, key) == "param_write_denied"
+        assert denied(bob, "getParam", key, key) == "param_read_denied"
+        assert denied(bob, "hasParam", key, "~") == "param_read_denied"
+    bob("getParam", "/fleet/mode", "/robot_b/speed")  # what his grant says he may read
+    bob("setParam", "/rosparam-42", "/rosparam-42/x", 1)  # a prefix pattern is the manager's own
+    # an exact grant keeps it: alice's /talker writes its own rate
+    master("setParam", "/talker", "/talker/rate", 10)
+
+
+def test_a_parameter_call_in_the_name_of_another_managers_node_is_refused():
+    """Reads too: the private namespace is the node's that holds the name."""
+    pattern = Grants([Grant(node="/vic*", action="subscribe", name="/chatter", type=STRING)])
+    for method, params in (("getParam", ("/victim", "/victim/secret")), ("hasParam", ("/victim", "~secret")),
+                           ("getParamNames", ("/victim",)), ("searchParam", ("/victim", "secret")),
+                           ("setParam", ("/victim", "/victim/secret", 1))):
+        assert denied(master, method, *params, grants=pattern) == "name_taken", method
+    master("getParam", "/vicar", "/vicar/secret", grants=pattern)  # its own (held by nobody else)
+
+
+def test_subscribing_a_namespace_needs_all_of_it_readable():
+    """rosmaster's paramUpdates after a subscribeParam carry every value set under the
+    key, unpruned: a namespace readable only in part is refused (getParam's one answer
+    is pruned instead)."""
+    assert denied(bob, "subscribeParam", "/robot_b/x", API, "/") == "param_read_denied"
+    assert denied(master, "subscribeParam", "/talker", API, "/") == "param_read_denied"
+    master("getParam", "/talker", "/")  # allowed, the answer pruned (filter_param_reply)
+    bob("subscribeParam", "/robot_b/x", API, "/robot_b")
+    bob("subscribeParam", "/robot_b/x", API, "/robot_b/speed")
+    master("subscribeParam", "/talker", API, "~rate")
+    master("subscribeParam", "/talker", API, "/use_sim_time")
+
+
 def test_rosout_and_logger_services_are_infrastructure():
     master("registerPublisher", "/talker", "/rosout", "rosgraph_msgs/Log", API)
     master("registerService", "/talker", "/talker/get_loggers", "rosrpc://x", API)
