@@ -25,6 +25,7 @@ from cryptoros.ros1.xmlrpc import (
 )
 from interceptor.verifier import StreamWatch
 from interceptor.pump import FrameCounter
+from interceptor.ros1.notices import NOTICES
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     OPAQUE,
@@ -76,6 +77,9 @@ class Relays:
         return host, port
 
 
+    async def _deliver_notice(self, target: Canonical, request: Request) -> None:
+        await self.pool(target.host, target.port, "node", target.id).call(request)
+
     # ---------------------------------------------------------------- relays
     async def _on_xmlrpc_relay(self, reader, writer, target: Canonical) -> None:
         """A local process calls a remote node's API (or the master calls a node's)."""
@@ -94,6 +98,8 @@ class Relays:
             return rewrite_response(call, response, tcpros=tcpros)
 
         async def call(request: Request) -> Response | Fault:
+            if self._notices is not None and request.method in NOTICES and request.params[:1] == ("/master",):
+                return self._notices.post(target, request)  # rosmaster's workers are not held (notices.py)
             # a subscriber this host registered, still granted the topic by its manager's
             # current token, shares the publisher's answer with the others starting with it
             # (answers.py); any other caller asks the far side, which decides

@@ -44,6 +44,7 @@ from interceptor.registrations import LocalRegistrations
 from interceptor.ros1.answers import TopicAnswers
 from interceptor.ros1.ledger import MasterLedger
 from interceptor.ros1.master_side import MasterSide
+from interceptor.ros1.notices import Notices
 from interceptor.ros1.localcalls import LocalCalls
 from interceptor.ros1.node_side import NodeSide
 from interceptor.ros1.relays import Relays
@@ -118,6 +119,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._local_subscribers: dict[str, dict[str, str]] = {}  # topic -> {node: local node API}
         #: publishers' requestTopic answers, shared by the subscribers starting at once
         self._topic_answers = TopicAnswers()
+        #: master role: rosmaster's notifications to remote nodes, answered at once (notices.py)
+        self._notices = Notices(self._deliver_notice, gateway.track) if "master" in cfg.roles else None
         self._resubscribing: set[str] = set()
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
@@ -209,6 +212,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         return {"ros1": {"tunnel_pools": len(pools), "idle_tunnels": sum(p.idle_count for p in pools),
                          "tunnels_closed_idle": self._tunnels_closed_idle, "relays": self.translator.relay_count,
                          "state_saves": self._state_saves, "topic_answers_shared": self._topic_answers.shared,
+                         **({"notices": {"delivered": self._notices.delivered, "replaced": self._notices.replaced,
+                                         "dropped": self._notices.dropped, "pending": self._notices.pending()}}
+                            if self._notices is not None else {}),
                          "state_save_pending": self._state_dirty or self._save_task is not None,
                          "param_usage": {m: list(u) for m, u in self._params.all_usage().items()}},
                 "warnings": self._deployment_warnings()}

@@ -10,7 +10,9 @@ keeps reaching robot C (tests/ros1_flow.py): never silent 5 s during it, back wi
 
 from __future__ import annotations
 
+import json
 import time
+import urllib.request
 import xmlrpc.client
 
 import pytest
@@ -26,7 +28,7 @@ from tests.interceptor_harness import (
     token_of,
     wait_registered,
 )
-from tests.support import require, run, running
+from tests.support import require, run, running, until
 from tests.interceptor_harness import got, master_state, nodes_in_state, read_lines
 from tests.ros1_flow import flow_policy, legit_flow
 
@@ -160,3 +162,69 @@ def test_a_denied_parameter_write_of_an_unmodified_rospy_node_writes_nothing_and
         network.hosts["robot_b"].logs()
     with network.inside("master"):
         assert xmlrpc.client.ServerProxy(network.rosmaster_uri).getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
+
+
+@pytest.mark.timeout(180)
+def test_node_apis_that_never_answer_do_not_hold_rosmasters_notifications_for_others(network, flow):
+    """Insider audit: rosmaster sends publisherUpdate and paramUpdate from three worker
+    threads. Robot B subscribes three of its nodes' own parameters with APIs that accept
+    and never answer, and re-arms them with allowed writes twice a second: relayed
+    straight, each notification held a worker for 30 s, and robot A's new subscriber
+    never heard of its publisher (100 s). The master's interceptor now answers rosmaster
+    at once and delivers per node API (interceptor/ros1/notices.py)."""
+    import socket
+    import threading
+
+    held: list[socket.socket] = []
+    servers: list[socket.socket] = []
+    stop = threading.Event()
+    nodes = ["/rospy_listener", "/victim", "/rospy_client"]  # named in robot B's grants (robot A's /victim idle)
+    with network.inside("robot_b"):
+        local_b = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+        for node in nodes:
+            server = socket.create_server(("127.0.0.1", 0), backlog=64)
+            servers.append(server)
+
+            def hold(server=server) -> None:
+                while not stop.is_set():
+                    try:
+                        held.append(server.accept()[0])  # read nothing, answer nothing
+                    except OSError:
+                        return
+
+            threading.Thread(target=hold, daemon=True).start()
+            assert local_b.subscribeParam(node, f"http://127.0.0.1:{server.getsockname()[1]}/", "~stall")[0] == 1
+
+    def rearm() -> None:
+        with network.inside("robot_b"):
+            writer = xmlrpc.client.ServerProxy(network.hosts["robot_b"].master_uri)
+            i = 0
+            while not stop.wait(0.5):  # rosmaster does not notify the writer itself: a sibling writes
+                for k, node in enumerate(nodes):
+                    writer.setParam(nodes[k - 1], f"{node}/stall", i)
+                i += 1
+
+    network.cli("grant", "robot_a", "subscribe", "/notified_a", "/chatter", "std_msgs/String")
+    attacker = threading.Thread(target=rearm, daemon=True)
+    attacker.start()
+    try:
+        with flow.held():
+            until(lambda: len(held) >= 3, 20, "robot B's three node APIs called")
+            # robot A: a subscriber first, then its publisher: rosmaster tells the subscriber
+            with running([SYS_PY, NODE, "sub", "/notified_a", "/chatter", "60"], env=network.ros_env("robot_a")) as sub:
+                read_lines(sub, "READY", 20)
+                with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "60"],
+                             env=network.ros_env("robot_a")) as pub:
+                    read_lines(pub, "READY", 20)
+                    assert got(read_lines(sub, "GOT", 20)), "robot A's subscriber never heard of its publisher"
+    finally:
+        stop.set()
+        attacker.join(10)
+        network.cli("revoke", "robot_a", "subscribe", "/notified_a", "/chatter", "std_msgs/String")
+        for sock in (*servers, *held):
+            sock.close()
+    with network.inside("master"):
+        url = f"http://127.0.0.1:{network.hosts['master'].metrics_port}/status"
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            notices = json.loads(reply.read())["ros1"]["notices"]
+    assert notices["delivered"] >= 1 and notices["replaced"] >= 1, notices
