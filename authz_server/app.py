@@ -49,6 +49,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from aiohttp import HttpVersion11, web
+from cryptography import x509
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from sqlalchemy.exc import SQLAlchemyError
@@ -304,13 +305,28 @@ class _AuditWriter:
             await self._task
 
 
+def _crl_number(crl: x509.CertificateRevocationList) -> int | None:
+    try:
+        return crl.extensions.get_extension_for_class(x509.CRLNumber).value.crl_number
+    except x509.ExtensionNotFound:
+        return None
+
+
+def _crl_order(crl: x509.CertificateRevocationList) -> tuple[int, float]:
+    """Which of two CRLs of one CA is the later: its CRL number, then when it was issued."""
+    return (_crl_number(crl) or 0, crl.last_update_utc.timestamp())
+
+
 class CRLWatcher:
     """Serials revoked by the CA's CRL, re-read when the file changes.
 
     The TLS context loads the CRL once, at start; this re-reads it (at most once per
     ``interval``) so a certificate revoked while the daemon runs is refused by the
     application within seconds. A CRL that does not parse or is not signed by the CA
-    is ignored with an error in the log, keeping the last good one.
+    is ignored with an error in the log, keeping the last good one; so is one older than
+    the one in use (a lower CRL number, or issued earlier): a copy of an old CRL would
+    un-revoke the certificates revoked after it. An out-of-date CRL is still applied
+    (revocations never lapse), with a warning.
     """
 
     def __init__(self, crl_path, ca_path, interval: float = 1.0) -> None:
@@ -319,6 +335,7 @@ class CRLWatcher:
         self._stamp: tuple[int, int] | None = None
         self._bad: tuple[int, int] | None = None
         self._checked = 0.0
+        self._crl: x509.CertificateRevocationList | None = None
         self.revoked: frozenset[int] = frozenset()
         self.refresh()
 
@@ -339,11 +356,20 @@ class CRLWatcher:
             crl = pemfiles.parse_crl(data, self.path)
             if crl.issuer != self._ca.subject or not crl.is_signature_valid(self._ca.public_key()):
                 raise ValueError("not issued by the CA")
+            if self._crl is not None and _crl_order(crl) < _crl_order(self._crl):
+                # a copy of an older CRL (still signed, still in date) would un-revoke what came after it
+                raise ValueError(f"older than the CRL in use (number {_crl_number(crl)}, issued "
+                                 f"{crl.last_update_utc:%Y-%m-%d %H:%M}, against {_crl_number(self._crl)}, "
+                                 f"{self._crl.last_update_utc:%Y-%m-%d %H:%M})")
         except (OSError, ValueError, PKIError) as exc:
             log.error("cannot reload the CRL %s, keeping the previous one: %s", self.path, exc)
             self._bad = locals().get("stamp")
             return
         self._stamp = stamp
+        self._crl = crl
+        if crl.next_update_utc is not None and crl.next_update_utc.timestamp() < time.time():
+            log.warning("the CRL %s is out of date (a newer one was due %s UTC): still applied (revocations never "
+                        "lapse); re-sign it (cryptoros-certs crl)", self.path, f"{crl.next_update_utc:%Y-%m-%d %H:%M}")
         revoked = frozenset(r.serial_number for r in crl)
         if revoked != self.revoked:
             log.info("CRL %s: %d revoked certificate(s)", self.path, len(revoked))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import logging
+import ssl
 import signal
 
 from aiohttp import web
@@ -24,6 +25,7 @@ from authz_server.config import ServeConfig
 from authz_server.db import open_registry
 from authz_server.registry import Registry
 from cryptoros.errors import CryptorosError
+from cryptoros.pemfiles import cert_serial
 from cryptoros.tls import server_context
 
 log = logging.getLogger("cryptoros.authz")
@@ -33,12 +35,32 @@ class StartupError(CryptorosError):
     """The daemon could not start (port taken...)."""
 
 
+def _refusing_revoked(ctx: ssl.SSLContext, service: AuthzService) -> ssl.SSLContext:
+    """``ctx``, its handshakes refusing a client certificate on the CRL as it was when
+    the context was made (start, SIGHUP), as OpenSSL would; OpenSSL itself does not check
+    the CRL (cryptoros.tls: it would refuse everyone once the CRL is out of date). A
+    certificate revoked since gets through the handshake and is refused by every
+    endpoint (``invalid_client``, audited at /token), the CRL re-read within a second."""
+    revoked = service.crl.revoked if service.crl is not None else frozenset()
+
+    class RevocationCheckedSSLObject(ssl.SSLObject):
+        def do_handshake(self) -> None:
+            super().do_handshake()
+            der = self.getpeercert(binary_form=True) if self.server_side and revoked else None
+            if der and cert_serial(der) in revoked:
+                raise ssl.SSLError(ssl.SSL_ERROR_SSL, "certificate_revoked: the client's certificate is on the CRL")
+
+    ctx.sslobject_class = RevocationCheckedSSLObject
+    return ctx
+
+
 async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
                 stop: asyncio.Event | None = None) -> None:
     ssl_ctx = server_context(cfg.tls)  # ConfigError on bad TLS material
     engine = open_registry(cfg.db_url, create=False)
     registry = Registry(engine, source=ChangeSource.here("cryptoros-authz serve"))
     service = AuthzService(cfg, registry)
+    _refusing_revoked(ssl_ctx, service)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None
     stop = stop or asyncio.Event()
@@ -96,7 +118,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
 async def _reload_tls(cfg: ServeConfig, runner: web.AppRunner, site: web.TCPSite, service: AuthzService) -> web.TCPSite:
     """SIGHUP: a new TLS context from the same files, or the old one kept."""
     try:
-        ssl_ctx = server_context(cfg.tls)
+        ssl_ctx = _refusing_revoked(server_context(cfg.tls), service)
     except CryptorosError as exc:
         log.error("reload failed, keeping the old TLS material: %s", exc)
         return site

@@ -78,9 +78,12 @@ def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl
     ctx.verify_mode = ssl.CERT_REQUIRED
     try:
         ctx.load_verify_locations(cafile=str(cfg.ca_file))
-        if cfg.crl_file is not None:
-            ctx.load_verify_locations(cafile=str(cfg.crl_file))
-            ctx.verify_flags |= ssl.VERIFY_CRL_CHECK_LEAF
+        # The CRL is not OpenSSL's to check (no VERIFY_CRL_CHECK_LEAF): OpenSSL refuses
+        # every peer once the CRL's next-update time passes, and a fleet whose CRL was not
+        # re-signed within its 7 days stopped whole. Revocation is checked on every
+        # handshake by the application instead (PeerCertificateCheck, the authorization
+        # server's CRLWatcher): the CRL's serials, out of date or not (a revocation never
+        # lapses), and the authorization server's live revocation feed.
         ctx.load_cert_chain(str(cfg.cert_file), str(cfg.key_file),
                             password=cfg.key_passphrase or (lambda: _no_password(cfg.key_file)))
     except ssl.SSLError as exc:
@@ -283,6 +286,10 @@ class PeerCertificateCheck:
         #: (issuer name DER, serial) of every certificate the CRL file revokes (every CRL in
         #: it, as OpenSSL reads a bundle; a serial is unique only per issuer)
         self.revoked: frozenset[tuple[bytes, int]] = frozenset()
+        #: when the file's earliest CRL says a newer one is due (epoch seconds; None: no
+        #: CRL, or none names a date). Past it the CRL is still applied: a revocation never
+        #: lapses, and what the CA revoked since reaches us through the feed.
+        self.next_update: float | None = None
         if crl_file is not None:
             try:
                 crls = pemfiles.load_crls(crl_file)
@@ -290,6 +297,8 @@ class PeerCertificateCheck:
                 raise ConfigError(f"cannot load the CRL {crl_file}: {exc}") from exc
             self.revoked = frozenset((crl.issuer.public_bytes(), entry.serial_number)
                                      for crl in crls for entry in crl)
+            due = [crl.next_update_utc.timestamp() for crl in crls if crl.next_update_utc is not None]
+            self.next_update = min(due) if due else None
         self._seen: dict[bytes, tuple[int, float, float, bytes]] = {}
 
     def check(self, der: bytes, now: float | None = None) -> None:

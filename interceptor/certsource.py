@@ -11,7 +11,9 @@ port is never re-bound, and open streams stay up on the material they were made 
 
 from __future__ import annotations
 
+import logging
 import ssl
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,6 +27,8 @@ from cryptoros.tls import (
 )
 from cryptoros.tokens import peer_audience
 from interceptor.config import InterceptorConfig
+
+log = logging.getLogger("cryptoros.interceptor")
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,9 +62,15 @@ class CertSource:
             server_ctx.sslobject_class = sslobject_class
         client_ctx = client_context(cfg.tls, check_hostname=True, resumable=lifetime > 0)
         own_der = cert_der(cfg.tls.cert_file)
+        cert_check = PeerCertificateCheck(cfg.tls.crl_file, revoked_serials=revoked_serials)
+        if cert_check.next_update is not None and cert_check.next_update < time.time():
+            log.warning("the CRL %s is out of date (a newer one was due %s): still applied, revocations never lapse, "
+                        "and the revocation feed carries newer ones; re-sign it (cryptoros-certs crl), copy it here "
+                        "and SIGHUP", cfg.tls.crl_file,
+                        time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(cert_check.next_update)))
         return cls(server_ctx=server_ctx, client_ctx=client_ctx, sessions=SessionCache(client_ctx, lifetime=lifetime),
                    authz_ctx=client_context(cfg.tls, check_hostname=True), full_handshakes=FullHandshakes(lifetime),
-                   cert_check=PeerCertificateCheck(cfg.tls.crl_file, revoked_serials=revoked_serials),
+                   cert_check=cert_check,
                    own_der=own_der, own_serial=cert_serial(own_der),
                    own_audience=peer_audience(cert_thumbprint_s256(own_der)))
 

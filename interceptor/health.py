@@ -13,6 +13,24 @@ from cryptography import x509
 from cryptoros.errors import PolicyDenied, TokenError
 from interceptor.gate import feed_problem
 
+#: a CRL due for re-signing within this long is warned of (seconds)
+CRL_DUE_WARNING = 3 * 86400.0
+
+
+def crl_due(check, now: float) -> dict:
+    """When the loaded CRL is due (``next_update``) and a warning when that is near or
+    past: the CRL is still applied then, but it is the operator's to re-sign and copy."""
+    due = check.next_update
+    if due is None:
+        return {}
+    out = {"next_update": due, "days_left": round((due - now) / 86400, 1)}
+    if due <= now:
+        out["warning"] = ("out of date: still applied (revocations never lapse); re-sign it "
+                          "(cryptoros-certs crl), copy it here and SIGHUP")
+    elif due - now < CRL_DUE_WARNING:
+        out["warning"] = "due for re-signing soon (cryptoros-certs crl, copy it here, SIGHUP)"
+    return out
+
 
 class Health:
     """The health side of :class:`~interceptor.gateway.Gateway` (a part of it)."""
@@ -61,7 +79,7 @@ class Health:
                      "revoked_tokens": len(self.verifier.revocations.revoked_jtis),
                      "disabled_managers": sorted(self.verifier.revocations.disabled_subjects)},
             "crl": None if crl is None else {"file": str(crl), "age": round(now - os.stat(crl).st_mtime, 1)
-                                             if os.path.exists(crl) else None},
+                                             if os.path.exists(crl) else None, **crl_due(self.certs.cert_check, now)},
             "peers": self.verifier.streams_by_peer(),
             "open_streams": len(self._streams),
             "message_rate": self.cfg.limits.max_messages_per_second,

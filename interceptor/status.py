@@ -45,7 +45,10 @@ def render(status: dict) -> list[str]:
     lines.append(f"feed      age {feed['age']} s, {feed['revoked_tokens']} revoked tokens, disabled managers: "
                  f"{', '.join(feed['disabled_managers']) or 'none'}")
     if crl:
-        lines.append(f"crl       {crl['file']}, written {crl['age']} s ago")
+        lines.append(f"crl       {crl['file']}, written {crl['age']} s ago"
+                     + (f", next update due in {crl['days_left']} days" if "days_left" in crl else ""))
+        if crl.get("warning"):
+            lines.append(f"warning   the CRL is {crl['warning']}")
     peers = status.get("peers") or {}
     lines.append(f"peers     {', '.join(f'{m} ({n} streams)' for m, n in peers.items()) or 'none'}; "
                  f"{status['open_streams']} open streams in all")

@@ -51,6 +51,26 @@ class TestPKIFactory:
         self.pki.revoke(name, reason=reason)
         return self.pki.write_crl()
 
+    def expired_crl(self, path: Path, *serials: int) -> Path:
+        """Write a CRL of this CA listing ``serials``, issued ten days ago and due for
+        re-signing three days ago (older than any ``revoke`` wrote, and out of date)."""
+        import datetime as dt
+
+        from cryptography import x509
+        from cryptography.hazmat.primitives import hashes, serialization
+
+        from cryptoros.pemfiles import load_certificate, load_private_key
+
+        ca, key = load_certificate(self.ca_cert), load_private_key(self.pki.ca_key_path, None)
+        now = dt.datetime.now(dt.timezone.utc)
+        builder = (x509.CertificateRevocationListBuilder().issuer_name(ca.subject)
+                   .last_update(now - dt.timedelta(days=10)).next_update(now - dt.timedelta(days=3)))
+        for serial in serials:
+            builder = builder.add_revoked_certificate(x509.RevokedCertificateBuilder().serial_number(serial)
+                                                      .revocation_date(now - dt.timedelta(days=9)).build())
+        path.write_bytes(builder.sign(key, hashes.SHA256()).public_bytes(serialization.Encoding.PEM))
+        return path
+
 
 # The brief names the class TestPKI; keep that name importable too.
 TestPKI = TestPKIFactory

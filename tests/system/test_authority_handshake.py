@@ -8,7 +8,9 @@ TLS sockets.
 
 from __future__ import annotations
 
+import json
 import re
+import signal
 import socket
 import ssl
 import time
@@ -69,3 +71,45 @@ def test_a_certificate_revoked_by_the_ca_fails_the_handshake_without_a_reload(tm
         assert re.search(r"DENY tls handshake: certificate_revoked: .*revoked by the CA", host.logs())
         text = urllib.request.urlopen(f"http://127.0.0.1:{host.metrics_port}/metrics", timeout=5).read().decode()
         assert re.search(r'cryptoros_interceptor_denied_total\{kind="tls",reason="certificate_revoked"\} [2-9]', text)
+
+
+def test_an_out_of_date_crl_stops_no_valid_peer_and_an_older_crl_unrevokes_nothing(tmp_path):
+    """The CRL's next-update time passed (nobody re-signed it in its 7 days): OpenSSL
+    would refuse every peer from then on and the fleet stopped. Now every valid peer
+    still passes the handshake, the serials the CRL lists are still refused, and
+    ``cryptoros status`` warns. The authorization server keeps its newer CRL when an
+    older one is copied over it (the older one would un-revoke what came after)."""
+    with robot_network(tmp_path, start=("master", "robot_a")) as network:
+        host = network.hosts["robot_a"]
+        revoked = network.pki.issue("revoked_robot", kind="interceptor", sans=("IP:127.0.0.9",))
+        valid = network.pki.issue("valid_robot", kind="interceptor", sans=("IP:127.0.0.9",))
+        network.pki.revoke("valid_robot")  # the CRL in use: number 2, valid_robot on it
+        authz_log = network.workdir / "authz.log"
+
+        def feed_serials() -> list[str]:
+            return network.daemon.get_json("/revocations", "robot_a")["revoked_serials"]
+
+        deadline = time.monotonic() + 10
+        while format(valid.serial, "x") not in feed_serials():
+            assert time.monotonic() < deadline, "the authorization server never read the new CRL"
+            time.sleep(0.2)
+        network.pki.expired_crl(network.pki.crl, revoked.serial)  # older, out of date: lists revoked_robot only
+        host.proc.send_signal(signal.SIGHUP)
+        deadline = time.monotonic() + 15
+        while "reloaded" not in host.logs():
+            assert time.monotonic() < deadline, host.logs()[-2000:]
+            time.sleep(0.1)
+        assert "is out of date" in host.logs()
+        assert handshake_refused(client(network, revoked.cert_path, revoked.key_path), host.address, host.public_port)
+        robot_b = network.pki.pki  # a valid peer: robot B's own certificate passes the handshake
+        ok_ctx = client(network, robot_b.cert_path_for("robot_b"), robot_b.key_path_for("robot_b"))
+        assert not handshake_refused(ok_ctx, host.address, host.public_port)
+        status = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{host.metrics_port}/status", timeout=5).read())
+        assert status["health"] == "ok" and "out of date" in status["crl"]["warning"], status["crl"]
+        # the authorization server kept CRL number 2: valid_robot is still revoked in its feed
+        deadline = time.monotonic() + 10
+        while "older than the CRL in use" not in authz_log.read_text():
+            feed_serials()  # a feed request re-reads the CRL
+            assert time.monotonic() < deadline, authz_log.read_text()[-2000:]
+            time.sleep(0.2)
+        assert feed_serials() == [format(valid.serial, "x")]

@@ -326,6 +326,34 @@ def check_revoke_cert(d: Deployment, outs):
     assert "revoked" in outs["master"]
 
 
+def _crl_due(d: Deployment, host: str, config: str) -> float | None:
+    status = subprocess.run(d.hosts[host].argv([str(VENV_BIN / "cryptoros"), "status", "--config",
+                                                str(d.work / config), "--json"]),
+                            capture_output=True, text=True, timeout=30, env=d.env)
+    return (json.loads(status.stdout).get("crl") or {}).get("next_update") if status.stdout.startswith("{") else None
+
+
+def _signed_crl_due(d: Deployment) -> float:
+    from cryptoros.pemfiles import load_crls
+
+    return load_crls(d.work / "pki" / "crl.pem")[0].next_update_utc.timestamp()
+
+
+def check_crl_refresh(d: Deployment, outs):
+    assert "next update:" in outs["master"], outs["master"]
+    due = _signed_crl_due(d)
+    assert due > time.time() + 6 * 86400
+    until(lambda: _crl_due(d, "master", "master.toml") == due, 30, "the master's interceptor on the new CRL")
+    d.receives()
+
+
+def check_crl_refresh_robot(d: Deployment, outs):
+    due = _signed_crl_due(d)
+    for robot in ROBOTS:
+        until(lambda robot=robot: _crl_due(d, robot, f"{robot}/robot.toml") == due, 30, f"{robot} on the new CRL")
+    d.receives()
+
+
 def check_exposure(d: Deployment, outs):
     """What the stranger reaches: every listed port is a TLS port refusing a client without
     a certificate; rosmaster's API answers the stranger on no host at no port."""

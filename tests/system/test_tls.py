@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import ssl
 import threading
+import time
 
 import pytest
 
@@ -122,16 +123,28 @@ def test_client_of_another_ca_fails_handshake(pki, other_pki, server_cfg):
     assert "certificate" in str(server.error).lower()
 
 
-def test_revoked_client_certificate_fails_handshake(pki):
-    client = pki.issue("robot1")
+def test_revocation_is_checked_by_the_application_and_an_out_of_date_crl_still_revokes(pki, tmp_path):
+    """OpenSSL does not check the CRL (it would refuse every peer once the CRL is out of
+    date, and a fleet stopped whole 7 days after its CRL was signed): the handshake's
+    certificate check does (PeerCertificateCheck, run on every handshake), and an
+    out-of-date CRL's serials are still refused (a revocation never lapses)."""
+    from cryptoros.errors import TokenError
+    from cryptoros.pemfiles import cert_der
+    from cryptoros.tls import PeerCertificateCheck
+
+    client, kept = pki.issue("robot1"), pki.issue("robot2")
     server_issued = pki.issue("authz", kind="server")
-    crl = pki.revoke("robot1")
+    crl = pki.expired_crl(tmp_path / "old-crl.pem", client.serial)
     server = OneShotServer(server_context(tls_config(server_issued, pki.ca_cert, crl_file=crl)))
-    with pytest.raises((ssl.SSLError, ConnectionError)):
-        connect(server, client_context(tls_config(client, pki.ca_cert)))
+    connect(server, client_context(tls_config(kept, pki.ca_cert)))  # an out-of-date CRL stops nobody else
     server.join()
-    assert isinstance(server.error, ssl.SSLError)
-    assert "revoked" in str(server.error).lower()
+    assert server.error is None
+    check = PeerCertificateCheck(crl)
+    assert check.next_update is not None and check.next_update < time.time()
+    with pytest.raises(TokenError) as refused:
+        check.check(cert_der(client.cert_path))
+    assert refused.value.reason == "certificate_revoked"
+    check.check(cert_der(kept.cert_path))
 
 
 def test_missing_or_encrypted_material_is_a_config_error(pki, tmp_path):
