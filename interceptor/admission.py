@@ -12,6 +12,7 @@ import socket
 import ssl
 
 from cryptoros.errors import CryptorosError, PolicyDenied, TokenError
+from cryptoros.lru import remember
 from cryptoros.tls import (
     cert_thumbprint_s256,
     peer_cert_der,
@@ -28,6 +29,9 @@ from interceptor.streams import (
     read_into,
 )
 
+#: source addresses remembered as a verified peer's (exempt from max_pending_streams)
+KNOWN_SOURCES = 4096
+
 
 class Admission:
     """The public side of :class:`~interceptor.gateway.Gateway` (a part of it)."""
@@ -43,27 +47,32 @@ class Admission:
         except OSError:  # gone already
             sock.close()
             return
-        who = f"{peername[0]}:{peername[1]}" if peername else "?"
+        source = str(peername[0]) if peername else "?"
+        who = f"{source}:{peername[1]}" if peername else "?"
         limits = self.cfg.limits
         entered: list[tuple[str, ...]] = []
         gate = StreamGate(self._checks)
         try:
             # Until its token is verified a stream is bounded per source address and in
             # all from its accept (through the TLS handshake), then per certificate too.
-            for key, cap in ((("source", peername[0] if peername else "?"), limits.max_pending_per_source),
-                             (("all",), limits.max_pending_streams)):
+            # A source a verified peer streamed from (KNOWN_SOURCES) is not counted in all:
+            # strangers on 16 addresses holding 16 each filled the interceptor's 256, and no
+            # robot opened a stream while they went on.
+            caps = [(("source", source), limits.max_pending_per_source)]
+            if source not in self._known_sources:
+                caps.append((("all",), limits.max_pending_streams))
+            for key, cap in caps:
                 self._pending.enter(key, cap, "interceptor" if key == ("all",) else key[0])
                 entered.append(key)
         except PolicyDenied as exc:
             for key in entered:
                 self._pending.leave(key)
-            self.metrics.denied.labels("tls", exc.reason).inc()
-            log.warning("DENY connection from %s: %s", who, exc)
+            self.deny("tls", exc, source)  # per source address, aggregated: a flood is a few lines
             sock.close()
             return
         writer: asyncio.StreamWriter | None = None
         try:
-            streams = await self._accept_tls(sock, who)
+            streams = await self._accept_tls(sock, source)
             if streams is None:
                 return
             reader, writer = streams
@@ -79,6 +88,7 @@ class Admission:
                         await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
             access = self.verifier.note(await self.verifier.verify_fresh(event.preamble.token, der))  # its freshest
+            remember(self._known_sources, source, True, KNOWN_SOURCES)
             who = f"{access.subject}@{who}"
             admitted = gate.admit(
                 access, feed=self.feed_problem(), allow_new_stream=self._new_stream_limiter.allow,
@@ -141,11 +151,11 @@ class Admission:
             writer.close()
 
     async def _accept_tls(self, sock: socket.socket,
-                          who: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
+                          source: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
         """The server side of the mutual TLS handshake on an accepted socket, within
         ``handshake_timeout``, with the certificate source's context as it is now: a
         stream pair, or None for a failed or late handshake (counted and logged like
-        every other denial, the socket closed)."""
+        every other denial, per source address and aggregated, the socket closed)."""
         loop = asyncio.get_running_loop()
         reader = asyncio.StreamReader(limit=READ_SIZE)
         protocol = asyncio.StreamReaderProtocol(reader)
@@ -158,44 +168,37 @@ class Admission:
             sock.close()
             raise
         except OSError as exc:  # an SSLError, a reset, the handshake deadline (TimeoutError)
-            sock.close()
+            # logged before the socket closes: a client that sees the close finds the line
             if isinstance(exc, ssl.SSLError):
-                return None  # counted and logged as it happened (_counting_sslobject_class)
-            if isinstance(exc, TimeoutError) or "longer than" in str(exc):
-                self.metrics.denied.labels("tls", "handshake_timeout").inc()
-                log.warning("DENY tls handshake from %s: %s", who, str(exc) or "handshake_timeout")
+                reason = getattr(exc, "cryptoros_reason", None) or (exc.reason or type(exc).__name__).lower()
+                self.deny("tls", PolicyDenied(reason, f"handshake: {getattr(exc, 'cryptoros_detail', exc)}"), source)
+            elif isinstance(exc, TimeoutError) or "longer than" in str(exc):
+                self.deny("tls", PolicyDenied("handshake_timeout", f"handshake: {exc or 'handshake_timeout'}"), source)
             else:  # closed before or during the handshake (a port probe, a peer gone): no denial
-                log.debug("connection from %s closed in its TLS handshake: %s", who, exc)
+                log.debug("connection from %s closed in its TLS handshake: %s", source, exc)
+            sock.close()
             return None
         return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
 
     def _counting_sslobject_class(self) -> type[ssl.SSLObject]:
-        """An SSLObject whose failed handshakes are counted and logged like every other
-        denial (asyncio itself only logs them in debug mode), and whose handshake fails
-        for a client certificate :class:`~cryptoros.tls.PeerCertificateCheck` refuses:
-        one the CA revoked after the CRL was loaded (the feed's serials), one out of its
-        validity period or on the CRL on a resumed handshake (which OpenSSL does not
-        verify again). The client's connection then closes before any stream begins."""
+        """An SSLObject whose handshake fails for a client certificate
+        :class:`~cryptoros.tls.PeerCertificateCheck` refuses: on the CRL, revoked by the CA
+        since (the feed's serials), out of its validity period (a resumed handshake, which
+        OpenSSL does not verify again). The client's connection then closes before any
+        stream begins; :meth:`_accept_tls` counts and logs the failure with its source
+        (asyncio itself only logs failed handshakes in debug mode)."""
         gateway = self
 
         class CountingSSLObject(ssl.SSLObject):
             def do_handshake(self) -> None:
-                try:
-                    super().do_handshake()
-                except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
-                    raise
-                except ssl.SSLError as exc:
-                    reason = (exc.reason or type(exc).__name__).lower()
-                    gateway.metrics.denied.labels("tls", reason).inc()
-                    log.warning("DENY tls handshake: %s", exc)
-                    raise
+                super().do_handshake()  # a failure is counted and logged by _accept_tls (it knows the source)
                 if self.server_side:
                     try:
                         gateway.certs.cert_check.check(peer_cert_der(self))
                     except TokenError as exc:
-                        gateway.metrics.denied.labels("tls", exc.reason).inc()
-                        log.warning("DENY tls handshake: %s", exc)
-                        raise ssl.SSLError(ssl.SSL_ERROR_SSL, f"{exc.reason}: {exc.detail}") from None
+                        refused = ssl.SSLError(ssl.SSL_ERROR_SSL, f"{exc.reason}: {exc.detail}")
+                        refused.cryptoros_reason, refused.cryptoros_detail = exc.reason, exc.detail  # type: ignore[attr-defined]
+                        raise refused from None
 
         return CountingSSLObject
 

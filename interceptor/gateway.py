@@ -131,7 +131,7 @@ class Gateway(Admission, Outbound, Health):
         #: every TLS context, session cache and certificate fact, from one [tls] (interceptor/certsource.py)
         self.certs = self._load_certs(cfg)
         self.authz = AuthzClient(cfg.authz, self.certs.authz_ctx)
-        self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin)
+        self.keeper = TokenKeeper(self.authz, refresh_margin=cfg.authz.refresh_margin, manager=cfg.manager)
         self.verifier = PeerVerifier(
             self.authz,
             issuer=cfg.authz.issuer,
@@ -178,6 +178,8 @@ class Gateway(Admission, Outbound, Health):
         self._roles: list[Role] = []
         self._open_per_peer: dict[str, int] = {}
         self._pending = PendingStreams()
+        #: source addresses verified peers streamed from (admission.py: KNOWN_SOURCES)
+        self._known_sources: dict[str, bool] = {}
         self._budgets: dict[str, MessageBudget] = {}
         self._new_stream_limiter = self._stream_limiter(cfg)
         self._public_server: PublicListener | None = None
@@ -380,6 +382,7 @@ class Gateway(Admission, Outbound, Health):
         finally:
             await probe.close()
         self.verifier.verify(token.token, certs.own_der)  # bound to the new certificate, not revoked
+        self.keeper.check(token)  # for our manager: the registry may bind the renewed certificate to another
         self.certs = certs  # the next handshake, in or out, uses it; the public port stays as it is
         self.drop_spares()  # made with the old certificate: a token bound to the new one fails on them
         if cfg.limits.max_new_connections_per_second != self.cfg.limits.max_new_connections_per_second:

@@ -20,6 +20,7 @@ import pytest
 
 from cryptoros.tunnel import Preamble, encode
 from tests.interceptor_harness import robot_network, rogue_preamble
+from tests.support import until
 
 pytestmark = [pytest.mark.ros1]
 
@@ -68,7 +69,8 @@ def test_a_certificate_revoked_by_the_ca_fails_the_handshake_without_a_reload(tm
             time.sleep(0.2)
         assert handshake_refused(ctx, host.address, host.public_port, session=session)  # resumed: refused too
         assert host.proc.poll() is None
-        assert re.search(r"DENY tls handshake: certificate_revoked: .*revoked by the CA", host.logs())
+        until(lambda: re.search(r"DENY tls from \S+: certificate_revoked: handshake: .*revoked by the CA", host.logs()),
+              5, "the revoked handshake logged")
         text = urllib.request.urlopen(f"http://127.0.0.1:{host.metrics_port}/metrics", timeout=5).read().decode()
         assert re.search(r'cryptoros_interceptor_denied_total\{kind="tls",reason="certificate_revoked"\} [2-9]', text)
 

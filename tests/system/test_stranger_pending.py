@@ -1,0 +1,62 @@
+"""Strangers on the robots' network hold connections that never finish TLS: they fill an
+interceptor's pending slots (``max_pending_streams`` in all, from accept), yet a robot
+that already streamed to it still opens new streams, and the refusals are logged per
+source address, aggregated. Real interceptors, rosmaster and rospy nodes."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from tests.interceptor_harness import NODE, SYS_PY, denials, got, read_lines, robot_network, separate_hosts
+from tests.support import running
+
+pytestmark = [pytest.mark.ros1]
+
+#: robot A's caps here: all its pending slots fit in what one stranger address may hold
+PENDING_IN_ALL = 8
+
+
+def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_path):
+    # strangers hold their slots for the whole test (handshake_timeout), not 10 s
+    # robot B keeps no spare connection ready: its new stream needs a new accept at robot A
+    extra = {"robot_a": f"[limits]\nmax_pending_streams = {PENDING_IN_ALL}\nmax_pending_per_source = 16\n"
+                        "handshake_timeout = 120.0\n",
+             "robot_b": "[limits]\nspare_connections = false\n"}
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), extra=extra,
+                       netns=separate_hosts()) as net:
+        a = net.hosts["robot_a"]
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "90"],
+                     env=net.ros_env("robot_a")) as pub, \
+                running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "90"], env=net.ros_env("robot_b")) as first:
+            read_lines(pub, "READY", 20)
+            assert got(read_lines(first, "GOT", 30)), "robot B's first subscriber got nothing"  # B is known to A now
+            held = []
+            try:
+                for _ in range(PENDING_IN_ALL + 4):  # from the test's own address: a stranger to robot A
+                    sock = socket.socket()
+                    if not separate_hosts():
+                        sock.bind(("127.0.0.99", 0))
+                    sock.settimeout(5)
+                    sock.connect((a.address, a.public_port))
+                    held.append(sock)
+                stranger = held[0].getsockname()[0]
+                # robot A is full for strangers: the ones over the cap are closed at once
+                closed = 0
+                for sock in held[PENDING_IN_ALL:]:
+                    try:
+                        closed += sock.recv(1) == b""
+                    except OSError:
+                        closed += 1
+                assert closed == 4, f"{closed} of the 4 connections over robot A's pending slots were closed"
+                # a new subscriber on robot B: a new TCPROS stream from a robot A knows
+                with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "60"], env=net.ros_env("robot_b")) as second:
+                    assert got(read_lines(second, "GOT", 30)), "robot B's new stream was locked out by strangers"
+            finally:
+                for sock in held:
+                    sock.close()
+        log = denials(net, "robot_a")
+        lines = [line for line in log.splitlines() if f"DENY tls from {stranger}:" in line]
+        assert lines and all("pending_limit" in line or "unauthenticated streams" in line for line in lines), log[-2000:]
+        assert len(lines) <= 2, lines  # four refusals, aggregated: one line at once, then a count per interval
