@@ -5,8 +5,9 @@ passphrase, port taken) raise :class:`ConfigError` or :class:`StartupError` with
 one-line reason; the CLI prints it and exits non-zero. SIGTERM and SIGINT stop
 listening, give open connections ``shutdown_grace`` seconds, flush the audit log
 and exit 0. SIGHUP re-reads the TLS material (certificate, key, CA, CRL) from the
-same files: the listener is re-opened with the new context (open connections stay),
-and a reload that fails keeps the old one, in one log line.
+same files: new connections get the new context (open connections stay), and a reload
+that fails keeps the old one, in one log line. The public socket is
+:class:`~authz_server.listener.TLSListener` (connections in their handshake capped).
 """
 
 from __future__ import annotations
@@ -23,8 +24,10 @@ from authz_server.app import AuthzService, make_app
 from authz_server.changes import ChangeSource
 from authz_server.config import ServeConfig
 from authz_server.db import open_registry
+from authz_server.listener import TLSListener
 from authz_server.registry import Registry
 from cryptoros.errors import CryptorosError
+from cryptoros.fdlimit import raise_descriptor_limit
 from cryptoros.pemfiles import cert_serial
 from cryptoros.tls import server_context
 
@@ -63,6 +66,8 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     _refusing_revoked(ssl_ctx, service)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None
+    listener: TLSListener | None = None
+    raise_descriptor_limit()  # the listener's caps bind first, not the kernel's limit
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     try:
@@ -70,10 +75,9 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         runner = web.AppRunner(make_app(service), access_log=None, handle_signals=False,
                                shutdown_timeout=cfg.shutdown_grace, handler_cancellation=True)
         await runner.setup()
-        site = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=ssl_ctx, backlog=1024,
-                           reuse_address=True)
+        listener = TLSListener(cfg.host, cfg.port, ssl_ctx, runner.server)
         try:
-            await site.start()
+            listener.start()
         except OSError as exc:
             why = "address already in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
             raise StartupError(f"cannot listen on {cfg.host}:{cfg.port}: {why}") from exc
@@ -89,12 +93,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
             log.info("probe (healthz, metrics; plain HTTP, no client certificate) on http://%s", cfg.probe)
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
-        sites = [site]
-
-        async def reload() -> None:
-            sites[0] = await _reload_tls(cfg, runner, sites[0], service)
-
-        loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(reload()))
+        loop.add_signal_handler(signal.SIGHUP, lambda: _reload_tls(cfg, listener, service))
         assert service.signing_kid is not None
         log.info("serving on https://%s:%d (issuer %s, audience %s, token lifetime %ds, signing key %s)",
                  cfg.host, cfg.port, cfg.issuer, cfg.audience, cfg.token_lifetime, service.signing_kid)
@@ -106,6 +105,8 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.remove_signal_handler(sig)
         service.release_waiters()  # long-polls answer at once instead of holding shutdown_grace
+        if listener is not None:
+            await listener.close()
         if probe_runner is not None:
             await probe_runner.cleanup()
         if runner is not None:
@@ -115,24 +116,14 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     log.info("stopped")
 
 
-async def _reload_tls(cfg: ServeConfig, runner: web.AppRunner, site: web.TCPSite, service: AuthzService) -> web.TCPSite:
-    """SIGHUP: a new TLS context from the same files, or the old one kept."""
+def _reload_tls(cfg: ServeConfig, listener: TLSListener, service: AuthzService) -> None:
+    """SIGHUP: a new TLS context from the same files for new connections (open ones
+    stay), or the old one kept."""
     try:
-        ssl_ctx = _refusing_revoked(server_context(cfg.tls), service)
+        listener.ssl_ctx = _refusing_revoked(server_context(cfg.tls), service)
     except CryptorosError as exc:
         log.error("reload failed, keeping the old TLS material: %s", exc)
-        return site
-    await site.stop()  # stops accepting; open connections carry on
-    new = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=ssl_ctx, backlog=1024, reuse_address=True)
-    try:
-        await new.start()
-    except OSError as exc:
-        log.error("reload failed, keeping the old TLS material: cannot listen again: %s", exc.strerror or exc)
-        old = web.TCPSite(runner, cfg.host, cfg.port, ssl_context=site._ssl_context, backlog=1024,
-                          reuse_address=True)
-        await old.start()
-        return old
+        return
     if service.crl is not None:
         service.crl.refresh(force=True)
     log.info("reloaded TLS material (certificate, key, CA, CRL) on SIGHUP")
-    return new

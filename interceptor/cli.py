@@ -24,6 +24,7 @@ from pathlib import Path
 import click
 
 from cryptoros.errors import ConfigError, CryptorosError
+from cryptoros.fdlimit import raise_descriptor_limit
 from cryptoros.tls import client_context, server_context
 from interceptor.config import load
 
@@ -241,7 +242,7 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
                 click.echo(f"warning: a DDS participant on domain {cfg.ros2.domain_id} is reachable from the network: "
                            f"{item.describe()}; start it with the localhost profile (docs/ros2.md)", err=True)
         return
-    _raise_descriptor_limit()
+    raise_descriptor_limit()  # every relayed stream holds two descriptors, every relay listener one
     runner = asyncio.run
     if not no_uvloop:
         try:
@@ -254,20 +255,6 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
         runner(_run(config_path, grace))
     except CryptorosError as exc:
         _fail(str(exc), code=1)
-
-
-def _raise_descriptor_limit(ceiling: int = 1 << 20) -> None:
-    """Every relayed stream holds two descriptors and every relay listener one: lift the
-    soft limit (often 1,024) to the hard one, so the caps in [limits] bind first."""
-    import resource
-
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    want = ceiling if hard == resource.RLIM_INFINITY else min(hard, ceiling)
-    if soft != resource.RLIM_INFINITY and soft < want:
-        try:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
-        except (ValueError, OSError) as exc:  # pragma: no cover - a container that forbids it
-            logging.getLogger(__name__).warning("could not raise the descriptor limit from %d: %s", soft, exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

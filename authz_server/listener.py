@@ -1,0 +1,141 @@
+"""The daemon's public socket: accepts connections and caps the ones still in their TLS
+handshake, per source address and in all, before handing each finished one to aiohttp.
+
+A stranger needs no certificate to open connections that never finish a ClientHello.
+Listening through aiohttp's own site, 20,000 of them from one host held the daemon at its
+descriptor limit: every robot's token request failed, its memory grew to 4.5 GB (each
+handshake holds asyncio's 256 KiB buffer) and nothing was logged. Here a connection
+counts against :data:`PER_SOURCE` and :data:`IN_ALL` from its accept until its
+handshake ends (``handshake_timeout`` at most); over either it is closed at once, before
+any TLS work, with one log line per source and minute. A source a client with a
+verified certificate connected from is not counted in all (only against its own
+address's cap), so strangers on many addresses cannot lock the fleet out; loopback is
+not capped per source (the host's own processes: a fleet of clients on one machine).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import logging
+import socket
+import ssl
+from collections.abc import Callable
+
+from cryptoros.lru import remember
+from cryptoros.ratelimit import OncePer
+
+log = logging.getLogger("cryptoros.authz")
+
+#: connections in their TLS handshake from one source address at most
+PER_SOURCE = 64
+#: ... and in all, sources that completed a handshake before not counted
+IN_ALL = 512
+#: seconds a connection may take to finish its TLS handshake
+HANDSHAKE_TIMEOUT = 10.0
+#: source addresses remembered as a verified client's
+KNOWN_SOURCES = 4096
+
+
+def _loopback(address: str) -> bool:
+    try:
+        return ipaddress.ip_address(address.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False
+
+
+class TLSListener:
+    """Mutual TLS on ``host:port`` for ``protocol_factory`` (aiohttp's ``runner.server``);
+    ``ssl_ctx`` may be replaced while it runs (a reload: new connections use it)."""
+
+    def __init__(self, host: str, port: int, ssl_ctx: ssl.SSLContext, protocol_factory: Callable[[], asyncio.Protocol],
+                 *, per_source: int = PER_SOURCE, in_all: int = IN_ALL,
+                 handshake_timeout: float = HANDSHAKE_TIMEOUT, backlog: int = 1024,
+                 uncapped_source: Callable[[str], bool] = _loopback) -> None:
+        self.host, self.port, self.ssl_ctx = host, port, ssl_ctx
+        self._factory = protocol_factory
+        self._uncapped_source = uncapped_source
+        self.per_source, self.in_all, self.handshake_timeout, self._backlog = per_source, in_all, handshake_timeout, backlog
+        self._pending: dict[str, int] = {}
+        self._pending_in_all = 0
+        self._known: dict[str, bool] = {}
+        self._handshakes: set[asyncio.Task] = set()
+        self._sock: socket.socket | None = None
+        self._task: asyncio.Task | None = None
+        self._log_once = OncePer(60.0)
+        self.refused = 0  # connections closed at accept, over a cap
+
+    def start(self) -> None:
+        """Bind and listen now (an OSError, EADDRINUSE included, is the caller's); accept
+        from the next turn of the loop."""
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        self._sock = socket.create_server((self.host, self.port), family=family, backlog=self._backlog)
+        self._sock.setblocking(False)
+        self._task = asyncio.get_running_loop().create_task(self._accept())
+
+    def pending(self) -> int:
+        return sum(self._pending.values())
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        for task in list(self._handshakes):
+            task.cancel()
+        if self._sock is not None:
+            self._sock.close()
+
+    def _over_cap(self, source: str) -> str | None:
+        if not self._uncapped_source(source) and self._pending.get(source, 0) >= self.per_source:
+            return f"{self.per_source} connections from it in their TLS handshake already"
+        if source not in self._known and self._pending_in_all >= self.in_all:
+            return f"{self.in_all} connections from unknown sources in their TLS handshake already"
+        return None
+
+    async def _accept(self) -> None:
+        loop = asyncio.get_running_loop()
+        assert self._sock is not None
+        while True:
+            try:
+                conn, address = await loop.sock_accept(self._sock)
+            except OSError as exc:  # EMFILE and the like: the caps bind first, but never spin
+                if self._log_once(("accept", exc.errno)):
+                    log.error("cannot accept connections on %s:%d: %s", self.host, self.port, exc.strerror or exc)
+                await asyncio.sleep(0.1)
+                continue
+            source = str(address[0])
+            why = self._over_cap(source)
+            if why is not None:
+                self.refused += 1
+                conn.close()
+                if self._log_once(("refused", source)):
+                    log.warning("connections from %s closed at accept: %s (%d refused so far; logged once a minute "
+                                "per source)", source, why, self.refused)
+                continue
+            counted = source not in self._known
+            self._pending[source] = self._pending.get(source, 0) + 1
+            self._pending_in_all += counted
+            task = loop.create_task(self._handshake(conn, source, counted))
+            self._handshakes.add(task)
+            task.add_done_callback(self._handshakes.discard)
+
+    async def _handshake(self, conn: socket.socket, source: str, counted: bool) -> None:
+        try:
+            await asyncio.get_running_loop().connect_accepted_socket(
+                self._factory, conn, ssl=self.ssl_ctx, ssl_handshake_timeout=self.handshake_timeout)
+            remember(self._known, source, True, KNOWN_SOURCES)  # a verified client certificate
+        except (OSError, asyncio.TimeoutError) as exc:  # a failed or late handshake, a reset
+            log.debug("TLS handshake from %s failed: %s", source, exc)
+            conn.close()
+        finally:
+            left = self._pending.get(source, 0) - 1
+            if left > 0:
+                self._pending[source] = left
+            else:
+                self._pending.pop(source, None)
+            self._pending_in_all -= counted
+
+
+__all__ = ["HANDSHAKE_TIMEOUT", "IN_ALL", "PER_SOURCE", "TLSListener"]
