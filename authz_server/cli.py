@@ -4,7 +4,9 @@ The verbs of policy authoring and learning live in :mod:`authz_server.policy_cli
 :mod:`authz_server.learn_cli`; the rest are one screen each, kept together.
 
 Every verb takes the registry URL from ``--db`` or ``CRYPTOROS_AUTHZ_DB`` (default
-``sqlite:///./cryptoros-authz.db``). Bad input (unknown manager, invalid ROS name or
+``sqlite:///./cryptoros-authz.db``); ``serve --config FILE`` also from the file's ``db``,
+where ``--db`` wins and a ``CRYPTOROS_AUTHZ_DB`` that differs from it is refused
+(:func:`serve_db`). Bad input (unknown manager, invalid ROS name or
 type, malformed policy, missing file) prints one line ``cryptoros-authz: error: ...``
 on stderr, exits with status 2 and changes nothing. A daemon that cannot start (port
 taken, database unreachable) exits with status 1 and one line, never a traceback.
@@ -19,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -28,7 +31,8 @@ import click
 from authz_server import keys as keymod
 from authz_server.changes import parse_since, summary
 from authz_server.cli_context import registry as _registry
-from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine
+from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, shown_db
+from authz_server.policy_cli import load_yaml
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
@@ -376,17 +380,13 @@ def export(ctx: click.Context, output: str | None) -> None:
 @click.option("--merge", is_flag=True, help="Only add managers and grants; remove nothing.")
 @click.pass_context
 def import_(ctx: click.Context, file: str, merge: bool) -> None:
-    """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction."""
-    import yaml
-
+    """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction.
+    A key given twice in one mapping (two ``subscribe:`` lists) is an error, not the last one kept."""
     try:
         text = sys.stdin.read() if file == "-" else Path(file).read_text()
     except OSError as exc:
         raise RegistryError(f"cannot read policy file {file}: {exc.strerror}") from exc
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise RegistryError(f"policy file {file} is not valid YAML: {str(exc).splitlines()[0]}") from exc
+    doc = load_yaml(text, f"policy file {file}")
     stats = _registry(ctx, create=True).import_policy(doc, merge=merge)
     click.echo("imported: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items()))
 
@@ -573,6 +573,39 @@ def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, a
 
 
 # ---------------------------------------------------------------------- daemon
+def _same_db(a: str, b: str) -> bool:
+    """Whether two URLs name one database (an SQLite file by its real path: the runbook's
+    ``$PWD/registry.db`` and a relative ``registry.db`` are one file)."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        ua, ub = make_url(a), make_url(b)
+    except ArgumentError:
+        return a == b
+    if ua.get_backend_name() == ub.get_backend_name() == "sqlite" and ua.database and ub.database:
+        ua = ua.set(database=os.path.realpath(ua.database))
+        ub = ub.set(database=os.path.realpath(ub.database))
+    return ua == ub
+
+
+def serve_db(*, flag: str | None, env: str | None, file: str | None, config_file: str | None) -> tuple[str, str]:
+    """The registry ``serve`` opens and where it was named: ``--db`` wins; otherwise the
+    configuration file's ``db`` and ``CRYPTOROS_AUTHZ_DB`` must agree when both are set
+    (an environment variable is no flag: which one was meant is not guessed, ConfigError
+    naming both); otherwise whichever is set, else the default."""
+    if flag:
+        return flag, "--db"
+    if file and env and not _same_db(file, env):
+        raise ConfigError(f"two registry databases: db = {shown_db(file)} in {config_file} and {DB_ENV}="
+                          f"{shown_db(env)}; unset {DB_ENV} or remove db from the file (or pass --db)")
+    if file:
+        return file, f"db in {config_file}"
+    if env:
+        return env, DB_ENV
+    return DEFAULT_DB_URL, "the default"
+
+
 @main.command("serve")
 @click.option("--config", "config_file", help="TOML file with any of the settings below (unknown keys are errors).")
 @click.option("--host", help="Listen address.  [default: 127.0.0.1]")
@@ -597,10 +630,12 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
     from authz_server.server import serve as run_server
 
     values: dict = load_toml(config_file) if config_file else {}
-    root_db = ctx.find_root().obj["db"]
-    root_src = ctx.find_root().get_parameter_source("db_url")
-    if root_src != click.core.ParameterSource.DEFAULT or "db" not in values:
-        values["db"] = root_db
+    root = ctx.find_root()
+    source = root.get_parameter_source("db_url")
+    values["db"], _db_from = serve_db(
+        flag=root.obj["db"] if source == click.core.ParameterSource.COMMANDLINE else None,
+        env=root.obj["db"] if source == click.core.ParameterSource.ENVIRONMENT else None,
+        file=values.get("db"), config_file=config_file)
     mapping = {
         "host": "host", "port": "port", "ca": "ca", "cert": "cert", "key": "key",
         "tls_key_passphrase_file": "key_passphrase_file", "crl": "crl", "issuer": "issuer",

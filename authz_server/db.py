@@ -172,3 +172,15 @@ def _first_line(exc: BaseException) -> str:
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
+
+
+def shown_db(url: str) -> str:
+    """A database URL as logs and errors show it: the password masked (SQLAlchemy's own
+    rendering, as :func:`make_engine`'s errors show it)."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except ArgumentError:
+        return "(an unreadable database URL)"

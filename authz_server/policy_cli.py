@@ -5,7 +5,8 @@ registers them; they change the registry only through :meth:`Registry.import_pol
 
 What has no equivalent goes to stderr, one line each (``cryptoros-authz: warning:``
 for a draft, ``cryptoros-authz: sros2:`` for SROS2); bad input is one error line and
-changes nothing.
+changes nothing. Every YAML the registry reads (``import``'s policy, ``--types``) goes
+through :func:`load_yaml`, which refuses a key given twice in one mapping.
 """
 
 from __future__ import annotations
@@ -39,6 +40,46 @@ def _yaml(doc: object) -> str:
     import yaml
 
     return yaml.safe_dump(doc, sort_keys=False)
+
+
+def _unique_key_loader() -> type:
+    """A ``yaml.SafeLoader`` whose mappings refuse a key given twice: plain
+    ``safe_load`` keeps the last value, so a second ``subscribe:`` under one manager's
+    grants would silently drop the first list."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen: dict = {}
+                for key_node, _value in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *base' keys may be overridden
+                        continue
+                    key = self.construct_object(key_node, deep=True)
+                    line = key_node.start_mark.line + 1
+                    try:
+                        first = seen.get(key)
+                    except TypeError:  # an unhashable key: SafeLoader refuses it below
+                        continue
+                    if first is not None:
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"duplicate key {key!r} at line {line} (first at line {first}); "
+                            "merge the two", key_node.start_mark)
+                    seen[key] = line
+            return super().construct_mapping(node, deep=deep)
+
+    return UniqueKeyLoader
+
+
+def load_yaml(text: str, what: str) -> object:
+    """The document ``text`` holds (``what`` names it in the error): RegistryError, one
+    line, on a syntax error or a key given twice in one mapping."""
+    import yaml
+
+    try:
+        return yaml.load(text, Loader=_unique_key_loader())  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise RegistryError(f"{what} is not valid YAML: {str(exc).splitlines()[0]}") from None
 
 
 # ---------------------------------------------------------------------- policy from-graph
@@ -87,16 +128,13 @@ def from_graph(master_uri: str, manager_map: tuple[str, ...], param_access: str,
 
 # ---------------------------------------------------------------------- SROS2
 def _types(type_values: tuple[str, ...], types_file: str | None) -> dict[str, str]:
-    import yaml
-
     types: dict[str, str] = {}
     if types_file:
         try:
-            doc = yaml.safe_load(Path(types_file).read_text())
+            text = Path(types_file).read_text()
         except OSError as exc:
             raise RegistryError(f"cannot read types file {types_file}: {exc.strerror}") from None
-        except yaml.YAMLError as exc:
-            raise RegistryError(f"types file {types_file} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        doc = load_yaml(text, f"types file {types_file}")
         if not isinstance(doc, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in doc.items()):
             raise RegistryError(f"types file {types_file}: expected a mapping of name to type "
                                 "(/chatter: std_msgs/msg/String)")
@@ -198,4 +236,4 @@ def export_sros2(ctx: click.Context, manager: str, enclave: str | None, output: 
 
 COMMANDS = (policy, import_sros2, export_sros2)
 
-__all__ = ["COMMANDS", "export_sros2", "import_sros2", "policy"]
+__all__ = ["COMMANDS", "export_sros2", "import_sros2", "load_yaml", "policy"]

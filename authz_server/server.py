@@ -23,7 +23,7 @@ from aiohttp import web
 from authz_server.app import AuthzService, make_app
 from authz_server.changes import ChangeSource
 from authz_server.config import ServeConfig
-from authz_server.db import open_registry
+from authz_server.db import open_registry, shown_db
 from authz_server.listener import TLSListener
 from authz_server.registry import Registry
 from cryptoros.errors import CryptorosError
@@ -95,8 +95,9 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
             loop.add_signal_handler(sig, stop.set)
         loop.add_signal_handler(signal.SIGHUP, lambda: _reload_tls(cfg, listener, service))
         assert service.signing_kid is not None
-        log.info("serving on https://%s:%d (issuer %s, audience %s, token lifetime %ds, signing key %s)",
-                 cfg.host, cfg.port, cfg.issuer, cfg.audience, cfg.token_lifetime, service.signing_kid)
+        log.info("serving on https://%s:%d (registry %s, issuer %s, audience %s, token lifetime %ds, signing key %s)",
+                 cfg.host, cfg.port, shown_db(cfg.db_url), cfg.issuer, cfg.audience, cfg.token_lifetime,
+                 service.signing_kid)
         if ready is not None:
             ready.set()
         await stop.wait()

@@ -95,6 +95,13 @@ def test_a_token_for_one_peer_is_bound_to_it_and_carries_only_what_it_shares(dae
         assert for_peer("alice", resource) == (400, {"error": "invalid_target"})
 
 
+def test_the_start_up_line_names_the_registry_it_serves(daemon):
+    """CRYPTOROS_AUTHZ_DB, a configuration file's db and --db can each name one: the
+    operator reads which one the daemon opened (a password would be masked)."""
+    line = next((line for line in daemon.log().splitlines() if "serving on https://" in line), "")
+    assert f"registry {daemon.db}," in line, daemon.log()[-2000:]
+
+
 def test_each_token_has_a_fresh_jti(daemon):
     jtis = {claims_of(daemon.token("bob")[1]["access_token"])["jti"] for _ in range(3)}
     assert len(jtis) == 3

@@ -1,0 +1,142 @@
+"""``cryptoros-authz`` input in process (click's CliRunner, SQLite in a temporary
+directory, no daemon): a policy with a key given twice is refused whole, and which
+registry ``serve`` opens when ``--db``, ``CRYPTOROS_AUTHZ_DB`` and the configuration
+file's ``db`` disagree."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from click.testing import CliRunner
+
+import authz_server.cli as cli
+import authz_server.server as server
+from authz_server.db import shown_db
+from cryptoros.errors import ConfigError
+
+POLICY = """\
+version: 1
+managers:
+  - name: robot_a
+    grants:
+      subscribe:
+        - {node: /listener, topic: /chatter, type: std_msgs/String}
+      publish:
+        - {node: /talker, topic: /chatter, type: std_msgs/String}
+"""
+
+
+def run(*args: str, env: dict | None = None):
+    return CliRunner().invoke(cli.main, list(args), env={"CRYPTOROS_AUTHZ_DB": None, **(env or {})})
+
+
+def exported(db: str) -> str:
+    result = run("--db", db, "export")
+    assert result.exit_code == 0, result.output
+    return result.stdout
+
+
+@pytest.mark.parametrize(("text", "key", "line"), [
+    (POLICY + "      subscribe:\n        - {node: /other, topic: /scan, type: sensor_msgs/LaserScan}\n",
+     "subscribe", 9),
+    (POLICY.replace("    grants:\n", "    grants: {}\n    grants:\n"), "grants", 5),
+    (POLICY + "version: 1\n", "version", 9),
+    (POLICY.replace("topic: /chatter, type", "topic: /chatter, topic: /scan, type", 1), "topic", 6),
+])
+def test_a_policy_with_a_key_given_twice_is_refused_and_the_registry_unchanged(tmp_path, text, key, line):
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    (tmp_path / "good.yaml").write_text(POLICY)
+    assert run("--db", db, "import", str(tmp_path / "good.yaml")).exit_code == 0
+    before = exported(db)
+    (tmp_path / "twice.yaml").write_text(text)
+    result = run("--db", db, "import", str(tmp_path / "twice.yaml"))
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cryptoros-authz: error: "), lines
+    assert f"duplicate key {key!r} at line {line}" in lines[0] and "twice.yaml" in lines[0], lines
+    assert exported(db) == before
+
+
+def test_an_sros2_types_file_with_a_name_given_twice_is_refused(tmp_path):
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    (tmp_path / "good.yaml").write_text(POLICY)
+    assert run("--db", db, "import", str(tmp_path / "good.yaml")).exit_code == 0
+    types = tmp_path / "types.yaml"
+    types.write_text("/chatter: std_msgs/msg/String\n/chatter: std_msgs/msg/Int32\n")
+    (tmp_path / "policy.xml").write_text("<policy version='0.2.0'><enclaves/></policy>")
+    result = run("--db", db, "import-sros2", str(tmp_path / "policy.xml"),
+                 "--manager-map", "/a=robot_a", "--types", str(types), "--dry-run")
+    assert result.exit_code == 2, result.output
+    assert "duplicate key '/chatter' at line 2 (first at line 1)" in result.stderr, result.stderr
+
+
+# ---------------------------------------------------------------------- serve: which registry
+FILE_DB = "sqlite:////srv/file.db"
+ENV_DB = "postgresql+psycopg://authz:s3cret@db.lan/cryptoros"
+FLAG_DB = "sqlite:////srv/flag.db"
+
+
+@pytest.mark.parametrize(("flag", "env", "file", "chosen"), [
+    (FLAG_DB, ENV_DB, FILE_DB, FLAG_DB),  # a flag wins over both
+    (None, FILE_DB, FILE_DB, FILE_DB),    # both name the same one
+    (None, None, FILE_DB, FILE_DB),
+    (None, ENV_DB, None, ENV_DB),
+    (None, None, None, cli.DEFAULT_DB_URL),
+    (None, f"sqlite:///{os.getcwd()}/registry.db", "sqlite:///registry.db", "sqlite:///registry.db"),  # one file
+])
+def test_serve_opens_the_flags_registry_else_the_one_file_and_environment_agree_on(flag, env, file, chosen):
+    assert cli.serve_db(flag=flag, env=env, file=file, config_file="authz.toml")[0] == chosen
+
+
+def test_serve_refuses_a_file_and_an_environment_naming_two_registries():
+    with pytest.raises(ConfigError) as info:
+        cli.serve_db(flag=None, env=ENV_DB, file=FILE_DB, config_file="authz.toml")
+    message = str(info.value)
+    assert FILE_DB in message and "authz.toml" in message and "CRYPTOROS_AUTHZ_DB" in message
+    assert "s3cret" not in message and "authz:***@db.lan" in message
+
+
+@pytest.fixture
+def served(monkeypatch):
+    """What ``serve`` would serve (its configuration), without serving."""
+    seen = []
+
+    async def fake_serve(cfg, *args, **kwargs):
+        seen.append(cfg)
+
+    monkeypatch.setattr(server, "serve", fake_serve)
+    return seen
+
+
+def serve(tmp_path, *args: str, db: str | None = FILE_DB, env: dict | None = None):
+    config = tmp_path / "authz.toml"
+    for name in ("ca.crt", "a.crt", "a.key"):  # read by the server when it starts, not here
+        (tmp_path / name).touch()
+    config.write_text((f'db = "{db}"\n' if db else "")
+                      + "".join(f'{key} = "{tmp_path / name}"\n' for key, name in
+                                (("ca", "ca.crt"), ("cert", "a.crt"), ("key", "a.key"))))
+    return run(*args, "serve", "--config", str(config), "--unsafe-no-passphrase", env=env)
+
+
+def test_serve_with_the_environment_naming_another_registry_than_its_file_refuses_to_start(tmp_path, served):
+    result = serve(tmp_path, env={"CRYPTOROS_AUTHZ_DB": ENV_DB})
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "two registry databases" in lines[0] and FILE_DB in lines[0], lines
+    assert "s3cret" not in result.output
+    assert served == []
+
+
+def test_serve_takes_the_db_flag_over_the_environment_and_the_file(tmp_path, served):
+    result = serve(tmp_path, "--db", ENV_DB, env={"CRYPTOROS_AUTHZ_DB": "sqlite:////srv/other.db"})
+    assert result.exit_code == 0, result.output
+    assert [cfg.db_url for cfg in served] == [ENV_DB]
+    assert shown_db(ENV_DB) == "postgresql+psycopg://authz:***@db.lan/cryptoros"  # as "serving on ..." names it
+
+
+def test_serve_takes_its_files_registry_when_the_environment_agrees_or_is_unset(tmp_path, served):
+    assert serve(tmp_path, env={"CRYPTOROS_AUTHZ_DB": FILE_DB}).exit_code == 0
+    assert serve(tmp_path).exit_code == 0
+    assert serve(tmp_path, db=None, env={"CRYPTOROS_AUTHZ_DB": ENV_DB}).exit_code == 0
+    assert [cfg.db_url for cfg in served] == [FILE_DB, FILE_DB, ENV_DB]
