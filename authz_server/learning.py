@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 from authz_server.registry import PARAM_ACTIONS, GrantRow, ObservationRow, grant_key
 from cryptoros.errors import RegistryError
-from cryptoros.names import PARAM_TYPE, validate_graph_name, validate_namespace, validate_node_name, validate_type
+from cryptoros.names import PARAM_TYPE, validate_caller_id, validate_graph_name, validate_namespace, validate_type
 from cryptoros.policy.infrastructure import ros1_allows
 from cryptoros.policy.ros1 import node_pattern
 from cryptoros.tokens import ACTIONS, Grants, in_namespace, node_matches
@@ -46,7 +46,10 @@ _RUN_PART = re.compile(r"(__\d+|[_-]\d{4,}(_\d+)?)$")
 
 def checked_observations(body: object, *, now: float) -> list[dict]:
     """The rows of a ``POST /observations`` body, validated (RegistryError on any fault:
-    nothing of a bad report is kept)."""
+    nothing of a bad report is kept; the interceptor halves a refused report until the
+    bad row stands alone, and drops it). A row's node is a caller ID as the interceptor
+    records it (:func:`cryptoros.names.validate_caller_id`: stock tools' anonymous
+    ``/rosparam-4711`` included), never a pattern."""
     rows = body.get("observations") if isinstance(body, Mapping) else None
     if not isinstance(rows, list) or len(rows) > MAX_OBSERVATION_ROWS:
         raise RegistryError(f"'observations' must be a list of at most {MAX_OBSERVATION_ROWS} rows")
@@ -61,7 +64,7 @@ def _checked(row: object, now: float, i: int) -> dict:
     allowed, action, type_, count = row["allowed"], row["action"], row["type"], row["count"]
     if not isinstance(allowed, bool) or action not in ACTIONS:
         raise RegistryError(f"{where}: 'allowed' must be a boolean and 'action' one of {', '.join(ACTIONS)}")
-    validate_node_name(row["node"])
+    validate_caller_id(row["node"])
     if action in PARAM_ACTIONS:
         validate_namespace(row["name"])
         if type_ is not None:

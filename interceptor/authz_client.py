@@ -6,7 +6,10 @@
 - :class:`TokenKeeper` holds this interceptor's own access token: fetched at start,
   refreshed ``refresh_margin`` seconds before expiry, kept while the server is down
   and still valid, and refused (``TokenError("no_token")``) once it has expired:
-  nothing new is allowed without one.
+  nothing new is allowed without one. A token issued for another manager than the
+  configured one (the registry binds this certificate to it) is refused as a failed
+  fetch would be, with none held after it (``TokenError("wrong_manager")``, which
+  health and status show): the interceptor never runs on another manager's grants.
 
 Peers' tokens are verified by :class:`interceptor.verifier.PeerVerifier`. Every wait is
 bounded by ``request_timeout``; failures are logged and retried, never raised into the
@@ -16,6 +19,7 @@ event loop.
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import errno
 import json
@@ -103,6 +107,14 @@ class AuthzUnavailable(TokenError):
 
     def __init__(self, detail: str) -> None:
         super().__init__("authz_unavailable", detail)
+
+
+class ReportRefused(TokenError):
+    """The authorization server refused a report of observations as sent (HTTP 400, 413:
+    a malformed row, too large): sending it again as it is cannot succeed."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__("report_refused", detail)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -244,8 +256,11 @@ class AuthzClient:
 
     async def post_observations(self, rows: list[dict]) -> dict:
         """Report requests seen (:mod:`interceptor.learning`); the server's answer
-        (``accepted``, ``refused``)."""
+        (``accepted``, ``refused``). :class:`ReportRefused` when the server refuses the
+        report as sent, :class:`AuthzUnavailable` when it cannot take it now."""
         status, body, _headers = await self._json("POST", "/observations", json={"observations": rows})
+        if status in (400, 413):
+            raise ReportRefused(f"observations: HTTP {status}: {(body or {}).get('error_description', '')}")
         if status != 200 or body is None:
             raise AuthzUnavailable(f"observations: HTTP {status}: {(body or {}).get('error_description', '')}")
         return body
@@ -363,6 +378,28 @@ class AuthzRefused(AuthzUnavailable):
     """The authorization server answered, and refused our certificate (401)."""
 
 
+def refresh_delay(lifetime: float, margin: float) -> float:
+    """Seconds until a token valid ``lifetime`` more seconds is refreshed: half-way
+    through its life, or ``margin`` seconds before it expires if that comes first (an
+    outage of the authorization server then leaves the most of its life to retry in);
+    a lifetime under the margin (30 s under the default 60 s) half-way, not every
+    second; at least 1 s after it was fetched."""
+    before_expiry = lifetime - margin
+    return max(1.0, min(before_expiry, lifetime / 2) if before_expiry >= 1.0 else lifetime / 2)
+
+
+def _unverified_subject(token: str) -> str | None:
+    """The ``sub`` claim of a token, read without verifying it: only ever to refuse a
+    token (our own, just issued to us over mutual TLS), never to accept one."""
+    try:
+        payload = token.split(".")[1]
+        claims = json.loads(base64.urlsafe_b64decode(payload + "=" * (-len(payload) % 4)))
+    except (IndexError, ValueError):  # binascii.Error and UnicodeDecodeError are ValueErrors
+        return None
+    subject = claims.get("sub") if isinstance(claims, dict) else None
+    return subject if isinstance(subject, str) else None
+
+
 class TokenKeeper:
     """This interceptor's own access token, always fresh or refused, and the tokens it
     shows each peer: bound to that peer's certificate (audience) and narrowed to the
@@ -373,8 +410,13 @@ class TokenKeeper:
     #: Peers whose narrowed tokens are kept (the least recently used one goes first).
     MAX_PEERS = 1024
 
-    def __init__(self, client: AuthzClient, *, refresh_margin: float, clock: Clock = time.time) -> None:
+    def __init__(self, client: AuthzClient, *, refresh_margin: float, clock: Clock = time.time,
+                 manager: str | None = None) -> None:
         self._client = client
+        #: the manager this interceptor is configured as: a token for any other is refused (None: not checked)
+        self.manager = manager
+        #: why the last token issued to us was refused (wrong_manager), until one is taken
+        self._refusal: TokenError | None = None
         #: seconds before expiry a token is refreshed (a reload may change it: from the next refresh on)
         self.refresh_margin = refresh_margin
         self._clock = clock
@@ -391,8 +433,31 @@ class TokenKeeper:
     def current(self) -> str:
         token = self._token
         if token is None or self._clock() >= token.expires_at - self.MIN_REMAINING:
+            refusal = self._refusal
+            if refusal is not None:
+                raise TokenError(refusal.reason, refusal.detail)
             raise TokenError("no_token", "this interceptor holds no valid access token")
         return token.token
+
+    def check(self, token: OwnToken) -> None:
+        """Raise TokenError("wrong_manager") if ``token`` is not for our ``manager``: the
+        registry binds our certificate to another manager (a policy imported with two
+        certificates swapped), whose grants we must not use."""
+        if self.manager is None:
+            return
+        subject = _unverified_subject(token.token)
+        if subject != self.manager:
+            bound = f"to manager {subject!r}" if subject is not None else "to no manager (a token without sub)"
+            raise TokenError("wrong_manager", f"the registry binds this certificate {bound}, not {self.manager!r}")
+
+    def _refuse(self, refusal: TokenError) -> None:
+        """A token was issued for another manager: hold none (not the one before it either:
+        the registry no longer binds our certificate to us), and say why."""
+        self._token = None
+        self._peer_tokens.clear()
+        self._refusal = refusal
+        log.error("access token refused, none held: %s (fix the certificate's manager in the registry, or "
+                  "manager in this interceptor's configuration)", refusal.detail)
 
     @property
     def expires_at(self) -> float | None:
@@ -423,11 +488,18 @@ class TokenKeeper:
 
     async def _fetch_for_peer(self, thumbprint: str) -> OwnToken:
         token = await self._client.fetch_token(clock=self._clock, resource=peer_audience(thumbprint))
+        self.check(token)
         remember(self._peer_tokens, thumbprint, token, self.MAX_PEERS)
         return token
 
     async def refresh(self) -> None:
-        self._token = await self._client.fetch_token(clock=self._clock)
+        token = await self._client.fetch_token(clock=self._clock)
+        try:
+            self.check(token)
+        except TokenError as exc:
+            self._refuse(exc)
+            raise
+        self._token, self._refusal = token, None
         # Grants may have changed: the peers' tokens are fetched anew (kept if that fails).
         for thumbprint in list(self._peer_tokens):
             try:
@@ -441,8 +513,10 @@ class TokenKeeper:
 
     def install(self, token: OwnToken) -> None:
         """Adopt a token fetched elsewhere (a reload's, bound to a renewed certificate):
-        the peers' tokens, bound to the old one, are fetched anew on next use."""
-        self._token = token
+        the peers' tokens, bound to the old one, are fetched anew on next use. A token
+        for another manager raises TokenError (:meth:`check`) and changes nothing."""
+        self.check(token)
+        self._token, self._refusal = token, None
         self._peer_tokens.clear()
         self.refreshed.set()
         log.info("access token installed, valid for %.0f s", token.expires_at - self._clock())
@@ -489,11 +563,12 @@ class TokenKeeper:
             try:
                 await self.refresh()
                 backoff = 1.0
-                lifetime = self._token.expires_at - self._clock()
-                delay = max(1.0, min(lifetime - self.refresh_margin, lifetime / 2))
+                delay = refresh_delay(self._token.expires_at - self._clock(), self.refresh_margin)
             except TokenError as exc:
                 remaining = (self._token.expires_at - self._clock()) if self._token else 0
-                log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail, max(0, remaining))
+                if exc.reason != "wrong_manager":  # logged as an error where it is found
+                    log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail,
+                                max(0, remaining))
                 delay = backoff
                 backoff = min(backoff * 2, 8.0)
             self._attempted.set()
@@ -505,4 +580,5 @@ class TokenKeeper:
 
 
 
-__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "TokenKeeper"]
+__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "ReportRefused", "TokenKeeper",
+           "refresh_delay"]

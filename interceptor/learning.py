@@ -7,7 +7,9 @@ recorded); this module does the I/O around it:
 - every ``REPORT_INTERVAL`` seconds, what was recorded is posted to the authorization
   server (``POST /observations``, over the interceptor's own mutual TLS: the server
   files it under the manager the certificate belongs to, and takes learned requests
-  only while that manager learns); a report that fails is kept for the next one;
+  only while that manager learns); a report the server cannot take now is kept for the
+  next one; one it refuses as sent (a malformed row) is halved until the row it refuses
+  stands alone, which is dropped and logged, so one bad row never holds back the rest;
 - while this interceptor's own manager learns, every log line starts with
   ``LEARNING``, ``status`` and ``/healthz`` say until when, and the metric
   ``cryptoros_interceptor_learning`` is 1; the start and the end of a window are logged.
@@ -24,6 +26,7 @@ from prometheus_client import Gauge
 
 from cryptoros.errors import TokenError
 from cryptoros.learning import LearningState
+from interceptor.authz_client import ReportRefused
 
 log = logging.getLogger(__name__)
 
@@ -97,14 +100,28 @@ class Learner:
                 log.warning("learning mode ended: requests no grant covers are refused again")
 
     async def report(self) -> None:
-        """Post what is due; kept for the next report when the server cannot take it."""
+        """Post what is due; kept for the next report when the server cannot take it.
+        A report the server refuses as sent is posted again in halves, down to the one
+        row it refuses, which is dropped: sent again it would be refused again, forever,
+        and with it every row of its report."""
         rows = self.state.table.due(time.time())
-        for start in range(0, len(rows), REPORT_ROWS):
-            chunk = rows[start:start + REPORT_ROWS]
+        batches = [rows[start:start + REPORT_ROWS] for start in range(0, len(rows), REPORT_ROWS)]
+        while batches:
+            batch = batches.pop(0)
             try:
-                answer = await self._authz.post_observations(chunk)
+                answer = await self._authz.post_observations(batch)
+            except ReportRefused as exc:
+                if len(batch) > 1:
+                    half = len(batch) // 2
+                    batches[:0] = [batch[:half], batch[half:]]
+                else:
+                    self.refused += 1
+                    row = batch[0]
+                    log.warning("observation dropped, the authorization server refuses it (%s): %s %s %s %s",
+                                exc.detail, row["node"], row["action"], row["name"], row["type"] or "")
+                continue
             except TokenError as exc:
-                self.state.table.unreport(rows[start:])
+                self.state.table.unreport([row for rest in (batch, *batches) for row in rest])
                 log.info("observations not reported yet (%s): kept for the next report", exc.detail)
                 return
             self.reported += int(answer.get("accepted", 0))

@@ -1,10 +1,16 @@
 """Learning mode's decisions and proposals, without processes: grants widened only while
 a window lasts and only for whom it should, what is recorded, the proposal's smallest
-grants, the unused grants, and what a report may carry."""
+grants, the unused grants, what a report may carry, and how the interceptor reports
+(its AuthzClient answered by a stand-in for the server, no network)."""
 
 from __future__ import annotations
 
+import logging
+import ssl
+import time
+
 import pytest
+from prometheus_client import CollectorRegistry
 
 from authz_server.learning import (MAX_OBSERVATION_ROWS, checked_observations, granted, known_types, propose,
                                    proposal_yaml, unused)
@@ -13,6 +19,9 @@ from cryptoros.errors import RegistryError
 from cryptoros.learning import ANY_TYPES, LearningState, ObservationTable, Seen
 from cryptoros.policy.ros1 import check_master_call, check_service_client_header
 from cryptoros.tokens import Grant, Grants
+from interceptor.authz_client import AuthzClient, AuthzUnavailable
+from interceptor.config import AuthzSettings
+from interceptor.learning import Learner
 
 NOW = 1_000_000.0
 TALKER = Grant(node="/talker", action="publish", name="/chatter", type="std_msgs/String")
@@ -144,7 +153,8 @@ def test_unused_lists_the_grants_no_allowed_request_fell_under():
 
 
 @pytest.mark.parametrize("row", [
-    {"allowed": "yes"}, {"action": "shutdown"}, {"node": "no slash"}, {"name": "bad name!"}, {"type": "not a type"},
+    {"allowed": "yes"}, {"action": "shutdown"}, {"node": "no slash"}, {"node": "*"}, {"node": "/rosparam-*"},
+    {"node": "/rosparam--1 x"}, {"name": "bad name!"}, {"type": "not a type"},
     {"count": 0}, {"count": True}, {"first": NOW - 3 * 86400}, {"first": NOW + 5, "last": NOW},
     {"action": "read_param", "type": "std_msgs/String"}, {"extra": 1},
 ])
@@ -156,6 +166,92 @@ def test_a_report_with_any_bad_row_is_refused_whole(row):
         checked_observations({"observations": [good, {**good, **row}]}, now=NOW)
     with pytest.raises(RegistryError):
         checked_observations({"observations": [good] * (MAX_OBSERVATION_ROWS + 1)}, now=NOW)
+
+
+@pytest.mark.parametrize("node", ["/rosparam-10865", "/rostopic_123_1700000000000", "/robot1/cam-driver", "/talker"])
+def test_a_reported_node_is_a_caller_id_as_the_interceptor_records_it(node):
+    """Stock tools run as ``/rosparam-<pid>``: the interceptor accepts that caller ID
+    (and grant-tools grants ``/rosparam-*``), so the server takes a report of it."""
+    row = {"allowed": True, "action": "read_param", "node": node, "name": "/fleet", "type": None,
+           "count": 1, "first": NOW, "last": NOW}
+    assert checked_observations({"observations": [row]}, now=NOW)[0]["node"] == node
+    assert granted(Grants([Grant(node="/rosparam-*", action="read_param", name="/", type="param")]),
+                   {**row, "node": "/rosparam-10865"})
+
+
+class _Server:
+    """``POST /observations`` as the authorization server answers it: a report with a
+    malformed row refused whole (HTTP 400), every row of a good one kept."""
+
+    def __init__(self) -> None:
+        self.kept: list[dict] = []
+        self.posts = 0
+
+    async def answer(self, method: str, path: str, *, json: dict, **_kw):
+        assert (method, path) == ("POST", "/observations")
+        self.posts += 1
+        try:
+            rows = checked_observations(json, now=time.time())
+        except RegistryError as exc:
+            return 400, {"error": "invalid_request", "error_description": str(exc)}, {}
+        self.kept += rows
+        return 200, {"accepted": len(rows), "refused": 0}, {}
+
+
+def learner_reporting_to(server: _Server):
+    """A Learner whose AuthzClient's requests are answered by ``server`` (no network)."""
+    client = AuthzClient(AuthzSettings(url="https://authz.invalid:8443"), ssl.create_default_context())
+    client._json = server.answer
+    return Learner("robot_a", serves_everyone=False, authz=client, registry=CollectorRegistry())
+
+
+async def test_stock_tools_rows_are_reported_and_not_queued_again():
+    server = _Server()
+    learner = learner_reporting_to(server)
+    now = time.time()
+    for node in ("/rosparam-10865", "/talker", "/rostopic_4711_1700000000000"):
+        learner.state.table.record(Seen(True, "read_param", node, "/fleet/speed", None), now)
+    await learner.report()
+    assert sorted(r["node"] for r in server.kept) == ["/rosparam-10865", "/rostopic_4711_1700000000000", "/talker"]
+    assert learner.reported == 3 and learner.refused == 0
+    assert learner.state.table.due(now + 3600) == []  # nothing put back
+
+
+async def test_a_row_the_server_refuses_as_malformed_is_dropped_and_the_others_still_reported(caplog):
+    """One malformed row (here a name the server's rules refuse) does not hold back the
+    rest forever: the refused report is halved until that row stands alone; it is
+    dropped with one warning, the others are kept by the server, nothing is due again."""
+    server = _Server()
+    learner = learner_reporting_to(server)
+    now = time.time()
+    good = [Seen(False, "publish", f"/n{i}", "/chatter", "std_msgs/String") for i in range(9)]
+    bad = Seen(False, "publish", "/n_bad", "/not-a-topic", "std_msgs/String")
+    for seen in [*good[:4], bad, *good[4:]]:
+        learner.state.table.record(seen, now)
+    with caplog.at_level(logging.WARNING, logger="interceptor.learning"):
+        await learner.report()
+    assert sorted(r["node"] for r in server.kept) == sorted(s.node for s in good)
+    assert learner.reported == 9 and learner.refused == 1
+    assert learner.state.table.due(now + 1) == []
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "/not-a-topic" in warnings[0] and "dropped" in warnings[0], warnings
+    posts = server.posts
+    await learner.report()  # nothing left to send
+    assert server.posts == posts
+
+
+async def test_a_report_the_server_cannot_take_now_is_kept_for_the_next():
+    server = _Server()
+    learner = learner_reporting_to(server)
+
+    async def down(*_args, **_kw):
+        raise AuthzUnavailable("connection refused")
+
+    learner._authz._json = down
+    now = time.time()
+    learner.state.table.record(Seen(False, "publish", "/n", "/chatter", "std_msgs/String"), now)
+    await learner.report()
+    assert [r["node"] for r in learner.state.table.due(now + 1)] == ["/n"]
 
 
 def test_a_used_row_is_kept_only_under_a_grant_the_manager_holds():

@@ -1,0 +1,153 @@
+"""The interceptor's own access token (interceptor/authz_client.py TokenKeeper), driven
+by a stand-in for the authorization server's ``POST /token``: when it is refreshed, and
+that a token issued for another manager than the configured one is never held."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import logging
+import time
+
+import pytest
+
+import interceptor.authz_client as authz_client
+from cryptoros.errors import TokenError
+from interceptor.authz_client import OwnToken, TokenKeeper
+
+WRONG = "the registry binds this certificate to manager 'robot_b', not 'robot_a'"
+
+
+def token_for(subject: str, n: int) -> str:
+    """A JWT-shaped token naming ``subject`` (the keeper reads its ``sub``; peers verify it)."""
+    def part(obj: dict) -> str:
+        return base64.urlsafe_b64encode(json.dumps(obj).encode()).rstrip(b"=").decode()
+    return f"{part({'alg': 'RS256', 'typ': 'at+jwt'})}.{part({'sub': subject, 'jti': str(n)})}.c2ln"
+
+
+class Authz:
+    """``fetch_token`` as the server answers it: tokens for ``subjects`` in turn (the last
+    one again and again), valid ``lifetime`` seconds."""
+
+    def __init__(self, *subjects: str, lifetime: float = 300.0) -> None:
+        self.subjects = list(subjects)
+        self.lifetime = lifetime
+        self.fetches = 0
+
+    async def fetch_token(self, *, clock=time.time, resource: str | None = None) -> OwnToken:
+        self.fetches += 1
+        subject = self.subjects[min(self.fetches, len(self.subjects)) - 1]
+        return OwnToken(token=token_for(subject, self.fetches), expires_at=clock() + self.lifetime)
+
+
+@pytest.mark.parametrize(("lifetime", "margin", "delay"), [
+    (300, 60, 150),   # half-way
+    (600, 60, 300),
+    (100, 60, 40),    # margin seconds before expiry, when that comes first
+    (10, 8, 2),
+    (30, 60, 15),     # a lifetime under the margin: half-way, not every second
+    (60.5, 60, 30.25),
+    (1.5, 60, 1.0),   # at least a second
+    (0, 60, 1.0),
+])
+def test_a_token_is_refreshed_half_way_or_margin_seconds_before_expiry_and_never_every_second(lifetime, margin,
+                                                                                           delay):
+    assert authz_client.refresh_delay(lifetime, margin) == pytest.approx(delay)
+
+
+async def test_a_token_shorter_lived_than_the_margin_is_not_fetched_every_second():
+    authz = Authz("robot_a", lifetime=30)
+    keeper = TokenKeeper(authz, refresh_margin=60)
+    runner = asyncio.create_task(keeper.run())
+    try:
+        await asyncio.sleep(2.5)
+    finally:
+        runner.cancel()
+    assert authz.fetches == 1  # the next one 15 s after it
+
+
+async def test_a_token_for_another_manager_is_refused_and_none_is_held(caplog):
+    keeper = TokenKeeper(Authz("robot_b"), refresh_margin=60, manager="robot_a")
+    with caplog.at_level(logging.WARNING), pytest.raises(TokenError) as info:
+        await keeper.refresh()
+    assert (info.value.reason, info.value.detail) == ("wrong_manager", WRONG)
+    with pytest.raises(TokenError) as info:
+        keeper.current()  # health and status show this reason
+    assert (info.value.reason, info.value.detail) == ("wrong_manager", WRONG)
+    assert keeper.expires_at is None
+    with pytest.raises(TokenError):
+        await keeper.for_peer("x" * 43)  # nor is a token for a peer handed out
+    errors = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(errors) == 1 and errors[0].levelno == logging.ERROR and WRONG in errors[0].getMessage(), errors
+
+
+async def test_a_refresh_bringing_another_managers_token_drops_the_one_held_until_ours_comes_back():
+    keeper = TokenKeeper(Authz("robot_a", "robot_b", "robot_a"), refresh_margin=60, manager="robot_a")
+    await keeper.refresh()
+    first = keeper.current()
+    with pytest.raises(TokenError, match="wrong_manager"):
+        await keeper.refresh()
+    with pytest.raises(TokenError) as info:
+        keeper.current()
+    assert info.value.reason == "wrong_manager"  # not the earlier token: the registry no longer binds us to it
+    await keeper.refresh()
+    assert keeper.current() not in (first, None)
+
+
+async def test_the_refresh_loop_logs_one_error_per_refused_token_and_no_warning(caplog):
+    keeper = TokenKeeper(Authz("robot_b"), refresh_margin=60, manager="robot_a")
+    with caplog.at_level(logging.INFO):
+        runner = asyncio.create_task(keeper.run())
+        try:
+            await asyncio.sleep(0.3)  # one attempt; the next after a 1 s back-off
+        finally:
+            runner.cancel()
+    lines = [(r.levelname, r.getMessage()) for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(lines) == 1 and lines[0][0] == "ERROR" and WRONG in lines[0][1], lines
+
+
+async def test_a_token_installed_by_a_reload_for_another_manager_is_refused_and_changes_nothing():
+    keeper = TokenKeeper(Authz("robot_a"), refresh_margin=60, manager="robot_a")
+    await keeper.refresh()
+    held = keeper.current()
+    wrong = await Authz("robot_b").fetch_token()
+    with pytest.raises(TokenError, match="wrong_manager"):
+        keeper.check(wrong)
+    with pytest.raises(TokenError, match="wrong_manager"):
+        keeper.install(wrong)
+    assert keeper.current() == held
+
+
+async def test_a_token_naming_no_manager_is_refused_too():
+    keeper = TokenKeeper(Authz("robot_a"), refresh_margin=60, manager="robot_a")
+    with pytest.raises(TokenError, match="wrong_manager"):
+        keeper.install(OwnToken(token="not-a-jwt", expires_at=time.time() + 300))
+
+
+async def test_without_a_configured_manager_no_subject_is_checked():
+    keeper = TokenKeeper(Authz("robot_b"), refresh_margin=60)
+    await keeper.refresh()
+    assert keeper.current()
+
+
+async def test_a_gateway_given_another_managers_token_reports_why_in_its_health(pki, tmp_path):
+    """The running interceptor's keeper knows its manager: ``status`` (``cryptoros
+    status``) shows the refusal, and no grants (the token is not held)."""
+    from interceptor.config import parse
+    from interceptor.gateway import Gateway
+
+    own = pki.issue("robot_a", kind="interceptor", sans=("IP:127.0.0.1",))
+    gateway = Gateway(parse({
+        "manager": "robot_a",
+        "tls": {"ca": str(pki.ca_cert), "cert": str(own.cert_path), "key": str(own.key_path)},
+        "authz": {"url": "https://127.0.0.1:9"},  # never asked: the keeper's client is replaced
+        "listen": {"public": "127.0.0.1:9", "local_master": "127.0.0.1:9"},
+        "master": {"interceptor": "127.0.0.1:9"},
+    }, base=tmp_path))
+    gateway.keeper._client = Authz("robot_b")
+    with pytest.raises(TokenError, match="wrong_manager"):
+        await gateway.keeper.refresh()
+    status = gateway.status()
+    assert status["health"] == f"wrong_manager: {WRONG}" and status["token"] is None
+    await gateway.authz.close()
