@@ -17,6 +17,14 @@ Two views of the same kernel table, each with a pure parser unit-tested on sampl
   refused (some sandboxes).
 
 :func:`read_listeners` is the thin reader over both.
+
+A socket bound to loopback answers other hosts too when the kernel accepts packets for
+``127.0.0.0/8`` from the network: ``net.ipv4.conf.<interface>.route_localnet`` (set by
+kube-proxy, and by Docker with ``--userland-proxy=false``). :func:`localnet_routed`
+judges the settings (pure), :func:`read_route_localnet` reads them from
+``/proc/sys/net/ipv4/conf``. IPv6 has no such setting: the kernel drops a packet for
+``::1`` that arrives on a non-loopback interface, whatever any sysctl says
+(``ip6_rcv_core``, RFC 4291 2.5.3).
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import os
 import socket
 import struct
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +43,8 @@ from cryptoros.errors import CryptorosError
 #: the ``st`` column of a socket in LISTEN (include/net/tcp_states.h: TCP_LISTEN = 10)
 _LISTEN = "0A"
 PROC_NET = Path("/proc/net")
+#: one directory per interface, and ``all`` and ``default``, each with a ``route_localnet``
+PROC_SYS_CONF = Path("/proc/sys/net/ipv4/conf")
 
 
 class ExposureError(CryptorosError):
@@ -203,6 +214,74 @@ def exposed_addresses(listeners: list[Listener], port: int) -> list[str]:
     return sorted({str(one.address) for one in listeners if one.port == port and one.exposed})
 
 
-__all__ = ["ExposureError", "Listener", "PROC_NET", "exposed_addresses", "is_exposed", "is_loopback_host",
-           "parse_proc_net_tcp", "proc_net_address",
+def _localnet_values(conf: Mapping[str, str | int]) -> dict[str, int]:
+    values = {}
+    for name, value in conf.items():
+        try:
+            values[name] = int(str(value).strip())
+        except ValueError:
+            raise ExposureError(f"route_localnet of {name} is not a number: {str(value).strip()[:20]!r}") from None
+    if "all" not in values:
+        raise ExposureError("no route_localnet of 'all' (not Linux?)")
+    return values
+
+
+def localnet_routed(conf: Mapping[str, str | int]) -> list[str]:
+    """The settings that make this host's loopback (127.0.0.0/8) reachable from other
+    hosts: ``all`` and each interface but ``lo`` whose ``route_localnet`` is not 0
+    (``all`` first, then by name); empty: loopback answers this host only. ``conf``: the
+    ``route_localnet`` of ``all``, ``default`` and each interface (name -> the file's
+    text or a number). The kernel routes a packet for 127.0.0.0/8 that arrives on an
+    interface when ``all`` or that interface has it (``IN_DEV_ROUTE_LOCALNET`` is an
+    ``IN_DEV_ORCONF``), so ``all`` alone opens every interface; ``default`` is only what
+    interfaces made later start with (a new one shows its own value), and ``lo`` carries
+    nothing from other hosts. A value that is not a number, or no ``all``, raises
+    :class:`ExposureError` (unknown is never taken for private)."""
+    values = _localnet_values(conf)
+    interfaces = sorted(name for name, value in values.items() if value and name not in ("all", "default", "lo"))
+    return (["all"] if values["all"] else []) + interfaces
+
+
+def sysctl_name(interface: str) -> str:
+    """The ``sysctl`` name of an interface's ``route_localnet`` (a dot in an interface
+    name, a VLAN's ``eth0.100``, is written ``/``)."""
+    return f"net.ipv4.conf.{interface.replace('.', '/')}.route_localnet"
+
+
+def route_localnet_fix(conf: Mapping[str, str | int]) -> str:
+    """The command that stops the routing :func:`localnet_routed` finds: every setting
+    it names set to 0, and ``default`` too when it is set (interfaces made later would
+    start with it)."""
+    values = _localnet_values(conf)
+    names = localnet_routed(conf) + (["default"] if values.get("default") else [])
+    names.sort(key=lambda name: (name != "all", name != "default", name))
+    return "sysctl -w " + " ".join(f"{sysctl_name(name)}=0" for name in names)
+
+
+def read_route_localnet(conf_dir: Path = PROC_SYS_CONF) -> dict[str, str]:
+    """The ``route_localnet`` of ``all``, ``default`` and each interface of this network
+    namespace (name -> the file's text), for :func:`localnet_routed`. An interface gone
+    while it is read is left out; :class:`ExposureError` when the directory or ``all``
+    cannot be read."""
+    try:
+        names = os.listdir(conf_dir)
+    except OSError as exc:
+        raise ExposureError(f"cannot read {conf_dir}: {exc.strerror or exc}") from None
+    conf = {}
+    for name in names:
+        try:
+            conf[name] = (conf_dir / name / "route_localnet").read_text(encoding="ascii")
+        except FileNotFoundError:
+            if name == "all":
+                raise ExposureError(f"cannot read {conf_dir / name / 'route_localnet'}: no such file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ExposureError(f"cannot read {conf_dir / name / 'route_localnet'}: {exc}") from None
+    if "all" not in conf:
+        raise ExposureError(f"cannot read {conf_dir / 'all' / 'route_localnet'}: no such file")
+    return conf
+
+
+__all__ = ["ExposureError", "Listener", "PROC_NET", "PROC_SYS_CONF", "exposed_addresses", "is_exposed",
+           "is_loopback_host", "localnet_routed", "parse_proc_net_tcp", "proc_net_address", "read_route_localnet",
+           "route_localnet_fix", "sysctl_name",
            "parse_sock_diag", "read_listeners", "sock_diag_request"]

@@ -55,13 +55,22 @@ def build_interceptor(cfg):
 
 def deployment_problems(cfg) -> tuple[list[str], list[str]]:
     """(refusals, warnings) of the deployment checks that need no network beyond this
-    host: the master role's rosmaster must answer on loopback only (warned, not
-    refused, with ``allow_exposed_master``)."""
-    if "master" not in cfg.roles or not cfg.master.upstream:
-        return [], []
+    host: this host's loopback must answer this host only (``route_localnet``: every
+    role trusts what reaches it there), and the master role's rosmaster must answer on
+    loopback only (warned, not refused, with ``allow_exposed_master``)."""
+    from cryptoros.exposure import ExposureError
     from interceptor.exposure import PortExposure, master_problem
 
-    problem = master_problem(cfg.master.upstream, PortExposure(), cfg.source)
+    exposure = PortExposure()
+    try:
+        loopback = exposure.loopback_problem()
+    except ExposureError as exc:
+        loopback = f"cannot tell whether it does: {exc}"
+    if loopback is not None:
+        return [f"this host's loopback answers other hosts: {loopback}"], []
+    if "master" not in cfg.roles or not cfg.master.upstream:
+        return [], []
+    problem = master_problem(cfg.master.upstream, exposure, cfg.source)
     if problem is None:
         return [], []
     if cfg.allow_exposed_master:

@@ -4,23 +4,37 @@ Processes behind an interceptor are trusted because nothing but this host reache
 A rosmaster or node that listens on a non-loopback address (rosmaster and rospy do
 without ``ROS_IP=127.0.0.1``) is reachable from other hosts past every check: the
 master's interceptor refuses to serve such a rosmaster, a robot's interceptor refuses
-such a node's registrations (docs/interceptor.md, "Deployment checks").
+such a node's registrations (docs/interceptor.md, "Deployment checks"). Loopback itself
+answers other hosts when the kernel routes 127.0.0.0/8 from the network
+(``route_localnet``, :func:`localnet_problem`): then the master's interceptor refuses
+its rosmaster the same way, and a robot's interceptor refuses every call to its local
+master (a stranger reaches that port too) and every endpoint its nodes announce.
 
 What the kernel says about a port (:mod:`cryptoros.exposure`) is kept for :data:`TTL`
 seconds, so a node's many registrations and ``requestTopic`` replies cost a dict
 lookup; a port not seen listening is asked again at once (a node announces a port only
-once it listens, so a fresh port is never judged from an older answer).
+once it listens, so a fresh port is never judged from an older answer). The
+``route_localnet`` settings are kept as long.
 """
 
 from __future__ import annotations
 
 import fnmatch
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from cryptoros.errors import PolicyDenied
-from cryptoros.exposure import ExposureError, Listener, is_loopback_host, read_listeners
+from cryptoros.exposure import (
+    ExposureError,
+    Listener,
+    is_loopback_host,
+    localnet_routed,
+    read_listeners,
+    read_route_localnet,
+    route_localnet_fix,
+    sysctl_name,
+)
 from cryptoros.lru import remember
 from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.ros1.xmlrpc import Request
@@ -29,19 +43,52 @@ from cryptoros.ros1.xmlrpc import Request
 TTL = 1.0
 #: ports whose answers are kept
 MAX_PORTS = 4096
+
+
+def localnet_problem(conf: Mapping[str, str | int]) -> str | None:
+    """Why every loopback port of this host answers other hosts, in one line naming the
+    settings and the fix, or None: ``conf`` is what
+    :func:`~cryptoros.exposure.read_route_localnet` reads (ExposureError when it does
+    not parse)."""
+    routed = localnet_routed(conf)
+    if not routed:
+        return None
+    settings = " and ".join(f"{sysctl_name(name)}={str(conf[name]).strip()}" for name in routed)
+    return (f"{settings}: the kernel accepts packets for 127.0.0.0/8 from the network, so other hosts reach every "
+            f"loopback port of this host (rosmaster, nodes, the interceptor's local master) past every check: run "
+            f"'{route_localnet_fix(conf)}' and remove the setting from /etc/sysctl.conf and /etc/sysctl.d "
+            f"(kube-proxy, and Docker with --userland-proxy=false, set it)")
+
+
 class PortExposure:
     """``exposed(port)``: the non-loopback addresses a port listens on (empty: loopback
     only, or not listening). The kernel is asked about that port alone (its sockets in
     LISTEN, filtered by the kernel: the cost does not grow with the host's other
     listeners, the interceptor's relays among them); a port seen listening keeps its
     answer for :data:`TTL` seconds (at most :data:`MAX_PORTS` ports, the oldest
-    forgotten first). ``read`` and ``clock`` are injectable."""
+    forgotten first). ``loopback_problem()``: whether loopback itself answers other
+    hosts (``route_localnet``), kept as long. ``read``, ``read_localnet`` and ``clock``
+    are injectable."""
 
     def __init__(self, read: Callable[[int], list[Listener]] = read_listeners,
-                 clock: Callable[[], float] = time.monotonic, ttl: float = TTL) -> None:
-        self._read, self._clock, self._ttl = read, clock, ttl
+                 clock: Callable[[], float] = time.monotonic, ttl: float = TTL,
+                 read_localnet: Callable[[], Mapping[str, str | int]] = read_route_localnet) -> None:
+        self._read, self._clock, self._ttl, self._read_localnet = read, clock, ttl, read_localnet
         self._answers: dict[int, tuple[float, list[str]]] = {}
+        self._localnet: tuple[float, str | None] | None = None
         self.reads = 0
+        self.localnet_reads = 0
+
+    def loopback_problem(self) -> str | None:
+        """:func:`localnet_problem` of this network namespace's settings, read at most
+        once per :data:`TTL`. Raises :class:`~cryptoros.exposure.ExposureError` when
+        they cannot be read (not kept: asked again next time)."""
+        now = self._clock()
+        if self._localnet is None or now - self._localnet[0] >= self._ttl:
+            problem = localnet_problem(self._read_localnet())
+            self.localnet_reads += 1
+            self._localnet = (now, problem)
+        return self._localnet[1]
 
     def exposed(self, port: int) -> list[str]:
         """Raises :class:`~cryptoros.exposure.ExposureError` when the kernel cannot be asked."""
@@ -77,8 +124,11 @@ def master_problem(upstream: str, exposure: PortExposure, config: Path | None) -
                 f"point [master] upstream at 127.0.0.1, or set allow_exposed_master = true")
     try:
         addresses = exposure.exposed(port)
+        localnet = None if addresses else exposure.loopback_problem()
     except ExposureError as exc:
         return f"cannot tell whether rosmaster ({upstream}) answers other hosts: {exc}"
+    if localnet is not None:
+        return f"rosmaster ({upstream}) answers other hosts on loopback: {localnet}, or set allow_exposed_master = true"
     if not addresses:
         return None
     return (f"rosmaster ({upstream}) listens on {', '.join(addresses)} port {port}, so other hosts reach it past "
@@ -111,7 +161,10 @@ class NodeGuard:
     other hosts reach is refused (PolicyDenied ``exposed_endpoint``) unless the node
     matches a pattern of ``allow_exposed_nodes`` (the operator closed its ports with a
     firewall, which no socket table shows): then it is served and remembered for the
-    status warning (at most :data:`MAX_NOTED` nodes)."""
+    status warning (at most :data:`MAX_NOTED` nodes). While loopback itself answers other
+    hosts (``route_localnet``) every call to the local master is refused, and every
+    endpoint, allowed nodes' too: the fix is one sysctl, and the local master, which a
+    stranger reaches as well, is no node a firewall note could cover."""
 
     MAX_NOTED = 1024
 
@@ -127,10 +180,15 @@ class NodeGuard:
         announces with the port (it picks the fix the refusal names)."""
         try:
             addresses = self.exposure.exposed(port)
+            localnet = None if addresses else self.exposure.loopback_problem()
         except ExposureError as exc:
             name = node() if callable(node) else node
             raise PolicyDenied("exposed_endpoint", f"cannot tell whether node {name}'s {what} (port {port}) answers "
                                                    f"other hosts: {exc}") from None
+        if localnet is not None:
+            name = node() if callable(node) else node
+            raise PolicyDenied("exposed_endpoint", f"node {name}'s {what} (port {port}) is on loopback, which other "
+                                                   f"hosts reach: {localnet}")
         if not addresses:
             return None
         name = node() if callable(node) else node
@@ -142,9 +200,26 @@ class NodeGuard:
         return (f"allow_exposed_nodes: node {name}'s {what} listens on {', '.join(addresses)} port {port}, served "
                 f"(its ports must be closed to the network by the host's firewall)")
 
+    def check_host(self) -> None:
+        """PolicyDenied (``exposed_endpoint``) while this host's loopback answers other
+        hosts, or whether it does cannot be told: a call to the local master may then
+        come from a stranger (its answer shows the robot's graph, its registrations are
+        made with the robot's certificate)."""
+        try:
+            problem = self.exposure.loopback_problem()
+        except ExposureError as exc:
+            raise PolicyDenied("exposed_endpoint", f"cannot tell whether this host's loopback (the local master "
+                                                   f"among it) answers other hosts: {exc}") from None
+        if problem is not None:
+            raise PolicyDenied("exposed_endpoint", f"local master calls refused, this host's loopback answers other "
+                                                   f"hosts: {problem}")
+
     def check_registrations(self, calls: list[Request], *, allow: tuple[str, ...], config: Path | None) -> list[str]:
-        """:meth:`check_port` for every endpoint the registrations among ``calls`` (a
-        request, or the calls of a multicall) announce; the new warnings."""
+        """Every request to the local master (a request, or the calls of a multicall):
+        :meth:`check_host`, then :meth:`check_port` for every endpoint the registrations
+        among ``calls`` announce; the new warnings."""
+        if calls:
+            self.check_host()
         warnings = []
         for call in calls:
             for index, what in REGISTRATION_URIS.get(call.method, ()):
@@ -160,13 +235,20 @@ class NodeGuard:
         return warnings
 
     def warnings(self) -> list[str]:
-        """The status line naming the nodes served exposed (empty: none)."""
+        """The status lines: loopback answering other hosts (``route_localnet``), and the
+        nodes served exposed (empty: neither)."""
+        try:
+            problem = self.exposure.loopback_problem()
+            host = [f"this host's loopback answers other hosts: {problem}"] if problem is not None else []
+        except ExposureError as exc:
+            host = [f"cannot tell whether this host's loopback answers other hosts: {exc}"]
         if not self._served:
-            return []
+            return host
         named = ", ".join(f"{node} ({where} port {port})" for (node, port), where in list(self._served.items())[:8])
         more = len(self._served) - 8
-        return [f"allow_exposed_nodes: served with ports other hosts reach unless a firewall closes them: {named}"
-                + (f" and {more} more" if more > 0 else "")]
+        served = f"allow_exposed_nodes: served with ports other hosts reach unless a firewall closes them: {named}"
+        return host + [served + (f" and {more} more" if more > 0 else "")]
 
 
-__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "master_problem", "run_hint"]
+__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "localnet_problem", "master_problem",
+           "run_hint"]

@@ -81,8 +81,22 @@ class Relays:
         await self.pool(target.host, target.port, "node", target.id).call(request)
 
     # ---------------------------------------------------------------- relays
+    def _refused_as_exposed(self, writer, target: Canonical) -> bool:
+        """While this host's loopback answers other hosts (``route_localnet``: the
+        exposure check) a relay's caller may be a stranger using this robot's certificate:
+        the connection is refused (counted, logged) and cut."""
+        try:
+            self._nodes_exposed.check_host()
+        except PolicyDenied as exc:
+            self.gw.deny("relay", exc, str(target))
+            writer.transport.abort()
+            return True
+        return False
+
     async def _on_xmlrpc_relay(self, reader, writer, target: Canonical) -> None:
         """A local process calls a remote node's API (or the master calls a node's)."""
+        if self._refused_as_exposed(writer, target):
+            return
         tunnel = self.pool(target.host, target.port, "node", target.id)
 
         def decide(call: Request) -> Request:
@@ -122,7 +136,8 @@ class Relays:
 
     async def _on_tcpros_relay(self, reader, writer, target: Canonical) -> None:
         """A local subscriber or service client connects to a remote TCPROS server."""
-        self.gw.track(self._tcpros_relay(reader, writer, target))
+        if not self._refused_as_exposed(writer, target):
+            self.gw.track(self._tcpros_relay(reader, writer, target))
 
     async def _tcpros_relay(self, reader, writer, target: Canonical) -> None:
         limits = self.cfg.limits

@@ -246,6 +246,10 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
     def problem(self) -> PolicyDenied | None:
         if self._master_exposed and not self.cfg.allow_exposed_master:
             return PolicyDenied("exposed_master", self._master_exposed)
+        try:  # every local master call is refused meanwhile (NodeGuard.check_host): health says why
+            self._nodes_exposed.check_host()
+        except PolicyDenied as exc:
+            return exc
         return None
 
     def _check_node_target(self, preamble: Preamble) -> Target:

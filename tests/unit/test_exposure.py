@@ -1,6 +1,6 @@
 """The deployment checks' parts without processes: the kernel's socket tables parsed
-from sample input, the per-port cache, the refusal lines, the instance lock, the node
-environment (``cryptoros env``)."""
+from sample input, the ``route_localnet`` settings judged, the per-port cache, the
+refusal lines, the instance lock, the node environment (``cryptoros env``)."""
 
 from __future__ import annotations
 
@@ -17,12 +17,15 @@ from cryptoros.exposure import (
     Listener,
     exposed_addresses,
     is_loopback_host,
+    localnet_routed,
     parse_proc_net_tcp,
     parse_sock_diag,
     read_listeners,
+    read_route_localnet,
+    route_localnet_fix,
 )
 from cryptoros.ros1.xmlrpc import Request
-from interceptor.exposure import NodeGuard, PortExposure, master_problem
+from interceptor.exposure import NodeGuard, PortExposure, localnet_problem, master_problem
 
 HEADER = ("  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n")
 TAIL = " 00000000:00000000 00:00000000 00000000     0        0 1563 1 0000000087f7565e 100 0 0 10 0\n"
@@ -114,14 +117,22 @@ class FakeTable:
         self.listeners = [Listener(address=ip_address("0.0.0.0"), port=41234),
                           Listener(address=ip_address("127.0.0.1"), port=11311)]
         self.now = 0.0
+        #: /proc/sys/net/ipv4/conf/*/route_localnet as a fresh host has them
+        self.conf = {"all": "0\n", "default": "0\n", "lo": "0\n", "eth0": "0\n"}
 
     def read(self, port: int) -> list[Listener]:
         return [one for one in self.listeners if one.port == port]
 
+    def read_localnet(self) -> dict[str, str]:
+        return dict(self.conf)
+
+    def exposure(self) -> PortExposure:
+        return PortExposure(read=self.read, clock=lambda: self.now, read_localnet=self.read_localnet)
+
 
 def test_a_port_seen_listening_keeps_its_answer_until_the_ttl_and_a_port_not_listening_is_asked_again():
     table = FakeTable()
-    exposure = PortExposure(read=table.read, clock=lambda: table.now, ttl=1.0)
+    exposure = PortExposure(read=table.read, clock=lambda: table.now, ttl=1.0, read_localnet=table.read_localnet)
     assert exposure.exposed(41234) == ["0.0.0.0"] and exposure.reads == 1
     assert exposure.exposed(11311) == [] and exposure.reads == 2
     assert exposure.exposed(41234) == ["0.0.0.0"] and exposure.exposed(11311) == [] and exposure.reads == 2
@@ -145,7 +156,7 @@ def test_the_kernel_filters_by_port():
 
 def test_a_registration_of_an_exposed_node_is_refused_in_one_line_naming_node_port_and_fix(tmp_path):
     table = FakeTable()
-    guard = NodeGuard(PortExposure(read=table.read, clock=lambda: table.now))
+    guard = NodeGuard(table.exposure())
     config = tmp_path / "robot_a.toml"
     private = Request(method="registerPublisher", params=("/ok", "/chatter", "std_msgs/String", "http://127.0.0.1:11311/"))
     assert guard.check_registrations([private], allow=(), config=config) == []
@@ -160,7 +171,7 @@ def test_a_registration_of_an_exposed_node_is_refused_in_one_line_naming_node_po
 
 def test_a_node_that_announces_loopback_but_binds_every_address_is_told_about_roscpp_and_the_override():
     table = FakeTable()
-    guard = NodeGuard(PortExposure(read=table.read, clock=lambda: table.now))
+    guard = NodeGuard(table.exposure())
     roscpp = Request(method="registerPublisher", params=("/cpp", "/chatter", "std_msgs/String", "http://127.0.0.1:41234/"))
     with pytest.raises(PolicyDenied, match="roscpp binds its XML-RPC API.*firewall.*allow_exposed_nodes"):
         guard.check_registrations([roscpp], allow=("/other*",), config=None)
@@ -172,7 +183,7 @@ def test_a_node_that_announces_loopback_but_binds_every_address_is_told_about_ro
 
 def test_master_problem_names_the_fix_and_the_override():
     table = FakeTable()
-    exposure = PortExposure(read=table.read, clock=lambda: table.now)
+    exposure = table.exposure()
     assert master_problem("http://127.0.0.1:11311", exposure, None) is None
     table.listeners[1] = Listener(address=ip_address("0.0.0.0"), port=11311)
     table.now = 5
@@ -180,6 +191,101 @@ def test_master_problem_names_the_fix_and_the_override():
     assert "0.0.0.0" in line and "ROS_IP=127.0.0.1 rosmaster --core -p 11311" in line
     assert "allow_exposed_master = true" in line and "\n" not in line
     assert "non-loopback" in master_problem("http://10.77.0.1:11311", exposure, None)
+
+
+@pytest.mark.parametrize(("conf", "routed"), [
+    ({"all": "0", "default": "0", "lo": "0", "eth0": "0"}, []),
+    ({"all": "0", "default": "0", "lo": "1", "eth0": "0"}, []),  # lo carries nothing from other hosts
+    ({"all": "0", "default": "1", "lo": "0", "eth0": "0"}, []),  # only what interfaces made later start with
+    ({"all": "1\n", "default": "0", "lo": "0", "eth0": "0"}, ["all"]),  # all OR the interface: every interface
+    ({"all": "0", "default": "0", "lo": "0", "eth0": "1\n", "docker0": "0"}, ["eth0"]),
+    ({"all": "1", "default": "1", "lo": "1", "eth0": "2", "br-lan": "1"}, ["all", "br-lan", "eth0"]),
+])
+def test_route_localnet_on_all_or_any_interface_but_lo_makes_loopback_reachable(conf, routed):
+    assert localnet_routed(conf) == routed
+    assert (localnet_problem(conf) is None) == (not routed)
+
+
+def test_the_route_localnet_fix_sets_each_setting_to_zero_default_too_and_names_a_vlan_as_sysctl_does():
+    conf = {"all": "1", "default": "1", "lo": "1", "eth0.100": "1", "eth0": "0"}
+    assert route_localnet_fix(conf) == ("sysctl -w net.ipv4.conf.all.route_localnet=0 "
+                                        "net.ipv4.conf.default.route_localnet=0 net.ipv4.conf.eth0/100.route_localnet=0")
+    assert route_localnet_fix({"all": "0", "default": "0", "wlan0": "1"}) == \
+        "sysctl -w net.ipv4.conf.wlan0.route_localnet=0"
+
+
+@pytest.mark.parametrize("conf", [{"default": "0", "eth0": "0"}, {"all": "0", "eth0": "yes"}, {"all": ""}])
+def test_route_localnet_settings_that_do_not_parse_are_an_error_never_a_private_loopback(conf):
+    with pytest.raises(ExposureError):
+        localnet_routed(conf)
+
+
+def test_route_localnet_is_read_from_each_interface_and_unreadable_settings_are_an_error(tmp_path):
+    for name, value in {"all": "0", "default": "1", "lo": "0", "eth0": "1"}.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "route_localnet").write_text(value + "\n")
+    (tmp_path / "gone0").mkdir()  # an interface deleted while it is read: left out
+    assert read_route_localnet(tmp_path) == {"all": "0\n", "default": "1\n", "lo": "0\n", "eth0": "1\n"}
+    (tmp_path / "all" / "route_localnet").unlink()
+    with pytest.raises(ExposureError, match="all"):
+        read_route_localnet(tmp_path)
+    with pytest.raises(ExposureError, match="cannot read"):
+        read_route_localnet(tmp_path / "missing")
+    real = read_route_localnet()  # this namespace's
+    assert {"all", "default", "lo"} <= set(real) and all(value.strip().isdigit() for value in real.values())
+
+
+def test_route_localnet_refuses_every_local_master_call_and_the_rosmaster_and_warns_in_status(tmp_path):
+    table = FakeTable()
+    exposure = table.exposure()
+    guard = NodeGuard(exposure)
+    config = tmp_path / "robot_a.toml"
+    private = Request(method="registerPublisher", params=("/ok", "/chatter", "std_msgs/String", "http://127.0.0.1:11311/"))
+    state = Request(method="getSystemState", params=("/stranger",))
+    assert guard.check_registrations([private], allow=("*",), config=config) == []
+    assert guard.check_registrations([state], allow=(), config=config) == []
+    assert master_problem("http://127.0.0.1:11311", exposure, None) is None and guard.warnings() == []
+
+    table.conf["eth0"] = "1\n"  # as kube-proxy or Docker (--userland-proxy=false) leave it
+    table.now = 1.5
+    fix = "sysctl -w net.ipv4.conf.eth0.route_localnet=0"
+    for calls, allow in (([private], ("*",)), ([state], ()), ([state, private], ())):
+        with pytest.raises(PolicyDenied) as err:  # the node's own patterns do not cover the local master
+            guard.check_registrations(calls, allow=allow, config=config)
+        text = str(err.value)
+        assert err.value.reason == "exposed_endpoint" and "\n" not in text
+        assert "local master" in text and "net.ipv4.conf.eth0.route_localnet=1" in text and fix in text
+    with pytest.raises(PolicyDenied, match=r"node /cpp's TCPROS port \(port 11311\) is on loopback.*route_localnet"):
+        guard.check_port("/cpp", 11311, "TCPROS port", allow=("*",), config=config)
+    line = master_problem("http://127.0.0.1:11311", exposure, None)
+    assert "net.ipv4.conf.eth0.route_localnet=1" in line and fix in line and "\n" not in line
+    assert "allow_exposed_master = true" in line
+    assert master_problem("http://127.0.0.1:4444", exposure, None) is not None  # not listening yet: all the same
+    [warning] = guard.warnings()
+    assert warning.startswith("this host's loopback answers other hosts: net.ipv4.conf.eth0.route_localnet=1")
+    reads = exposure.localnet_reads
+    assert guard.warnings() == [warning] and exposure.localnet_reads == reads  # kept for the TTL
+
+    table.conf["all"], table.conf["eth0"] = "1", "0"  # all alone opens every interface
+    table.now = 3.0
+    assert "net.ipv4.conf.all.route_localnet=1" in guard.warnings()[0]
+    table.conf["all"] = "0"
+    table.now = 4.5
+    assert guard.check_registrations([state], allow=(), config=config) == [] and guard.warnings() == []
+
+
+def test_route_localnet_that_cannot_be_read_fails_closed():
+    table = FakeTable()
+
+    def unreadable() -> dict[str, str]:
+        raise ExposureError("cannot read /proc/sys/net/ipv4/conf: Permission denied")
+
+    exposure = PortExposure(read=table.read, clock=lambda: table.now, read_localnet=unreadable)
+    guard = NodeGuard(exposure)
+    with pytest.raises(PolicyDenied, match="cannot tell.*Permission denied"):
+        guard.check_registrations([Request(method="getSystemState", params=("/n",))], allow=(), config=None)
+    assert "cannot tell" in master_problem("http://127.0.0.1:11311", exposure, None)
+    assert "cannot tell" in guard.warnings()[0]
 
 
 def test_the_instance_lock_refuses_a_second_holder_naming_the_first(tmp_path):
