@@ -78,6 +78,13 @@ def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
         cert = pemfiles.load_certificate(cert_file)
     except PKIError as exc:
         raise RegistryError(str(exc)) from exc
+    now = time.time()
+    if cert.not_valid_after_utc.timestamp() <= now:  # no token could ever be issued to it: a wrong file
+        raise RegistryError(f"{cert_file} expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC: renew it "
+                            f"(cryptoros-certs renew) and give the new one")
+    if cert.not_valid_before_utc.timestamp() > now:
+        raise RegistryError(f"{cert_file} is not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC "
+                            f"(a clock off on the CA's machine?)")
     if name is not None:
         try:
             uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value \

@@ -140,3 +140,43 @@ def test_serve_takes_its_files_registry_when_the_environment_agrees_or_is_unset(
     assert serve(tmp_path).exit_code == 0
     assert serve(tmp_path, db=None, env={"CRYPTOROS_AUTHZ_DB": ENV_DB}).exit_code == 0
     assert [cfg.db_url for cfg in served] == [FILE_DB, FILE_DB, ENV_DB]
+
+
+def _certificate(pki, path, *, days_ago_expired: float | None = None, starts_in_days: float | None = None):
+    """A certificate of ``pki``'s CA for manager robot_a, out of its validity period."""
+    import datetime as dt
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    from cryptoros.pemfiles import load_certificate, load_private_key
+
+    ca, ca_key = load_certificate(pki.ca_cert), load_private_key(pki.pki.ca_key_path, None)
+    now = dt.datetime.now(dt.timezone.utc)
+    start = now + dt.timedelta(days=starts_in_days) if starts_in_days else now - dt.timedelta(days=30)
+    end = now - dt.timedelta(days=days_ago_expired) if days_ago_expired else start + dt.timedelta(days=365)
+    key = ec.generate_private_key(ec.SECP256R1())
+    cert = (x509.CertificateBuilder().subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "robot_a")]))
+            .issuer_name(ca.subject).public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(start).not_valid_after(end).sign(ca_key, hashes.SHA256()))
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    return path
+
+
+def test_a_certificate_out_of_its_validity_is_refused_for_a_manager(tmp_path, pki):
+    """add-manager and set-cert with an expired (or not yet valid) certificate: one line,
+    nothing changed (no token could be issued to it; a renewal given the old file)."""
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    good = pki.issue("robot_a").cert_path
+    assert run("--db", db, "add-manager", "robot_a", "--cert", str(good)).exit_code == 0
+    before = exported(db)
+    for bad, said in ((_certificate(pki, tmp_path / "old.crt", days_ago_expired=2), "expired on"),
+                      (_certificate(pki, tmp_path / "early.crt", starts_in_days=3), "is not valid before")):
+        for args in (("add-manager", "robot_b", "--cert", str(bad)),
+                     ("set-cert", "robot_a", "--cert", str(bad), "--overlap", "600")):
+            result = run("--db", db, *args)
+            lines = result.stderr.strip().splitlines()
+            assert result.exit_code == 2 and len(lines) == 1 and said in lines[0], (args, result.output)
+    assert exported(db) == before
