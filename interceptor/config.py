@@ -58,6 +58,7 @@ Example::
     max_param_keys_per_peer = 10000   # master role: what a peer may store through setParam (keys...
     max_param_bytes_per_peer = 16777216  # ... and bytes); deleteParam frees it
     tunnel_idle_timeout = 60.0        # a pooled XML-RPC tunnel to a peer closes after this long unused
+    stalled_stream_timeout = 30.0     # a stream whose receiver takes no bytes this long is cut (0: never)
     spare_connections = true          # up to 2 connections kept ready per peer with streams in a row
 
     [limits.message_size]             # per-topic exceptions (fnmatch patterns, first match wins)
@@ -185,6 +186,10 @@ class Limits:
     max_xmlrpc_body: int = 1 << 20
     max_header_size: int = 1 << 20
     handshake_timeout: float = 10.0
+    #: seconds a relayed stream's receiver may take no bytes (its side of the pump full)
+    #: before the stream is cut: a subscriber that stops reading otherwise blocks its
+    #: publisher for good (rospy's queue_size=None publishes synchronously). 0: never cut.
+    stalled_stream_timeout: float = 30.0
     #: Messages per second one peer manager may send into this host (all its streams
     #: together: ROS 1 topic messages and service requests, ROS 2 samples), after a
     #: burst of one second's worth. Excess is throttled by backpressure, not dropped.
@@ -604,6 +609,9 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
     if isinstance(idle, bool) or not isinstance(idle, (int, float)) or not 0 < idle < XMLRPC_IDLE_TIMEOUT:
         raise ConfigError(f"[limits] tunnel_idle_timeout must be seconds over 0 and under {XMLRPC_IDLE_TIMEOUT:g} "
                           f"(peers close an idle XML-RPC stream then), got {idle!r}")
+    stalled = limits_raw.get("stalled_stream_timeout", Limits.stalled_stream_timeout)
+    if isinstance(stalled, bool) or not isinstance(stalled, (int, float)) or not 0 <= stalled <= 86400:
+        raise ConfigError(f"[limits] stalled_stream_timeout must be seconds from 0 (never) to 86400, got {stalled!r}")
     limit_types = {f.name: (int if f.type in ("int", int) else float) for f in fields(Limits)}
     limits = Limits(
         message_size=tuple(sizes),

@@ -521,6 +521,7 @@ class Gateway(Admission, Outbound, Health):
             left_tap=left_tap,
             right_tap=right_tap,
             left_gate=left_gate,
+            stall_timeout=self.cfg.limits.stalled_stream_timeout,
         )
         for transport in (left_writer.transport, right_writer.transport):
             if not transport.is_closing() and not transport.is_reading():

@@ -125,8 +125,11 @@ class PumpProtocol(asyncio.BufferedProtocol):
         on_deny: Callable[[PolicyDenied], None] | None = None,
         tap: Callable[[bytes], None] | None = None,
         gate: Callable[[bytes], bool] | None = None,
+        stall_timeout: float = 0.0,
     ):
         self._buffer_size = buffer_size
+        self._stall_timeout = stall_timeout
+        self._stall_timer: asyncio.TimerHandle | None = None
         self._buffer = bytearray(min(buffer_size, FIRST_BUFFER_SIZE))
         self._tap = tap
         self._gate = gate
@@ -192,7 +195,7 @@ class PumpProtocol(asyncio.BufferedProtocol):
             self._release()
 
     def _deny(self, exc: PolicyDenied) -> None:
-        """A frame over its limit: nothing more passes either way."""
+        """A frame over its limit, a stalled receiver: nothing more passes either way."""
         self._held.clear()
         if self._on_deny is not None:
             self._on_deny(exc)
@@ -263,6 +266,8 @@ class PumpProtocol(asyncio.BufferedProtocol):
         return False
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self._stall_timer is not None:
+            self._stall_timer.cancel()
         if self.peer is not None and self.peer.transport is not None and not self.peer.transport.is_closing():
             self.peer.transport.close()
         if not self.closed.done():
@@ -272,10 +277,23 @@ class PumpProtocol(asyncio.BufferedProtocol):
     def pause_writing(self) -> None:
         if self.peer is not None:
             self.peer.pause("backpressure")
+        if self._stall_timeout > 0 and self._stall_timer is None:
+            self._stall_timer = asyncio.get_running_loop().call_later(self._stall_timeout, self._stalled)
 
     def resume_writing(self) -> None:
+        if self._stall_timer is not None:
+            self._stall_timer.cancel()
+            self._stall_timer = None
         if self.peer is not None:
             self.peer.unpause("backpressure")
+
+    def _stalled(self) -> None:
+        """Our receiver took too few bytes for ``stall_timeout`` to bring our write buffer
+        down: the stream is cut, both sides, so the sender it blocked goes on (a rospy
+        publisher with queue_size=None waits for every subscriber)."""
+        self._stall_timer = None
+        self._deny(PolicyDenied("stalled_stream", f"the receiver took no bytes for {self._stall_timeout:g} s "
+                                                  "([limits] stalled_stream_timeout): stream cut"))
 
 
 def splice(
@@ -295,6 +313,7 @@ def splice(
     left_tap: Callable[[bytes], None] | None = None,
     right_tap: Callable[[bytes], None] | None = None,
     left_gate: Callable[[bytes], bool] | None = None,
+    stall_timeout: float = 0.0,
 ) -> asyncio.Future[None]:
     """Relay ``left`` <-> ``right`` until both close.
 
@@ -307,13 +326,15 @@ def splice(
     ``left_tap`` is handed every chunk forwarded from ``left`` (the runtime monitor);
     ``right_tap`` likewise from ``right`` (the monitor's reading of this host's own beacons);
     ``left_gate`` decides on each whole frame from ``left`` before it goes on.
+    ``stall_timeout`` (0: never): a side whose receiver keeps its write buffer full that
+    long cuts both (``stalled_stream``).
     """
     if left_gate is not None and left_frames is None:
         raise ValueError("a gate needs the frame sizes checked (left_frames)")
     a = PumpProtocol(on_bytes=on_left_bytes, budget=left_budget, frames=left_frames, discard=left_discard,
-                     on_deny=on_deny, tap=left_tap, gate=left_gate)
+                     on_deny=on_deny, tap=left_tap, gate=left_gate, stall_timeout=stall_timeout)
     b = PumpProtocol(on_bytes=on_right_bytes, budget=right_budget, frames=right_frames, on_deny=on_deny,
-                     tap=right_tap)
+                     tap=right_tap, stall_timeout=stall_timeout)
     a.attach(left, b)
     b.attach(right, a)
     left.set_protocol(a)

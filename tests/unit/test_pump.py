@@ -326,3 +326,63 @@ async def read_buffer_grows():
     writer.close()
     relay.close()
     echo.close()
+
+
+class HeaderThenStallingSplice(HeaderThenSplice):
+    """As :class:`HeaderThenSplice`, the pump cutting a receiver stalled ``stall`` seconds."""
+
+    def __init__(self, upstream_port: int, spliced: list, stall: float, denied: list) -> None:
+        super().__init__(upstream_port, spliced)
+        self.stall, self.denied = stall, denied
+
+    async def _open(self, rest: bytes) -> None:
+        loop = asyncio.get_running_loop()
+        up, _ = await loop.create_connection(asyncio.Protocol, "127.0.0.1", self.upstream_port)
+        done = splice(self.transport, up, left_pending=rest, stall_timeout=self.stall, on_deny=self.denied.append)
+        self.transport.resume_reading()
+        self.spliced.append((self.transport, up, done))
+
+
+def test_a_receiver_that_stops_reading_is_cut_after_the_stall_timeout(tls_pair, run_loop):
+    """A subscriber that stops reading (an insider's, or a stuck process) would block the
+    sender for good (a rospy publisher with queue_size=None waits for every subscriber):
+    once the relay's buffer toward it stayed full for ``stall_timeout``, both sides are
+    cut and the refusal is reported (``stalled_stream``); the sender is free."""
+    run_loop(stalled_receiver_is_cut(*tls_pair))
+
+
+async def stalled_receiver_is_cut(server_ctx, client_ctx):
+    loop = asyncio.get_running_loop()
+    sink_connected = asyncio.Event()
+    sink_transports = []
+
+    class Sink(asyncio.Protocol):
+        def connection_made(self, transport):
+            asyncio.get_running_loop().call_soon(transport.pause_reading)  # never reads
+            sink_transports.append(transport)
+            sink_connected.set()
+
+    sink = await loop.create_server(Sink, "127.0.0.1", 0)
+    spliced: list = []
+    denied: list = []
+    relay = await loop.create_server(
+        lambda: HeaderThenStallingSplice(sink.sockets[0].getsockname()[1], spliced, 0.5, denied), "127.0.0.1", 0,
+        ssl=server_ctx)
+    reader, writer = await asyncio.open_connection(
+        "127.0.0.1", relay.sockets[0].getsockname()[1], ssl=client_ctx, server_hostname="localhost")
+    writer.write(b"header\n")
+    await asyncio.wait_for(sink_connected.wait(), timeout=10)
+    chunk = b"x" * (1 << 20)
+    try:  # the relay fills toward the sink, waits 0.5 s, then cuts the sender's stream too
+        for _ in range(256):
+            writer.write(chunk)
+            await asyncio.wait_for(writer.drain(), timeout=10)  # blocked for good (TimeoutError) if never cut
+    except (ConnectionError, OSError):
+        pass
+    await asyncio.wait_for(spliced[0][2], timeout=10)  # both sides closed
+    assert [exc.reason for exc in denied] == ["stalled_stream"], denied
+    writer.transport.abort()
+    for t in sink_transports:
+        t.close()
+    relay.close()
+    sink.close()
