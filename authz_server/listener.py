@@ -100,9 +100,12 @@ class TLSListener:
         while True:
             try:
                 conn, address = await loop.sock_accept(self._sock)
-            except OSError as exc:  # EMFILE and the like: the caps bind first, but never spin
-                if self._log_once(("accept", exc.errno)):
-                    log.error("cannot accept connections on %s:%d: %s", self.host, self.port, exc.strerror or exc)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # EMFILE and the like: the caps bind first; never spin, never stop accepting
+                if self._log_once(("accept", type(exc).__name__, getattr(exc, "errno", None))):
+                    log.error("cannot accept connections on %s:%d: %s", self.host, self.port,
+                              getattr(exc, "strerror", None) or exc)
                 await asyncio.sleep(0.1)
                 continue
             source = str(address[0])

@@ -122,11 +122,20 @@ class NetnsLab:
         try:
             _ip("link", "add", self._bridge, "type", "bridge")
             self._made_bridge = True
+            # a MAC of its own: a bridge otherwise takes the lowest of its ports' MACs, so a
+            # host added later (a stranger) could change it, and every host's ARP entry of
+            # the gateway (the authorization server's address) went stale: timeouts
+            _ip("link", "set", self._bridge, "address", self._bridge_mac())
             _ip("addr", "add", f"{self.gateway}/24", "dev", self._bridge)
             _ip("link", "set", self._bridge, "up")
         except BaseException:
             self.close()
             raise
+
+    def _bridge_mac(self) -> str:
+        """A locally administered unicast MAC, one per lab (from its prefix)."""
+        digest = uuid.uuid5(uuid.NAMESPACE_DNS, self.prefix).bytes
+        return ":".join(f"{b:02x}" for b in (0x02, 0x77, *digest[:4]))
 
     @property
     def gateway(self) -> str:

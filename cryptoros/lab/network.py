@@ -133,15 +133,33 @@ class Network:
     lab: Any = None
     ns_hosts: dict[str, Any] = field(default_factory=dict)
 
+    def _ns_host(self, host: str | None) -> Any:
+        """``host``'s namespace host; None without namespaces (or for None). A name the
+        lab does not know is an error, never this machine's own namespace: a stranger's
+        routes and sysctls must not land here (:meth:`add_host` makes one)."""
+        if not host or self.lab is None:
+            return None
+        if host not in self.ns_hosts:
+            raise NetworkError(f"no host {host!r} in this lab (hosts: {', '.join(self.ns_hosts)}; see add_host)")
+        return self.ns_hosts[host]
+
+    def add_host(self, name: str) -> Any:
+        """A host of no robot on the lab's network (a stranger): its own namespace and
+        address, known to :meth:`argv` and :meth:`inside`. Namespace mode only."""
+        if self.lab is None:
+            raise NetworkError("add_host needs network namespaces (netns=True)")
+        self.ns_hosts[name] = self.lab.add_host(name)
+        return self.ns_hosts[name]
+
     def argv(self, host: str | None, argv: Sequence[str]) -> list[str]:
         """A command line that runs on ``host`` (as it is, without namespaces)."""
-        ns_host = self.ns_hosts.get(host) if host else None
+        ns_host = self._ns_host(host)
         return ns_host.argv(argv) if ns_host is not None else list(argv)
 
     @contextlib.contextmanager
     def inside(self, host: str | None) -> Iterator[None]:
         """Sockets opened in the block are on ``host`` (a no-op without namespaces)."""
-        ns_host = self.ns_hosts.get(host) if host else None
+        ns_host = self._ns_host(host)
         if ns_host is None:
             yield
         else:

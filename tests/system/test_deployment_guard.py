@@ -95,7 +95,7 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
     separate_hosts()
     require("rosmaster")
     with robot_network(tmp_path, start=(), netns=True) as net:
-        stranger = net.lab.add_host("stranger")
+        stranger = net.add_host("stranger")  # its own namespace: what inside("stranger") reaches
         port = int(net.rosmaster_uri.rstrip("/").rsplit(":", 1)[1])
         master = net.hosts["master"]
         stop(_lab_rosmaster(net))

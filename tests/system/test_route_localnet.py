@@ -33,7 +33,7 @@ pytestmark = [pytest.mark.ros1]
 
 def _add_stranger(net) -> None:
     """A host of no robot on the LAN, known to ``net.argv`` and ``net.inside``."""
-    net.ns_hosts["stranger"] = net.lab.add_host("stranger")
+    net.add_host("stranger")
 
 
 def _on(net, host: str, args: list[str]) -> subprocess.CompletedProcess:
