@@ -296,3 +296,30 @@ def master_state(network) -> list:
 
 def nodes_in_state(state) -> set[str]:
     return {node for section in state for _name, nodes in section for node in nodes}
+
+
+def run_on(network, host: str, args: list[str], **extra: str) -> subprocess.CompletedProcess:
+    """``args`` run on lab host ``host`` (its namespace), ROS_HOME in the lab's work dir."""
+    from cryptoros.lab.network import clean_env
+
+    env = clean_env(ROS_HOME=str(network.workdir / "ros_home"), **extra)
+    return subprocess.run(network.argv(host, args), capture_output=True, text=True, timeout=60, env=env)
+
+
+def reaches(network, host: str, address: str, port: int) -> bool:
+    """Whether a TCP connection from ``host`` to ``address:port`` is accepted."""
+    import socket
+
+    with network.inside(host):
+        try:
+            socket.create_connection((address, port), timeout=2).close()
+            return True
+        except OSError:
+            return False
+
+
+def status_text(network, host: str) -> str:
+    """What ``cryptoros status`` prints on ``host`` about its interceptor."""
+    from cryptoros.lab.network import tool
+
+    return run_on(network, host, [tool("cryptoros"), "status", "--config", str(network.hosts[host].config)]).stdout

@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import shutil
 import signal
-import socket
 import subprocess
 import time
 import xmlrpc.client
@@ -31,16 +30,23 @@ import xmlrpc.client
 import pytest
 
 from cryptoros.lab.network import clean_env, stop, tool, wait_port
-from tests.interceptor_harness import NODE, SYS_PY, got, read_lines, robot_network, separate_hosts
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    got,
+    reaches,
+    read_lines,
+    robot_network,
+    run_on,
+    separate_hosts,
+    status_text,
+)
 from tests.ros1_flow import flow_policy, legit_flow
 from tests.support import require, running
 
 pytestmark = [pytest.mark.ros1]
 
 
-def _on(net, host: str, args: list[str], **extra: str) -> subprocess.CompletedProcess:
-    env = clean_env(ROS_HOME=str(net.workdir / "ros_home"), **extra)
-    return subprocess.run(net.argv(host, args), capture_output=True, text=True, timeout=60, env=env)
 
 
 def _rosmaster(net, port: int, *, through_cryptoros_run: bool) -> subprocess.Popen:
@@ -60,13 +66,6 @@ def _lab_rosmaster(net) -> subprocess.Popen:
     return next(p for p in net.procs if "--core" in p.args and p.poll() is None)
 
 
-def _reaches(net, host: str, address: str, port: int) -> bool:
-    with net.inside(host):
-        try:
-            socket.create_connection((address, port), timeout=2).close()
-            return True
-        except OSError:
-            return False
 
 
 def _wait_log(net, host: str, needle: str, timeout: float = 15) -> None:
@@ -87,8 +86,6 @@ def _wait_rosmaster_holds(net, node: str, timeout: float = 20) -> None:
         time.sleep(0.2)
 
 
-def _status(net, host: str) -> str:
-    return _on(net, host, [tool("cryptoros"), "status", "--config", str(net.hosts[host].config)]).stdout
 
 
 def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path):
@@ -100,10 +97,10 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
         master = net.hosts["master"]
         stop(_lab_rosmaster(net))
         exposed = _rosmaster(net, port, through_cryptoros_run=False)  # the runbook's old line
-        assert _reaches(net, "stranger", master.address, port)  # what the check is about
+        assert reaches(net, "stranger", master.address, port)  # what the check is about
 
         for args in ([], ["--check"]):
-            result = _on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), *args])
+            result = run_on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), *args])
             lines = result.stderr.strip().splitlines()
             assert result.returncode == 1 and len(lines) == 1, result
             assert f"listens on 0.0.0.0 port {port}" in lines[0] and "ROS_IP=127.0.0.1" in lines[0]
@@ -114,8 +111,8 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
         # the fix the line gives: rosmaster through cryptoros run, on loopback only
         stop(exposed)
         private = _rosmaster(net, port, through_cryptoros_run=True)
-        assert not _reaches(net, "stranger", master.address, port)
-        check = _on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), "--check"])
+        assert not reaches(net, "stranger", master.address, port)
+        check = run_on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), "--check"])
         assert "rosmaster" not in check.stderr, check
         net.start("master")
         net.start("robot_a")
@@ -133,10 +130,10 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
                 code, message, _ = xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).getSystemState("/probe")
             assert code != 1, message
             assert "exposed_master" in net.hosts["master"].logs().split("master streams refused", 1)[1]
-            status = _status(net, "master")
+            status = status_text(net, "master")
             assert "warning   master streams refused (exposed_master)" in status, status
             # not healthy while it refuses: status exits 1 with the reason, /healthz 503
-            result = _on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)])
+            result = run_on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)])
             assert result.returncode == 1 and "exposed_master" in result.stdout.splitlines()[0], result
             # the stranger reaches this rosmaster, but it holds no robot: nothing was replayed to it
             with net.inside("stranger"):
@@ -148,7 +145,7 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
             master.config.write_text("allow_exposed_master = true\n" + master.config.read_text())
             master.proc.send_signal(signal.SIGHUP)
             _wait_log(net, "master", "registrations replayed")
-            status = _status(net, "master")
+            status = status_text(net, "master")
             assert "warning   allow_exposed_master = true, served anyway" in status, status
 
             # fixed: rosmaster back on loopback, override gone; served, replayed, no warning
@@ -158,9 +155,9 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
             _rosmaster(net, port, through_cryptoros_run=True)
             _wait_log(net, "master", "answers on loopback only now")
             _wait_rosmaster_holds(net, "/talker_a")  # replayed to the new rosmaster
-            assert "warning" not in _status(net, "master")
-            assert _on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)]).returncode == 0
-            assert not _reaches(net, "stranger", master.address, port)
+            assert "warning" not in status_text(net, "master")
+            assert run_on(net, "master", [tool("cryptoros"), "status", "--config", str(master.config)]).returncode == 0
+            assert not reaches(net, "stranger", master.address, port)
         assert stranger.address  # the stranger's host was there all along
 
 
@@ -211,7 +208,7 @@ def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_ch
             assert oct(state.stat().st_mode & 0o777) == "0o700"
             with flow.held("the second starts"):
                 for where in ("robot_a", "robot_b"):  # the same host, or another by mistake
-                    second = _on(net, where, [tool("cryptoros-interceptor"), "--config", str(host.config)])
+                    second = run_on(net, where, [tool("cryptoros-interceptor"), "--config", str(host.config)])
                     lines = second.stderr.strip().splitlines()
                     assert second.returncode == 1 and len(lines) == 1, second
                     assert f"pid {host.proc.pid}" in lines[0] and "nothing was changed" in lines[0]

@@ -18,14 +18,22 @@ Needs root (CI runs as root); without root it skips and says why.
 from __future__ import annotations
 
 import contextlib
-import subprocess
 import time
 import xmlrpc.client
 
 import pytest
 
-from cryptoros.lab.network import clean_env, tool
-from tests.interceptor_harness import NODE, SYS_PY, read_lines, robot_network, separate_hosts
+from cryptoros.lab.network import tool
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    reaches,
+    read_lines,
+    robot_network,
+    run_on,
+    separate_hosts,
+    status_text,
+)
 from tests.support import running, until
 
 pytestmark = [pytest.mark.ros1]
@@ -36,16 +44,11 @@ def _add_stranger(net) -> None:
     net.add_host("stranger")
 
 
-def _on(net, host: str, args: list[str]) -> subprocess.CompletedProcess:
-    # never this machine's own namespace: the commands change routes and sysctls
-    assert host in net.ns_hosts, f"{host} is no namespace host"
-    env = clean_env(ROS_HOME=str(net.workdir / "ros_home"))
-    return subprocess.run(net.argv(host, args), capture_output=True, text=True, timeout=60, env=env)
 
 
 def _route_localnet(net, host: str, conf: str, value: int) -> None:
     """``sysctl -w net.ipv4.conf.<conf>.route_localnet=<value>`` in ``host``'s namespace only."""
-    result = _on(net, host, ["sysctl", "-w", f"net.ipv4.conf.{conf}.route_localnet={value}"])
+    result = run_on(net, host, ["sysctl", "-w", f"net.ipv4.conf.{conf}.route_localnet={value}"])
     assert result.returncode == 0, result
 
 
@@ -56,20 +59,10 @@ def _route_loopback_through(net, host: str, gateway: str) -> None:
               "ip rule add pref 10 to 127.0.0.0/8 lookup 77 && "
               f"ip route add 127.0.0.0/8 via {gateway} dev eth0 table 77 && "
               "sysctl -qw net.ipv4.conf.eth0.route_localnet=1")
-    result = _on(net, host, ["sh", "-c", script])
+    result = run_on(net, host, ["sh", "-c", script])
     assert result.returncode == 0, result
 
 
-def _reaches(net, host: str, address: str, port: int) -> bool:
-    import socket
-
-    assert host in net.ns_hosts, f"{host} is no namespace host"
-    with net.inside(host):
-        try:
-            socket.create_connection((address, port), timeout=2).close()
-            return True
-        except OSError:
-            return False
 
 
 def _call(net, host: str, port: int, method: str, *params) -> list:
@@ -102,8 +95,6 @@ def _served(net, host: str, port: int, timeout: float = 10) -> None:
         time.sleep(0.2)
 
 
-def _status(net, host: str) -> str:
-    return _on(net, host, [tool("cryptoros"), "status", "--config", str(net.hosts[host].config)]).stdout
 
 
 def test_a_robot_whose_loopback_other_hosts_reach_refuses_its_local_master_and_names_the_sysctl(tmp_path):
@@ -113,7 +104,7 @@ def test_a_robot_whose_loopback_other_hosts_reach_refuses_its_local_master_and_n
         robot = net.hosts["robot_a"]
         port = robot.local_master_port
         _route_loopback_through(net, "stranger", robot.address)
-        assert not _reaches(net, "stranger", "127.0.0.1", port)  # route_localnet=0: the robot's loopback is its own
+        assert not reaches(net, "stranger", "127.0.0.1", port)  # route_localnet=0: the robot's loopback is its own
         assert _call(net, "robot_a", port, "getSystemState", "/probe")[0] == 1
         # a relay robot A opened for robot B's talker (its node API, as robot A's nodes are handed it)
         net.cli("grant", "robot_b", "publish", "/talker_b", "/chatter", "std_msgs/String")
@@ -125,7 +116,7 @@ def test_a_robot_whose_loopback_other_hosts_reach_refuses_its_local_master_and_n
               "robot B's talker answering through robot A's relay")
 
         _route_localnet(net, "robot_a", "eth0", 1)
-        assert _reaches(net, "stranger", "127.0.0.1", port)  # what the check is about
+        assert reaches(net, "stranger", "127.0.0.1", port)  # what the check is about
         fix = "sysctl -w net.ipv4.conf.eth0.route_localnet=0"
         # the stranger, with no certificate, at the robot's local master
         message = _refused(net, "stranger", port, "exposed_endpoint")
@@ -144,27 +135,27 @@ def test_a_robot_whose_loopback_other_hosts_reach_refuses_its_local_master_and_n
             lines = read_lines(pub, "exposed_endpoint", 30)
         assert "net.ipv4.conf.eth0.route_localnet=1" in lines[-1] and fix in lines[-1], lines
         assert "DENY local-master from local node: exposed_endpoint" in robot.logs()
-        status = _status(net, "robot_a")
+        status = status_text(net, "robot_a")
         assert "warning   this host's loopback answers other hosts: net.ipv4.conf.eth0.route_localnet=1" in status, \
             status
         # unhealthy (status exits 1, /healthz 503), and a start or --check refuses the host in one line
-        assert _on(net, "robot_a", [tool("cryptoros"), "status", "--config", str(robot.config)]).returncode == 1
-        check = _on(net, "robot_a", [tool("cryptoros-interceptor"), "--config", str(robot.config), "--check"])
+        assert run_on(net, "robot_a", [tool("cryptoros"), "status", "--config", str(robot.config)]).returncode == 1
+        check = run_on(net, "robot_a", [tool("cryptoros-interceptor"), "--config", str(robot.config), "--check"])
         lines = check.stderr.strip().splitlines()
         assert check.returncode == 1 and len(lines) == 1 and "route_localnet=1" in lines[0], check
 
         # all alone opens every interface (the kernel takes all OR the interface's)
         _route_localnet(net, "robot_a", "eth0", 0)
         _route_localnet(net, "robot_a", "all", 1)
-        assert _reaches(net, "stranger", "127.0.0.1", port)
+        assert reaches(net, "stranger", "127.0.0.1", port)
         message = _refused(net, "stranger", port, "net.ipv4.conf.all.route_localnet=1")
         assert "sysctl -w net.ipv4.conf.all.route_localnet=0" in message, message
 
         # fixed: the stranger no longer reaches it, the robot's nodes are served, no warning
         _route_localnet(net, "robot_a", "all", 0)
-        assert not _reaches(net, "stranger", "127.0.0.1", port)
+        assert not reaches(net, "stranger", "127.0.0.1", port)
         _served(net, "robot_a", port)
-        assert "route_localnet" not in _status(net, "robot_a")
+        assert "route_localnet" not in status_text(net, "robot_a")
 
 
 def test_the_masters_interceptor_refuses_a_rosmaster_on_a_loopback_other_hosts_reach(tmp_path):
@@ -175,7 +166,7 @@ def test_the_masters_interceptor_refuses_a_rosmaster_on_a_loopback_other_hosts_r
         port = int(net.rosmaster_uri.rstrip("/").rsplit(":", 1)[1])
         _route_loopback_through(net, "stranger", master.address)
         _route_localnet(net, "master", "eth0", 1)
-        assert _reaches(net, "stranger", "127.0.0.1", port)  # rosmaster, bound to 127.0.0.1 only
+        assert reaches(net, "stranger", "127.0.0.1", port)  # rosmaster, bound to 127.0.0.1 only
 
         deadline = time.monotonic() + 15
         while "master streams refused (exposed_master)" not in master.logs():
@@ -184,10 +175,10 @@ def test_the_masters_interceptor_refuses_a_rosmaster_on_a_loopback_other_hosts_r
         refusal = master.logs().split("master streams refused (exposed_master)", 1)[1].splitlines()[0]
         assert "net.ipv4.conf.eth0.route_localnet=1" in refusal, refusal
         assert "sysctl -w net.ipv4.conf.eth0.route_localnet=0" in refusal, refusal
-        status = _status(net, "master")
+        status = status_text(net, "master")
         assert "warning   master streams refused (exposed_master)" in status and "route_localnet" in status, status
         # start-up and --check refuse it too: exit 1, one line
-        check = _on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), "--check"])
+        check = run_on(net, "master", [tool("cryptoros-interceptor"), "--config", str(master.config), "--check"])
         lines = check.stderr.strip().splitlines()
         assert check.returncode == 1 and len(lines) == 1 and "route_localnet=1" in lines[0], check
 
