@@ -415,6 +415,10 @@ class _Denied(CryptorosError):
         self.status, self.error, self.manager = status, error, manager
 
 
+#: seconds a failed registry request keeps /healthz unavailable (unless a token is issued meanwhile)
+REGISTRY_FAILURE_SECONDS = 60.0
+
+
 class AuthzService:
     """State of one daemon: registry, signing key, caches, metrics."""
 
@@ -449,6 +453,10 @@ class AuthzService:
         self._held_total = 0
         self.metrics.feed_polls_held.set_function(lambda: self._held_total)
         self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
+        #: (monotonic time, why) of the last request the registry failed, until a token is
+        #: issued again: /healthz says so (a registry that reads but cannot write, a full
+        #: disk, answered every token 503 while /healthz said ok)
+        self.registry_failure: tuple[float, str] | None = None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run a blocking registry call in the DB thread pool."""
@@ -815,13 +823,18 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
             if service.crl is not None and request.path != "/token" and service.crl.is_revoked(der):
                 _log_revoked_client(der, request)
                 return _oauth_error(401, "invalid_client")
-            return await handler(request)
+            response = await handler(request)
+            if request.path == "/token" and response.status == 200:
+                service.registry_failure = None
+            return response
         except TokenError:
             return _oauth_error(401, "invalid_client")
         except web.HTTPException:
             raise
         except (CryptorosError, SQLAlchemyError) as exc:  # the registry cannot be read: try another replica
-            log.error("%s %s failed: %s", request.method, request.path, str(exc).splitlines()[0] if str(exc) else exc)
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            log.error("%s %s failed: %s", request.method, request.path, why)
+            service.registry_failure = (time.monotonic(), f"{request.method} {request.path}: {why}"[:300])
             return _oauth_error(503, "temporarily_unavailable")
         except Exception:
             log.exception("%s %s failed", request.method, request.path)
@@ -918,6 +931,10 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         except Exception as exc:
             log.error("health check: database unreachable: %s", exc)
             return web.json_response({"status": "unavailable", "database": "unreachable"}, status=503)
+        failure = service.registry_failure
+        if failure is not None and time.monotonic() - failure[0] < REGISTRY_FAILURE_SECONDS:
+            return web.json_response({"status": "unavailable", "database": "failing", "last_failure": failure[1]},
+                                     status=503)
         return web.json_response({"status": "ok", "database": "ok", "kid": service.signing_kid})
 
     async def prometheus(request: web.Request) -> web.Response:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import time
 
@@ -469,3 +470,29 @@ def test_a_long_poll_is_held_at_most_the_replicas_max_feed_wait(tmp_path):
         # 600 s asked, held 1 s: answered well within this request's 10 s socket timeout
         status, _ = d.request("GET", "/revocations?wait=600", cert=cert, key=key, headers={"If-None-Match": etag})
         assert status == 304
+
+
+def test_healthz_says_unavailable_while_the_registry_fails_requests(daemon):
+    """A registry that answers reads but fails writes (a full disk) answered every token
+    request 503 while /healthz said ok, so a load balancer kept sending robots to it.
+    Simulated here by a trigger that fails every audit row, then dropped."""
+    import sqlite3
+
+    path = daemon.db.removeprefix("sqlite:///")
+    assert daemon.token("alice")[0] == 200 and daemon.get_json("/healthz")["status"] == "ok"
+    with contextlib.closing(sqlite3.connect(path)) as db, db:
+        db.execute("CREATE TRIGGER full_disk BEFORE INSERT ON audit_log BEGIN SELECT RAISE(FAIL, 'database or disk "
+                   "is full'); END")
+    try:
+        deadline = time.monotonic() + 10
+        while daemon.token("alice")[0] != 503:
+            assert time.monotonic() < deadline, "token requests did not fail with the registry failing writes"
+            time.sleep(0.2)
+        cert, key = daemon.cert_of("probe")
+        status, body = daemon.request("GET", "/healthz", cert=cert, key=key)
+        assert status == 503 and json.loads(body)["database"] == "failing", (status, body)
+    finally:
+        with contextlib.closing(sqlite3.connect(path)) as db, db:
+            db.execute("DROP TRIGGER full_disk")
+    assert daemon.token("alice")[0] == 200  # a token issued again: healthy at once
+    assert daemon.get_json("/healthz")["status"] == "ok"
