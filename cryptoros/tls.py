@@ -325,6 +325,26 @@ class PeerCertificateCheck:
                                                     "(revocation feed)")
 
 
+def checking_server(ctx: ssl.SSLContext, check: Callable[[bytes], None]) -> ssl.SSLContext:
+    """``ctx`` (a client context) whose handshakes fail, as a TLS failure, for a server
+    certificate ``check`` refuses (:meth:`PeerCertificateCheck.check`: the CRL and the
+    feed's revoked serials, which OpenSSL does not check here). Only where connections
+    are made through ``wrap_bio`` (asyncio, uvloop, aiohttp)."""
+
+    class ServerCheckedSSLObject(ssl.SSLObject):
+        def do_handshake(self) -> None:
+            super().do_handshake()
+            if not self.server_side:
+                try:
+                    check(peer_cert_der(self))
+                except TokenError as exc:
+                    raise ssl.SSLError(ssl.SSL_ERROR_SSL, f"the server's certificate: {exc.reason}: {exc.detail}") \
+                        from None
+
+    ctx.sslobject_class = ServerCheckedSSLObject
+    return ctx
+
+
 def peer_cert_der(ssl_object: ssl.SSLObject | ssl.SSLSocket | None) -> bytes:
     """The DER bytes of the verified peer certificate; no certificate is a denial."""
     der = ssl_object.getpeercert(binary_form=True) if ssl_object is not None else None

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from cryptoros.pemfiles import cert_der, cert_serial, cert_thumbprint_s256
 from cryptoros.tls import (
+    checking_server,
     FullHandshakes,
     PeerCertificateCheck,
     SessionCache,
@@ -69,7 +70,9 @@ class CertSource:
                         "and SIGHUP", cfg.tls.crl_file,
                         time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(cert_check.next_update)))
         return cls(server_ctx=server_ctx, client_ctx=client_ctx, sessions=SessionCache(client_ctx, lifetime=lifetime),
-                   authz_ctx=client_context(cfg.tls, check_hostname=True), full_handshakes=FullHandshakes(lifetime),
+                   # the authorization server's certificate checked as every peer's (CRL, feed)
+                   authz_ctx=checking_server(client_context(cfg.tls, check_hostname=True), cert_check.check),
+                   full_handshakes=FullHandshakes(lifetime),
                    cert_check=cert_check,
                    own_der=own_der, own_serial=cert_serial(own_der),
                    own_audience=peer_audience(cert_thumbprint_s256(own_der)))

@@ -70,6 +70,37 @@ async def test_own_token_fetched_and_verified_by_a_peer(team, tmp_path):
             await bob_client.close()
 
 
+async def test_an_authorization_server_whose_certificate_the_ca_revoked_is_not_believed(team, tmp_path):
+    """OpenSSL does not check the CRL (an out-of-date one would stop the fleet): the
+    interceptor checks the server's certificate in every handshake, against the CRL and
+    the feed's revoked serials, as every peer's. A revoked one is a failed replica."""
+    from cryptoros.pemfiles import cert_serial
+    from cryptoros.tls import PeerCertificateCheck, checking_server
+
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        served = der_of(team.pki, "authz")
+        revoked: set[int] = set()
+        check = PeerCertificateCheck(None, revoked_serials=lambda: revoked)
+
+        def client() -> AuthzClient:  # new connections: the check runs in each handshake
+            return AuthzClient(AuthzSettings(url=daemon.base, request_timeout=5.0),
+                               checking_server(tls_of(daemon.pki, "alice", ca_pki=daemon.pki), check.check))
+
+        alice = client()
+        try:
+            assert (await alice.fetch_token()).token
+        finally:
+            await alice.close()
+        revoked.add(cert_serial(served))
+        alice = client()
+        try:
+            with pytest.raises(AuthzUnavailable) as info:
+                await alice.fetch_token()
+            assert "certificate_revoked" in info.value.detail, info.value.detail
+        finally:
+            await alice.close()
+
+
 async def test_unregistered_and_foreign_clients_get_no_token(team, tmp_path):
     with running_daemon(team.pki, team.db, tmp_path) as daemon:
         stranger = client_for(daemon, "stranger")
