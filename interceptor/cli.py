@@ -25,7 +25,7 @@ import click
 
 from cryptoros.errors import ConfigError, CryptorosError
 from cryptoros.fdlimit import raise_descriptor_limit
-from cryptoros.tls import client_context, server_context
+from cryptoros.tls import PeerCertificateCheck, checking_server, client_context, server_context
 from interceptor.config import load
 
 log = logging.getLogger("cryptoros.interceptor")
@@ -168,7 +168,8 @@ async def _preflight(cfg) -> list[str]:
     elif cfg.public.host not in hosts:
         raise ConfigError(f"public address {cfg.public.host} is not in {cfg.tls.cert_file}'s IP/DNS names "
                           f"({', '.join(sorted(hosts)) or 'none'}): peers would refuse every endpoint of this host")
-    client = AuthzClient(cfg.authz, client_context(cfg.tls, check_hostname=True))
+    client = AuthzClient(cfg.authz, checking_server(client_context(cfg.tls, check_hostname=True),
+                                                    PeerCertificateCheck(cfg.tls.crl_file).check))
     try:
         own = await client.fetch_token()
         keys = await client.fetch_jwks()
