@@ -396,6 +396,10 @@ def test_a_revoked_certificate_is_refused_on_a_resumed_stream_and_after_a_reload
         except (ssl.SSLError, ConnectionError):
             outcome = None
         assert outcome in (None, (False, None))
+        deadline = time.monotonic() + 5  # its log line comes as robot A handles it (the next test counts lines)
+        while "is on the CRL" not in a.logs():
+            assert time.monotonic() < deadline, a.logs()[-2000:]
+            await asyncio.sleep(0.1)
         assert a.proc.poll() is None
 
     asyncio.run(main())
