@@ -26,9 +26,10 @@ def run_loop(request):
 class HeaderThenSplice(asyncio.Protocol):
     """Reads one line (standing in for a checked connection header), then pumps."""
 
-    def __init__(self, upstream_port: int, spliced: list) -> None:
+    def __init__(self, upstream_port: int, spliced: list, **splice_kw) -> None:
         self.upstream_port = upstream_port
         self.spliced = spliced
+        self.splice_kw = splice_kw  # more of splice()'s arguments
         self.buffer = b""
 
     def connection_made(self, transport):
@@ -44,7 +45,7 @@ class HeaderThenSplice(asyncio.Protocol):
     async def _open(self, rest: bytes) -> None:
         loop = asyncio.get_running_loop()
         up, _ = await loop.create_connection(asyncio.Protocol, "127.0.0.1", self.upstream_port)
-        done = splice(self.transport, up, left_pending=rest)
+        done = splice(self.transport, up, left_pending=rest, **self.splice_kw)
         self.transport.resume_reading()
         self.spliced.append((self.transport, up, done))
 
@@ -328,21 +329,6 @@ async def read_buffer_grows():
     echo.close()
 
 
-class HeaderThenStallingSplice(HeaderThenSplice):
-    """As :class:`HeaderThenSplice`, the pump cutting a receiver stalled ``stall`` seconds."""
-
-    def __init__(self, upstream_port: int, spliced: list, stall: float, denied: list) -> None:
-        super().__init__(upstream_port, spliced)
-        self.stall, self.denied = stall, denied
-
-    async def _open(self, rest: bytes) -> None:
-        loop = asyncio.get_running_loop()
-        up, _ = await loop.create_connection(asyncio.Protocol, "127.0.0.1", self.upstream_port)
-        done = splice(self.transport, up, left_pending=rest, stall_timeout=self.stall, on_deny=self.denied.append)
-        self.transport.resume_reading()
-        self.spliced.append((self.transport, up, done))
-
-
 def test_a_receiver_that_stops_reading_is_cut_after_the_stall_timeout(tls_pair, run_loop):
     """A subscriber that stops reading (an insider's, or a stuck process) would block the
     sender for good (a rospy publisher with queue_size=None waits for every subscriber):
@@ -366,8 +352,8 @@ async def stalled_receiver_is_cut(server_ctx, client_ctx):
     spliced: list = []
     denied: list = []
     relay = await loop.create_server(
-        lambda: HeaderThenStallingSplice(sink.sockets[0].getsockname()[1], spliced, 0.5, denied), "127.0.0.1", 0,
-        ssl=server_ctx)
+        lambda: HeaderThenSplice(sink.sockets[0].getsockname()[1], spliced, stall_timeout=0.5, on_deny=denied.append),
+        "127.0.0.1", 0, ssl=server_ctx)
     reader, writer = await asyncio.open_connection(
         "127.0.0.1", relay.sockets[0].getsockname()[1], ssl=client_ctx, server_hostname="localhost")
     writer.write(b"header\n")
