@@ -1,7 +1,8 @@
 """``cryptoros bench ciphers --quick`` as a real subprocess: every message type x cipher
 measured on this machine and on the throttled Atom stand-in, bytes added as the formulas
-say, round trips checked, the paper's Table 2 rebuilt. Speed is never asserted beyond
-"the throttled run is slower than the unthrottled one" (a 1/8 CPU quota)."""
+say, round trips checked, the paper's Table 2 rebuilt. Speed is never asserted: the
+stand-in's rows are checked to have run under their 1/8 CPU quota (CPU time over wall
+time), not to be slower."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 
 import pytest
 
+from cryptoros.bench.ciphers import MAX_SHARE_OVER_QUOTA
 from tests.support import run, script
 
 pytestmark = [pytest.mark.slow]
@@ -45,8 +47,9 @@ def test_bench_ciphers_quick(tmp_path):
             p = r[profile]
             assert p["enc_us"] > 0 and p["dec_us"] > 0 and p["msgs_per_s_one_core"] > 0, (message, cipher, profile)
             assert p["roundtrip_checked"] >= p["ops"] + 1 >= 2, (message, cipher, profile)
-        # the Atom stand-in (1/8 of a core, no AES-NI) is slower than the machine itself
-        assert r["atom"]["enc_dec_us"] > r["normal"]["enc_dec_us"], (message, cipher, r)
+        # every stand-in row was measured under its quota: its window's CPU time over wall time
+        # (an unthrottled window runs near a whole core)
+        assert r["atom"]["cpu_share"] <= MAX_SHARE_OVER_QUOTA * report["config"]["throttle"]["quota"], r["atom"]
         added = r["bytes_added"]
         if cipher in ("aes128-gcm", "chacha20-poly1305"):
             assert added == 12 + 16  # nonce + tag
