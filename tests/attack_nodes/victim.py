@@ -6,7 +6,7 @@ It publishes its genuine pose (x=1), laser scan (all ranges 1.0) and drive comma
 (linear.x=0.5) at 10 Hz on /victim/pose, /victim/scan, /victim/cmd_vel and subscribes
 to the same topics, as a robot's controller and base would. Every message it receives
 that is not its own genuine content is foreign: it prints ``FOREIGN <topic> <summary>``
-(at most 5 per topic) and at the end ``COUNTS pose=N scan=N cmd=N``. A ``shutdown``
+(at most 5 per topic) and at the end, however its loop ended, ``COUNTS pose=N scan=N cmd=N``. A ``shutdown``
 call prints ``SHUTDOWN <reason>``. Prints READY once registered; lines are flushed.
 It runs for SECONDS, or with ``--until-stdin-closes`` until its stdin closes (the
 caller's attacks are over), SECONDS at most.
@@ -64,13 +64,15 @@ pose.pose.position.x = 1.0
 scan = LaserScan(ranges=[1.0] * 36, range_max=3.5)
 cmd = Twist()
 cmd.linear.x = 0.5
-while time.monotonic() < end and not done.is_set() and not rospy.is_shutdown():
-    try:
-        pose_pub.publish(pose)
-        scan_pub.publish(scan)
-        cmd_pub.publish(cmd)
-    except rospy.ROSException:  # shut down (by an attack) between the check and the publish
-        break
-    time.sleep(0.1)
-print("COUNTS pose=%d scan=%d cmd=%d" % (counts["pose"], counts["scan"], counts["cmd"]), flush=True)
-print("END", flush=True)
+try:
+    while time.monotonic() < end and not done.is_set() and not rospy.is_shutdown():
+        try:
+            pose_pub.publish(pose)
+            scan_pub.publish(scan)
+            cmd_pub.publish(cmd)
+        except rospy.ROSException:  # shut down (by an attack) between the check and the publish
+            break
+        time.sleep(0.1)
+finally:  # whatever ended the loop (rospy's publish can also raise ValueError while shutting down)
+    print("COUNTS pose=%d scan=%d cmd=%d" % (counts["pose"], counts["scan"], counts["cmd"]), flush=True)
+    print("END", flush=True)

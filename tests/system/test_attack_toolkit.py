@@ -83,7 +83,8 @@ def shut_down(lines: list[str]) -> bool:
 
 
 def counts(lines: list[str]) -> dict[str, int]:
-    line = next(x for x in lines if x.startswith("COUNTS"))
+    line = next((x for x in lines if x.startswith("COUNTS")), None)
+    assert line is not None, "the victim printed no COUNTS:\n" + "\n".join(lines)
     return {k: int(v) for k, v in (p.split("=") for p in line.split()[1:])}
 
 
