@@ -70,6 +70,9 @@ PUBLISH_PATIENCE = 3.0
 #: at once and the reader is probed (one publish attempt) only this often, so the other
 #: topics arriving through this bridge do not wait behind every message of a stuck one
 STALLED_PROBE_INTERVAL = 1.0
+#: a topic's writer is made anew at most this often: a reader that really stopped taking
+#: fills every new writer, and would otherwise cost the other topics a patience each time
+REMAKE_INTERVAL = 10.0
 SERVICE_THREADS = 8
 
 
@@ -135,6 +138,7 @@ class Bridge:
         #: chan -> (publisher, topic, its C publish_raw, message class, QoS)
         self.pubs: dict[int, tuple[object, str, object, type, QoSProfile]] = {}
         self.remade = 0  # writers made anew after they waited PUBLISH_PATIENCE
+        self.remade_at: dict[int, float] = {}  # chan -> when its writer was last made anew
         self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
         #: chan -> the granted publisher nodes whose writers' samples are forwarded
         self.writer_nodes: dict[int, frozenset[str]] = {}
@@ -264,8 +268,11 @@ class Bridge:
         if probe_at is not None and now < probe_at:
             self._drop(chan, topic, "stalled")
             return
-        # a stalled topic gets one attempt (it blocks for the DDS max_blocking_time), others the patience
+        # a stalled topic gets one attempt (it blocks for the DDS max_blocking_time), others the
+        # patience; then the same again on a writer made anew (:meth:`_remake`, at most every
+        # REMAKE_INTERVAL), else the topic is stalled
         give_up = now if probe_at is not None else now + PUBLISH_PATIENCE
+        remade = False
         while True:
             try:
                 # the C publisher itself: rclpy's Publisher.publish only adds a type check and the
@@ -276,20 +283,28 @@ class Bridge:
                 return
             except Exception as exc:  # KEEP_ALL: a local reader stayed full for the blocking time
                 now = time.monotonic()
-                if now >= give_up:
-                    self.stalled[chan] = now + STALLED_PROBE_INTERVAL
-                    self._drop(chan, topic, str(exc))
-                    if probe_at is None:
-                        self._remake(chan)
-                    return
+                if now < give_up:
+                    continue
+                if not remade and now >= self.remade_at.get(chan, -REMAKE_INTERVAL) + REMAKE_INTERVAL \
+                        and self._remake(chan):
+                    remade, publish_raw = True, self.pubs[chan][2]
+                    give_up = now if probe_at is not None else now + PUBLISH_PATIENCE
+                    continue
+                self.stalled[chan] = now + STALLED_PROBE_INTERVAL
+                self._drop(chan, topic, str(exc))
+                return
 
-    def _remake(self, chan: int) -> None:
+    def _remake(self, chan: int) -> bool:
         """A writer that waited PUBLISH_PATIENCE for its readers is destroyed and made
-        anew. Fast DDS can wedge a reliable reader that one KEEP_ALL writer overran: the
-        reader then waits for a repair that never comes and delivers nobody's samples
-        (every writer's on that topic), and the writer waits for its acknowledgement,
-        until the writer is gone (measured: docs/ros2.md). Its unsent samples are lost
-        with it; a reader that really stopped taking stops the new one too, and is probed."""
+        anew (False if it could not be). Fast DDS can wedge a reliable reader that one
+        KEEP_ALL writer overran: the reader then waits for a repair that never comes and
+        delivers nobody's samples (every writer's on that topic), and the writer waits for
+        its acknowledgement, until the writer is gone (measured: docs/ros2.md). The message
+        that waited goes to the new writer, which waits the patience again: a reader
+        killed without a goodbye (held until the profile's 3 s lease ends, a race with
+        the first patience) is forgotten by then, and nothing is lost; a reader that really
+        stopped taking fills the new writer too, and its topic is then dropped and probed
+        (a new writer again once REMAKE_INTERVAL has passed)."""
         publisher, topic, _, cls, qos = self.pubs[chan]
         self.node.destroy_publisher(publisher)
         try:
@@ -297,12 +312,14 @@ class Bridge:
         except Exception as exc:
             del self.pubs[chan]
             self.error(f"cannot advertise {topic} again: {exc}", chan=chan)
-            return
+            return False
         self.pubs[chan] = (fresh, topic, fresh.handle.publish_raw, cls, qos)
+        self.remade_at[chan] = time.monotonic()
         self.remade += 1
         if self.remade in (1, 10, 100) or self.remade % 1000 == 0:
             self.error(f"{topic}: a writer waited {PUBLISH_PATIENCE:g} s for its local readers and was made anew "
                        f"({self.remade} so far)", chan=chan)
+        return True
 
     def _drop(self, chan: int, topic: str, why: str) -> None:
         self.dropped += 1
