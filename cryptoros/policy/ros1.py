@@ -390,6 +390,21 @@ def check_node_call(
     raise _deny("method_not_allowed", f"node method {method!r} is not on the allowlist")
 
 
+#: header fields that only one kind of stream carries: rospy and roscpp pick a topic or a
+#: service by which of them a header holds, so a header is checked for one purpose only
+#: if it holds nothing of the other (a service header that also named a topic was judged
+#: as a call and answered by the node as a subscription)
+_TOPIC_ONLY = frozenset({"topic", "latching", "tcp_nodelay"})
+_SERVICE_ONLY = frozenset({"service", "request_type", "response_type", "persistent", "probe"})
+
+
+def _one_purpose(header: Mapping[str, str], purpose: str) -> None:
+    other = _SERVICE_ONLY if purpose == "topic" else _TOPIC_ONLY
+    mixed = sorted(other.intersection(header))
+    if mixed:
+        raise _deny("malformed", f"a {purpose} header also carries {', '.join(mixed)}")
+
+
 def check_subscriber_header(
     header: Mapping[str, str],
     *,
@@ -403,6 +418,7 @@ def check_subscriber_header(
     type_name, md5 = header.get("type", ""), header.get("md5sum", "")
     if not (caller and topic and type_name and md5):
         raise _deny("malformed", "subscriber header lacks callerid, topic, type or md5sum")
+    _one_purpose(header, "topic")
     if published_type is None:
         raise _deny("unknown_topic", f"no local publisher of {topic}")
     if type_name == ANY_TYPE and md5 == ANY_TYPE:  # a subscriber of any type gets what is published
@@ -424,6 +440,7 @@ def check_local_subscriber_header(header: Mapping[str, str], *, grants: Grants) 
     caller, topic, type_name = header.get("callerid", ""), header.get("topic", ""), header.get("type", "")
     if not (caller and topic and type_name):
         raise _deny("malformed", "subscriber header lacks callerid, topic or type")
+    _one_purpose(header, "topic")
     if type_name == ANY_TYPE:
         if not grants.types_for("subscribe", caller, topic):
             raise _deny("not_granted", f"{caller} may not subscribe {topic}")
@@ -446,6 +463,7 @@ def check_publisher_header(header: Mapping[str, str], *, grants: Grants, topic: 
     caller, type_name = header.get("callerid", ""), header.get("type", "")
     if not (caller and type_name):  # an ``error`` reply included: the caller passes refusals on itself
         raise _deny("malformed", "publisher header lacks callerid or type")
+    _one_purpose(header, "topic")
     if not _granted(grants, "publish", caller, topic, type_name, infrastructure):
         raise _deny("not_granted", f"{caller} may not publish {topic} [{type_name}]")
 
@@ -457,6 +475,7 @@ def check_service_client_header(header: Mapping[str, str], *, grants: Grants) ->
     caller, service = header.get("callerid", ""), header.get("service", "")
     if not (caller and service and header.get("md5sum")):
         raise _deny("malformed", "service client header lacks callerid, service or md5sum")
+    _one_purpose(header, "service")
     types = grants.types_for("call", caller, service)
     if not types:
         raise _deny("not_granted", f"{caller} may not call {service}")
@@ -477,6 +496,7 @@ def check_service_server_header(
     caller, type_name = header.get("callerid", ""), header.get("type", "")
     if not (caller and type_name):
         raise _deny("malformed", "service server header lacks callerid or type")
+    _one_purpose(header, "service")
     if type_name not in client_types:
         raise _deny("type_mismatch", f"{service} is served as {type_name}, the caller may call {sorted(client_types)}")
     if not _granted(server_grants, "serve", caller, service, type_name, infrastructure):

@@ -198,6 +198,32 @@ def test_publisher_and_service_headers():
                   service="/add_two_ints", server_grants=ALICE, client_types=types) == "not_granted"
 
 
+def test_a_header_is_judged_for_one_purpose_only():
+    """rospy answers a header that names a topic as a subscription, whatever else it
+    holds: a service header naming a topic (checked as a granted call) read another
+    topic's messages in an insider's run. Headers and replies carrying both kinds of
+    field are refused, both ways."""
+    call = {"callerid": "/client", "service": "/add_two_ints", "md5sum": "*"}
+    assert denied(check_service_client_header, {**call, "topic": "/chatter", "type": STRING},
+                  grants=ALICE) == "malformed"
+    types = check_service_client_header(call, grants=ALICE)
+    served = {"callerid": "/adder", "type": "rospy_tutorials/AddTwoInts"}
+    for extra in ({"topic": "/chatter"}, {"latching": "0"}):
+        assert denied(check_service_server_header, {**served, **extra}, service="/add_two_ints",
+                      server_grants=ALICE, client_types=types) == "malformed"
+    for extra in ({"service": "/add_two_ints"}, {"probe": "1"}, {"persistent": "1"}):
+        assert denied(check_subscriber_header, sub_header(**extra), grants=ALICE, published_type=STRING,
+                      published_md5=MD5) == "malformed"
+    assert denied(check_publisher_header, {"callerid": "/talker", "type": STRING, "md5sum": MD5,
+                                           "request_type": "x/Req"}, grants=ALICE, topic="/chatter") == "malformed"
+    # what rospy and roscpp really send still passes
+    check_subscriber_header(sub_header(tcp_nodelay="1", message_definition="string data"), grants=ALICE,
+                            published_type=STRING, published_md5=MD5)
+    check_service_client_header({**call, "persistent": "1"}, grants=ALICE)
+    check_service_server_header({**served, "request_type": "r/Q", "response_type": "r/A", "md5sum": "x"},
+                                service="/add_two_ints", server_grants=ALICE, client_types=types)
+
+
 def test_a_refusal_reply_is_never_taken_for_a_granted_stream():
     """A server's ``error`` header (with or without other fields) does not pass the
     reply checks: the interceptor passes the refusal on and relays nothing after it."""
