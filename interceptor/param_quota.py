@@ -31,6 +31,7 @@ nothing (what was written before is neither charged nor replayed).
 from __future__ import annotations
 
 from typing import Any
+from xmlrpc.client import DateTime
 
 from cryptoros.errors import PolicyDenied
 
@@ -57,6 +58,8 @@ def value_bytes(value: Any) -> int:
         return len(value.encode("utf-8", "surrogatepass"))
     if isinstance(value, (bytes, bytearray)):
         return len(value)
+    if isinstance(value, DateTime):  # fixed-size as parsed; charged for its text all the same
+        return len(value.value)
     if isinstance(value, (list, tuple)):
         return SCALAR_BYTES + sum(value_bytes(v) for v in value)
     if isinstance(value, dict):

@@ -67,6 +67,9 @@ MULTICALL: Final = "system.multicall"
 DEFAULT_MAX_BODY_SIZE: Final = 16 << 20
 DEFAULT_MAX_HEAD_SIZE: Final = 16 << 10
 MAX_DEPTH: Final = 64
+#: an XML-RPC dateTime as rospy and roscpp write it (``20261128T16:05:09``), ISO 8601's
+#: dashes, fraction and zone allowed: a fixed size, not text of any length
+_DATETIME = re.compile(r"\d{4}-?\d{2}-?\d{2}T\d{2}:?\d{2}:?\d{2}(\.\d{1,9})?(Z|[+-]\d{2}:?\d{2})?")
 #: Request paths accepted from a peer: what rospy, roscpp and xmlrpc.client send for
 #: ``http://host:port/`` and ``http://host:port``. The path sent on is never the
 #: peer's: callers set it from the URI the receiving node advertised.
@@ -229,7 +232,7 @@ def _parse_xml(body: bytes) -> Element:
         return DET.fromstring(body, forbid_dtd=True, forbid_entities=True, forbid_external=True)
     except defusedxml.DefusedXmlException as err:
         raise RemoteProtocolError(f"forbidden XML construct: {type(err).__name__}") from err
-    except (ParseError, ValueError, UnicodeError) as err:
+    except (ParseError, ValueError, UnicodeError, LookupError) as err:  # LookupError: an unknown encoding
         raise RemoteProtocolError(f"malformed XML: {err}") from err
 
 
@@ -285,7 +288,10 @@ def _load_value(el: Element, depth: int = 0) -> Any:
         if tag == "base64":
             return base64.b64decode(_text(typ).encode("ascii"), validate=False)
         if tag == "dateTime.iso8601":
-            return DateTime(_text(typ).strip())
+            text = _text(typ).strip()
+            if not _DATETIME.fullmatch(text):
+                raise RemoteProtocolError(f"bad <dateTime.iso8601> {text[:40]!r}")
+            return DateTime(text)
         if tag == "nil":
             return None
     except (ValueError, binascii.Error, UnicodeError) as err:

@@ -95,3 +95,12 @@ def test_items_are_what_a_restarted_rosmaster_gets_back():
     assert dict(quota.items()) == {"/robot": 7, "/gone": {}, "/other": [1, "two"]}
     quota.clear()
     assert quota.items() == []
+
+
+def test_a_date_is_charged_for_its_text():
+    from xmlrpc.client import DateTime
+
+    from interceptor.param_quota import value_bytes
+
+    assert value_bytes(DateTime("20261128T16:05:09")) == 17
+    assert value_bytes(DateTime("x" * 900_000)) == 900_000

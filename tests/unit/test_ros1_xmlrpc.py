@@ -190,6 +190,30 @@ def test_hostile_bodies(body: bytes) -> None:
         feed(Role.SERVER, http_request(body))
 
 
+def test_an_unknown_declared_encoding_is_a_protocol_error() -> None:
+    """An insider's body declaring ``x-bogus`` raised LookupError out of the parser: an
+    uncaught task exception and a 33-line traceback per stream, no denial counted."""
+    body = b'<?xml version="1.0" encoding="x-bogus"?><methodCall><methodName>a</methodName></methodCall>'
+    with pytest.raises(RemoteProtocolError, match="malformed XML"):
+        feed(Role.SERVER, http_request(body))
+
+
+def _datetime_call(text: str) -> bytes:
+    return (b"<methodCall><methodName>setParam</methodName><params><param><value><dateTime.iso8601>"
+            + text.encode() + b"</dateTime.iso8601></value></param></params></methodCall>")
+
+
+def test_a_datetime_is_a_time_not_text_of_any_length() -> None:
+    """A dateTime carried 900,000 characters past the parameter quota (charged as a
+    number): only a time of fixed size is one."""
+    for text in ("20261128T16:05:09", "2026-11-28T16:05:09", "2026-11-28T16:05:09.25Z", "20261128T160509+01:00"):
+        (req, _) = feed(Role.SERVER, http_request(_datetime_call(text)))
+        assert req.params == (xmlrpc.client.DateTime(text),)
+    for text in ("x" * 900_000, "20261128T16:05:09" + "0" * 100, "yesterday", ""):
+        with pytest.raises(RemoteProtocolError, match="dateTime"):
+            feed(Role.SERVER, http_request(_datetime_call(text)))
+
+
 def test_non_utf8_declared_encoding_is_decoded_properly() -> None:
     body = '<?xml version="1.0" encoding="iso-8859-1"?><methodCall><methodName>a</methodName><params><param><value>caf\xe9</value></param></params></methodCall>'.encode("latin-1")
     (req, _) = feed(Role.SERVER, http_request(body))
