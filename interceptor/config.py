@@ -57,6 +57,7 @@ Example::
     max_master_calls_per_second = 200.0  # master role: per peer manager, after master_call_burst = 4000
     max_param_keys_per_peer = 10000   # master role: what a peer may store through setParam (keys...
     max_param_bytes_per_peer = 16777216  # ... and bytes); deleteParam frees it
+    max_master_reply = 67108864       # master role: largest answer read from rosmaster (then pruned)
     tunnel_idle_timeout = 60.0        # a pooled XML-RPC tunnel to a peer closes after this long unused
     stalled_stream_timeout = 30.0     # a stream whose receiver takes no bytes this long is cut (0: never)
     spare_connections = true          # up to 2 connections kept ready per peer with streams in a row
@@ -231,6 +232,12 @@ class Limits:
     #: same number of keys bounds the parameter subscriptions (subscribeParam) it holds.
     max_param_keys_per_peer: int = 10_000
     max_param_bytes_per_peer: int = 16 << 20
+    #: Largest answer read from rosmaster (master role). Its parameter tree holds what
+    #: every peer stored (up to ``max_param_bytes_per_peer`` each): a read of a namespace
+    #: is read whole and then pruned to what the caller may read, so one manager's
+    #: stored values must not make another's reads fail (at 1 MiB, two 600 kB strings
+    #: in an insider's own namespace broke every peer's ``getParam('/')``).
+    max_master_reply: int = 64 << 20
     #: An XML-RPC tunnel to a peer (pooled for reuse) is closed after this many seconds
     #: unused; under the peers' own :data:`XMLRPC_IDLE_TIMEOUT` (they close it then), so
     #: this side closes first and never reuses one the peer is closing.

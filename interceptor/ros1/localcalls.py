@@ -104,11 +104,13 @@ class LocalCalls:
         self._max_servers = max_servers
         self._servers: dict[str, LocalXmlRpc] = {}
 
-    async def call(self, uri: str, request: Request, *, max_idle: int = 2) -> Response | Fault:
-        """``max_idle``: connections kept to ``uri`` (set by its first call)."""
+    async def call(self, uri: str, request: Request, *, max_idle: int = 2, max_body: int | None = None
+                   ) -> Response | Fault:
+        """``max_idle``: connections kept to ``uri``; ``max_body``: the largest answer
+        read from it (default: the one given at construction). Both set by its first call."""
         server = self._servers.pop(uri, None)
         if server is None:
-            server = LocalXmlRpc(uri, max_body=self._max_body, max_idle=max_idle)
+            server = LocalXmlRpc(uri, max_body=max_body or self._max_body, max_idle=max_idle)
         self._servers[uri] = server  # the most recently used last
         while len(self._servers) > self._max_servers:
             self._servers.pop(next(iter(self._servers))).close()

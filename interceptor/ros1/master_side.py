@@ -298,7 +298,9 @@ class MasterSide:
 
     async def _call_upstream_master(self, request: Request) -> Response | Fault:
         # a burst of peers' registrations: up to MAX_IDLE connections kept to the master
-        return await self._local_calls.call(self.cfg.master.upstream, request, max_idle=MAX_IDLE)
+        return await self._local_calls.call(self.cfg.master.upstream, request, max_idle=MAX_IDLE,
+                                            max_body=max(self.cfg.limits.max_master_reply,
+                                                         self.cfg.limits.max_xmlrpc_body))
 
     async def _call_plain(self, uri: str, request: Request) -> Response | Fault:
         """One XML-RPC call to a local process (a local node's API), over a connection

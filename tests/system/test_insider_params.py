@@ -37,8 +37,10 @@ pytestmark = [pytest.mark.ros1]
 
 @pytest.fixture(scope="module")
 def network(tmp_path_factory):
+    # rosmaster's answers read up to 2 MiB (default 64 MiB): the multicall test's four reads are over it together
     with robot_network(tmp_path_factory.mktemp("params"), start=("master", "robot_a", "robot_b", "robot_c"),
-                       policy=flow_policy(), netns=separate_hosts()) as net:
+                       policy=flow_policy(), netns=separate_hosts(),
+                       extra={"master": f"[limits]\nmax_master_reply = {2 << 20}\n"}) as net:
         with net.inside("master"):
             master = xmlrpc.client.ServerProxy(net.rosmaster_uri)
             master.setParam("/operator", "/robot_a/api_key", "A-KEY-123")
@@ -228,3 +230,38 @@ def test_node_apis_that_never_answer_do_not_hold_rosmasters_notifications_for_ot
         with urllib.request.urlopen(url, timeout=5) as reply:
             notices = json.loads(reply.read())["ros1"]["notices"]
     assert notices["delivered"] >= 1 and notices["replaced"] >= 1, notices
+
+
+def test_an_insiders_stored_values_cost_rosmaster_one_value_a_read_and_others_nothing(network, flow):
+    """Insider audit: rosmaster builds a multicall's whole answer before the interceptor
+    checks a byte of it (96 reads of the insider's own 3.6 MB took rosmaster to 716 MB),
+    and its answers were read up to 1 MiB only, so 1.4 MB in the insider's own namespace
+    made every honest robot's ``getParam('/')`` fail. Reads in a multicall now reach
+    rosmaster one at a time, and its answers are read up to ``max_master_reply`` (2 MiB
+    here) and then pruned."""
+    from tests.ros1_flow import listener_name
+
+    blob = "x" * 700_000
+    m = network.hosts["master"]
+    keys = ["/rospy_listener/blob1", "/rospy_listener/blob2"]
+    with flow.held(), rogue_tls(m.address, m.public_port, ca=network.pki.ca_cert,
+                                cert=network.pki.pki.cert_path_for("robot_b"),
+                                key=network.pki.pki.key_path_for("robot_b")) as s:
+        assert rogue_preamble(s, token_of(network, "robot_b"), "master").ok
+        try:
+            for key in keys:
+                assert rogue_xmlrpc(s, "setParam", "/rospy_listener", key, blob).value[0] == 1
+            # four reads: 2.8 MB together, over max_master_reply; 700 kB each
+            calls = [{"methodName": "getParam", "params": ["/rospy_listener", keys[i % 2]]} for i in range(4)]
+            calls.insert(2, {"methodName": "hasParam", "params": ["/rospy_listener", keys[0]]})
+            answers = rogue_xmlrpc(s, "system.multicall", calls).value
+            # an honest robot's read of the whole tree, pruned to what it may read
+            with network.inside("robot_c"):
+                local_c = xmlrpc.client.ServerProxy(network.hosts["robot_c"].master_uri)
+                code, _, tree = local_c.getParam(listener_name("robot_c"), "/")
+        finally:
+            for key in keys:
+                rogue_xmlrpc(s, "deleteParam", "/rospy_listener", key)
+    assert [a[0][0] for a in answers] == [1] * 5, [repr(a)[:200] for a in answers]
+    assert [a[0][2] for a in answers] == [blob, blob, True, blob, blob]
+    assert code == 1 and "rospy_listener" not in tree and "hunter2" not in repr(tree)
