@@ -517,6 +517,8 @@ class AuthzService:
         if active is not None and active.kid != self._signer.kid:
             try:
                 self._signer = await self._load_signer(active.kid, active.private_pem, active.encrypted)
+                # the JWKS this replica serves lists the key before a token it signs names it
+                self._shared.clear()
                 log.info("signing key rotated: now signing with %s", active.kid)
             except ConfigError as exc:
                 log.error("cannot load the new signing key %s, still signing with %s: %s",

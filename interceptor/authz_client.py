@@ -28,7 +28,7 @@ import random
 import socket
 import ssl
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 import aiohttp
@@ -429,6 +429,11 @@ class TokenKeeper:
         self._last_forced = float("-inf")
         #: Called after each new token (the interceptor shows it to its peers).
         self.listeners: list[Callable[[], None]] = []
+        #: Whether a new token's signing key is known (the gateway: JWKS fetched again if
+        #: not). While it is not, the token held is kept as long as it is valid and the
+        #: refresh is tried again: after ``rotate-key`` a robot verified its own new token
+        #: with the keys it had, refused itself and every stock tool for up to 60 s.
+        self.key_known: Callable[[str], Awaitable[bool]] | None = None
 
     def current(self) -> str:
         token = self._token
@@ -499,6 +504,11 @@ class TokenKeeper:
         except TokenError as exc:
             self._refuse(exc)
             raise
+        held = self._token
+        if self.key_known is not None and held is not None and \
+                self._clock() < held.expires_at - max(self.MIN_REMAINING, self.refresh_margin / 2) and \
+                not await self.key_known(token.token):
+            raise TokenError("unknown_kid", "the new token's signing key is not published yet: keeping the one held")
         self._token, self._refusal = token, None
         # Grants may have changed: the peers' tokens are fetched anew (kept if that fails).
         for thumbprint in list(self._peer_tokens):

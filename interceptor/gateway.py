@@ -147,6 +147,7 @@ class Gateway(Admission, Outbound, Health):
                                registry=self.metrics.registry)
         self.verifier.learning = self.learner.state
         self.verifier.own_audience = self.certs.own_audience
+        self.keeper.key_known = self._key_known
         self._own_access: AccessToken | None = None
         self._own_token: str | None = None
         #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
@@ -452,6 +453,11 @@ class Gateway(Admission, Outbound, Health):
                 self._exchanges.discard(endpoint)
 
         self.spawn(exchange())
+
+    async def _key_known(self, token: str) -> bool:
+        """Whether our new ``token``'s signing key is known (the keeper keeps the token
+        it holds until it is)."""
+        return await self.verifier.knows_key(token, self.certs.own_der)
 
     def own_access(self) -> AccessToken:
         """Our own token, verified like a peer's (it carries our grants)."""

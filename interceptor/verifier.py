@@ -102,7 +102,10 @@ class PeerVerifier:
     TOKEN_CACHE_SIZE = 4096
     #: certificates whose serials are remembered (for CA revocations in the feed)
     MAX_CERTIFICATES = 4096
-    UNKNOWN_KID_COOLDOWN = 5.0
+    #: an unknown ``kid`` fetches the JWKS again at most this often: after a rotation the
+    #: first fetch can come before the key is published (a replica's 1 s cache), and at
+    #: 5 s a peer's new token stayed refused that long
+    UNKNOWN_KID_COOLDOWN = 1.0
 
     def __init__(
         self,
@@ -206,6 +209,21 @@ class PeerVerifier:
                 raise
         await self.refresh_jwks()
         return self.verify(token, peer_cert_der)
+
+    async def knows_key(self, token: str, cert_der: bytes | None) -> bool:
+        """Whether ``token`` (this interceptor's own, from the authorization server) is
+        signed with a key in the JWKS, fetched again if it is not (``rotate-key``).
+        Other failures are not this check's: True."""
+        for attempt in range(2):
+            try:
+                self.verify(token, cert_der)
+                return True
+            except TokenError as exc:
+                if exc.reason != "unknown_kid":
+                    return True
+            if attempt == 0:
+                await self.refresh_jwks()
+        return False
 
     def watch(self, access: AccessToken, on_cut: Callable[[str], None],
               judge: Callable[[Grants], None] | None = None) -> StreamWatch:

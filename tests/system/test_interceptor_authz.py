@@ -8,6 +8,7 @@ down a still-valid cached token keeps working and an expired one is refused.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ssl
 import time
 
@@ -201,6 +202,43 @@ async def test_daemon_down_cached_token_works_until_it_expires(team, tmp_path):
         assert info.value.reason == "no_token"
         await alice.close()
         await bob_client.close()
+
+
+async def test_after_rotate_key_an_interceptor_always_holds_an_own_token_it_can_verify(team, tmp_path):
+    """Day-2 audit: after ``rotate-key`` a robot's keeper took a token signed with the new
+    key and its verifier (JWKS fetched every 60 s) could not verify it: the robot refused
+    itself and every stock tool for 40 to 55 s. The keeper now asks the verifier
+    whether the key is known (JWKS fetched again if not) and keeps the token it holds
+    until it is."""
+    import jwt
+
+    from tests.authz_support import authz, ok
+
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        alice, verifier = verifier_for(daemon, "alice")
+        der = der_of(team.pki, "alice")
+        keeper = TokenKeeper(alice, refresh_margin=60)
+        keeper.key_known = lambda token: verifier.knows_key(token, der)
+        poller = asyncio.create_task(verifier.run())
+        try:
+            await asyncio.wait_for(verifier.ready.wait(), timeout=10)
+            await keeper.refresh()
+            old_kid = jwt.get_unverified_header(keeper.current())["kid"]
+            verifier.verify(keeper.current(), der)
+            out = ok(await asyncio.to_thread(authz, "rotate-key", "--signing-key-passphrase-file",
+                                             str(daemon.workdir / "signing.pass"), db=daemon.db))
+            new_kid = out.split()[-1]
+            assert new_kid != old_kid
+            deadline = time.monotonic() + 15
+            while jwt.get_unverified_header(keeper.current())["kid"] != new_kid:
+                assert time.monotonic() < deadline, "the keeper never took a token signed with the new key"
+                with contextlib.suppress(TokenError):
+                    await keeper.refresh()
+                assert verifier.verify(keeper.current(), der).subject == "alice"  # whichever token it holds
+                await asyncio.sleep(0.2)
+        finally:
+            poller.cancel()
+            await alice.close()
 
 
 async def test_keeper_refreshes_before_expiry(team, tmp_path):
