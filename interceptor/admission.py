@@ -88,6 +88,9 @@ class Admission:
                         await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
             access = self.verifier.note(await self.verifier.verify_fresh(event.preamble.token, der))  # its freshest
+            if source not in self._known_sources:
+                for listener in self.source_listeners:  # kept across a restart (the ROS 1 role's state)
+                    listener()
             remember(self._known_sources, source, True, KNOWN_SOURCES)
             who = f"{access.subject}@{who}"
             admitted = gate.admit(

@@ -35,6 +35,7 @@ from typing import Any
 from aiohttp import web
 
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, TokenError
+from cryptoros.lru import remember
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tokens import AccessToken
@@ -49,7 +50,7 @@ from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
 from interceptor.pump import FrameCounter, MessageBudget, splice
 
-from interceptor.admission import Admission
+from interceptor.admission import KNOWN_SOURCES, Admission
 from interceptor.health import Health
 from interceptor.outbound import Outbound
 from interceptor.streams import (
@@ -181,6 +182,8 @@ class Gateway(Admission, Outbound, Health):
         self._pending = PendingStreams()
         #: source addresses verified peers streamed from (admission.py: KNOWN_SOURCES)
         self._known_sources: dict[str, bool] = {}
+        #: called when a source joins them (before it is added)
+        self.source_listeners: list[Callable[[], None]] = []
         self._budgets: dict[str, MessageBudget] = {}
         self._new_stream_limiter = self._stream_limiter(cfg)
         self._public_server: PublicListener | None = None
@@ -453,6 +456,17 @@ class Gateway(Admission, Outbound, Health):
                 self._exchanges.discard(endpoint)
 
         self.spawn(exchange())
+
+    def known_sources(self) -> list[str]:
+        """Source addresses verified peers streamed from, oldest first (kept across a
+        restart by the ROS 1 role's state: a restarted interceptor that knew none counted
+        every robot against the strangers' cap, and a stranger's idle connections kept
+        them out)."""
+        return list(self._known_sources)
+
+    def know_sources(self, sources: list[str]) -> None:
+        for source in sources[-KNOWN_SOURCES:]:
+            remember(self._known_sources, str(source), True, KNOWN_SOURCES)
 
     async def _key_known(self, token: str) -> bool:
         """Whether our new ``token``'s signing key is known (the keeper keeps the token

@@ -183,6 +183,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         # during the first TCPROS stream (measured: the first set-up 62-97 ms, the rest 2-3).
         msgs.typestore()
         self._load_state()
+        self.gw.source_listeners.append(self._save_state_soon)
 
     async def start(self) -> None:
         if "node" in self.cfg.roles:

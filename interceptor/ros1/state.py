@@ -1,5 +1,6 @@
 """What the ROS 1 role keeps across its own restarts (``state_dir``): exports, relays,
-owners, the registrations kept for rosmaster, local subscribers, refused registrations."""
+owners, the registrations kept for rosmaster, local subscribers, refused registrations,
+the source addresses verified peers streamed from."""
 
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ class PersistedState:
                 "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
-                "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()]}
+                "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()],
+                "known_sources": self.gw.known_sources()}
 
     def _save_state(self) -> None:
         """Keep the tables a restart would otherwise lose (written atomically), now, on
@@ -107,6 +109,7 @@ class PersistedState:
             self._node_apis.update({str(n): str(i) for n, i in data.get("node_apis", {}).items()})
             for api, ids in data.get("export_children", {}).items():
                 self._export_children[str(api)] = {str(i) for i in ids}
+            self.gw.know_sources([str(a) for a in data.get("known_sources", [])])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.error("state in %s not used (%s): nodes of this host may need a restart", path, exc)
             return

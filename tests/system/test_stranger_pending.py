@@ -10,7 +10,7 @@ import socket
 import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, denials, got, read_lines, robot_network, separate_hosts
-from tests.support import running
+from tests.support import running, stop
 
 pytestmark = [pytest.mark.ros1]
 
@@ -35,12 +35,7 @@ def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_p
             held = []
             try:
                 for _ in range(PENDING_IN_ALL + 4):  # from the test's own address: a stranger to robot A
-                    sock = socket.socket()
-                    if not separate_hosts():
-                        sock.bind(("127.0.0.99", 0))
-                    sock.settimeout(5)
-                    sock.connect((a.address, a.public_port))
-                    held.append(sock)
+                    held.append(_hold(a))
                 stranger = held[0].getsockname()[0]
                 # robot A is full for strangers: the ones over the cap are closed at once
                 closed = 0
@@ -56,7 +51,31 @@ def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_p
             finally:
                 for sock in held:
                     sock.close()
+            # Robot A's interceptor restarted (robot B holding no stream to it): it still knows
+            # robot B's address (its state_dir). A stranger's audit: a restarted interceptor
+            # knew no source, and strangers' idle connections kept every robot out of it.
+            stop(first)
+            net.stop("robot_a")
+            net.start("robot_a")
+            held = [_hold(a) for _ in range(PENDING_IN_ALL + 4)]
+            try:
+                with running([SYS_PY, NODE, "sub", "/after_restart", "/chatter", "60"],
+                             env=net.ros_env("robot_b")) as third:
+                    assert got(read_lines(third, "GOT", 40)), "robot B was locked out of robot A's restarted interceptor"
+            finally:
+                for sock in held:
+                    sock.close()
         log = denials(net, "robot_a")
         lines = [line for line in log.splitlines() if f"DENY tls from {stranger}:" in line]
         assert lines and all("pending_limit" in line or "unauthenticated streams" in line for line in lines), log[-2000:]
         assert len(lines) <= 2, lines  # four refusals, aggregated: one line at once, then a count per interval
+
+
+def _hold(host) -> socket.socket:
+    """A connection to ``host``'s public port that never starts TLS (a stranger's)."""
+    sock = socket.socket()
+    if not separate_hosts():
+        sock.bind(("127.0.0.99", 0))
+    sock.settimeout(5)
+    sock.connect((host.address, host.public_port))
+    return sock
