@@ -519,7 +519,9 @@ class NodeSide:
         roscpp connect again once the publisher's side is back (they retry a failed
         connect by themselves, but not a connection the other side closed). ``via``
         is the publisher's interceptor: waited for (a token exchange, backing off up
-        to a minute) before the subscribers are told."""
+        to 8 s between tries) for as long as the topic has local subscribers, before
+        they are told (a publisher's interceptor down over a minute, or kept from
+        answering by a stranger's flood, otherwise left them silent for good)."""
         if topic not in self._local_subscribers or topic in self._resubscribing or not self.gw.started:
             return
         self._resubscribing.add(topic)
@@ -528,7 +530,7 @@ class NodeSide:
             try:
                 await asyncio.sleep(delay)
                 if via is not None:
-                    await self._wait_reachable(via)
+                    await self._wait_reachable(via, lambda: topic in self._local_subscribers)
                 uris = await self._publishers_of(topic)
                 for node, api in list(self._local_subscribers.get(topic, {}).items()):
                     try:
@@ -542,19 +544,19 @@ class NodeSide:
 
         self.gw.spawn(nudge())
 
-    async def _wait_reachable(self, endpoint: tuple[str, int], patience: float = 60.0) -> None:
-        """Until a token exchange with a peer interceptor succeeds (or ``patience`` ends)."""
-        deadline = time.monotonic() + patience
+    async def _wait_reachable(self, endpoint: tuple[str, int], wanted: Callable[[], bool]) -> None:
+        """Until a token exchange with a peer interceptor succeeds, while ``wanted()``
+        (the last failure is raised once it is not)."""
         backoff = 0.25
         while True:
             try:
                 await self.gw.exchange_tokens(*endpoint)
                 return
             except PEER_FAILURES:
-                if time.monotonic() + backoff > deadline:
+                if not wanted():
                     raise
                 await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, 4.0)
+                backoff = min(backoff * 2, 8.0)
 
     async def _publishers_of(self, topic: str) -> list[str]:
         """The topic's publishers as the master knows them, as URIs local nodes can call."""
