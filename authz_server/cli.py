@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import click
+from sqlalchemy.exc import SQLAlchemyError
 
 from authz_server import keys as keymod
 from authz_server.changes import parse_since, summary
@@ -57,6 +58,11 @@ class _Group(click.Group):
             ctx.exit(2)
         except CryptorosError as exc:
             click.echo(f"{PROG}: error: {exc}", err=True)
+            ctx.exit(1)
+        except SQLAlchemyError as exc:  # a write refused at commit (a full disk): rolled back whole
+            cause = getattr(exc, "orig", None) or exc
+            click.echo(f"{PROG}: error: the registry database failed ({' '.join(str(cause).split())[:200]}); "
+                       "nothing was changed", err=True)
             ctx.exit(1)
 
 
@@ -393,6 +399,8 @@ def import_(ctx: click.Context, file: str, merge: bool) -> None:
         text = sys.stdin.read() if file == "-" else Path(file).read_text()
     except OSError as exc:
         raise RegistryError(f"cannot read policy file {file}: {exc.strerror}") from exc
+    except UnicodeDecodeError as exc:
+        raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     doc = load_yaml(text, f"policy file {file}")
     stats = _registry(ctx, create=True).import_policy(doc, merge=merge)
     click.echo("imported: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items()))

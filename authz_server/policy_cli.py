@@ -134,6 +134,8 @@ def _types(type_values: tuple[str, ...], types_file: str | None) -> dict[str, st
             text = Path(types_file).read_text()
         except OSError as exc:
             raise RegistryError(f"cannot read types file {types_file}: {exc.strerror}") from None
+        except UnicodeDecodeError as exc:
+            raise RegistryError(f"types file {types_file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
         doc = load_yaml(text, f"types file {types_file}")
         if not isinstance(doc, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in doc.items()):
             raise RegistryError(f"types file {types_file}: expected a mapping of name to type "

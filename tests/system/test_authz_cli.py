@@ -8,6 +8,7 @@ drives a daemon on a real PostgreSQL server.
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
@@ -58,6 +59,8 @@ def test_bad_admin_input_is_one_line_exit_2_and_changes_nothing(team, tmp_path):
                           "    - {node: /a, topic: relative, type: std_msgs/String}\n")
     not_yaml = tmp_path / "broken.yaml"
     not_yaml.write_text("version: 1\nmanagers: [\n")
+    latin1 = tmp_path / "latin1.yaml"
+    latin1.write_bytes("# réglage\nversion: 1\nmanagers: []\n".encode("latin-1"))
     cases = {
         ("grant", "nobody", "publish", "/talker", "/chatter", "std_msgs/String"): "unknown manager 'nobody'",
         ("grant", "alice", "publish", "/talker", "chatter", "std_msgs/String"): "invalid topic 'chatter'",
@@ -73,17 +76,47 @@ def test_bad_admin_input_is_one_line_exit_2_and_changes_nothing(team, tmp_path):
         ("add-manager", "zed"): "needs --cert",
         ("import", str(bad_policy)): "invalid topic 'relative'",
         ("import", str(not_yaml)): "not valid YAML",
+        ("import", str(latin1)): "is not UTF-8 text",
         ("revoke-token", "unknownjti123"): "unknown token id",
         ("rotate-key",): "signing keys need a passphrase",
     }
     as_subprocess = {("grant", "nobody", "publish", "/talker", "/chatter", "std_msgs/String"),
                      ("grant", "alice", "publish", "/talker", "chatter", "std_msgs/String"),
                      ("grant", "alice", "subscribe", "/talker", "/chatter", "std_msgs"),
-                     ("import", str(bad_policy))}
+                     ("import", str(bad_policy)), ("import", str(latin1))}
     for args, message in cases.items():
         line = one_line_error((authz if args in as_subprocess else cli)(*args, db=db))
         assert message in line, (args, line)
     assert ok(authz("export", db=db)) == before
+
+
+def test_a_full_disk_during_a_registry_write_is_one_line_and_changes_nothing(team, tmp_path):
+    """Day-2 audit: a grant committed on a full disk printed SQLAlchemy's 78-line traceback."""
+    import shutil
+
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.fail("needs root to mount a small tmpfs") if os.environ.get("CI") else pytest.skip("needs root")
+    disk = tmp_path / "small"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)], check=True, timeout=30)
+    try:
+        registry = disk / "registry.db"
+        shutil.copy(team.db.removeprefix("sqlite:///"), registry)
+        db = f"sqlite:///{registry}"
+        before = ok(authz("export", db=db))
+        filler = disk / "filler"
+        with filler.open("wb") as fh:  # the disk full but for a few pages
+            while shutil.disk_usage(disk).free > 32 << 10:
+                fh.write(b"\0" * min(64 << 10, shutil.disk_usage(disk).free - (32 << 10)))
+                fh.flush()
+        result = authz("grant", "alice", "publish", "/n", "/t", "std_msgs/String", db=db)
+        filler.unlink()
+        assert result.returncode in (1, 2), (result.returncode, result.stderr)
+        line = one_line_error(result, result.returncode)
+        assert "nothing was changed" in line or "cannot" in line, line
+        assert ok(authz("export", db=db)) == before
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], timeout=30)
 
 
 def test_missing_database_is_an_error_and_is_not_created(tmp_path):
@@ -146,6 +179,9 @@ def test_serve_start_up_errors_are_one_line(team, tmp_path):
     cfg.write_text('port = 1\nbogus = "x"\n')
     line = one_line_error(_serve(team, "--config", str(cfg)))
     assert "unknown key(s) bogus" in line
+    cfg.write_bytes("# réglage\nport = 1\n".encode("latin-1"))
+    line = one_line_error(_serve(team, "--config", str(cfg)))
+    assert "is not UTF-8 text" in line
     line = one_line_error(_serve(team, "--port", str(free_port()),
                                  db="postgresql+psycopg://postgres@127.0.0.1:1/none"))
     assert "cannot connect to the database" in line
