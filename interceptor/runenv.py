@@ -17,8 +17,10 @@ needs no access to the interceptor's keys.
 
 from __future__ import annotations
 
+import errno
 import os
 import shlex
+import shutil
 import sys
 from pathlib import Path
 
@@ -126,9 +128,22 @@ def run(config_path: str, command: tuple[str, ...]) -> None:
     if "PYTHONPATH" in variables:
         variables = {**variables, "PYTHONPATH": python_path(variables["PYTHONPATH"], os.environ.get("PYTHONPATH"))}
     environ.update(variables)
+    # The command is found on the caller's PATH; what it starts is not given this
+    # interpreter's venv: Debian's ROS tools and catkin's Python nodes start with
+    # "#!/usr/bin/env python3", and with the venv's bin first on PATH (an activated
+    # venv) roslaunch's nodes ran the venv's Python and died without rospy.
+    program = shutil.which(command[0], path=environ.get("PATH"))
+    if sys.prefix != sys.base_prefix:
+        venv_bin = os.path.join(sys.prefix, "bin")
+        environ["PATH"] = os.pathsep.join(d for d in environ.get("PATH", "").split(os.pathsep)
+                                          if d and os.path.realpath(d) != os.path.realpath(venv_bin))
+        if environ.get("VIRTUAL_ENV") and os.path.realpath(environ["VIRTUAL_ENV"]) == os.path.realpath(sys.prefix):
+            del environ["VIRTUAL_ENV"]
     sys.stdout.flush()
     try:
-        os.execvpe(command[0], list(command), environ)
+        if program is None:
+            raise FileNotFoundError(errno.ENOENT, "No such file or directory")
+        os.execve(program, list(command), environ)
     except OSError as exc:
         click.echo(f"cryptoros run: error: cannot run {command[0]}: {exc.strerror or exc}", err=True)
         raise SystemExit(127 if isinstance(exc, FileNotFoundError) else 126) from None
