@@ -15,6 +15,7 @@ exit status 2.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import gc
 import logging
 import signal
@@ -168,24 +169,32 @@ async def _preflight(cfg) -> list[str]:
     elif cfg.public.host not in hosts:
         raise ConfigError(f"public address {cfg.public.host} is not in {cfg.tls.cert_file}'s IP/DNS names "
                           f"({', '.join(sorted(hosts)) or 'none'}): peers would refuse every endpoint of this host")
-    client = AuthzClient(cfg.authz, checking_server(client_context(cfg.tls, check_hostname=True),
-                                                    PeerCertificateCheck(cfg.tls.crl_file).check))
-    try:
-        own = await client.fetch_token()
-        keys = await client.fetch_jwks()
-    except CryptorosError as exc:
-        raise _Unreachable(f"authorization server {cfg.authz.url}: {getattr(exc, 'detail', exc)}") from None
-    finally:
-        await client.close()
-    access = verify_access_token(own.token, keys=keys, issuer=cfg.authz.issuer, audience=cfg.authz.audience,
-                                 peer_cert_der=der)
-    if access.subject != cfg.manager:
-        raise ConfigError(f"the registry binds {cfg.tls.cert_file} to manager {access.subject!r}, "
-                          f"not {cfg.manager!r} (manager in the configuration)")
+    # each replica on its own: the line names the one that answered, and one that does not is said
+    ctx = checking_server(client_context(cfg.tls, check_hostname=True), PeerCertificateCheck(cfg.tls.crl_file).check)
+    urls = cfg.authz.urls or (cfg.authz.url,)
     not_after = x509.load_der_x509_certificate(der).not_valid_after_utc
-    lines.append(f"authorization server {cfg.authz.url}: token for manager {access.subject}, "
-                 f"{len(access.grants)} grants, valid {access.expires_at - access.issued_at} s; "
-                 f"certificate valid until {not_after:%Y-%m-%d}")
+    down: list[str] = []
+    for url in urls:
+        client = AuthzClient(dataclasses.replace(cfg.authz, url=url, urls=(url,)), ctx)
+        try:
+            own = await client.fetch_token()
+            keys = await client.fetch_jwks()
+        except CryptorosError as exc:
+            down.append(f"authorization server {url}: {getattr(exc, 'detail', exc)}")
+            continue
+        finally:
+            await client.close()
+        access = verify_access_token(own.token, keys=keys, issuer=cfg.authz.issuer, audience=cfg.authz.audience,
+                                     peer_cert_der=der)
+        if access.subject != cfg.manager:
+            raise ConfigError(f"the registry binds {cfg.tls.cert_file} to manager {access.subject!r}, "
+                              f"not {cfg.manager!r} (manager in the configuration)")
+        lines.append(f"authorization server {url}: token for manager {access.subject}, "
+                     f"{len(access.grants)} grants, valid {access.expires_at - access.issued_at} s; "
+                     f"certificate valid until {not_after:%Y-%m-%d}")
+    if len(down) == len(urls):
+        raise _Unreachable("; ".join(down))
+    lines += [f"warning: {line} (the other replicas answer)" for line in down]
     return lines
 
 

@@ -180,6 +180,14 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
                                                          "127.0.0.2:11400": "0.0.0.0:11400"})))
         other_ca = run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
         assert other_ca.returncode == 1 and "issued by the CA it trusts" in other_ca.stderr, other_ca.stderr
+        # replicas, the first one down: each is checked, the line names the one that answered
+        # (day-2 audit: the dead first replica was named as having issued the token)
+        dead = f"https://127.0.0.1:{free_port()}"
+        replicas = check(daemon.base, **{f'url = "{daemon.base}"': f'url = ["{dead}", "{daemon.base}"]'})
+        assert replicas.returncode == 0, replicas.stderr
+        assert f"authorization server {daemon.base}: token for manager robot_x" in replicas.stdout, replicas.stdout
+        assert f"warning: authorization server {dead}:" in replicas.stdout, replicas.stdout
+        assert f"authorization server {dead}: token" not in replicas.stdout
     down = check(f"https://127.0.0.1:{free_port()}")
     assert down.returncode == 1 and "nothing answers there" in down.stderr and "Traceback" not in down.stderr, \
         down.stderr
