@@ -391,8 +391,9 @@ def export(ctx: click.Context, output: str | None) -> None:
 @main.command("import")
 @click.argument("file", type=str)
 @click.option("--merge", is_flag=True, help="Only add managers and grants; remove nothing.")
+@click.option("--dry-run", is_flag=True, help="Say what the import would change, and change nothing.")
 @click.pass_context
-def import_(ctx: click.Context, file: str, merge: bool) -> None:
+def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool) -> None:
     """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction.
     A key given twice in one mapping (two ``subscribe:`` lists) is an error, not the last one kept."""
     try:
@@ -402,8 +403,13 @@ def import_(ctx: click.Context, file: str, merge: bool) -> None:
     except UnicodeDecodeError as exc:
         raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     doc = load_yaml(text, f"policy file {file}")
-    stats = _registry(ctx, create=True).import_policy(doc, merge=merge)
-    click.echo("imported: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items()))
+    registry = _registry(ctx, create=True)
+    named = {m.get("name") for m in doc.get("managers", []) if isinstance(m, dict)} if isinstance(doc, dict) else set()
+    removed = [] if merge else sorted(m.name for m in registry.list_managers() if m.name not in named)
+    stats = registry.import_policy(doc, merge=merge, dry_run=dry_run)
+    click.echo(("would import (dry run, nothing changed): " if dry_run else "imported: ")
+               + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items())
+               + (f"; managers removed: {', '.join(removed)}" if removed else ""))
 
 
 # ---------------------------------------------------------------------- keys and tokens

@@ -118,8 +118,9 @@ def from_graph(master_uri: str, manager_map: tuple[str, ...], param_access: str,
     for warning in draft.warnings:
         click.echo(f"{PROG}: warning: {warning}", err=True)
     count = sum(len(rows) for m in draft.doc["managers"] for rows in m["grants"].values())
-    header = (f"# draft policy from the ROS 1 graph at {master_uri}: review it before"
-              " 'cryptoros-authz import'\n")
+    header = (f"# draft policy from the ROS 1 graph at {master_uri}: review it, then add it to the registry with\n"
+              "# 'cryptoros-authz import --merge' ('--dry-run' first shows what changes). A plain 'import'\n"
+              "# makes the registry equal to this draft: every manager it does not name is removed.\n")
     _write(output, header + _yaml(draft.doc))
     click.echo(f"{PROG}: drafted {count} grant(s) for {len(draft.doc['managers'])} manager(s) from "
                f"{len(graph.nodes)} node(s); {draft.infrastructure} left out that ROS has without a grant "

@@ -260,6 +260,10 @@ def _info(m: Manager, with_grants: bool = True) -> ManagerInfo:
                        previous, m.previous_until if previous else None)
 
 
+class _DryRun(Exception):
+    """Rolls an import's transaction back once its counts are known."""
+
+
 class Registry:
     """The registry on one database engine."""
 
@@ -616,11 +620,12 @@ class Registry:
             )
         return {"version": POLICY_VERSION, "managers": managers}
 
-    def import_policy(self, policy: object, *, merge: bool = False) -> dict[str, int]:
+    def import_policy(self, policy: object, *, merge: bool = False, dry_run: bool = False) -> dict[str, int]:
         """Make the registry's policy equal to ``policy`` (or only add, with ``merge``).
 
         The whole document is validated before anything is written; the change is one
-        transaction. Returns counts of what changed.
+        transaction. Returns counts of what changed (``dry_run``: would change; the
+        transaction is rolled back).
         """
         wanted = parse_policy(policy)
         stats = {"managers_added": 0, "managers_removed": 0, "managers_changed": 0,
@@ -706,6 +711,10 @@ class Registry:
                 if any(stats.values()):
                     self._managers_changed(s)
                     self._log_policy_change(s, before, stats["tokens_revoked"])
+                if dry_run:
+                    raise _DryRun
+        except _DryRun:
+            pass
         except IntegrityError as exc:  # pragma: no cover - guarded by the checks above
             raise RegistryError(f"policy conflicts with the registry: {exc.orig}") from exc
         return stats

@@ -58,6 +58,28 @@ def test_a_policy_with_a_key_given_twice_is_refused_and_the_registry_unchanged(t
     assert exported(db) == before
 
 
+def test_a_dry_run_import_says_what_it_would_remove_and_changes_nothing(tmp_path):
+    """Day-2 audit: a plain import of a one-robot draft removed every other manager
+    (the draft's header said to import it). ``--dry-run`` says so first, naming them,
+    and the import itself names what it removed."""
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    both = POLICY + "  - name: robot_b\n"
+    (tmp_path / "both.yaml").write_text(both)
+    assert run("--db", db, "import", str(tmp_path / "both.yaml")).exit_code == 0
+    before = exported(db)
+    (tmp_path / "one.yaml").write_text(POLICY)
+    dry = run("--db", db, "import", "--dry-run", str(tmp_path / "one.yaml"))
+    assert dry.exit_code == 0, dry.output
+    assert dry.stdout.startswith("would import (dry run, nothing changed): managers added 0, managers removed 1")
+    assert dry.stdout.rstrip().endswith("managers removed: robot_b"), dry.stdout
+    assert exported(db) == before
+    merged = run("--db", db, "import", "--merge", "--dry-run", str(tmp_path / "one.yaml"))
+    assert "managers removed 0" in merged.stdout and "managers removed:" not in merged.stdout
+    done = run("--db", db, "import", str(tmp_path / "one.yaml"))
+    assert done.stdout.startswith("imported: ") and "managers removed: robot_b" in done.stdout, done.stdout
+    assert "robot_b" not in exported(db)
+
+
 def test_an_sros2_types_file_with_a_name_given_twice_is_refused(tmp_path):
     db = f"sqlite:///{tmp_path / 'registry.db'}"
     (tmp_path / "good.yaml").write_text(POLICY)
