@@ -417,6 +417,8 @@ class _Denied(CryptorosError):
 
 #: seconds a failed registry request keeps /healthz unavailable (unless a token is issued meanwhile)
 REGISTRY_FAILURE_SECONDS = 60.0
+#: days before its certificate expires that the server warns (start, SIGHUP, /healthz)
+CERT_WARN_DAYS = 14
 
 
 class AuthzService:
@@ -457,6 +459,8 @@ class AuthzService:
         #: issued again: /healthz says so (a registry that reads but cannot write, a full
         #: disk, answered every token 503 while /healthz said ok)
         self.registry_failure: tuple[float, str] | None = None
+        #: when this server's certificate expires (set by serve; /healthz says so ahead)
+        self.cert_until: float | None = None
 
     async def db(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run a blocking registry call in the DB thread pool."""
@@ -937,7 +941,13 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
         if failure is not None and time.monotonic() - failure[0] < REGISTRY_FAILURE_SECONDS:
             return web.json_response({"status": "unavailable", "database": "failing", "last_failure": failure[1]},
                                      status=503)
-        return web.json_response({"status": "ok", "database": "ok", "kid": service.signing_kid})
+        left = None if service.cert_until is None else service.cert_until - time.time()
+        if left is not None and left <= 0:
+            return web.json_response({"status": "unavailable", "database": "ok", "certificate": "expired"},
+                                     status=503)
+        certificate = "ok" if left is None or left >= CERT_WARN_DAYS * 86400 else f"expires in {left / 86400:.1f} days"
+        return web.json_response({"status": "ok", "database": "ok", "kid": service.signing_kid,
+                                  "certificate": certificate})
 
     async def prometheus(request: web.Request) -> web.Response:
         return web.Response(body=generate_latest(metrics.registry), headers={"Content-Type": CONTENT_TYPE_LATEST})

@@ -17,16 +17,18 @@ import errno
 import logging
 import ssl
 import signal
+import time
+from pathlib import Path
 
 from aiohttp import web
 
-from authz_server.app import AuthzService, make_app
+from authz_server.app import CERT_WARN_DAYS, AuthzService, make_app
 from authz_server.changes import ChangeSource
 from authz_server.config import ServeConfig
 from authz_server.db import open_registry, shown_db
 from authz_server.listener import TLSListener
 from authz_server.registry import Registry
-from cryptoros.errors import CryptorosError
+from cryptoros.errors import ConfigError, CryptorosError
 from cryptoros.fdlimit import raise_descriptor_limit
 from cryptoros.pemfiles import cert_serial
 from cryptoros.tls import server_context
@@ -57,12 +59,38 @@ def _refusing_revoked(ctx: ssl.SSLContext, service: AuthzService) -> ssl.SSLCont
     return ctx
 
 
+def own_certificate_until(cert_file, now: float | None = None) -> float:
+    """When this server's certificate expires (a POSIX time). ConfigError if it is not
+    valid now: every interceptor would refuse the server (token refreshes fail, the
+    fleet stops when its tokens run out), and the server would say nothing of it."""
+    from cryptography import x509
+
+    now = time.time() if now is None else now
+    try:
+        cert = x509.load_pem_x509_certificate(Path(cert_file).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"cannot read the server certificate {cert_file}: {exc}") from None
+    if cert.not_valid_after_utc.timestamp() <= now:
+        raise ConfigError(f"the server certificate {cert_file} expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} "
+                          "UTC: interceptors refuse it; renew it (cryptoros-certs renew)")
+    if cert.not_valid_before_utc.timestamp() > now:
+        raise ConfigError(f"the server certificate {cert_file} is not valid before "
+                          f"{cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC (is this host's clock right?)")
+    until = cert.not_valid_after_utc.timestamp()
+    if until - now < CERT_WARN_DAYS * 86400:
+        log.warning("the server certificate %s expires in %.1f days (%s UTC): renew it (cryptoros-certs renew)",
+                    cert_file, (until - now) / 86400, f"{cert.not_valid_after_utc:%Y-%m-%d %H:%M}")
+    return until
+
+
 async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
                 stop: asyncio.Event | None = None) -> None:
+    cert_until = own_certificate_until(cfg.tls.cert_file)
     ssl_ctx = server_context(cfg.tls)  # ConfigError on bad TLS material
     engine = open_registry(cfg.db_url, create=False)
     registry = Registry(engine, source=ChangeSource.here("cryptoros-authz serve"))
     service = AuthzService(cfg, registry)
+    service.cert_until = cert_until
     _refusing_revoked(ssl_ctx, service)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None
@@ -121,10 +149,12 @@ def _reload_tls(cfg: ServeConfig, listener: TLSListener, service: AuthzService) 
     """SIGHUP: a new TLS context from the same files for new connections (open ones
     stay), or the old one kept."""
     try:
+        cert_until = own_certificate_until(cfg.tls.cert_file)
         listener.ssl_ctx = _refusing_revoked(server_context(cfg.tls), service)
     except CryptorosError as exc:
         log.error("reload failed, keeping the old TLS material: %s", exc)
         return
+    service.cert_until = cert_until
     if service.crl is not None:
         service.crl.refresh(force=True)
     log.info("reloaded TLS material (certificate, key, CA, CRL) on SIGHUP")

@@ -434,6 +434,9 @@ class TokenKeeper:
         #: refresh is tried again: after ``rotate-key`` a robot verified its own new token
         #: with the keys it had, refused itself and every stock tool for up to 60 s.
         self.key_known: Callable[[str], Awaitable[bool]] | None = None
+        #: since when refreshes fail, and why (None: the last one worked): status says it
+        #: while the token held still verifies (an expired server certificate, replicas down)
+        self.failing: tuple[float, str] | None = None
 
     def current(self) -> str:
         token = self._token
@@ -573,8 +576,10 @@ class TokenKeeper:
             try:
                 await self.refresh()
                 backoff = 1.0
+                self.failing = None
                 delay = refresh_delay(self._token.expires_at - self._clock(), self.refresh_margin)
             except TokenError as exc:
+                self.failing = (self.failing[0] if self.failing else self._clock(), exc.detail)
                 remaining = (self._token.expires_at - self._clock()) if self._token else 0
                 if exc.reason != "wrong_manager":  # logged as an error where it is found
                     log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail,

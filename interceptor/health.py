@@ -72,6 +72,8 @@ class Health:
         return {
             "manager": self.cfg.manager, "pid": os.getpid(), "roles": list(self.cfg.roles), "public": str(self.cfg.public),
             "health": health, "token": token,
+            "token_refresh": None if self.keeper.failing is None else {
+                "failing_for": round(now - self.keeper.failing[0]), "reason": self.keeper.failing[1]},
             "certificate": {"subject": cert.subject.rfc4514_string(), "serial": format(cert.serial_number, "x"),
                             "not_after": cert.not_valid_after_utc.isoformat(),
                             "days_left": round((cert.not_valid_after_utc.timestamp() - now) / 86400, 1)},

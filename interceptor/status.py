@@ -41,6 +41,9 @@ def render(status: dict) -> list[str]:
         lines += [f"          {node} {action} {name} [{type_}]" for node, action, name, type_ in token["grants"]]
     else:
         lines.append("token     none that verifies")
+    refresh = status.get("token_refresh")
+    if refresh:
+        lines.append(f"warning   token refresh failing for {refresh['failing_for']} s: {refresh['reason']}")
     lines.append(f"cert      serial {cert['serial']}, valid until {cert['not_after'][:19]} ({cert['days_left']} days)")
     lines.append(f"feed      age {feed['age']} s, {feed['revoked_tokens']} revoked tokens, disabled managers: "
                  f"{', '.join(feed['disabled_managers']) or 'none'}")

@@ -151,6 +151,7 @@ def test_get_on_token_endpoint_is_not_allowed(daemon):
 def test_healthz_and_prometheus_metrics(daemon):
     health = daemon.get_json("/healthz")
     assert health["status"] == "ok" and health["database"] == "ok" and health["kid"]
+    assert health["certificate"] == "ok"  # expires in over CERT_WARN_DAYS (else "expires in N days")
     daemon.token("alice")
     daemon.token("stranger")
     cert, key = daemon.cert_of("probe")

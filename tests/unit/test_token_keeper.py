@@ -107,6 +107,38 @@ async def test_the_refresh_loop_logs_one_error_per_refused_token_and_no_warning(
     assert len(lines) == 1 and lines[0][0] == "ERROR" and WRONG in lines[0][1], lines
 
 
+async def test_failing_refreshes_are_shown_in_status_while_the_token_held_lasts():
+    """Day-2 audit: with the authorization server's certificate expired every refresh
+    failed, yet ``cryptoros status`` said ok until the fleet's tokens would run out."""
+    from interceptor.status import render
+
+    class Failing(Authz):
+        async def fetch_token(self, *, clock=time.time, resource=None):
+            if self.fetches >= 1:
+                self.fetches += 1
+                raise TokenError("authz_unreachable", "certificate has expired")
+            return await super().fetch_token(clock=clock, resource=resource)
+
+    keeper = TokenKeeper(Failing("robot_a"), refresh_margin=299.5, manager="robot_a")  # refresh at once
+    runner = asyncio.create_task(keeper.run())
+    try:
+        await asyncio.wait_for(keeper.refreshed.wait(), 5)
+        keeper.wake()
+        for _ in range(50):
+            if keeper.failing is not None:
+                break
+            await asyncio.sleep(0.05)
+    finally:
+        runner.cancel()
+    assert keeper.failing is not None and keeper.failing[1] == "certificate has expired"
+    assert keeper.current()  # the token held still serves
+    status = {"manager": "robot_a", "roles": ["node"], "public": "127.0.0.1:1", "health": "ok",
+              "token": None, "token_refresh": {"failing_for": 12, "reason": keeper.failing[1]},
+              "certificate": {"serial": "1", "not_after": "2027-01-01T00:00:00", "days_left": 30},
+              "feed": {"age": 1, "revoked_tokens": 0, "disabled_managers": []}, "open_streams": 0}
+    assert "warning   token refresh failing for 12 s: certificate has expired" in render(status)
+
+
 async def test_a_token_installed_by_a_reload_for_another_manager_is_refused_and_changes_nothing():
     keeper = TokenKeeper(Authz("robot_a"), refresh_margin=60, manager="robot_a")
     await keeper.refresh()
