@@ -6,11 +6,16 @@ Listening through aiohttp's own site, 20,000 of them from one host held the daem
 descriptor limit: every robot's token request failed, its memory grew to 4.5 GB (each
 handshake holds asyncio's 256 KiB buffer) and nothing was logged. Here a connection
 counts against :data:`PER_SOURCE` and :data:`IN_ALL` from its accept until its
-handshake ends (``handshake_timeout`` at most); over either it is closed at once, before
-any TLS work, with one log line per source and minute. A source a client with a
-verified certificate connected from is not counted in all (only against its own
-address's cap), so strangers on many addresses cannot lock the fleet out; loopback is
-not capped per source (the host's own processes: a fleet of clients on one machine).
+handshake ends (``handshake_timeout`` at most). Over its source's cap it is closed at
+once, before any TLS work, with one log line per source and minute. With :data:`IN_ALL`
+reached, a new connection from a source not known takes the place of the oldest such
+connection still in its handshake (closed): strangers' idle connections are the oldest,
+and a client's handshake takes milliseconds, so a robot never seen before (or every
+robot, after a restart) still gets in while strangers hold every slot (a stranger's
+audit: 640 idle connections from 10 addresses kept a new robot out for as long as they
+were held). A source a client with a verified certificate connected from is not counted
+in all (only against its own address's cap); loopback is not capped per source (the
+host's own processes: a fleet of clients on one machine).
 """
 
 from __future__ import annotations
@@ -60,11 +65,14 @@ class TLSListener:
         self._pending: dict[str, int] = {}
         self._pending_in_all = 0
         self._known: dict[str, bool] = {}
-        self._handshakes: set[asyncio.Task] = set()
+        #: handshakes not ended, oldest first: (source, counted in all, socket)
+        self._live: dict[asyncio.Task, tuple[str, bool, socket.socket]] = {}
+        self._evicting: dict[asyncio.Task, socket.socket] = {}  # gave their places, not ended yet
         self._sock: socket.socket | None = None
         self._task: asyncio.Task | None = None
         self._log_once = OncePer(60.0)
         self.refused = 0  # connections closed at accept, over a cap
+        self.evicted = 0  # connections closed in their handshake to make room in all
 
     def start(self) -> None:
         """Bind and listen now (an OSError, EADDRINUSE included, is the caller's); accept
@@ -82,7 +90,7 @@ class TLSListener:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
-        for task in list(self._handshakes):
+        for task in list(self._live):
             task.cancel()
         if self._sock is not None:
             self._sock.close()
@@ -90,9 +98,34 @@ class TLSListener:
     def _over_cap(self, source: str) -> str | None:
         if not self._uncapped_source(source) and self._pending.get(source, 0) >= self.per_source:
             return f"{self.per_source} connections from it in their TLS handshake already"
-        if source not in self._known and self._pending_in_all >= self.in_all:
-            return f"{self.in_all} connections from unknown sources in their TLS handshake already"
         return None
+
+    def _make_room(self) -> None:
+        """:data:`IN_ALL` reached: the oldest handshake counted in all gives its place."""
+        while self._pending_in_all >= self.in_all:
+            oldest = next((task for task, (_s, counted, _c) in self._live.items() if counted), None)
+            if oldest is None:
+                return
+            self._evicting[oldest] = self._live[oldest][2]  # closed once the task ends (see _ended)
+            self._release(oldest)
+            oldest.cancel()
+            self.evicted += 1
+            if self._log_once(("evicted",)):
+                log.warning("%d connections from unknown sources in their TLS handshake: the oldest closed to make "
+                            "room (%d so far; logged once a minute)", self.in_all, self.evicted)
+
+    def _release(self, task: asyncio.Task) -> None:
+        """A handshake ended (or gave its place): it counts no more."""
+        entry = self._live.pop(task, None)
+        if entry is None:
+            return
+        source, counted, _conn = entry
+        left = self._pending.get(source, 0) - 1
+        if left > 0:
+            self._pending[source] = left
+        else:
+            self._pending.pop(source, None)
+        self._pending_in_all -= counted
 
     async def _accept(self) -> None:
         loop = asyncio.get_running_loop()
@@ -118,13 +151,15 @@ class TLSListener:
                                 "per source)", source, why, self.refused)
                 continue
             counted = source not in self._known
+            if counted:
+                self._make_room()
             self._pending[source] = self._pending.get(source, 0) + 1
             self._pending_in_all += counted
-            task = loop.create_task(self._handshake(conn, source, counted))
-            self._handshakes.add(task)
-            task.add_done_callback(self._handshakes.discard)
+            task = loop.create_task(self._handshake(conn, source))
+            self._live[task] = (source, counted, conn)
+            task.add_done_callback(self._ended)
 
-    async def _handshake(self, conn: socket.socket, source: str, counted: bool) -> None:
+    async def _handshake(self, conn: socket.socket, source: str) -> None:
         try:
             await asyncio.get_running_loop().connect_accepted_socket(
                 self._factory, conn, ssl=self.ssl_ctx, ssl_handshake_timeout=self.handshake_timeout)
@@ -132,13 +167,16 @@ class TLSListener:
         except (OSError, asyncio.TimeoutError) as exc:  # a failed or late handshake, a reset
             log.debug("TLS handshake from %s failed: %s", source, exc)
             conn.close()
-        finally:
-            left = self._pending.get(source, 0) - 1
-            if left > 0:
-                self._pending[source] = left
-            else:
-                self._pending.pop(source, None)
-            self._pending_in_all -= counted
 
+    def _ended(self, task: asyncio.Task) -> None:
+        """A handshake task is done. A cancelled one (closed to make room, or the listener
+        closing) may never have started: its socket is closed here, after asyncio closed
+        the transport of one that had (closing it earlier could free its descriptor for
+        the next accept while the transport still had it registered)."""
+        entry = self._live.get(task)
+        conn = entry[2] if entry is not None else self._evicting.pop(task, None)
+        if conn is not None and task.cancelled():
+            conn.close()
+        self._release(task)
 
 __all__ = ["HANDSHAKE_TIMEOUT", "IN_ALL", "PER_SOURCE", "TLSListener"]

@@ -1,13 +1,13 @@
 """The authorization server's public socket (authz_server/listener.py): connections in
-their TLS handshake are capped per source address and in all from accept; a source a
-verified client came from is not counted in all. Real TLS sockets on loopback
+their TLS handshake are capped per source address from accept, and in all, where the
+oldest gives its place to a new one; a source a verified client came from is not
+counted in all. Real TLS sockets on loopback
 addresses (as distinct sources), real certificates."""
 
 from __future__ import annotations
 
 import asyncio
 import socket
-import ssl
 
 from authz_server.listener import TLSListener
 from cryptoros.tls import TLSConfig, client_context, server_context
@@ -59,19 +59,18 @@ def test_half_open_connections_are_capped_per_source_and_in_all_and_known_source
             assert await robot_from("127.0.0.1") == b"ok"  # known from now on
             strangers = [half_open("127.0.0.98") for _ in range(6)] + [half_open("127.0.0.97") for _ in range(4)]
             for _ in range(250):
-                if listener.pending() + listener.refused == len(strangers):
+                if listener.pending() + listener.refused + listener.evicted == len(strangers):
                     break
                 await asyncio.sleep(0.02)
             verdicts = [await closed(sock) for sock in strangers]
-            # 4 held from .98 (its cap), 2 from .97 (6 in all), the rest closed at accept
-            assert verdicts == [False] * 4 + [True] * 2 + [False] * 2 + [True] * 2, verdicts
-            assert listener.pending() == 6 and listener.refused == 4
+            # .98: 4 taken (its cap; 2 more closed at accept); .97's 4 fill the 6 in all, the
+            # last two taking the places of the two oldest (.98's first two, closed)
+            assert verdicts == [True] * 2 + [False] * 2 + [True] * 2 + [False] * 4, verdicts
+            assert listener.pending() == 6 and listener.refused == 2 and listener.evicted == 2
             assert await robot_from("127.0.0.1") == b"ok"  # a known source is not counted in all
-            try:
-                got = await robot_from("127.0.0.96")  # a new source, all full: closed at accept
-            except (ConnectionError, ssl.SSLError, OSError):
-                got = b""
-            assert got == b"" and listener.refused == 5
+            # a new source with all full: it takes the oldest stranger's place, and gets in
+            assert await robot_from("127.0.0.96") == b"ok"
+            assert listener.evicted == 3 and await closed(strangers[2])
             for sock in strangers:
                 sock.close()
             for _ in range(100):  # the held handshakes end with their sockets
