@@ -157,6 +157,28 @@ def test_distinct_refusals_are_each_logged_and_the_table_is_bounded():
     assert [r["target"] for r in table.table(now=2.0)] == ["/t4", "/t3", "/t2"]
 
 
+def test_refused_connections_from_many_sources_are_logged_within_a_budget_and_counted():
+    """Stranger audit: unauthenticated refusals were aggregated per source and kind only,
+    so 20 addresses sending 7 kinds of junk wrote 160-240 lines a minute. At most
+    MAX_UNAUTHENTICATED_LINES every interval, all sources together, then one count."""
+    from interceptor.denials import MAX_UNAUTHENTICATED_LINES
+
+    table = DenialTable(interval=10.0)
+    lines = []
+    for second in range(10):
+        for source in range(20):
+            for kind in range(7):
+                lines += table.record("tls", f"10.0.0.{source}", "tls_failed", f"junk {kind}", now=100.0 + second)
+    assert len(lines) == MAX_UNAUTHENTICATED_LINES, len(lines)
+    later = table.record("tls", "10.0.0.1", "tls_failed", "junk 0", now=111.0)
+    assert later[0].startswith(f"DENY tls: {140 - MAX_UNAUTHENTICATED_LINES} more line(s) of refused connections "
+                               "not logged in the last 11 s"), later
+    assert later[1].startswith("DENY tls from 10.0.0.1: junk 0 (") and len(later) == 2, later
+    assert len(table.table(now=112.0)) == 140  # every one counted in the table (cryptoros denials)
+    # refusals of peers that showed a certificate are not held back
+    assert all(len(table.record("master", f"robot_{n}", "not_granted", "/t", now=112.0)) == 1 for n in range(40))
+
+
 def test_roslaunchs_refusals_point_at_its_bundle():
     assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/run_id", "x"), "robot_b") == \
         "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
