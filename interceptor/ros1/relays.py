@@ -8,7 +8,7 @@ import contextlib
 import functools
 import socket
 
-from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.policy.ros1 import (
     check_local_subscriber_header,
     check_publisher_header,
@@ -178,13 +178,26 @@ class Relays:
                 check_subscribed_type(fields, reply_fields.get("type", ""), grants=own.grants)
 
             def judge(grants) -> None:
-                """The publisher's (server's) side against its grants, again on each fresher token."""
-                if purpose == "topic":
-                    check_publisher_header(reply_fields, grants=grants, topic=fields["topic"])
-                else:
-                    check_service_server_header(
-                        reply_fields, service=fields["service"], server_grants=grants, client_types=client_types
-                    )
+                """The publisher's (server's) side against its grants, again on each fresher
+                token. The peer's token is narrowed to the names our grants share with it:
+                when our own grant goes, its grant leaves the token it shows us too, so a
+                refusal names our side when our side no longer holds it (a day-2 run: the cut
+                of a removed subscribe grant was logged as the publisher's missing grant)."""
+                try:
+                    if purpose == "topic":
+                        check_publisher_header(reply_fields, grants=grants, topic=fields["topic"])
+                    else:
+                        check_service_server_header(
+                            reply_fields, service=fields["service"], server_grants=grants, client_types=client_types
+                        )
+                except PolicyDenied:
+                    with contextlib.suppress(TokenError):  # no own token: the peer's refusal stands
+                        mine = self.gw.own_access().grants
+                        if purpose == "topic":
+                            check_local_subscriber_header(fields, grants=mine)
+                        else:
+                            check_service_client_header(fields, grants=mine)
+                    raise
 
             judge(self.verifier.freshest(peer.access).grants)
             watch.judge_by(judge)
