@@ -58,12 +58,20 @@ class Admission:
             # A source a verified peer streamed from (KNOWN_SOURCES) is not counted in all:
             # strangers on 16 addresses holding 16 each filled the interceptor's 256, and no
             # robot opened a stream while they went on.
+            # With all of them taken, a new stream from an unknown source takes the place of
+            # the oldest such stream not verified yet (closed): strangers' idle connections
+            # are the oldest, a robot's handshake and preamble take milliseconds, so a robot
+            # that never streamed here still gets in while strangers hold every slot.
             caps = [(("source", source), limits.max_pending_per_source)]
             if source not in self._known_sources:
                 caps.append((("all",), limits.max_pending_streams))
             for key, cap in caps:
+                if key == ("all",):
+                    self._make_room(cap)
                 self._pending.enter(key, cap, "interceptor" if key == ("all",) else key[0])
                 entered.append(key)
+            if ("all",) in entered and task is not None:
+                self._unverified[task] = (entered, source)
         except PolicyDenied as exc:
             for key in entered:
                 self._pending.leave(key)
@@ -88,6 +96,7 @@ class Admission:
                         await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
             access = self.verifier.note(await self.verifier.verify_fresh(event.preamble.token, der))  # its freshest
+            self._unverified.pop(task, None)  # verified: no stranger's connection takes its place
             if source not in self._known_sources:
                 for listener in self.source_listeners:  # kept across a restart (the ROS 1 role's state)
                     listener()
@@ -118,6 +127,7 @@ class Admission:
                 writer.close()
             return
         finally:
+            self._unverified.pop(task, None)
             for key in entered:
                 self._pending.leave(key)
         writer.write(gate.accept(own_token))
@@ -152,6 +162,19 @@ class Admission:
             else:
                 del self._open_per_peer[access.subject]
             writer.close()
+
+    def _make_room(self, cap: int) -> None:
+        """``max_pending_streams`` reached: the oldest stream from an unknown source not
+        verified yet gives its place (its task cancelled: its socket closed, no reply)."""
+        while self._pending.count(("all",)) >= cap and self._unverified:
+            victim, (entered, source) = next(iter(self._unverified.items()))
+            del self._unverified[victim]
+            if ("all",) in entered:
+                entered.remove(("all",))
+                self._pending.leave(("all",))
+            victim.cancel()
+            self.deny("tls", PolicyDenied("pending_limit", f"{cap} unauthenticated streams from unknown sources: "
+                                                           "the oldest closed to make room"), source)
 
     async def _accept_tls(self, sock: socket.socket,
                           source: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:

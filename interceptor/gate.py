@@ -203,6 +203,9 @@ class PendingStreams:
             raise PolicyDenied("pending_limit", f"{cap} unauthenticated streams from this {what} already")
         self._counts[key] = self._counts.get(key, 0) + 1
 
+    def count(self, key: Hashable) -> int:
+        return self._counts.get(key, 0)
+
     def leave(self, key: Hashable) -> None:
         left = self._counts.get(key, 0) - 1
         if left > 0:

@@ -9,7 +9,18 @@ import socket
 
 import pytest
 
-from tests.interceptor_harness import NODE, SYS_PY, denials, got, read_lines, robot_network, separate_hosts
+from tests.interceptor_harness import (
+    NODE,
+    SYS_PY,
+    denials,
+    got,
+    read_lines,
+    robot_network,
+    rogue_preamble,
+    rogue_to,
+    separate_hosts,
+    token_of,
+)
 from tests.support import running, stop
 
 pytestmark = [pytest.mark.ros1]
@@ -37,14 +48,9 @@ def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_p
                 for _ in range(PENDING_IN_ALL + 4):  # from the test's own address: a stranger to robot A
                     held.append(_hold(a))
                 stranger = held[0].getsockname()[0]
-                # robot A is full for strangers: the ones over the cap are closed at once
-                closed = 0
-                for sock in held[PENDING_IN_ALL:]:
-                    try:
-                        closed += sock.recv(1) == b""
-                    except OSError:
-                        closed += 1
-                assert closed == 4, f"{closed} of the 4 connections over robot A's pending slots were closed"
+                # robot A is full for strangers: each one over the cap takes the oldest one's place
+                closed = _closed_once_decided(held, 4)
+                assert closed == [True] * 4 + [False] * PENDING_IN_ALL, closed
                 # a new subscriber on robot B: a new TCPROS stream from a robot A knows
                 with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "60"], env=net.ros_env("robot_b")) as second:
                     assert got(read_lines(second, "GOT", 30)), "robot B's new stream was locked out by strangers"
@@ -62,6 +68,13 @@ def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_p
                 with running([SYS_PY, NODE, "sub", "/after_restart", "/chatter", "60"],
                              env=net.ros_env("robot_b")) as third:
                     assert got(read_lines(third, "GOT", 40)), "robot B was locked out of robot A's restarted interceptor"
+                # a robot that never streamed to robot A (robot C's certificate, from the strangers'
+                # address, which robot A does not know) takes the oldest stranger's place and gets in
+                assert _closed_once_decided(held, 4) == [True] * 4 + [False] * PENDING_IN_ALL
+                with rogue_to(net, "robot_a", "robot_c") as s:
+                    reply = rogue_preamble(s, token_of(net, "robot_c"), "refresh")
+                assert reply is not None and reply.ok, reply
+                assert _closed_once_decided(held, 5) == [True] * 5 + [False] * (PENDING_IN_ALL - 1)
             finally:
                 for sock in held:
                     sock.close()
@@ -79,3 +92,21 @@ def _hold(host) -> socket.socket:
     sock.settimeout(5)
     sock.connect((host.address, host.public_port))
     return sock
+
+
+def _closed_once_decided(socks: list[socket.socket], expected: int, within: float = 10.0) -> list[bool]:
+    """Which of ``socks`` robot A closed, read once ``expected`` of them are (bounded)."""
+    import select
+    import time
+
+    closed = [False] * len(socks)
+    deadline = time.monotonic() + within
+    while sum(closed) < expected and time.monotonic() < deadline:
+        readable, _, _ = select.select([s for s, c in zip(socks, closed) if not c], [], [], 0.1)
+        for sock in readable:
+            try:
+                gone = sock.recv(1) == b""
+            except OSError:
+                gone = True
+            closed[socks.index(sock)] = closed[socks.index(sock)] or gone
+    return closed
