@@ -50,7 +50,9 @@ from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import Preamble
+from cryptoros.exposure import ExposureError
 from interceptor.config import Endpoint
+from interceptor.exposure import PortExposure
 from interceptor.verifier import StreamWatch
 from interceptor.gate import Target
 from interceptor.gateway import Gateway, Role
@@ -146,6 +148,11 @@ class Ros2Role(Role):
         self._exposed: tuple[Exposed, ...] = ()
         self._exposed_nodes: frozenset[str] = frozenset()
         self._paused: asyncio.Task | None = None
+        #: whether this host's loopback answers other hosts (``route_localnet``), read at
+        #: each reconcile: the robot's domain is then open to strangers (its samples read,
+        #: samples injected as its nodes'), and nothing is carried, either way
+        self._ports = PortExposure()
+        self._loopback: str | None = None
         gateway.serve("ros2", self._check_ros2_target, self._serve_ros2_stream)
 
     # ================================================================ life cycle
@@ -362,6 +369,27 @@ class Ros2Role(Role):
         self._exposed_nodes = frozenset(nodes)
         return self._exposed_nodes
 
+    def _check_loopback(self) -> str | None:
+        """Why this host's loopback answers other hosts now (or cannot be told), else None;
+        a change is logged once."""
+        try:
+            problem = self._ports.loopback_problem()
+        except ExposureError as exc:
+            problem = f"cannot tell whether it does: {exc}"
+        if problem != self._loopback:
+            if problem is not None:
+                log.error("this host's loopback answers other hosts: %s; nothing is carried, either way, until it "
+                          "does not", problem)
+            else:
+                log.warning("this host's loopback answers this host only again: carrying resumes")
+            self._loopback = problem
+        return problem
+
+    def problem(self) -> PolicyDenied | None:
+        if self._loopback is not None:
+            return PolicyDenied("exposed_endpoint", f"this host's loopback answers other hosts: {self._loopback}")
+        return None
+
     def status(self) -> dict:
         carried = ("not carried" if self.cfg.ros2.require_private_domain
                    else "carried anyway ([ros2] require_private_domain = false)")
@@ -382,7 +410,8 @@ class Ros2Role(Role):
         if self._stopping or self.bridge.link is None or not self.bridge.ready:
             return
         link_down = self.bridge.link.transport is None or self.bridge.link.transport.is_closing()
-        want = {} if link_down else self._desired()
+        exposed = self._check_loopback() is not None
+        want = {} if link_down or exposed else self._desired()
         on_air = set() if link_down else self._on_air()
         now = time.monotonic()
         for key, out in list(self._outbound.items()):
@@ -392,7 +421,8 @@ class Ros2Role(Role):
                     log.info("%s %s [%s] is back in the graph: offered on", out.target.kind, out.target.name,
                              out.target.type)
                 continue
-            if key not in want and not link_down and out.target.name not in on_air and self._still_granted(out):
+            if key not in want and not link_down and not exposed and out.target.name not in on_air \
+                    and self._still_granted(out):
                 if out.vanished_at is None:
                     out.vanished_at = now
                     if out.target.kind == "topic":  # a writer let through goes on; a new one waits for
@@ -403,6 +433,7 @@ class Ros2Role(Role):
                 if now - out.vanished_at < VANISHED_GRACE:
                     continue
             why = ("the bridge's link is down" if link_down else
+                   "this host's loopback answers other hosts" if exposed else
                    f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
                    if out.vanished_at is not None and key not in want and out.target.name not in on_air else
                    "its publisher, its server or the grant that carried it is gone" if key not in want else
@@ -434,7 +465,10 @@ class Ros2Role(Role):
         if self._inbound:
             try:
                 self.gw.own_access()
+                stop_inbound = exposed
             except TokenError:  # our own token is gone: nothing comes in either
+                stop_inbound = True
+            if stop_inbound:
                 for writer in list(self._inbound):
                     writer.transport.abort()
 
@@ -604,6 +638,9 @@ class Ros2Role(Role):
         target = StreamTarget.decode(preamble.target)
         if not self.bridge.ready:
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
+        problem = self.problem()
+        if problem is not None:
+            raise problem
 
         def judge(grants) -> None:
             if not grants.allows(target.action, target.node, target.name, target.type):

@@ -10,7 +10,8 @@ robot's namespace only), as an attacker would act:
   robot's own ``registerPublisher``) with one line naming the sysctl and the command
   that fixes it, and ``cryptoros status`` warns; ``all`` alone does the same (the
   kernel takes ``all`` OR the interface); set back to 0, the robot serves again;
-- the master's interceptor refuses its rosmaster (``exposed_master``) the same way.
+- the master's interceptor refuses its rosmaster (``exposed_master``) the same way;
+- a ROS 2 robot's interceptor carries nothing, either way, while it lasts.
 
 Needs root (CI runs as root); without root it skips and says why.
 """
@@ -187,3 +188,51 @@ def test_the_masters_interceptor_refuses_a_rosmaster_on_a_loopback_other_hosts_r
         while "answers on loopback only now" not in master.logs():
             assert time.monotonic() < deadline, master.logs()
             time.sleep(0.1)
+
+
+def test_a_ros2_robot_whose_loopback_other_hosts_reach_carries_nothing_until_it_does_not(tmp_path):
+    """The ros2 role: the robot's DDS domain is on its loopback, which route_localnet
+    opens to strangers (its samples read, samples injected as its nodes'). The sysctl set
+    while robot A runs: robot A stops offering its topics and taking peers' streams,
+    ``cryptoros status`` says why (exit 1); set back, robot B's listener receives again."""
+    import subprocess
+
+    from cryptoros.lab.network import lab_network
+    from cryptoros.lab.policy import policy_yaml
+    from tests.ros2_support import NODES, STRING2, fresh_domains, ros2_env, ros2_python
+
+    separate_hosts()
+    python = ros2_python()
+    domains = dict(zip(("robot_a", "robot_b"), fresh_domains(2), strict=True))
+    policy = policy_yaml({"robot_a": {"publish": [("/talker", "/chatter", STRING2)]},
+                          "robot_b": {"subscribe": [("/listener", "/chatter", STRING2)]}})
+    hosts = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3"}
+    with lab_network(tmp_path, policy, hosts=hosts, master="none", metrics=True, ros2=domains, ros2_python=python,
+                     netns=True, log_level="info") as net:
+        def node(host: str, *args: str) -> subprocess.Popen:
+            env = {**ros2_env(domains[host]), "PYTHONUNBUFFERED": "1"}
+            return subprocess.Popen(net.argv(host, [str(python), *args]), env=env, cwd=str(NODES),
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+        talker = node("robot_a", "talker.py", "string", "/chatter", "100000", "20")
+        listener = node("robot_b", "listener.py", "string", "/chatter", "150")
+        try:
+            read_lines(listener, "GOT", 60)  # flowing
+            _route_localnet(net, "robot_a", "eth0", 1)
+            robot = net.hosts["robot_a"]
+            until(lambda: "no longer offering topic /chatter" in robot.logs()
+                  and "this host's loopback answers other hosts" in robot.logs(), 20,
+                  "robot A withdrawing /chatter once its loopback answers other hosts")
+            status = run_on(net, "robot_a", [tool("cryptoros"), "status", "--config", str(robot.config)])
+            assert status.returncode == 1 and "exposed_endpoint" in status.stdout, status
+            assert "net.ipv4.conf.eth0.route_localnet=1" in status.stdout, status.stdout
+            _route_localnet(net, "robot_a", "eth0", 0)
+            until(lambda: run_on(net, "robot_a", [tool("cryptoros"), "status", "--config",
+                                                  str(robot.config)]).returncode == 0, 20, "robot A healthy again")
+            read_lines(listener, None, 0.2)  # what it printed before
+            read_lines(listener, "GOT", 60)  # and the flow is back
+        finally:
+            for proc in (talker, listener):
+                proc.terminate()
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    proc.wait(timeout=10)
