@@ -20,6 +20,7 @@ import gc
 import logging
 import signal
 import sys
+import time
 from pathlib import Path
 
 import click
@@ -161,6 +162,14 @@ async def _preflight(cfg) -> list[str]:
     from interceptor.streams import cert_hosts
 
     der = cert_der(cfg.tls.cert_file)
+    cert = x509.load_der_x509_certificate(der)
+    now = time.time()
+    if cert.not_valid_after_utc.timestamp() <= now:  # else the server only "closed the connection"
+        raise ConfigError(f"{cfg.tls.cert_file} expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC: every peer "
+                          "and the authorization server refuse it; renew it (cryptoros-certs renew, then SIGHUP)")
+    if cert.not_valid_before_utc.timestamp() > now:
+        raise ConfigError(f"{cfg.tls.cert_file} is not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC "
+                          "(is this host's clock right?)")
     hosts = cert_hosts(der)
     lines = []
     if cfg.public.host in ("0.0.0.0", "::"):

@@ -191,6 +191,38 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
     down = check(f"https://127.0.0.1:{free_port()}")
     assert down.returncode == 1 and "nothing answers there" in down.stderr and "Traceback" not in down.stderr, \
         down.stderr
+    # an expired certificate is named as such (it was "the authorization server closed the connection")
+    material["cert"], material["key"] = _expired_pair(tmp_path)
+    expired = check(f"https://127.0.0.1:{free_port()}")
+    assert expired.returncode == 2 and len(expired.stderr.strip().splitlines()) == 1, expired.stderr
+    assert "expired on" in expired.stderr and "renew it" in expired.stderr, expired.stderr
+
+
+def _expired_pair(directory):
+    """A certificate for 127.0.0.2 that expired yesterday, and its key."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "robot_x")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(days=30))
+            .not_valid_after(now - datetime.timedelta(days=1))
+            .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.2"))]),
+                           critical=False)
+            .sign(key, hashes.SHA256()))
+    cert_path, key_path = directory / "expired.crt", directory / "expired.key"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))
+    key_path.chmod(0o600)
+    return cert_path, key_path
 
 
 def test_authz_url_may_list_replicas(material, tmp_path):
