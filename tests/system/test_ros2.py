@@ -148,17 +148,19 @@ def test_a_stuck_subscriber_on_robot_b_does_not_stall_robot_bs_other_topics(netw
                               "--burst-on-signal") as talker:
                 stuck.until("STALLED", 30)
                 talker.proc.send_signal(signal.SIGUSR1)
-                lines = flow.until(None, 12.0)
-                # the burst fills the stuck reader (about a second at full rate, several on a
+                # The burst fills the stuck reader (about a second at full rate, several on a
                 # loaded host), then the bridge waits PUBLISH_PATIENCE, makes the writer anew,
-                # waits PUBLISH_PATIENCE on the new one and then drops and says so
+                # waits PUBLISH_PATIENCE on the new one and then drops and says so. /twist
+                # goes on meanwhile (delayed at most the patience, never behind every stuck
+                # message: then it came at one message a patience): 12 s worth of it arrive
+                # within a bounded wait, and 4 s worth more once /stuck is dropped. Counts
+                # over a bounded wait, not rates: the burst shares robot A's message budget
+                # with /twist, and a loaded host drains it slower.
+                collect(flow, 12 * 20, 60)
                 until(lambda: "not taking messages" in network.robots["robot_b"].logs(), 30,
                       "bridge B reporting the stuck subscriber")
                 flow.until(None, 0.2)  # what /twist printed while the log was awaited
-                after = flow.until(None, 4.0)  # the stuck topic's messages are now dropped at once
-    received = got(lines)
-    assert len(received) >= 12 * 20 * 0.5, f"/twist got {len(received)} messages in 12 s at 20 Hz"
-    assert len(got(after)) >= 4 * 20 * 0.5, f"/twist got {len(got(after))} messages in 4 s once /stuck was dropped"
+                collect(flow, 4 * 20, 30)  # the stuck topic's messages are now dropped at once
 
 
 def test_topic_not_granted_to_the_sender_never_leaves_robot_a(network):
