@@ -103,6 +103,9 @@ async def _run(config_path: str, grace: float) -> None:
     refusals, warnings = deployment_problems(cfg)
     if refusals:
         raise ConfigError(refusals[0])
+    problem = own_certificate_problem(cfg)
+    if problem is not None:
+        raise ConfigError(problem)
     for warning in warnings:
         log.warning("%s", warning)
     interceptor = build_interceptor(cfg)
@@ -149,6 +152,24 @@ class _Unreachable(CryptorosError):
     exit_code = 1
 
 
+def own_certificate_problem(cfg, now: float | None = None) -> str | None:
+    """Why this interceptor's certificate is not valid now (every peer and the
+    authorization server would refuse it), in one line, or None."""
+    from cryptography import x509
+
+    from cryptoros.pemfiles import cert_der
+
+    cert = x509.load_der_x509_certificate(cert_der(cfg.tls.cert_file))
+    now = time.time() if now is None else now
+    if cert.not_valid_after_utc.timestamp() <= now:
+        return (f"{cfg.tls.cert_file} expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC: every peer and the "
+                "authorization server refuse it; renew it (cryptoros-certs renew)")
+    if cert.not_valid_before_utc.timestamp() > now:
+        return (f"{cfg.tls.cert_file} is not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC "
+                "(is this host's clock right?)")
+    return None
+
+
 async def _preflight(cfg) -> list[str]:
     """What --check checks beyond the file: the certificate names the public address
     (peers accept endpoints only on their owner's IP SAN), and the authorization server
@@ -162,14 +183,9 @@ async def _preflight(cfg) -> list[str]:
     from interceptor.streams import cert_hosts
 
     der = cert_der(cfg.tls.cert_file)
-    cert = x509.load_der_x509_certificate(der)
-    now = time.time()
-    if cert.not_valid_after_utc.timestamp() <= now:  # else the server only "closed the connection"
-        raise ConfigError(f"{cfg.tls.cert_file} expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC: every peer "
-                          "and the authorization server refuse it; renew it (cryptoros-certs renew, then SIGHUP)")
-    if cert.not_valid_before_utc.timestamp() > now:
-        raise ConfigError(f"{cfg.tls.cert_file} is not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC "
-                          "(is this host's clock right?)")
+    problem = own_certificate_problem(cfg)
+    if problem is not None:  # else the server only "closed the connection"
+        raise ConfigError(problem)
     hosts = cert_hosts(der)
     lines = []
     if cfg.public.host in ("0.0.0.0", "::"):

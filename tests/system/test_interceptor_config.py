@@ -196,6 +196,9 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
     expired = check(f"https://127.0.0.1:{free_port()}")
     assert expired.returncode == 2 and len(expired.stderr.strip().splitlines()) == 1, expired.stderr
     assert "expired on" in expired.stderr and "renew it" in expired.stderr, expired.stderr
+    started = run([script("cryptoros-interceptor"), "--config", str(tmp_path / "check.toml")], timeout=60)
+    assert started.returncode == 1 and len(started.stderr.strip().splitlines()) == 1, started.stderr
+    assert "expired on" in started.stderr, started.stderr  # nor does it start
 
 
 def _expired_pair(directory):
