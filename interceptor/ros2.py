@@ -90,6 +90,11 @@ BACKLOG_STALL = 1.0
 MAX_STREAM_BACKLOG = 32 * 1024 * 1024
 MAX_PENDING_CALLS = 64
 TOPIC_READ_SIZE = 1024 * 1024
+#: bytes of unfinished frames (a frame's header read, its body not all there yet) one peer
+#: may make this robot hold across all its topic streams, in max_message_size units: an
+#: insider that announced 16 MiB frames on 80 streams and sent all but their last bytes
+#: held 1.4 GB here, and nothing ended it
+PARTIAL_FRAMES_PER_PEER = 4
 
 
 
@@ -140,6 +145,7 @@ class Ros2Role(Role):
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
+        self._partial: dict[str, int] = {}  # peer manager -> bytes of its streams' unfinished frames held
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
         self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         self._stopping = False
@@ -710,6 +716,8 @@ class Ros2Role(Role):
         # late joiners) is its own, and ends with the stream (its publisher is destroyed).
         chan = next(self._chans)
         link.control(op="advertise", chan=chan, topic=target.name, type=target.type, qos=qos.to_dict())
+        partial = 0  # this stream's share of self._partial (its decoder's unfinished frame)
+        partial_limit = PARTIAL_FRAMES_PER_PEER * self.cfg.ros2.max_message_size
         try:
             async for data in read_chunks(reader, TOPIC_READ_SIZE, first):
                 rx.inc(len(data))
@@ -718,6 +726,12 @@ class Ros2Role(Role):
                     runs = decoder.runs()  # DATA frames, checked and kept whole: relabelled in place
                 except fr.FrameError as exc:
                     raise RemoteProtocolError(str(exc)) from None
+                held = self._partial.get(peer.manager, 0) - partial + decoder.buffered
+                self._partial[peer.manager], partial = held, decoder.buffered
+                if held > partial_limit:
+                    raise PolicyDenied("partial_frames", (
+                        f"{peer.manager}'s unfinished frames would take {held} bytes here; the limit is "
+                        f"{partial_limit} ({PARTIAL_FRAMES_PER_PEER} x [ros2] max_message_size)"))
                 runs, bad = _checked_runs(runs, check)
                 if gate is not None and runs:
                     runs, _dropped = _checked_runs(runs, functools.partial(_gated_sample, gate))
@@ -771,6 +785,11 @@ class Ros2Role(Role):
         except PolicyDenied:
             raise
         finally:
+            left = self._partial.get(peer.manager, 0) - partial
+            if left > 0:
+                self._partial[peer.manager] = left
+            else:
+                self._partial.pop(peer.manager, None)
             # its publisher goes with it, and with it every sample it kept for late joiners
             link.control(op="unadvertise", chan=chan)
             if kept:

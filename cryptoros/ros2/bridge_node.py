@@ -73,7 +73,12 @@ STALLED_PROBE_INTERVAL = 1.0
 #: a topic's writer is made anew at most this often: a reader that really stopped taking
 #: fills every new writer, and would otherwise cost the other topics a patience each time
 REMAKE_INTERVAL = 10.0
-SERVICE_THREADS = 8
+SERVICE_THREADS = 16
+#: calls to one remote service waiting for their answers at once: a server that never
+#: answers (an insider's) holds at most this many of the SERVICE_THREADS; more calls to
+#: it get no answer at once (their clients time out) instead of a thread (an insider's
+#: hanging service held all 8 threads, and robot A's service waited 30 s behind it)
+MAX_CALLS_PER_SERVICE = 4
 
 
 class NoAnswer(Exception):
@@ -139,6 +144,8 @@ class Bridge:
         self.pubs: dict[int, tuple[object, str, object, type, QoSProfile]] = {}
         self.remade = 0  # writers made anew after they waited PUBLISH_PATIENCE
         self.remade_at: dict[int, float] = {}  # chan -> when its writer was last made anew
+        self.calls_lock = threading.Lock()
+        self.calls_in_flight: dict[int, int] = {}  # proxied service chan -> calls waiting for answers
         self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
         #: chan -> the granted publisher nodes whose writers' samples are forwarded
         self.writer_nodes: dict[int, frozenset[str]] = {}
@@ -491,15 +498,27 @@ class Bridge:
 
     def _proxy(self, chan: int, cls):
         def handle(request, _response):
-            rid = next(self.ids)
-            slot = [threading.Event(), None]
-            self.pending[rid] = slot
-            self.send(fr.encode(fr.REQUEST, chan, fr.ID.pack(rid) + serialize_message(request)))
-            if not slot[0].wait(CALL_TIMEOUT) or not slot[1][0]:
-                self.pending.pop(rid, None)
-                # Refused or failed: no answer at all (the client times out), never a made-up one.
-                raise NoAnswer(f"call {rid} of channel {chan}")
-            return deserialize_message(slot[1][1], cls.Response)
+            with self.calls_lock:
+                if self.calls_in_flight.get(chan, 0) >= MAX_CALLS_PER_SERVICE:
+                    raise NoAnswer(f"channel {chan}: {MAX_CALLS_PER_SERVICE} calls wait for answers already")
+                self.calls_in_flight[chan] = self.calls_in_flight.get(chan, 0) + 1
+            try:
+                rid = next(self.ids)
+                slot = [threading.Event(), None]
+                self.pending[rid] = slot
+                self.send(fr.encode(fr.REQUEST, chan, fr.ID.pack(rid) + serialize_message(request)))
+                if not slot[0].wait(CALL_TIMEOUT) or not slot[1][0]:
+                    self.pending.pop(rid, None)
+                    # Refused or failed: no answer at all (the client times out), never a made-up one.
+                    raise NoAnswer(f"call {rid} of channel {chan}")
+                return deserialize_message(slot[1][1], cls.Response)
+            finally:
+                with self.calls_lock:
+                    left = self.calls_in_flight.get(chan, 1) - 1
+                    if left > 0:
+                        self.calls_in_flight[chan] = left
+                    else:
+                        self.calls_in_flight.pop(chan, None)
 
         return handle
 

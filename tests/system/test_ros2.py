@@ -22,7 +22,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptoros.ros2.target import StreamTarget
 from cryptoros.tokens import Grants, build_claims, sign_token
 from tests.interceptor_harness import rogue_preamble, rogue_tls, signing_key
-from tests.ros2_support import collect, got, ros2_network
+from tests.ros2_support import SET_BOOL, collect, got, ros2_network
 from tests.support import Capture, until
 
 
@@ -214,6 +214,31 @@ def test_service_call_across_robots(network):
     assert "CALLED True" in calls or calls == []  # the server printed its calls (some may already be read)
 
 
+def test_a_remote_service_that_never_answers_holds_none_of_the_others(network):
+    """ROS 2 audit: calls to a remote server that never answers held all of bridge B's
+    service threads (8), and robot A's /set_flag waited 30 s behind them. Each remote
+    service now holds at most MAX_CALLS_PER_SERVICE of them; its further calls get no
+    answer at once."""
+    service_threads = 16  # cryptoros/ros2/bridge_node.py SERVICE_THREADS (a module of the ROS 2 venv)
+    grants = [("robot_a", "serve", "/hang_server", "/hang", SET_BOOL), ("robot_b", "call", "*", "/hang", SET_BOOL)]
+    for grant in grants:
+        network.cli("grant", *grant)
+    try:
+        with network.node("robot_a", "server.py", "/hang", "hang_server", "--hang") as hang, \
+                network.node("robot_a", "server.py", "/set_flag", "flag_server") as flag:
+            hang.until("READY", 20)
+            flag.until("READY", 20)
+            # more calls to /hang at once than bridge B has threads
+            with network.node("robot_b", "client.py", "/hang", str(service_threads + 2), "60", "--at-once") as stuck:
+                stuck.until("SENT", 40)
+                hang.until("HELD True", 30)  # they reached the server, which holds them
+                with network.node("robot_b", "client.py", "/set_flag", "1", "20") as client:
+                    client.until("RESULT True flag set to True by flag_server", 25)
+    finally:
+        for grant in grants:
+            network.cli("revoke", *grant)
+
+
 def test_latched_message_reaches_a_late_subscriber_with_transient_local(network):
     log_before = len(network.robots["robot_b"].logs())
     with network.node("robot_a", "talker.py", "string", "/latched", "1", "10", "--latched"):
@@ -315,6 +340,34 @@ def test_malformed_targets_and_frames_are_refused_and_the_interceptor_keeps_serv
     assert "bad_target" in log or "ros2 target" in log
     assert "/intruder may not publish /chatter" in log
     assert "outside 0.." in log
+    test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
+
+
+def test_the_unfinished_frames_of_one_peer_are_bounded(network):
+    """ROS 2 audit: an insider announced 16 MiB frames on 80 streams and sent all but the
+    last byte of each: robot B held 1.4 GB, and nothing ended it. Robot B now holds at
+    most PARTIAL_FRAMES_PER_PEER x max_message_size of one peer's unfinished frames: the
+    stream over it is cut (``partial_frames``), and robot B goes on serving."""
+    from cryptoros.ros2 import framing as fr
+    from interceptor.ros2 import PARTIAL_FRAMES_PER_PEER
+
+    status, body = network.daemon.token("robot_a")
+    token = body["access_token"]
+    size = 16 << 20  # the default [ros2] max_message_size
+    chunk = b"\x00" * (1 << 20)
+    with contextlib.ExitStack() as held:
+        for _ in range(PARTIAL_FRAMES_PER_PEER + 1):
+            s = held.enter_context(_rogue(network, "robot_b", "robot_a"))
+            reply = rogue_preamble(s, token, "ros2", CHATTER)
+            assert reply is not None and reply.ok, reply
+            try:
+                s.sendall(fr.HEAD.pack(5 + size, fr.DATA, 0))
+                for _ in range(16):
+                    s.sendall(chunk[:-1] if _ == 15 else chunk)
+            except OSError:  # cut while it sent: the stream over the limit
+                break
+        until(lambda: "partial_frames" in network.robots["robot_b"].denials(), 30,
+              "robot B cutting the stream whose unfinished frame is over the limit")
     test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
 
 
