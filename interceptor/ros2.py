@@ -82,11 +82,17 @@ MAX_NOTED = 10_000
 #: BACKLOG_HIGH, the interceptor stops reading from its bridge (which then stops taking
 #: from DDS: the bridge's history depth decides what is kept, as on a direct DDS path);
 #: reading resumes once every stream is under BACKLOG_LOW, or after BACKLOG_STALL
-#: seconds (a stuck peer must not stall the others). A stream above MAX_STREAM_BACKLOG
-#: drops new messages (counted).
+#: seconds (a stuck peer must not stall the others). A stream that stays above
+#: BACKLOG_LOW for STUCK_AFTER seconds is stuck: its new messages are dropped (counted,
+#: logged once) until it drains under BACKLOG_LOW, and it pauses nothing meanwhile (a
+#: peer that stopped reading held every other peer's flows, a pause and a second's
+#: stall on every batch: 66 s of silence in a run). STUCK_AFTER is over what a live
+#: receiver may hold a stream (its bridge's two PUBLISH_PATIENCE waits, 6 s). A stream
+#: above MAX_STREAM_BACKLOG drops new messages (counted).
 BACKLOG_HIGH = 8 * 1024 * 1024
 BACKLOG_LOW = 4 * 1024 * 1024
 BACKLOG_STALL = 1.0
+STUCK_AFTER = 10.0
 MAX_STREAM_BACKLOG = 32 * 1024 * 1024
 MAX_PENDING_CALLS = 64
 TOPIC_READ_SIZE = 1024 * 1024
@@ -154,6 +160,8 @@ class Ros2Role(Role):
         self._exposed: tuple[Exposed, ...] = ()
         self._exposed_nodes: frozenset[str] = frozenset()
         self._paused: asyncio.Task | None = None
+        self._stuck: set[asyncio.StreamWriter] = set()  # peer streams that stopped draining (flow control)
+        self._high_since: dict[asyncio.StreamWriter, float] = {}  # undrained at a stall's end since (loop time)
         #: whether this host's loopback answers other hosts (``route_localnet``), read at
         #: each reconcile: the robot's domain is then open to strangers (its samples read,
         #: samples injected as its nodes'), and nothing is carried, either way
@@ -207,6 +215,12 @@ class Ros2Role(Role):
         for writer in out.writers.values():
             transport = writer.transport
             backlog = transport.get_write_buffer_size()
+            if writer in self._stuck:
+                if backlog > BACKLOG_LOW:
+                    self.dropped += count
+                    continue
+                self._stuck.discard(writer)
+                log.warning("a peer stream of %s drains again: its messages are sent again", out.target.name)
             if backlog > MAX_STREAM_BACKLOG:
                 self.dropped += count
                 continue
@@ -225,8 +239,26 @@ class Ros2Role(Role):
             while loop.time() < until:
                 await asyncio.sleep(0.002)
                 if all(w.transport.get_write_buffer_size() <= BACKLOG_LOW
-                       for out in self._outbound.values() for w in out.writers.values() if not w.transport.is_closing()):
+                       for out in self._outbound.values() for w in out.writers.values()
+                       if not w.transport.is_closing() and w not in self._stuck):
+                    self._high_since.clear()  # every stream drained: none has been high since
                     break
+            else:  # a stream that has not drained for STUCK_AFTER is stuck: it pauses nothing from now on
+                now = loop.time()
+                self._stuck = {w for w in self._stuck if not w.transport.is_closing()}
+                high_since, self._high_since = self._high_since, {}
+                for out in self._outbound.values():
+                    for endpoint, w in out.writers.items():
+                        if w in self._stuck or w.transport.is_closing() \
+                                or w.transport.get_write_buffer_size() <= BACKLOG_LOW:
+                            continue
+                        since = self._high_since[w] = high_since.get(w, now - BACKLOG_STALL)
+                        if now - since >= STUCK_AFTER:
+                            self._stuck.add(w)
+                            del self._high_since[w]
+                            log.warning("the stream of %s to peer %s has not drained for %.0f s: its messages are "
+                                        "dropped until it does; the other streams go on (%d dropped so far)",
+                                        out.target.name, endpoint, now - since, self.dropped)
         finally:
             self._paused = None
             if link.transport is not None and not link.transport.is_closing():

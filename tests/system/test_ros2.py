@@ -163,6 +163,40 @@ def test_a_stuck_subscriber_on_robot_b_does_not_stall_robot_bs_other_topics(netw
                 collect(flow, 4 * 20, 30)  # the stuck topic's messages are now dropped at once
 
 
+def test_a_peer_that_stops_reading_stalls_none_of_the_senders_other_flows(network):
+    """ROS 2 audit: robot C (subscribed to robot A's images) stopped reading (its
+    interceptor SIGSTOPped): robot A paused its bridge for every batch while C's stream
+    was backed up, and robot B got 263 of robot A's 900 /chatter messages in 45 s, once
+    nothing for 66 s. A stream that has not drained for STUCK_AFTER (10 s) is stuck: its
+    messages are dropped, logged once, and it pauses nothing."""
+    import os
+
+    from tests.ros2_support import IMAGE
+
+    grant = ("robot_c", "subscribe", "*", "/image", IMAGE)
+    network.cli("grant", *grant)
+    robot_a, robot_c = network.robots["robot_a"], network.robots["robot_c"]
+    try:
+        with network.node("robot_b", "listener.py", "string", "/chatter", "120") as chatter, \
+                network.node("robot_c", "listener.py", "image", "/image", "120") as images:
+            chatter.until("READY", 20)
+            images.until("READY", 20)
+            with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"), \
+                    network.node("robot_a", "talker.py", "image", "/image", "1000000", "50"):
+                collect(images, 5, 60)  # robot A's stream to robot C flows
+                collect(chatter, 5, 30)
+                os.kill(robot_c.proc.pid, signal.SIGSTOP)
+                try:
+                    until(lambda: "has not drained for" in robot_a.logs(), 40,
+                          "robot A marking its stream to the stopped robot C stuck")
+                    chatter.until(None, 0.2)  # what came while that was awaited
+                    collect(chatter, 100, 15)  # 5 s of robot A's /chatter, C still stopped
+                finally:
+                    os.kill(robot_c.proc.pid, signal.SIGCONT)
+    finally:
+        network.cli("revoke", *grant)
+
+
 def test_topic_not_granted_to_the_sender_never_leaves_robot_a(network):
     with network.node("robot_b", "listener.py", "string", "/secret", "30") as sub:
         sub.until("READY", 20)
