@@ -245,7 +245,6 @@ class Ros2Role(Role):
                     break
             else:  # a stream that has not drained for STUCK_AFTER is stuck: it pauses nothing from now on
                 now = loop.time()
-                self._stuck = {w for w in self._stuck if not w.transport.is_closing()}
                 high_since, self._high_since = self._high_since, {}
                 for out in self._outbound.values():
                     for endpoint, w in out.writers.items():
@@ -606,6 +605,8 @@ class Ros2Role(Role):
                         await self._serve_calls(reader, writer, out, pending, first=tunnel.pending)
                 finally:
                     out.writers.pop(endpoint, None)
+                    self._stuck.discard(writer)
+                    self._high_since.pop(writer, None)
                     self.metrics.open_streams.labels("ros2").dec()
             except PolicyDenied as exc:
                 self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
