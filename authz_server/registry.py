@@ -56,7 +56,7 @@ from authz_server.models import (
     RevokedToken,
     SigningKey,
 )
-from cryptoros.errors import ConfigError, RegistryError
+from cryptoros.errors import ConfigError, CryptorosError, RegistryError
 from cryptoros.names import PARAM_TYPE, validate_graph_name, validate_namespace, validate_node_name, validate_type
 
 ACTIONS = ("publish", "subscribe", "serve", "call", "read_param", "write_param")
@@ -260,8 +260,9 @@ def _info(m: Manager, with_grants: bool = True) -> ManagerInfo:
                        previous, m.previous_until if previous else None)
 
 
-class _DryRun(Exception):
-    """Rolls an import's transaction back once its counts are known."""
+class _DryRun(CryptorosError):
+    """Rolls an import's transaction back once its counts are known (never leaves
+    :meth:`Registry.import_policy`)."""
 
 
 class Registry:
