@@ -17,7 +17,7 @@ import time
 import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
-from tests.support import free_port, script
+from tests.support import expired_certificate, free_port, script
 from tests.authz_support import AuthzDaemon, authz, build_team, ok, read_pem_der
 
 pytest_plugins = ["tests.postgres_fixture"]
@@ -164,31 +164,12 @@ def _serve(team, *extra: str, db: str | None = None, timeout: float = 20) -> sub
     return subprocess.run(args, capture_output=True, text=True, timeout=timeout)
 
 
-def _expired_certificate(path) -> None:
-    """A certificate that expired yesterday (self-signed: the check comes before the CA's)."""
-    import datetime
-
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-    from cryptography.hazmat.primitives.serialization import Encoding
-
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "authz")])
-    now = datetime.datetime.now(datetime.UTC)
-    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(days=30))
-            .not_valid_after(now - datetime.timedelta(days=1)).sign(key, hashes.SHA256()))
-    path.write_bytes(cert.public_bytes(Encoding.PEM))
-
-
 def test_serve_start_up_errors_are_one_line(team, tmp_path):
     line = one_line_error(_serve(team, "--port", str(free_port()), db=f"sqlite:///{tmp_path / 'missing.db'}"))
     assert "database not found" in line
     # day-2 audit: an expired server certificate was served without a word (every interceptor refused it)
-    _expired_certificate(tmp_path / "expired.crt")
-    line = one_line_error(_serve(team, "--port", str(free_port()), "--cert", str(tmp_path / "expired.crt")))
+    expired, _key = expired_certificate(tmp_path, "authz")
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--cert", str(expired)))
     assert "expired on" in line and "renew it" in line, line
     line = one_line_error(_serve(team, "--port", str(free_port()), "--crl", str(tmp_path / "no.crl")))
     assert "not found" in line and "no.crl" in line

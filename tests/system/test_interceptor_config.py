@@ -151,7 +151,7 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
     mistake is one line, and a good file prints the token it got."""
     from cryptoros.lab.network import free_port
     from tests.authz_support import authz, build_team, ok, running_daemon
-    from tests.support import run, script
+    from tests.support import expired_certificate, run, script
 
     team = build_team(tmp_path)
     issued = team.pki.issue("robot_x", kind="interceptor", sans=("IP:127.0.0.2",))
@@ -192,40 +192,13 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
     assert down.returncode == 1 and "nothing answers there" in down.stderr and "Traceback" not in down.stderr, \
         down.stderr
     # an expired certificate is named as such (it was "the authorization server closed the connection")
-    material["cert"], material["key"] = _expired_pair(tmp_path)
+    material["cert"], material["key"] = expired_certificate(tmp_path, "robot_x", ip="127.0.0.2")
     expired = check(f"https://127.0.0.1:{free_port()}")
     assert expired.returncode == 2 and len(expired.stderr.strip().splitlines()) == 1, expired.stderr
     assert "expired on" in expired.stderr and "renew it" in expired.stderr, expired.stderr
     started = run([script("cryptoros-interceptor"), "--config", str(tmp_path / "check.toml")], timeout=60)
     assert started.returncode == 1 and len(started.stderr.strip().splitlines()) == 1, started.stderr
     assert "expired on" in started.stderr, started.stderr  # nor does it start
-
-
-def _expired_pair(directory):
-    """A certificate for 127.0.0.2 that expired yesterday, and its key."""
-    import datetime
-    import ipaddress
-
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "robot_x")])
-    now = datetime.datetime.now(datetime.UTC)
-    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(days=30))
-            .not_valid_after(now - datetime.timedelta(days=1))
-            .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.2"))]),
-                           critical=False)
-            .sign(key, hashes.SHA256()))
-    cert_path, key_path = directory / "expired.crt", directory / "expired.key"
-    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                                           serialization.NoEncryption()))
-    key_path.chmod(0o600)
-    return cert_path, key_path
 
 
 def test_authz_url_may_list_replicas(material, tmp_path):
