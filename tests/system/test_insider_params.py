@@ -255,6 +255,12 @@ def test_an_insiders_stored_values_cost_rosmaster_one_value_a_read_and_others_no
             calls = [{"methodName": "getParam", "params": ["/rospy_listener", keys[i % 2]]} for i in range(4)]
             calls.insert(2, {"methodName": "hasParam", "params": ["/rospy_listener", keys[0]]})
             answers = rogue_xmlrpc(s, "system.multicall", calls).value
+            # names too: 8 lists of 3,000 long names, 2.5 MB together, each alone under the limit
+            names = {f"n{i:04d}_" + "x" * 90: i for i in range(3000)}
+            assert rogue_xmlrpc(s, "setParam", "/rospy_listener", "/rospy_listener/names", names).value[0] == 1
+            keys.append("/rospy_listener/names")
+            listed = rogue_xmlrpc(s, "system.multicall",
+                                  [{"methodName": "getParamNames", "params": ["/rospy_listener"]}] * 8).value
             # an honest robot's read of the whole tree, pruned to what it may read
             with network.inside("robot_c"):
                 local_c = xmlrpc.client.ServerProxy(network.hosts["robot_c"].master_uri)
@@ -264,4 +270,5 @@ def test_an_insiders_stored_values_cost_rosmaster_one_value_a_read_and_others_no
                 rogue_xmlrpc(s, "deleteParam", "/rospy_listener", key)
     assert [a[0][0] for a in answers] == [1] * 5, [repr(a)[:200] for a in answers]
     assert [a[0][2] for a in answers] == [blob, blob, True, blob, blob]
+    assert all(a[0][0] == 1 and len(a[0][2]) > 3000 for a in listed), [repr(a)[:200] for a in listed]
     assert code == 1 and "rospy_listener" not in tree and "hunter2" not in repr(tree)
