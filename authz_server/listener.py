@@ -8,12 +8,13 @@ handshake holds asyncio's 256 KiB buffer) and nothing was logged. Here a connect
 counts against :data:`PER_SOURCE` and :data:`IN_ALL` from its accept until its
 handshake ends (``handshake_timeout`` at most). Over its source's cap it is closed at
 once, before any TLS work, with one log line per source and minute. With :data:`IN_ALL`
-reached, a new connection from a source not known takes the place of the oldest such
-connection still in its handshake (closed): strangers' idle connections are the oldest,
-and a client's handshake takes milliseconds, so a robot never seen before (or every
-robot, after a restart) still gets in while strangers hold every slot (a stranger's
-audit: 640 idle connections from 10 addresses kept a new robot out for as long as they
-were held). A source a client with a verified certificate connected from is not counted
+reached, a new connection from a source not known takes the place of the oldest
+connection in its handshake of the unknown source holding the most (closed): a stranger
+holds up to :data:`PER_SOURCE` on each of its addresses, a robot one or two, so a robot
+never seen before (or every robot, after a restart) still gets in while strangers hold
+every slot, however fast they open new ones (a stranger's audit: 640 idle connections
+from 10 addresses kept a new robot out; a re-audit: evicting the oldest of all, a flood
+evicted every robot in its handshake). A source a client with a verified certificate connected from is not counted
 in all (only against its own address's cap); loopback is not capped per source (the
 host's own processes: a fleet of clients on one machine).
 """
@@ -68,6 +69,8 @@ class TLSListener:
         #: handshakes not ended, oldest first: (source, counted in all, socket)
         self._live: dict[asyncio.Task, tuple[str, bool, socket.socket]] = {}
         self._evicting: dict[asyncio.Task, socket.socket] = {}  # gave their places, not ended yet
+        #: the handshakes counted in all, per source, oldest first (the ones to give a place)
+        self._counted: dict[str, dict[asyncio.Task, None]] = {}
         self._sock: socket.socket | None = None
         self._task: asyncio.Task | None = None
         self._log_once = OncePer(60.0)
@@ -101,11 +104,11 @@ class TLSListener:
         return None
 
     def _make_room(self) -> None:
-        """:data:`IN_ALL` reached: the oldest handshake counted in all gives its place."""
-        while self._pending_in_all >= self.in_all:
-            oldest = next((task for task, (_s, counted, _c) in self._live.items() if counted), None)
-            if oldest is None:
-                return
+        """:data:`IN_ALL` reached: the oldest handshake counted in all of the source
+        holding the most gives its place."""
+        while self._pending_in_all >= self.in_all and self._counted:
+            source = max(self._counted, key=lambda s: len(self._counted[s]))
+            oldest = next(iter(self._counted[source]))
             self._evicting[oldest] = self._live[oldest][2]  # closed once the task ends (see _ended)
             self._release(oldest)
             oldest.cancel()
@@ -120,6 +123,12 @@ class TLSListener:
         if entry is None:
             return
         source, counted, _conn = entry
+        if counted:
+            tasks = self._counted.get(source)
+            if tasks is not None:
+                tasks.pop(task, None)
+                if not tasks:
+                    del self._counted[source]
         left = self._pending.get(source, 0) - 1
         if left > 0:
             self._pending[source] = left
@@ -157,6 +166,8 @@ class TLSListener:
             self._pending_in_all += counted
             task = loop.create_task(self._handshake(conn, source))
             self._live[task] = (source, counted, conn)
+            if counted:
+                self._counted.setdefault(source, {})[task] = None
             task.add_done_callback(self._ended)
 
     async def _handshake(self, conn: socket.socket, source: str) -> None:

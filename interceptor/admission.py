@@ -59,9 +59,11 @@ class Admission:
             # strangers on 16 addresses holding 16 each filled the interceptor's 256, and no
             # robot opened a stream while they went on.
             # With all of them taken, a new stream from an unknown source takes the place of
-            # the oldest such stream not verified yet (closed): strangers' idle connections
-            # are the oldest, a robot's handshake and preamble take milliseconds, so a robot
-            # that never streamed here still gets in while strangers hold every slot.
+            # the oldest stream not verified yet of the source holding the most (closed): a
+            # stranger holds up to max_pending_per_source on each of its addresses, a robot
+            # one or two, so a robot that never streamed here still gets in while strangers
+            # hold every slot, however fast they open new ones (a re-audit: evicting the
+            # oldest of all, a flood evicted robots in their handshakes, 21 of 40).
             caps = [(("source", source), limits.max_pending_per_source)]
             if source not in self._known_sources:
                 caps.append((("all",), limits.max_pending_streams))
@@ -71,7 +73,7 @@ class Admission:
                 self._pending.enter(key, cap, "interceptor" if key == ("all",) else key[0])
                 entered.append(key)
             if ("all",) in entered and task is not None:
-                self._unverified[task] = (entered, source)
+                self._unverified.setdefault(source, {})[task] = entered
         except PolicyDenied as exc:
             for key in entered:
                 self._pending.leave(key)
@@ -96,7 +98,7 @@ class Admission:
                         await read_into(reader, gate.receive_data, limits.preamble_timeout)
             self.metrics.stream_checks.labels("token").inc()
             access = self.verifier.note(await self.verifier.verify_fresh(event.preamble.token, der))  # its freshest
-            self._unverified.pop(task, None)  # verified: no stranger's connection takes its place
+            self._forget_unverified(task, source)  # verified: no stranger's connection takes its place
             if source not in self._known_sources:
                 for listener in self.source_listeners:  # kept across a restart (the ROS 1 role's state)
                     listener()
@@ -127,7 +129,7 @@ class Admission:
                 writer.close()
             return
         finally:
-            self._unverified.pop(task, None)
+            self._forget_unverified(task, source)
             for key in entered:
                 self._pending.leave(key)
         writer.write(gate.accept(own_token))
@@ -163,12 +165,20 @@ class Admission:
                 del self._open_per_peer[access.subject]
             writer.close()
 
+    def _forget_unverified(self, task, source: str) -> None:
+        streams = self._unverified.get(source)
+        if streams is not None and streams.pop(task, None) is not None and not streams:
+            del self._unverified[source]
+
     def _make_room(self, cap: int) -> None:
-        """``max_pending_streams`` reached: the oldest stream from an unknown source not
-        verified yet gives its place (its task cancelled: its socket closed, no reply)."""
+        """``max_pending_streams`` reached: the oldest stream not verified yet of the
+        unknown source holding the most gives its place (its task cancelled: its socket
+        closed, no reply)."""
         while self._pending.count(("all",)) >= cap and self._unverified:
-            victim, (entered, source) = next(iter(self._unverified.items()))
-            del self._unverified[victim]
+            source = max(self._unverified, key=lambda s: len(self._unverified[s]))
+            victim = next(iter(self._unverified[source]))
+            entered = self._unverified[source][victim]
+            self._forget_unverified(victim, source)
             if ("all",) in entered:
                 entered.remove(("all",))
                 self._pending.leave(("all",))

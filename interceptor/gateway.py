@@ -184,9 +184,9 @@ class Gateway(Admission, Outbound, Health):
         self._known_sources: dict[str, bool] = {}
         #: called when a source joins them (before it is added)
         self.source_listeners: list[Callable[[], None]] = []
-        #: streams counted in all of the pending ones (unknown sources), not verified yet,
-        #: oldest first: (the keys they entered, their source) (admission.py: _make_room)
-        self._unverified: dict[asyncio.Task, tuple[list, str]] = {}
+        #: streams counted in all of the pending ones (unknown sources), not verified yet:
+        #: per source, oldest first, the keys each entered (admission.py: _make_room)
+        self._unverified: dict[str, dict[asyncio.Task, list]] = {}
         self._budgets: dict[str, MessageBudget] = {}
         self._new_stream_limiter = self._stream_limiter(cfg)
         self._public_server: PublicListener | None = None
