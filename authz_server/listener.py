@@ -14,9 +14,9 @@ holds up to :data:`PER_SOURCE` on each of its addresses, a robot one or two, so 
 never seen before (or every robot, after a restart) still gets in while strangers hold
 every slot, however fast they open new ones (a stranger's audit: 640 idle connections
 from 10 addresses kept a new robot out; a re-audit: evicting the oldest of all, a flood
-evicted every robot in its handshake). A source a client with a verified certificate connected from is not counted
-in all (only against its own address's cap); loopback is not capped per source (the
-host's own processes: a fleet of clients on one machine).
+evicted every robot in its handshake). A source a client with a verified certificate
+connected from is not counted in all (only against its own address's cap); loopback is
+not capped per source (the host's own processes: a fleet of clients on one machine).
 """
 
 from __future__ import annotations
@@ -114,8 +114,9 @@ class TLSListener:
             oldest.cancel()
             self.evicted += 1
             if self._log_once(("evicted",)):
-                log.warning("%d connections from unknown sources in their TLS handshake: the oldest closed to make "
-                            "room (%d so far; logged once a minute)", self.in_all, self.evicted)
+                log.warning("%d connections from unknown sources in their TLS handshake: the oldest of the source "
+                            "holding the most closed to make room (%d so far; logged once a minute)",
+                            self.in_all, self.evicted)
 
     def _release(self, task: asyncio.Task) -> None:
         """A handshake ended (or gave its place): it counts no more."""

@@ -184,7 +184,8 @@ class Admission:
                 self._pending.leave(("all",))
             victim.cancel()
             self.deny("tls", PolicyDenied("pending_limit", f"{cap} unauthenticated streams from unknown sources: "
-                                                           "the oldest closed to make room"), source)
+                                                           "the oldest of this source, which holds the most, closed "
+                                                           "to make room"), source)
 
     async def _accept_tls(self, sock: socket.socket,
                           source: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter] | None:
