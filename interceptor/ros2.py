@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import functools
 import itertools
 import logging
@@ -57,6 +58,7 @@ from interceptor.verifier import StreamWatch
 from interceptor.gate import Target
 from interceptor.gateway import Gateway, Role
 from interceptor.ros2_bridge import BridgeLink, DdsBridge
+from interceptor.ros2_partial import PartialFrames
 from interceptor.streams import READ_SIZE, InboundStream, Peer, read_chunks, widen_reader
 from interceptor.monitor import WatchedStream
 
@@ -96,13 +98,6 @@ STUCK_AFTER = 10.0
 MAX_STREAM_BACKLOG = 32 * 1024 * 1024
 MAX_PENDING_CALLS = 64
 TOPIC_READ_SIZE = 1024 * 1024
-#: bytes of unfinished frames (a frame's header read, its body not all there yet) one peer
-#: may make this robot hold across all its topic streams, in max_message_size units: an
-#: insider that announced 16 MiB frames on 80 streams and sent all but their last bytes
-#: held 1.4 GB here, and nothing ended it
-PARTIAL_FRAMES_PER_PEER = 4
-
-
 
 
 @dataclass(eq=False)
@@ -151,7 +146,7 @@ class Ros2Role(Role):
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
-        self._partial: dict[str, int] = {}  # peer manager -> bytes of its streams' unfinished frames held
+        self._partial = PartialFrames()  # each peer's unfinished frames, across its streams
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
         self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         self._stopping = False
@@ -602,7 +597,7 @@ class Ros2Role(Role):
                         while await reader.read(READ_SIZE):
                             raise RemoteProtocolError("the receiver of a topic stream sent data")
                     else:
-                        await self._serve_calls(reader, writer, out, pending, first=tunnel.pending)
+                        await self._serve_calls(reader, writer, out, pending, peer, first=tunnel.pending)
                 finally:
                     out.writers.pop(endpoint, None)
                     self._stuck.discard(writer)
@@ -653,21 +648,31 @@ class Ros2Role(Role):
             self._peer_lookups[endpoint] = (started, task)
         return await asyncio.shield(task)
 
-    async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int], first: bytes = b"") -> None:
+    async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int], peer: Peer,
+                           first: bytes = b"") -> None:
         """Requests from the calling robot to a local server (through the bridge's client);
         ``first``: bytes the peer sent behind its preamble reply."""
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_REQUEST}))
-        async for data in read_chunks(reader, READ_SIZE, first):
-            decoder.feed(data)
-            for _, rid, cdr in decoder.frames():
-                if len(pending) >= MAX_PENDING_CALLS:
-                    writer.write(fr.encode(fr.SRV_RESPONSE, rid, b"\x00"))
-                    continue
-                bid = next(self._call_ids)
-                log.debug("call %d (request %d) to the local server of %s", bid, rid, out.target.name)
-                pending.add(bid)
-                self._calls[bid] = (writer, rid, pending)
-                self.bridge.link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
+        with self._partial.charge(peer.manager, self.cfg.ros2.max_message_size) as charge:
+            async for data in read_chunks(reader, READ_SIZE, first):
+                try:
+                    decoder.feed(data)
+                    frames = decoder.frames()
+                except fr.FrameError as exc:
+                    raise RemoteProtocolError(str(exc)) from None
+                charge(decoder.buffered)
+                self._call_local(frames, writer, out, pending)
+
+    def _call_local(self, frames: list[tuple[int, int, bytes]], writer, out: Outbound, pending: set[int]) -> None:
+        for _, rid, cdr in frames:
+            if len(pending) >= MAX_PENDING_CALLS:
+                writer.write(fr.encode(fr.SRV_RESPONSE, rid, b"\x00"))
+                continue
+            bid = next(self._call_ids)
+            log.debug("call %d (request %d) to the local server of %s", bid, rid, out.target.name)
+            pending.add(bid)
+            self._calls[bid] = (writer, rid, pending)
+            self.bridge.link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
 
     # ================================================================ inbound
     def _check_ros2_target(self, preamble: Preamble) -> Target:
@@ -715,7 +720,7 @@ class Ros2Role(Role):
                 with self.gw.cuttable():  # a topic stream never ends by itself: a stop cuts it at once
                     await self._republish(reader, peer, target, link, writer, stream.pending, watched)
             else:
-                await self._offer_service(reader, writer, target, link, stream.pending)
+                await self._offer_service(reader, writer, peer, target, link, stream.pending)
         finally:
             self._inbound.discard(writer)
             if watched is not None:
@@ -749,8 +754,8 @@ class Ros2Role(Role):
         # late joiners) is its own, and ends with the stream (its publisher is destroyed).
         chan = next(self._chans)
         link.control(op="advertise", chan=chan, topic=target.name, type=target.type, qos=qos.to_dict())
-        partial = 0  # this stream's share of self._partial (its decoder's unfinished frame)
-        partial_limit = PARTIAL_FRAMES_PER_PEER * self.cfg.ros2.max_message_size
+        partial = contextlib.ExitStack()
+        charge = partial.enter_context(self._partial.charge(peer.manager, self.cfg.ros2.max_message_size))
         try:
             async for data in read_chunks(reader, TOPIC_READ_SIZE, first):
                 rx.inc(len(data))
@@ -759,12 +764,7 @@ class Ros2Role(Role):
                     runs = decoder.runs()  # DATA frames, checked and kept whole: relabelled in place
                 except fr.FrameError as exc:
                     raise RemoteProtocolError(str(exc)) from None
-                held = self._partial.get(peer.manager, 0) - partial + decoder.buffered
-                self._partial[peer.manager], partial = held, decoder.buffered
-                if held > partial_limit:
-                    raise PolicyDenied("partial_frames", (
-                        f"{peer.manager}'s unfinished frames would take {held} bytes here; the limit is "
-                        f"{partial_limit} ({PARTIAL_FRAMES_PER_PEER} x [ros2] max_message_size)"))
+                charge(decoder.buffered)
                 runs, bad = _checked_runs(runs, check)
                 if gate is not None and runs:
                     runs, _dropped = _checked_runs(runs, functools.partial(_gated_sample, gate))
@@ -818,11 +818,7 @@ class Ros2Role(Role):
         except PolicyDenied:
             raise
         finally:
-            left = self._partial.get(peer.manager, 0) - partial
-            if left > 0:
-                self._partial[peer.manager] = left
-            else:
-                self._partial.pop(peer.manager, None)
+            partial.close()
             # its publisher goes with it, and with it every sample it kept for late joiners
             link.control(op="unadvertise", chan=chan)
             if kept:
@@ -839,7 +835,8 @@ class Ros2Role(Role):
         return receiver_qos(target.qos, depth=settings.depth,
                             keep_for_late_joiners=settings.keeps_for_late_joiners(target.name))
 
-    async def _offer_service(self, reader, writer, target: StreamTarget, link: BridgeLink, first: bytes = b"") -> None:
+    async def _offer_service(self, reader, writer, peer: Peer, target: StreamTarget, link: BridgeLink,
+                             first: bytes = b"") -> None:
         if target.name in self._proxies:
             raise PolicyDenied("already_offered", f"{target.name} is already offered by another robot")
         proxy = Proxy(chan=next(self._chans), writer=writer)
@@ -849,24 +846,31 @@ class Ros2Role(Role):
         log.info("offering remote service %s [%s] on the local domain", target.name, target.type)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_RESPONSE}))
         try:
-            async for data in read_chunks(reader, READ_SIZE, first):
-                try:
-                    decoder.feed(data)
-                    frames = decoder.frames()
-                    for _, rid, body in frames:
-                        fr.split_status(body)
-                        if rid not in proxy.pending:
-                            raise RemoteProtocolError(f"response to request {rid}, which was never sent")
-                        proxy.pending.discard(rid)
-                        link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + body))
-                except fr.FrameError as exc:
-                    raise RemoteProtocolError(str(exc)) from None
+            with self._partial.charge(peer.manager, self.cfg.ros2.max_message_size) as charge:
+                async for data in read_chunks(reader, READ_SIZE, first):
+                    self._proxy_replies(proxy, decoder, data, link)
+                    charge(decoder.buffered)
         finally:
             del self._proxies[target.name]
             del self._proxy_by_chan[proxy.chan]
             link.control(op="unserve", chan=proxy.chan)
             for rid in proxy.pending:
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
+
+    @staticmethod
+    def _proxy_replies(proxy: Proxy, decoder: fr.FrameDecoder, data: bytes, link: BridgeLink) -> None:
+        """The answers a remote server sent for the proxy's calls, handed to the bridge."""
+        try:
+            decoder.feed(data)
+            frames = decoder.frames()
+            for _, rid, body in frames:
+                fr.split_status(body)
+                if rid not in proxy.pending:
+                    raise RemoteProtocolError(f"response to request {rid}, which was never sent")
+                proxy.pending.discard(rid)
+                link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + body))
+        except fr.FrameError as exc:
+            raise RemoteProtocolError(str(exc)) from None
 
 
 def reusable(learnt_at: float | None, *, now: float, recheck: float | None) -> bool:

@@ -9,11 +9,13 @@ domains is the interceptors (see tests/ros2_support.py for the policy).
 from __future__ import annotations
 
 import contextlib
+import json
 import re
 import signal
 import ssl
 import struct
 import time
+import urllib.request
 
 import jwt
 import pytest
@@ -383,7 +385,7 @@ def test_the_unfinished_frames_of_one_peer_are_bounded(network):
     most PARTIAL_FRAMES_PER_PEER x max_message_size of one peer's unfinished frames: the
     stream over it is cut (``partial_frames``), and robot B goes on serving."""
     from cryptoros.ros2 import framing as fr
-    from interceptor.ros2 import PARTIAL_FRAMES_PER_PEER
+    from interceptor.ros2_partial import PARTIAL_FRAMES_PER_PEER
 
     status, body = network.daemon.token("robot_a")
     token = body["access_token"]
@@ -402,6 +404,50 @@ def test_the_unfinished_frames_of_one_peer_are_bounded(network):
                 break
         until(lambda: "partial_frames" in network.robots["robot_b"].denials(), 30,
               "robot B cutting the stream whose unfinished frame is over the limit")
+    test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
+
+
+def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budget(network):
+    """Re-audit: the budget of unfinished frames counted topic streams only; a peer
+    serving several services could leave one frame of up to max_message_size unfinished on
+    each, without limit. Service streams now count against the same budget."""
+    from cryptoros.ros2 import framing as fr
+    from interceptor.ros2_partial import PARTIAL_FRAMES_PER_PEER
+
+    names = [f"/unfinished{i}" for i in range(PARTIAL_FRAMES_PER_PEER + 1)]
+    grants = [g for name in names
+              for g in (("robot_a", "serve", "/part_server", name, SET_BOOL), ("robot_b", "call", "*", name, SET_BOOL))]
+    for grant in grants:
+        network.cli("grant", *grant)
+    try:
+        b = network.robots["robot_b"]
+
+        def b_may_call_them() -> bool:  # robot B's own token carries the new grants
+            with urllib.request.urlopen(f"http://127.0.0.1:{b.metrics_port}/status", timeout=5) as reply:
+                return set(names) <= {g[2] for g in json.load(reply)["token"]["grants"] if g[1] == "call"}
+
+        until(b_may_call_them, 30, "robot B's token granting the calls")
+        status, body = network.daemon.token("robot_a")
+        token = body["access_token"]
+        size = 16 << 20  # the default [ros2] max_message_size
+        chunk = b"\x00" * (1 << 20)
+        with contextlib.ExitStack() as held:
+            for name in names:
+                s = held.enter_context(_rogue(network, "robot_b", "robot_a"))
+                target = StreamTarget(kind="service", name=name, type=SET_BOOL, node="/part_server").encode()
+                reply = rogue_preamble(s, token, "ros2", target)
+                assert reply is not None and reply.ok, reply
+                try:
+                    s.sendall(fr.HEAD.pack(5 + size, fr.SRV_RESPONSE, 1))
+                    for k in range(16):
+                        s.sendall(chunk[:-1] if k == 15 else chunk)
+                except OSError:  # cut while it sent: the stream over the limit
+                    break
+            until(lambda: "partial_frames" in network.robots["robot_b"].denials(), 30,
+                  "robot B cutting the service stream whose unfinished frame is over the limit")
+    finally:
+        for grant in grants:
+            network.cli("revoke", *grant)
     test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
 
 
