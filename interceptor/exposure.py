@@ -167,10 +167,15 @@ class NodeGuard:
     stranger reaches as well, is no node a firewall note could cover."""
 
     MAX_NOTED = 1024
+    #: seconds a node asked to shut down (:meth:`exposed_apis`) is not named again: a
+    #: starting node's several registrations are refused one after the other
+    ASK_AGAIN_AFTER = 10.0
 
-    def __init__(self, exposure: PortExposure | None = None) -> None:
+    def __init__(self, exposure: PortExposure | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self.exposure = exposure or PortExposure()
         self._served: dict[tuple[str, int], str] = {}  # (node, port) -> addresses, served exposed
+        self._named: dict[tuple[str, int], float] = {}  # (node, port) -> when exposed_apis last named it
+        self._clock = clock
 
     def check_port(self, node: str | Callable[[], str], port: int, what: str, *, allow: tuple[str, ...],
                    config: Path | None, advertised: str | None = None) -> str | None:
@@ -233,6 +238,30 @@ class NodeGuard:
                 if warning:
                     warnings.append(warning)
         return warnings
+
+    def exposed_apis(self, calls: list[Request], *, allow: tuple[str, ...]) -> list[tuple[str, int]]:
+        """(node, port) of each XML-RPC API that registrations among ``calls`` announce and
+        that other hosts reach, of a node not in ``allow``: the nodes a refused registration
+        leaves running exposed, each once within :data:`ASK_AGAIN_AFTER`. Uses the answers
+        :meth:`check_port` just read."""
+        found: list[tuple[str, int]] = []
+        now = self._clock()
+        for call in calls:
+            for index, what in REGISTRATION_URIS.get(call.method, ()):
+                if what != "XML-RPC API" or len(call.params) <= index or not isinstance(call.params[0], str):
+                    continue
+                try:
+                    _host, port = host_port(call.params[index])
+                    exposed = self.exposure.exposed(port)
+                except (UriError, ExposureError):
+                    continue
+                node = call.params[0]
+                if not exposed or any(fnmatch.fnmatchcase(node, p) for p in allow):
+                    continue
+                if now - self._named.get((node, port), -self.ASK_AGAIN_AFTER) >= self.ASK_AGAIN_AFTER:
+                    remember(self._named, (node, port), now, self.MAX_NOTED)
+                    found.append((node, port))
+        return found
 
     def warnings(self) -> list[str]:
         """The status lines: loopback answering other hosts (``route_localnet``), and the

@@ -9,7 +9,8 @@ attacker would act:
   stranger reaching it sees no robot), ``cryptoros status`` warns; back on loopback,
   served again; ``allow_exposed_master = true`` serves with a warning in status;
 - a rospy node started without ``ROS_IP`` on a robot: its registration is refused
-  (``exposed_endpoint``) as one ROS error line naming the node, the port and the fix;
+  (``exposed_endpoint``) as one ROS error line naming the node, the port and the fix,
+  and it is asked to shut down (its open port would take a stranger's calls);
   the same node through ``cryptoros run``, and a listener from a shell that sourced
   ``cryptoros env``, talk;
 - one instance per configuration: a second start exits 1 naming the running pid and
@@ -166,13 +167,23 @@ def test_a_node_other_hosts_reach_is_refused_and_the_same_node_through_cryptoros
     with robot_network(tmp_path, netns=True) as net:
         exposed_env = net.ros_env("robot_a")
         del exposed_env["ROS_IP"]  # as a node's shell is by default: rospy binds every address
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100", "20", "5"], env=exposed_env) as pub:
-            lines = read_lines(pub, "SENT", 30)
+        # a stock tool as an operator starts it: refused, and asked to shut down (a refused
+        # rospy subscriber keeps running, its port open to a stranger's publisherUpdate)
+        echo = [SYS_PY, shutil.which("rostopic"), "echo", "/chatter", "__name:=echo_exposed"]
+        with running(echo, env=exposed_env) as exposed:
+            lines = read_lines(exposed, None, 30)  # until it exits
+            try:
+                exposed.wait(5)
+            except subprocess.TimeoutExpired:
+                raise AssertionError("the exposed node still runs after 30 s:\n" + "".join(lines)) from None
         refusals = [line for line in lines if "exposed_endpoint" in line]
         assert refusals, lines
-        assert "denied by cryptoros: exposed_endpoint: node /talker_a's XML-RPC API listens on 0.0.0.0 port" in \
+        assert "denied by cryptoros: exposed_endpoint: node /echo_exposed's XML-RPC API listens on 0.0.0.0 port" in \
             refusals[0] and "ROS_IP=127.0.0.1" in refusals[0] and "Traceback" not in "".join(lines)
         assert "DENY local-master from local node: exposed_endpoint" in net.hosts["robot_a"].logs()
+        _wait_log(net, "robot_a", "node /echo_exposed listens where other hosts reach it")
+        assert "/echo_exposed listens where other hosts reach it (port" in net.hosts["robot_a"].logs() and \
+            "could not be asked" not in net.hosts["robot_a"].logs()
 
         config_a, config_b = net.hosts["robot_a"].config, net.hosts["robot_b"].config
         home = {"ROS_HOME": str(net.workdir / "ros_home"), "PYTHONUNBUFFERED": "1"}
