@@ -181,6 +181,23 @@ def test_a_node_that_announces_loopback_but_binds_every_address_is_told_about_ro
     assert "/cpp (0.0.0.0 port 41234)" in guard.warnings()[0]
 
 
+def test_the_exposed_apis_of_refused_registrations_are_named_once_each_and_allowed_ones_never():
+    """The nodes a robot's interceptor asks to shut down: an exposed XML-RPC API (not a
+    service port alone, not a loopback one, not an allowed node), once within
+    ASK_AGAIN_AFTER however many of its registrations are refused."""
+    table = FakeTable()
+    now = [0.0]
+    guard = NodeGuard(table.exposure(), clock=lambda: now[0])
+    exposed = Request(method="registerSubscriber", params=("/echo", "/chatter", "*", "http://robot-a:41234/"))
+    service = Request(method="registerService", params=("/srv", "/add", "rosrpc://robot-a:41234", "http://127.0.0.1:11311/"))
+    private = Request(method="registerPublisher", params=("/ok", "/chatter", "std_msgs/String", "http://127.0.0.1:11311/"))
+    assert guard.exposed_apis([private, service, exposed, exposed], allow=()) == [("/echo", 41234)]
+    assert guard.exposed_apis([exposed], allow=()) == []  # its next registration, refused too
+    now[0] = NodeGuard.ASK_AGAIN_AFTER
+    assert guard.exposed_apis([exposed], allow=()) == [("/echo", 41234)]  # still there: asked again
+    assert guard.exposed_apis([exposed], allow=("/e*",)) == []
+
+
 def test_master_problem_names_the_fix_and_the_override():
     table = FakeTable()
     exposure = table.exposure()
