@@ -511,7 +511,12 @@ class Bridge:
                     self.pending.pop(rid, None)
                     # Refused or failed: no answer at all (the client times out), never a made-up one.
                     raise NoAnswer(f"call {rid} of channel {chan}")
-                return deserialize_message(slot[1][1], cls.Response)
+                try:
+                    return deserialize_message(slot[1][1], cls.Response)
+                except Exception as exc:  # the remote server's answer is not a response of the type
+                    self.error(f"the answer to call {rid} of channel {chan} is not a {cls.__name__} response "
+                               f"({type(exc).__name__}: {exc}): the client gets none", chan=chan)
+                    raise NoAnswer(f"call {rid} of channel {chan}") from None
             finally:
                 with self.calls_lock:
                     left = self.calls_in_flight.get(chan, 1) - 1
@@ -523,6 +528,8 @@ class Bridge:
         return handle
 
     def spin_services(self) -> None:
+        """The proxies' thread. It outlives every call: one that raised had ended it, and
+        with it every remote service on this robot (ROS 2 audit: one malformed answer)."""
         while rclpy.ok():
             try:
                 self.srv_executor.spin_once(timeout_sec=0.5)
@@ -530,6 +537,8 @@ class Bridge:
                 pass
             except ExternalShutdownException:
                 return
+            except Exception as exc:
+                self.error(f"a proxied call failed: {type(exc).__name__}: {exc}")
 
     def _call(self, chan: int, payload: bytes) -> None:
         (rid,) = fr.ID.unpack_from(payload)
@@ -538,7 +547,14 @@ class Bridge:
             self.send(fr.encode(fr.RESULT, chan, fr.ID.pack(rid) + b"\x00"))
             return
         client, cls = entry
-        future = client.call_async(deserialize_message(payload[4:], cls.Request))
+        try:
+            request = deserialize_message(payload[4:], cls.Request)
+        except Exception as exc:  # a caller's request that is not one of the type: answered as failed
+            self.send(fr.encode(fr.RESULT, chan, fr.ID.pack(rid) + b"\x00"))
+            self.error(f"call {rid} of channel {chan} is not a {cls.__name__} request ({type(exc).__name__}: {exc}): "
+                       "not passed to the server", chan=chan)
+            return
+        future = client.call_async(request)
 
         def done(f: Future) -> None:
             result = f.result() if not f.cancelled() and f.exception() is None else None

@@ -407,6 +407,54 @@ def test_the_unfinished_frames_of_one_peer_are_bounded(network):
     test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
 
 
+def _b_may_call(network, names: list[str]) -> bool:
+    """Whether robot B's own token (its /status) grants calls to every one of ``names``."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{network.robots['robot_b'].metrics_port}/status",
+                                timeout=5) as reply:
+        return set(names) <= {g[2] for g in json.load(reply)["token"]["grants"] if g[1] == "call"}
+
+
+def test_a_malformed_answer_from_a_remote_server_costs_only_its_own_call(network):
+    """ROS 2 audit: an insider serving a service robot B may call answered one call with
+    an empty response; bridge B's thread serving every remote service died on it, and
+    robot A's /set_flag went unanswered from then on (``cryptoros status`` said ok). The
+    malformed answer is now no answer (logged), and the other services go on."""
+    from cryptoros.ros2 import framing as fr
+
+    grants = [("robot_a", "serve", "/bad_server", "/bad_answer", SET_BOOL),
+              ("robot_b", "call", "*", "/bad_answer", SET_BOOL)]
+    for grant in grants:
+        network.cli("grant", *grant)
+    try:
+        until(lambda: _b_may_call(network, ["/bad_answer"]), 30, "robot B's token granting the call")
+        status, body = network.daemon.token("robot_a")
+        with _rogue(network, "robot_b", "robot_a") as s, \
+                network.node("robot_a", "server.py", "/set_flag", "flag_server") as server:
+            target = StreamTarget(kind="service", name="/bad_answer", type=SET_BOOL, node="/bad_server").encode()
+            reply = rogue_preamble(s, body["access_token"], "ros2", target)
+            assert reply is not None and reply.ok, reply
+            server.until("READY", 20)
+            with network.node("robot_b", "client.py", "/bad_answer", "1", "20") as bad:
+                s.settimeout(30)
+                head = b""
+                while len(head) < fr.HEAD.size:  # robot B's request: answered with no CDR at all
+                    chunk = s.recv(fr.HEAD.size - len(head))
+                    assert chunk, "robot B closed the service stream before a request came"
+                    head += chunk
+                _length, kind, rid = fr.HEAD.unpack(head)
+                assert kind == fr.SRV_REQUEST
+                s.sendall(fr.encode(fr.SRV_RESPONSE, rid, b"\x01"))
+                assert not [line for line in bad.until(None, 8) if line.startswith("RESULT")]
+            with network.node("robot_b", "client.py", "/set_flag", "2", "30") as client:
+                client.until("RESULT True flag set to True by flag_server", 35)
+                client.until("RESULT True flag set to False by flag_server", 10)
+        until(lambda: "is not a SetBool response" in network.robots["robot_b"].logs(), 10,
+              "robot B logging the malformed answer")
+    finally:
+        for grant in grants:
+            network.cli("revoke", *grant)
+
+
 def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budget(network):
     """Re-audit: the budget of unfinished frames counted topic streams only; a peer
     serving several services could leave one frame of up to max_message_size unfinished on
@@ -420,13 +468,7 @@ def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budg
     for grant in grants:
         network.cli("grant", *grant)
     try:
-        b = network.robots["robot_b"]
-
-        def b_may_call_them() -> bool:  # robot B's own token carries the new grants
-            with urllib.request.urlopen(f"http://127.0.0.1:{b.metrics_port}/status", timeout=5) as reply:
-                return set(names) <= {g[2] for g in json.load(reply)["token"]["grants"] if g[1] == "call"}
-
-        until(b_may_call_them, 30, "robot B's token granting the calls")
+        until(lambda: _b_may_call(network, names), 30, "robot B's token granting the calls")
         status, body = network.daemon.token("robot_a")
         token = body["access_token"]
         size = 16 << 20  # the default [ros2] max_message_size
