@@ -326,7 +326,9 @@ class CRLWatcher:
     is ignored with an error in the log, keeping the last good one; so is one older than
     the one in use (a lower CRL number, or issued earlier): a copy of an old CRL would
     un-revoke the certificates revoked after it. An out-of-date CRL is still applied
-    (revocations never lapse), with a warning.
+    (revocations never lapse), with a warning. At start there is no good one to keep: a
+    CRL that cannot be used then is a ConfigError (a server started on an empty or
+    truncated copy had issued tokens to revoked certificates).
     """
 
     def __init__(self, crl_path, ca_path, interval: float = 1.0) -> None:
@@ -337,9 +339,9 @@ class CRLWatcher:
         self._checked = 0.0
         self._crl: x509.CertificateRevocationList | None = None
         self.revoked: frozenset[int] = frozenset()
-        self.refresh()
+        self.refresh(first=True)
 
-    def refresh(self, *, force: bool = False) -> None:
+    def refresh(self, *, force: bool = False, first: bool = False) -> None:
         import os
 
         now = time.monotonic()
@@ -362,6 +364,9 @@ class CRLWatcher:
                                  f"{crl.last_update_utc:%Y-%m-%d %H:%M}, against {_crl_number(self._crl)}, "
                                  f"{self._crl.last_update_utc:%Y-%m-%d %H:%M})")
         except (OSError, ValueError, PKIError) as exc:
+            if first:
+                raise ConfigError(f"cannot use the CRL {self.path}: {exc} (revocations would not be checked: give "
+                                  f"the CA's CRL, cryptoros-certs crl)") from None
             log.error("cannot reload the CRL %s, keeping the previous one: %s", self.path, exc)
             self._bad = locals().get("stamp")
             return

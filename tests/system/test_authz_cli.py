@@ -173,6 +173,14 @@ def test_serve_start_up_errors_are_one_line(team, tmp_path):
     assert "expired on" in line and "renew it" in line, line
     line = one_line_error(_serve(team, "--port", str(free_port()), "--crl", str(tmp_path / "no.crl")))
     assert "not found" in line and "no.crl" in line
+    # CLI audit: started on an empty, truncated or wrong CRL, the server had issued tokens
+    # to revoked certificates (the CRL watcher logged it and went on without one)
+    crl = team.pki.pki.write_crl()
+    for name, data in (("empty.crl", b""), ("ca-not-crl.crl", team.pki.ca_cert.read_bytes()),
+                       ("truncated.crl", crl.read_bytes()[:200])):
+        (tmp_path / name).write_bytes(data)
+        line = one_line_error(_serve(team, "--port", str(free_port()), "--crl", str(tmp_path / name)))
+        assert "CRL" in line and name in line, line
     line = one_line_error(_serve(team, "--port", str(free_port()), "--ca", str(tmp_path / "no-ca.crt")))
     assert "no-ca.crt" in line
     line = one_line_error(_serve(team, "--port", str(free_port()), "--key", str(tmp_path / "no.key")))
