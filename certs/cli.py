@@ -292,6 +292,11 @@ def renew(name, directory, same_key, key_type, days, passphrase_file, unsafe_no_
     out, old_serial = pki.renew(name, new_key=not same_key, key_type=key_type, days=days, passphrase=passphrase,
                                 unsafe_no_passphrase=unsafe_no_passphrase and not same_key)
     _print_issued(out, encrypted=passphrase is not None if not same_key else None)
+    if any(r.serial == old_serial and r.status == "revoked" for r in pki.list()):
+        click.echo(f"previous:    serial {old_serial:x} (revoked)")
+        click.echo("next:        cryptoros-authz set-cert " + f"{name} --fingerprint {out.fingerprint_sha256}")
+        click.echo("             then SIGHUP the interceptor using it (it reloads the new files)")
+        return
     click.echo(f"previous:    serial {old_serial:x} (still valid)")
     click.echo("next:        cryptoros-authz set-cert " + f"{name} --fingerprint {out.fingerprint_sha256} --overlap 600")
     click.echo("             then SIGHUP the interceptor using it (it reloads the new files), then")

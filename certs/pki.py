@@ -682,6 +682,10 @@ class PKI:
         else:
             if key_type is not None or passphrase is not None or unsafe_no_passphrase:
                 raise PKIError("the same key is kept: no key type or passphrase applies")
+            if records[0].status == "revoked":  # the key it certifies may be in other hands
+                raise PKIError(f"{cert_path} (serial {old.serial_number:x}) was revoked"
+                               f"{f' ({records[0].reason})' if records[0].reason else ''}: its key is not "
+                               "certified again; renew without --same-key (a new key)")
             public_key = old.public_key()
             _check_public_key(public_key)
         with self._locked() as index:

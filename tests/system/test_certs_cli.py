@@ -404,3 +404,11 @@ def test_renew_refuses_what_it_cannot_do_in_one_line(ca: Path, pwfile: Path):
     before = snapshot(ca)
     assert_bad_input(certs("renew", "robot_s", "--dir", ca, "--same-key", "--passphrase-file", pwfile), "--same-key")
     assert snapshot(ca) == before
+    # CLI audit: a key revoked as compromised was certified again by --same-key, and the
+    # output called the revoked serial "still valid"
+    ok("revoke", "robot_s", "--dir", ca, "--reason", "key_compromise")
+    before = snapshot(ca)
+    assert_bad_input(certs("renew", "robot_s", "--dir", ca, "--same-key"), "was revoked (key_compromise)")
+    assert snapshot(ca) == before
+    out = ok("renew", "robot_s", "--dir", ca, "--unsafe-no-passphrase").stdout  # a new key: renewed
+    assert "(revoked)" in out and "still valid" not in out and "--overlap" not in out
