@@ -11,6 +11,7 @@ than this code.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from typing import TYPE_CHECKING
@@ -72,6 +73,8 @@ def make_engine(url: str, *, create: bool = False, pool_size: int = 8) -> Engine
             raise ConfigError(
                 f"database not found: {path} (create it with 'cryptoros-authz db upgrade')"
             )
+        if create and not path.exists():
+            _create_private(path)
     kwargs: dict = {}
     if parsed.get_backend_name() == "sqlite":
         kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
@@ -84,6 +87,18 @@ def make_engine(url: str, *, create: bool = False, pool_size: int = 8) -> Engine
     if parsed.get_backend_name() == "sqlite":
         event.listen(engine, "connect", _sqlite_pragmas)
     return engine
+
+
+def _create_private(path: Path) -> None:
+    """An empty SQLite file only its owner reads (SQLite gives its -wal and -shm files the
+    same mode): the registry holds the token-signing key, and a file made with the
+    umask's 0644 let every local user read it (CLI audit)."""
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise ConfigError(f"cannot create the database {path}: {exc.strerror or exc}") from None
 
 
 def _sqlite_pragmas(dbapi_conn, _record) -> None:

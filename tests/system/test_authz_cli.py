@@ -129,6 +129,22 @@ def test_missing_database_is_an_error_and_is_not_created(tmp_path):
     assert "database URL" in line
 
 
+def test_a_new_registry_file_is_readable_by_its_owner_only(tmp_path):
+    """CLI audit: the registry holds the token-signing key, and a new SQLite file was made
+    0644: any local user read the key (rotate-key --unsafe-no-passphrase) or could guess
+    at its passphrase offline."""
+    db_file = tmp_path / "registry.db"
+    url = f"sqlite:///{db_file}"
+    umask = os.umask(0o022)  # what a login shell has
+    try:
+        ok(authz("db", "upgrade", db=url))
+        ok(authz("rotate-key", "--unsafe-no-passphrase", db=url))
+    finally:
+        os.umask(umask)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.glob("registry.db*")}
+    assert modes and set(modes.values()) == {0o600}, modes
+
+
 def test_operator_workflow_with_export_import_between_registries(team, tmp_path):
     db = f"sqlite:///{tmp_path / 'ops.db'}"
     alice = team.pki.pki.cert_path_for("alice")
