@@ -58,6 +58,7 @@ from authz_server import keys as keymod
 from authz_server.config import ServeConfig
 from authz_server.learning import checked_observations, granted
 from authz_server.registry import MAX_OBSERVATIONS, AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
+from cryptoros.files import PEM_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros import pemfiles
@@ -353,8 +354,7 @@ class CRLWatcher:
             stamp = (st.st_mtime_ns, st.st_size)
             if stamp in (self._stamp, self._bad):
                 return
-            with open(self.path, "rb") as fh:
-                data = fh.read()
+            data = read_bounded(self.path, PEM_LIMIT)
             crl = pemfiles.parse_crl(data, self.path)
             if crl.issuer != self._ca.subject or not crl.is_signature_valid(self._ca.public_key()):
                 raise ValueError("not issued by the CA")

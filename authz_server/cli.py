@@ -35,6 +35,7 @@ from authz_server.cli_context import registry as _registry
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, shown_db
 from authz_server.policy_cli import load_yaml
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
+from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
@@ -397,7 +398,9 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool) -> None:
     """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction.
     A key given twice in one mapping (two ``subscribe:`` lists) is an error, not the last one kept."""
     try:
-        text = sys.stdin.read() if file == "-" else Path(file).read_text()
+        text = sys.stdin.read(POLICY_LIMIT + 1) if file == "-" else read_bounded(file, POLICY_LIMIT).decode("utf-8")
+        if len(text) > POLICY_LIMIT:  # never a policy cut short: the rest would read as removed
+            raise RegistryError(f"the policy on stdin is larger than {POLICY_LIMIT >> 20} MiB")
     except OSError as exc:
         raise RegistryError(f"cannot read policy file {file}: {exc.strerror}") from exc
     except UnicodeDecodeError as exc:
@@ -562,10 +565,10 @@ def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, a
     from cryptoros.tokens import KeySet, Revocations, verify_access_token
 
     try:
-        jwks = json.loads(Path(jwks_file).read_text())
-        raw = Path(token_file).read_text().strip()
-        feed = json.loads(Path(feed_file).read_text()) if feed_file else None
-        cert_data = Path(cert_file).read_bytes()
+        jwks = json.loads(read_bounded(jwks_file, POLICY_LIMIT))
+        raw = read_bounded(token_file, PEM_LIMIT).decode("utf-8").strip()
+        feed = json.loads(read_bounded(feed_file, POLICY_LIMIT)) if feed_file else None
+        cert_data = read_bounded(cert_file, PEM_LIMIT)
     except (OSError, ValueError) as exc:
         raise RegistryError(f"cannot read input: {exc}") from exc
     if raw.startswith("{"):

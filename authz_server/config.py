@@ -16,6 +16,7 @@ from typing import Any
 
 from authz_server.db import DEFAULT_DB_URL
 from authz_server.keys import KeyProtection, protection
+from cryptoros.files import CONFIG_LIMIT, read_bounded
 from cryptoros.errors import ConfigError
 from cryptoros.passphrase import read_file
 from cryptoros.tls import TLSConfig
@@ -130,8 +131,7 @@ CONFIG_KEYS = {
 
 def load_toml(path: str | Path) -> dict[str, Any]:
     try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+        data = tomllib.loads(read_bounded(path, CONFIG_LIMIT).decode("utf-8"))
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from exc
     except tomllib.TOMLDecodeError as exc:

@@ -19,6 +19,7 @@ import click
 from authz_server.cli_context import registry as _registry
 from authz_server.graph_policy import ManagerMap, draft_policy, read_graph
 from authz_server.registry import GrantRow
+from cryptoros.files import POLICY_LIMIT, read_bounded
 from cryptoros.errors import RegistryError
 
 PROG = "cryptoros-authz"
@@ -132,7 +133,7 @@ def _types(type_values: tuple[str, ...], types_file: str | None) -> dict[str, st
     types: dict[str, str] = {}
     if types_file:
         try:
-            text = Path(types_file).read_text()
+            text = read_bounded(types_file, POLICY_LIMIT).decode("utf-8")
         except OSError as exc:
             raise RegistryError(f"cannot read types file {types_file}: {exc.strerror}") from None
         except UnicodeDecodeError as exc:
@@ -177,7 +178,7 @@ def import_sros2(ctx: click.Context, file: str, manager_map: tuple[str, ...], ty
     managers = ManagerMap.parse(manager_map)
     types = _types(type_values, types_file)
     try:
-        text = Path(file).read_bytes()
+        text = read_bounded(file, POLICY_LIMIT)
     except OSError as exc:
         raise RegistryError(f"cannot read SROS2 policy {file}: {exc.strerror}") from None
     imported = grants_from_sros2(text, managers, types, source=file)

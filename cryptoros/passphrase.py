@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from pathlib import Path
 
+from cryptoros.files import PASSPHRASE_LIMIT, read_bounded
 from cryptoros.errors import ConfigError
 
 __all__ = ["PassphraseError", "from_env", "read_file", "read_passphrase"]
@@ -38,7 +38,7 @@ def _strip_one_newline(data: bytes) -> bytes:
 def read_file(path: str | os.PathLike[str]) -> bytes:
     """The passphrase in the file at ``path``, without one trailing newline."""
     try:
-        data = Path(path).read_bytes()
+        data = read_bounded(path, PASSPHRASE_LIMIT)
     except OSError as err:
         raise PassphraseError(f"cannot read passphrase file {path}: {err.strerror}") from err
     value = _strip_one_newline(data)

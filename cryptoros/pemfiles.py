@@ -17,13 +17,13 @@ import base64
 import hashlib
 import os
 import re
-from pathlib import Path
 from typing import Any
 
 from cryptography import x509
 from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 
+from cryptoros.files import PEM_LIMIT, read_bounded
 from cryptoros.errors import PKIError
 
 __all__ = [
@@ -57,7 +57,7 @@ class WrongPassphrase(PKIError):
 
 def _read(path: PathLike, what: str) -> bytes:
     try:
-        return Path(path).read_bytes()
+        return read_bounded(path, PEM_LIMIT)
     except OSError as err:
         raise PKIError(f"cannot read {what} {path}: {err.strerror}") from err
 

@@ -97,6 +97,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from cryptoros.files import CONFIG_LIMIT, read_bounded
 from cryptoros.errors import ConfigError
 from cryptoros.exposure import is_loopback_host as is_loopback
 from cryptoros.monitor.model import MonitorModel
@@ -467,7 +468,7 @@ def _path(base: Path, value: Any, where: str) -> Path:
 def read_toml(path: Path) -> dict[str, Any]:
     """A configuration file's TOML table; ConfigError (one line) when it cannot be read."""
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(read_bounded(path, CONFIG_LIMIT).decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"configuration file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
