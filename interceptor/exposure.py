@@ -19,7 +19,9 @@ once it listens, so a fresh port is never judged from an older answer). The
 
 from __future__ import annotations
 
+import asyncio
 import fnmatch
+import socket
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -104,6 +106,25 @@ class PortExposure:
         else:  # not listening: asked again next time (a port is announced once it listens)
             self._answers.pop(port, None)
         return addresses
+
+
+async def is_this_host(host: str) -> bool:
+    """Whether ``host`` (a name or address a node announced) is this host: loopback, or
+    resolving to an address a socket here can bind (only a host's own addresses can)."""
+    if is_loopback_host(host):
+        return True
+    try:
+        infos = await asyncio.get_running_loop().getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except OSError:
+        return False
+    for family, _type, _proto, _name, address in infos:
+        try:
+            with socket.socket(family, socket.SOCK_STREAM) as probe:
+                probe.bind((address[0], 0))
+            return True
+        except OSError:
+            continue
+    return False
 
 
 def run_hint(config: Path | None, command: str) -> str:
@@ -279,5 +300,5 @@ class NodeGuard:
         return host + [served + (f" and {more} more" if more > 0 else "")]
 
 
-__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "localnet_problem", "master_problem",
-           "run_hint"]
+__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "is_this_host", "localnet_problem",
+           "master_problem", "run_hint"]

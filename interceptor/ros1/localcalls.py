@@ -6,6 +6,7 @@ thread each."""
 from __future__ import annotations
 
 import asyncio
+import logging
 
 from cryptoros.errors import RemoteProtocolError
 from cryptoros.ros1.uri import split_uri
@@ -26,6 +27,10 @@ from interceptor.streams import READ_SIZE, drain_within
 MAX_IDLE = 8
 #: a connection unused this long (seconds) is closed rather than reused
 IDLE_SECONDS = 10.0
+#: seconds between finding a node exposed and asking it to shut down (:func:`ask_to_shut_down`)
+EXPOSED_SHUTDOWN_DELAY = 1.0
+
+log = logging.getLogger("cryptoros.interceptor")
 
 
 class _Kept:
@@ -121,4 +126,27 @@ class LocalCalls:
             self._servers.popitem()[1].close()
 
 
-__all__ = ["IDLE_SECONDS", "MAX_IDLE", "LocalCalls", "LocalXmlRpc"]
+async def ask_to_shut_down(calls: LocalCalls, node: str, port: int, why: str, host: str = "127.0.0.1") -> None:
+    """Ask a local node whose XML-RPC API other hosts reach to shut down (its own
+    ``shutdown`` API, at ``host``: loopback, or an address of this host), as ``rosnode
+    kill`` does. Refused registrations alone leave it running: rospy keeps a refused
+    subscriber, and a stranger's ``publisherUpdate`` to its open port fed it messages
+    around the interceptor (deployment audit)."""
+    request = Request(method="shutdown", params=("/cryptoros", f"cryptoros: {why}"))
+    # asked once the node is through its start: rospy shut down within its first
+    # milliseconds raced its TCPROS server thread into a traceback (1 run of 4)
+    await asyncio.sleep(EXPOSED_SHUTDOWN_DELAY)
+    where = f"[{host}]" if ":" in host else host
+    try:
+        reply = await calls.call(f"http://{where}:{port}/", request, max_idle=0)
+        answer = "it agreed" if isinstance(reply, Response) else "it answered a fault"
+    except RemoteProtocolError:  # rospy closes its API as it shuts down, before answering
+        answer = "its API closed"
+    except (OSError, asyncio.TimeoutError) as exc:
+        log.warning("node %s listens where other hosts reach it (port %d) and could not be asked to shut down: "
+                    "%s; stop it and start it with ROS_IP=127.0.0.1", node, port, exc)
+        return
+    log.warning("node %s listens where other hosts reach it (port %d): asked to shut down (%s)", node, port, answer)
+
+
+__all__ = ["EXPOSED_SHUTDOWN_DELAY", "IDLE_SECONDS", "MAX_IDLE", "LocalCalls", "LocalXmlRpc", "ask_to_shut_down"]

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fnmatch
+import time
 
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied
 from cryptoros.policy.ros1 import (
@@ -19,9 +21,12 @@ from cryptoros.ros1.xmlrpc import (
     Response,
 )
 from cryptoros.tokens import Grants
-from interceptor.exposure import master_problem
-from interceptor.ros1.localcalls import MAX_IDLE
+from cryptoros.exposure import ExposureError
+from cryptoros.ros1.uri import UriError, host_port
+from interceptor.exposure import is_this_host, master_problem, run_hint
+from interceptor.ros1.localcalls import MAX_IDLE, ask_to_shut_down
 from interceptor.ros1.wire import (
+    DIRECT_RECHECK,
     MASTER_WATCH_INTERVAL,
     MASTER_WATCH_TIMEOUT,
     MAX_PARAM_SUBSCRIPTIONS_PER_NODE,
@@ -139,7 +144,54 @@ class MasterSide:
                 elif not self._master_ledger.relay_refs:  # restarted with no state: rosmaster still names our relays
                     await self._adopt_master_state()
                 self._master_pid = pid
+            if pid is not None:
+                with contextlib.suppress(*PEER_FAILURES, asyncio.TimeoutError):
+                    await asyncio.wait_for(self._judge_direct_nodes(), MASTER_WATCH_TIMEOUT * 4)
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    async def _judge_direct_nodes(self) -> None:
+        """Deployment check of the nodes on this host that register with rosmaster
+        directly (tools run on the master host, which no interceptor's local master sees):
+        one whose XML-RPC API other hosts reach is asked to shut down and named in status,
+        as a robot's interceptor does with its own nodes; one in ``allow_exposed_nodes``
+        is named only. A stranger had read a topic from such a node, and robots'
+        subscribers of its topic were refused (``foreign_uri``). Each node is looked up
+        when it first appears and again every :data:`DIRECT_RECHECK` seconds."""
+        state = await self._call_upstream_master(Request(method="getSystemState", params=("/cryptoros",)))
+        if not ros_ok(state):
+            return
+        nodes = {node for entries in state.value[2] for _name, names in entries for node in names}
+        now = time.monotonic()
+        self._direct_checked = {n: t for n, t in self._direct_checked.items() if n in nodes}
+        self._direct_exposed = {n: w for n, w in self._direct_exposed.items() if n in nodes}
+        for node in sorted(nodes):
+            if node in self._master_ledger.owners or \
+                    now - self._direct_checked.get(node, -DIRECT_RECHECK) < DIRECT_RECHECK:
+                continue  # a robot's node (registered through the interceptors), or looked at lately
+            self._direct_checked[node] = now
+            reply = await self._call_upstream_master(Request(method="lookupNode", params=("/cryptoros", node)))
+            if not ros_ok(reply):
+                continue
+            try:
+                host, port = host_port(reply.value[2], ("http",))
+                addresses = self._exposure.exposed(port)
+            except (UriError, ExposureError):
+                continue
+            if not addresses or not await is_this_host(host):
+                self._direct_exposed.pop(node, None)
+                continue
+            where = f"{', '.join(addresses)} port {port}"
+            if any(fnmatch.fnmatchcase(node, p) for p in self.cfg.allow_exposed_nodes):
+                self._direct_exposed[node] = f"{node} ({where}, allow_exposed_nodes: its firewall must close it)"
+                continue
+            if node not in self._direct_exposed:
+                why = (f"node {node}'s XML-RPC API listens on {where}, reachable from other hosts: start it with "
+                       f"ROS_IP=127.0.0.1 ({run_hint(self.cfg.source, 'CMD')})")
+                log.error("DENY master-host node: exposed_endpoint: %s", why)
+                self._direct_exposed[node] = f"{node} ({where})"
+                self.gw.spawn(ask_to_shut_down(self._local_calls, node, port, why,
+                                               "127.0.0.1" if "0.0.0.0" in addresses or "::" in addresses else host),
+                              "shutdown-exposed")
 
     def _judge_master_exposure(self) -> bool:
         """Deployment check, each turn of the watch: True while rosmaster answers other

@@ -37,6 +37,7 @@ from cryptoros.ros1.xmlrpc import (
 )
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
+from interceptor.ros1.localcalls import ask_to_shut_down
 from interceptor.registrations import REGISTER, RELEASE, Registration, covers
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
@@ -59,10 +60,6 @@ from interceptor.ros1.wire import (
 )
 from interceptor.streams import READ_SIZE, InboundStream
 from interceptor.translate import MASTER
-
-
-#: seconds between refusing an exposed node's registration and asking it to shut down
-EXPOSED_SHUTDOWN_DELAY = 1.0
 
 
 class NodeSide:
@@ -207,30 +204,10 @@ class NodeSide:
         except PolicyDenied as exc:
             self.gw.deny("local-master", exc, "local node")
             for node, port in self._nodes_exposed.exposed_apis(calls, allow=self.cfg.allow_exposed_nodes):
-                self.gw.spawn(self._shut_down_exposed(node, port, exc.detail), "shutdown-exposed")
+                self.gw.spawn(ask_to_shut_down(self._local_calls, node, port, exc.detail), "shutdown-exposed")
             error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
             return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
         return None
-
-    async def _shut_down_exposed(self, node: str, port: int, why: str) -> None:
-        """Ask a node whose XML-RPC API other hosts reach to shut down (its ``shutdown``
-        API, over loopback), as ``rosnode kill`` does. Refused registrations alone leave it
-        running: rospy keeps a refused subscriber, and a stranger's ``publisherUpdate``
-        to its open port fed it messages around the interceptor (deployment audit)."""
-        request = Request(method="shutdown", params=("/cryptoros", f"cryptoros: {why}"))
-        # asked once the node is through its start: rospy shut down within its first
-        # milliseconds raced its TCPROS server thread into a traceback (1 run of 4)
-        await asyncio.sleep(EXPOSED_SHUTDOWN_DELAY)
-        try:
-            reply = await self._local_calls.call(f"http://127.0.0.1:{port}/", request, max_idle=0)
-            answer = "it agreed" if isinstance(reply, Response) else "it answered a fault"
-        except RemoteProtocolError:  # rospy closes its API as it shuts down, before answering
-            answer = "its API closed"
-        except (OSError, asyncio.TimeoutError) as exc:
-            log.warning("node %s listens where other hosts reach it (port %d) and could not be asked to shut down: "
-                        "%s; stop it and start it with ROS_IP=127.0.0.1", node, port, exc)
-            return
-        log.warning("node %s listens where other hosts reach it (port %d): asked to shut down (%s)", node, port, answer)
 
     def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
         warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,

@@ -168,6 +168,10 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._exposure = PortExposure()
         self._nodes_exposed = NodeGuard(self._exposure)
         self._master_exposed: str | None = None
+        #: master role: nodes that registered with rosmaster directly, when each was last
+        #: looked at, and those whose API other hosts reach (node -> status text)
+        self._direct_checked: dict[str, float] = {}
+        self._direct_exposed: dict[str, str] = {}
         #: node role: each registration a local node made or had refused, as it sent it, so a
         #: grant that comes while it runs is made for it (:meth:`_regrant`)
         self._ledger = LocalRegistrations()
@@ -256,6 +260,10 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             what = ("allow_exposed_master = true, served anyway" if self.cfg.allow_exposed_master
                     else "master streams refused (exposed_master)")
             warnings.append(f"{what}: {self._master_exposed}")
+        if self._direct_exposed:
+            named = list(self._direct_exposed.values())
+            warnings.append("nodes on this host registered with rosmaster directly, reachable from other hosts: "
+                            + ", ".join(named[:8]) + (f" and {len(named) - 8} more" if len(named) > 8 else ""))
         return warnings
 
     def _count_idle_close(self) -> None:

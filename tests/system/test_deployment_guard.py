@@ -200,6 +200,34 @@ def test_a_node_other_hosts_reach_is_refused_and_the_same_node_through_cryptoros
             net.hosts["robot_a"].logs().count("DENY local-master from local node: exposed_endpoint")
 
 
+def test_a_node_on_the_master_host_registered_directly_and_reachable_is_shut_down(tmp_path):
+    """Deployment audit: a tool run on the master host with ROS_IP on the host's network
+    address registers with rosmaster directly, past every interceptor: nothing refused
+    it, a stranger read its topic, and robots' subscribers of that topic were refused
+    (``foreign_uri``). The master's interceptor now looks at each node rosmaster holds:
+    this one is asked to shut down and named in the log; one on loopback is left alone."""
+    separate_hosts()
+    with robot_network(tmp_path, netns=True) as net:
+        master = net.hosts["master"]
+        echo = [SYS_PY, shutil.which("rostopic"), "echo", "/chatter"]
+        private_env = net.ros_env(None)
+        exposed_env = {**net.ros_env(None), "ROS_IP": master.address}
+        with running([*echo, "__name:=mhost_private"], env=private_env) as private, \
+                running([*echo, "__name:=mhost_exposed"], env=exposed_env) as exposed:
+            _wait_rosmaster_holds(net, "/mhost_exposed")
+            lines = read_lines(exposed, None, 30)  # until it exits
+            try:
+                exposed.wait(5)
+            except subprocess.TimeoutExpired:
+                raise AssertionError("the exposed node still runs after 30 s:\n" + "".join(lines)) from None
+            assert "Traceback" not in "".join(lines), lines
+            logs = master.logs()
+            assert "DENY master-host node: exposed_endpoint: node /mhost_exposed's XML-RPC API listens on" in logs
+            _wait_log(net, "master", "node /mhost_exposed listens where other hosts reach it (port")
+            assert "could not be asked" not in master.logs()
+            assert private.poll() is None and "mhost_private" not in master.logs()
+
+
 def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_changes_nothing(tmp_path):
     separate_hosts()
     with robot_network(tmp_path, start=("master", "robot_a"), policy=flow_policy(), netns=True) as net:
