@@ -150,6 +150,7 @@ class Ros2Role(Role):
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
         self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         self._stopping = False
+        self._started = False  # start() ran: the bridge is supervised from then on
         self.dropped = 0
         self._exposure = ExposureScan(cfg.ros2.domain_id)
         self._exposed: tuple[Exposed, ...] = ()
@@ -172,6 +173,7 @@ class Ros2Role(Role):
         await self.bridge.start()
 
     async def start(self) -> None:
+        self._started = True
         self.gw.spawn(self.bridge.supervise(self._reset_local_state, lambda: self._stopping), "ros2-bridge")
         self.gw.spawn(self._reconcile_loop(), "ros2-reconcile")
         log.info("ros2 role up: domain %d, peers %s", self.cfg.ros2.domain_id,
@@ -420,6 +422,8 @@ class Ros2Role(Role):
     def problem(self) -> PolicyDenied | None:
         if self._loopback is not None:
             return PolicyDenied("exposed_endpoint", f"this host's loopback answers other hosts: {self._loopback}")
+        if self._started and not self._stopping and not self.bridge.ready:  # nothing crosses either way meanwhile
+            return PolicyDenied("bridge_down", "the DDS bridge is not running: it is being restarted (see the log)")
         return None
 
     def status(self) -> dict:

@@ -32,8 +32,10 @@ log = logging.getLogger("cryptoros.interceptor.ros2")
 
 BRIDGE_SCRIPT = Path(cryptoros.ros2.__file__).resolve().parent / "bridge_node.py"
 BRIDGE_START_TIMEOUT = 30.0
-#: a dead bridge's successor starts this long after (a bridge dying at once is not spun)
+#: a dead bridge's successor starts this long after (a bridge dying at once is not spun);
+#: doubled after each start that failed, up to RESTART_PAUSE_MAX
 RESTART_PAUSE = 1.0
+RESTART_PAUSE_MAX = 8.0
 #: eProsima's ``fastdds shm clean`` before a bridge starts (0.1 s on a clean host, 0.5 s
 #: with 1,270 dead segments to remove)
 SHM_CLEAN_TIMEOUT = 15.0
@@ -151,10 +153,20 @@ class DdsBridge:
         _, self.link = await loop.connect_accepted_socket(
             lambda: BridgeLink(self._on_frame, settings.max_message_size, self._on_messages), sock=parent
         )
+        # its hello, or its end: a bridge that cannot start (its python or rclpy broken) exits
+        # at once, and was waited for all of BRIDGE_START_TIMEOUT
+        ready, exited = asyncio.ensure_future(self._ready.wait()), asyncio.ensure_future(self._proc.wait())
         try:
-            await asyncio.wait_for(self._ready.wait(), BRIDGE_START_TIMEOUT)
-        except asyncio.TimeoutError:
+            await asyncio.wait([ready, exited], timeout=BRIDGE_START_TIMEOUT, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for waiter in (ready, exited):
+                waiter.cancel()
+        if not self._ready.is_set():
+            status = self._proc.returncode
             await self.stop()
+            if status is not None:
+                raise CryptorosError(f"the DDS bridge ({settings.python}) exited with status {status} before it was "
+                                     "up (its output is above)")
             raise CryptorosError(f"the DDS bridge ({settings.python}) did not start within {BRIDGE_START_TIMEOUT:.0f} s")
         log.info("DDS bridge up: pid %s, %s, domain %s", self.hello.get("pid"), self.hello.get("rmw"),
                  self.hello.get("domain"))
@@ -183,19 +195,29 @@ class DdsBridge:
         ``stopping()``. Not :attr:`ready` from the moment it is found dead: a stream the
         role accepted meanwhile would go to the dead bridge and carry nothing, for good.
         ``on_lost`` drops what it carried; the role sets it up again from scratch."""
+        pause = RESTART_PAUSE
         while True:
             proc, link = self._proc, self.link
-            await asyncio.wait([asyncio.ensure_future(proc.wait()), link.closed], return_when=asyncio.FIRST_COMPLETED)
+            if proc is not None and link is not None:
+                await asyncio.wait([asyncio.ensure_future(proc.wait()), link.closed],
+                                   return_when=asyncio.FIRST_COMPLETED)
+                if stopping():
+                    return
+                rc = proc.returncode
+                log.error("the DDS bridge %s; restarting it", "closed its link" if rc is None else
+                          f"was killed by signal {-rc}" if rc < 0 else f"exited with status {rc}")
+                await self.stop()  # not ready from here on
+                on_lost()
+            await asyncio.sleep(pause)
             if stopping():
                 return
-            log.error("the DDS bridge exited (status %s); restarting it", proc.returncode)
-            await self.stop()  # not ready from here on
-            on_lost()
-            await asyncio.sleep(RESTART_PAUSE)
             try:
                 await self.start()
+                pause = RESTART_PAUSE
             except (CryptorosError, OSError) as exc:
-                log.error("cannot restart the DDS bridge: %s", exc)
+                log.error("cannot restart the DDS bridge: %s; trying again in %g s", exc, min(pause * 2, RESTART_PAUSE_MAX))
+                self._proc, self.link = None, None
+                pause = min(pause * 2, RESTART_PAUSE_MAX)
 
     async def _clean_dead_segments(self, env: dict[str, str]) -> None:
         """Before a bridge starts (the first, or one after its predecessor died): remove the

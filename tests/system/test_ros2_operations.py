@@ -178,7 +178,8 @@ def test_a_killed_bridge_is_restarted_its_dead_segments_removed_and_flows_resume
     """SIGKILL to robot B's DDS bridge: no goodbye, its shared-memory segments stay in
     /dev/shm. The interceptor starts a new bridge, removing what dead DDS processes left
     first (eProsima's ``fastdds shm clean``), and robot B's listener hears robot A again.
-    The new bridge runs with the bridge's own Fast DDS profile, as the first did."""
+    The new bridge runs with the bridge's own Fast DDS profile, as the first did. Until it
+    is up, robot B's health says ``bridge_down``."""
     with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
         sub.until("READY", 20)
         with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
@@ -190,8 +191,14 @@ def test_a_killed_bridge_is_restarted_its_dead_segments_removed_and_flows_resume
             os.kill(dead, signal.SIGKILL)
             start = time.monotonic()
             assert all(lock.exists() and lock.with_name(lock.name[:-3]).exists() for lock in left)
+            # not healthy while nothing crosses (ROS 2 audit: status said ok with the bridge down)
+            deadline = time.monotonic() + 10
+            while _health(network, "robot_b") != "bridge_down":
+                assert time.monotonic() < deadline, "robot B's health never said its bridge was down"
+                time.sleep(0.05)
             _first_message_within(sub, start, 20, "robot B's bridge killed")
             collect(sub, 20, 10)
+            assert _health(network, "robot_b") == "ok"
     assert _bridge_pids(network, "robot_b")[-1] != dead
     assert not [lock for lock in left if lock.exists() or lock.with_name(lock.name[:-3]).exists()], \
         "the dead bridge's segments are still in /dev/shm"
