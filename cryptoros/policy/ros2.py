@@ -55,6 +55,11 @@ def local_offer(kind: str, name: str, types: Sequence[str], sources: Sequence[Ma
         return None
     validate_graph_name(name)
     action = "publish" if kind == "topic" else "serve"
+    if kind == "topic" and all("type" in s for s in sources):
+        # each publisher with its own type: a subscriber's type (any local node may
+        # subscribe with another one) or an ungranted publisher's decides nothing (ROS 2
+        # audit: an ungranted node subscribing /chatter as Int32 took it off the air)
+        return _topic_offer(name, sources, grants=grants, depth=depth)
     if len(types) != 1:
         raise PolicyDenied("type_conflict", f"{name} is offered with several types {list(types)}")
     type_name = types[0]
@@ -77,6 +82,32 @@ def local_offer(kind: str, name: str, types: Sequence[str], sources: Sequence[Ma
             depth=depth,
         )
     target = StreamTarget(kind=kind, name=name, type=type_name, node=granted[0], qos=qos)
+    return Offer(target=target, writers=frozenset(granted), refused=refused)
+
+
+def _topic_offer(name: str, sources: Sequence[Mapping[str, Any]], *, grants: Grants, depth: int) -> Offer | None:
+    """A topic whose publishers each carry their ``type``: the granted ones must agree on
+    one type (``type_conflict`` names them otherwise); the others are refused."""
+    named = [s for s in sources if UNKNOWN_NODE_MARK not in s["node"]]
+    if not named:
+        return None
+    mine = [s for s in named if grants.allows("publish", s["node"], name, s["type"])]
+    refused = tuple(sorted({f"{s['node']}" for s in named if s not in mine}))
+    if not mine:
+        first = sorted(named, key=lambda s: (s["node"], s["type"]))[0]
+        raise PolicyDenied("not_granted", f"{first['node']} may not publish {name} [{first['type']}]")
+    kinds = sorted({s["type"] for s in mine})
+    if len(kinds) != 1:
+        who = ", ".join(f"{s['node']} [{s['type']}]" for s in sorted(mine, key=lambda s: (s["type"], s["node"])))
+        raise PolicyDenied("type_conflict", f"{name} is published with several types by granted nodes: {who}")
+    granted = sorted({s["node"] for s in mine})
+    refused = tuple(n for n in refused if n not in granted)
+    qos = QoS(
+        reliability="best_effort" if any(s["reliability"] == "best_effort" for s in mine) else "reliable",
+        durability="transient_local" if all(s["durability"] == "transient_local" for s in mine) else "volatile",
+        depth=depth,
+    )
+    target = StreamTarget(kind="topic", name=name, type=kinds[0], node=granted[0], qos=qos)
     return Offer(target=target, writers=frozenset(granted), refused=refused)
 
 

@@ -201,6 +201,7 @@ class Bridge:
                     "reliability": "best_effort" if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT else "reliable",
                     "durability": "transient_local" if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
                     "gid": bytes(i.endpoint_gid)[:8].hex(),  # its participant's GUID prefix starts it
+                    "type": i.topic_type,  # its own: the topic's types include its subscribers'
                 }
                 for i in node.get_publishers_info_by_topic(name)
                 if _fqn(i.node_name, i.node_namespace) not in self.own_names

@@ -189,6 +189,24 @@ def test_an_empty_or_garbage_sample_is_refused_and_the_listener_keeps_receiving(
     assert log.count("DENY ros2 sample") == 1  # once per stream
 
 
+def test_a_local_subscriber_of_another_type_does_not_take_a_granted_topic_off_the_air(network):
+    """ROS 2 audit: a node on robot A under no grant subscribed /chatter as Int32 (any
+    local node may subscribe): the topic then had two types, robot A withdrew its granted
+    talker's /chatter (``type_conflict``) and robot B's listener heard nothing while the
+    other node ran. A topic's type is now its granted publishers'."""
+    from tests.ros2_support import flow_around
+
+    log_before = len(network.robots["robot_a"].logs())
+
+    def attack(seen) -> None:
+        with network.node("robot_a", "listener.py", "twist", "/chatter", "30", "--node", "other_type") as other:
+            other.until("READY", 20)
+            seen.more_from_a(60, 20, "robot B's listener stopped hearing robot A while /chatter had two types")
+
+    flow_around(network, attack, during_bound=2.0)
+    assert "type_conflict" not in network.robots["robot_a"].logs()[log_before:]
+
+
 def test_removing_the_grant_cuts_an_open_ros2_stream_within_5_s(network):
     """robot_c's /spy stream on /chatter is cut within 5 s of its grant's removal; robot
     A's /chatter keeps reaching robot B's listener, during and after."""

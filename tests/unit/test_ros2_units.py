@@ -170,6 +170,31 @@ def test_what_a_robot_may_not_offer_is_denied_with_a_reason(kind, name, types, s
     assert info.value.reason == reason
 
 
+def _typed(node, type_name=STRING, reliability="reliable"):
+    return {**_pub(node, reliability), "type": type_name}
+
+
+def test_a_topic_is_decided_by_its_granted_publishers_types_not_a_subscribers_or_a_rogues():
+    """ROS 2 audit: an ungranted node subscribing /chatter as Int32 (or publishing it)
+    made the topic's types two, and the granted talker's /chatter went off the air."""
+    both = [STRING, "std_msgs/msg/Int32"]  # what the graph lists: every endpoint's type
+    offer = local_offer("topic", "/chatter", both, [_typed("/talker")], grants=A_GRANTS, depth=10)
+    assert offer.target.type == STRING and offer.writers == frozenset({"/talker"}) and offer.refused == ()
+    offer = local_offer("topic", "/chatter", both, [_typed("/talker"), _typed("/rogue", "std_msgs/msg/Int32")],
+                        grants=A_GRANTS, depth=10)
+    assert offer.target.type == STRING and offer.refused == ("/rogue",)
+    with pytest.raises(PolicyDenied, match="may not publish /chatter") as info:
+        local_offer("topic", "/chatter", both, [_typed("/talker", "std_msgs/msg/Int32")], grants=A_GRANTS, depth=10)
+    assert info.value.reason == "not_granted"
+    two = Grants.from_claim({"/talker": {"publish": [["/chatter", STRING]]},
+                             "/other": {"publish": [["/chatter", "std_msgs/msg/Int32"]]}})
+    conflict = r"granted nodes: /other \[std_msgs/msg/Int32\], /talker \[std_msgs/msg/String\]"
+    with pytest.raises(PolicyDenied, match=conflict) as info:
+        local_offer("topic", "/chatter", both, [_typed("/talker"), _typed("/other", "std_msgs/msg/Int32")],
+                    grants=two, depth=10)
+    assert info.value.reason == "type_conflict"
+
+
 @pytest.mark.parametrize(("name", "types", "sources"), [
     ("/rosout", ["rcl_interfaces/msg/Log"], [_pub("/talker")]),  # ROS infrastructure stays local
     ("/talker/get_parameters", ["rcl_interfaces/srv/GetParameters"], [{"node": "/talker"}]),
