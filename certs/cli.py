@@ -36,6 +36,10 @@ from cryptoros.errors import CryptorosError, PKIError
 from . import pki as pkimod
 from .pki import KEY_TYPES, KINDS, PKI, REASONS
 
+#: the longest validity asked of a certificate, a CA or a CRL (100 years): a larger one
+#: is past the dates the encodings hold (an OverflowError traceback, CLI audit)
+MAX_DAYS = 36_500
+
 PROG = "cryptoros-certs"
 ENV_PASSPHRASE = "CRYPTOROS_PASSPHRASE"
 ENV_CA_PASSPHRASE = "CRYPTOROS_CA_PASSPHRASE"
@@ -203,7 +207,7 @@ def cli() -> None:
 @dir_option
 @click.option("--trust-domain", default="cryptoros.local", show_default=True, help="Trust domain of the identity URIs.")
 @key_type_option
-@click.option("--days", type=click.IntRange(min=1), default=3650, show_default=True, help="CA validity.")
+@click.option("--days", type=click.IntRange(min=1, max=MAX_DAYS), default=3650, show_default=True, help="CA validity.")
 @new_pass_options
 @force_option
 def init(directory, trust_domain, key_type, days, passphrase_file, unsafe_no_passphrase, force):
@@ -235,7 +239,7 @@ def init(directory, trust_domain, key_type, days, passphrase_file, unsafe_no_pas
 @kind_option
 @san_option
 @key_type_option
-@click.option("--days", type=click.IntRange(min=1), default=365, show_default=True, help="Validity.")
+@click.option("--days", type=click.IntRange(min=1, max=MAX_DAYS), default=365, show_default=True, help="Validity.")
 @new_pass_options
 @ca_pass_option
 @force_option
@@ -260,7 +264,7 @@ def issue(name, directory, kind, sans, key_type, days, passphrase_file, unsafe_n
         unsafe_no_passphrase=unsafe_no_passphrase,
         force=force,
     )
-    _print_issued(out, encrypted=passphrase is not None)
+    _print_issued(out, encrypted=passphrase is not None, days=days)
 
 
 @cli.command()
@@ -269,7 +273,7 @@ def issue(name, directory, kind, sans, key_type, days, passphrase_file, unsafe_n
 @click.option("--same-key", is_flag=True, help="Keep the current key pair: only the certificate is new.")
 @click.option("--key-type", type=click.Choice(KEY_TYPES), default=None,
               help="Type of the new key (default: the type of the current one).")
-@click.option("--days", type=click.IntRange(min=1), default=365, show_default=True, help="Validity.")
+@click.option("--days", type=click.IntRange(min=1, max=MAX_DAYS), default=365, show_default=True, help="Validity.")
 @new_pass_options
 @ca_pass_option
 def renew(name, directory, same_key, key_type, days, passphrase_file, unsafe_no_passphrase, ca_passphrase_file):
@@ -291,7 +295,7 @@ def renew(name, directory, same_key, key_type, days, passphrase_file, unsafe_no_
         passphrase = new_key_passphrase(passphrase_file, unsafe_no_passphrase, name)
     out, old_serial = pki.renew(name, new_key=not same_key, key_type=key_type, days=days, passphrase=passphrase,
                                 unsafe_no_passphrase=unsafe_no_passphrase and not same_key)
-    _print_issued(out, encrypted=passphrase is not None if not same_key else None)
+    _print_issued(out, encrypted=passphrase is not None if not same_key else None, days=days)
     if any(r.serial == old_serial and r.status == "revoked" for r in pki.list()):
         click.echo(f"previous:    serial {old_serial:x} (revoked)")
         click.echo("next:        cryptoros-authz set-cert " + f"{name} --fingerprint {out.fingerprint_sha256}")
@@ -303,12 +307,19 @@ def renew(name, directory, same_key, key_type, days, passphrase_file, unsafe_no_
     click.echo(f"             cryptoros-certs revoke {name} --serial {old_serial:x} --dir {directory}")
 
 
-def _print_issued(out: pkimod.Issued, *, encrypted: bool | None) -> None:
+def _print_issued(out: pkimod.Issued, *, encrypted: bool | None, days: int) -> None:
     click.echo(f"certificate: {out.cert_path}")
     if out.key_path is not None:
         click.echo(f"key:         {out.key_path}{'' if encrypted else ' (UNENCRYPTED)'}")
     click.echo(f"serial:      {out.serial:x}")
     click.echo(f"SHA-256:     {out.fingerprint_sha256}")
+    until = pkimod.load_certificate(out.cert_path).not_valid_after_utc
+    asked = dt.datetime.now(dt.timezone.utc) + dt.timedelta(days=days)
+    if until < asked - dt.timedelta(hours=1):  # a leaf never outlives its CA
+        click.echo(f"valid until: {until:%Y-%m-%d %H:%M} UTC, not {days} days: the CA itself ends then (renew the CA "
+                   "before it, or every certificate it issued stops working)", err=True)
+    else:
+        click.echo(f"valid until: {until:%Y-%m-%d %H:%M} UTC")
 
 
 @cli.command()
@@ -348,7 +359,7 @@ def request(name, out_dir, sans, key_type, passphrase_file, unsafe_no_passphrase
 @kind_option
 @click.option("--name", help="Name of the certificate (default: the CSR's common name).")
 @san_option
-@click.option("--days", type=click.IntRange(min=1), default=365, show_default=True, help="Validity.")
+@click.option("--days", type=click.IntRange(min=1, max=MAX_DAYS), default=365, show_default=True, help="Validity.")
 @ca_pass_option
 @force_option
 def sign(csr, directory, kind, name, sans, days, ca_passphrase_file, force):
@@ -359,14 +370,15 @@ def sign(csr, directory, kind, name, sans, days, ca_passphrase_file, force):
         pkimod.check_name(name)
     pki = open_for_signing(directory, ca_passphrase_file)
     out = pki.sign_csr(csr, kind=kind, name=name, sans=san_list, days=days, force=force)
-    _print_issued(out, encrypted=None)
+    _print_issued(out, encrypted=None, days=days)
 
 
 @cli.command()
 @click.argument("name_or_serial")
 @dir_option
 @click.option("--reason", type=click.Choice(REASONS), default="unspecified", show_default=True)
-@click.option("--crl-days", type=click.IntRange(min=1), default=7, show_default=True, help="Validity of the new CRL.")
+@click.option("--crl-days", type=click.IntRange(min=1, max=MAX_DAYS), default=7, show_default=True,
+              help="Validity of the new CRL.")
 @click.option("--serial", "pick", help="With a NAME that has several valid certificates: revoke only this serial.")
 @click.option("--all", "all_", is_flag=True, help="With a NAME that has several valid certificates: revoke every one.")
 @ca_pass_option
@@ -404,7 +416,7 @@ def revoke(name_or_serial, directory, reason, crl_days, pick, all_, ca_passphras
 
 @cli.command()
 @dir_option
-@click.option("--days", type=click.IntRange(min=1), default=7, show_default=True, help="Validity of the CRL.")
+@click.option("--days", type=click.IntRange(min=1, max=MAX_DAYS), default=7, show_default=True, help="Validity of the CRL.")
 @ca_pass_option
 def crl(directory, days, ca_passphrase_file):
     """Sign a fresh CRL listing every revoked certificate."""

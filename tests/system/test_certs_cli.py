@@ -324,6 +324,7 @@ def test_verify(ca: Path, tmp_path: Path):
         (["issue", "x", "--kind", "robot"], "robot"),
         (["issue", "x", "--key-type", "dsa1024"], "dsa1024"),
         (["issue", "x", "--passphrase-file", "/nonexistent/pass"], "/nonexistent/pass"),
+        (["issue", "x", "--days", "99999999"], "--days"),  # CLI audit: an OverflowError traceback
         (["revoke", "nobody"], "nobody"),
         (["revoke", "0xdeadbeef"], "0xdeadbeef"),
         (["nosuchverb"], "nosuchverb"),
@@ -335,6 +336,17 @@ def test_bad_input_is_one_line_exit_2(ca: Path, args, needle):
         else certs(*args, "--dir", ca)
     assert_bad_input(r, needle)
     assert snapshot(ca) == before and no_temp_files(ca)
+
+
+def test_a_certificate_cut_to_its_cas_end_says_so(tmp_path: Path):
+    """CLI audit: `issue --days 365` under a CA that ends tomorrow gave a certificate of
+    one day without a word."""
+    short = tmp_path / "short"
+    ok("init", "--dir", short, "--days", "1", "--unsafe-no-passphrase")
+    r = ok("issue", "robot_x", "--dir", short, "--days", "365", "--unsafe-no-passphrase")
+    assert "not 365 days: the CA itself ends then" in r.stderr
+    r = ok("issue", "robot_y", "--dir", short, "--days", "1", "--unsafe-no-passphrase")
+    assert "valid until:" in r.stdout and not r.stderr
 
 
 def test_not_a_pki_dir(tmp_path: Path):
