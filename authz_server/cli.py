@@ -77,7 +77,7 @@ def main(ctx: click.Context, db_url: str) -> None:
     ctx.obj = {"db": db_url}
 
 
-def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
+def _fingerprint_of(cert_file: str, name: str | None = None, ca_file: str | None = None) -> str:
     from cryptography import x509
     from cryptography.hazmat.primitives import serialization
 
@@ -101,14 +101,63 @@ def _fingerprint_of(cert_file: str, name: str | None = None) -> str:
         managers = [u.rsplit("/", 1)[1] for u in uris if u.startswith("spiffe://") and "/manager/" in u]
         if managers and name not in managers:
             raise RegistryError(f"{cert_file} identifies manager {managers[0]!r}, not {name!r}")
+    _check_client_certificate(cert, cert_file, ca_file)
     return cert_fingerprint_sha256(cert.public_bytes(serialization.Encoding.DER))
 
 
-def _cert_or_fp(name: str, cert: str | None, fingerprint: str | None) -> str | None:
+def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None:
+    """A certificate a manager's client may present: not a CA's, not a server's, issued
+    by the fleet's CA and not revoked by its CRL. The CA is ``ca_file``, else the
+    ``ca.crt`` of ``$CRYPTOROS_PKI_DIR``, else of the cryptoros-certs directory the
+    certificate lies in (``pki/issued/NAME.crt``), with its ``crl.pem``; without any the
+    issuer is not checked. (CLI audit: another CA's certificate was bound with exit 0,
+    and the robot locked out: every TLS handshake with its real one failed.)"""
+    from cryptography import x509
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.x509.oid import NameOID
+
+    try:
+        if cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca:
+            raise RegistryError(f"{cert_file} is a CA certificate, not a manager's client certificate")
+    except x509.ExtensionNotFound:
+        pass
+    kinds = [a.value for a in cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)]
+    if "server" in kinds:
+        raise RegistryError(f"{cert_file} is a server certificate (kind server), not a manager's client certificate")
+    for pki_dir in (os.environ.get(PKI_DIR_ENV), Path(cert_file).resolve().parent.parent):
+        if ca_file is None and pki_dir and (Path(pki_dir) / "ca.crt").is_file():
+            ca_file = str(Path(pki_dir) / "ca.crt")
+    if ca_file is None:
+        return
+    try:
+        ca = pemfiles.load_certificate(ca_file)
+    except PKIError as exc:
+        raise RegistryError(str(exc)) from exc
+    try:
+        cert.verify_directly_issued_by(ca)
+    except (ValueError, TypeError, InvalidSignature):
+        raise RegistryError(f"{cert_file} was not issued by the fleet's CA {ca_file} (issuer: "
+                            f"{cert.issuer.rfc4514_string()}): its client could not connect") from None
+    crl_file = Path(ca_file).resolve().parent / "crl.pem"
+    if crl_file.is_file():
+        try:
+            crl = pemfiles.parse_crl(read_bounded(crl_file, PEM_LIMIT), crl_file)
+        except (OSError, PKIError, ValueError):
+            return  # the CRL is the servers' to refuse; binding is not decided by it
+        if crl.get_revoked_certificate_by_serial_number(cert.serial_number) is not None:
+            raise RegistryError(f"{cert_file} (serial {cert.serial_number:x}) is revoked by {crl_file}")
+
+
+PKI_DIR_ENV = "CRYPTOROS_PKI_DIR"
+CA_HELP = ("The fleet's CA certificate: --cert must be issued by it and not revoked by the crl.pem beside it "
+           f"(default: the ca.crt of ${PKI_DIR_ENV}, else of the cryptoros-certs directory --cert lies in).")
+
+
+def _cert_or_fp(name: str, cert: str | None, fingerprint: str | None, ca: str | None = None) -> str | None:
     if cert and fingerprint:
         raise RegistryError("give either --cert or --fingerprint, not both")
     if cert:
-        return _fingerprint_of(cert, name)
+        return _fingerprint_of(cert, name, ca)
     return fingerprint
 
 
@@ -143,11 +192,13 @@ def db_current(ctx: click.Context) -> None:
 @click.option("--cert", "cert", type=str, help="The manager's client certificate (PEM or DER).")
 @click.option("--fingerprint", help="SHA-256 fingerprint of the certificate instead of --cert.")
 @click.option("--disabled", is_flag=True, help="Create it disabled.")
+@click.option("--ca", "ca", type=str, help=CA_HELP)
 @click.pass_context
-def add_manager(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None, disabled: bool) -> None:
+def add_manager(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None, disabled: bool,
+                ca: str | None) -> None:
     """Add manager NAME bound to its client certificate."""
     validate_manager_name(name)
-    fp = _cert_or_fp(name, cert, fingerprint)
+    fp = _cert_or_fp(name, cert, fingerprint, ca)
     if fp is None:
         raise RegistryError("add-manager needs --cert FILE (or --fingerprint HEX)")
     info = _registry(ctx, create=True).add_manager(name, fp, enabled=not disabled)
@@ -163,11 +214,13 @@ def add_manager(ctx: click.Context, name: str, cert: str | None, fingerprint: st
                    "robot keeps its streams until its interceptor reloads (SIGHUP) with the new one. 0: the old "
                    "one is refused at once and the manager's outstanding tokens revoked (a key that may be "
                    "compromised).")
+@click.option("--ca", "ca", type=str, help=CA_HELP)
 @click.pass_context
-def set_cert(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None, overlap: float) -> None:
+def set_cert(ctx: click.Context, name: str, cert: str | None, fingerprint: str | None, overlap: float,
+             ca: str | None) -> None:
     """Bind manager NAME to a renewed certificate (by default the old one's tokens are revoked)."""
     validate_manager_name(name)
-    fp = _cert_or_fp(name, cert, fingerprint)
+    fp = _cert_or_fp(name, cert, fingerprint, ca)
     if fp is None:
         raise RegistryError("set-cert needs --cert FILE (or --fingerprint HEX)")
     revoked = _registry(ctx).set_cert(name, fp, overlap=overlap)

@@ -145,6 +145,35 @@ def test_a_new_registry_file_is_readable_by_its_owner_only(tmp_path):
     assert modes and set(modes.values()) == {0o600}, modes
 
 
+def test_a_certificate_no_client_of_this_fleet_could_present_is_not_bound(team, tmp_path, monkeypatch):
+    """CLI audit: set-cert with another CA's certificate answered 0 and revoked the
+    robot's tokens; its real certificate was then refused and the robot locked out.
+    add-manager took the CA's own certificate, a server's and a revoked one. Each is now
+    refused in one line, and the registry is unchanged."""
+    db = f"sqlite:///{tmp_path / 'certs.db'}"
+    ok(authz("add-manager", "alice", "--cert", str(team.pki.pki.cert_path_for("alice")), db=db))
+    before = ok(cli("list-managers", "--json", db=db))
+    foreign = team.other_pki.pki.cert_path_for("alice")
+    line = one_line_error(cli("set-cert", "alice", "--cert", str(foreign), "--ca", str(team.pki.ca_cert), db=db))
+    assert "was not issued by the fleet's CA" in line
+    monkeypatch.setenv("CRYPTOROS_PKI_DIR", str(team.pki.directory))  # as the runbook sets it
+    line = one_line_error(cli("set-cert", "alice", "--cert", str(foreign), db=db))
+    assert "was not issued by the fleet's CA" in line and str(team.pki.ca_cert) in line
+    line = one_line_error(cli("add-manager", "ca_itself", "--cert", str(team.pki.ca_cert), db=db))
+    assert "is a CA certificate" in line
+    server = team.pki.issue("authz_srv", kind="server")
+    line = one_line_error(cli("add-manager", "srv", "--cert", str(server.cert_path), db=db))
+    assert "is a server certificate" in line
+    line = one_line_error(cli("add-manager", "mallory", "--cert", str(team.pki.pki.cert_path_for("mallory")), db=db))
+    assert "is revoked by" in line
+    assert ok(cli("list-managers", "--json", db=db)) == before
+    # the other fleet's own CA binds it (--ca), as an operator of that fleet would
+    ok(cli("set-cert", "alice", "--cert", str(foreign), "--ca", str(team.other_pki.ca_cert), db=db))
+    monkeypatch.delenv("CRYPTOROS_PKI_DIR")
+    line = one_line_error(cli("add-manager", "ca_alone", "--cert", str(team.pki.ca_cert), db=db))
+    assert "is a CA certificate" in line
+
+
 def test_operator_workflow_with_export_import_between_registries(team, tmp_path):
     db = f"sqlite:///{tmp_path / 'ops.db'}"
     alice = team.pki.pki.cert_path_for("alice")
