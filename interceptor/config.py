@@ -438,7 +438,11 @@ def _check_keys(table: Any, section: str) -> dict[str, Any]:
         raise ConfigError(f"{where} must be a table")
     unknown = sorted(set(table) - _SECTIONS[section])
     if unknown:
-        raise ConfigError(f"unknown key {unknown[0]!r} in {where}; allowed: {', '.join(sorted(_SECTIONS[section]))}")
+        homes = [f"[{name}]" if name else "the top level (above every [section])"
+                 for name, keys in _SECTIONS.items() if unknown[0] in keys]
+        hint = f" (it belongs at {homes[0]})" if homes else ""
+        raise ConfigError(f"unknown key {unknown[0]!r} in {where}{hint}; allowed: "
+                          f"{', '.join(sorted(_SECTIONS[section]))}")
     return table
 
 
@@ -588,7 +592,7 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         if not is_loopback(upstream_host) and not unsafe_plaintext:
             raise ConfigError(
                 f"[master] upstream {master.upstream} is plaintext toward a non-loopback address; "
-                "set unsafe_plaintext_upstream = true to allow it"
+                "set unsafe_plaintext_upstream = true (at the top level, above every [section]) to allow it"
             )
 
     limits_raw = dict(_check_keys(top.get("limits", {}), "limits"))

@@ -91,6 +91,9 @@ def test_relative_paths_are_relative_to_the_file(material, tmp_path):
         ({'local_master = "127.0.0.1:11311"': 'local_master = "10.1.2.3:11311"'}, "must be a loopback address"),
         ({'interceptor = "127.0.0.4:11400"': ""}, "needs \\[master\\] interceptor"),
         ({"manager = \"robot1\"": "manager = \"robot1\"\nroles2 = 1"}, "unknown key 'roles2'"),
+        # deployment audit: a top-level flag written under a section said only "unknown key"
+        ({"max_connections_per_peer = 8": "allow_exposed_nodes = []"},
+         "unknown key 'allow_exposed_nodes' in \\[limits\\] \\(it belongs at the top level"),
         ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 600"}, "tunnel_idle_timeout must be seconds"),
         ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 0"}, "tunnel_idle_timeout must be seconds"),
         ({"max_connections_per_peer = 8": "max_messages_per_second = -5"}, "max_messages_per_second must be messages"),
