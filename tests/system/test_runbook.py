@@ -264,6 +264,9 @@ def check_remove_grant_live(d: Deployment, outs):
 def check_stock_tools(d: Deployment, outs):
     grants = d.grants("robot_b")
     assert "/rosparam-*" in grants and "/rostopic_*" in grants, grants
+    # the runbook's example grants one namespace, not every parameter (deployment audit)
+    params = [line.split() for line in grants.splitlines() if line.split()[:1] == ["write_param"]]
+    assert params and all(p[2] == "/runbook" for p in params), grants
 
 
 def check_stock_tools_robot(d: Deployment, outs):
