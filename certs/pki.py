@@ -629,10 +629,12 @@ class PKI:
             cert = self._build_cert(name=name, kind=kind, public_key=key.public_key(), sans=san_list, days=days)
             self._record(index, cert, name, kind)
             key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, encryption)
+            # the index first: a certificate the CA signed is always listed (revocable by
+            # its serial), whatever stops this before its file is in place
+            write_file(self.index_path, self._index_bytes(index), force=True)
             with fs:
                 fs.add(key_path, key_pem, 0o600)
                 fs.add(cert_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
-            write_file(self.index_path, self._index_bytes(index), force=True)
         return Issued(
             name=name,
             cert_path=cert_path,
@@ -692,11 +694,11 @@ class PKI:
             fs = _FileSet(force=True)
             cert = self._build_cert(name=name, kind=kind, public_key=public_key, sans=sans, days=days)
             self._record(index, cert, name, kind)
+            write_file(self.index_path, self._index_bytes(index), force=True)  # first: as in issue
             with fs:
                 if key_pem is not None:
                     fs.add(key_path, key_pem, 0o600)
                 fs.add(cert_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
-            write_file(self.index_path, self._index_bytes(index), force=True)
         issued = Issued(name=name, cert_path=cert_path, key_path=key_path if key_pem is not None else None,
                         serial=cert.serial_number, fingerprint_sha256=cert_fingerprint_sha256(cert))
         return issued, old.serial_number
@@ -742,12 +744,12 @@ class PKI:
             fs.check(cert_path)
             cert = self._build_cert(name=name, kind=kind, public_key=public_key, sans=san_list, days=days)
             self._record(index, cert, name, kind)
+            write_file(self.index_path, self._index_bytes(index), force=True)  # first: as in issue
             with fs:
                 fs.add(cert_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
             write_file(
                 self.directory / "csr" / f"{name}.csr", csr.public_bytes(serialization.Encoding.PEM), force=True
             )
-            write_file(self.index_path, self._index_bytes(index), force=True)
         return Issued(
             name=name,
             cert_path=cert_path,

@@ -186,3 +186,30 @@ def test_mutual_tls_handshake_on_loopback(pki, other_pki):
     assert ("URI", "spiffe://cryptoros.local/manager/mng1") in peer["subjectAltName"]
     accepted, err = handshake(stranger)
     assert not accepted, err
+
+
+def test_a_renewal_stopped_before_its_files_are_in_place_leaves_the_new_serial_listed_and_revocable(tmp_path,
+                                                                                                   monkeypatch):
+    """CLI audit: a renew killed between its file moves left a certificate the CA had
+    signed in a temporary file that no index listed, so `revoke` could not name it. The
+    index is now written before the files."""
+    import certs.pki as pkimod
+
+    pki = PKI.init(tmp_path / "pki", unsafe_no_passphrase=True)
+    pki.issue("robot_k", unsafe_no_passphrase=True)
+    serials_before = {r.serial for r in pki.list()}
+
+    commit = pkimod._FileSet.commit
+
+    def killed(self) -> None:  # as if SIGKILL came before the key and certificate moved in
+        if any(final.suffix == ".key" for _tmp, final in self.staged):
+            raise KeyboardInterrupt
+        commit(self)
+
+    monkeypatch.setattr(pkimod._FileSet, "commit", killed)
+    with pytest.raises(KeyboardInterrupt):
+        pki.renew("robot_k", unsafe_no_passphrase=True)
+    monkeypatch.undo()
+    new = {r.serial for r in PKI.open(tmp_path / "pki").list()} - serials_before
+    assert len(new) == 1, "the signed certificate is not in the index"
+    PKI.open(tmp_path / "pki").revoke(new.pop())  # and revocable by its serial
