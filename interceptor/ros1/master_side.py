@@ -132,8 +132,14 @@ class MasterSide:
                 reply = await asyncio.wait_for(
                     self._call_upstream_master(Request(method="getPid", params=("/cryptoros",))), MASTER_WATCH_TIMEOUT)
                 pid = reply.value[2] if ros_ok(reply) and isinstance(reply.value[2], int) else None
-            except PEER_FAILURES:
-                pid = None
+                silence = "" if pid is not None else "getPid failed"
+            except (*PEER_FAILURES, asyncio.TimeoutError) as exc:
+                pid, silence = None, str(exc) or type(exc).__name__
+            if pid is None and self._master_silent_since is None:
+                self._master_silent_since = time.monotonic()
+            elif pid is not None:
+                self._master_silent_since = None
+            self._master_silence = silence
             if pid is not None and pid != self._master_pid:
                 # a new pid, or the first one seen after a restart of ours with registrations
                 # from state_dir (a repeated registration is harmless to rosmaster)

@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import functools
 import socket
+import time
 from collections.abc import Awaitable, Callable
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
@@ -53,6 +54,7 @@ from interceptor.ros1.tunnels import TunnelPool, XmlRpcTunnel
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     IDLE_TIMEOUT,
+    MASTER_DOWN_AFTER,
     MAX_POOLS,
     OPAQUE,
     RATE_LOG_INTERVAL,
@@ -168,6 +170,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._exposure = PortExposure()
         self._nodes_exposed = NodeGuard(self._exposure)
         self._master_exposed: str | None = None
+        #: master role: since when (monotonic) rosmaster has not answered the watch, and why
+        self._master_silent_since: float | None = None
+        self._master_silence = ""
         #: master role: nodes that registered with rosmaster directly, when each was last
         #: looked at, and those whose API other hosts reach (node -> status text)
         self._direct_checked: dict[str, float] = {}
@@ -278,11 +283,24 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         return Target()
 
     def _refuse_exposed_master(self) -> None:
-        problem = self.problem()
+        problem = self._exposure_problem()
         if problem is not None:
             raise problem
 
     def problem(self) -> PolicyDenied | None:
+        """What health and status report: a deployment problem, or (master role) a
+        rosmaster that has not answered the watch for MASTER_DOWN_AFTER seconds (robots'
+        calls then fail one by one; status had said ok)."""
+        problem = self._exposure_problem()
+        if problem is None and self._master_silent_since is not None and \
+                time.monotonic() - self._master_silent_since >= MASTER_DOWN_AFTER:
+            problem = PolicyDenied("master_down", f"rosmaster at {self.cfg.master.upstream} does not answer "
+                                                  f"({self._master_silence}): start it, on loopback "
+                                                  f"(cryptoros run --config {self.cfg.source or 'FILE'} -- "
+                                                  "rosmaster --core)")
+        return problem
+
+    def _exposure_problem(self) -> PolicyDenied | None:
         if self._master_exposed and not self.cfg.allow_exposed_master:
             return PolicyDenied("exposed_master", self._master_exposed)
         try:  # every local master call is refused meanwhile (NodeGuard.check_host): health says why

@@ -62,6 +62,8 @@ MAX_REGISTRATIONS = 65_536
 MAX_PARAM_SUBSCRIPTIONS_PER_NODE = 4096
 #: how often, and how patiently, the master role asks rosmaster for its pid
 MASTER_WATCH_INTERVAL = 1.0
+#: master role: seconds rosmaster may leave the watch unanswered before health says master_down
+MASTER_DOWN_AFTER = 3.0
 #: master role: seconds between two looks at one node registered with rosmaster directly
 #: (is its API exposed?); a node is looked at when it first appears
 DIRECT_RECHECK = 30.0
@@ -220,4 +222,4 @@ def md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]
+__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "MASTER_DOWN_AFTER", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]

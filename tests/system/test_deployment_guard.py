@@ -162,6 +162,30 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
         assert stranger.address  # the stranger's host was there all along
 
 
+def test_the_masters_status_says_when_rosmaster_does_not_answer(tmp_path):
+    """Deployment audit: rosmaster bound where the interceptor could not reach it (only
+    ``[::1]``) left every robot call failing while the master's status said ok."""
+    separate_hosts()
+    require("rosmaster")
+    with robot_network(tmp_path, netns=True) as net:
+        master = net.hosts["master"]
+        port = int(net.rosmaster_uri.rstrip("/").rsplit(":", 1)[1])
+        status = [tool("cryptoros"), "status", "--config", str(master.config)]
+        assert run_on(net, "master", status).returncode == 0
+        stop(_lab_rosmaster(net))
+        deadline = time.monotonic() + 20
+        while (result := run_on(net, "master", status)).returncode == 0:
+            assert time.monotonic() < deadline, "the master's status still said ok 20 s after rosmaster stopped"
+            time.sleep(0.5)
+        first = result.stdout.splitlines()[0]
+        assert result.returncode == 1 and "master_down" in first and f"127.0.0.1:{port}" in first, result
+        _rosmaster(net, port, through_cryptoros_run=True)
+        deadline = time.monotonic() + 20
+        while run_on(net, "master", status).returncode != 0:
+            assert time.monotonic() < deadline, "the master's status did not say ok again after rosmaster came back"
+            time.sleep(0.5)
+
+
 def test_a_node_other_hosts_reach_is_refused_and_the_same_node_through_cryptoros_run_works(tmp_path):
     separate_hosts()
     with robot_network(tmp_path, netns=True) as net:
