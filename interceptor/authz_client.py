@@ -248,7 +248,11 @@ class AuthzClient:
         form = {"grant_type": "client_credentials", **({"resource": resource} if resource else {})}
         status, body, _ = await self._json("POST", "/token", data=form)
         if status != 200 or body is None:
-            raise AuthzUnavailable(f"token refused: HTTP {status} {body.get('error') if body else ''}".strip())
+            error = body.get("error") if isinstance(body, dict) else None
+            hint = (": the registry binds no enabled manager to this certificate (a renewed one needs "
+                    "cryptoros-authz set-cert MANAGER --cert FILE; a disabled manager, enable-manager)"
+                    if error == "invalid_client" else "")
+            raise AuthzUnavailable(f"token refused: HTTP {status} {error or ''}".strip() + hint)
         token, lifetime = body.get("access_token"), body.get("expires_in")
         if not isinstance(token, str) or not isinstance(lifetime, int) or lifetime <= 0:
             raise AuthzUnavailable("token answer lacks access_token or expires_in")

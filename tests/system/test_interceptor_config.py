@@ -182,7 +182,16 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
         path.write_text(textwrap.dedent(good(foreign, **{'"robot1"': '"alice"', "https://127.0.0.1:8443": daemon.base,
                                                          "127.0.0.2:11400": "0.0.0.0:11400"})))
         other_ca = run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
-        assert other_ca.returncode == 1 and "issued by the CA it trusts" in other_ca.stderr, other_ca.stderr
+        # CLI audit: this was "no authorization server answers (...ServerDisconnectedError)"
+        assert other_ca.returncode == 2 and len(other_ca.stderr.strip().splitlines()) == 1, other_ca.stderr
+        assert f"was not issued by the CA {team.pki.ca_cert}" in other_ca.stderr, other_ca.stderr
+        # a certificate the registry binds to no manager (a renewal without set-cert) says what to do
+        unbound = team.pki.issue("robot_x", kind="interceptor", sans=("IP:127.0.0.2",), force=True)
+        assert unbound.fingerprint_sha256 != issued.fingerprint_sha256
+        renewed = check(daemon.base)
+        assert renewed.returncode == 1 and "invalid_client" in renewed.stderr, renewed.stderr
+        assert "cryptoros-authz set-cert MANAGER --cert FILE" in renewed.stderr, renewed.stderr
+        ok(authz("set-cert", "robot_x", "--fingerprint", unbound.fingerprint_sha256, db=team.db))
         # replicas, the first one down: each is checked, the line names the one that answered
         # (day-2 audit: the dead first replica was named as having issued the token)
         dead = f"https://127.0.0.1:{free_port()}"
