@@ -432,6 +432,15 @@ def check_reload(old: InterceptorConfig, new: InterceptorConfig) -> None:
         raise ConfigError("; ".join(f"{key} changed" for key in refused) + ": needs a restart of the interceptor")
 
 
+def check_key_names(raw: dict[str, Any]) -> None:
+    """ConfigError for a key no section knows (a typo would otherwise be a setting silently
+    left at its default), without reading any file the configuration names."""
+    _check_keys(raw, "")
+    for section in _SECTIONS:
+        if section and section in raw:
+            _check_keys(raw[section], section)
+
+
 def _check_keys(table: Any, section: str) -> dict[str, Any]:
     where = f"[{section}]" if section else "top level"
     if not isinstance(table, dict):

@@ -29,7 +29,7 @@ import click
 from cryptoros.errors import ConfigError
 from cryptoros.ros1.uri import UriError, host_port
 from cryptoros.exposure import is_loopback_host
-from interceptor.config import ROLES, Endpoint, read_toml
+from interceptor.config import ROLES, Endpoint, check_key_names, read_toml
 
 #: the directory of the refusal hook (its ``sitecustomize.py``): first on the
 #: ``PYTHONPATH`` of every ROS 1 node and tool started through ``cryptoros run``/``env``
@@ -41,6 +41,10 @@ def node_environment(path: str | os.PathLike[str]) -> tuple[dict[str, str], tupl
     in ``path``; ConfigError (one line) for a file that does not say where nodes go."""
     path = Path(path)
     raw = read_toml(path)
+    try:  # CLI audit: a typo ("managre") was taken silently here, refused by the interceptor
+        check_key_names(raw)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     roles = raw.get("roles", ["node"])
     if not isinstance(roles, list) or not roles or any(r not in ROLES for r in roles):
         raise ConfigError(f"{path}: roles must be a non-empty list of {', '.join(ROLES)}, got {roles!r}")

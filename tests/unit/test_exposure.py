@@ -11,7 +11,7 @@ import stat
 
 import pytest
 
-from cryptoros.errors import PolicyDenied
+from cryptoros.errors import ConfigError, PolicyDenied
 from cryptoros.exposure import (
     ExposureError,
     Listener,
@@ -347,3 +347,17 @@ def test_node_environment_for_each_role(tmp_path):
     assert env["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith("localhost_profile.xml") and "ROS_STATIC_PEERS" in unset
     assert "ROS_MASTER_URI" not in env
     assert shell_lines({"A": "x y"}, ("B",)) == ["export A='x y'", "unset B"]
+
+
+def test_node_environment_refuses_a_key_no_section_knows(tmp_path):
+    """CLI audit: `cryptoros env` and `cryptoros run` took a typo ("managre") silently,
+    where the interceptor refuses it: the operator learnt of it only at its start."""
+    from interceptor.runenv import node_environment
+
+    typo = tmp_path / "robot.toml"
+    typo.write_text('managre = "a"\n[listen]\nlocal_master = "127.0.0.1:11411"\n')
+    with pytest.raises(ConfigError, match=f"{typo}: unknown key 'managre' in top level"):
+        node_environment(typo)
+    typo.write_text('manager = "a"\n[listen]\nlocal_mastr = "127.0.0.1:11411"\n')
+    with pytest.raises(ConfigError, match=r"unknown key 'local_mastr' in \[listen\]"):
+        node_environment(typo)
