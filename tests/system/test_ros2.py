@@ -387,24 +387,32 @@ def test_the_unfinished_frames_of_one_peer_are_bounded(network):
     from cryptoros.ros2 import framing as fr
     from interceptor.ros2_partial import PARTIAL_FRAMES_PER_PEER
 
+    _leave_frames_unfinished(network, [CHATTER] * (PARTIAL_FRAMES_PER_PEER + 1), fr.DATA)
+    test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
+
+
+def _leave_frames_unfinished(network, targets: list[str], kind: int) -> None:
+    """As robot A, one stream to robot B per target, each announcing a 16 MiB frame of
+    ``kind`` (the default max_message_size) and sending all of it but its last byte, until
+    robot B cuts one (``partial_frames``)."""
+    from cryptoros.ros2 import framing as fr
+
     status, body = network.daemon.token("robot_a")
-    token = body["access_token"]
-    size = 16 << 20  # the default [ros2] max_message_size
+    size = 16 << 20
     chunk = b"\x00" * (1 << 20)
     with contextlib.ExitStack() as held:
-        for _ in range(PARTIAL_FRAMES_PER_PEER + 1):
+        for target in targets:
             s = held.enter_context(_rogue(network, "robot_b", "robot_a"))
-            reply = rogue_preamble(s, token, "ros2", CHATTER)
+            reply = rogue_preamble(s, body["access_token"], "ros2", target)
             assert reply is not None and reply.ok, reply
             try:
-                s.sendall(fr.HEAD.pack(5 + size, fr.DATA, 0))
-                for _ in range(16):
-                    s.sendall(chunk[:-1] if _ == 15 else chunk)
+                s.sendall(fr.HEAD.pack(5 + size, kind, 0 if kind == fr.DATA else 1))
+                for k in range(16):
+                    s.sendall(chunk[:-1] if k == 15 else chunk)
             except OSError:  # cut while it sent: the stream over the limit
                 break
         until(lambda: "partial_frames" in network.robots["robot_b"].denials(), 30,
               "robot B cutting the stream whose unfinished frame is over the limit")
-    test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
 
 
 def _b_may_call(network, names: list[str]) -> bool:
@@ -469,24 +477,9 @@ def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budg
         network.cli("grant", *grant)
     try:
         until(lambda: _b_may_call(network, names), 30, "robot B's token granting the calls")
-        status, body = network.daemon.token("robot_a")
-        token = body["access_token"]
-        size = 16 << 20  # the default [ros2] max_message_size
-        chunk = b"\x00" * (1 << 20)
-        with contextlib.ExitStack() as held:
-            for name in names:
-                s = held.enter_context(_rogue(network, "robot_b", "robot_a"))
-                target = StreamTarget(kind="service", name=name, type=SET_BOOL, node="/part_server").encode()
-                reply = rogue_preamble(s, token, "ros2", target)
-                assert reply is not None and reply.ok, reply
-                try:
-                    s.sendall(fr.HEAD.pack(5 + size, fr.SRV_RESPONSE, 1))
-                    for k in range(16):
-                        s.sendall(chunk[:-1] if k == 15 else chunk)
-                except OSError:  # cut while it sent: the stream over the limit
-                    break
-            until(lambda: "partial_frames" in network.robots["robot_b"].denials(), 30,
-                  "robot B cutting the service stream whose unfinished frame is over the limit")
+        _leave_frames_unfinished(network, [StreamTarget(kind="service", name=name, type=SET_BOOL,
+                                                        node="/part_server").encode() for name in names],
+                                 fr.SRV_RESPONSE)
     finally:
         for grant in grants:
             network.cli("revoke", *grant)
