@@ -355,7 +355,9 @@ class Ros2Role(Role):
             if offer is None:
                 continue
             for node in offer.refused:  # forwarded without them: their samples are dropped
-                exc = PolicyDenied("not_granted", f"{node} may not {action} {name} [{offer.target.type}] "
+                types_of = sorted({s.get("type", offer.target.type) for s in sources if s["node"] == node}) \
+                    or [offer.target.type]
+                exc = PolicyDenied("not_granted", f"{node} may not {action} {name} [{', '.join(types_of)}] "
                                    "(its samples are dropped; the granted publishers' still flow)")
                 self._note_deny((kind, name, node, "not_granted"), f"ros2_{action}", exc, me)
             want[(kind, name, offer.target.type)] = offer
@@ -846,7 +848,7 @@ class Ros2Role(Role):
         proxy = Proxy(chan=next(self._chans), writer=writer)
         self._proxies[target.name] = proxy
         self._proxy_by_chan[proxy.chan] = proxy
-        link.control(op="serve", chan=proxy.chan, service=target.name, type=target.type)
+        link.control(op="serve", chan=proxy.chan, service=target.name, type=target.type, peer=peer.manager)
         log.info("offering remote service %s [%s] on the local domain", target.name, target.type)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_RESPONSE}))
         try:

@@ -203,6 +203,9 @@ class DdsBridge:
                                    return_when=asyncio.FIRST_COMPLETED)
                 if stopping():
                     return
+                if proc.returncode is None:  # the link closed first: the exit (a signal?) is a moment behind
+                    with contextlib.suppress(asyncio.TimeoutError):
+                        await asyncio.wait_for(proc.wait(), 1.0)
                 rc = proc.returncode
                 log.error("the DDS bridge %s; restarting it", "closed its link" if rc is None else
                           f"was killed by signal {-rc}" if rc < 0 else f"exited with status {rc}")

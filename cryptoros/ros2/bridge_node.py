@@ -79,6 +79,14 @@ SERVICE_THREADS = 16
 #: it get no answer at once (their clients time out) instead of a thread (an insider's
 #: hanging service held all 8 threads, and robot A's service waited 30 s behind it)
 MAX_CALLS_PER_SERVICE = 4
+#: and the remote services one peer manager offers hold at most this many together, so
+#: half the threads stay for other robots and a peer's hung service leaves room for its
+#: others (ROS 2 re-audit: an insider serving four never-answering services held all 16
+#: threads, and robot A's service waited 28 s)
+MAX_CALLS_PER_PEER = 8
+#: seconds between two reports of one kind of bad call on one channel (the rest counted):
+#: an insider's malformed requests as fast as it could send them logged 5,800 lines a second
+ERROR_INTERVAL = 10.0
 
 
 class NoAnswer(Exception):
@@ -146,6 +154,8 @@ class Bridge:
         self.remade_at: dict[int, float] = {}  # chan -> when its writer was last made anew
         self.calls_lock = threading.Lock()
         self.calls_in_flight: dict[int, int] = {}  # proxied service chan -> calls waiting for answers
+        self.peer_calls: dict[str, int] = {}  # peer manager -> its proxied services' calls waiting
+        self.reported: dict[tuple[int, str], list] = {}  # (chan, kind) -> [last report, held back]
         self.subs: dict[int, tuple[object, str]] = {}  # chan -> (raw subscription, topic)
         #: chan -> the granted publisher nodes whose writers' samples are forwarded
         self.writer_nodes: dict[int, frozenset[str]] = {}
@@ -172,6 +182,20 @@ class Bridge:
 
     def error(self, detail: str, **extra) -> None:
         self.send(fr.encode_control({"op": "error", "detail": detail, **extra}))
+
+    def error_limited(self, chan: int, kind: str, detail: str) -> None:
+        """:meth:`error`, at most once per ERROR_INTERVAL per channel and kind; the reports
+        held back are counted in the next one."""
+        now = time.monotonic()
+        with self.calls_lock:
+            if len(self.reported) > 4096 and (chan, kind) not in self.reported:
+                self.reported.clear()  # channels come and go: bounded, not kept for good
+            entry = self.reported.setdefault((chan, kind), [-ERROR_INTERVAL, 0])
+            if now - entry[0] < ERROR_INTERVAL:
+                entry[1] += 1
+                return
+            held, entry[0], entry[1] = entry[1], now, 0
+        self.error(detail + (f" ({held} more like it since the last report)" if held else ""), chan=chan)
 
     def _node_of(self, info) -> str:
         """The node of a writer the graph shows (``info``): its own name, or the name it had
@@ -405,7 +429,7 @@ class Bridge:
         elif op == "serve":
             cls = load_type(cmd["type"], "srv")
             self.servers[chan] = self.srv_node.create_service(
-                cls, cmd["service"], self._proxy(chan, cls), callback_group=self.srv_group
+                cls, cmd["service"], self._proxy(chan, cls, str(cmd.get("peer", ""))), callback_group=self.srv_group
             )
             self.srv_executor.wake()
         elif op == "unserve":
@@ -497,12 +521,15 @@ class Bridge:
         if out:
             self.send(b"".join(out))
 
-    def _proxy(self, chan: int, cls):
+    def _proxy(self, chan: int, cls, peer: str):
         def handle(request, _response):
             with self.calls_lock:
                 if self.calls_in_flight.get(chan, 0) >= MAX_CALLS_PER_SERVICE:
                     raise NoAnswer(f"channel {chan}: {MAX_CALLS_PER_SERVICE} calls wait for answers already")
+                if self.peer_calls.get(peer, 0) >= MAX_CALLS_PER_PEER:
+                    raise NoAnswer(f"{peer}'s services: {MAX_CALLS_PER_PEER} calls wait for answers already")
                 self.calls_in_flight[chan] = self.calls_in_flight.get(chan, 0) + 1
+                self.peer_calls[peer] = self.peer_calls.get(peer, 0) + 1
             try:
                 rid = next(self.ids)
                 slot = [threading.Event(), None]
@@ -515,16 +542,17 @@ class Bridge:
                 try:
                     return deserialize_message(slot[1][1], cls.Response)
                 except Exception as exc:  # the remote server's answer is not a response of the type
-                    self.error(f"the answer to call {rid} of channel {chan} is not a {cls.__name__} response "
-                               f"({type(exc).__name__}: {exc}): the client gets none", chan=chan)
+                    self.error_limited(chan, "bad answer", f"the answer to call {rid} of channel {chan} is not a "
+                                       f"{cls.__name__} response ({type(exc).__name__}: {exc}): the client gets none")
                     raise NoAnswer(f"call {rid} of channel {chan}") from None
             finally:
                 with self.calls_lock:
-                    left = self.calls_in_flight.get(chan, 1) - 1
-                    if left > 0:
-                        self.calls_in_flight[chan] = left
-                    else:
-                        self.calls_in_flight.pop(chan, None)
+                    for table, key in ((self.calls_in_flight, chan), (self.peer_calls, peer)):
+                        left = table.get(key, 1) - 1
+                        if left > 0:
+                            table[key] = left
+                        else:
+                            table.pop(key, None)
 
         return handle
 
@@ -552,8 +580,8 @@ class Bridge:
             request = deserialize_message(payload[4:], cls.Request)
         except Exception as exc:  # a caller's request that is not one of the type: answered as failed
             self.send(fr.encode(fr.RESULT, chan, fr.ID.pack(rid) + b"\x00"))
-            self.error(f"call {rid} of channel {chan} is not a {cls.__name__} request ({type(exc).__name__}: {exc}): "
-                       "not passed to the server", chan=chan)
+            self.error_limited(chan, "bad request", f"call {rid} of channel {chan} is not a {cls.__name__} request "
+                               f"({type(exc).__name__}: {exc}): not passed to the server")
             return
         future = client.call_async(request)
 

@@ -275,6 +275,38 @@ def test_a_remote_service_that_never_answers_holds_none_of_the_others(network):
             network.cli("revoke", *grant)
 
 
+def test_an_insiders_services_that_never_answer_hold_none_of_another_robots(network):
+    """ROS 2 re-audit: an insider (robot C) serving four services robot B may call, none
+    of them ever answering, held all 16 of bridge B's service threads with 4 calls each;
+    robot A's /set_flag then waited 28 s. One peer's services now hold at most
+    MAX_CALLS_PER_PEER (8) threads together; its further calls get no answer at once."""
+    names = [f"/hog{i}" for i in range(4)]
+    grants = [g for name in names
+              for g in (("robot_c", "serve", "/hog_server", name, SET_BOOL), ("robot_b", "call", "*", name, SET_BOOL))]
+    for grant in grants:
+        network.cli("grant", *grant)
+    try:
+        until(lambda: _b_may_call(network, names), 30, "robot B's token granting the calls")
+        status, body = network.daemon.token("robot_c")
+        with contextlib.ExitStack() as held, \
+                network.node("robot_a", "server.py", "/set_flag", "flag_server") as flag:
+            for name in names:  # robot C offers each, reads its requests and never answers
+                s = held.enter_context(_rogue(network, "robot_b", "robot_c"))
+                target = StreamTarget(kind="service", name=name, type=SET_BOOL, node="/hog_server").encode()
+                reply = rogue_preamble(s, body["access_token"], "ros2", target)
+                assert reply is not None and reply.ok, reply
+            flag.until("READY", 20)
+            hogs = [held.enter_context(network.node("robot_b", "client.py", name, "5", "60", "--at-once"))
+                    for name in names]
+            for hog in hogs:
+                hog.until("SENT", 40)
+            with network.node("robot_b", "client.py", "/set_flag", "1", "20") as client:
+                client.until("RESULT True flag set to True by flag_server", 25)
+    finally:
+        for grant in grants:
+            network.cli("revoke", *grant)
+
+
 def test_latched_message_reaches_a_late_subscriber_with_transient_local(network):
     log_before = len(network.robots["robot_b"].logs())
     with network.node("robot_a", "talker.py", "string", "/latched", "1", "10", "--latched"):
