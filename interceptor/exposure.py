@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import fnmatch
+import re
 import socket
 import time
 from collections.abc import Callable, Mapping
@@ -106,6 +107,27 @@ class PortExposure:
         else:  # not listening: asked again next time (a port is announced once it listens)
             self._answers.pop(port, None)
         return addresses
+
+
+def _announced(uri: object) -> tuple[str, int]:
+    """(host, port) of an endpoint a node announced (a ROS URI, or an IPv6 ``http://`` one
+    without brackets); UriError otherwise."""
+    try:
+        return host_port(uri)
+    except UriError:
+        return lenient_host_port(uri)
+
+
+def lenient_host_port(uri: object) -> tuple[str, int]:
+    """(host, port) of an ``http://`` URI a node announced, taking the IPv6 address rospy
+    writes without brackets (``http://fd06::3:41255/``) too; UriError otherwise."""
+    try:
+        return host_port(uri, ("http",))
+    except UriError:
+        match = re.fullmatch(r"http://\[?([0-9A-Fa-f:.]+)\]?:(\d{1,5})/?", uri) if isinstance(uri, str) else None
+        if match is None or not 0 < int(match.group(2)) < 65536:
+            raise
+        return match.group(1), int(match.group(2))
 
 
 async def is_this_host(host: str) -> bool:
@@ -252,7 +274,7 @@ class NodeGuard:
                 if len(call.params) <= index or not isinstance(call.params[0], str):
                     continue
                 try:
-                    host, port = host_port(call.params[index])
+                    host, port = _announced(call.params[index])
                 except UriError:
                     continue  # left to the policy that checks the call
                 warning = self.check_port(call.params[0], port, what, allow=allow, config=config, advertised=host)
@@ -260,28 +282,31 @@ class NodeGuard:
                     warnings.append(warning)
         return warnings
 
-    def exposed_apis(self, calls: list[Request], *, allow: tuple[str, ...]) -> list[tuple[str, int]]:
-        """(node, port) of each XML-RPC API that registrations among ``calls`` announce and
-        that other hosts reach, of a node not in ``allow``: the nodes a refused registration
+    def exposed_apis(self, calls: list[Request], *, allow: tuple[str, ...]) -> list[tuple[str, int, str]]:
+        """(node, port, announced host) of each XML-RPC API that registrations among
+        ``calls`` announce and that other hosts reach, of a node not in ``allow`` and on no
+        port an allowed node was served on (a local process naming an allowed node's port
+        in its own registration gets it no shutdown): the nodes a refused registration
         leaves running exposed, each once within :data:`ASK_AGAIN_AFTER`. Uses the answers
         :meth:`check_port` just read."""
-        found: list[tuple[str, int]] = []
+        found: list[tuple[str, int, str]] = []
         now = self._clock()
+        allowed_ports = {port for _node, port in self._served}
         for call in calls:
             for index, what in REGISTRATION_URIS.get(call.method, ()):
                 if what != "XML-RPC API" or len(call.params) <= index or not isinstance(call.params[0], str):
                     continue
                 try:
-                    _host, port = host_port(call.params[index])
+                    host, port = _announced(call.params[index])
                     exposed = self.exposure.exposed(port)
                 except (UriError, ExposureError):
                     continue
                 node = call.params[0]
-                if not exposed or any(fnmatch.fnmatchcase(node, p) for p in allow):
+                if not exposed or port in allowed_ports or any(fnmatch.fnmatchcase(node, p) for p in allow):
                     continue
                 if now - self._named.get((node, port), -self.ASK_AGAIN_AFTER) >= self.ASK_AGAIN_AFTER:
                     remember(self._named, (node, port), now, self.MAX_NOTED)
-                    found.append((node, port))
+                    found.append((node, port, host))
         return found
 
     def warnings(self) -> list[str]:
@@ -300,5 +325,5 @@ class NodeGuard:
         return host + [served + (f" and {more} more" if more > 0 else "")]
 
 
-__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "is_this_host", "localnet_problem",
-           "master_problem", "run_hint"]
+__all__ = ["MAX_PORTS", "REGISTRATION_URIS", "TTL", "NodeGuard", "PortExposure", "is_this_host", "lenient_host_port",
+           "localnet_problem", "master_problem", "run_hint"]

@@ -126,27 +126,35 @@ class LocalCalls:
             self._servers.popitem()[1].close()
 
 
-async def ask_to_shut_down(calls: LocalCalls, node: str, port: int, why: str, host: str = "127.0.0.1") -> None:
+async def ask_to_shut_down(calls: LocalCalls, node: str, port: int, why: str,
+                           hosts: tuple[str, ...] = ("127.0.0.1",)) -> bool:
     """Ask a local node whose XML-RPC API other hosts reach to shut down (its own
-    ``shutdown`` API, at ``host``: loopback, or an address of this host), as ``rosnode
-    kill`` does. Refused registrations alone leave it running: rospy keeps a refused
-    subscriber, and a stranger's ``publisherUpdate`` to its open port fed it messages
-    around the interceptor (deployment audit)."""
+    ``shutdown`` API, at the first of ``hosts`` that takes the connection: loopback, then
+    the address of this host it announced, for a node bound to that address alone), as
+    ``rosnode kill`` does. Refused registrations alone leave it running: rospy keeps a
+    refused subscriber, and a stranger's ``publisherUpdate`` to its open port fed it
+    messages around the interceptor (deployment audit). Whether it was asked."""
     request = Request(method="shutdown", params=("/cryptoros", f"cryptoros: {why}"))
     # asked once the node is through its start: rospy shut down within its first
     # milliseconds raced its TCPROS server thread into a traceback (1 run of 4)
     await asyncio.sleep(EXPOSED_SHUTDOWN_DELAY)
-    where = f"[{host}]" if ":" in host else host
-    try:
-        reply = await calls.call(f"http://{where}:{port}/", request, max_idle=0)
-        answer = "it agreed" if isinstance(reply, Response) else "it answered a fault"
-    except RemoteProtocolError:  # rospy closes its API as it shuts down, before answering
-        answer = "its API closed"
-    except (OSError, asyncio.TimeoutError) as exc:
-        log.warning("node %s listens where other hosts reach it (port %d) and could not be asked to shut down: "
-                    "%s; stop it and start it with ROS_IP=127.0.0.1", node, port, exc)
-        return
-    log.warning("node %s listens where other hosts reach it (port %d): asked to shut down (%s)", node, port, answer)
+    failure: BaseException | None = None
+    for host in dict.fromkeys(hosts):
+        where = f"[{host}]" if ":" in host else host
+        try:
+            reply = await calls.call(f"http://{where}:{port}/", request, max_idle=0)
+            answer = "it agreed" if isinstance(reply, Response) else "it answered a fault"
+        except RemoteProtocolError:  # rospy closes its API as it shuts down, before answering
+            answer = "its API closed"
+        except (OSError, asyncio.TimeoutError) as exc:
+            failure = exc
+            continue
+        log.warning("node %s listens where other hosts reach it (port %d): asked to shut down (%s)", node, port,
+                    answer)
+        return True
+    log.warning("node %s listens where other hosts reach it (port %d) and could not be asked to shut down: "
+                "%s; stop it and start it with ROS_IP=127.0.0.1", node, port, failure)
+    return False
 
 
 __all__ = ["EXPOSED_SHUTDOWN_DELAY", "IDLE_SECONDS", "MAX_IDLE", "LocalCalls", "LocalXmlRpc", "ask_to_shut_down"]

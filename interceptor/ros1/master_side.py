@@ -22,8 +22,8 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tokens import Grants
 from cryptoros.exposure import ExposureError
-from cryptoros.ros1.uri import UriError, host_port
-from interceptor.exposure import is_this_host, master_problem, run_hint
+from cryptoros.ros1.uri import UriError
+from interceptor.exposure import is_this_host, lenient_host_port, master_problem, run_hint
 from interceptor.ros1.localcalls import MAX_IDLE, ask_to_shut_down
 from interceptor.ros1.wire import (
     DIRECT_RECHECK,
@@ -171,19 +171,20 @@ class MasterSide:
         self._direct_checked = {n: t for n, t in self._direct_checked.items() if n in nodes}
         self._direct_exposed = {n: w for n, w in self._direct_exposed.items() if n in nodes}
         for node in sorted(nodes):
-            if node in self._master_ledger.owners or \
-                    now - self._direct_checked.get(node, -DIRECT_RECHECK) < DIRECT_RECHECK:
-                continue  # a robot's node (registered through the interceptors), or looked at lately
+            # a robot's node too: rosmaster then names our relay (on loopback), unless a
+            # process here took its name (deployment re-audit: such an impostor was skipped)
+            if now - self._direct_checked.get(node, -DIRECT_RECHECK) < DIRECT_RECHECK:
+                continue
             self._direct_checked[node] = now
             reply = await self._call_upstream_master(Request(method="lookupNode", params=("/cryptoros", node)))
             if not ros_ok(reply):
                 continue
             try:
-                host, port = host_port(reply.value[2], ("http",))
+                host, port = lenient_host_port(reply.value[2])
                 addresses = self._exposure.exposed(port)
             except (UriError, ExposureError):
                 continue
-            if not addresses or not await is_this_host(host):
+            if not addresses or port == self.cfg.public.port or not await is_this_host(host):
                 self._direct_exposed.pop(node, None)
                 continue
             where = f"{', '.join(addresses)} port {port}"
@@ -195,9 +196,15 @@ class MasterSide:
                        f"ROS_IP=127.0.0.1 ({run_hint(self.cfg.source, 'CMD')})")
                 log.error("DENY master-host node: exposed_endpoint: %s", why)
                 self._direct_exposed[node] = f"{node} ({where})"
-                self.gw.spawn(ask_to_shut_down(self._local_calls, node, port, why,
-                                               "127.0.0.1" if "0.0.0.0" in addresses or "::" in addresses else host),
-                              "shutdown-exposed")
+                self.gw.spawn(self._shut_down_direct(node, port, why, host), "shutdown-exposed")
+
+    async def _shut_down_direct(self, node: str, port: int, why: str, host: str) -> None:
+        """Ask an exposed node registered here directly to shut down; if it had taken a
+        robot's node name, rosmaster dropped that robot's registrations for it: made again."""
+        await ask_to_shut_down(self._local_calls, node, port, why, hosts=("127.0.0.1", host))
+        if node in self._master_ledger.owners:
+            await asyncio.sleep(MASTER_WATCH_INTERVAL)  # its unregistrations first
+            await self._replay_registrations(self._master_pid or 0, why=f"{node}'s name was taken here")
 
     def _judge_master_exposure(self) -> bool:
         """Deployment check, each turn of the watch: True while rosmaster answers other
@@ -268,7 +275,7 @@ class MasterSide:
         log.warning("rosmaster (pid %d) is new: %d parameters replayed%s", pid, len(items),
                     f", {failed} failed" if failed else "")
 
-    async def _replay_registrations(self, pid: int) -> None:
+    async def _replay_registrations(self, pid: int, why: str = "") -> None:
         calls = [Request(method=method, params=params) for method, params in self._master_ledger.registrations.values()]
         calls.sort(key=lambda c: c.method != "registerService")  # services, then topics
         failed = 0
@@ -278,7 +285,7 @@ class MasterSide:
                 failed += not ros_ok(reply)
             except PEER_FAILURES:
                 failed += 1
-        log.warning("rosmaster (pid %d) is new: %d registrations replayed%s", pid, len(calls),
+        log.warning("%s: %d registrations replayed%s", why or f"rosmaster (pid {pid}) is new", len(calls),
                     f", {failed} failed" if failed else "")
 
     def _release_relay(self, endpoint: tuple[str, int]) -> None:

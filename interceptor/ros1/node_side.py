@@ -35,6 +35,7 @@ from cryptoros.ros1.xmlrpc import (
     assemble_multicall,
     expand_multicall,
 )
+from interceptor.exposure import is_this_host
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
 from interceptor.ros1.localcalls import ask_to_shut_down
@@ -203,11 +204,18 @@ class NodeSide:
             return None  # _decide_calls refuses it
         except PolicyDenied as exc:
             self.gw.deny("local-master", exc, "local node")
-            for node, port in self._nodes_exposed.exposed_apis(calls, allow=self.cfg.allow_exposed_nodes):
-                self.gw.spawn(ask_to_shut_down(self._local_calls, node, port, exc.detail), "shutdown-exposed")
+            for node, port, host in self._nodes_exposed.exposed_apis(calls, allow=self.cfg.allow_exposed_nodes):
+                if port != self.cfg.public.port:
+                    self.gw.spawn(self._shut_down_exposed(node, port, host, exc.detail), "shutdown-exposed")
             error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
             return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
         return None
+
+    async def _shut_down_exposed(self, node: str, port: int, host: str, why: str) -> None:
+        """:func:`ask_to_shut_down` at loopback, then at the address the node announced
+        when that is this host's (a node bound to that address alone), never elsewhere."""
+        hosts = ("127.0.0.1", host) if await is_this_host(host) else ("127.0.0.1",)
+        await ask_to_shut_down(self._local_calls, node, port, why, hosts=hosts)
 
     def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
         warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,

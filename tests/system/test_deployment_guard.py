@@ -250,6 +250,25 @@ def test_a_node_on_the_master_host_registered_directly_and_reachable_is_shut_dow
             _wait_log(net, "master", "node /mhost_exposed listens where other hosts reach it (port")
             assert "could not be asked" not in master.logs()
             assert private.poll() is None and "mhost_private" not in master.logs()
+        # re-audit: one that takes a robot's node name was skipped (the name was the robot's),
+        # and rosmaster dropped the robot's registrations for it
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "120"],
+                     env=net.ros_env("robot_a")) as pub:
+            read_lines(pub, "READY", 20)
+            _wait_rosmaster_holds(net, "/talker_a")
+            impostor = [SYS_PY, shutil.which("rostopic"), "pub", "/chatter", "std_msgs/String", "impostor",
+                        "-r", "5", "__name:=talker_a"]
+            with running(impostor, env=exposed_env) as taken:
+                lines = read_lines(taken, None, 30)
+                try:
+                    taken.wait(5)
+                except subprocess.TimeoutExpired:
+                    raise AssertionError("the impostor still runs after 30 s:\n" + "".join(lines)) from None
+            _wait_log(net, "master", "/talker_a's name was taken here: ")
+            _wait_rosmaster_holds(net, "/talker_a")  # the robot's registrations, made again
+            with net.inside("master"):
+                uri = xmlrpc.client.ServerProxy(net.rosmaster_uri).lookupNode("/t", "/talker_a")[2]
+            assert uri.startswith("http://127.0.0.1:") and "/cryptoros/" in uri, uri  # the robot's relay again
 
 
 def test_a_second_interceptor_with_the_same_config_exits_naming_the_first_and_changes_nothing(tmp_path):

@@ -191,11 +191,23 @@ def test_the_exposed_apis_of_refused_registrations_are_named_once_each_and_allow
     exposed = Request(method="registerSubscriber", params=("/echo", "/chatter", "*", "http://robot-a:41234/"))
     service = Request(method="registerService", params=("/srv", "/add", "rosrpc://robot-a:41234", "http://127.0.0.1:11311/"))
     private = Request(method="registerPublisher", params=("/ok", "/chatter", "std_msgs/String", "http://127.0.0.1:11311/"))
-    assert guard.exposed_apis([private, service, exposed, exposed], allow=()) == [("/echo", 41234)]
+    assert guard.exposed_apis([private, service, exposed, exposed], allow=()) == [("/echo", 41234, "robot-a")]
     assert guard.exposed_apis([exposed], allow=()) == []  # its next registration, refused too
     now[0] = NodeGuard.ASK_AGAIN_AFTER
-    assert guard.exposed_apis([exposed], allow=()) == [("/echo", 41234)]  # still there: asked again
+    assert guard.exposed_apis([exposed], allow=()) == [("/echo", 41234, "robot-a")]  # still there: asked again
     assert guard.exposed_apis([exposed], allow=("/e*",)) == []
+    # an IPv6 API as rospy writes it (no brackets) is read, not skipped as a bad URI
+    table.listeners.append(Listener(address=ip_address("::"), port=41255))
+    v6 = Request(method="registerSubscriber", params=("/v6", "/chatter", "*", "http://fd06::3:41255/"))
+    with pytest.raises(PolicyDenied, match="exposed_endpoint|/v6"):
+        guard.check_registrations([v6], allow=(), config=None)
+    assert guard.exposed_apis([v6], allow=()) == [("/v6", 41255, "fd06::3")]
+    # a port an allowed node was served on is never named for another node's refusal
+    allowed = Request(method="registerPublisher", params=("/rec", "/chatter", "std_msgs/String", "http://h:5555/"))
+    table.listeners.append(Listener(address=ip_address("0.0.0.0"), port=5555))
+    assert guard.check_registrations([allowed], allow=("/rec",), config=None)
+    deputy = Request(method="registerSubscriber", params=("/evil", "/chatter", "*", "http://127.0.0.1:5555/"))
+    assert guard.exposed_apis([deputy], allow=("/rec",)) == []
 
 
 def test_master_problem_names_the_fix_and_the_override():
