@@ -218,6 +218,7 @@ class NodeGuard:
         self.exposure = exposure or PortExposure()
         self._served: dict[tuple[str, int], str] = {}  # (node, port) -> addresses, served exposed
         self._named: dict[tuple[str, int], float] = {}  # (node, port) -> when exposed_apis last named it
+        self._running: set[tuple[str, int]] = set()  # refused nodes that could not be asked to shut down
         self._clock = clock
 
     def check_port(self, node: str | Callable[[], str], port: int, what: str, *, allow: tuple[str, ...],
@@ -309,14 +310,31 @@ class NodeGuard:
                     found.append((node, port, host))
         return found
 
+    def still_running(self, node: str, port: int) -> None:
+        """A refused node that could not be asked to shut down: named in :meth:`warnings`
+        for as long as its port answers other hosts."""
+        if len(self._running) < self.MAX_NOTED:
+            self._running.add((node, port))
+
     def warnings(self) -> list[str]:
-        """The status lines: loopback answering other hosts (``route_localnet``), and the
-        nodes served exposed (empty: neither)."""
+        """The status lines: loopback answering other hosts (``route_localnet``), refused
+        nodes still listening where other hosts reach them, and the nodes served exposed
+        (empty: none of these)."""
         try:
             problem = self.exposure.loopback_problem()
             host = [f"this host's loopback answers other hosts: {problem}"] if problem is not None else []
         except ExposureError as exc:
             host = [f"cannot tell whether this host's loopback answers other hosts: {exc}"]
+        for node, port in sorted(self._running):
+            try:
+                gone = not self.exposure.exposed(port)
+            except ExposureError:
+                gone = False
+            if gone:
+                self._running.discard((node, port))
+        if self._running:
+            host.append("refused nodes still listening where other hosts reach them (they could not be asked to shut "
+                        "down: stop them): " + ", ".join(f"{n} (port {p})" for n, p in sorted(self._running)[:8]))
         if not self._served:
             return host
         named = ", ".join(f"{node} ({where} port {port})" for (node, port), where in list(self._served.items())[:8])

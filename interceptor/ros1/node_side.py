@@ -215,7 +215,8 @@ class NodeSide:
         """:func:`ask_to_shut_down` at loopback, then at the address the node announced
         when that is this host's (a node bound to that address alone), never elsewhere."""
         hosts = ("127.0.0.1", host) if await is_this_host(host) else ("127.0.0.1",)
-        await ask_to_shut_down(self._local_calls, node, port, why, hosts=hosts)
+        if not await ask_to_shut_down(self._local_calls, node, port, why, hosts=hosts):
+            self._nodes_exposed.still_running(node, port)  # named in status while it listens
 
     def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:
         warning = self._nodes_exposed.check_port(node, port, what, allow=self.cfg.allow_exposed_nodes,

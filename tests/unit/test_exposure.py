@@ -373,3 +373,15 @@ def test_node_environment_refuses_a_key_no_section_knows(tmp_path):
     typo.write_text('manager = "a"\n[listen]\nlocal_mastr = "127.0.0.1:11411"\n')
     with pytest.raises(ConfigError, match=r"unknown key 'local_mastr' in \[listen\]"):
         node_environment(typo)
+
+
+def test_a_refused_node_that_could_not_be_shut_down_is_named_in_status_while_it_listens():
+    """Deployment re-audit: a node the interceptor could not ask to shut down left robot
+    B's status at ok."""
+    table = FakeTable()
+    guard = NodeGuard(table.exposure())
+    guard.still_running("/lan_only", 41234)
+    assert any("/lan_only (port 41234)" in line and "stop them" in line for line in guard.warnings())
+    table.listeners = [one for one in table.listeners if one.port != 41234]  # it stopped
+    table.now += 2  # past the kept answer
+    assert not any("/lan_only" in line for line in guard.warnings())
