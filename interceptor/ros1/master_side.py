@@ -170,10 +170,15 @@ class MasterSide:
         now = time.monotonic()
         self._direct_checked = {n: t for n, t in self._direct_checked.items() if n in nodes}
         self._direct_exposed = {n: w for n, w in self._direct_exposed.items() if n in nodes}
+        taken, self._owned_names_taken = self._owned_names_taken, False
         for node in sorted(nodes):
-            # a robot's node too: rosmaster then names our relay (on loopback), unless a
-            # process here took its name (deployment re-audit: such an impostor was skipped)
-            if now - self._direct_checked.get(node, -DIRECT_RECHECK) < DIRECT_RECHECK:
+            # a robot's node is looked at only once a process here may have taken its name
+            # (rosmaster then sends the robot's node shutdown, which a relay drops): the
+            # deployment re-audit's impostor, which had been skipped for good; unconditional
+            # lookups would cost a robot's bring-up one per node
+            if node in self._master_ledger.owners and not taken:
+                continue
+            if now - self._direct_checked.get(node, -DIRECT_RECHECK) < DIRECT_RECHECK and not taken:
                 continue
             self._direct_checked[node] = now
             reply = await self._call_upstream_master(Request(method="lookupNode", params=("/cryptoros", node)))

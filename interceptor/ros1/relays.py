@@ -101,6 +101,9 @@ class Relays:
 
         def decide(call: Request) -> Request:
             if call.method == "shutdown":
+                # from rosmaster: a process took this node's name there (master role: it is
+                # looked at, :meth:`MasterSide._judge_direct_nodes`)
+                self._owned_names_taken = True
                 raise PolicyDenied("shutdown_dropped", "node shutdown is never forwarded")
             # rosmaster's publisherUpdate through the relay of a subscriber: its relay names
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.from_master))

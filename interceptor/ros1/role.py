@@ -177,6 +177,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: looked at, and those whose API other hosts reach (node -> status text)
         self._direct_checked: dict[str, float] = {}
         self._direct_exposed: dict[str, str] = {}
+        self._owned_names_taken = False  # rosmaster told a robot's node to shut down (relays.py)
         #: node role: each registration a local node made or had refused, as it sent it, so a
         #: grant that comes while it runs is made for it (:meth:`_regrant`)
         self._ledger = LocalRegistrations()
