@@ -332,8 +332,13 @@ class CRLWatcher:
     truncated copy had issued tokens to revoked certificates).
     """
 
-    def __init__(self, crl_path, ca_path, interval: float = 1.0) -> None:
+    def __init__(self, crl_path, ca_path, interval: float = 1.0, *, floor: int = 0,
+                 on_applied: Callable[[int], None] | None = None) -> None:
+        #: ``floor``: the highest CRL number a server of this registry applied (kept in the
+        #: registry, ``on_applied`` told each higher one): a server (re)started on an older
+        #: copy would otherwise un-revoke what came after it (CLI re-audit)
         self.path, self.interval = crl_path, interval
+        self.floor, self._on_applied = floor, on_applied
         self._ca = pemfiles.load_certificate(ca_path)
         self._stamp: tuple[int, int] | None = None
         self._bad: tuple[int, int] | None = None
@@ -358,6 +363,10 @@ class CRLWatcher:
             crl = pemfiles.parse_crl(data, self.path)
             if crl.issuer != self._ca.subject or not crl.is_signature_valid(self._ca.public_key()):
                 raise ValueError("not issued by the CA")
+            number = _crl_number(crl) or 0
+            if number < self.floor:
+                raise ValueError(f"older than the CRLs this registry's servers applied (number {number}, against "
+                                 f"{self.floor}): use the CA's current CRL")
             if self._crl is not None and _crl_order(crl) < _crl_order(self._crl):
                 # a copy of an older CRL (still signed, still in date) would un-revoke what came after it
                 raise ValueError(f"older than the CRL in use (number {_crl_number(crl)}, issued "
@@ -372,6 +381,12 @@ class CRLWatcher:
             return
         self._stamp = stamp
         self._crl = crl
+        if number > self.floor and self._on_applied is not None:
+            try:
+                self._on_applied(number)
+                self.floor = number
+            except Exception as exc:  # the registry down: the CRL is applied all the same
+                log.warning("cannot record CRL number %d in the registry: %s", number, exc)
         if crl.next_update_utc is not None and crl.next_update_utc.timestamp() < time.time():
             log.warning("the CRL %s is out of date (a newer one was due %s UTC): still applied (revocations never "
                         "lapse); re-sign it (cryptoros-certs crl)", self.path, f"{crl.next_update_utc:%Y-%m-%d %H:%M}")
@@ -459,7 +474,8 @@ class AuthzService:
         self._held: dict[str, int] = {}  # long-polls held, per client certificate
         self._held_total = 0
         self.metrics.feed_polls_held.set_function(lambda: self._held_total)
-        self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file) if cfg.tls.crl_file else None
+        self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file, floor=registry.crl_number(),
+                              on_applied=registry.note_crl_number) if cfg.tls.crl_file else None
         #: (monotonic time, why) of the last request the registry failed, until a token is
         #: issued again: /healthz says so (a registry that reads but cannot write, a full
         #: disk, answered every token 503 while /healthz said ok)

@@ -124,22 +124,36 @@ def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None
     kinds = [a.value for a in cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)]
     if "server" in kinds:
         raise RegistryError(f"{cert_file} is a server certificate (kind server), not a manager's client certificate")
-    for pki_dir in (os.environ.get(PKI_DIR_ENV), Path(cert_file).resolve().parent.parent):
-        if ca_file is None and pki_dir and (Path(pki_dir) / "ca.crt").is_file():
-            ca_file = str(Path(pki_dir) / "ca.crt")
+    named = os.environ.get(PKI_DIR_ENV)
+    if ca_file is None and named:
+        if not (Path(named) / "ca.crt").is_file():
+            raise RegistryError(f"{PKI_DIR_ENV}={named} holds no ca.crt: the fleet's CA to check {cert_file} "
+                                "against (give --ca FILE, or fix the variable)")
+        ca_file = str(Path(named) / "ca.crt")
+    if ca_file is None and (Path(cert_file).resolve().parent.parent / "ca.crt").is_file():
+        ca_file = str(Path(cert_file).resolve().parent.parent / "ca.crt")
     if ca_file is None:
+        click.echo(f"warning: the issuer of {cert_file} was not checked: no fleet CA found (give --ca FILE, or set "
+                   f"{PKI_DIR_ENV} to the cryptoros-certs directory)", err=True)
         return
     try:
-        ca = pemfiles.load_certificate(ca_file)
-    except PKIError as exc:
-        raise RegistryError(str(exc)) from exc
-    try:
-        cert.verify_directly_issued_by(ca)
-    except (ValueError, TypeError, InvalidSignature):
+        data = read_bounded(ca_file, PEM_LIMIT)
+        cas = x509.load_pem_x509_certificates(data) if b"-----BEGIN" in data else [x509.load_der_x509_certificate(data)]
+    except (OSError, ValueError) as exc:
+        raise RegistryError(f"cannot read the fleet's CA {ca_file}: {getattr(exc, 'strerror', None) or exc}") from None
+    for ca in cas:  # a file of several CAs (a CA being replaced): any of them
+        try:
+            cert.verify_directly_issued_by(ca)
+            break
+        except (ValueError, TypeError, InvalidSignature):
+            continue
+    else:
         raise RegistryError(f"{cert_file} was not issued by the fleet's CA {ca_file} (issuer: "
-                            f"{cert.issuer.rfc4514_string()}): its client could not connect") from None
+                            f"{cert.issuer.rfc4514_string()}): its client could not connect")
     crl_file = Path(ca_file).resolve().parent / "crl.pem"
-    if crl_file.is_file():
+    if not crl_file.is_file():
+        click.echo(f"warning: {cert_file} was not checked against a CRL: no crl.pem beside {ca_file}", err=True)
+    else:
         try:
             crl = pemfiles.parse_crl(read_bounded(crl_file, PEM_LIMIT), crl_file)
         except (OSError, PKIError, ValueError):

@@ -85,6 +85,9 @@ REGISTRY_VERSION = "registry_version"
 MAX_CERT_OVERLAP_S = 86400
 #: the ``seq`` of the last registry_change row (a row cut from the chain's end shows)
 CHANGE_CHAIN = "change_chain"
+#: the highest CRL number any replica applied: a server started on an older copy of the
+#: CRL would un-revoke the certificates revoked after it
+CRL_NUMBER = "crl_number"
 #: PostgreSQL advisory lock key serializing the change chain's appends (per database)
 _CHAIN_LOCK_KEY = 0x63727970746F7273  # "cryptors"
 
@@ -383,6 +386,21 @@ class Registry:
         if m is None:
             raise RegistryError(f"unknown manager {name!r}")
         return m
+
+    def crl_number(self) -> int:
+        """The highest CRL number a server of this registry applied (0: none yet)."""
+        with self._session() as s:
+            row = s.get(RegistryState, CRL_NUMBER)
+            return row.value if row is not None else 0
+
+    def note_crl_number(self, number: int) -> None:
+        """Remember ``number`` if it is higher than any applied before."""
+        with self._session.begin() as s:
+            row = s.get(RegistryState, CRL_NUMBER, with_for_update=True)
+            if row is None:
+                s.add(RegistryState(key=CRL_NUMBER, value=number))
+            elif number > row.value:
+                row.value = number
 
     def _bump_serial(self, s: Session, key: str = REVOCATION_SERIAL) -> None:
         row = s.get(RegistryState, key, with_for_update=True)

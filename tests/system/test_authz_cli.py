@@ -172,6 +172,19 @@ def test_a_certificate_no_client_of_this_fleet_could_present_is_not_bound(team, 
     monkeypatch.delenv("CRYPTOROS_PKI_DIR")
     line = one_line_error(cli("add-manager", "ca_alone", "--cert", str(team.pki.ca_cert), db=db))
     assert "is a CA certificate" in line
+    # re-audit: where no CA could be found, the checks were skipped without a word
+    loose = tmp_path / "loose.crt"
+    loose.write_bytes(team.pki.pki.cert_path_for("carol").read_bytes())
+    r = cli("add-manager", "carol", "--cert", str(loose), db=db)
+    assert r.returncode == 0 and "the issuer of" in r.stderr and "was not checked" in r.stderr, r
+    monkeypatch.setenv("CRYPTOROS_PKI_DIR", str(tmp_path / "nonexistent"))
+    line = one_line_error(cli("set-cert", "carol", "--cert", str(loose), db=db))
+    assert "holds no ca.crt" in line, line
+    # a CA file of several CAs: any of them
+    monkeypatch.delenv("CRYPTOROS_PKI_DIR")
+    both = tmp_path / "both.crt"
+    both.write_bytes(team.other_pki.ca_cert.read_bytes() + team.pki.ca_cert.read_bytes())
+    ok(cli("set-cert", "carol", "--cert", str(loose), "--ca", str(both), db=db))
 
 
 def test_operator_workflow_with_export_import_between_registries(team, tmp_path):
@@ -242,6 +255,24 @@ def test_serve_start_up_errors_are_one_line(team, tmp_path):
     line = one_line_error(_serve(team, "--port", str(free_port()),
                                  db="postgresql+psycopg://postgres@127.0.0.1:1/none"))
     assert "cannot connect to the database" in line
+
+
+def test_serve_restarted_on_an_older_crl_is_refused(tmp_path):
+    """CLI re-audit: a running server refused an older copy of the CRL, but one restarted
+    on it issued a token to a certificate revoked after it (the runbook's restart step).
+    The highest CRL number applied is kept in the registry."""
+    team = build_team(tmp_path / "team")  # its own: bob is revoked here
+    old = tmp_path / "old.crl"
+    old.write_bytes(team.pki.pki.write_crl().read_bytes())  # before the revocation
+    team.pki.revoke("bob", reason="key_compromise")  # a newer CRL, bob in it
+    d = AuthzDaemon(pki=team.pki, db=team.db, workdir=team.workdir)
+    try:
+        d.start()  # applies the newer CRL: its number is kept
+        assert d.token("alice")[0] == 200
+    finally:
+        d.stop()
+    line = one_line_error(_serve(team, "--port", str(free_port()), "--crl", str(old)))
+    assert "older than the CRLs this registry's servers applied" in line, line
 
 
 def test_serve_refuses_a_wrong_signing_key_passphrase(team, tmp_path):
