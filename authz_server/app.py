@@ -50,6 +50,7 @@ from typing import Any, TypeVar
 
 from aiohttp import HttpVersion11, web
 from cryptography import x509
+from cryptography.hazmat.primitives import serialization
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from sqlalchemy.exc import SQLAlchemyError
@@ -332,14 +333,15 @@ class CRLWatcher:
     truncated copy had issued tokens to revoked certificates).
     """
 
-    def __init__(self, crl_path, ca_path, interval: float = 1.0, *, floor: int = 0,
-                 on_applied: Callable[[int], None] | None = None) -> None:
-        #: ``floor``: the highest CRL number a server of this registry applied (kept in the
-        #: registry, ``on_applied`` told each higher one): a server (re)started on an older
-        #: copy would otherwise un-revoke what came after it (CLI re-audit)
+    def __init__(self, crl_path, ca_path, interval: float = 1.0, *, registry: Any = None) -> None:
+        #: the highest number of this CA's CRLs a server of ``registry`` applied (kept there,
+        #: each higher one told): a server (re)started on an older copy would otherwise
+        #: un-revoke what came after it (CLI re-audit)
         self.path, self.interval = crl_path, interval
-        self.floor, self._on_applied = floor, on_applied
         self._ca = pemfiles.load_certificate(ca_path)
+        self._ca_id = cert_fingerprint_sha256(self._ca.public_bytes(serialization.Encoding.DER))
+        self._registry = registry
+        self.floor = registry.crl_number(self._ca_id) if registry is not None else 0
         self._stamp: tuple[int, int] | None = None
         self._bad: tuple[int, int] | None = None
         self._checked = 0.0
@@ -364,7 +366,7 @@ class CRLWatcher:
             if crl.issuer != self._ca.subject or not crl.is_signature_valid(self._ca.public_key()):
                 raise ValueError("not issued by the CA")
             number = _crl_number(crl) or 0
-            if number < self.floor:
+            if self._crl is None and number < self.floor:
                 raise ValueError(f"older than the CRLs this registry's servers applied (number {number}, against "
                                  f"{self.floor}): use the CA's current CRL")
             if self._crl is not None and _crl_order(crl) < _crl_order(self._crl):
@@ -381,9 +383,9 @@ class CRLWatcher:
             return
         self._stamp = stamp
         self._crl = crl
-        if number > self.floor and self._on_applied is not None:
+        if number > self.floor and self._registry is not None:
             try:
-                self._on_applied(number)
+                self._registry.note_crl_number(self._ca_id, number)
                 self.floor = number
             except Exception as exc:  # the registry down: the CRL is applied all the same
                 log.warning("cannot record CRL number %d in the registry: %s", number, exc)
@@ -474,8 +476,7 @@ class AuthzService:
         self._held: dict[str, int] = {}  # long-polls held, per client certificate
         self._held_total = 0
         self.metrics.feed_polls_held.set_function(lambda: self._held_total)
-        self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file, floor=registry.crl_number(),
-                              on_applied=registry.note_crl_number) if cfg.tls.crl_file else None
+        self.crl = CRLWatcher(cfg.tls.crl_file, cfg.tls.ca_file, registry=registry) if cfg.tls.crl_file else None
         #: (monotonic time, why) of the last request the registry failed, until a token is
         #: issued again: /healthz says so (a registry that reads but cannot write, a full
         #: disk, answered every token 503 while /healthz said ok)

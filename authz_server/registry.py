@@ -387,18 +387,20 @@ class Registry:
             raise RegistryError(f"unknown manager {name!r}")
         return m
 
-    def crl_number(self) -> int:
-        """The highest CRL number a server of this registry applied (0: none yet)."""
+    def crl_number(self, ca: str) -> int:
+        """The highest number of CA ``ca``'s CRLs (its certificate's SHA-256) a server of
+        this registry applied (0: none yet)."""
         with self._session() as s:
-            row = s.get(RegistryState, CRL_NUMBER)
+            row = s.get(RegistryState, f"{CRL_NUMBER}:{ca[:32]}")
             return row.value if row is not None else 0
 
-    def note_crl_number(self, number: int) -> None:
-        """Remember ``number`` if it is higher than any applied before."""
+    def note_crl_number(self, ca: str, number: int) -> None:
+        """Remember ``number`` for CA ``ca`` if it is higher than any applied before."""
+        key = f"{CRL_NUMBER}:{ca[:32]}"
         with self._session.begin() as s:
-            row = s.get(RegistryState, CRL_NUMBER, with_for_update=True)
+            row = s.get(RegistryState, key, with_for_update=True)
             if row is None:
-                s.add(RegistryState(key=CRL_NUMBER, value=number))
+                s.add(RegistryState(key=key, value=number))
             elif number > row.value:
                 row.value = number
 
