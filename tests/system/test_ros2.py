@@ -281,12 +281,7 @@ def test_an_insiders_services_that_never_answer_hold_none_of_another_robots(netw
     robot A's /set_flag then waited 28 s. One peer's services now hold at most
     MAX_CALLS_PER_PEER (8) threads together; its further calls get no answer at once."""
     names = [f"/hog{i}" for i in range(4)]
-    grants = [g for name in names
-              for g in (("robot_c", "serve", "/hog_server", name, SET_BOOL), ("robot_b", "call", "*", name, SET_BOOL))]
-    for grant in grants:
-        network.cli("grant", *grant)
-    try:
-        until(lambda: _b_may_call(network, names), 30, "robot B's token granting the calls")
+    with _services_for_b(network, "robot_c", "/hog_server", names):
         status, body = network.daemon.token("robot_c")
         with contextlib.ExitStack() as held, \
                 network.node("robot_a", "server.py", "/set_flag", "flag_server") as flag:
@@ -302,9 +297,6 @@ def test_an_insiders_services_that_never_answer_hold_none_of_another_robots(netw
                 hog.until("SENT", 40)
             with network.node("robot_b", "client.py", "/set_flag", "1", "20") as client:
                 client.until("RESULT True flag set to True by flag_server", 25)
-    finally:
-        for grant in grants:
-            network.cli("revoke", *grant)
 
 
 def test_latched_message_reaches_a_late_subscriber_with_transient_local(network):
@@ -454,6 +446,22 @@ def _b_may_call(network, names: list[str]) -> bool:
         return set(names) <= {g[2] for g in json.load(reply)["token"]["grants"] if g[1] == "call"}
 
 
+@contextlib.contextmanager
+def _services_for_b(network, manager: str, server: str, names: list[str]):
+    """``manager``'s node ``server`` granted to serve ``names`` and robot B to call them,
+    once robot B's own token carries the calls; the grants revoked after."""
+    grants = [g for name in names for g in ((manager, "serve", server, name, SET_BOOL),
+                                            ("robot_b", "call", "*", name, SET_BOOL))]
+    for grant in grants:
+        network.cli("grant", *grant)
+    try:
+        until(lambda: _b_may_call(network, names), 30, "robot B's token granting the calls")
+        yield
+    finally:
+        for grant in grants:
+            network.cli("revoke", *grant)
+
+
 def test_a_malformed_answer_from_a_remote_server_costs_only_its_own_call(network):
     """ROS 2 audit: an insider serving a service robot B may call answered one call with
     an empty response; bridge B's thread serving every remote service died on it, and
@@ -461,12 +469,7 @@ def test_a_malformed_answer_from_a_remote_server_costs_only_its_own_call(network
     malformed answer is now no answer (logged), and the other services go on."""
     from cryptoros.ros2 import framing as fr
 
-    grants = [("robot_a", "serve", "/bad_server", "/bad_answer", SET_BOOL),
-              ("robot_b", "call", "*", "/bad_answer", SET_BOOL)]
-    for grant in grants:
-        network.cli("grant", *grant)
-    try:
-        until(lambda: _b_may_call(network, ["/bad_answer"]), 30, "robot B's token granting the call")
+    with _services_for_b(network, "robot_a", "/bad_server", ["/bad_answer"]):
         status, body = network.daemon.token("robot_a")
         with _rogue(network, "robot_b", "robot_a") as s, \
                 network.node("robot_a", "server.py", "/set_flag", "flag_server") as server:
@@ -490,9 +493,6 @@ def test_a_malformed_answer_from_a_remote_server_costs_only_its_own_call(network
                 client.until("RESULT True flag set to False by flag_server", 10)
         until(lambda: "is not a SetBool response" in network.robots["robot_b"].logs(), 10,
               "robot B logging the malformed answer")
-    finally:
-        for grant in grants:
-            network.cli("revoke", *grant)
 
 
 def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budget(network):
@@ -503,18 +503,10 @@ def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budg
     from interceptor.ros2_partial import PARTIAL_FRAMES_PER_PEER
 
     names = [f"/unfinished{i}" for i in range(PARTIAL_FRAMES_PER_PEER + 1)]
-    grants = [g for name in names
-              for g in (("robot_a", "serve", "/part_server", name, SET_BOOL), ("robot_b", "call", "*", name, SET_BOOL))]
-    for grant in grants:
-        network.cli("grant", *grant)
-    try:
-        until(lambda: _b_may_call(network, names), 30, "robot B's token granting the calls")
+    with _services_for_b(network, "robot_a", "/part_server", names):
         _leave_frames_unfinished(network, [StreamTarget(kind="service", name=name, type=SET_BOOL,
                                                         node="/part_server").encode() for name in names],
                                  fr.SRV_RESPONSE)
-    finally:
-        for grant in grants:
-            network.cli("revoke", *grant)
     test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
 
 
