@@ -21,7 +21,7 @@ from cryptoros.ros1.xmlrpc import (
     Response,
 )
 from cryptoros.tokens import Grants
-from cryptoros.exposure import ExposureError
+from cryptoros.exposure import ExposureError, read_listeners
 from cryptoros.ros1.uri import UriError
 from interceptor.exposure import is_this_host, lenient_host_port, master_problem, run_hint
 from interceptor.ros1.localcalls import MAX_IDLE, ask_to_shut_down
@@ -150,10 +150,29 @@ class MasterSide:
                 elif not self._master_ledger.relay_refs:  # restarted with no state: rosmaster still names our relays
                     await self._adopt_master_state()
                 self._master_pid = pid
-            if pid is not None:
+            if pid is not None and self._direct_check_due():
                 with contextlib.suppress(*PEER_FAILURES, asyncio.TimeoutError):
                     await asyncio.wait_for(self._judge_direct_nodes(), MASTER_WATCH_TIMEOUT * 4)
             await asyncio.sleep(MASTER_WATCH_INTERVAL)
+
+    def _direct_check_due(self) -> bool:
+        """Whether :meth:`_judge_direct_nodes` should run this turn: a port other hosts
+        reach opened on this host since the last look (one netlink dump, about 0.2 ms),
+        rosmaster told a robot's node to shut down, or DIRECT_RECHECK passed; not
+        rosmaster's whole graph every second."""
+        try:
+            ports = frozenset(one.port for one in read_listeners() if one.exposed)
+        except ExposureError:
+            ports = None
+        now = time.monotonic()
+        opened = ports is None or not ports <= self._exposed_ports
+        if opened:  # each node looked at again: one that registered first may have opened it
+            self._direct_checked.clear()
+        due = opened or self._owned_names_taken or now - self._direct_looked_at >= DIRECT_RECHECK
+        self._exposed_ports = ports or frozenset()
+        if due:
+            self._direct_looked_at = now
+        return due
 
     async def _judge_direct_nodes(self) -> None:
         """Deployment check of the nodes on this host that register with rosmaster

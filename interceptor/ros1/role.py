@@ -178,6 +178,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         self._direct_checked: dict[str, float] = {}
         self._direct_exposed: dict[str, str] = {}
         self._owned_names_taken = False  # rosmaster told a robot's node to shut down (relays.py)
+        self._exposed_ports: frozenset[int] = frozenset()  # ports other hosts reach, at the last look
+        self._direct_looked_at = float("-inf")  # when (monotonic) the nodes were last looked at
         #: node role: each registration a local node made or had refused, as it sent it, so a
         #: grant that comes while it runs is made for it (:meth:`_regrant`)
         self._ledger = LocalRegistrations()
