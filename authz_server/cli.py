@@ -113,7 +113,6 @@ def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None
     issuer is not checked. (CLI audit: another CA's certificate was bound with exit 0,
     and the robot locked out: every TLS handshake with its real one failed.)"""
     from cryptography import x509
-    from cryptography.exceptions import InvalidSignature
     from cryptography.x509.oid import NameOID
 
     try:
@@ -137,17 +136,10 @@ def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None
                    f"{PKI_DIR_ENV} to the cryptoros-certs directory)", err=True)
         return
     try:
-        data = read_bounded(ca_file, PEM_LIMIT)
-        cas = x509.load_pem_x509_certificates(data) if b"-----BEGIN" in data else [x509.load_der_x509_certificate(data)]
-    except (OSError, ValueError) as exc:
-        raise RegistryError(f"cannot read the fleet's CA {ca_file}: {getattr(exc, 'strerror', None) or exc}") from None
-    for ca in cas:  # a file of several CAs (a CA being replaced): any of them
-        try:
-            cert.verify_directly_issued_by(ca)
-            break
-        except (ValueError, TypeError, InvalidSignature):
-            continue
-    else:
+        cas = pemfiles.load_certificates(ca_file)
+    except PKIError as exc:
+        raise RegistryError(f"cannot read the fleet's CA: {exc}") from None
+    if not pemfiles.issued_by_any(cert, cas):  # a file of several CAs (a CA being replaced): any of them
         raise RegistryError(f"{cert_file} was not issued by the fleet's CA {ca_file} (issuer: "
                             f"{cert.issuer.rfc4514_string()}): its client could not connect")
     crl_file = Path(ca_file).resolve().parent / "crl.pem"
@@ -155,8 +147,8 @@ def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None
         click.echo(f"warning: {cert_file} was not checked against a CRL: no crl.pem beside {ca_file}", err=True)
     else:
         try:
-            crl = pemfiles.parse_crl(read_bounded(crl_file, PEM_LIMIT), crl_file)
-        except (OSError, PKIError, ValueError):
+            crl = pemfiles.load_crl(crl_file)
+        except PKIError:
             return  # the CRL is the servers' to refuse; binding is not decided by it
         if crl.get_revoked_certificate_by_serial_number(cert.serial_number) is not None:
             raise RegistryError(f"{cert_file} (serial {cert.serial_number:x}) is revoked by {crl_file}")

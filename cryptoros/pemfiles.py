@@ -160,6 +160,29 @@ def parse_crl(data: bytes, where: object = "CRL") -> x509.CertificateRevocationL
         raise PKIError(f"{where} is not a CRL") from err
 
 
+def load_certificates(path: PathLike) -> list[x509.Certificate]:
+    """Every certificate of a file (a PEM bundle, such as a CA file holding the CA being
+    replaced and its successor, or one DER certificate)."""
+    data = _read(path, "certificate file")
+    try:
+        return x509.load_pem_x509_certificates(data) if _is_pem(data) else [x509.load_der_x509_certificate(data)]
+    except ValueError as err:
+        raise PKIError(f"{path} holds no readable certificate") from err
+
+
+def issued_by_any(cert: x509.Certificate, cas: list[x509.Certificate]) -> bool:
+    """Whether one of ``cas`` signed ``cert`` directly (its issuer name and signature)."""
+    from cryptography.exceptions import InvalidSignature
+
+    for ca in cas:
+        try:
+            cert.verify_directly_issued_by(ca)
+            return True
+        except (ValueError, TypeError, InvalidSignature):
+            continue
+    return False
+
+
 def load_crl(path: PathLike) -> x509.CertificateRevocationList:
     return parse_crl(_read(path, "CRL"), path)
 

@@ -156,10 +156,9 @@ def own_certificate_problem(cfg, now: float | None = None) -> str | None:
     """Why this interceptor's certificate is not valid now (every peer and the
     authorization server would refuse it), in one line, or None."""
     from cryptography import x509
-    from cryptography.exceptions import InvalidSignature
 
-    from cryptoros.files import PEM_LIMIT, read_bounded
-    from cryptoros.pemfiles import cert_der
+    from cryptoros.errors import PKIError
+    from cryptoros.pemfiles import cert_der, issued_by_any, load_certificates
 
     cert = x509.load_der_x509_certificate(cert_der(cfg.tls.cert_file))
     now = time.time() if now is None else now
@@ -171,16 +170,10 @@ def own_certificate_problem(cfg, now: float | None = None) -> str | None:
                 "(is this host's clock right?)")
     # every peer checks it against the same CA file (the fleet's; any certificate in it)
     try:
-        data = read_bounded(cfg.tls.ca_file, PEM_LIMIT)
-        cas = x509.load_pem_x509_certificates(data) if b"-----BEGIN" in data else [x509.load_der_x509_certificate(data)]
-    except (OSError, ValueError):
-        return None  # the TLS context says what is wrong with the CA file
-    for ca in cas:
-        try:
-            cert.verify_directly_issued_by(ca)
+        if issued_by_any(cert, load_certificates(cfg.tls.ca_file)):
             return None
-        except (ValueError, TypeError, InvalidSignature):
-            continue
+    except PKIError:
+        return None  # the TLS context says what is wrong with the CA file
     return (f"{cfg.tls.cert_file} was not issued by the CA {cfg.tls.ca_file} (issuer: "
             f"{cert.issuer.rfc4514_string()}): every peer and the authorization server refuse it")
 
