@@ -180,8 +180,9 @@ class MasterSide:
         one whose XML-RPC API other hosts reach is asked to shut down and named in status,
         as a robot's interceptor does with its own nodes; one in ``allow_exposed_nodes``
         is named only. A stranger had read a topic from such a node, and robots'
-        subscribers of its topic were refused (``foreign_uri``). Each node is looked up
-        when it first appears and again every :data:`DIRECT_RECHECK` seconds."""
+        subscribers of its topic were refused (``foreign_uri``). Run when
+        :meth:`_direct_check_due` says; a node looked up less than DIRECT_RECHECK ago is
+        skipped, and a robot's node is looked up only once its name may have been taken."""
         state = await self._call_upstream_master(Request(method="getSystemState", params=("/cryptoros",)))
         if not ros_ok(state):
             return
