@@ -27,6 +27,7 @@ import contextlib
 import contextvars
 import hashlib
 import ssl
+import stat
 import time
 from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from pathlib import Path
 
 from cryptoros.errors import ConfigError, CryptorosError, TokenError
 from cryptoros import pemfiles
+from cryptoros.files import PEM_LIMIT
 from cryptoros.lru import remember
 
 #: The paper's cipher configuration string (seed 003, Eq. 5), kept for reference.
@@ -64,8 +66,16 @@ class TLSConfig:
                 continue
             path = Path(value)
             object.__setattr__(self, label, path)
-            if not path.is_file():
-                raise ConfigError(f"TLS {label.replace('_', ' ')} not found: {path}")
+            what = f"TLS {label.replace('_', ' ')}"
+            try:
+                st = path.stat()
+            except OSError:
+                raise ConfigError(f"{what} not found: {path}") from None
+            # OpenSSL reads these itself: what read_bounded refuses is refused here.
+            if not stat.S_ISREG(st.st_mode):
+                raise ConfigError(f"{what} {path} is not a regular file (a device, FIFO or directory)")
+            if st.st_size > PEM_LIMIT:
+                raise ConfigError(f"{what} {path} is larger than {PEM_LIMIT >> 20} MiB: not a certificate, key or CRL")
 
 
 def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl.SSLContext) -> ssl.SSLContext:

@@ -42,3 +42,31 @@ def test_a_directory_and_a_missing_file_are_os_errors(tmp_path):
         read_bounded(tmp_path, 100)
     with pytest.raises(FileNotFoundError):
         read_bounded(tmp_path / "missing", 100)
+
+
+def _tls_files(tmp_path):
+    for name in ("ca.crt", "me.crt", "me.key"):
+        (tmp_path / name).write_bytes(b"-----BEGIN CERTIFICATE-----\n")
+    return {"ca_file": tmp_path / "ca.crt", "cert_file": tmp_path / "me.crt", "key_file": tmp_path / "me.key"}
+
+
+def test_tls_files_that_openssl_reads_itself_are_held_to_the_same_rule(tmp_path):
+    """The CA, certificate, key and CRL of a TLS context are read by OpenSSL, not by
+    read_bounded: a device or an oversized file is refused by name before OpenSSL sees it
+    (a 200 MB file had been read whole, a device reported as "not found")."""
+    from cryptoros.errors import ConfigError
+    from cryptoros.tls import TLSConfig
+
+    files = _tls_files(tmp_path)
+    TLSConfig(**files)  # the files as they are: accepted
+    zero = tmp_path / "zero.pem"
+    zero.symlink_to("/dev/zero")
+    with pytest.raises(ConfigError, match=r"TLS crl file .*zero\.pem is not a regular file"):
+        TLSConfig(**files, crl_file=zero)
+    big = tmp_path / "big.crt"
+    with open(big, "wb") as f:
+        f.truncate((16 << 20) + 1)  # sparse: no 16 MiB written
+    with pytest.raises(ConfigError, match=r"TLS ca file .*big\.crt is larger than 16 MiB"):
+        TLSConfig(**{**files, "ca_file": big})
+    with pytest.raises(ConfigError, match=r"TLS cert file not found: .*missing\.crt"):
+        TLSConfig(**{**files, "cert_file": tmp_path / "missing.crt"})
