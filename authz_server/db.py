@@ -11,6 +11,7 @@ than this code.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -28,6 +29,8 @@ if TYPE_CHECKING:
 
 # Alembic is imported only when a migration has to run or be inspected: the admin CLI
 # starts faster, and the daemon's usual start (schema already at head) needs none.
+
+log = logging.getLogger(__name__)
 
 DEFAULT_DB_URL = "sqlite:///./cryptoros-authz.db"
 MIGRATIONS = "authz_server:migrations"
@@ -75,6 +78,7 @@ def make_engine(url: str, *, create: bool = False, pool_size: int = 8) -> Engine
             )
         if create and not path.exists():
             _create_private(path)
+        _tighten(path)
     kwargs: dict = {}
     if parsed.get_backend_name() == "sqlite":
         kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
@@ -99,6 +103,24 @@ def _create_private(path: Path) -> None:
         pass
     except OSError as exc:
         raise ConfigError(f"cannot create the database {path}: {exc.strerror or exc}") from None
+
+
+def _tighten(path: Path) -> None:
+    """An existing registry file (and its -wal and -shm files) that other local users may
+    read or write is made owner-only, with a warning: a file made 0644 by hand, by a
+    restore or by an older version still held the token-signing key."""
+    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+        try:
+            mode = file.stat().st_mode & 0o777
+            if mode & 0o077:
+                file.chmod(mode & 0o700)
+                log.warning("%s was readable or writable by other users (mode %o): made %o, as a registry "
+                            "holding the token-signing key must be", file, mode, mode & 0o700)
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            log.warning("%s is readable or writable by other users and could not be made owner-only: %s",
+                        file, exc.strerror or exc)
 
 
 def _sqlite_pragmas(dbapi_conn, _record) -> None:

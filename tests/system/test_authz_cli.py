@@ -143,6 +143,15 @@ def test_a_new_registry_file_is_readable_by_its_owner_only(tmp_path):
         os.umask(umask)
     modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.glob("registry.db*")}
     assert modes and set(modes.values()) == {0o600}, modes
+    # one made readable by others (by hand, a restore, an older version) is made owner-only
+    # again the next time a tool opens it, and the tool says so
+    for p in tmp_path.glob("registry.db*"):
+        p.chmod(0o644)
+    r = authz("list-managers", db=url)
+    assert r.returncode == 0, r.stderr
+    assert "was readable or writable by other users (mode 644): made 600" in r.stderr
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.glob("registry.db*")}
+    assert set(modes.values()) == {0o600}, modes
 
 
 def test_a_certificate_no_client_of_this_fleet_could_present_is_not_bound(team, tmp_path, monkeypatch):
