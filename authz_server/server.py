@@ -91,6 +91,10 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     registry = Registry(engine, source=ChangeSource.here("cryptoros-authz serve"))
     service = AuthzService(cfg, registry)
     service.cert_until = cert_until
+    if service.crl is None:
+        log.warning("no CRL (--crl, or crl = in the configuration): a certificate revoked with "
+                    "'cryptoros-certs revoke' still gets tokens while it is bound to its manager, and no "
+                    "interceptor learns of it")
     _refusing_revoked(ssl_ctx, service)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None

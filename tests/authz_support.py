@@ -49,6 +49,7 @@ class AuthzDaemon:
     port: int = 0
     host: str = "127.0.0.1"
     extra: Sequence[str] = ()
+    crl: bool = True
     proc: subprocess.Popen | None = None
     log_path: Path | None = None
     _ctx: dict = field(default_factory=dict)
@@ -66,7 +67,8 @@ class AuthzDaemon:
         env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
         args = [script("cryptoros-authz"), "--db", self.db, "serve", "--port", str(self.port),
                 "--ca", str(self.pki.ca_cert), "--cert", str(server.cert_path), "--key", str(server.key_path),
-                "--crl", str(self.pki.crl), "--signing-key-passphrase-file", str(pass_file), *self.extra]
+                *(("--crl", str(self.pki.crl)) if self.crl else ()),
+                "--signing-key-passphrase-file", str(pass_file), *self.extra]
         self.proc = subprocess.Popen(args, stdout=self.log_path.open("w"), stderr=subprocess.STDOUT, env=env)
         wait_for_port("127.0.0.1", self.port, timeout=timeout, proc=self.proc)
         deadline = time.monotonic() + timeout
@@ -147,8 +149,9 @@ class AuthzDaemon:
 
 
 @contextlib.contextmanager
-def running_daemon(pki: TestPKIFactory, db: str, workdir: Path, extra: Sequence[str] = ()) -> Iterator[AuthzDaemon]:
-    d = AuthzDaemon(pki=pki, db=db, workdir=workdir, extra=tuple(extra))
+def running_daemon(pki: TestPKIFactory, db: str, workdir: Path, extra: Sequence[str] = (),
+                   crl: bool = True) -> Iterator[AuthzDaemon]:
+    d = AuthzDaemon(pki=pki, db=db, workdir=workdir, extra=tuple(extra), crl=crl)
     try:
         d.start()
         yield d

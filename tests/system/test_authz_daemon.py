@@ -473,6 +473,19 @@ def test_a_long_poll_is_held_at_most_the_replicas_max_feed_wait(tmp_path):
         assert status == 304
 
 
+def test_a_server_started_without_a_crl_says_what_it_then_misses(tmp_path, daemon):
+    """No CRL configured: a certificate revoked at the CA still gets tokens while it is
+    bound to its manager (mallory, revoked in the team's CRL, here). Allowed, but said at
+    start; the fixture's server, started with one, says nothing of it."""
+    from tests.authz_support import running_daemon
+
+    assert "no CRL" not in daemon.log()
+    team = build_team(tmp_path)
+    with running_daemon(team.pki, team.db, tmp_path, crl=False) as d:
+        assert "WARNING no CRL (--crl, or crl = in the configuration): a certificate revoked" in d.log(), d.log()
+        assert d.token("mallory")[0] == 200
+
+
 def test_healthz_says_unavailable_while_the_registry_fails_requests(daemon):
     """A registry that answers reads but fails writes (a full disk) answered every token
     request 503 while /healthz said ok, so a load balancer kept sending robots to it.
