@@ -49,6 +49,7 @@ from interceptor.gate import REFRESH, PendingStreams, TargetCheck, held_feed_wai
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
 from interceptor.pump import FrameCounter, MessageBudget, splice
+from interceptor.slots import KeyedSlots
 
 from interceptor.admission import KNOWN_SOURCES, Admission
 from interceptor.health import Health
@@ -161,7 +162,7 @@ class Gateway(Admission, Outbound, Health):
         self._views: dict[tuple[str, int], set[bool]] = {}
         self._exchanges: set[tuple[str, int]] = set()
         #: streams being opened per peer endpoint (see _opening_slot); entries live while in use
-        self._opening: dict[tuple[str, int], list] = {}
+        self._opening = KeyedSlots()
         #: up to SPARES_PER_PEER ready spare connections per peer endpoint, oldest first,
         #: made after a stream to it (see _want_spare)
         self._spares: dict[tuple[str, int], list[_Connected]] = {}

@@ -247,32 +247,17 @@ class Outbound:
                     spare.used.set_result(None)
         self._spares.clear()
 
-    @contextlib.asynccontextmanager
-    async def _opening_slot(self, host: str, port: int):
+    def _opening_slot(self, host: str, port: int):
         """At most ``max_pending_per_certificate`` streams to one peer endpoint between
         connect and its verified reply: the peer refuses more unauthenticated streams
         from one certificate than that (``pending_limit``), so a burst (a robot's
         bring-up: dozens of nodes subscribing at once) waits its turn here instead of
         being refused there. The wait is bounded by the handshake timeout."""
-        endpoint = (host, port)
-        slot = self._opening.get(endpoint)
-        if slot is None:
-            slot = self._opening[endpoint] = [asyncio.Semaphore(self.cfg.limits.max_pending_per_certificate), 0]
-        slot[1] += 1
-        try:
-            try:
-                await asyncio.wait_for(slot[0].acquire(), self.cfg.limits.handshake_timeout)
-            except asyncio.TimeoutError:
-                raise PolicyDenied("peer_busy", f"{host}:{port}: no free slot to open a stream within "
-                                                f"{self.cfg.limits.handshake_timeout:g} s") from None
-            try:
-                yield
-            finally:
-                slot[0].release()
-        finally:
-            slot[1] -= 1
-            if slot[1] == 0 and self._opening.get(endpoint) is slot:
-                del self._opening[endpoint]
+        limits = self.cfg.limits
+        return self._opening.hold(
+            (host, port), limits.max_pending_per_certificate, limits.handshake_timeout,
+            lambda: PolicyDenied("peer_busy", f"{host}:{port}: no free slot to open a stream within "
+                                              f"{limits.handshake_timeout:g} s"))
 
     async def _connect(self, host: str, port: int) -> _Connected:
         """Mutual TLS to a peer interceptor, resuming the session kept for it if any."""
