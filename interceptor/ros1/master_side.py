@@ -27,15 +27,19 @@ from interceptor.exposure import is_this_host, lenient_host_port, master_problem
 from interceptor.ros1.localcalls import MAX_IDLE, ask_to_shut_down
 from interceptor.ros1.wire import (
     DIRECT_RECHECK,
+    MASTER_CALL_WAIT,
+    MASTER_CALLS_PER_PEER,
     MASTER_WATCH_INTERVAL,
     MASTER_WATCH_TIMEOUT,
     MAX_PARAM_SUBSCRIPTIONS_PER_NODE,
+    PARAM_READS_PER_PEER,
     RATE_LOG_INTERVAL,
     RELEASING_CALLS,
     filtered_param_reply,
     local_endpoint,
     log,
     param_subscription_key,
+    reads_param_values,
     resolved_param_call,
     rewrite_param_api,
     ros_ok,
@@ -374,6 +378,28 @@ class MasterSide:
             response = filtered_param_reply(call, response, self.verifier.freshest(peer.access).grants)
             return rewrite_response(call, response, uri=self.translator.from_master)
 
+        def busy() -> PolicyDenied:
+            return PolicyDenied("rate_limited", f"{peer.manager} has {MASTER_CALLS_PER_PEER} master calls "
+                                f"({PARAM_READS_PER_PEER} reading parameter values) under way, and the next "
+                                f"waited {MASTER_CALL_WAIT:g} s")
+
+        async def admit(request: Request, held: contextlib.AsyncExitStack) -> Response | Fault | None:
+            # held until the answer is written out: what a peer does not read counts too
+            try:
+                await held.enter_async_context(
+                    self._peer_master_calls.hold(peer.manager, MASTER_CALLS_PER_PEER, MASTER_CALL_WAIT, busy))
+                if reads_param_values(request):
+                    await held.enter_async_context(
+                        self._peer_param_reads.hold(peer.manager, PARAM_READS_PER_PEER, MASTER_CALL_WAIT, busy))
+            except PolicyDenied as exc:
+                denied = exc
+            else:
+                return None
+
+            def refuse(_call: Request) -> Request:
+                raise denied
+            return await self._decide_calls(request, refuse, self._call_upstream_master, after, "master", peer.manager)
+
         async def handle(request: Request) -> Response | Fault:
             if not writes_params(request):
                 return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
@@ -384,7 +410,7 @@ class MasterSide:
                 return await self._decide_calls(request, decide, self._call_upstream_master, after, "master",
                                                 peer.manager)
 
-        await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
+        await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending, admit)
 
     async def _call_upstream_master(self, request: Request) -> Response | Fault:
         # a burst of peers' registrations: up to MAX_IDLE connections kept to the master

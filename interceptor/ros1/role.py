@@ -51,6 +51,7 @@ from interceptor.ros1.node_side import NodeSide
 from interceptor.ros1.relays import Relays
 from interceptor.ros1.state import PersistedState
 from interceptor.ros1.tunnels import TunnelPool, XmlRpcTunnel
+from interceptor.slots import KeyedSlots
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     IDLE_TIMEOUT,
@@ -97,6 +98,34 @@ def _batches(allowed: list[tuple[int, Request]]) -> list[list[tuple[int, Request
     return out
 
 
+#: the most bytes of an XML-RPC answer handed to a stream at once (see _answer)
+WRITE_SLICE = 256 << 10
+
+
+async def _answer(
+    request: Request,
+    writer: asyncio.StreamWriter,
+    conn: XmlRpcConnection,
+    handle: Callable[[Request], Awaitable[Response | Fault]],
+    admit: Callable[[Request, contextlib.AsyncExitStack], Awaitable[Response | None]] | None,
+) -> None:
+    """Answer one request of :meth:`Ros1Role._serve_xmlrpc` and write the answer out."""
+    async with contextlib.AsyncExitStack() as held:
+        response = await admit(request, held) if admit is not None else None
+        if response is None:
+            response = await handle(request)
+        if not request.keep_alive:
+            response = type(response)(**{**response.__dict__, "keep_alive": False})
+        data = conn.send(response)
+        del response
+        # in slices, each written out before the next: a TLS connection's memory BIO keeps the
+        # largest write it was given for the connection's life (each of 60 streams answered
+        # 13.5 MB in one write held about 14 MB until it closed)
+        for start in range(0, len(data), WRITE_SLICE):
+            writer.write(data[start:start + WRITE_SLICE])
+            await drain_within(writer, CALL_TIMEOUT)
+
+
 class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
     """The ROS 1 purposes and listeners of one interceptor (node role, master role, or both)."""
 
@@ -136,6 +165,10 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         if "master" in cfg.roles:  # learning mode never widens a peer over another manager's values
             gateway.learner.state.param_owners = lambda key: self._params.owners(key)
         self._param_writes = asyncio.Lock()
+        #: master role: each peer manager's calls in flight to rosmaster, and its parameter
+        #: reads among them (wire.MASTER_CALLS_PER_PEER, PARAM_READS_PER_PEER)
+        self._peer_master_calls = KeyedSlots()
+        self._peer_param_reads = KeyedSlots()
         #: one per peer endpoint called, the least recently used first (see pool())
         self._pools: dict[tuple[str, int, str, str], TunnelPool] = {}
         self._tunnels_closed_idle = 0
@@ -345,11 +378,15 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         writer: asyncio.StreamWriter,
         handle: Callable[[Request], Awaitable[Response | Fault]],
         pending: bytes = b"",
+        admit: Callable[[Request, contextlib.AsyncExitStack], Awaitable[Response | None]] | None = None,
     ) -> None:
         """Answer XML-RPC requests on a stream until it closes (``pending``: bytes
         already read from it, parsed first). A request that does not parse (bad head,
         oversized declared body, bad XML) is answered with one ROS error triple and the
-        connection is cut without reading the rest."""
+        connection is cut without reading the rest. ``admit`` (if given) is awaited
+        first for each request: it enters what the request holds into the stack, kept
+        until its answer is written out (the peer has read all but the transport's
+        high-water mark), or returns the answer that refuses it."""
         limits = self.cfg.limits
         conn = XmlRpcConnection(Role.SERVER, max_body_size=limits.max_xmlrpc_body, gzip_threshold=1400)
         if pending:
@@ -369,12 +406,13 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 raise
             if isinstance(event, ConnectionClosed):
                 return
-            response = await handle(event)
-            if not event.keep_alive:
-                response = type(response)(**{**response.__dict__, "keep_alive": False})
-            writer.write(conn.send(response))
-            await drain_within(writer, CALL_TIMEOUT)
-            if not event.keep_alive:
+            keep_alive = event.keep_alive
+            await _answer(event, writer, conn, handle, admit)
+            # neither the request nor its answer is kept while the stream waits for the
+            # next (a kept-alive stream had held its last answer: 27 MB per stream after an
+            # insider's getParam of 13.5 MB on each of 30 streams)
+            del event
+            if not keep_alive:
                 return
 
     async def _decide_calls(

@@ -56,6 +56,16 @@ MAX_POOLS = 1024
 #: often (seconds); every one is counted (cryptoros_interceptor_denied_total)
 RATE_LOG_INTERVAL = 10.0
 PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
+#: master role: one peer manager's calls in flight to rosmaster at once (a robot's own
+#: interceptor sends at most POOL_BUSY before it waits POOL_WAIT), and of those, calls
+#: reading parameter values (answers as large as what was stored: an insider's 120 reads
+#: of its own 13.5 MB at once took the master's interceptor to 4.8 GB and stalled other
+#: robots' master calls for 20 s). A call holds its slots until its answer is written out
+#: (what the peer does not read counts too); further calls wait up to MASTER_CALL_WAIT
+#: seconds, then are refused as rate_limited.
+MASTER_CALLS_PER_PEER = POOL_BUSY
+PARAM_READS_PER_PEER = 2
+MASTER_CALL_WAIT = 10.0
 #: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
 MAX_REGISTRATIONS = 65_536
 #: parameter subscriptions of one node counted for its relay (more: freed by the export limit)
@@ -179,12 +189,26 @@ def local_endpoint(uri) -> tuple[str, int] | None:
         return None
 
 
-def writes_params(request: Request) -> bool:
-    """Whether a request (a multicall: one of its calls) is setParam or deleteParam."""
-    if request.method in PARAM_WRITE:
+def _calls_any(request: Request, methods: frozenset[str]) -> bool:
+    """Whether a request (a multicall: one of its calls) calls one of ``methods``."""
+    if request.method in methods:
         return True
     calls = request.params[0] if request.method == MULTICALL and request.params else None
-    return isinstance(calls, list) and any(isinstance(c, dict) and c.get("methodName") in PARAM_WRITE for c in calls)
+    return isinstance(calls, list) and any(isinstance(c, dict) and c.get("methodName") in methods for c in calls)
+
+
+def writes_params(request: Request) -> bool:
+    """Whether a request (a multicall: one of its calls) is setParam or deleteParam."""
+    return _calls_any(request, PARAM_WRITE)
+
+
+#: master calls whose answer holds parameter values or names: as large as what was stored
+PARAM_VALUE_READS = frozenset({"getParam", "subscribeParam", "getParamNames"})
+
+
+def reads_param_values(request: Request) -> bool:
+    """Whether a request (a multicall: one of its calls) reads parameter values or names."""
+    return _calls_any(request, PARAM_VALUE_READS)
 
 
 def resolved_param_call(call: Request, grants) -> Request:
@@ -222,4 +246,4 @@ def md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "MASTER_DOWN_AFTER", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]
+__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]

@@ -241,3 +241,44 @@ def test_a_repeated_registration_changes_nothing_and_rewrites_no_state_file(netw
         after = saved_after(network, repeated["state_saves"])
     assert after["relays"] == before["relays"]
     assert "/repeat_listener" not in json.loads(state.read_text())["owners"]
+
+
+def test_an_insiders_parameter_reads_on_many_streams_at_once_leave_nothing_held(network, flow):
+    """Insider audit: robot B read back 13.5 MB of its nodes' parameters on 120 streams at
+    once; the master's interceptor grew to 4.8 GB and kept it while the streams stayed
+    open, and robot A's master calls waited 20 s. A peer now has at most
+    PARAM_READS_PER_PEER parameter reads under way, each until its answer is written
+    out in slices, and a stream keeps nothing of an answer once written: 16 reads of
+    5.4 MB here held about 180 MB before, and the master's interceptor grows by a few
+    answers' worth now."""
+    import contextlib
+
+    from cryptoros.ros1.xmlrpc import NEED_DATA, Role, XmlRpcConnection
+    from tests.interceptor_harness import rss_kib
+
+    value = "v" * 900_000
+    with network.inside("master"):  # put there by the operator: past robot B's quota, still its to read
+        master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
+        for i in range(6):
+            assert master.setParam("/operator", f"/rospy_listener/big/k{i}", value)[0] == 1
+    pid = network.hosts["master"].proc.pid
+    before = rss_kib(pid)
+    token = token_of(network, "robot_b")
+    with flow.held("robot B's parameter reads"), contextlib.ExitStack() as stack:
+        streams, conns = [], []
+        for _ in range(16):  # one after the other: at most max_pending_per_certificate unverified
+            s = stack.enter_context(rogue_to(network, "master", "robot_b"))
+            assert rogue_preamble(s, token, "master").ok
+            streams.append(s)
+            conn = XmlRpcConnection(Role.CLIENT)
+            s.sendall(conn.send(Request(method="getParam", params=("/rospy_listener", "/rospy_listener/big"))))
+            conns.append(conn)
+        for s, conn in zip(streams, conns):  # answers read one stream after the other
+            s.settimeout(30)
+            while (event := conn.next_event()) is NEED_DATA:
+                conn.receive_data(s.recv(1 << 20))
+            assert event.value[0] == 1 and len(event.value[2]) == 6, str(event.value)[:200]
+        held_mib = (rss_kib(pid) - before) / 1024  # the streams still open
+    assert held_mib < 120, f"the master's interceptor holds {held_mib:.0f} MiB more after 16 answers of 5.4 MB"
+    with network.inside("master"):
+        assert master.deleteParam("/operator", "/rospy_listener/big")[0] == 1
