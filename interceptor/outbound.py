@@ -11,7 +11,7 @@ import ssl
 import time
 from typing import Any
 
-from cryptoros.errors import PEER_FAILURES, PolicyDenied, RemoteProtocolError
+from cryptoros.errors import PEER_FAILURES, PolicyDenied, Refusal, RemoteProtocolError
 from cryptoros.lru import remember
 from cryptoros.tls import (
     cert_thumbprint_s256,
@@ -79,6 +79,16 @@ class Outbound:
             except (ConnectionError, RemoteProtocolError, ssl.SSLError) as exc:
                 log.info("spare connection to %s:%d was gone (%s): opening a fresh one", host, port, exc)
                 tunnel = None  # the peer closed it before a byte of this stream was read
+            except Refusal as exc:
+                # A spare shows the certificate the peer had when it was made: after the
+                # peer's reload (a renewal) the token for that certificate is refused there
+                # (bad_audience) or by the authorization server. Its other spares are as
+                # old; this stream tries once more on a fresh connection, whose refusal
+                # is the answer (day-2 audit: every first stream after a renewal failed).
+                log.info("refused over a spare connection to %s:%d (%s): its spares dropped, "
+                         "trying a fresh connection", host, port, exc)
+                self._drop_spares_to(endpoint)
+                tunnel = None
             finally:
                 if not spare.used.done():
                     spare.used.set_result(None)
@@ -240,12 +250,15 @@ class Outbound:
     def drop_spares(self) -> None:
         """Close every ready spare; one still connecting is closed once connected (generation)."""
         self._spare_generation += 1
-        for spares in self._spares.values():
-            for spare in spares:
-                spare.writer.close()
-                if not spare.used.done():
-                    spare.used.set_result(None)
-        self._spares.clear()
+        for endpoint in list(self._spares):
+            self._drop_spares_to(endpoint)
+
+    def _drop_spares_to(self, endpoint: tuple[str, int]) -> None:
+        """Close the ready spares to ``endpoint``."""
+        for spare in self._spares.pop(endpoint, ()):
+            spare.writer.close()
+            if not spare.used.done():
+                spare.used.set_result(None)
 
     def _opening_slot(self, host: str, port: int):
         """At most ``max_pending_per_certificate`` streams to one peer endpoint between

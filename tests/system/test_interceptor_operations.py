@@ -387,3 +387,25 @@ def test_a_node_started_right_after_enable_manager_is_registered(network):
         with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "5"],
                      env=network.ros_env("robot_a")):
             assert got(read_lines(sub, "GOT", 30)), "the listener started right after enable-manager got nothing"
+
+
+def test_streams_opened_right_after_a_peers_renewal_are_accepted(network):
+    """Day-2 audit: robot A's certificate renewed (the runbook's renew, set-cert, SIGHUP)
+    while robot B's nodes subscribed to it: the first new stream from B after A's reload
+    was refused (``bad_audience``: B's token was for A's old certificate), and a fresh
+    ``rostopic echo`` waited with no message. Every new subscriber after the reload must
+    receive."""
+    a = network.hosts["robot_a"]
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "1"], env=network.ros_env("robot_a")):
+        for i in range(3):  # streams from B to A in a row before the renewal (spares, kept sessions)
+            with running([SYS_PY, NODE, "sub", f"/listener_b{i}", "/chatter", "20"], env=network.ros_env("robot_b")) as sub:
+                assert got(read_lines(sub, "GOT", 30)), f"listener {i} before the renewal received nothing"
+        renewed = network.pki.issue("robot_a", kind="interceptor", sans=(f"IP:{a.address}",), force=True)
+        result = network.cli("set-cert", "robot_a", "--fingerprint", renewed.fingerprint_sha256)
+        assert result.returncode == 0, result.stderr
+        assert "reloaded certificates" in sighup(a)
+        for i in range(3):
+            with running([SYS_PY, NODE, "sub", f"/listener_r{i}", "/chatter", "20"], env=network.ros_env("robot_b")) as sub:
+                assert got(read_lines(sub, "GOT", 15)), (
+                    f"listener {i} after robot A's renewal received nothing; robot A's denials: "
+                    f"{denials(network, 'robot_a')[-1500:]}")
