@@ -213,12 +213,17 @@ class NodeGuard:
     #: seconds a node asked to shut down (:meth:`exposed_apis`) is not named again: a
     #: starting node's several registrations are refused one after the other
     ASK_AGAIN_AFTER = 10.0
+    #: a node name found exposed again within this many seconds of the last time is a
+    #: repeat (a launch file's ``respawn="true"`` starts it again at once): asked to shut
+    #: down without the first time's delay, and named in the status for as long
+    REPEAT_WINDOW = 600.0
 
     def __init__(self, exposure: PortExposure | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self.exposure = exposure or PortExposure()
         self._served: dict[tuple[str, int], str] = {}  # (node, port) -> addresses, served exposed
         self._named: dict[tuple[str, int], float] = {}  # (node, port) -> when exposed_apis last named it
         self._running: set[tuple[str, int]] = set()  # refused nodes that could not be asked to shut down
+        self._repeats: dict[str, tuple[int, float]] = {}  # node name -> (times found exposed, last time)
         self._clock = clock
 
     def check_port(self, node: str | Callable[[], str], port: int, what: str, *, allow: tuple[str, ...],
@@ -283,14 +288,15 @@ class NodeGuard:
                     warnings.append(warning)
         return warnings
 
-    def exposed_apis(self, calls: list[Request], *, allow: tuple[str, ...]) -> list[tuple[str, int, str]]:
-        """(node, port, announced host) of each XML-RPC API that registrations among
-        ``calls`` announce and that other hosts reach, of a node not in ``allow`` and on no
-        port an allowed node was served on (a local process naming an allowed node's port
-        in its own registration gets it no shutdown): the nodes a refused registration
-        leaves running exposed, each once within :data:`ASK_AGAIN_AFTER`. Uses the answers
+    def exposed_apis(self, calls: list[Request], *, allow: tuple[str, ...]) -> list[tuple[str, int, str, bool]]:
+        """(node, port, announced host, repeat) of each XML-RPC API that registrations
+        among ``calls`` announce and that other hosts reach, of a node not in ``allow`` and
+        on no port an allowed node was served on (a local process naming an allowed node's
+        port in its own registration gets it no shutdown): the nodes a refused registration
+        leaves running exposed, each once within :data:`ASK_AGAIN_AFTER`. ``repeat``: the
+        node name was found exposed before, within :data:`REPEAT_WINDOW`. Uses the answers
         :meth:`check_port` just read."""
-        found: list[tuple[str, int, str]] = []
+        found: list[tuple[str, int, str, bool]] = []
         now = self._clock()
         allowed_ports = {port for _node, port in self._served}
         for call in calls:
@@ -307,7 +313,10 @@ class NodeGuard:
                     continue
                 if now - self._named.get((node, port), -self.ASK_AGAIN_AFTER) >= self.ASK_AGAIN_AFTER:
                     remember(self._named, (node, port), now, self.MAX_NOTED)
-                    found.append((node, port, host))
+                    times, last = self._repeats.get(node, (0, now - 2 * self.REPEAT_WINDOW))
+                    repeat = now - last < self.REPEAT_WINDOW
+                    remember(self._repeats, node, (times + 1 if repeat else 1, now), self.MAX_NOTED)
+                    found.append((node, port, host, repeat))
         return found
 
     def still_running(self, node: str, port: int) -> None:
@@ -335,6 +344,14 @@ class NodeGuard:
         if self._running:
             host.append("refused nodes still listening where other hosts reach them (they could not be asked to shut "
                         "down: stop them): " + ", ".join(f"{n} (port {p})" for n, p in sorted(self._running)[:8]))
+        now = self._clock()
+        again = sorted((node, times) for node, (times, last) in self._repeats.items()
+                       if times > 1 and now - last < self.REPEAT_WINDOW)
+        if again:
+            host.append("nodes started again and again where other hosts reach them, each time refused and shut down "
+                        "(a launch file's respawn?); other hosts reach each for a moment every time: " +
+                        ", ".join(f"{node} ({times} times)" for node, times in again[:8]) +
+                        "; start them on loopback (cryptoros run, no __ip/ROS_IP of the network) or stop them")
         if not self._served:
             return host
         named = ", ".join(f"{node} ({where} port {port})" for (node, port), where in list(self._served.items())[:8])

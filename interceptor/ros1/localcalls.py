@@ -29,6 +29,8 @@ MAX_IDLE = 8
 IDLE_SECONDS = 10.0
 #: seconds between finding a node exposed and asking it to shut down (:func:`ask_to_shut_down`)
 EXPOSED_SHUTDOWN_DELAY = 1.0
+#: the same for a node name found exposed before (exposure.NodeGuard.REPEAT_WINDOW)
+REPEAT_SHUTDOWN_DELAY = 0.05
 
 log = logging.getLogger("cryptoros.interceptor")
 
@@ -127,17 +129,21 @@ class LocalCalls:
 
 
 async def ask_to_shut_down(calls: LocalCalls, node: str, port: int, why: str,
-                           hosts: tuple[str, ...] = ("127.0.0.1",)) -> bool:
+                           hosts: tuple[str, ...] = ("127.0.0.1",), delay: float = EXPOSED_SHUTDOWN_DELAY) -> bool:
     """Ask a local node whose XML-RPC API other hosts reach to shut down (its own
     ``shutdown`` API, at the first of ``hosts`` that takes the connection: loopback, then
     the address of this host it announced, for a node bound to that address alone), as
     ``rosnode kill`` does. Refused registrations alone leave it running: rospy keeps a
     refused subscriber, and a stranger's ``publisherUpdate`` to its open port fed it
-    messages around the interceptor (deployment audit). Whether it was asked."""
+    messages around the interceptor (deployment audit). Whether it was asked.
+
+    Asked ``delay`` seconds later, once the node is through its start: rospy shut down
+    within its first milliseconds raced its TCPROS server thread into a traceback (1 run
+    of 4). A node found exposed again and again (respawned by roslaunch) is asked with
+    :data:`REPEAT_SHUTDOWN_DELAY`: a stranger reached such a node half of the time with
+    the first time's delay (stranger audit)."""
     request = Request(method="shutdown", params=("/cryptoros", f"cryptoros: {why}"))
-    # asked once the node is through its start: rospy shut down within its first
-    # milliseconds raced its TCPROS server thread into a traceback (1 run of 4)
-    await asyncio.sleep(EXPOSED_SHUTDOWN_DELAY)
+    await asyncio.sleep(delay)
     failure: BaseException | None = None
     for host in dict.fromkeys(hosts):
         where = f"[{host}]" if ":" in host else host
@@ -157,4 +163,5 @@ async def ask_to_shut_down(calls: LocalCalls, node: str, port: int, why: str,
     return False
 
 
-__all__ = ["EXPOSED_SHUTDOWN_DELAY", "IDLE_SECONDS", "MAX_IDLE", "LocalCalls", "LocalXmlRpc", "ask_to_shut_down"]
+__all__ = ["EXPOSED_SHUTDOWN_DELAY", "IDLE_SECONDS", "MAX_IDLE", "REPEAT_SHUTDOWN_DELAY", "LocalCalls", "LocalXmlRpc",
+           "ask_to_shut_down"]

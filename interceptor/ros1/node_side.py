@@ -38,7 +38,7 @@ from cryptoros.ros1.xmlrpc import (
 from interceptor.exposure import is_this_host
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
-from interceptor.ros1.localcalls import ask_to_shut_down
+from interceptor.ros1.localcalls import EXPOSED_SHUTDOWN_DELAY, REPEAT_SHUTDOWN_DELAY, ask_to_shut_down
 from interceptor.registrations import REGISTER, RELEASE, Registration, covers
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
@@ -204,18 +204,20 @@ class NodeSide:
             return None  # _decide_calls refuses it
         except PolicyDenied as exc:
             self.gw.deny("local-master", exc, "local node")
-            for node, port, host in self._nodes_exposed.exposed_apis(calls, allow=self.cfg.allow_exposed_nodes):
+            for node, port, host, repeat in self._nodes_exposed.exposed_apis(calls, allow=self.cfg.allow_exposed_nodes):
                 if port != self.cfg.public.port:
-                    self.gw.spawn(self._shut_down_exposed(node, port, host, exc.detail), "shutdown-exposed")
+                    self.gw.spawn(self._shut_down_exposed(node, port, host, exc.detail, repeat), "shutdown-exposed")
             error = Response(value=ros_error(f"{OPAQUE}: {exc}"))
             return assemble_multicall([error] * len(calls)) if request.method == MULTICALL else error
         return None
 
-    async def _shut_down_exposed(self, node: str, port: int, host: str, why: str) -> None:
+    async def _shut_down_exposed(self, node: str, port: int, host: str, why: str, repeat: bool) -> None:
         """:func:`ask_to_shut_down` at loopback, then at the address the node announced
-        when that is this host's (a node bound to that address alone), never elsewhere."""
+        when that is this host's (a node bound to that address alone), never elsewhere;
+        at once when the node name was found exposed before (``repeat``)."""
         hosts = ("127.0.0.1", host) if await is_this_host(host) else ("127.0.0.1",)
-        if not await ask_to_shut_down(self._local_calls, node, port, why, hosts=hosts):
+        delay = REPEAT_SHUTDOWN_DELAY if repeat else EXPOSED_SHUTDOWN_DELAY
+        if not await ask_to_shut_down(self._local_calls, node, port, why, hosts=hosts, delay=delay):
             self._nodes_exposed.still_running(node, port)  # named in status while it listens
 
     def _check_local_port(self, node: Callable[[], str], port: int, what: str) -> None:

@@ -320,3 +320,30 @@ def test_the_embedded_master_binds_loopback_and_refuses_another_address_without_
                 assert {str(one.address) for one in read_listeners(11311)} == {"127.0.0.1"}
         finally:
             stop(proc)
+
+
+def test_a_node_respawned_exposed_is_shut_down_at_once_each_time_and_named_in_status(tmp_path):
+    """Stranger audit: a launch file's ``respawn="true"`` started a refused exposed node
+    (``__ip:=0.0.0.0``) again each time it was asked to shut down; a stranger reached it
+    half of the time and fed it messages, and status said ok. From its second start the
+    node is asked to shut down at once, and ``cryptoros status`` names it."""
+    require("roslaunch")
+    separate_hosts()
+    with robot_network(tmp_path, netns=True) as net:
+        assert net.cli("grant-tools", "robot_a", "--roslaunch").returncode == 0
+        launch = tmp_path / "respawn.launch"
+        launch.write_text('<launch>\n  <node pkg="rostopic" type="rostopic" name="echo_respawn" '
+                          'args="echo /chatter __ip:=0.0.0.0" respawn="true"/>\n</launch>\n')
+        config = net.hosts["robot_a"].config
+        roslaunch = net.argv("robot_a", [tool("cryptoros"), "run", "--config", str(config), "--", "roslaunch",
+                                         str(launch)])
+        home = {"ROS_HOME": str(net.workdir / "ros_home"), "PYTHONUNBUFFERED": "1"}
+        with running(roslaunch, env=clean_env(PATH="/usr/bin:/bin", **home)):  # the nodes on Debian's Python
+            deadline = time.monotonic() + 60
+            while net.hosts["robot_a"].logs().count("node /echo_respawn listens where other hosts reach it") < 4:
+                assert time.monotonic() < deadline, net.hosts["robot_a"].logs()[-3000:]
+                time.sleep(0.2)
+            status = status_text(net, "robot_a")
+        assert "nodes started again and again where other hosts reach them" in status and "/echo_respawn (" in status, \
+            status
+        assert "could not be asked" not in net.hosts["robot_a"].logs()

@@ -191,23 +191,49 @@ def test_the_exposed_apis_of_refused_registrations_are_named_once_each_and_allow
     exposed = Request(method="registerSubscriber", params=("/echo", "/chatter", "*", "http://robot-a:41234/"))
     service = Request(method="registerService", params=("/srv", "/add", "rosrpc://robot-a:41234", "http://127.0.0.1:11311/"))
     private = Request(method="registerPublisher", params=("/ok", "/chatter", "std_msgs/String", "http://127.0.0.1:11311/"))
-    assert guard.exposed_apis([private, service, exposed, exposed], allow=()) == [("/echo", 41234, "robot-a")]
+    assert guard.exposed_apis([private, service, exposed, exposed], allow=()) == [("/echo", 41234, "robot-a", False)]
     assert guard.exposed_apis([exposed], allow=()) == []  # its next registration, refused too
     now[0] = NodeGuard.ASK_AGAIN_AFTER
-    assert guard.exposed_apis([exposed], allow=()) == [("/echo", 41234, "robot-a")]  # still there: asked again
+    assert guard.exposed_apis([exposed], allow=()) == [("/echo", 41234, "robot-a", True)]  # still there: asked again
     assert guard.exposed_apis([exposed], allow=("/e*",)) == []
     # an IPv6 API as rospy writes it (no brackets) is read, not skipped as a bad URI
     table.listeners.append(Listener(address=ip_address("::"), port=41255))
     v6 = Request(method="registerSubscriber", params=("/v6", "/chatter", "*", "http://fd06::3:41255/"))
     with pytest.raises(PolicyDenied, match="exposed_endpoint|/v6"):
         guard.check_registrations([v6], allow=(), config=None)
-    assert guard.exposed_apis([v6], allow=()) == [("/v6", 41255, "fd06::3")]
+    assert guard.exposed_apis([v6], allow=()) == [("/v6", 41255, "fd06::3", False)]
     # a port an allowed node was served on is never named for another node's refusal
     allowed = Request(method="registerPublisher", params=("/rec", "/chatter", "std_msgs/String", "http://h:5555/"))
     table.listeners.append(Listener(address=ip_address("0.0.0.0"), port=5555))
     assert guard.check_registrations([allowed], allow=("/rec",), config=None)
     deputy = Request(method="registerSubscriber", params=("/evil", "/chatter", "*", "http://127.0.0.1:5555/"))
     assert guard.exposed_apis([deputy], allow=("/rec",)) == []
+
+
+def test_a_node_respawned_exposed_is_a_repeat_named_in_the_status_until_it_stops():
+    """Stranger audit: roslaunch's respawn="true" started a refused exposed node again
+    each time it was shut down, and a stranger reached it half of the time, with
+    status saying nothing. The same node name found exposed again (any port) within
+    REPEAT_WINDOW is a repeat (asked to shut down at once) and named in the status."""
+    table = FakeTable()
+    now = [0.0]
+    guard = NodeGuard(table.exposure(), clock=lambda: now[0])
+
+    def respawned(port: int) -> Request:
+        table.listeners.append(Listener(address=ip_address("0.0.0.0"), port=port))
+        return Request(method="registerSubscriber", params=("/echo", "/chatter", "*", f"http://robot-a:{port}/"))
+
+    assert guard.exposed_apis([respawned(41300)], allow=()) == [("/echo", 41300, "robot-a", False)]
+    assert not any("again and again" in w for w in guard.warnings())  # once is not a pattern
+    now[0] = 1.5
+    assert guard.exposed_apis([respawned(41301)], allow=()) == [("/echo", 41301, "robot-a", True)]
+    now[0] = 3.0
+    assert guard.exposed_apis([respawned(41302)], allow=()) == [("/echo", 41302, "robot-a", True)]
+    line = next(w for w in guard.warnings() if "again and again" in w)
+    assert "/echo (3 times)" in line and "respawn" in line and "cryptoros run" in line
+    now[0] = 3.0 + NodeGuard.REPEAT_WINDOW  # quiet since: no longer named, and a new start is a first again
+    assert not any("again and again" in w for w in guard.warnings())
+    assert guard.exposed_apis([respawned(41303)], allow=()) == [("/echo", 41303, "robot-a", False)]
 
 
 def test_master_problem_names_the_fix_and_the_override():
