@@ -5,7 +5,8 @@ made every tool that read a certificate, key, passphrase, configuration or polic
 and grow without limit (CLI audit: 9.6 GB in 8 s). :func:`read_bounded` refuses what is
 not a regular file and what is larger than the caller's limit, with an :class:`OSError`
 whose ``strerror`` says which, so each caller's one-line "cannot read ..." message
-carries it.
+carries it. :func:`open_to_others` says when a file holding a secret (a private key,
+a passphrase) may be read by users other than its owner.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import errno
 import os
 import stat
+from collections.abc import Iterable
 
 #: certificates, keys, CSRs and CRLs (a CRL of 100,000 revocations is about 4 MB)
 PEM_LIMIT = 16 << 20
@@ -47,4 +49,24 @@ def read_bounded(path: str | os.PathLike[str], limit: int) -> bytes:
         os.close(fd)
 
 
-__all__ = ["CONFIG_LIMIT", "PASSPHRASE_LIMIT", "PEM_LIMIT", "POLICY_LIMIT", "read_bounded"]
+def open_to_others(named: Iterable[tuple[str, str | os.PathLike[str] | None]]) -> list[str]:
+    """One warning line for each file of ``named`` ((what it holds, path): "the TLS key",
+    a passphrase file; a path of None skipped) that grants its group or other users any
+    access (``mode & 0o077``): the file, its mode and the fix. A file that cannot be read
+    is left to its reader to report."""
+    lines = []
+    for what, path in named:
+        if path is None:
+            continue
+        try:
+            mode = stat.S_IMODE(os.stat(path).st_mode)
+        except OSError:
+            continue
+        loose = mode & 0o077
+        if loose:
+            who = " and ".join(name for name, bits in (("its group", 0o070), ("other users", 0o007)) if loose & bits)
+            lines.append(f"{what} {path} has mode {mode:04o}, open to {who} on this host: chmod 600 {path}")
+    return lines
+
+
+__all__ = ["CONFIG_LIMIT", "PASSPHRASE_LIMIT", "PEM_LIMIT", "POLICY_LIMIT", "open_to_others", "read_bounded"]

@@ -58,6 +58,9 @@ class TLSConfig:
     key_passphrase: bytes | None = None
     crl_file: Path | None = None
     pin_tls12: bool = False
+    #: the file ``key_passphrase`` was read from (None: none, or the environment), for
+    #: :meth:`secret_files`
+    key_passphrase_file: Path | None = None
 
     def __post_init__(self) -> None:
         for label in ("ca_file", "cert_file", "key_file", "crl_file"):
@@ -76,6 +79,11 @@ class TLSConfig:
                 raise ConfigError(f"{what} {path} is not a regular file (a device, FIFO or directory)")
             if st.st_size > PEM_LIMIT:
                 raise ConfigError(f"{what} {path} is larger than {PEM_LIMIT >> 20} MiB: not a certificate, key or CRL")
+
+    def secret_files(self) -> list[tuple[str, Path | None]]:
+        """(what it holds, path or None) of the files named here that hold a secret, for
+        :func:`cryptoros.files.open_to_others`."""
+        return [("the TLS key", self.key_file), ("the TLS key's passphrase file", self.key_passphrase_file)]
 
 
 def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl.SSLContext) -> ssl.SSLContext:

@@ -59,25 +59,52 @@ def deployment_problems(cfg) -> tuple[list[str], list[str]]:
     """(refusals, warnings) of the deployment checks that need no network beyond this
     host: this host's loopback must answer this host only (``route_localnet``: every
     role trusts what reaches it there), and the master role's rosmaster must answer on
-    loopback only (warned, not refused, with ``allow_exposed_master``)."""
+    loopback only (warned, not refused, with ``allow_exposed_master``); the warnings of
+    :func:`setting_warnings` too. Both the start and ``--check`` say them."""
     from cryptoros.exposure import ExposureError
     from interceptor.exposure import PortExposure, master_problem
 
+    warnings = setting_warnings(cfg)
     exposure = PortExposure()
     try:
         loopback = exposure.loopback_problem()
     except ExposureError as exc:
         loopback = f"cannot tell whether it does: {exc}"
     if loopback is not None:
-        return [f"this host's loopback answers other hosts: {loopback}"], []
+        return [f"this host's loopback answers other hosts: {loopback}"], warnings
     if "master" not in cfg.roles or not cfg.master.upstream:
-        return [], []
+        return [], warnings
     problem = master_problem(cfg.master.upstream, exposure, cfg.source)
     if problem is None:
-        return [], []
+        return [], warnings
     if cfg.allow_exposed_master:
-        return [], [f"allow_exposed_master = true, serving anyway: {problem}"]
-    return [problem], []
+        return [], [f"allow_exposed_master = true, serving anyway: {problem}", *warnings]
+    return [problem], warnings
+
+
+def setting_warnings(cfg) -> list[str]:
+    """What the configuration allows but weakens, one line each: no CRL, a secret file
+    other users may read, a public listener on every address."""
+    from cryptoros.files import open_to_others
+    from cryptoros.pemfiles import cert_der
+    from interceptor.streams import cert_hosts
+
+    lines = []
+    if cfg.tls.crl_file is None:
+        # PeerCertificateCheck then has only the feed's serials (revoked_serials), which
+        # the authorization server lists only when it runs with --crl
+        lines.append("[tls] has no crl: a certificate revoked at the CA is refused here only once the authorization "
+                     "server's revocation feed lists it (it does when that server runs with --crl); set [tls] crl "
+                     "to the fleet's CRL file")
+    lines += open_to_others(cfg.tls.secret_files())
+    if cfg.public.host in ("0.0.0.0", "::"):
+        try:
+            hosts = ", ".join(sorted(cert_hosts(cert_der(cfg.tls.cert_file)))) or "no name"
+        except CryptorosError:
+            hosts = "no name"  # the TLS context says what is wrong with the file
+        lines.append(f"public {cfg.public} listens on every address; peers reach it on one of {hosts} "
+                     "(the certificate's IP/DNS names)")
+    return lines
 
 
 def quiet_closed_transport(loop: asyncio.AbstractEventLoop, context: dict) -> None:
@@ -196,10 +223,7 @@ async def _preflight(cfg) -> list[str]:
         raise ConfigError(problem)
     hosts = cert_hosts(der)
     lines = []
-    if cfg.public.host in ("0.0.0.0", "::"):
-        lines.append(f"warning: public {cfg.public} listens on every address; peers reach it on one of "
-                     f"{', '.join(sorted(hosts)) or 'no name'} (the certificate's IP/DNS names)")
-    elif cfg.public.host not in hosts:
+    if cfg.public.host not in hosts and cfg.public.host not in ("0.0.0.0", "::"):  # every address: a warning
         raise ConfigError(f"public address {cfg.public.host} is not in {cfg.tls.cert_file}'s IP/DNS names "
                           f"({', '.join(sorted(hosts)) or 'none'}): peers would refuse every endpoint of this host")
     # each replica on its own: the line names the one that answered, and one that does not is said

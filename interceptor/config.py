@@ -521,7 +521,7 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
     for required in ("ca", "cert", "key"):
         if required not in tls_raw:
             raise ConfigError(f"[tls] {required} is required")
-    passphrase = None
+    passphrase, pass_path = None, None
     given = [name for name in ("tls_key_passphrase_file", "key_passphrase_file") if name in tls_raw]
     if len(given) > 1:
         raise ConfigError("[tls] tls_key_passphrase_file and key_passphrase_file (its old name) are both given")
@@ -540,6 +540,7 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         key_passphrase=passphrase,
         crl_file=_path(base, tls_raw["crl"], "[tls] crl") if "crl" in tls_raw else None,
         pin_tls12=bool(_typed(tls_raw.get("pin_tls12", False), bool, "[tls] pin_tls12")),
+        key_passphrase_file=pass_path,
     )
 
     if "authz" not in top:

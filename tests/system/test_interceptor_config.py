@@ -213,6 +213,55 @@ def test_check_names_the_certificate_and_manager_mismatches_and_an_unreachable_a
     assert "expired on" in started.stderr, started.stderr  # nor does it start
 
 
+def test_weakening_settings_are_warned_alike_at_start_and_by_check(tmp_path):
+    """No CRL, a TLS key and its passphrase file others may read, a public listener on
+    every address: one warning line each, the same from --check and at start (here
+    stopped by a squatter on the public port, after the warnings); a file with none of
+    them says no warning."""
+    import socket
+
+    from cryptoros.lab.network import free_port
+    from tests.authz_support import authz, build_team, ok, running_daemon
+    from tests.support import run, script
+
+    team = build_team(tmp_path)
+    issued = team.pki.pki.issue("robot_x", kind="interceptor", sans=("IP:127.0.0.2",), passphrase=b"s3cret passphrase")
+    ok(authz("add-manager", "robot_x", "--fingerprint", issued.fingerprint_sha256, db=team.db))
+    passphrase = tmp_path / "robot_x.pass"
+    passphrase.touch(mode=0o600)
+    passphrase.write_text("s3cret passphrase\n")
+    material = {"ca": team.pki.ca_cert, "cert": issued.cert_path, "key": issued.key_path, "crl": team.pki.crl}
+    port = free_port()
+    with running_daemon(team.pki, team.db, tmp_path) as daemon:
+        text = good(material, **{'"robot1"': '"robot_x"', "https://127.0.0.1:8443": daemon.base,
+                                 f'key = "{issued.key_path}"': f'key = "{issued.key_path}"\n'
+                                                                f'        tls_key_passphrase_file = "{passphrase}"'})
+        path = write(tmp_path, text)
+        quiet = run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
+        assert quiet.returncode == 0 and "warning" not in quiet.stdout + quiet.stderr, quiet.stderr
+        issued.key_path.chmod(0o644)
+        passphrase.chmod(0o640)
+        path = write(tmp_path, text.replace(f'crl = "{team.pki.crl}"\n', "").replace("127.0.0.2:11400",
+                                                                                      f"0.0.0.0:{port}"))
+        check = run([script("cryptoros-interceptor"), "--config", str(path), "--check"], timeout=60)
+        assert check.returncode == 0 and "token for manager robot_x" in check.stdout, check.stderr
+        with socket.socket() as squatter:
+            squatter.bind(("0.0.0.0", port))
+            squatter.listen(1)
+            started = run([script("cryptoros-interceptor"), "--config", str(path)], timeout=60)
+    assert started.returncode == 1 and f"cannot listen on 0.0.0.0:{port} (public)" in started.stderr, started.stderr
+    key = issued.key_path
+    for warning in (
+            "[tls] has no crl: a certificate revoked at the CA is refused here only once the authorization server's "
+            "revocation feed lists it (it does when that server runs with --crl)",
+            f"the TLS key {key} has mode 0644, open to its group and other users on this host: chmod 600 {key}",
+            f"the TLS key's passphrase file {passphrase} has mode 0640, open to its group on this host: "
+            f"chmod 600 {passphrase}",
+            f"public 0.0.0.0:{port} listens on every address; peers reach it on one of 127.0.0.2"):
+        assert f"warning: {warning}" in check.stderr, check.stderr
+        assert f"WARNING {warning}" in started.stderr, started.stderr
+
+
 def test_authz_url_may_list_replicas(material, tmp_path):
     cfg = load(write(tmp_path, good(material, **{'url = "https://127.0.0.1:8443"':
                                                  'url = ["https://127.0.0.1:8443/", "https://127.0.0.9:8443"]'})))

@@ -70,3 +70,17 @@ def test_tls_files_that_openssl_reads_itself_are_held_to_the_same_rule(tmp_path)
         TLSConfig(**{**files, "ca_file": big})
     with pytest.raises(ConfigError, match=r"TLS cert file not found: .*missing\.crt"):
         TLSConfig(**{**files, "cert_file": tmp_path / "missing.crt"})
+
+
+def test_a_secret_file_open_to_group_or_others_is_one_line_naming_file_mode_and_fix(tmp_path):
+    from cryptoros.files import open_to_others
+
+    closed, group, world = (tmp_path / name for name in ("closed.key", "group.pass", "world.key"))
+    for path, mode in ((closed, 0o600), (group, 0o640), (world, 0o604)):
+        path.write_text("secret")
+        path.chmod(mode)
+    assert open_to_others([("the TLS key", closed), ("no file", None), ("missing", tmp_path / "nothing")]) == []
+    assert open_to_others([("the passphrase file", group), ("the TLS key", world)]) == [
+        f"the passphrase file {group} has mode 0640, open to its group on this host: chmod 600 {group}",
+        f"the TLS key {world} has mode 0604, open to other users on this host: chmod 600 {world}",
+    ]
