@@ -170,6 +170,7 @@ def build_config(values: dict[str, Any]) -> ServeConfig:
         key_file=Path(values["key"]),
         key_passphrase=tls_pass,
         crl_file=Path(values["crl"]) if values.get("crl") else None,
+        key_passphrase_file=Path(values["key_passphrase_file"]) if values.get("key_passphrase_file") else None,
     )
     keys = protection(values.get("signing_key_passphrase_file"),
                       unsafe_no_passphrase=bool(values.get("unsafe_no_passphrase")))

@@ -12,6 +12,7 @@ import base64
 import hashlib
 import json
 from dataclasses import dataclass
+from pathlib import Path
 
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
@@ -30,6 +31,8 @@ class KeyProtection:
 
     passphrase: bytes | None
     unsafe_no_passphrase: bool = False
+    #: the file the passphrase was read from (None: the environment, or none)
+    passphrase_file: Path | None = None
 
     def __post_init__(self) -> None:
         if self.passphrase is None and not self.unsafe_no_passphrase:
@@ -47,7 +50,8 @@ def protection(passphrase_file: str | None, *, unsafe_no_passphrase: bool = Fals
     passphrase = read_passphrase(passphrase_file, PASSPHRASE_ENV)
     if passphrase is not None and unsafe_no_passphrase:
         raise ConfigError("--unsafe-no-passphrase given together with a passphrase")
-    return KeyProtection(passphrase=passphrase, unsafe_no_passphrase=unsafe_no_passphrase)
+    return KeyProtection(passphrase=passphrase, unsafe_no_passphrase=unsafe_no_passphrase,
+                         passphrase_file=Path(passphrase_file) if passphrase_file else None)
 
 
 def _b64u_int(n: int) -> str:

@@ -30,6 +30,7 @@ from authz_server.listener import TLSListener
 from authz_server.registry import Registry
 from cryptoros.errors import ConfigError, CryptorosError
 from cryptoros.fdlimit import raise_descriptor_limit
+from cryptoros.files import open_to_others
 from cryptoros.pemfiles import cert_serial
 from cryptoros.tls import server_context
 
@@ -95,6 +96,9 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         log.warning("no CRL (--crl, or crl = in the configuration): a certificate revoked with "
                     "'cryptoros-certs revoke' still gets tokens while it is bound to its manager, and no "
                     "interceptor learns of it")
+    for warning in open_to_others([*cfg.tls.secret_files(),
+                                   ("the signing keys' passphrase file", cfg.keys.passphrase_file)]):
+        log.warning("%s", warning)
     _refusing_revoked(ssl_ctx, service)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None

@@ -50,6 +50,8 @@ class AuthzDaemon:
     host: str = "127.0.0.1"
     extra: Sequence[str] = ()
     crl: bool = True
+    #: the mode of the server's TLS key and signing-key passphrase file
+    secret_mode: int = 0o600
     proc: subprocess.Popen | None = None
     log_path: Path | None = None
     _ctx: dict = field(default_factory=dict)
@@ -62,6 +64,10 @@ class AuthzDaemon:
         self.port = self.port or free_port()
         server = self.pki.issue("authz", kind="server", force=True)
         pass_file = self.workdir / "signing.pass"
+        pass_file.unlink(missing_ok=True)
+        pass_file.touch(mode=0o600)  # the server warns of a secret others may read
+        for secret in (pass_file, server.key_path):
+            secret.chmod(self.secret_mode)
         pass_file.write_text(PASSPHRASE + "\n")
         self.log_path = self.workdir / f"authz-{self.port}.log"
         env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
@@ -150,8 +156,8 @@ class AuthzDaemon:
 
 @contextlib.contextmanager
 def running_daemon(pki: TestPKIFactory, db: str, workdir: Path, extra: Sequence[str] = (),
-                   crl: bool = True) -> Iterator[AuthzDaemon]:
-    d = AuthzDaemon(pki=pki, db=db, workdir=workdir, extra=tuple(extra), crl=crl)
+                   crl: bool = True, secret_mode: int = 0o600) -> Iterator[AuthzDaemon]:
+    d = AuthzDaemon(pki=pki, db=db, workdir=workdir, extra=tuple(extra), crl=crl, secret_mode=secret_mode)
     try:
         d.start()
         yield d

@@ -398,6 +398,8 @@ def lab_network(
         taken: dict[str, set[int]] = {}  # ports handed out, per network namespace
         authz_port = free_port(authz_host, taken.setdefault("", set()))
         pass_file = workdir / "signing.pass"
+        pass_file.unlink(missing_ok=True)
+        pass_file.touch(mode=0o600)  # a secret: the server warns of one its group or others may read
         pass_file.write_text(SIGNING_PASSPHRASE + "\n")
         authz_log = (workdir / "authz.log").open("w")
         daemon = subprocess.Popen(

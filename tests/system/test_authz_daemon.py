@@ -486,6 +486,22 @@ def test_a_server_started_without_a_crl_says_what_it_then_misses(tmp_path, daemo
         assert d.token("mallory")[0] == 200
 
 
+def test_a_server_whose_secret_files_others_may_read_says_which_at_start(tmp_path, daemon):
+    """Its TLS key and the signing keys' passphrase file open to the group (0640): one
+    warning each at start naming the file, its mode and chmod 600; the fixture's server,
+    its files 0600, says nothing of it."""
+    from tests.authz_support import running_daemon
+
+    assert "chmod 600" not in daemon.log(), daemon.log()
+    team = build_team(tmp_path)
+    with running_daemon(team.pki, team.db, tmp_path, secret_mode=0o640) as d:
+        key = team.pki.pki.key_path_for("authz")
+        for line in (f"WARNING the TLS key {key} has mode 0640, open to its group on this host: chmod 600 {key}",
+                     f"WARNING the signing keys' passphrase file {tmp_path / 'signing.pass'} has mode 0640, open to "
+                     f"its group on this host: chmod 600 {tmp_path / 'signing.pass'}"):
+            assert line in d.log(), d.log()
+
+
 def test_healthz_says_unavailable_while_the_registry_fails_requests(daemon):
     """A registry that answers reads but fails writes (a full disk) answered every token
     request 503 while /healthz said ok, so a load balancer kept sending robots to it.
