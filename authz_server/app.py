@@ -427,6 +427,8 @@ class Metrics:
                                        "long-polls of the feed", registry=self.registry)
         self.feed_polls_held = Gauge("cryptoros_authz_feed_polls_held", "Long-polls of the feed held open now",
                                      registry=self.registry)
+        self.tls_handshakes_refused = Counter("cryptoros_authz_tls_handshakes_refused", "TLS handshakes that "
+                                              "failed or timed out at the public port", registry=self.registry)
 
 
 class _Denied(CryptorosError):

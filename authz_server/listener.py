@@ -17,6 +17,11 @@ from 10 addresses kept a new robot out; a re-audit: evicting the oldest of all, 
 evicted every robot in its handshake). A source a client with a verified certificate
 connected from is not counted in all (only against its own address's cap); loopback is
 not capped per source (the host's own processes: a fleet of clients on one machine).
+
+A handshake that fails (no client certificate, one the CA did not issue, bytes that are
+not TLS, a timeout) is counted, and the count said in one WARNING line at most every
+:data:`FAILED_SUMMARY_SECONDS` with the latest source and reason (logged per handshake
+at debug only, a stranger's 20,000 handshakes left nothing in the log).
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ IN_ALL = 512
 HANDSHAKE_TIMEOUT = 10.0
 #: source addresses remembered as a verified client's
 KNOWN_SOURCES = 4096
+#: failed handshakes are summed up in one log line at most this often (seconds)
+FAILED_SUMMARY_SECONDS = 10.0
 
 
 def _loopback(address: str) -> bool:
@@ -58,7 +65,9 @@ class TLSListener:
     def __init__(self, host: str, port: int, ssl_ctx: ssl.SSLContext, protocol_factory: Callable[[], asyncio.Protocol],
                  *, per_source: int = PER_SOURCE, in_all: int = IN_ALL,
                  handshake_timeout: float = HANDSHAKE_TIMEOUT, backlog: int = 1024,
-                 uncapped_source: Callable[[str], bool] = _loopback) -> None:
+                 uncapped_source: Callable[[str], bool] = _loopback,
+                 failed_summary_seconds: float = FAILED_SUMMARY_SECONDS,
+                 on_failed_handshake: Callable[[], None] = lambda: None) -> None:
         self.host, self.port, self.ssl_ctx = host, port, ssl_ctx
         self._factory = protocol_factory
         self._uncapped_source = uncapped_source
@@ -76,6 +85,15 @@ class TLSListener:
         self._log_once = OncePer(60.0)
         self.refused = 0  # connections closed at accept, over a cap
         self.evicted = 0  # connections closed in their handshake to make room in all
+        self.failed = 0  # handshakes that failed or timed out
+        self._on_failed = on_failed_handshake
+        self._summary_seconds = failed_summary_seconds
+        #: the failures since the last summary: how many, the latest (source, error), and
+        #: the summary due (None: none since the last one)
+        self._failed_since = 0
+        self._latest_failure: tuple[str, BaseException] | None = None
+        self._summary: asyncio.TimerHandle | None = None
+        self._summary_from = 0.0
 
     def start(self) -> None:
         """Bind and listen now (an OSError, EADDRINUSE included, is the caller's); accept
@@ -97,6 +115,9 @@ class TLSListener:
             task.cancel()
         if self._sock is not None:
             self._sock.close()
+        if self._summary is not None:
+            self._summary.cancel()
+            self._summarize()
 
     def _over_cap(self, source: str) -> str | None:
         if not self._uncapped_source(source) and self._pending.get(source, 0) >= self.per_source:
@@ -179,6 +200,30 @@ class TLSListener:
         except (OSError, asyncio.TimeoutError) as exc:  # a failed or late handshake, a reset
             log.debug("TLS handshake from %s failed: %s", source, exc)
             conn.close()
+            self._failed(source, exc)
+
+    def _failed(self, source: str, exc: BaseException) -> None:
+        """Counted; said by the summary due (one scheduled with the first failure after
+        the last one), so a flood costs a count and a tuple per handshake."""
+        self.failed += 1
+        self._failed_since += 1
+        self._latest_failure = (source, exc)
+        self._on_failed()
+        if self._summary is None:
+            loop = asyncio.get_running_loop()
+            self._summary_from = loop.time()
+            self._summary = loop.call_later(self._summary_seconds, self._summarize)
+
+    def _summarize(self) -> None:
+        self._summary = None
+        if self._latest_failure is None:
+            return
+        source, exc = self._latest_failure
+        log.warning("%d TLS handshakes refused in the last %.0f s, latest from %s: %s (%d since start; each "
+                    "one is logged at debug)", self._failed_since,
+                    max(asyncio.get_running_loop().time() - self._summary_from, 1.0), source,
+                    str(exc) or type(exc).__name__, self.failed)
+        self._failed_since, self._latest_failure = 0, None
 
     def _ended(self, task: asyncio.Task) -> None:
         """A handshake task is done. A cancelled one (closed to make room, or the listener
@@ -191,4 +236,4 @@ class TLSListener:
             conn.close()
         self._release(task)
 
-__all__ = ["HANDSHAKE_TIMEOUT", "IN_ALL", "PER_SOURCE", "TLSListener"]
+__all__ = ["FAILED_SUMMARY_SECONDS", "HANDSHAKE_TIMEOUT", "IN_ALL", "PER_SOURCE", "TLSListener"]

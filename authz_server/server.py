@@ -111,7 +111,8 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         runner = web.AppRunner(make_app(service), access_log=None, handle_signals=False,
                                shutdown_timeout=cfg.shutdown_grace, handler_cancellation=True)
         await runner.setup()
-        listener = TLSListener(cfg.host, cfg.port, ssl_ctx, runner.server)
+        listener = TLSListener(cfg.host, cfg.port, ssl_ctx, runner.server,
+                               on_failed_handshake=service.metrics.tls_handshakes_refused.inc)
         try:
             listener.start()
         except OSError as exc:

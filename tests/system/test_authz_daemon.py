@@ -502,6 +502,28 @@ def test_a_server_whose_secret_files_others_may_read_says_which_at_start(tmp_pat
             assert line in d.log(), d.log()
 
 
+def test_failed_tls_handshakes_are_counted_in_metrics(daemon):
+    """Bytes that are not TLS at the public port: a failed handshake, counted in
+    cryptoros_authz_tls_handshakes_refused_total (the warning: test_authz_listener.py)."""
+    import socket
+
+    def refused() -> float:
+        cert, key = daemon.cert_of("probe")
+        _status, raw = daemon.request("GET", "/metrics", cert=cert, key=key)
+        return next(float(line.split()[1]) for line in raw.decode().splitlines()
+                    if line.startswith("cryptoros_authz_tls_handshakes_refused_total "))
+
+    before = refused()
+    for _ in range(3):
+        with socket.create_connection(("127.0.0.1", daemon.port), timeout=5) as sock:
+            sock.sendall(b"GET / HTTP/1.1\r\n\r\n")
+            sock.recv(1)  # closed by the server
+    deadline = time.monotonic() + 10
+    while refused() < before + 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert refused() == before + 3
+
+
 def test_healthz_says_unavailable_while_the_registry_fails_requests(daemon):
     """A registry that answers reads but fails writes (a full disk) answered every token
     request 503 while /healthz said ok, so a load balancer kept sending robots to it.

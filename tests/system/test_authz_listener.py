@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import ssl
 
 from authz_server.listener import TLSListener
 from cryptoros.tls import TLSConfig, client_context, server_context
@@ -85,3 +86,67 @@ def test_half_open_connections_are_capped_per_source_and_in_all_and_known_source
             await listener.close()
 
     asyncio.run(scenario())
+
+
+def test_failed_handshakes_are_counted_and_summed_up_in_one_warning(pki, tmp_path, caplog):
+    """No client certificate, a self-signed one, bytes that are not TLS: each failed
+    handshake counted (the server's /metrics counter is called), and one WARNING line for
+    the lot naming the latest source and reason, not one per handshake."""
+    import logging
+    import subprocess
+
+    server = pki.issue("authz", kind="server", sans=("IP:127.0.0.1",))
+    ctx = server_context(TLSConfig(ca_file=pki.ca_cert, cert_file=server.cert_path, key_file=server.key_path))
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
+                    "-subj", "/CN=stranger", "-days", "1", "-keyout", str(tmp_path / "self.key"),
+                    "-out", str(tmp_path / "self.pem")], check=True, capture_output=True)
+    counted = []
+
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        listener = TLSListener("127.0.0.1", 0, ctx, Hello, failed_summary_seconds=0.5,
+                               on_failed_handshake=lambda: counted.append(1))
+        listener.start()
+        port = listener._sock.getsockname()[1]
+
+        async def attempt(client: ssl.SSLContext | None, source: str) -> None:
+            if client is None:  # not TLS at all
+                sock = socket.socket()
+                sock.bind((source, 0))
+                sock.setblocking(False)
+                await loop.sock_connect(sock, ("127.0.0.1", port))
+                await loop.sock_sendall(sock, b"GET / HTTP/1.1\r\n\r\n")
+                await loop.sock_recv(sock, 1)
+                sock.close()
+                return
+            try:
+                reader, writer = await asyncio.open_connection("127.0.0.1", port, ssl=client, local_addr=(source, 0),
+                                                               server_hostname="127.0.0.1")
+                await asyncio.wait_for(reader.read(2), 5)  # TLS 1.3: the refusal comes after the client's Finished
+                writer.close()
+            except (OSError, ssl.SSLError):
+                pass
+
+        anonymous = ssl.create_default_context(cafile=str(pki.ca_cert))
+        anonymous.check_hostname = False
+        self_signed = ssl.create_default_context(cafile=str(pki.ca_cert))
+        self_signed.check_hostname = False
+        self_signed.load_cert_chain(tmp_path / "self.pem", tmp_path / "self.key")
+        try:
+            await attempt(anonymous, "127.0.0.11")
+            await attempt(self_signed, "127.0.0.12")
+            await attempt(None, "127.0.0.13")
+            for _ in range(100):
+                if listener.failed == 3:
+                    break
+                await asyncio.sleep(0.02)
+            assert listener.failed == 3 and len(counted) == 3
+            await asyncio.sleep(0.8)  # the summary due 0.5 s after the first failure
+        finally:
+            await listener.close()
+
+    with caplog.at_level(logging.WARNING, logger="cryptoros.authz"):
+        asyncio.run(scenario())
+    lines = [r.getMessage() for r in caplog.records if "TLS handshakes refused" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].startswith("3 TLS handshakes refused in the last 1 s, latest from 127.0.0.13: "), \
+        lines
