@@ -193,12 +193,14 @@ def check_master_registry(d: Deployment, outs):
     listed = subprocess.run([str(VENV_BIN / "cryptoros-authz"), "list-keys"], capture_output=True, text=True,
                             timeout=60, env=d.env).stdout
     assert len(listed.splitlines()) == 1, listed
+    assert (d.work / "signing.pass").stat().st_mode & 0o777 == 0o600
 
 
 def check_master_authz(d: Deployment, outs):
     with d.hosts["master"].inside(), \
             urllib.request.urlopen(f"http://127.0.0.1:{PORTS['PROBE_PORT']}/healthz", timeout=5) as reply:
         assert reply.status == 200
+    assert "chmod 600" not in (d.work / "authz.log").read_text()  # no secret file open to others
 
 
 def check_master_rosmaster(d: Deployment, outs):
@@ -436,6 +438,16 @@ def test_runbook_has_every_step_a_check_and_a_host():
     for part in ("## Part 1: the master host", "## Part 2: robots join", "## Part 3: day-2 operations",
                  "## Part 4: what a stranger can reach"):
         assert part in text
+
+
+def test_the_docs_create_passphrase_files_0600_from_the_start():
+    """A passphrase file a walkthrough writes is created under ``umask 077``: written
+    under the default umask (0644) and chmod-ed after, it could be read in between."""
+    docs = [REPO / "README.md", REPO / "authz_server" / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    writes = [(doc.name, line) for doc in docs for line in doc.read_text().splitlines()
+              if re.search(r">\s*\S*\.pass\b", line)]
+    assert len(writes) >= 3, writes  # README.md, authz_server/README.md, docs/runbook.md
+    assert [w for w in writes if "umask 077" not in w[1]] == []
 
 
 @pytest.mark.timeout(600)  # the whole deployment and every day-2 step: ~60 s quiet, ~160 s on a busy machine
