@@ -330,7 +330,8 @@ class InterceptorConfig:
     #: announce listens on a non-loopback address (roscpp binds its XML-RPC API to every
     #: address whatever ROS_IP says): the operator closed those ports with a firewall
     allow_exposed_nodes: tuple[str, ...] = ()
-    #: the file this configuration was loaded from (None: parsed from a table)
+    #: the file this configuration was loaded from, absolute (the fix a refusal names works
+    #: from any directory; None: parsed from a table)
     source: Path | None = None
 
 
@@ -492,7 +493,7 @@ def read_toml(path: Path) -> dict[str, Any]:
 
 def load(path: str | os.PathLike[str]) -> InterceptorConfig:
     """Load and validate a configuration file; every problem is one ConfigError line."""
-    path = Path(path)
+    path = Path(path).absolute()
     return parse(read_toml(path), base=path.parent, source=path)
 
 

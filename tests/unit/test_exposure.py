@@ -25,7 +25,7 @@ from cryptoros.exposure import (
     route_localnet_fix,
 )
 from cryptoros.ros1.xmlrpc import Request
-from interceptor.exposure import NodeGuard, PortExposure, localnet_problem, master_problem
+from interceptor.exposure import NodeGuard, PortExposure, localnet_problem, master_problem, run_hint
 
 HEADER = ("  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n")
 TAIL = " 00000000:00000000 00:00000000 00000000     0        0 1563 1 0000000087f7565e 100 0 0 10 0\n"
@@ -411,3 +411,22 @@ def test_a_refused_node_that_could_not_be_shut_down_is_named_in_status_while_it_
     table.listeners = [one for one in table.listeners if one.port != 41234]  # it stopped
     table.now += 2  # past the kept answer
     assert not any("/lan_only" in line for line in guard.warnings())
+
+
+def test_a_configuration_loaded_by_a_relative_path_names_itself_absolute(tmp_path, monkeypatch):
+    """Stranger audit: the fix a refusal names (`cryptoros run --config robot.toml`) was
+    the path as the interceptor was started with it; from the runbook's directory the
+    right one was robot_a/robot.toml."""
+    from interceptor.config import load
+
+    (tmp_path / "robot_a").mkdir()
+    for name in ("ca.crt", "me.crt", "me.key"):
+        (tmp_path / "robot_a" / name).write_text("x")
+    (tmp_path / "robot_a" / "robot.toml").write_text(
+        'manager = "robot_a"\nroles = ["node"]\n[tls]\nca = "ca.crt"\ncert = "me.crt"\nkey = "me.key"\n'
+        '[authz]\nurl = "https://127.0.0.1:8443"\n[listen]\npublic = "127.0.0.2:7400"\n'
+        'local_master = "127.0.0.1:11311"\n[master]\ninterceptor = "127.0.0.4:7400"\n')
+    monkeypatch.chdir(tmp_path / "robot_a")
+    cfg = load("robot.toml")
+    assert cfg.source == tmp_path / "robot_a" / "robot.toml"
+    assert f"--config {tmp_path / 'robot_a' / 'robot.toml'} --" in run_hint(cfg.source, "CMD")
