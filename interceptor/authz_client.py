@@ -392,6 +392,42 @@ def refresh_delay(lifetime: float, margin: float) -> float:
     return max(1.0, min(before_expiry, lifetime / 2) if before_expiry >= 1.0 else lifetime / 2)
 
 
+class RetryLog:
+    """Which failures of an operation retried until it works are logged (sans-IO: the
+    caller passes the clock and logs the lines): the first at once, then at most one per
+    ``interval`` seconds with the count, and one line when it works again. A robot whose
+    certificate was revoked asks for a token every second or so, for as long as it runs."""
+
+    def __init__(self, interval: float = 60.0) -> None:
+        self.interval = interval
+        self._since: float | None = None  # the first failure of this run of them
+        self._tries = 0
+        self._logged_at = 0.0
+
+    def failed(self, now: float) -> str | None:
+        """One more failure at ``now``: None (not logged this time), ``""`` (the first,
+        logged as it is) or ``"still refused: N tries since HH:MM:SS"`` to log with it."""
+        self._tries += 1
+        if self._since is None:
+            self._since = self._logged_at = now
+            return ""
+        if now - self._logged_at < self.interval:
+            return None
+        self._logged_at = now
+        return f"still refused: {self._tries} tries since {self._started()}"
+
+    def succeeded(self) -> str | None:
+        """It worked: ``"after N failed tries since HH:MM:SS"`` once after failures, else None."""
+        if self._since is None:
+            return None
+        line = f"after {self._tries} failed {'try' if self._tries == 1 else 'tries'} since {self._started()}"
+        self._since, self._tries = None, 0
+        return line
+
+    def _started(self) -> str:
+        return time.strftime("%H:%M:%S", time.localtime(self._since))
+
+
 def _unverified_subject(token: str) -> str | None:
     """The ``sub`` claim of a token, read without verifying it: only ever to refuse a
     token (our own, just issued to us over mutual TLS), never to accept one."""
@@ -441,6 +477,7 @@ class TokenKeeper:
         #: since when refreshes fail, and why (None: the last one worked): status says it
         #: while the token held still verifies (an expired server certificate, replicas down)
         self.failing: tuple[float, str] | None = None
+        self._failures = RetryLog()
 
     def current(self) -> str:
         token = self._token
@@ -581,13 +618,17 @@ class TokenKeeper:
                 await self.refresh()
                 backoff = 1.0
                 self.failing = None
+                again = self._failures.succeeded()
+                if again is not None:
+                    log.info("access token held again, %s", again)
                 delay = refresh_delay(self._token.expires_at - self._clock(), self.refresh_margin)
             except TokenError as exc:
                 self.failing = (self.failing[0] if self.failing else self._clock(), exc.detail)
                 remaining = (self._token.expires_at - self._clock()) if self._token else 0
-                if exc.reason != "wrong_manager":  # logged as an error where it is found
-                    log.warning("cannot refresh access token (%s); cached token valid %.0f s more", exc.detail,
-                                max(0, remaining))
+                note = self._failures.failed(self._clock())
+                if exc.reason != "wrong_manager" and note is not None:  # wrong_manager: an error where it is found
+                    log.warning("cannot refresh access token (%s); cached token valid %.0f s more%s", exc.detail,
+                                max(0, remaining), f"; {note}" if note else "")
                 delay = backoff
                 backoff = min(backoff * 2, 8.0)
             self._attempted.set()
@@ -599,5 +640,5 @@ class TokenKeeper:
 
 
 
-__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "ReportRefused", "TokenKeeper",
+__all__ = ["AuthzClient", "AuthzRefused", "AuthzUnavailable", "OwnToken", "ReportRefused", "RetryLog", "TokenKeeper",
            "refresh_delay"]

@@ -39,7 +39,7 @@ from cryptoros.lru import remember
 from cryptoros.monitor.model import MonitorModel
 from cryptoros.ratelimit import TokenBuckets
 from cryptoros.tokens import AccessToken
-from interceptor.authz_client import AuthzClient, TokenKeeper
+from interceptor.authz_client import AuthzClient, RetryLog, TokenKeeper
 from interceptor.verifier import PeerVerifier
 from interceptor.certsource import CertSource
 from interceptor.config import InterceptorConfig, check_reload
@@ -297,6 +297,7 @@ class Gateway(Admission, Outbound, Health):
         )
 
     async def _first_token(self) -> None:
+        waits = RetryLog()
         while True:
             try:
                 await self.keeper.refresh()
@@ -306,9 +307,14 @@ class Gateway(Admission, Outbound, Health):
                     self.verifier.apply(feed)
                 self.verifier.last_feed_at = time.time()
                 self.own_access()
+                again = waits.succeeded()
+                if again is not None:
+                    log.info("access token held, %s", again)
                 return
             except TokenError as exc:
-                log.warning("waiting for the authorization server: %s", exc)
+                note = waits.failed(time.time())
+                if note is not None:
+                    log.warning("waiting for the authorization server: %s%s", exc, f"; {note}" if note else "")
                 await asyncio.sleep(0.5)
 
     async def stop(self, grace: float = 5.0) -> None:

@@ -183,3 +183,19 @@ async def test_a_gateway_given_another_managers_token_reports_why_in_its_health(
     status = gateway.status()
     assert status["health"] == f"wrong_manager: {WRONG}" and status["token"] is None
     await gateway.authz.close()
+
+
+def test_a_refresh_refused_forever_is_logged_at_first_then_once_a_minute_with_a_count():
+    """A robot whose certificate was revoked asks again every second or so: the first
+    failure is logged, then one line a minute with the count, and one when it works."""
+    retries = authz_client.RetryLog(interval=60.0)
+    start = time.mktime((2026, 11, 28, 21, 0, 0, 0, 0, -1))
+    assert retries.succeeded() is None  # never failed: nothing to say
+    assert retries.failed(start) == ""
+    assert [retries.failed(start + s) for s in range(1, 60)] == [None] * 59
+    assert retries.failed(start + 60) == "still refused: 61 tries since 21:00:00"
+    assert retries.failed(start + 61) is None
+    assert retries.succeeded() == "after 62 failed tries since 21:00:00"
+    assert retries.succeeded() is None
+    assert retries.failed(start + 200) == ""  # a new run of failures starts over
+    assert retries.succeeded() == "after 1 failed try since 21:03:20"
