@@ -9,7 +9,9 @@ the reason carried by the exception.
 Every error carries ``reason``, a short machine-readable code for logs and metrics, and
 ``detail``, the human-readable rest. A refusal (:class:`Refusal`: :class:`TokenError`,
 :class:`PolicyDenied`) is raised with its code first; any other error with a message
-alone, which becomes its ``detail`` (its class name is its ``reason``).
+alone, which becomes its ``detail``; its ``reason`` is then its class's
+``default_reason`` (``malformed`` for :class:`RemoteProtocolError`), else its class name:
+a code from a short fixed set either way, fit for a metric label.
 """
 
 from __future__ import annotations
@@ -19,9 +21,12 @@ class CryptorosError(Exception):
     """Root of every error cryptoros raises on purpose. ``str()`` of it is
     ``"<reason>: <detail>"`` when raised with a code, else the message."""
 
+    #: the reason of one raised without a code (None: its class name)
+    default_reason: str | None = None
+
     def __init__(self, detail: str = "", *, reason: str = "") -> None:
         super().__init__(f"{reason}: {detail}" if reason and detail else detail or reason)
-        self.reason = reason or type(self).__name__
+        self.reason = reason or self.default_reason or type(self).__name__
         self.detail = detail
 
 
@@ -42,6 +47,8 @@ class LocalProtocolError(CryptorosError):
 
 class RemoteProtocolError(CryptorosError):
     """A peer sent bytes that do not follow the protocol (never a crash)."""
+
+    default_reason = "malformed"
 
 
 class PKIError(CryptorosError):

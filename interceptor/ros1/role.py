@@ -79,6 +79,13 @@ BATCHED_IN_MULTICALL = frozenset({
 })
 
 
+def _told(exc: BaseException) -> str | None:
+    """The reason a refused caller may be told (:func:`refusal_text` shows it if it is
+    one to show): a protocol error's reason (``malformed``, from our parser, the call's
+    or an answer's) is not told, the caller gets the plain refusal."""
+    return exc.reason if isinstance(exc, CryptorosError) and not isinstance(exc, RemoteProtocolError) else None
+
+
 def _batches(allowed: list[tuple[int, Request]]) -> list[list[tuple[int, Request]]]:
     """The allowed calls of a multicall in the order given, as the multicalls forwarded
     one after the other: runs of :data:`BATCHED_IN_MULTICALL` calls together, every
@@ -447,7 +454,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 # as rosmaster answers an error ([-1, "denied by cryptoros: <reason>", 0], never
                 # a fault, which tools print as a traceback); a probe of a parameter the caller
                 # may not read as if it were not set
-                results[i] = Response(value=refusal_answer(reason, call.method, call.params))
+                results[i] = Response(value=refusal_answer(_told(exc), call.method, call.params))
         multicall = request.method == MULTICALL
         for batch in (_batches(allowed) if multicall else [allowed] if allowed else []):
             outgoing = make_multicall([c for _, c in batch], like=request) if multicall else batch[0][1]
@@ -467,8 +474,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 else:
                     self.gw.deny(kind, exc, who)
                 for i, _ in batch:
-                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else
-                                                          refusal_text(exc.reason if isinstance(exc, CryptorosError) else None)))
+                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else refusal_text(_told(exc))))
         if request.method == MULTICALL:
             return assemble_multicall(results)  # type: ignore[arg-type]
         return results[0]  # type: ignore[return-value]

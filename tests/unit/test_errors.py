@@ -56,7 +56,8 @@ def test_every_exception_class_is_a_cryptoros_error():
 
 def test_every_error_carries_a_reason_and_a_detail():
     """One base carries both: a refusal is raised with its code first, any other error
-    with a message, which is its detail (its class name the reason)."""
+    with a message, which is its detail (its class's default reason, else its class name,
+    the reason)."""
     denied = PolicyDenied("not_granted", "no grant for /chatter")
     assert (denied.reason, denied.detail, str(denied)) == ("not_granted", "no grant for /chatter",
                                                            "not_granted: no grant for /chatter")
@@ -66,7 +67,10 @@ def test_every_error_carries_a_reason_and_a_detail():
     config = ConfigError("cannot read /etc/x.toml")
     assert (config.reason, config.detail, str(config)) == ("ConfigError", "cannot read /etc/x.toml",
                                                            "cannot read /etc/x.toml")
-    assert RemoteProtocolError().reason == "RemoteProtocolError" and str(RemoteProtocolError()) == ""
+    # a protocol error's reason is a code (a metric label), not its class name
+    assert RemoteProtocolError().reason == "malformed" and str(RemoteProtocolError()) == ""
+    assert RemoteProtocolError("bad frame").reason == "malformed"
+    assert RemoteProtocolError("bad frame", reason="oversized").reason == "oversized"
 
 
 def test_peer_failures_cover_what_a_peer_or_its_socket_raises():
