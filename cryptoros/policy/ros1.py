@@ -520,21 +520,32 @@ SHOWN_REASONS = frozenset({
 })
 
 
-def refusal_text(reason: str | None) -> str:
+#: Why this host's own token cannot be used (none held: the manager removed or disabled,
+#: the certificate revoked, the authorization server out of reach past its expiry...):
+#: shown to this host's own nodes and tools (:func:`refusal_text` with ``own=True``),
+#: never to a peer, which learns nothing of our token.
+OWN_TOKEN_REASONS = frozenset({
+    "no_token", "wrong_manager", "expired", "not_yet_valid", "revoked", "certificate_revoked", "subject_disabled",
+})
+
+
+def refusal_text(reason: str | None, *, own: bool = False) -> str:
     """``denied by cryptoros: <reason code>`` (the code only when it is one of
-    :data:`SHOWN_REASONS`): what ROS tools print as their one error line."""
-    return f"{REFUSED}: {reason}" if reason in SHOWN_REASONS else REFUSED
+    :data:`SHOWN_REASONS`, or for ``own`` callers, this host's own nodes and tools, of
+    :data:`OWN_TOKEN_REASONS`): what ROS tools print as their one error line."""
+    shown = reason in SHOWN_REASONS or own and reason in OWN_TOKEN_REASONS
+    return f"{REFUSED}: {reason}" if shown else REFUSED
 
 
-def refusal_answer(reason: str | None, method: str, params: tuple) -> list[Any]:
+def refusal_answer(reason: str | None, method: str, params: tuple, *, own: bool = False) -> list[Any]:
     """The XML-RPC value a refused master or node call is answered with, as rosmaster
     and nodes answer an error: ``[-1, "denied by cryptoros: <reason>", 0]``; a probe of
     a parameter the caller may not read is answered as if it were not set
     (:func:`unset_answer`). Never an XML-RPC fault: stock tools print a fault as a
-    traceback."""
+    traceback. ``own``: as :func:`refusal_text`."""
     if reason == "param_read_denied" and method in PARAM_READ:
         return unset_answer(method, params)
-    return ros_error(refusal_text(reason))
+    return ros_error(refusal_text(reason, own=own))
 
 
 _ANONYMOUS = re.compile(r"^(.*?[_-])(\d[\d_]*)$")
@@ -612,6 +623,7 @@ __all__ = [
     "ros_error",
     "REFUSED",
     "SHOWN_REASONS",
+    "OWN_TOKEN_REASONS",
     "grant_hint",
     "node_pattern",
     "refusal_answer",

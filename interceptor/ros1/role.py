@@ -442,6 +442,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         allowed: list[tuple[int, Request]] = []
         # whose grants a refusal lacks: the calling peer's, or (local nodes) our own manager's
         manager = who if kind in ("master", "node") else self.cfg.manager if kind == "local-master" else None
+        # this host's own nodes and tools (its local master, its relays) are told why our
+        # own token cannot be used (no_token ...); a peer never is
+        own = kind in ("local-master", "relay")
         for i, call in enumerate(calls):
             try:
                 allowed.append((i, decide(call)))
@@ -454,7 +457,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 # as rosmaster answers an error ([-1, "denied by cryptoros: <reason>", 0], never
                 # a fault, which tools print as a traceback); a probe of a parameter the caller
                 # may not read as if it were not set
-                results[i] = Response(value=refusal_answer(_told(exc), call.method, call.params))
+                results[i] = Response(value=refusal_answer(_told(exc), call.method, call.params, own=own))
         multicall = request.method == MULTICALL
         for batch in (_batches(allowed) if multicall else [allowed] if allowed else []):
             outgoing = make_multicall([c for _, c in batch], like=request) if multicall else batch[0][1]
@@ -474,7 +477,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 else:
                     self.gw.deny(kind, exc, who)
                 for i, _ in batch:
-                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else refusal_text(_told(exc))))
+                    results[i] = Response(value=ros_error(UNANSWERED if unanswered else refusal_text(_told(exc), own=own)))
         if request.method == MULTICALL:
             return assemble_multicall(results)  # type: ignore[arg-type]
         return results[0]  # type: ignore[return-value]

@@ -22,7 +22,7 @@ import pytest
 
 from tests.interceptor_harness import NODE, SYS_PY, robot_network, wait_registered
 from cryptoros.lab.network import clean_env, stop
-from tests.support import running, until
+from tests.support import VENV_BIN, run, running, until
 from tests.interceptor_harness import got, read_lines
 
 pytestmark = [pytest.mark.ros1]
@@ -334,3 +334,13 @@ def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_si
         # it learnt it from the feed (its token dropped: no_token) or from the feed's 401 (authz_refused)
         assert unhealthy.value.code == 503
         assert b"authz_refused" in unhealthy.value.read() or "was revoked by the CA" in net.hosts["robot_b"].logs()
+        if "was revoked by the CA" in net.hosts["robot_b"].logs():  # its token dropped (else held until it expires)
+            # robot B's own tools say why in their one line; each of their calls asks for a
+            # token again (so does the refresh loop): one warning for all of them
+            config = str(net.hosts["robot_b"].config)
+            for argv in (("rosnode", "list"), ("rosparam", "get", "/x")):
+                refused = run([str(VENV_BIN / "cryptoros"), "run", "--config", config, "--", *argv],
+                              env=net.ros_env("robot_b"), timeout=20)
+                assert refused.returncode == 1 and refused.stderr.strip() == "ERROR: denied by cryptoros: no_token", \
+                    refused
+            assert net.hosts["robot_b"].logs().count("cannot refresh access token") == 1, net.hosts["robot_b"].logs()

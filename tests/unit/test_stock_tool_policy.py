@@ -10,6 +10,8 @@ import pytest
 from cryptoros.errors import PolicyDenied
 from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allows, ros1_topic_param
 from cryptoros.policy.ros1 import (
+    OWN_TOKEN_REASONS,
+    SHOWN_REASONS,
     check_master_call,
     filter_param_reply,
     grant_hint,
@@ -52,6 +54,18 @@ def test_a_refusal_is_a_ros_error_triple_with_its_reason_code():
 def test_a_reason_outside_the_shown_list_is_not_told():
     assert refusal_text("some_internal_reason") == "denied by cryptoros"
     assert refusal_text(None) == "denied by cryptoros"
+
+
+@pytest.mark.parametrize("reason", sorted(OWN_TOKEN_REASONS))
+def test_why_our_own_token_cannot_be_used_is_told_to_our_own_nodes_and_tools_only(reason):
+    """A robot without a token (its manager removed, its certificate revoked...): its own
+    tools say why; a peer calling in learns nothing of our token."""
+    assert refusal_text(reason, own=True) == f"denied by cryptoros: {reason}"
+    assert refusal_answer(reason, "getSystemState", ("/rosnode",), own=True) == \
+        [-1, f"denied by cryptoros: {reason}", 0]
+    assert refusal_text(reason) == "denied by cryptoros"
+    assert refusal_answer(reason, "getSystemState", ("/rosnode",)) == [-1, "denied by cryptoros", 0]
+    assert reason not in SHOWN_REASONS
 
 
 @pytest.mark.parametrize("method, params, answer", [
