@@ -69,7 +69,14 @@ class TokenError(Refusal):
 
 
 class PolicyDenied(Refusal):
-    """A request was checked against the registry or a token's grants and refused."""
+    """A request was checked against the registry or a token's grants and refused.
+    ``missing``: the grant that would have allowed it, ``(action, node, name, type)``
+    (type ``None`` when the request does not say it), when one would."""
+
+    def __init__(self, reason: str, detail: str = "", *,
+                 missing: tuple[str, str, str, str | None] | None = None) -> None:
+        super().__init__(reason, detail)
+        self.missing = missing
 
 
 class RegistryError(CryptorosError):

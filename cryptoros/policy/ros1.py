@@ -88,8 +88,8 @@ ALWAYS_DROPPED = frozenset({"shutdown"})
 _PARAM_SEGMENT = re.compile(r"^[A-Za-z_~][A-Za-z0-9_-]*$")
 
 
-def _deny(reason: str, detail: str) -> PolicyDenied:
-    return PolicyDenied(reason, detail)
+def _deny(reason: str, detail: str, *, missing: tuple[str, str, str, str | None] | None = None) -> PolicyDenied:
+    return PolicyDenied(reason, detail, missing=missing)
 
 
 def _caller(call_params: tuple, method: str) -> str:
@@ -428,7 +428,8 @@ def check_subscriber_header(
     if published_md5 is not None and md5 != published_md5:
         raise _deny("md5_mismatch", f"{caller} asks {topic} with md5sum {md5}, published with {published_md5}")
     if not grants.allows("subscribe", caller, topic, type_name):
-        raise _deny("not_granted", f"{caller} may not subscribe {topic} [{type_name}]")
+        raise _deny("not_granted", f"{caller} may not subscribe {topic} [{type_name}]",
+                    missing=("subscribe", caller, topic, type_name))
 
 
 def check_local_subscriber_header(header: Mapping[str, str], *, grants: Grants) -> None:
@@ -443,10 +444,10 @@ def check_local_subscriber_header(header: Mapping[str, str], *, grants: Grants) 
     _one_purpose(header, "topic")
     if type_name == ANY_TYPE:
         if not grants.types_for("subscribe", caller, topic):
-            raise _deny("not_granted", f"{caller} may not subscribe {topic}")
+            raise _deny("not_granted", f"{caller} may not subscribe {topic}", missing=("subscribe", caller, topic, None))
         return
     if not grants.allows("subscribe", caller, topic, type_name):
-        raise _deny("not_granted", f"{caller} may not subscribe {topic}")
+        raise _deny("not_granted", f"{caller} may not subscribe {topic}", missing=("subscribe", caller, topic, type_name))
 
 
 def check_subscribed_type(header: Mapping[str, str], published_type: str, *, grants: Grants) -> None:
@@ -455,7 +456,8 @@ def check_subscribed_type(header: Mapping[str, str], published_type: str, *, gra
     by :func:`check_local_subscriber_header` already)."""
     caller, topic = header.get("callerid", ""), header.get("topic", "")
     if header.get("type") == ANY_TYPE and not grants.allows("subscribe", caller, topic, published_type):
-        raise _deny("not_granted", f"{caller} may not subscribe {topic} [{published_type}]")
+        raise _deny("not_granted", f"{caller} may not subscribe {topic} [{published_type}]",
+                    missing=("subscribe", caller, topic, published_type))
 
 
 def check_publisher_header(header: Mapping[str, str], *, grants: Grants, topic: str, infrastructure: bool = True) -> None:
@@ -465,7 +467,8 @@ def check_publisher_header(header: Mapping[str, str], *, grants: Grants, topic: 
         raise _deny("malformed", "publisher header lacks callerid or type")
     _one_purpose(header, "topic")
     if not _granted(grants, "publish", caller, topic, type_name, infrastructure):
-        raise _deny("not_granted", f"{caller} may not publish {topic} [{type_name}]")
+        raise _deny("not_granted", f"{caller} may not publish {topic} [{type_name}]",
+                    missing=("publish", caller, topic, type_name))
 
 
 def check_service_client_header(header: Mapping[str, str], *, grants: Grants) -> frozenset[str]:
@@ -478,7 +481,7 @@ def check_service_client_header(header: Mapping[str, str], *, grants: Grants) ->
     _one_purpose(header, "service")
     types = grants.types_for("call", caller, service)
     if not types:
-        raise _deny("not_granted", f"{caller} may not call {service}")
+        raise _deny("not_granted", f"{caller} may not call {service}", missing=("call", caller, service, None))
     return types
 
 
@@ -500,7 +503,8 @@ def check_service_server_header(
     if type_name not in client_types:
         raise _deny("type_mismatch", f"{service} is served as {type_name}, the caller may call {sorted(client_types)}")
     if not _granted(server_grants, "serve", caller, service, type_name, infrastructure):
-        raise _deny("not_granted", f"{caller} may not serve {service} [{type_name}]")
+        raise _deny("not_granted", f"{caller} may not serve {service} [{type_name}]",
+                    missing=("serve", caller, service, type_name))
 
 
 def ros_error(message: str) -> list[Any]:
@@ -593,6 +597,16 @@ def grant_hint(reason: str | None, method: str, params: tuple, manager: str | No
     return None
 
 
+def missing_grant_hint(exc: PolicyDenied, manager: str | None) -> str | None:
+    """The ``cryptoros-authz grant ...`` command that would allow a stream refused for a
+    grant ``manager`` lacks (``exc.missing``: a TCPROS header's check), or None."""
+    if exc.reason != "not_granted" or exc.missing is None or not manager:
+        return None
+    action, node, name, type_name = exc.missing
+    type_name = type_name if type_name and type_name != ANY_TYPE else "TYPE"
+    return f"cryptoros-authz grant {manager} {action} {node_pattern(node)} {name} {type_name}"
+
+
 __all__ = [
     "ANY_TYPE",
     "ALWAYS_DROPPED",
@@ -624,6 +638,7 @@ __all__ = [
     "REFUSED",
     "SHOWN_REASONS",
     "OWN_TOKEN_REASONS",
+    "missing_grant_hint",
     "grant_hint",
     "node_pattern",
     "refusal_answer",

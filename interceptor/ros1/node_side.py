@@ -47,6 +47,7 @@ from interceptor.ros1.wire import (
     OPAQUE,
     RELEASING_CALLS,
     filtered_param_reply,
+    header_hint,
     local_endpoint,
     log,
     md5_or_none,
@@ -128,11 +129,11 @@ class NodeSide:
             client_types = judge(self.verifier.freshest(peer.access).grants)
             if stream.watch is not None:
                 stream.watch.judge_by(judge)
-        except PolicyDenied:
-            writer.write(encode_header({"error": OPAQUE}))
+        except PolicyDenied as exc:
+            self._refuse_stream(stream, exc)
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(writer.drain(), 1)
-            raise
+            return
         local_reader, local_writer = await asyncio.wait_for(
             asyncio.open_connection(endpoint.host, endpoint.port, limit=READ_SIZE), limits.handshake_timeout
         )
@@ -156,7 +157,8 @@ class NodeSide:
         except BaseException as exc:
             local_writer.close()
             if isinstance(exc, PolicyDenied):
-                writer.write(encode_header({"error": OPAQUE}))
+                self._refuse_stream(stream, exc)
+                return
             raise
         self.metrics.allowed.labels(purpose).inc()
         writer.write(encode_header(canonical_header(reply)))
@@ -182,6 +184,15 @@ class NodeSide:
             await self.gw.pump(reader, writer, local_reader, local_writer, left_pending=rest, right_pending=reply_rest,
                              left_budget=self.gw.budget(peer), left_frames=frames,
                              on_deny=lambda exc: self.gw.deny(purpose, exc, peer.manager))
+
+    def _refuse_stream(self, stream: InboundStream, exc: PolicyDenied) -> None:
+        """Refuse a peer's TCPROS stream by its header (the peer is told no more than
+        ``denied by cryptoros``); the log names the grant that would allow it."""
+        peername = stream.writer.get_extra_info("peername")
+        who = f"{stream.peer.manager}@{peername[0]}:{peername[1]}" if peername else stream.peer.manager
+        self.gw.deny(stream.purpose, exc, who, hint=header_hint(exc, opener=stream.peer.manager,
+                                                                server=self.cfg.manager))
+        stream.writer.write(encode_header({"error": OPAQUE}))
 
     # ---------------------------------------------------------------- local master
     async def _on_local_master(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:

@@ -29,6 +29,7 @@ from interceptor.ros1.notices import NOTICES
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     OPAQUE,
+    header_hint,
     log,
     monitor_hooks,
     pass_refusal,
@@ -244,7 +245,8 @@ class Relays:
                     self._resubscribe_soon(fields["topic"], via=(target.host, target.port))
         except (CryptorosError, asyncio.TimeoutError, ConnectionError, OSError) as exc:
             if isinstance(exc, CryptorosError):
-                self.gw.deny("relay", exc, str(target))
+                self.gw.deny("relay", exc, str(target), hint=header_hint(
+                    exc, opener=self.cfg.manager, server=tunnel.peer.manager if tunnel is not None else None))
                 with contextlib.suppress(Exception):
                     writer.write(encode_header({"error": OPAQUE}))
             if tunnel_writer is not None:

@@ -12,12 +12,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cryptoros.errors import RemoteProtocolError
+from cryptoros.errors import PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import (
     PARAM_READ,
     PARAM_WRITE,
     check_param_call,
     filter_param_reply,
+    missing_grant_hint,
 )
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, encode_header
@@ -237,6 +238,20 @@ def rewrite_param_api(call: Request, fn: Callable[[str], str]) -> Request:
                    accept_gzip=call.accept_gzip)
 
 
+#: the grants a stream's two ends need: the end that opens it (subscriber, service
+#: client) and the end that serves it (publisher, service server)
+OPENING_ACTIONS = frozenset({"subscribe", "call"})
+
+
+def header_hint(exc: BaseException, *, opener: str | None, server: str | None) -> str | None:
+    """The ``cryptoros-authz grant ...`` that would allow a TCPROS stream refused for a
+    missing grant: of ``opener``'s manager (its subscriber's or client's grant missing) or
+    of ``server``'s (its publisher's or service's)."""
+    if not isinstance(exc, PolicyDenied) or exc.missing is None:
+        return None
+    return missing_grant_hint(exc, opener if exc.missing[0] in OPENING_ACTIONS else server)
+
+
 def md5_or_none(type_name: str | None) -> str | None:
     if type_name is None:
         return None
@@ -246,4 +261,4 @@ def md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]
+__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "OPENING_ACTIONS", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "header_hint", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]

@@ -82,6 +82,13 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
         assert "data:" not in denied_echo.stdout and denied_echo.returncode != 0
         denied_call = tool(net, "rosservice", "call", "/rospy_loggers", timeout=10)
         assert denied_call.returncode != 0 and "loggers" not in denied_call.stdout
+        assert "ERROR: Unable to determine type of service [/rospy_loggers]." in denied_call.stderr, denied_call
+        # rosservice type (and info) probe the service (a probe tells its type): the call grant
+        denied_type = tool(net, "rosservice", "type", "/rospy_loggers", timeout=10)
+        assert denied_type.returncode != 0 and "Unknown service [/rospy_loggers]" in denied_type.stderr, denied_type
+        # the refused TCPROS header is logged with the grant that would allow it
+        assert "not_granted: /rosservice may not call /rospy_loggers (to allow: cryptoros-authz grant robot_b " \
+               "call /rosservice /rospy_loggers TYPE)" in denials(net, "robot_b"), denials(net, "robot_b")
 
         # --- grant-tools: printed, idempotent, live (no SIGHUP)
         granted = net.cli(*GRANT_TOOLS)
@@ -112,6 +119,8 @@ def test_stock_tools_refused_without_grant_tools_and_working_with_it(tmp_path):
 
         call = until_ok(net, "rosservice", "call", "/rospy_loggers", within=10, timeout=20)
         assert "rospy.server" in call.stdout, call.stdout
+        service_type = tool(net, "rosservice", "type", "/rospy_loggers")
+        assert service_type.returncode == 0 and service_type.stdout.strip() == "roscpp/GetLoggers", service_type
 
         nodes = tool(net, "rosnode", "list")
         assert nodes.returncode == 0 and "/talker_a" in nodes.stdout.split(), nodes

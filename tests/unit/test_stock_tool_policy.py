@@ -12,7 +12,12 @@ from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allow
 from cryptoros.policy.ros1 import (
     OWN_TOKEN_REASONS,
     SHOWN_REASONS,
+    check_local_subscriber_header,
     check_master_call,
+    check_publisher_header,
+    check_service_client_header,
+    check_service_server_header,
+    check_subscriber_header,
     filter_param_reply,
     grant_hint,
     may_read_param,
@@ -23,6 +28,7 @@ from cryptoros.policy.ros1 import (
 )
 from cryptoros.tokens import Grant, Grants
 from interceptor.denials import DenialTable
+from interceptor.ros1.wire import header_hint
 
 ROBOT = Grants([
     Grant(node="/talker", action="publish", name="/chatter", type="std_msgs/String"),
@@ -146,6 +152,42 @@ def test_the_grant_hint_names_what_to_grant_with_the_tools_node_pattern():
         "cryptoros-authz grant robot_b publish /play_* /clock rosgraph_msgs/Clock"
     assert grant_hint("shutdown_dropped", "shutdown", ("/rosnode", "x"), "robot_b") is None
     assert grant_hint("param_write_denied", "setParam", ("/n", "/x", 1), None) is None
+
+
+def _header_refusal(check, *args, **kwargs) -> PolicyDenied:
+    with pytest.raises(PolicyDenied) as info:
+        check(*args, **kwargs)
+    return info.value
+
+
+def test_a_stream_refused_by_its_header_names_the_grant_of_the_side_that_lacks_it():
+    """The subscriber's or client's manager for subscribe and call, the publisher's or
+    server's for publish and serve; a type the header does not say as TYPE."""
+    nothing = Grants([])
+    probe = {"callerid": "/rosservice", "service": "/svc_a", "md5sum": "*", "probe": "1"}
+    call = _header_refusal(check_service_client_header, probe, grants=nothing)
+    assert header_hint(call, opener="robot_b", server="robot_a") == \
+        "cryptoros-authz grant robot_b call /rosservice /svc_a TYPE"
+    echo = {"callerid": "/rostopic_4711_1795791784006", "topic": "/chatter", "type": "*", "md5sum": "*"}
+    assert header_hint(_header_refusal(check_local_subscriber_header, echo, grants=nothing), opener="robot_b",
+                       server="robot_a") == "cryptoros-authz grant robot_b subscribe /rostopic_* /chatter TYPE"
+    # at the publisher's interceptor: the type is the one published
+    subscribed = _header_refusal(check_subscriber_header, echo, grants=nothing, published_type="std_msgs/String",
+                                 published_md5=None)
+    assert header_hint(subscribed, opener="robot_b", server="robot_a") == \
+        "cryptoros-authz grant robot_b subscribe /rostopic_* /chatter std_msgs/String"
+    published = _header_refusal(check_publisher_header, {"callerid": "/talker_a", "type": "std_msgs/String"},
+                                grants=nothing, topic="/chatter")
+    assert header_hint(published, opener="robot_b", server="robot_a") == \
+        "cryptoros-authz grant robot_a publish /talker_a /chatter std_msgs/String"
+    served = _header_refusal(check_service_server_header, {"callerid": "/srv", "type": "roscpp/GetLoggers"},
+                             service="/svc_a", server_grants=nothing, client_types=frozenset({"roscpp/GetLoggers"}))
+    assert header_hint(served, opener="robot_b", server="robot_a") == \
+        "cryptoros-authz grant robot_a serve /srv /svc_a roscpp/GetLoggers"
+    malformed = _header_refusal(check_service_client_header, {"callerid": "/x"}, grants=nothing)
+    assert header_hint(malformed, opener="robot_b", server="robot_a") is None
+    assert header_hint(call, opener="robot_b", server=None) == "cryptoros-authz grant robot_b call /rosservice /svc_a TYPE"
+    assert header_hint(published, opener="robot_b", server=None) is None
 
 
 # ------------------------------------------------------------------ aggregation
