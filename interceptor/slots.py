@@ -34,10 +34,14 @@ class KeyedSlots:
             slot = self._slots[key] = [asyncio.Semaphore(limit), 0]
         slot[1] += 1
         try:
-            try:
-                await asyncio.wait_for(slot[0].acquire(), timeout)
-            except asyncio.TimeoutError:
-                raise on_timeout() from None
+            if slot[0].locked():
+                try:
+                    async with asyncio.timeout(timeout):
+                        await slot[0].acquire()
+                except TimeoutError:
+                    raise on_timeout() from None
+            else:  # free: taken at once, without the timeout's timer (every master call comes here)
+                await slot[0].acquire()
             try:
                 yield
             finally:
