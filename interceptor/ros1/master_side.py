@@ -22,9 +22,10 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tokens import Grants
 from cryptoros.exposure import ExposureError, read_listeners
+from cryptoros.lru import remember
 from cryptoros.ros1.uri import UriError
-from interceptor.exposure import is_this_host, lenient_host_port, master_problem, run_hint
-from interceptor.ros1.localcalls import MAX_IDLE, ask_to_shut_down
+from interceptor.exposure import NodeGuard, is_this_host, lenient_host_port, master_problem, run_hint
+from interceptor.ros1.localcalls import EXPOSED_SHUTDOWN_DELAY, MAX_IDLE, REPEAT_SHUTDOWN_DELAY, ask_to_shut_down
 from interceptor.ros1.wire import (
     DIRECT_RECHECK,
     MASTER_CALL_WAIT,
@@ -220,17 +221,22 @@ class MasterSide:
             if any(fnmatch.fnmatchcase(node, p) for p in self.cfg.allow_exposed_nodes):
                 self._direct_exposed[node] = f"{node} ({where}, allow_exposed_nodes: its firewall must close it)"
                 continue
-            if node not in self._direct_exposed:
+            asked = self._direct_asked.get(node)
+            if asked is None or asked[0] != port:  # a process of that name not asked yet (a respawn: a new port)
+                repeat = asked is not None and now - asked[1] < NodeGuard.REPEAT_WINDOW
+                remember(self._direct_asked, node, (port, now), NodeGuard.MAX_NOTED)
                 why = (f"node {node}'s XML-RPC API listens on {where}, reachable from other hosts: start it with "
                        f"ROS_IP=127.0.0.1 ({run_hint(self.cfg.source, 'CMD')})")
                 log.error("DENY master-host node: exposed_endpoint: %s", why)
                 self._direct_exposed[node] = f"{node} ({where})"
-                self.gw.spawn(self._shut_down_direct(node, port, why, host), "shutdown-exposed")
+                self.gw.spawn(self._shut_down_direct(node, port, why, host, repeat), "shutdown-exposed")
 
-    async def _shut_down_direct(self, node: str, port: int, why: str, host: str) -> None:
-        """Ask an exposed node registered here directly to shut down; if it had taken a
-        robot's node name, rosmaster dropped that robot's registrations for it: made again."""
-        await ask_to_shut_down(self._local_calls, node, port, why, hosts=("127.0.0.1", host))
+    async def _shut_down_direct(self, node: str, port: int, why: str, host: str, repeat: bool) -> None:
+        """Ask an exposed node registered here directly to shut down (at once when a
+        process of that name was asked before: a launch file's respawn); if it had taken
+        a robot's node name, rosmaster dropped that robot's registrations for it: made again."""
+        await ask_to_shut_down(self._local_calls, node, port, why, hosts=("127.0.0.1", host),
+                               delay=REPEAT_SHUTDOWN_DELAY if repeat else EXPOSED_SHUTDOWN_DELAY)
         if node in self._master_ledger.owners:
             await asyncio.sleep(MASTER_WATCH_INTERVAL)  # its unregistrations first
             await self._replay_registrations(self._master_pid or 0, why=f"{node}'s name was taken here")

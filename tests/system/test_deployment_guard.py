@@ -326,7 +326,8 @@ def test_a_node_respawned_exposed_is_shut_down_at_once_each_time_and_named_in_st
     """Stranger audit: a launch file's ``respawn="true"`` started a refused exposed node
     (``__ip:=0.0.0.0``) again each time it was asked to shut down; a stranger reached it
     half of the time and fed it messages, and status said ok. From its second start the
-    node is asked to shut down at once, and ``cryptoros status`` names it."""
+    node is asked to shut down at once, and ``cryptoros status`` names it; on the master
+    host each respawned process is asked too."""
     require("roslaunch")
     separate_hosts()
     with robot_network(tmp_path, netns=True) as net:
@@ -347,3 +348,14 @@ def test_a_node_respawned_exposed_is_shut_down_at_once_each_time_and_named_in_st
         assert "nodes started again and again where other hosts reach them" in status and "/echo_respawn (" in status, \
             status
         assert "could not be asked" not in net.hosts["robot_a"].logs()
+        # on the master host, where nodes register with rosmaster directly: the respawned
+        # process (same name, a new port) was never asked, and stayed reachable
+        master = net.hosts["master"]
+        launch.write_text('<launch>\n  <node pkg="rostopic" type="rostopic" name="echo_mhost" '
+                          f'args="echo /chatter __ip:={master.address}" respawn="true"/>\n</launch>\n')
+        with running(net.argv("master", ["roslaunch", str(launch)]), env={**net.ros_env(None), "PATH": "/usr/bin:/bin"}):
+            deadline = time.monotonic() + 60
+            while master.logs().count("node /echo_mhost listens where other hosts reach it") < 3:
+                assert time.monotonic() < deadline, master.logs()[-3000:]
+                time.sleep(0.2)
+        assert "could not be asked" not in master.logs()
