@@ -84,6 +84,18 @@ def own_certificate_until(cert_file, now: float | None = None) -> float:
     return until
 
 
+def _weak_settings(cfg: ServeConfig, service: AuthzService) -> None:
+    """Warn of what the configuration allows but weakens: no CRL, secret files other
+    local users may read."""
+    if service.crl is None:
+        log.warning("no CRL (--crl, or crl = in the configuration): a certificate revoked with "
+                    "'cryptoros-certs revoke' still gets tokens while it is bound to its manager, and no "
+                    "interceptor learns of it")
+    for warning in open_to_others([*cfg.tls.secret_files(),
+                                   ("the signing keys' passphrase file", cfg.keys.passphrase_file)]):
+        log.warning("%s", warning)
+
+
 async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
                 stop: asyncio.Event | None = None) -> None:
     cert_until = own_certificate_until(cfg.tls.cert_file)
@@ -92,13 +104,6 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     registry = Registry(engine, source=ChangeSource.here("cryptoros-authz serve"))
     service = AuthzService(cfg, registry)
     service.cert_until = cert_until
-    if service.crl is None:
-        log.warning("no CRL (--crl, or crl = in the configuration): a certificate revoked with "
-                    "'cryptoros-certs revoke' still gets tokens while it is bound to its manager, and no "
-                    "interceptor learns of it")
-    for warning in open_to_others([*cfg.tls.secret_files(),
-                                   ("the signing keys' passphrase file", cfg.keys.passphrase_file)]):
-        log.warning("%s", warning)
     _refusing_revoked(ssl_ctx, service)
     runner: web.AppRunner | None = None
     probe_runner: web.AppRunner | None = None
@@ -135,6 +140,7 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
         log.info("serving on https://%s:%d (registry %s, issuer %s, audience %s, token lifetime %ds, signing key %s)",
                  cfg.host, cfg.port, shown_db(cfg.db_url), cfg.issuer, cfg.audience, cfg.token_lifetime,
                  service.signing_kid)
+        _weak_settings(cfg, service)  # once serving: a start refused stays one line
         if ready is not None:
             ready.set()
         await stop.wait()
