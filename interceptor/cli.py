@@ -65,6 +65,11 @@ def deployment_problems(cfg) -> tuple[list[str], list[str]]:
     from interceptor.exposure import PortExposure, master_problem
 
     warnings = setting_warnings(cfg)
+    domain = ros2_domain_problem(cfg)
+    if domain is not None:
+        if cfg.ros2.require_private_domain:
+            return [domain], warnings
+        warnings.append(domain)
     exposure = PortExposure()
     try:
         loopback = exposure.loopback_problem()
@@ -80,6 +85,26 @@ def deployment_problems(cfg) -> tuple[list[str], list[str]]:
     if cfg.allow_exposed_master:
         return [], [f"allow_exposed_master = true, serving anyway: {problem}", *warnings]
     return [problem], warnings
+
+
+def ros2_domain_problem(cfg) -> str | None:
+    """Why the ROS 2 role's domain cannot be kept private on this host, or None: its DDS
+    ports overlap the kernel's ephemeral ports, so nodes' own sending sockets would now
+    and then be taken for participants reachable from the network and their topics not
+    carried, at random (refused with ``require_private_domain``, else warned)."""
+    if "ros2" not in cfg.roles or cfg.ros2 is None:
+        return None
+    from cryptoros.ros2.exposure import domain_ports, ephemeral_overlap, highest_private_domain
+
+    overlap = ephemeral_overlap(cfg.ros2.domain_id)
+    if overlap is None:
+        return None
+    ports = domain_ports(cfg.ros2.domain_id)
+    return (f"[ros2] domain_id {cfg.ros2.domain_id}: its DDS ports {ports.start}-{ports.stop - 1} overlap this host's "
+            f"ephemeral ports ({overlap.start}-{overlap.stop - 1} of them; net.ipv4.ip_local_port_range), where "
+            "nodes' own sending sockets land now and then and are taken for participants other hosts reach (their "
+            f"topics not carried): use a domain_id from 0 to {highest_private_domain()}, or move the ephemeral range "
+            "above the domain's ports")
 
 
 def setting_warnings(cfg) -> list[str]:

@@ -66,12 +66,15 @@ def ros2_python() -> Path:
 
 
 def fresh_domains(count: int) -> list[int]:
-    """Domain ids in 0..101 no other session on this host is using now; each xdist worker
-    (``gwN``) draws from its own part of the range, so two workers never share one."""
+    """Domain ids below the ephemeral ports (0..100 on Linux's defaults: the interceptor
+    refuses a domain over them) no other session on this host is using now; each xdist
+    worker (``gwN``) draws from its own part of the range, so two workers never share one."""
+    from cryptoros.ros2.exposure import highest_private_domain
+
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
     index = int(worker[2:]) if worker[2:].isdigit() else 0
-    span = 102 // workers
+    span = (highest_private_domain() + 1) // workers
     low = (index % workers) * span
     # ids whose ports no process on this host has bound: another session's endpoints on a
     # shared domain would match this test's own (cryptoros.ros2.exposure.free_domains)

@@ -88,7 +88,7 @@ def ros2_env(domain: int, pythonpath: Path | None) -> dict[str, str]:
 
 
 def base_domain(robots: int = 8) -> int:
-    """``D``: the shared (network) domain; robots use D+1 .. D+robots (all within 0..101),
+    """``D``: the shared (network) domain; robots use D+1 .. D+robots (all within 0..98, below the ephemeral ports),
     where no process on this host has a port bound now: another session's participants on
     one of these domains (a test, a second demo) would match the robots' own."""
     from cryptoros.ros2.exposure import free_domains

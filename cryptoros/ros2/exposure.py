@@ -54,6 +54,36 @@ def domain_ports(domain: int) -> range:
     return range(base, base + PORTS_PER_DOMAIN)
 
 
+def ephemeral_overlap(domain: int, local_range: str | None = None) -> range | None:
+    """The ports of ``domain``'s DDS range that lie in this host's ephemeral range (where
+    the kernel puts every socket bound to port 0), or None. Fast DDS keeps sending sockets
+    on such ports beside its participants', beyond loopback whatever its profile; one that
+    lands in the domain's range is taken for a participant reachable from the network (a
+    ROS 2 audit: a talker on domain 181 so flagged, and its topic not carried, in one
+    start of a few). ``local_range``: the text of ``ip_local_port_range`` (read if None)."""
+    if local_range is None:
+        try:
+            local_range = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
+        except OSError:
+            return None
+    low, high = (int(n) for n in local_range.split()[:2])
+    ports = domain_ports(domain)
+    start, stop = max(ports.start, low), min(ports.stop, high + 1)
+    return range(start, stop) if start < stop else None
+
+
+def highest_private_domain(local_range: str | None = None) -> int:
+    """The highest domain whose DDS ports all lie below this host's ephemeral range
+    (100 with Linux's default 32768-60999)."""
+    if local_range is None:
+        try:
+            local_range = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
+        except OSError:
+            local_range = "32768 60999"
+    low = int(local_range.split()[0])
+    return max(-1, (low - PORT_BASE - PORTS_PER_DOMAIN) // DOMAIN_GAIN)
+
+
 def parse_udp(text: str) -> list[tuple[Address, int, int]]:
     """``(address, port, inode)`` of every socket in a ``/proc/net/udp`` or ``udp6`` text."""
     out = []
@@ -150,11 +180,14 @@ def bound_domains(proc: Path = Path("/proc")) -> set[int]:
     return busy_domains(sockets)
 
 
-def free_domains(count: int, start: int, proc: Path = Path("/proc"), top: int = 101, low: int = 0) -> list[int]:
-    """``count`` consecutive domain ids in ``low``..``top`` none of whose ports is bound
-    now, searched from ``start`` (wrapping): a benchmark or test on a shared host then does
+def free_domains(count: int, start: int, proc: Path = Path("/proc"), top: int | None = None,
+                 low: int = 0) -> list[int]:
+    """``count`` consecutive domain ids in ``low``..``top`` (default: the highest below the
+    ephemeral ports, :func:`highest_private_domain`) none of whose ports is bound now,
+    searched from ``start`` (wrapping): a benchmark or test on a shared host then does
     not join another session's domain, whose endpoints would match its own (a reader that
     stopped taking blocks a reliable KEEP_ALL writer). Falls back to ``start``'s run."""
+    top = highest_private_domain() if top is None else top
     busy = bound_domains(proc)
     span = top + 2 - low - count
     first = (start - low) % span
@@ -176,4 +209,4 @@ def gid_pid16(gid_hex: str) -> int | None:
     return int.from_bytes(raw[4:6], "little")
 
 
-__all__ = ["Exposed", "ExposureScan", "bound_domains", "busy_domains", "domain_ports", "free_domains", "exposed_inodes", "gid_pid16", "parse_udp"]
+__all__ = ["Exposed", "ExposureScan", "bound_domains", "busy_domains", "domain_ports", "ephemeral_overlap", "free_domains", "highest_private_domain", "exposed_inodes", "gid_pid16", "parse_udp"]

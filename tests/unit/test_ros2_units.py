@@ -316,3 +316,38 @@ def test_the_shm_clean_tool_is_found_beside_the_ros2_python_then_on_path(tmp_pat
     report = "shm.clean:\n0 ports in use\n1 segments in use\n115 zombie ports cleaned\n1270 zombie segments cleaned\n"
     assert segments_cleaned(report) == 1270
     assert segments_cleaned("usage: fastdds shm [<shm-command>]") == 0
+
+
+def test_a_domain_whose_dds_ports_overlap_the_ephemeral_range_is_named_with_the_overlap():
+    """ROS 2 audit: on domain 181 (ports 52650-52899, inside Linux's 32768-60999) a
+    talker's own sending socket landed in the range now and then, and the talker was
+    taken for a participant reachable from the network: its topic was never carried.
+    Domains 0-101 stay below the default range."""
+    from cryptoros.ros2.exposure import ephemeral_overlap, highest_private_domain
+
+    linux = "32768\t60999\n"
+    assert ephemeral_overlap(100, linux) is None  # 32400-32649
+    assert ephemeral_overlap(101, linux) == range(32768, 32900)  # 32650-32899: its top 132 ports
+    assert ephemeral_overlap(181, linux) == range(52650, 52900)
+    assert ephemeral_overlap(232, linux) is None  # 65400-65649: above 60999
+    assert highest_private_domain(linux) == 100
+    assert highest_private_domain("40000 60999") == 129
+
+
+def test_the_ros2_role_on_a_domain_over_the_ephemeral_ports_is_refused_or_warned():
+    """deployment_problems (the start and --check): refused with require_private_domain
+    (the default), a warning without it; a domain below the range is not mentioned."""
+    from types import SimpleNamespace
+
+    from cryptoros.ros2.exposure import highest_private_domain
+    from interceptor.cli import ros2_domain_problem
+
+    def cfg(domain: int, private: bool = True):
+        return SimpleNamespace(roles=("node", "ros2"), ros2=SimpleNamespace(domain_id=domain,
+                                                                             require_private_domain=private))
+
+    top = highest_private_domain()
+    assert ros2_domain_problem(cfg(top)) is None and ros2_domain_problem(cfg(0)) is None
+    line = ros2_domain_problem(cfg(top + 1))
+    assert line is not None and f"[ros2] domain_id {top + 1}" in line and f"use a domain_id from 0 to {top}" in line
+    assert ros2_domain_problem(SimpleNamespace(roles=("node",), ros2=None)) is None
