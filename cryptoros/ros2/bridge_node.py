@@ -365,7 +365,12 @@ class Bridge:
             try:
                 cls = load_type(cmd["type"], "msg")
                 qos = make_qos(cmd.get("qos", {}))
-                if qos.reliability == ReliabilityPolicy.RELIABLE and qos.durability == DurabilityPolicy.VOLATILE:
+                if qos.reliability == ReliabilityPolicy.BEST_EFFORT:
+                    # a reliable writer (KEEP_LAST: never waits) serves best-effort and reliable
+                    # subscribers alike; a best-effort one matched no reliable subscriber, which
+                    # then got nothing while a best-effort publisher of the topic ran (ROS 2 audit)
+                    qos.reliability = ReliabilityPolicy.RELIABLE
+                elif qos.durability == DurabilityPolicy.VOLATILE:
                     # paced by the local readers like a direct KEEP_ALL publisher (the interceptor,
                     # then the sending robot, are held back) instead of overwriting unsent messages
                     qos.history = HistoryPolicy.KEEP_ALL

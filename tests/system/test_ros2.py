@@ -44,6 +44,23 @@ def test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network):
     assert seqs == list(range(seqs[0], seqs[0] + 40)), "messages lost or reordered"
 
 
+def test_a_best_effort_publisher_beside_a_reliable_one_leaves_reliable_subscribers_served(network):
+    """ROS 2 audit: a second granted publisher of /chatter with best-effort QoS made robot
+    B republish best effort, which no reliable subscriber matches: B's reliable listener
+    got nothing for as long as it ran (7 s, 150 messages). Robot B's writer is reliable
+    whatever the offer says: the listener gets both talkers' messages."""
+    with network.node("robot_b", "listener.py", "string", "/chatter", "60") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "20"):
+            collect(sub, 5, 25)  # the reliable flow is up
+            with network.node("robot_a", "talker.py", "string", "/chatter", "200", "20", "--best-effort",
+                              "--offset", "500000"):
+                lines = collect(sub, 120, 40)
+    seqs = got(lines)
+    best_effort = [s for s in seqs if s >= 500_000]
+    assert len(best_effort) >= 20 and len(seqs) - len(best_effort) >= 20, (len(best_effort), len(seqs), lines[-5:])
+
+
 def test_reliable_burst_arrives_without_loss_through_the_interceptors(network):
     """KEEP_ALL talker and listener: once the path is up (first message), a burst of
     2,000 messages as fast as the talker can publish arrives whole and in order, as on a
