@@ -393,6 +393,14 @@ class Gateway(Admission, Outbound, Health):
         probe = AuthzClient(cfg.authz, certs.authz_ctx)
         try:
             token = await probe.fetch_token()
+            # the feed as it is now, read with the new certificate: the one held may be stale
+            # (a revoked certificate cannot poll it) and still list our manager as disabled,
+            # which had refused every reload after a re-admission (ROS 2 audit)
+            with contextlib.suppress(TokenError):
+                feed = await probe.fetch_revocations()
+                if feed is not None:
+                    self.verifier.apply(feed)
+                    self.verifier.last_feed_at = time.time()
         finally:
             await probe.close()
         self.verifier.verify(token.token, certs.own_der)  # bound to the new certificate, not revoked

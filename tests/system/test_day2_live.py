@@ -344,3 +344,35 @@ def test_a_certificate_revoked_by_the_ca_is_cut_everywhere_within_5_s_without_si
                 assert refused.returncode == 1 and refused.stderr.strip() == "ERROR: denied by cryptoros: no_token", \
                     refused
             assert net.hosts["robot_b"].logs().count("cannot refresh access token") == 1, net.hosts["robot_b"].logs()
+
+
+def test_a_robot_disabled_and_revoked_then_readmitted_takes_its_new_certificate_on_sighup(tmp_path):
+    """ROS 2 audit (the same gateway serves ROS 1): robot B disabled and its certificate
+    revoked, as the runbook's "Revoke a robot's certificate" does, then re-admitted (a new
+    certificate, set-cert, enable-manager) and reloaded as its error line says. The feed
+    it held still listed its manager as disabled (a revoked certificate cannot poll it),
+    and every reload was refused against it: ``subject_disabled`` while the registry said
+    enabled. A reload reads the feed with the new certificate first."""
+    import signal
+
+    with talker_a_to_listener_b(tmp_path, seconds=120) as (net, sub, _pub):
+        b = net.hosts["robot_b"]
+
+        def status() -> dict:
+            with urllib.request.urlopen(f"http://127.0.0.1:{b.metrics_port}/status", timeout=5) as reply:
+                return json.loads(reply.read())
+
+        assert net.cli("disable-manager", "robot_b").returncode == 0
+        until(lambda: "robot_b" in status().get("feed", {}).get("disabled_managers", []), 15,
+              "robot B's feed lists its own manager as disabled")
+        net.pki.revoke("robot_b")
+        until(lambda: "HTTP 401" in b.logs(), 20, "robot B's feed polls refused (its certificate revoked)")
+        renewed = net.pki.issue("robot_b", kind="interceptor", sans=(f"IP:{b.address}",), force=True)
+        assert net.cli("set-cert", "robot_b", "--fingerprint", renewed.fingerprint_sha256).returncode == 0
+        assert net.cli("enable-manager", "robot_b").returncode == 0
+        before = len(b.logs())
+        b.proc.send_signal(signal.SIGHUP)
+        until(lambda: "reloaded certificates" in b.logs()[before:] or "reload failed" in b.logs()[before:], 20,
+              "robot B's reload outcome")
+        assert "reloaded certificates" in b.logs()[before:], b.logs()[before:][-2000:]
+        assert got(read_lines(sub, "GOT", 30)), "robot B's listener receives nothing after its re-admission"
