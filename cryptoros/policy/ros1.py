@@ -520,7 +520,7 @@ REFUSED = "denied by cryptoros"
 SHOWN_REASONS = frozenset({
     "not_granted", "param_write_denied", "param_read_denied", "shutdown_dropped", "not_from_master",
     "method_not_allowed", "name_taken", "node_limit", "param_quota", "rate_limited", "malformed", "unknown_topic",
-    "unknown_endpoint", "endpoint_not_peer",
+    "unknown_endpoint", "endpoint_not_peer", "answer_too_large",
 })
 
 

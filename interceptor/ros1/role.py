@@ -63,6 +63,7 @@ from interceptor.ros1.wire import (
     UNANSWERED_REASONS,
     log,
     read_xmlrpc,
+    value_size,
 )
 from interceptor.streams import drain_within, read_into
 from interceptor.translate import KIND_TCPROS, KIND_XMLRPC, Translator
@@ -461,7 +462,15 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 # may not read as if it were not set
                 results[i] = Response(value=refusal_answer(_told(exc), call.method, call.params, own=own))
         multicall = request.method == MULTICALL
+        # a multicall's answers are kept until the last: together at most max_master_reply
+        # (an insider's one multicall of 256 reads of its own 13.5 MB took the master's
+        # interceptor to 13.5 GB and held robot A's master calls 30 s)
+        budget = self.cfg.limits.max_master_reply
         for batch in (_batches(allowed) if multicall else [allowed] if allowed else []):
+            if multicall and budget < 0:
+                for i, _ in batch:
+                    results[i] = Response(value=ros_error(refusal_text("answer_too_large")))
+                continue
             outgoing = make_multicall([c for _, c in batch], like=request) if multicall else batch[0][1]
             answered = False
             try:
@@ -470,6 +479,12 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 parts = split_multicall_response(reply, len(batch)) if multicall else [reply]
                 for (i, call), part in zip(batch, parts, strict=True):
                     results[i] = after(call, part)
+                    if multicall:
+                        budget -= value_size(getattr(results[i], "value", None), budget)
+                if multicall and budget < 0:
+                    self.gw.deny(kind, PolicyDenied("answer_too_large", f"a multicall's answers past max_master_reply "
+                                                    f"({self.cfg.limits.max_master_reply} B): its later calls refused"),
+                                 f"{who} {MULTICALL}")
             except (CryptorosError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
                 unanswered = not isinstance(exc, CryptorosError) or exc.reason in UNANSWERED_REASONS
                 if unanswered:

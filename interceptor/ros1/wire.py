@@ -252,6 +252,24 @@ def header_hint(exc: BaseException, *, opener: str | None, server: str | None) -
     return missing_grant_hint(exc, opener if exc.missing[0] in OPENING_ACTIONS else server)
 
 
+def value_size(value: Any, limit: int) -> int:
+    """About how many bytes ``value`` (a parsed XML-RPC value) holds: its strings' and
+    binaries' lengths and 16 a scalar, counted until past ``limit``."""
+    size, stack = 0, [value]
+    while stack and size <= limit:
+        item = stack.pop()
+        if isinstance(item, (str, bytes, bytearray)):
+            size += len(item)
+        elif isinstance(item, dict):
+            size += sum(len(k) for k in item)
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+        else:
+            size += 16
+    return size
+
+
 def md5_or_none(type_name: str | None) -> str | None:
     if type_name is None:
         return None
@@ -261,4 +279,4 @@ def md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "OPENING_ACTIONS", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "header_hint", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "writes_params"]
+__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "OPENING_ACTIONS", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "header_hint", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "value_size", "writes_params"]

@@ -280,5 +280,20 @@ def test_an_insiders_parameter_reads_on_many_streams_at_once_leave_nothing_held(
             assert event.value[0] == 1 and len(event.value[2]) == 6, str(event.value)[:200]
         held_mib = (rss_kib(pid) - before) / 1024  # the streams still open
     assert held_mib < 120, f"the master's interceptor holds {held_mib:.0f} MiB more after 16 answers of 5.4 MB"
+    # insider re-audit: one multicall of such reads kept every answer for its reply (256
+    # reads of 13.5 MB: 13.5 GB); its answers together now stop at max_master_reply
+    # (64 MiB): 30 reads of 5.4 MB, the first dozen answered, the rest refused
+    calls = [{"methodName": "getParam", "params": ["/rospy_listener", "/rospy_listener/big"]}] * 30
+    with rogue_to(network, "master", "robot_b") as s:
+        assert rogue_preamble(s, token, "master").ok
+        s.settimeout(60)
+        conn = XmlRpcConnection(Role.CLIENT, max_body_size=256 << 20)
+        s.sendall(conn.send(Request(method="system.multicall", params=(calls,))))
+        while (event := conn.next_event()) is NEED_DATA:
+            conn.receive_data(s.recv(1 << 20))
+        answers = event.value
+    assert len(answers) == 30 and len(answers[0][0][2]) == 6, str(answers)[:300]
+    refused = [a for a in answers if isinstance(a, list) and a and a[0] == [-1, "denied by cryptoros: answer_too_large", 0]]
+    assert 10 <= 30 - len(refused) <= 14 and refused, [str(a)[:80] for a in answers]
     with network.inside("master"):
         assert master.deleteParam("/operator", "/rospy_listener/big")[0] == 1
