@@ -118,6 +118,11 @@ class Role:
         """The gateway swapped to the new configuration."""
 
 
+#: reads of the revocation feed a reload makes, 0.5 s apart, while it still lists the
+#: manager the new token was just issued to as disabled
+RELOAD_FEED_TRIES = 5
+
+
 class Gateway(Admission, Outbound, Health):
     """One host's interceptor: ``serve()`` purposes and ``add_role()`` roles, then
     ``await start()``, then ``await stop()``."""
@@ -397,7 +402,13 @@ class Gateway(Admission, Outbound, Health):
             # (a revoked certificate cannot poll it) and still list our manager as disabled,
             # which had refused every reload after a re-admission (ROS 2 audit)
             with contextlib.suppress(TokenError):
-                feed = await probe.fetch_revocations()
+                for _ in range(RELOAD_FEED_TRIES):
+                    feed = await probe.fetch_revocations()
+                    if feed is None or cfg.manager not in feed.disabled_subjects:
+                        break
+                    # the server issued the token, so it has our manager enabled: its feed,
+                    # read from the registry every 0.25 s, has yet to say so (seen under load)
+                    await asyncio.sleep(0.5)
                 if feed is not None:
                     self.verifier.apply(feed)
                     self.verifier.last_feed_at = time.time()

@@ -370,6 +370,8 @@ def test_a_robot_disabled_and_revoked_then_readmitted_takes_its_new_certificate_
         renewed = net.pki.issue("robot_b", kind="interceptor", sans=(f"IP:{b.address}",), force=True)
         assert net.cli("set-cert", "robot_b", "--fingerprint", renewed.fingerprint_sha256).returncode == 0
         assert net.cli("enable-manager", "robot_b").returncode == 0
+        # the authorization server has taken the re-admission (its cache of the managers)
+        until(lambda: net.daemon.token("robot_b")[0] == 200, 15, "a token for robot B's new certificate")
         before = len(b.logs())
         b.proc.send_signal(signal.SIGHUP)
         until(lambda: "reloaded certificates" in b.logs()[before:] or "reload failed" in b.logs()[before:], 20,
