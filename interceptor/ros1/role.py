@@ -57,6 +57,7 @@ from interceptor.ros1.wire import (
     IDLE_TIMEOUT,
     MASTER_DOWN_AFTER,
     MAX_POOLS,
+    MULTICALL_ANSWERS,
     OPAQUE,
     RATE_LOG_INTERVAL,
     UNANSWERED,
@@ -462,10 +463,10 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 # may not read as if it were not set
                 results[i] = Response(value=refusal_answer(_told(exc), call.method, call.params, own=own))
         multicall = request.method == MULTICALL
-        # a multicall's answers are kept until the last: together at most max_master_reply
+        # a multicall's answers are kept until the last: together at most MULTICALL_ANSWERS
         # (an insider's one multicall of 256 reads of its own 13.5 MB took the master's
         # interceptor to 13.5 GB and held robot A's master calls 30 s)
-        budget = self.cfg.limits.max_master_reply
+        budget = max(MULTICALL_ANSWERS, self.cfg.limits.max_master_reply)
         for batch in (_batches(allowed) if multicall else [allowed] if allowed else []):
             if multicall and budget < 0:
                 for i, _ in batch:
@@ -482,9 +483,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                     if multicall:
                         budget -= value_size(getattr(results[i], "value", None), budget)
                 if multicall and budget < 0:
-                    self.gw.deny(kind, PolicyDenied("answer_too_large", f"a multicall's answers past max_master_reply "
-                                                    f"({self.cfg.limits.max_master_reply} B): its later calls refused"),
-                                 f"{who} {MULTICALL}")
+                    self.gw.deny(kind, PolicyDenied("answer_too_large", f"a multicall's answers past "
+                                                    f"{max(MULTICALL_ANSWERS, self.cfg.limits.max_master_reply)} B "
+                                                    "together: its later calls refused"), f"{who} {MULTICALL}")
             except (CryptorosError, ConnectionError, OSError, asyncio.TimeoutError) as exc:
                 unanswered = not isinstance(exc, CryptorosError) or exc.reason in UNANSWERED_REASONS
                 if unanswered:

@@ -67,6 +67,9 @@ PARAM_CALLER_API_INDEX = {"subscribeParam": 1, "unsubscribeParam": 1}
 MASTER_CALLS_PER_PEER = POOL_BUSY
 PARAM_READS_PER_PEER = 2
 MASTER_CALL_WAIT = 10.0
+#: the most bytes of answers a multicall keeps together for its reply (or [limits]
+#: max_master_reply, if larger); its later calls are refused as answer_too_large
+MULTICALL_ANSWERS = 64 << 20
 #: master role: registrations kept for a restarted rosmaster (bounded: each costs ~300 B)
 MAX_REGISTRATIONS = 65_536
 #: parameter subscriptions of one node counted for its relay (more: freed by the export limit)
@@ -279,4 +282,4 @@ def md5_or_none(type_name: str | None) -> str | None:
         return None
 
 
-__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "OPAQUE", "OPENING_ACTIONS", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "header_hint", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "value_size", "writes_params"]
+__all__ = ["CALL_TIMEOUT", "DIRECT_RECHECK", "IDLE_TIMEOUT", "LOCAL_REGISTRATIONS", "LOCAL_TOKEN_WAIT", "MASTER_CALLS_PER_PEER", "MASTER_CALL_WAIT", "MASTER_DOWN_AFTER", "MASTER_WATCH_INTERVAL", "MASTER_WATCH_TIMEOUT", "MAX_PARAM_SUBSCRIPTIONS_PER_NODE", "MAX_POOLS", "MAX_REGISTRATIONS", "MULTICALL_ANSWERS", "OPAQUE", "OPENING_ACTIONS", "PARAM_CALLER_API_INDEX", "PARAM_READS_PER_PEER", "PARAM_VALUE_READS", "POOL_BUSY", "POOL_WAIT", "RATE_LOG_INTERVAL", "RELAY_URI_INDEX", "RELEASING_CALLS", "UNANSWERED", "UNANSWERED_REASONS", "caller_api", "filtered_param_reply", "header_hint", "local_endpoint", "log", "md5_or_none", "monitor_hooks", "param_subscription_key", "pass_refusal", "read_tcpros_header", "read_xmlrpc", "reads_param_values", "registration_key", "released_uri", "resolved_param_call", "rewrite_param_api", "ros_ok", "value_size", "writes_params"]

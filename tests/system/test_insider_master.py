@@ -281,8 +281,8 @@ def test_an_insiders_parameter_reads_on_many_streams_at_once_leave_nothing_held(
         held_mib = (rss_kib(pid) - before) / 1024  # the streams still open
     assert held_mib < 120, f"the master's interceptor holds {held_mib:.0f} MiB more after 16 answers of 5.4 MB"
     # insider re-audit: one multicall of such reads kept every answer for its reply (256
-    # reads of 13.5 MB: 13.5 GB); its answers together now stop at max_master_reply
-    # (64 MiB): 30 reads of 5.4 MB, the first dozen answered, the rest refused
+    # reads of 13.5 MB: 13.5 GB); its answers together now stop at 64 MiB: 30 reads of
+    # 5.4 MB, the first dozen answered, the rest refused
     calls = [{"methodName": "getParam", "params": ["/rospy_listener", "/rospy_listener/big"]}] * 30
     with rogue_to(network, "master", "robot_b") as s:
         assert rogue_preamble(s, token, "master").ok
