@@ -198,6 +198,22 @@ def read_listeners(port: int | None = None, proc_net: Path = PROC_NET) -> list[L
     return listeners if port is None else [one for one in listeners if one.port == port]
 
 
+#: Linux's default ``net.ipv4.ip_local_port_range``
+DEFAULT_EPHEMERAL = (32768, 60999)
+
+
+def ephemeral_ports(text: str | None = None) -> tuple[int, int]:
+    """The kernel's range of ephemeral ports (where a socket bound to port 0 lands), from
+    ``text`` or ``/proc/sys/net/ipv4/ip_local_port_range``; Linux's default when unread."""
+    try:
+        if text is None:
+            text = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
+        low, high = (int(n) for n in text.split()[:2])
+        return low, high
+    except (OSError, ValueError):
+        return DEFAULT_EPHEMERAL
+
+
 def is_loopback_host(host: str) -> bool:
     """``localhost`` or a loopback address (127.0.0.0/8, ::1); a name is not."""
     if host == "localhost":
@@ -281,7 +297,7 @@ def read_route_localnet(conf_dir: Path = PROC_SYS_CONF) -> dict[str, str]:
     return conf
 
 
-__all__ = ["ExposureError", "Listener", "PROC_NET", "PROC_SYS_CONF", "exposed_addresses", "is_exposed",
+__all__ = ["DEFAULT_EPHEMERAL", "ephemeral_ports", "ExposureError", "Listener", "PROC_NET", "PROC_SYS_CONF", "exposed_addresses", "is_exposed",
            "is_loopback_host", "localnet_routed", "parse_proc_net_tcp", "proc_net_address", "read_route_localnet",
            "route_localnet_fix", "sysctl_name",
            "parse_sock_diag", "read_listeners", "sock_diag_request"]

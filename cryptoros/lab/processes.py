@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from cryptoros.errors import CryptorosError
+from cryptoros.exposure import ephemeral_ports
 
 __all__ = ["NetworkError", "free_port", "log_tail", "stop", "wait_port"]
 
@@ -32,10 +33,7 @@ _PICK_FROM = 20000
 
 
 def _ephemeral_low() -> int:
-    try:
-        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return 32768
+    return ephemeral_ports()[0]
 
 
 #: ``i/n``: pick in the i-th of n equal slices of the range (labs run side by side on one

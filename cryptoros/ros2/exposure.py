@@ -26,7 +26,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cryptoros.exposure import is_exposed, proc_net_address
+from cryptoros.exposure import ephemeral_ports, is_exposed, proc_net_address
 
 PORT_BASE, DOMAIN_GAIN, PORTS_PER_DOMAIN = 7400, 250, 250
 Address = ipaddress.IPv4Address | ipaddress.IPv6Address
@@ -61,12 +61,7 @@ def ephemeral_overlap(domain: int, local_range: str | None = None) -> range | No
     lands in the domain's range is taken for a participant reachable from the network (a
     ROS 2 audit: a talker on domain 181 so flagged, and its topic not carried, in one
     start of a few). ``local_range``: the text of ``ip_local_port_range`` (read if None)."""
-    if local_range is None:
-        try:
-            local_range = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
-        except OSError:
-            return None
-    low, high = (int(n) for n in local_range.split()[:2])
+    low, high = ephemeral_ports(local_range)
     ports = domain_ports(domain)
     start, stop = max(ports.start, low), min(ports.stop, high + 1)
     return range(start, stop) if start < stop else None
@@ -75,12 +70,7 @@ def ephemeral_overlap(domain: int, local_range: str | None = None) -> range | No
 def highest_private_domain(local_range: str | None = None) -> int:
     """The highest domain whose DDS ports all lie below this host's ephemeral range
     (100 with Linux's default 32768-60999)."""
-    if local_range is None:
-        try:
-            local_range = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text()
-        except OSError:
-            local_range = "32768 60999"
-    low = int(local_range.split()[0])
+    low, _high = ephemeral_ports(local_range)
     return max(-1, (low - PORT_BASE - PORTS_PER_DOMAIN) // DOMAIN_GAIN)
 
 
