@@ -297,7 +297,6 @@ class NodeGuard:
         node name was found exposed before, within :data:`REPEAT_WINDOW`. Uses the answers
         :meth:`check_port` just read."""
         found: list[tuple[str, int, str, bool]] = []
-        now = self._clock()
         allowed_ports = {port for _node, port in self._served}
         for call in calls:
             for index, what in REGISTRATION_URIS.get(call.method, ()):
@@ -311,13 +310,23 @@ class NodeGuard:
                 node = call.params[0]
                 if not exposed or port in allowed_ports or any(fnmatch.fnmatchcase(node, p) for p in allow):
                     continue
-                if now - self._named.get((node, port), -self.ASK_AGAIN_AFTER) >= self.ASK_AGAIN_AFTER:
-                    remember(self._named, (node, port), now, self.MAX_NOTED)
-                    times, last = self._repeats.get(node, (0, now - 2 * self.REPEAT_WINDOW))
-                    repeat = now - last < self.REPEAT_WINDOW
-                    remember(self._repeats, node, (times + 1 if repeat else 1, now), self.MAX_NOTED)
+                repeat = self.to_ask(node, port)
+                if repeat is not None:
                     found.append((node, port, host, repeat))
         return found
+
+    def to_ask(self, node: str, port: int) -> bool | None:
+        """Whether the exposed process of ``node`` on ``port`` is to be asked to shut down
+        now: None if it was within :data:`ASK_AGAIN_AFTER`, else whether its name is a
+        repeat (found exposed before, within :data:`REPEAT_WINDOW`); noted either way."""
+        now = self._clock()
+        if now - self._named.get((node, port), -self.ASK_AGAIN_AFTER) < self.ASK_AGAIN_AFTER:
+            return None
+        remember(self._named, (node, port), now, self.MAX_NOTED)
+        times, last = self._repeats.get(node, (0, now - 2 * self.REPEAT_WINDOW))
+        repeat = now - last < self.REPEAT_WINDOW
+        remember(self._repeats, node, (times + 1 if repeat else 1, now), self.MAX_NOTED)
+        return repeat
 
     def still_running(self, node: str, port: int) -> None:
         """A refused node that could not be asked to shut down: named in :meth:`warnings`

@@ -22,9 +22,8 @@ from cryptoros.ros1.xmlrpc import (
 )
 from cryptoros.tokens import Grants
 from cryptoros.exposure import ExposureError, read_listeners
-from cryptoros.lru import remember
 from cryptoros.ros1.uri import UriError
-from interceptor.exposure import NodeGuard, is_this_host, lenient_host_port, master_problem, run_hint
+from interceptor.exposure import is_this_host, lenient_host_port, master_problem, run_hint
 from interceptor.ros1.localcalls import EXPOSED_SHUTDOWN_DELAY, MAX_IDLE, REPEAT_SHUTDOWN_DELAY, ask_to_shut_down
 from interceptor.ros1.wire import (
     DIRECT_RECHECK,
@@ -221,10 +220,8 @@ class MasterSide:
             if any(fnmatch.fnmatchcase(node, p) for p in self.cfg.allow_exposed_nodes):
                 self._direct_exposed[node] = f"{node} ({where}, allow_exposed_nodes: its firewall must close it)"
                 continue
-            asked = self._direct_asked.get(node)
-            if asked is None or asked[0] != port:  # a process of that name not asked yet (a respawn: a new port)
-                repeat = asked is not None and now - asked[1] < NodeGuard.REPEAT_WINDOW
-                remember(self._direct_asked, node, (port, now), NodeGuard.MAX_NOTED)
+            repeat = self._nodes_exposed.to_ask(node, port)  # None: this process was just asked
+            if repeat is not None:
                 why = (f"node {node}'s XML-RPC API listens on {where}, reachable from other hosts: start it with "
                        f"ROS_IP=127.0.0.1 ({run_hint(self.cfg.source, 'CMD')})")
                 log.error("DENY master-host node: exposed_endpoint: %s", why)

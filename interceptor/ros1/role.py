@@ -219,8 +219,6 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: looked at, and those whose API other hosts reach (node -> status text)
         self._direct_checked: dict[str, float] = {}
         self._direct_exposed: dict[str, str] = {}
-        #: master role: node name -> (port, when) of its process last asked to shut down
-        self._direct_asked: dict[str, tuple[int, float]] = {}
         self._owned_names_taken = False  # rosmaster told a robot's node to shut down (relays.py)
         self._exposed_ports: frozenset[int] = frozenset()  # ports other hosts reach, at the last look
         self._direct_looked_at = float("-inf")  # when (monotonic) the nodes were last looked at
