@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import functools
 import socket
+import struct
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.policy.ros1 import (
@@ -19,6 +20,7 @@ from cryptoros.policy.ros1 import (
 from cryptoros.ros1.rewrite import rewrite_call, rewrite_response, tcpros_only
 from cryptoros.ros1.tcpros import canonical_header, encode_header
 from cryptoros.ros1.xmlrpc import (
+    MULTICALL,
     Fault,
     Request,
     Response,
@@ -29,6 +31,7 @@ from interceptor.ros1.notices import NOTICES
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
     OPAQUE,
+    UNANSWERED,
     header_hint,
     log,
     monitor_hooks,
@@ -37,6 +40,18 @@ from interceptor.ros1.wire import (
 )
 from interceptor.streams import READ_SIZE, Tunnel
 from interceptor.translate import KIND_XMLRPC, Canonical
+
+
+class _NodeUnreachable(Exception):
+    """A node API call through a relay got no answer from the node or its interceptor."""
+
+
+def _reset(writer: asyncio.StreamWriter) -> None:
+    """Cut a local connection with a reset, as a host answers for a port nobody
+    listens on: a stock tool then reports the node unreachable in its own words."""
+    with contextlib.suppress(OSError, AttributeError):
+        writer.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    writer.transport.abort()
 
 
 class Relays:
@@ -129,10 +144,20 @@ class Relays:
             return await tunnel.call(request)
 
         async def handle(request: Request) -> Response | Fault:
-            return await self._decide_calls(request, decide, call, after, "relay", str(target))
+            answer = await self._decide_calls(request, decide, call, after, "relay", str(target))
+            # A node that is gone (or its host): the caller's connection is reset, as it
+            # would be refused in plain ROS. Answered with an error triple instead,
+            # ``rosnode ping`` raised past its handlers and ``rosnode cleanup`` stopped at
+            # the first dead node of another robot (day-2 audit).
+            if (request.method != MULTICALL and isinstance(answer, Response) and isinstance(answer.value, list)
+                    and answer.value[1:2] == [UNANSWERED]):
+                raise _NodeUnreachable
+            return answer
 
         try:
             await self._serve_xmlrpc(reader, writer, handle)
+        except _NodeUnreachable:
+            _reset(writer)
         except (RemoteProtocolError, asyncio.TimeoutError, ConnectionError) as exc:
             log.warning("relay %s dropped: %s", target, exc)
         finally:

@@ -7,12 +7,13 @@ logged, a registration listed), never on a sleep.
 
 from __future__ import annotations
 
+import subprocess
 import time
 
 import pytest
 
 from tests.interceptor_harness import NODE, NODES, SYS_PY, got, read_lines, robot_network, wait_registered
-from tests.support import running
+from tests.support import on_host, running
 
 pytestmark = [pytest.mark.ros1]
 
@@ -89,6 +90,42 @@ def test_a_grant_removed_and_added_back_reaches_the_running_subscriber_within_10
         took = first_message_within(sub, 10, since=granted)
         print(f"grant removed and added back: first message {took:.2f} s after `grant`")
         assert sub.poll() is None and pub.poll() is None
+
+
+def test_a_second_process_under_a_nodes_name_shuts_the_first_down_as_rosmaster_does(network):
+    """Day-2 audit: ``rostopic echo ... __name:=listener`` beside a running ``/listener``
+    left the first process running and deaf (rosmaster dropped its registrations; its
+    ``shutdown`` call to it is never forwarded) with nothing said. As in plain ROS, the
+    first process is told to shut down, with rosmaster's words."""
+    network.cli("grant", "robot_b", "subscribe", "/listener_twice", "/twice", "std_msgs/String")
+    argv = [SYS_PY, NODE, "sub", "/listener_twice", "/twice", "60"]
+    with running(argv, env=network.ros_env("robot_b")) as first:
+        read_lines(first, "READY", 20)
+        wait_registered(network, "/listener_twice")
+        with running(argv, env=network.ros_env("robot_b")) as second:
+            read_lines(second, "READY", 20)
+            lines = read_lines(first, "shutdown request", 15)
+            assert "[/listener_twice] Reason: new node registered with same name" in lines[-1], lines
+            assert second.poll() is None
+        wait_logged(network, "robot_b", "its previous process")
+
+
+def test_a_dead_node_of_another_robot_looks_unreachable_to_rosnode_ping(network):
+    """Day-2 audit: ``rosnode ping`` of robot A's node killed without unregistering got
+    ``[-1, "cryptoros: no answer ..."]`` through robot B's relay; rosnode raised it past
+    its handlers (``ERROR: remote call failed``), and ``rosnode cleanup`` stopped there on
+    every robot. The relay now resets the tool's connection, as a dead node's port does."""
+    network.cli("grant", "robot_a", "subscribe", "/stale_one", "/stale_topic", "std_msgs/String")
+    with running([SYS_PY, NODE, "sub", "/stale_one", "/stale_topic", "60"], env=network.ros_env("robot_a")) as stale:
+        read_lines(stale, "READY", 20)
+        wait_registered(network, "/stale_one")
+        stale.kill()  # no unregistration: rosmaster still lists it
+        stale.wait(10)
+    env = {**network.ros_env("robot_b"), "PATH": "/usr/bin:/bin"}
+    ping = subprocess.run(on_host(["rosnode", "ping", "-c", "1", "/stale_one"], env), env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert "connection to [/stale_one] failed" in ping.stderr, ping
+    assert "remote call failed" not in ping.stderr + ping.stdout and "Traceback" not in ping.stderr, ping
 
 
 def test_a_publish_grant_removed_and_added_back_reaches_the_running_subscriber_within_10_s(network):
