@@ -158,10 +158,30 @@ async def ask_to_shut_down(calls: LocalCalls, node: str, port: int, why: str,
         log.warning("node %s listens where other hosts reach it (port %d): asked to shut down (%s)", node, port,
                     answer)
         return True
+    if isinstance(failure, ConnectionRefusedError):  # most likely it exited first (status names it if not)
+        log.info("node %s (port %d) refused the connection when asked to shut down: exited already?", node, port)
+        return False
     log.warning("node %s listens where other hosts reach it (port %d) and could not be asked to shut down: "
                 "%s; stop it and start it with ROS_IP=127.0.0.1", node, port, failure)
     return False
 
 
+async def shut_down_replaced(calls: LocalCalls, node: str, uri: str) -> None:
+    """Tell the previous process of ``node``, at its XML-RPC API ``uri`` on this host, to
+    shut down because a new process registered the name: what rosmaster does in plain ROS
+    (its own call reaches the interceptors as a peer's ``shutdown``, never forwarded). Left
+    running, the old process is deaf: rosmaster dropped its registrations (day-2 audit).
+    A process already gone (a restart) refuses the connection: nothing to tell."""
+    request = Request(method="shutdown", params=("/master", f"[{node}] Reason: new node registered with same name"))
+    try:
+        await calls.call(uri, request, max_idle=0)
+    except RemoteProtocolError:  # rospy closes its API as it shuts down, before answering
+        pass
+    except (OSError, asyncio.TimeoutError):
+        return
+    log.info("node %s registered from a new process: its previous process (%s) asked to shut down", node, uri)
+
+
 __all__ = ["EXPOSED_SHUTDOWN_DELAY", "IDLE_SECONDS", "MAX_IDLE", "REPEAT_SHUTDOWN_DELAY", "LocalCalls", "LocalXmlRpc",
-           "ask_to_shut_down"]
+           "ask_to_shut_down",
+           "shut_down_replaced"]

@@ -38,7 +38,12 @@ from cryptoros.ros1.xmlrpc import (
 from interceptor.exposure import is_this_host
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
-from interceptor.ros1.localcalls import EXPOSED_SHUTDOWN_DELAY, REPEAT_SHUTDOWN_DELAY, ask_to_shut_down
+from interceptor.ros1.localcalls import (
+    EXPOSED_SHUTDOWN_DELAY,
+    REPEAT_SHUTDOWN_DELAY,
+    ask_to_shut_down,
+    shut_down_replaced,
+)
 from interceptor.registrations import REGISTER, RELEASE, Registration, covers
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
@@ -61,7 +66,7 @@ from interceptor.ros1.wire import (
     ros_ok,
 )
 from interceptor.streams import READ_SIZE, InboundStream
-from interceptor.translate import MASTER
+from interceptor.translate import KIND_XMLRPC, MASTER
 
 
 class NodeSide:
@@ -316,10 +321,23 @@ class NodeSide:
         if previous == api_id:
             return
         if previous is not None:
+            self._shut_down_previous(node, previous)
             self._release_node_exports(previous)
         if len(self._node_apis) < self.translator.MAX_EXPORTS:
             self._node_apis[node] = api_id
         self._save_state_soon()
+
+    def _shut_down_previous(self, node: str, api_id: str) -> None:
+        """``node`` registered from a new process (rosmaster accepted it): its previous
+        process is told to shut down, unless another node now holds that API (its port
+        taken again)."""
+        if any(api == api_id and name != node for name, api in self._node_apis.items()):
+            return
+        try:
+            endpoint = self.translator.resolve(KIND_XMLRPC, api_id)
+        except PolicyDenied:
+            return
+        self.gw.spawn(shut_down_replaced(self._local_calls, node, endpoint.uri), "shutdown-replaced")
 
     def _track_local_registration(self, call: Request) -> None:
         """Count a local node's registrations; when the last one is released (a clean
