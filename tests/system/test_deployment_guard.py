@@ -345,9 +345,12 @@ def test_a_node_respawned_exposed_is_shut_down_at_once_each_time_and_named_in_st
                 assert time.monotonic() < deadline, net.hosts["robot_a"].logs()[-3000:]
                 time.sleep(0.2)
             status = status_text(net, "robot_a")
+            # read while roslaunch runs: the process it started last is killed with it, maybe
+            # before it could be asked (seen under load)
+            logs = net.hosts["robot_a"].logs()
         assert "nodes started again and again where other hosts reach them" in status and "/echo_respawn (" in status, \
             status
-        assert "could not be asked" not in net.hosts["robot_a"].logs()
+        assert "could not be asked" not in logs
         # on the master host, where nodes register with rosmaster directly: the respawned
         # process (same name, a new port) was never asked, and stayed reachable
         master = net.hosts["master"]
@@ -358,4 +361,5 @@ def test_a_node_respawned_exposed_is_shut_down_at_once_each_time_and_named_in_st
             while master.logs().count("node /echo_mhost listens where other hosts reach it") < 3:
                 assert time.monotonic() < deadline, master.logs()[-3000:]
                 time.sleep(0.2)
-        assert "could not be asked" not in master.logs()
+            logs = master.logs()
+        assert "could not be asked" not in logs
