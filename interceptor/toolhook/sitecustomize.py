@@ -10,9 +10,13 @@ cryptoros: <reason>`` (exit status 1, as any uncaught exception); every other ex
 is reported as before. ``rosnode kill`` ignores the node's answer to ``shutdown`` and
 prints ``killed`` whatever it was: when ``rosnode`` is imported, its ``kill_nodes`` is
 wrapped so that a node whose ``shutdown`` cryptoros refused is reported as not killed
-(``ERROR: Failed to kill``, exit status 1) after the refusal's line. It then runs the
-installation's own ``sitecustomize`` (Debian ships one), which this file would otherwise
-hide.
+(``ERROR: Failed to kill``, exit status 1) after the refusal's line, and its cleanup goes
+on past a node whose unregistration cryptoros refuses (another robot's node: one line
+each). rospy logs a refused registration as ``[FATAL]`` and carries on, which a node may
+want but leaves ``rostopic`` echoing nothing or saying it published (exit status 0): in
+``rostopic`` such a refusal is one ``ERROR:`` line, and the tool ends (exit status 1). It
+then runs the installation's own ``sitecustomize`` (Debian ships one), which this file
+would otherwise hide.
 
 Standalone on purpose: the tools run under the system's Python, without cryptoros.
 """
@@ -68,13 +72,52 @@ def _patch_rosnode(module):
         return success, fail
 
     module.kill_nodes = kill_nodes
+    cleanup = module.cleanup_master_blacklist
+
+    def cleanup_master_blacklist(master, blacklist):
+        for name in blacklist:  # one at a time: a refusal stops only its own node's
+            try:
+                cleanup(master, [name])
+            except Exception as exc:
+                if _REFUSED not in str(exc):
+                    raise
+                sys.stderr.write(f"ERROR: {name}: {exc}\n")
+
+    module.cleanup_master_blacklist = cleanup_master_blacklist
+
+
+def _patch_registration(module):
+    """In ``rostopic``, a registration cryptoros refuses ends the tool: one line, rospy
+    shut down (what it registered is unregistered), exit status 1."""
+    logfatal = module.logfatal
+
+    def refusal_ends_the_tool(message, *args, **kwargs):
+        if _REFUSED not in str(message):
+            return logfatal(message, *args, **kwargs)
+        sys.stderr.write(f"ERROR: {message}\n")
+        sys.stderr.flush()
+        try:
+            from rospy.core import signal_shutdown
+
+            signal_shutdown("denied by cryptoros")
+        finally:
+            os._exit(1)
+
+    module.logfatal = refusal_ends_the_tool
+
+
+#: module -> what wraps it once loaded
+_PATCHES = {"rosnode": _patch_rosnode}
+if os.path.basename(sys.argv[0] if sys.argv else "") == "rostopic":
+    _PATCHES["rospy.impl.registration"] = _patch_registration
 
 
 class _PatchOnImport:
-    """A finder that lets ``rosnode`` load as usual, then wraps its ``kill_nodes``."""
+    """A finder that lets the modules of :data:`_PATCHES` load as usual, then wraps them."""
 
     def find_spec(self, fullname, path=None, target=None):
-        if fullname != "rosnode":
+        patch = _PATCHES.get(fullname)
+        if patch is None:
             return None
         spec = importlib.machinery.PathFinder.find_spec(fullname, path)
         if spec is None or spec.loader is None:
@@ -85,8 +128,8 @@ class _PatchOnImport:
         def exec_module(module):
             run(module)
             try:
-                _patch_rosnode(module)
-            except AttributeError:  # another rosnode than ros_comm 1.15's: left as it is
+                patch(module)
+            except AttributeError:  # another version than ros_comm 1.15's: left as it is
                 pass
 
         loader.exec_module = exec_module

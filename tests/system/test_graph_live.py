@@ -13,6 +13,7 @@ import time
 import pytest
 
 from tests.interceptor_harness import NODE, NODES, SYS_PY, got, read_lines, robot_network, wait_registered
+from cryptoros.lab.network import tool
 from tests.support import on_host, running
 
 pytestmark = [pytest.mark.ros1]
@@ -126,6 +127,15 @@ def test_a_dead_node_of_another_robot_looks_unreachable_to_rosnode_ping(network)
                           text=True, timeout=60)
     assert "connection to [/stale_one] failed" in ping.stderr, ping
     assert "remote call failed" not in ping.stderr + ping.stdout and "Traceback" not in ping.stderr, ping
+    # rosnode cleanup through cryptoros run: robot A's node may not be purged by robot B
+    # (one line), and the cleanup goes on to its end
+    cleanup = subprocess.run(on_host([tool("cryptoros"), "run", "--config", str(network.hosts["robot_b"].config), "--",
+                                      "rosnode", "cleanup"], env), env=env, input="y\n", capture_output=True,
+                             text=True, timeout=60)
+    assert " * /stale_one" in cleanup.stdout and cleanup.stdout.rstrip().endswith("done"), cleanup
+    assert any(line.startswith("ERROR: /stale_one: denied by cryptoros: ") for line in cleanup.stderr.splitlines()), \
+        cleanup
+    assert "Traceback" not in cleanup.stderr, cleanup
 
 
 def test_a_publish_grant_removed_and_added_back_reaches_the_running_subscriber_within_10_s(network):

@@ -286,6 +286,16 @@ def test_refusals_read_like_ros_errors_and_unreadable_parameters_like_unset_ones
         ping = tool(net, "rosnode", "ping", "-c", "1", "/talker_a")
         assert ping.returncode == 0 and pub.poll() is None, ping
 
+        # --- rostopic: rospy logs a refused registration as [FATAL] and goes on (pub said it
+        # published, exit 0; echo waited); through cryptoros run the refusal ends it in one line
+        for argv in (["pub", "-1", "/chatter", "std_msgs/String", "data: x"], ["echo", "-n", "1", "/chatter"]):
+            refused = run([str(VENV_BIN / "cryptoros"), "run", "--config", str(net.hosts["robot_b"].config), "--",
+                           "rostopic", *argv], env=net.ros_env("robot_b"), timeout=30)
+            lines = [line for line in (refused.stdout + refused.stderr).splitlines() if line.strip()]
+            assert refused.returncode == 1 and len(lines) == 1, refused
+            assert lines[0].startswith("ERROR: unable to register ") and "denied by cryptoros: not_granted" in lines[0], \
+                refused
+
 
 def test_actionlib_and_dynamic_reconfigure_behind_interceptors(tmp_path):
     """actionlib reads <action>/status_frequency (has_param: an error would raise in
