@@ -89,6 +89,7 @@ Relative paths are relative to the configuration file's directory.
 from __future__ import annotations
 
 import fnmatch
+import math
 import os
 import tomllib
 import urllib.parse
@@ -461,13 +462,13 @@ def _typed(value: Any, kind: type, where: str) -> Any:
         value = float(value)
     if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         raise ConfigError(f"{where} must be {kind.__name__}, got {value!r}")
-    if kind in (int, float) and value <= 0:
-        raise ConfigError(f"{where} must be positive, got {value!r}")
+    if kind in (int, float) and not 0 < value < math.inf:  # TOML's nan and inf too (nan fails every comparison)
+        raise ConfigError(f"{where} must be positive and finite, got {value!r}")
     return value
 
 
 def _seconds_or_zero(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
         raise ConfigError(f"{where} must be a number of seconds, 0 or more, got {value!r}")
     return float(value)
 
@@ -663,7 +664,7 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         master=master,
         limits=limits,
         unsafe_plaintext_upstream=unsafe_plaintext,
-        state_dir=(_path(base, top["state_dir"], "state_dir") if "state_dir" in top
+        state_dir=(_state_dir(_path(base, top["state_dir"], "state_dir")) if "state_dir" in top
                    else default_state_dir(source) if source is not None else None),
         ros2=ros2,
         monitor=_parse_monitor(_check_keys(top["monitor"], "monitor"), base) if "monitor" in top else None,
@@ -671,6 +672,13 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         allow_exposed_nodes=_node_patterns(top.get("allow_exposed_nodes", []), "allow_exposed_nodes"),
         source=source,
     )
+
+
+def _state_dir(path: Path) -> Path:
+    """``state_dir`` as given: a directory, or nothing yet (made at start)."""
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"state_dir {path} exists and is not a directory")
+    return path
 
 
 def _node_patterns(value: Any, where: str) -> tuple[str, ...]:

@@ -83,6 +83,10 @@ def test_relative_paths_are_relative_to_the_file(material, tmp_path):
         ({'crl = "': 'cipher = "RC4"\ncrl = "'}, "unknown key 'cipher' in \\[tls\\]"),
         ({"max_connections_per_peer = 8": "max_conections_per_peer = 8"}, "unknown key 'max_conections_per_peer'"),
         ({"max_connections_per_peer = 8": "max_connections_per_peer = -1"}, "must be positive"),
+        # operator audit: nan passed every "<= 0" check and each public connection then raised
+        ({"max_connections_per_peer = 8": "preamble_timeout = nan"}, "preamble_timeout must be positive and finite"),
+        ({"max_connections_per_peer = 8": "handshake_timeout = inf"}, "handshake_timeout must be positive and finite"),
+        ({"max_connections_per_peer = 8": "stalled_stream_timeout = nan"}, "stalled_stream_timeout must be seconds"),
         ({"max_connections_per_peer = 8": 'max_connections_per_peer = "many"'}, "must be int"),
         ({'manager = "robot1"': ""}, "manager is required"),
         ({'roles = ["node"]': 'roles = ["robot"]'}, "roles must be"),
@@ -105,6 +109,14 @@ def test_mistakes_are_one_line_config_errors(material, tmp_path, edit, message):
     with pytest.raises(ConfigError, match=message) as info:
         load(write(tmp_path, good(material, **edit)))
     assert "\n" not in str(info.value)
+
+
+def test_a_state_dir_that_is_a_file_is_a_config_error(material, tmp_path):
+    """Operator audit: ``state_dir = "robot.toml"`` passed ``--check``; the start then failed
+    on the instance lock inside it."""
+    config = write(tmp_path, good(material, **{'roles = ["node"]': 'roles = ["node"]\nstate_dir = "interceptor.toml"'}))
+    with pytest.raises(ConfigError, match="state_dir .*interceptor.toml exists and is not a directory"):
+        load(config)
 
 
 def test_missing_file_and_bad_toml(tmp_path):
