@@ -304,7 +304,10 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
         if ros2_profile == "-":
             click.echo(text, nl=False)
         else:
-            Path(ros2_profile).write_text(text, encoding="utf-8")
+            try:
+                Path(ros2_profile).write_text(text, encoding="utf-8")
+            except OSError as exc:
+                _fail(f"cannot write {ros2_profile}: {exc.strerror or exc}")
             click.echo(f"wrote {ros2_profile}: start every ROS 2 node of this robot with "
                        f"{PROFILE_ENV}={Path(ros2_profile).resolve()} (and ROS_DOMAIN_ID of its [ros2] domain_id)")
         return

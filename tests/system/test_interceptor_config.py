@@ -346,3 +346,17 @@ def test_urls_is_not_a_key_of_its_own(tmp_path):
                    '[authz]\nurl = "https://127.0.0.1:8443"\nurls = ["https://127.0.0.1:8444"]\n')
     with pytest.raises(ConfigError, match="unknown key 'urls' in \\[authz\\]"):
         load(cfg)
+
+
+def test_ros2_profile_into_a_missing_directory_is_one_line(tmp_path):
+    """Operator audit: ``--ros2-profile /nonexist/p.xml`` ended in a traceback."""
+    from click.testing import CliRunner
+
+    from interceptor.cli import main
+
+    result = CliRunner().invoke(main, ["--ros2-profile", str(tmp_path / "nonexist" / "p.xml")])
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cryptoros-interceptor: error: cannot write "), result.output
+    written = CliRunner().invoke(main, ["--ros2-profile", str(tmp_path / "p.xml")])
+    assert written.exit_code == 0 and (tmp_path / "p.xml").read_text().startswith("<?xml"), written.output
