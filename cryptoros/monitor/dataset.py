@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import statistics
+import struct
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -44,16 +45,26 @@ def _messages(bags: Iterable[Path], robot: str = "") -> Iterator[tuple[str, str,
     the streams tell about each other (a robot's beacons) needs every one of them."""
     from rosbags.rosbag1 import Reader, ReaderError
 
+    # what a damaged or foreign file raises in rosbags (a header that is not text, a short
+    # record, a missing field): one line naming the bag, never a traceback (operator audit)
+    damaged = (ReaderError, OSError, ValueError, KeyError, IndexError, struct.error)
+
+    def read(reader: Reader, bag: Path) -> Iterator:
+        try:
+            yield from reader.messages()
+        except damaged as exc:
+            raise ConfigError(f"cannot read bag {bag}: not a readable ROS 1 bag ({exc})") from None
+
     for bag in bags:
         try:
             reader = Reader(Path(bag))
             reader.open()
-        except (ReaderError, OSError) as exc:
-            raise ConfigError(f"cannot read bag {bag}: {exc}") from None
+        except damaged as exc:
+            raise ConfigError(f"cannot read bag {bag}: not a readable ROS 1 bag ({exc})") from None
         try:
             streams: dict[tuple[str, str], StreamFeatures] = {}
             crosscheck = Crosscheck()  # one per recording, as one per interceptor
-            for conn, stamp_ns, raw in reader.messages():
+            for conn, stamp_ns, raw in read(reader, bag):
                 publisher = getattr(conn.ext, "callerid", None) or "?"
                 key = (conn.topic, publisher)
                 features = streams.get(key)

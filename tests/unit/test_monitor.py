@@ -987,3 +987,17 @@ async def test_a_gated_message_has_the_queued_batch_scored_right_after_it(tmp_pa
     await drain()  # the next turn of the loop, not a second later
     assert counted.labels("/r1/pose")._value.get() == 1
     assert monitor._batch is None and not monitor._due
+
+
+@pytest.mark.parametrize("content", [bytes(range(200, 256)) * 8, b"#ROSBAG V2.0\n" + b"\x07" * 300, b""])
+def test_a_file_that_is_no_bag_is_one_line_naming_it(tmp_path, content):
+    """Operator audit: ``cryptoros monitor train`` of a file of random bytes ended in a
+    UnicodeDecodeError traceback from rosbags."""
+    from cryptoros.errors import ConfigError
+    from cryptoros.monitor.dataset import train
+
+    bag = tmp_path / "g.bag"
+    bag.write_bytes(content)
+    with pytest.raises(ConfigError, match=f"cannot read bag {bag}: not a readable ROS 1 bag") as info:
+        train([bag])
+    assert "\n" not in str(info.value)
