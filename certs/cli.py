@@ -407,11 +407,14 @@ def revoke(name_or_serial, directory, reason, crl_days, pick, all_, ca_passphras
                            "give --serial SERIAL for one, or --all for every one")
         targets = [r.serial for r in live]
     pki = open_for_signing(directory, ca_passphrase_file)
-    serials = [pki.revoke(t, reason=reason) for t in targets]
-    crl = pki.write_crl(days=crl_days)
+    serials = [pki.revoke(t, reason=reason, crl_days=crl_days) for t in targets]
     for serial in serials:
-        click.echo(f"revoked serial {serial:x}")
-    click.echo(f"CRL: {crl}")
+        if live:
+            click.echo(f"revoked serial {serial:x}")
+        else:  # PKI.revoke refuses what the CRL lists already: this one it lacked
+            click.echo(f"serial {serial:x} was revoked in {pki.index_path} but missing from {pki.crl_path} "
+                       "(an earlier revoke failed half-way): CRL re-signed with it")
+    click.echo(f"CRL: {pki.crl_path}")
 
 
 @cli.command()
@@ -434,6 +437,7 @@ def list_(directory, as_json):
     """List every certificate this CA issued."""
     pki = PKI.open(directory)
     records = pki.list()
+    _warn_disagreements(pki)
     if as_json:
         click.echo(json.dumps([r.to_json() for r in records], indent=2))
         return
@@ -467,6 +471,12 @@ def show(target, directory, pem):
         click.echo(cert.public_bytes(serialization.Encoding.PEM).decode(), nl=False)
 
 
+def _warn_disagreements(pki: PKI) -> None:
+    """One stderr line per disagreement of the index and the CRL, each naming its fix."""
+    for line in pki.crl_disagreements():
+        click.echo(f"{PROG}: warning: {line}", err=True)
+
+
 def _resolve_cert(target: str, directory: str) -> Path:
     p = Path(target)
     if p.is_file():
@@ -477,6 +487,10 @@ def _resolve_cert(target: str, directory: str) -> Path:
         candidate = Path(directory) / "issued" / f"{target}.crt"
         if candidate.is_file():
             return candidate
+        if candidate.exists() or candidate.is_symlink():
+            what = ("a directory" if candidate.is_dir() else
+                    "a dangling link" if not candidate.exists() else "not a regular file")
+            raise BadInput(f"{candidate} is {what}, not a certificate: move it away and issue {target!r} again")
     raise BadInput(f"no certificate named {target!r} in {directory} and no such file")
 
 
@@ -493,6 +507,8 @@ def verify(cert, directory, ca_file, crl_file):
         ca_file = str(Path(directory) / "ca.crt")
         if crl_file is None and (Path(directory) / "crl.pem").exists():
             crl_file = str(Path(directory) / "crl.pem")
+        if crl_file is not None and Path(directory, "index.json").exists():
+            _warn_disagreements(PKI.open(directory))
     ca = pkimod.load_certificate(ca_file)
     crl_obj = pkimod.load_crl(crl_file) if crl_file else None
     try:

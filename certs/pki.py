@@ -12,7 +12,16 @@ Layout of a PKI directory::
 
 Every file is written to a temporary file in the same directory and then moved into
 place, so a failure never leaves half a file; nothing is overwritten without
-``force=True``. Every failure the caller can cause raises :class:`PKIError`.
+``force=True``. Every change holds the lock ``.lock``; taking it removes temporary files
+of our own pattern (``.<file>.<8 chars>.tmp``) that a killed run left behind.
+
+``revoke`` writes the CRL before the index (a crash leaves a certificate refused, never
+one accepted that the index calls revoked). ``init`` stages the whole CA in
+``.init.new/``, renames it to ``.init.ready/`` (the point of no return) and moves the
+files into place; the replaced ones are kept as ``*.old`` (``ca.crt.old``,
+``private/ca.key.old``, ``index.json.old``, ``crl.pem.old``), and a move interrupted
+after that point is finished by the next ``PKI.open``. Every failure the caller can
+cause raises :class:`PKIError`.
 """
 
 from __future__ import annotations
@@ -24,7 +33,10 @@ import ipaddress
 import json
 import os
 import re
+import shutil
+import stat
 import tempfile
+import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +70,11 @@ _DNS_RE = re.compile(r"^(\*\.)?([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[
 _RESERVED_NAMES = frozenset({"ca", "crl", "index"})
 _BACKDATE = dt.timedelta(minutes=5)  # tolerate small clock skew between hosts
 _ORG = "cryptoros"
+#: what tempfile.mkstemp makes for _FileSet: ".<final name>.<8 random chars>.tmp"
+_TEMP_RE = re.compile(r"^\.[^/]+\.[a-z0-9_]{8}\.tmp$")
+#: temp files older than this process cannot be ours in flight: a killed run's leftovers
+_STARTED = time.time()
+_INIT_FILES = ("ca.crt", "private/ca.key", "index.json", "crl.pem")  # what init replaces, in that order
 
 
 # --------------------------------------------------------------------------- records
@@ -284,17 +301,22 @@ class _FileSet:
 
     def add(self, final: Path, data: bytes, mode: int) -> None:
         self.check(final)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=final.parent, prefix=f".{final.name}.", suffix=".tmp")
+        try:
+            final.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=final.parent, prefix=f".{final.name}.", suffix=".tmp")
+        except OSError as err:
+            raise _write_error(final, err) from err
         try:
             os.fchmod(fd, mode)
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
                 f.flush()
                 os.fsync(f.fileno())
-        except BaseException:
+        except BaseException as err:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+            if isinstance(err, OSError):
+                raise _write_error(final, err) from err
             raise
         self.staged.append((Path(tmp), final))
 
@@ -303,7 +325,7 @@ class _FileSet:
         try:
             for tmp, final in self.staged:
                 if self.force:
-                    os.replace(tmp, final)
+                    _replace(tmp, final)
                 else:
                     try:
                         os.link(tmp, final)  # atomic, and refuses to clobber
@@ -313,7 +335,7 @@ class _FileSet:
                         # no hard links on this file system: check, then rename
                         if final.exists() or final.is_symlink():
                             raise PKIError(f"{final} exists: use --force to overwrite") from None
-                        os.replace(tmp, final)
+                        _replace(tmp, final)
                     else:
                         os.unlink(tmp)
                 created.append(final)
@@ -340,6 +362,155 @@ class _FileSet:
             self.commit()
         else:
             self.discard()
+
+
+def _write_error(final: Path, err: OSError) -> PKIError:
+    """An OSError while writing ``final`` (perhaps through its temporary file), as a
+    PKIError naming ``final``: the temporary name means nothing to the user."""
+    return PKIError(f"cannot write {final}: {err.strerror or err}")
+
+
+def _replace(tmp: Path, final: Path) -> None:
+    try:
+        os.replace(tmp, final)
+    except OSError as err:
+        raise _write_error(final, err) from err
+
+
+def _remove_stale_temps(directory: Path) -> list[Path]:
+    """Remove the temporary files a killed run left in the PKI directory: only regular
+    files matching :data:`_TEMP_RE`, directly in the directory or its subdirectories of
+    the layout, and last changed before this process started (every live writer holds
+    the lock we hold, so nothing in flight is touched). Returns what was removed."""
+    removed = []
+    for sub in (directory, directory / "private", directory / "issued", directory / "csr"):
+        try:
+            entries = list(os.scandir(sub))
+        except OSError:
+            continue
+        for entry in entries:
+            if not _TEMP_RE.match(entry.name):
+                continue
+            try:
+                st = entry.stat(follow_symlinks=False)
+                if stat.S_ISREG(st.st_mode) and st.st_mtime < _STARTED:
+                    os.unlink(entry.path)
+                    removed.append(Path(entry.path))
+            except OSError:
+                continue  # gone already, or not ours to remove
+    return removed
+
+
+@contextlib.contextmanager
+def _lock(directory: Path) -> Iterator[None]:
+    """Hold the PKI's exclusive lock (``.lock``), after removing stale temporary files."""
+    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        _remove_stale_temps(directory)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+_INIT_STAGING = ".init.new"  # a CA being written: removed by the next init
+_INIT_READY = ".init.ready"  # a CA complete on disk: moved into place by the next open or init
+
+
+def _refuse_existing_ca(directory: Path) -> None:
+    for rel in ("ca.crt", "private/ca.key", "index.json"):
+        if (directory / rel).exists():
+            raise PKIError(f"{directory / rel} exists: use --force to overwrite")
+
+
+def _replace_ca(directory: Path, files: dict[str, tuple[bytes, int]]) -> None:
+    """Replace the CA's files so that a stop anywhere leaves the old CA or the new one
+    (under the caller's lock). The new files are written whole into ``.init.new/``;
+    the current ones are linked to ``*.old``; renaming the staging directory to
+    ``.init.ready/`` commits; :func:`_finish_init` then moves the files into place."""
+    staging = directory / _INIT_STAGING
+    shutil.rmtree(staging, ignore_errors=True)  # an init stopped before committing
+    (staging / "private").mkdir(parents=True, mode=0o700)
+    for rel, (data, mode) in files.items():
+        write_file(staging / rel, data, mode=mode)
+    _fsync_dir(staging / "private")
+    _fsync_dir(staging)
+    for rel in _INIT_FILES:
+        live = directory / rel
+        if live.is_file() and not live.is_symlink():
+            old = live.with_name(live.name + ".old")
+            with contextlib.suppress(FileNotFoundError):
+                old.unlink()
+            try:
+                os.link(live, old)  # the same inode: a stop now loses nothing
+            except OSError:
+                shutil.copy2(live, old)  # no hard links on this file system
+    os.rename(staging, directory / _INIT_READY)  # the point of no return
+    _fsync_dir(directory)
+    _finish_init(directory)
+
+
+def _finish_init(directory: Path) -> None:
+    """Move a committed CA (``.init.ready/``) into place (under the caller's lock)."""
+    ready = directory / _INIT_READY
+    if not ready.is_dir():
+        return
+    for rel in _INIT_FILES:
+        staged = ready / rel
+        if staged.exists():  # absent: moved already, by the init that stopped
+            _replace(staged, directory / rel)
+    _fsync_dir(directory)
+    _fsync_dir(directory / "private")
+    shutil.rmtree(ready)
+
+
+def _check_index(index: object, path: Path) -> dict:
+    """The index as read, if it has the shape we write; PKIError naming the file if not."""
+    problem = None
+    if not isinstance(index, dict):
+        problem = f"a JSON {type(index).__name__} instead of an object"
+    elif not isinstance(index.setdefault("certificates", []), list):
+        problem = "'certificates' is not a list"
+    elif not all(isinstance(d, dict) for d in index["certificates"]):
+        problem = "a certificate record is not an object"
+    elif not isinstance(index.get("trust_domain", ""), str):
+        problem = "'trust_domain' is not a string"
+    elif not isinstance(index.get("crl_number", 0), int) or isinstance(index.get("crl_number"), bool):
+        problem = "'crl_number' is not an integer"
+    if problem:
+        raise PKIError(f"{path} is not a cryptoros index ({problem}): restore it from a backup")
+    return index
+
+
+def _csr_common_name(csr: x509.CertificateSigningRequest, csr_path: Path) -> str:
+    """The one common name of a CSR's subject; PKIError if it has none, several, or
+    sits in a multi-valued RDN (``CN=a1+CN=a2``): which one was meant is a guess."""
+    if any(len(rdn) > 1 for rdn in csr.subject.rdns):
+        raise PKIError(f"CSR {csr_path} has a multi-valued RDN in its subject ({csr.subject.rfc4514_string()}): "
+                       "ask for a CSR with one common name, or give the name explicitly")
+    cns = csr.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    if not cns:
+        raise PKIError(f"CSR {csr_path} has no common name: give the name explicitly")
+    if len(cns) > 1:
+        raise PKIError(f"CSR {csr_path} has {len(cns)} common names ({csr.subject.rfc4514_string()}): "
+                       "ask for a CSR with one, or give the name explicitly")
+    return str(cns[0].value)
+
+
+def _entry_reason(entry: x509.RevokedCertificate) -> str:
+    try:
+        flag = entry.extensions.get_extension_for_class(x509.CRLReason).value.reason
+    except x509.ExtensionNotFound:
+        return "unspecified"
+    return flag.name if flag.name in REASONS else "unspecified"
 
 
 def write_file(path: str | os.PathLike, data: bytes, *, mode: int = 0o644, force: bool = False) -> Path:
@@ -417,9 +588,7 @@ class PKI:
             passphrase = passphrase.encode()
         key_pem_encryption = _key_encryption(passphrase, unsafe_no_passphrase)
         if not force:
-            for p in (directory / "ca.crt", directory / "private" / "ca.key", directory / "index.json"):
-                if p.exists():
-                    raise PKIError(f"{p} exists: use --force to overwrite")
+            _refuse_existing_ca(directory)  # before the (slow) key generation; again under the lock
         key = generate_key(key_type)
         now = _now()
         subject = x509.Name(
@@ -446,14 +615,20 @@ class PKI:
         key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, key_pem_encryption)
         index = {"version": 1, "trust_domain": trust_domain, "crl_number": 1, "certificates": []}
         crl = cls._build_crl(cert, key, [], number=1, days=7)
+        files = {
+            "ca.crt": (cert.public_bytes(serialization.Encoding.PEM), 0o644),
+            "private/ca.key": (key_pem, 0o600),
+            "index.json": ((json.dumps(index, indent=2) + "\n").encode(), 0o644),
+            "crl.pem": (crl.public_bytes(serialization.Encoding.PEM), 0o644),
+        }
         for sub in ("private", "issued", "csr"):
             (directory / sub).mkdir(parents=True, exist_ok=True)
         os.chmod(directory / "private", 0o700)
-        with _FileSet(force=force) as fs:
-            fs.add(directory / "private" / "ca.key", key_pem, 0o600)
-            fs.add(directory / "ca.crt", cert.public_bytes(serialization.Encoding.PEM), 0o644)
-            fs.add(directory / "index.json", (json.dumps(index, indent=2) + "\n").encode(), 0o644)
-            fs.add(directory / "crl.pem", crl.public_bytes(serialization.Encoding.PEM), 0o644)
+        with _lock(directory):
+            _finish_init(directory)  # an earlier init stopped past its point of no return
+            if not force:
+                _refuse_existing_ca(directory)
+            _replace_ca(directory, files)
         pki = cls(directory, passphrase=passphrase)
         pki._ca_key_cache = key
         return pki
@@ -463,6 +638,9 @@ class PKI:
         """Open an existing PKI. ``passphrase`` unlocks the CA key; it is only needed
         (and checked) by the operations that sign: issue, sign_csr, write_crl."""
         directory = Path(directory)
+        if (directory / _INIT_READY).is_dir():
+            with _lock(directory):
+                _finish_init(directory)
         if not (directory / "ca.crt").is_file() or not (directory / "index.json").is_file():
             raise PKIError(f"{directory} is not a PKI directory (run 'cryptoros-certs init --dir {directory}')")
         return cls(directory, passphrase=passphrase)
@@ -479,7 +657,11 @@ class PKI:
             ) != self.ca_cert.public_key().public_bytes(
                 serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo
             ):
-                raise PKIError(f"{self.ca_key_path} does not belong to {self.ca_cert_path}")
+                raise PKIError(
+                    f"{self.ca_key_path} does not belong to {self.ca_cert_path}: put back a matching pair ('init "
+                    f"--force' keeps the CA it replaced as ca.crt.old and private/ca.key.old) or make a new CA "
+                    f"with 'cryptoros-certs init --force --dir {self.directory}' (then issue every certificate again)"
+                )
             self._ca_key_cache = key
         return self._ca_key_cache
 
@@ -491,11 +673,12 @@ class PKI:
 
     def _read_index(self) -> dict:
         try:
-            return json.loads(self.index_path.read_text())
+            index = json.loads(self.index_path.read_text())
         except FileNotFoundError as err:
             raise PKIError(f"{self.directory} is not a PKI directory (no index.json)") from err
         except (OSError, ValueError) as err:
             raise PKIError(f"cannot read {self.index_path}: {err}") from err
+        return _check_index(index, self.index_path)
 
     def _index_bytes(self, index: dict) -> bytes:
         return (json.dumps(index, indent=2) + "\n").encode()
@@ -503,16 +686,11 @@ class PKI:
     @contextlib.contextmanager
     def _locked(self) -> Iterator[dict]:
         """Hold an exclusive lock on the PKI while reading and changing the index."""
-        lock_path = self.directory / ".lock"
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX)
+        with _lock(self.directory):
             yield self._read_index()
-        finally:
-            os.close(fd)
 
     def list(self) -> list[CertRecord]:
-        return [CertRecord.from_json(d) for d in self._read_index().get("certificates", [])]
+        return [CertRecord.from_json(d) for d in self._read_index()["certificates"]]
 
     def find(self, name_or_serial: str | int) -> list[CertRecord]:
         """Records matching a name, or a serial (decimal, or hex with 0x / colons)."""
@@ -723,10 +901,7 @@ class PKI:
         csr_path = Path(csr_path)
         csr = load_csr(csr_path)
         if name is None:
-            cns = csr.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
-            if not cns:
-                raise PKIError(f"CSR {csr_path} has no common name: give the name explicitly")
-            name = str(cns[0].value)
+            name = _csr_common_name(csr, csr_path)
         check_name(name)
         public_key = csr.public_key()
         _check_public_key(public_key)
@@ -760,27 +935,29 @@ class PKI:
 
     # ---- revocation
 
-    def revoke(self, name_or_serial: str | int, *, reason: str = "unspecified") -> int:
-        """Mark certificates revoked in the index and return the serial.
+    def revoke(self, name_or_serial: str | int, *, reason: str = "unspecified", crl_days: int = 7) -> int:
+        """Revoke certificates, publish a CRL listing them, and return the serial.
 
         A name revokes every still-valid certificate of that name (the newest serial
-        is returned). Call :meth:`write_crl` to publish the change."""
+        is returned). The CRL is written before the index, under the same lock: a
+        failure or a kill in between leaves the certificate refused (in the CRL) with
+        the index still saying valid, and repeating the revoke finishes it. Revoking
+        what the index calls revoked but the CRL lacks (an earlier failure) re-signs
+        the CRL; what both already list raises PKIError."""
         if reason not in REASONS:
             raise PKIError(f"unknown reason {reason!r}: choose one of {', '.join(REASONS)}")
+        _check_days(crl_days)
+        ca_key = self._ca_key()
         with self._locked() as index:
-            records = [CertRecord.from_json(d) for d in index.get("certificates", [])]
-            if isinstance(name_or_serial, int):
-                targets = [r for r in records if r.serial == name_or_serial]
-            else:
-                targets = [r for r in records if r.name == name_or_serial]
-                if not targets:
-                    serial = parse_serial(name_or_serial)
-                    targets = [r for r in records if serial is not None and r.serial == serial]
-            if not targets:
-                raise PKIError(f"no certificate with name or serial {name_or_serial!r}")
+            targets = self._targets(index, name_or_serial)
             live = [r for r in targets if r.status != "revoked"]
             if not live:
-                raise PKIError(f"{name_or_serial!r} is already revoked")
+                listed = self._crl_entries()
+                unpublished = [r for r in targets if listed is None or r.serial not in listed]
+                if not unpublished:
+                    raise PKIError(f"{name_or_serial!r} is already revoked")
+                self._publish(index, ca_key, days=crl_days)
+                return unpublished[-1].serial
             now = _now()
             serials = {r.serial for r in live}
             for d in index["certificates"]:
@@ -788,8 +965,22 @@ class PKI:
                     d["status"] = "revoked"
                     d["revoked_at"] = now.isoformat()
                     d["reason"] = reason
-            write_file(self.index_path, self._index_bytes(index), force=True)
+            self._publish(index, ca_key, days=crl_days)
         return live[-1].serial
+
+    @staticmethod
+    def _targets(index: dict, name_or_serial: str | int) -> list[CertRecord]:
+        records = [CertRecord.from_json(d) for d in index["certificates"]]
+        if isinstance(name_or_serial, int):
+            targets = [r for r in records if r.serial == name_or_serial]
+        else:
+            targets = [r for r in records if r.name == name_or_serial]
+            if not targets:
+                serial = parse_serial(name_or_serial)
+                targets = [r for r in records if serial is not None and r.serial == serial]
+        if not targets:
+            raise PKIError(f"no certificate with name or serial {name_or_serial!r}")
+        return targets
 
     @staticmethod
     def _build_crl(ca_cert, ca_key, records: Sequence[CertRecord], *, number: int, days: int):
@@ -820,14 +1011,58 @@ class PKI:
         _check_days(days)
         ca_key = self._ca_key()
         with self._locked() as index:
-            number = int(index.get("crl_number", 0)) + 1
-            revoked = [CertRecord.from_json(d) for d in index.get("certificates", [])]
-            revoked = [r for r in revoked if r.status == "revoked"]
-            crl = self._build_crl(self.ca_cert, ca_key, revoked, number=number, days=days)
-            index["crl_number"] = number
-            write_file(self.crl_path, crl.public_bytes(serialization.Encoding.PEM), force=True)
-            write_file(self.index_path, self._index_bytes(index), force=True)
+            self._publish(index, ca_key, days=days)
         return self.crl_path
+
+    def _crl_entries(self) -> dict[int, x509.RevokedCertificate] | None:
+        """The entries of ``crl.pem`` by serial, or None when it is missing, unreadable
+        or not signed by this CA (then it revokes nothing an interceptor would apply)."""
+        try:
+            crl = load_crl(self.crl_path)
+        except (PKIError, OSError, ValueError):
+            return None
+        if crl.issuer != self.ca_cert.subject or not crl.is_signature_valid(self.ca_cert.public_key()):
+            return None
+        return {entry.serial_number: entry for entry in crl}
+
+    def _publish(self, index: dict, ca_key, *, days: int) -> None:
+        """Sign a CRL of every revoked record and write it, then the index (under the
+        caller's lock). A serial the current CRL lists that the index calls valid is a
+        revoke stopped between the two writes: it is recorded revoked, never dropped."""
+        listed = self._crl_entries() or {}
+        for d in index["certificates"]:
+            entry = listed.get(int(d["serial"]))
+            if entry is not None and d.get("status") != "revoked":
+                d["status"] = "revoked"
+                d["revoked_at"] = _record_time(entry.revocation_date_utc).isoformat()
+                d["reason"] = _entry_reason(entry)
+        number = int(index.get("crl_number", 0)) + 1
+        revoked = [r for r in (CertRecord.from_json(d) for d in index["certificates"]) if r.status == "revoked"]
+        crl = self._build_crl(self.ca_cert, ca_key, revoked, number=number, days=days)
+        index["crl_number"] = number
+        # the CRL first: a failure before the index is written leaves a certificate refused
+        write_file(self.crl_path, crl.public_bytes(serialization.Encoding.PEM), force=True)
+        write_file(self.index_path, self._index_bytes(index), force=True)
+
+    def crl_disagreements(self) -> list[str]:
+        """What the index and ``crl.pem`` disagree about, one line each naming the fix
+        (a cheap check for ``list`` and ``verify``; nothing is changed)."""
+        records = self.list()
+        listed = self._crl_entries()
+        fix = f"cryptoros-certs crl --dir {self.directory}"
+        if listed is None:
+            return [f"{self.crl_path} is missing, unreadable or not signed by {self.ca_cert_path}, so no "
+                    f"revocation is applied: run '{fix}'"]
+        out = []
+        for r in records:
+            if r.status == "revoked" and r.serial not in listed:
+                out.append(f"serial {r.serial:x} ({r.name}) is revoked in {self.index_path} but not in "
+                           f"{self.crl_path}, so it is still accepted: run '{fix}'")
+            elif r.status != "revoked" and r.serial in listed:
+                out.append(f"serial {r.serial:x} ({r.name}) is in {self.crl_path} but valid in {self.index_path} "
+                           f"(a revoke that stopped half-way): run 'cryptoros-certs revoke 0x{r.serial:x} "
+                           f"--dir {self.directory}' to finish it")
+        return out
 
     # ---- verification
 

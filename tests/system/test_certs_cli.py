@@ -424,3 +424,75 @@ def test_renew_refuses_what_it_cannot_do_in_one_line(ca: Path, pwfile: Path):
     assert snapshot(ca) == before
     out = ok("renew", "robot_s", "--dir", ca, "--unsafe-no-passphrase").stdout  # a new key: renewed
     assert "(revoked)" in out and "still valid" not in out and "--overlap" not in out
+
+
+# ----------------------------------------------------------------- interrupted changes
+
+
+def test_a_revoke_whose_crl_write_fails_leaves_the_index_untouched_and_names_crl_pem(ca: Path):
+    """Audit: the failed CRL write named a temporary file, the index already said
+    revoked, a retry said 'already revoked' and verify said OK."""
+    ok("issue", "lost", "--dir", ca, "--unsafe-no-passphrase")
+    (ca / "crl.pem").rename(ca / "crl.keep")
+    (ca / "crl.pem").mkdir()
+    r = certs("revoke", "lost", "--dir", ca, "--reason", "key_compromise")
+    assert_bad_input(r, f"{ca / 'crl.pem'}")
+    assert ".tmp" not in r.stderr
+    assert "revoked" not in ok("list", "--dir", ca).stdout
+    (ca / "crl.pem").rmdir()
+    (ca / "crl.keep").rename(ca / "crl.pem")
+    assert "revoked serial" in ok("revoke", "lost", "--dir", ca, "--reason", "key_compromise").stdout
+    assert certs("verify", "lost", "--dir", ca).returncode == 1
+
+
+def test_list_and_verify_warn_when_index_and_crl_disagree_and_revoke_re_signs(ca: Path):
+    ok("issue", "lost", "--dir", ca, "--unsafe-no-passphrase")
+    before = (ca / "crl.pem").read_bytes()
+    ok("revoke", "lost", "--dir", ca)
+    (ca / "crl.pem").write_bytes(before)  # the CRL the failed revoke left
+    for args in (("list",), ("verify", "lost")):
+        r = ok(*args, "--dir", ca)
+        assert "warning:" in r.stderr and f"cryptoros-certs crl --dir {ca}" in r.stderr, r.stderr
+    r = ok("revoke", "lost", "--dir", ca)
+    assert "CRL re-signed" in r.stdout, r.stdout
+    assert certs("verify", "lost", "--dir", ca).returncode == 1
+    assert ok("list", "--dir", ca).stderr == ""
+    assert_bad_input(certs("revoke", "lost", "--dir", ca), "already revoked")
+
+
+def test_a_ca_key_that_does_not_belong_names_the_fix(ca: Path, tmp_path: Path):
+    ok("init", "--dir", tmp_path / "other", "--unsafe-no-passphrase")
+    (ca / "private" / "ca.key").write_bytes((tmp_path / "other" / "private" / "ca.key").read_bytes())
+    assert_bad_input(certs("crl", "--dir", ca), "does not belong to", "ca.key.old", "init --force")
+
+
+def test_init_force_keeps_the_replaced_ca_as_old_files(ca: Path):
+    before = {rel: (ca / rel).read_bytes() for rel in ("ca.crt", "private/ca.key", "index.json", "crl.pem")}
+    ok("init", "--dir", ca, "--unsafe-no-passphrase", "--force")
+    for rel, data in before.items():
+        assert (ca / f"{rel}.old").read_bytes() == data, rel
+        assert (ca / rel).read_bytes() != data, rel
+    assert stat.S_IMODE((ca / "private" / "ca.key.old").stat().st_mode) == 0o600
+    ok("crl", "--dir", ca)  # the new key signs for the new certificate
+
+
+def test_an_index_of_the_wrong_shape_is_one_line(ca: Path):
+    (ca / "index.json").write_text("[]\n")
+    assert_bad_input(certs("list", "--dir", ca), "index.json")
+
+
+def test_sign_refuses_a_csr_with_two_common_names(ca: Path, tmp_path: Path):
+    from cryptography.hazmat.primitives import hashes, serialization
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.RelativeDistinguishedName([x509.NameAttribute(NameOID.COMMON_NAME, "a1"),
+                                                      x509.NameAttribute(NameOID.COMMON_NAME, "a2")])])
+    csr = x509.CertificateSigningRequestBuilder().subject_name(name).sign(key, hashes.SHA256())
+    (tmp_path / "amb.csr").write_bytes(csr.public_bytes(serialization.Encoding.PEM))
+    assert_bad_input(certs("sign", tmp_path / "amb.csr", "--dir", ca), "multi-valued")
+    assert not (ca / "issued" / "a1.crt").exists()
+
+
+def test_show_says_when_the_certificate_file_is_a_directory(ca: Path):
+    (ca / "issued" / "a1.crt").mkdir()
+    assert_bad_input(certs("show", "a1", "--dir", ca), "a1.crt is a directory")

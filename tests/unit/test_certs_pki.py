@@ -7,6 +7,7 @@ import datetime as dt
 import hashlib
 import ipaddress
 import json
+import os
 import socket
 import ssl
 import stat
@@ -213,3 +214,164 @@ def test_a_renewal_stopped_before_its_files_are_in_place_leaves_the_new_serial_l
     new = {r.serial for r in PKI.open(tmp_path / "pki").list()} - serials_before
     assert len(new) == 1, "the signed certificate is not in the index"
     PKI.open(tmp_path / "pki").revoke(new.pop())  # and revocable by its serial
+
+
+def _crl_serials(pki: PKI) -> set[int]:
+    return {e.serial_number for e in x509.load_pem_x509_crl(pki.crl_path.read_bytes())}
+
+
+def test_a_revoke_stopped_before_its_index_write_leaves_the_certificate_refused(tmp_path, monkeypatch):
+    """Audit: revoke wrote the index, then the CRL; a stop in between left a certificate
+    the index called revoked that every interceptor still accepted. The CRL comes first
+    now: a stop before the index leaves it refused, and repeating the revoke finishes it."""
+    import certs.pki as pkimod
+
+    pki = PKI.init(tmp_path / "pki", unsafe_no_passphrase=True)
+    lost = pki.issue("lost", unsafe_no_passphrase=True)
+    write_file = pkimod.write_file
+
+    def killed_at_index(path, data, **kw):  # as if SIGKILL came before the index was written
+        if Path(path).name == "index.json":
+            raise KeyboardInterrupt
+        return write_file(path, data, **kw)
+
+    monkeypatch.setattr(pkimod, "write_file", killed_at_index)
+    with pytest.raises(KeyboardInterrupt):
+        pki.revoke("lost", reason="key_compromise")
+    monkeypatch.undo()
+    pki = PKI.open(tmp_path / "pki")
+    with pytest.raises(PKIError, match="revoked"):
+        pki.verify(lost.cert_path)
+    assert [r.status for r in pki.list()] == ["valid"]
+    assert any("revoke 0x" in line for line in pki.crl_disagreements())
+    assert pki.revoke("lost", reason="key_compromise") == lost.serial  # finishes it
+    assert [(r.status, r.reason) for r in pki.list()] == [("revoked", "key_compromise")]
+    assert pki.crl_disagreements() == []
+
+
+def test_a_crl_signed_later_keeps_what_a_half_finished_revoke_put_in_it(tmp_path, monkeypatch):
+    """A CRL listing a serial the index calls valid (a revoke stopped half-way) is never
+    re-signed without it: `crl` records the revocation instead of undoing it."""
+    import certs.pki as pkimod
+
+    pki = PKI.init(tmp_path / "pki", unsafe_no_passphrase=True)
+    lost = pki.issue("lost", unsafe_no_passphrase=True)
+    write_file = pkimod.write_file
+    monkeypatch.setattr(pkimod, "write_file", lambda path, data, **kw: (
+        (_ for _ in ()).throw(KeyboardInterrupt) if Path(path).name == "index.json" else write_file(path, data, **kw)))
+    with pytest.raises(KeyboardInterrupt):
+        pki.revoke("lost", reason="superseded")
+    monkeypatch.undo()
+    pki.write_crl()
+    assert lost.serial in _crl_serials(pki)
+    assert [(r.status, r.reason) for r in pki.list()] == [("revoked", "superseded")]
+
+
+def test_revoking_what_the_index_calls_revoked_but_the_crl_lacks_re_signs_the_crl(pki):
+    """Audit: a retried revoke said 'already revoked' while the CRL lacked the serial."""
+    lost = pki.issue("lost")
+    before = pki.crl.read_bytes()
+    pki.pki.revoke("lost")
+    pki.crl.write_bytes(before)  # the CRL of before the revoke, as if its write had failed
+    assert lost.serial not in _crl_serials(pki.pki)
+    assert len(pki.pki.crl_disagreements()) == 1
+    assert pki.pki.revoke("lost") == lost.serial
+    assert lost.serial in _crl_serials(pki.pki)
+    assert pki.pki.crl_disagreements() == []
+    with pytest.raises(PKIError, match="already revoked"):
+        pki.pki.revoke("lost")  # both say so now
+
+
+@pytest.mark.parametrize("stop_after", [0, 1, 2, 3])
+def test_init_force_stopped_while_moving_files_leaves_one_whole_ca(tmp_path, monkeypatch, stop_after):
+    """Audit: a killed `init --force` left a ca.key of the new CA beside the old ca.crt
+    (the old key gone). Whatever move it stops at, the next open has one whole CA,
+    and the replaced one is kept as *.old."""
+    import certs.pki as pkimod
+
+    d = tmp_path / "pki"
+    old = PKI.init(d, unsafe_no_passphrase=True)
+    old_crt = old.ca_cert_path.read_bytes()
+    replace, moves = os.replace, []
+
+    def killed(src, dst, *a, **kw):  # as if SIGKILL came after `stop_after` of the CA's files moved
+        if Path(dst).name in ("ca.crt", "ca.key", "index.json", "crl.pem"):
+            if len(moves) == stop_after:
+                raise KeyboardInterrupt
+            moves.append(dst)
+        return replace(src, dst, *a, **kw)
+
+    monkeypatch.setattr(pkimod.os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        PKI.init(d, unsafe_no_passphrase=True, force=True)
+    monkeypatch.undo()
+    pki = PKI.open(d)
+    pki.unlock()  # the key belongs to the certificate
+    crl = x509.load_pem_x509_crl(pki.crl_path.read_bytes())
+    assert crl.is_signature_valid(pki.ca_cert.public_key())
+    assert pki.ca_cert_path.read_bytes() != old_crt  # past the point of no return: the new CA
+    assert (d / "ca.crt.old").read_bytes() == old_crt and (d / "private" / "ca.key.old").exists()
+    assert not (d / ".init.ready").exists()
+
+
+def test_init_force_stopped_before_it_commits_keeps_the_old_ca(tmp_path, monkeypatch):
+    import certs.pki as pkimod
+
+    d = tmp_path / "pki"
+    old = PKI.init(d, unsafe_no_passphrase=True)
+    old_crt = old.ca_cert_path.read_bytes()
+    monkeypatch.setattr(pkimod.os, "rename", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.raises(KeyboardInterrupt):
+        PKI.init(d, unsafe_no_passphrase=True, force=True)
+    monkeypatch.undo()
+    pki = PKI.open(d)
+    pki.unlock()
+    assert pki.ca_cert_path.read_bytes() == old_crt
+    PKI.init(d, unsafe_no_passphrase=True, force=True)  # the staging left behind is no obstacle
+    assert not (d / ".init.new").exists()
+
+
+@pytest.mark.parametrize("text", ["[]", '{"certificates": {}}', '{"certificates": [1]}', '"x"',
+                                  '{"certificates": [], "crl_number": "2"}'])
+def test_an_index_of_the_wrong_shape_is_one_pki_error_naming_it(pki, text):
+    """Audit: `echo '[]' > index.json` gave an AttributeError traceback."""
+    pki.pki.index_path.write_text(text)
+    with pytest.raises(PKIError, match="index.json is not a cryptoros index"):
+        PKI.open(pki.directory).list()
+
+
+@pytest.mark.parametrize("rdns", [
+    [x509.RelativeDistinguishedName([x509.NameAttribute(x509.oid.NameOID.COMMON_NAME, "a1"),
+                                     x509.NameAttribute(x509.oid.NameOID.COMMON_NAME, "a2")])],
+    [x509.RelativeDistinguishedName([x509.NameAttribute(x509.oid.NameOID.COMMON_NAME, "a1")]),
+     x509.RelativeDistinguishedName([x509.NameAttribute(x509.oid.NameOID.COMMON_NAME, "a2")])],
+], ids=["multi-valued-rdn", "two-cns"])
+def test_a_csr_with_an_ambiguous_common_name_is_refused(pki, tmp_path, rdns):
+    """Audit: CN=a1+CN=a2 (or two CNs) was signed silently as a1."""
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    csr = x509.CertificateSigningRequestBuilder().subject_name(x509.Name(rdns)).sign(key, hashes.SHA256())
+    path = tmp_path / "amb.csr"
+    path.write_bytes(csr.public_bytes(serialization.Encoding.PEM))
+    with pytest.raises(PKIError, match="common name|multi-valued"):
+        pki.pki.sign_csr(path)
+    assert pki.pki.list() == []
+    assert pki.pki.sign_csr(path, name="a1").name == "a1"  # a name given explicitly is no guess
+
+
+def test_taking_the_lock_removes_only_stale_temp_files_of_our_pattern(pki):
+    """Audit: temporary files of killed runs (0600 private-key copies among them) stayed."""
+    d = pki.directory
+    stale = [d / ".crl.pem.k2j_x9aa.tmp", d / "private" / ".rb.key.abcd1234.tmp"]
+    kept = [d / ".crl.pem.keep", d / "private" / "rb.key.abcd1234.tmp", d / "notes.tmp",
+            d / "private" / ".rb.key.abcd12345.tmp"]
+    fresh = d / "issued" / ".x.crt.zzzzzzzz.tmp"  # changed after this process started
+    for path in [*stale, *kept, fresh]:
+        path.write_text("x")
+    for path in [*stale, *kept]:
+        os.utime(path, (1_000_000_000, 1_000_000_000))
+    pki.pki.write_crl()
+    assert [p for p in stale if p.exists()] == []
+    assert all(p.exists() for p in [*kept, fresh])
