@@ -10,33 +10,21 @@ Layout of a PKI directory::
     crl.pem             the current signed CRL (an empty one is written by ``init``)
     index.json          trust domain, CRL number and one record per certificate
 
-Every file is written to a temporary file in the same directory and then moved into
-place, so a failure never leaves half a file; nothing is overwritten without
-``force=True``. Every change holds the lock ``.lock``; taking it removes temporary files
-of our own pattern (``.<file>.<8 chars>.tmp``) that a killed run left behind.
-
+How its files are written (whole or not at all, under the directory's lock, the CA
+replaced so that a stop leaves the old one or the new one) is :mod:`certs.files`.
 ``revoke`` writes the CRL before the index (a crash leaves a certificate refused, never
-one accepted that the index calls revoked). ``init`` stages the whole CA in
-``.init.new/``, renames it to ``.init.ready/`` (the point of no return) and moves the
-files into place; the replaced ones are kept as ``*.old`` (``ca.crt.old``,
-``private/ca.key.old``, ``index.json.old``, ``crl.pem.old``), and a move interrupted
-after that point is finished by the next ``PKI.open``. Every failure the caller can
-cause raises :class:`PKIError`.
+one accepted that the index calls revoked). Every failure the caller can cause raises
+:class:`PKIError`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import fcntl
 import ipaddress
 import json
 import os
 import re
-import shutil
-import stat
-import tempfile
-import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +35,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from certs.files import INIT_READY, FileSet, finish_init, pki_lock, refuse_existing_ca, replace_ca, write_file
 from cryptoros import pemfiles
 from cryptoros.errors import PKIError
 from cryptoros.pemfiles import key_is_encrypted, load_certificate, load_crl, load_csr, load_private_key
@@ -70,11 +59,6 @@ _DNS_RE = re.compile(r"^(\*\.)?([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[
 _RESERVED_NAMES = frozenset({"ca", "crl", "index"})
 _BACKDATE = dt.timedelta(minutes=5)  # tolerate small clock skew between hosts
 _ORG = "cryptoros"
-#: what tempfile.mkstemp makes for _FileSet: ".<final name>.<8 random chars>.tmp"
-_TEMP_RE = re.compile(r"^\.[^/]+\.[a-z0-9_]{8}\.tmp$")
-#: temp files older than this process cannot be ours in flight: a killed run's leftovers
-_STARTED = time.time()
-_INIT_FILES = ("ca.crt", "private/ca.key", "index.json", "crl.pem")  # what init replaces, in that order
 
 
 # --------------------------------------------------------------------------- records
@@ -283,195 +267,6 @@ def _sign_hash(key):
     return hashes.SHA256()
 
 
-# --------------------------------------------------------------------------- atomic files
-
-
-class _FileSet:
-    """Stage several files as temporaries in their target directories, then move them
-    all into place. Nothing existing is replaced without ``force``; if one move fails
-    the files this set already created are removed again."""
-
-    def __init__(self, *, force: bool) -> None:
-        self.force = force
-        self.staged: list[tuple[Path, Path]] = []  # (tmp, final)
-
-    def check(self, final: Path) -> None:
-        if not self.force and (final.exists() or final.is_symlink()):
-            raise PKIError(f"{final} exists: use --force to overwrite")
-
-    def add(self, final: Path, data: bytes, mode: int) -> None:
-        self.check(final)
-        try:
-            final.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=final.parent, prefix=f".{final.name}.", suffix=".tmp")
-        except OSError as err:
-            raise _write_error(final, err) from err
-        try:
-            os.fchmod(fd, mode)
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-        except BaseException as err:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            if isinstance(err, OSError):
-                raise _write_error(final, err) from err
-            raise
-        self.staged.append((Path(tmp), final))
-
-    def commit(self) -> None:
-        created: list[Path] = []
-        try:
-            for tmp, final in self.staged:
-                if self.force:
-                    _replace(tmp, final)
-                else:
-                    try:
-                        os.link(tmp, final)  # atomic, and refuses to clobber
-                    except FileExistsError as err:
-                        raise PKIError(f"{final} exists: use --force to overwrite") from err
-                    except OSError:
-                        # no hard links on this file system: check, then rename
-                        if final.exists() or final.is_symlink():
-                            raise PKIError(f"{final} exists: use --force to overwrite") from None
-                        _replace(tmp, final)
-                    else:
-                        os.unlink(tmp)
-                created.append(final)
-        except BaseException:
-            if not self.force:
-                for path in created:
-                    with contextlib.suppress(OSError):
-                        path.unlink()
-            raise
-        finally:
-            self.discard()
-
-    def discard(self) -> None:
-        for tmp, _ in self.staged:
-            with contextlib.suppress(OSError):
-                tmp.unlink()
-        self.staged = []
-
-    def __enter__(self) -> _FileSet:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.commit()
-        else:
-            self.discard()
-
-
-def _write_error(final: Path, err: OSError) -> PKIError:
-    """An OSError while writing ``final`` (perhaps through its temporary file), as a
-    PKIError naming ``final``: the temporary name means nothing to the user."""
-    return PKIError(f"cannot write {final}: {err.strerror or err}")
-
-
-def _replace(tmp: Path, final: Path) -> None:
-    try:
-        os.replace(tmp, final)
-    except OSError as err:
-        raise _write_error(final, err) from err
-
-
-def _remove_stale_temps(directory: Path) -> list[Path]:
-    """Remove the temporary files a killed run left in the PKI directory: only regular
-    files matching :data:`_TEMP_RE`, directly in the directory or its subdirectories of
-    the layout, and last changed before this process started (every live writer holds
-    the lock we hold, so nothing in flight is touched). Returns what was removed."""
-    removed = []
-    for sub in (directory, directory / "private", directory / "issued", directory / "csr"):
-        try:
-            entries = list(os.scandir(sub))
-        except OSError:
-            continue
-        for entry in entries:
-            if not _TEMP_RE.match(entry.name):
-                continue
-            try:
-                st = entry.stat(follow_symlinks=False)
-                if stat.S_ISREG(st.st_mode) and st.st_mtime < _STARTED:
-                    os.unlink(entry.path)
-                    removed.append(Path(entry.path))
-            except OSError:
-                continue  # gone already, or not ours to remove
-    return removed
-
-
-@contextlib.contextmanager
-def _lock(directory: Path) -> Iterator[None]:
-    """Hold the PKI's exclusive lock (``.lock``), after removing stale temporary files."""
-    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, 0o600)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        _remove_stale_temps(directory)
-        yield
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-_INIT_STAGING = ".init.new"  # a CA being written: removed by the next init
-_INIT_READY = ".init.ready"  # a CA complete on disk: moved into place by the next open or init
-
-
-def _refuse_existing_ca(directory: Path) -> None:
-    for rel in ("ca.crt", "private/ca.key", "index.json"):
-        if (directory / rel).exists():
-            raise PKIError(f"{directory / rel} exists: use --force to overwrite")
-
-
-def _replace_ca(directory: Path, files: dict[str, tuple[bytes, int]]) -> None:
-    """Replace the CA's files so that a stop anywhere leaves the old CA or the new one
-    (under the caller's lock). The new files are written whole into ``.init.new/``;
-    the current ones are linked to ``*.old``; renaming the staging directory to
-    ``.init.ready/`` commits; :func:`_finish_init` then moves the files into place."""
-    staging = directory / _INIT_STAGING
-    shutil.rmtree(staging, ignore_errors=True)  # an init stopped before committing
-    (staging / "private").mkdir(parents=True, mode=0o700)
-    for rel, (data, mode) in files.items():
-        write_file(staging / rel, data, mode=mode)
-    _fsync_dir(staging / "private")
-    _fsync_dir(staging)
-    for rel in _INIT_FILES:
-        live = directory / rel
-        if live.is_file() and not live.is_symlink():
-            old = live.with_name(live.name + ".old")
-            with contextlib.suppress(FileNotFoundError):
-                old.unlink()
-            try:
-                os.link(live, old)  # the same inode: a stop now loses nothing
-            except OSError:
-                shutil.copy2(live, old)  # no hard links on this file system
-    os.rename(staging, directory / _INIT_READY)  # the point of no return
-    _fsync_dir(directory)
-    _finish_init(directory)
-
-
-def _finish_init(directory: Path) -> None:
-    """Move a committed CA (``.init.ready/``) into place (under the caller's lock)."""
-    ready = directory / _INIT_READY
-    if not ready.is_dir():
-        return
-    for rel in _INIT_FILES:
-        staged = ready / rel
-        if staged.exists():  # absent: moved already, by the init that stopped
-            _replace(staged, directory / rel)
-    _fsync_dir(directory)
-    _fsync_dir(directory / "private")
-    shutil.rmtree(ready)
-
-
 def _check_index(index: object, path: Path) -> dict:
     """The index as read, if it has the shape we write; PKIError naming the file if not."""
     problem = None
@@ -511,13 +306,6 @@ def _entry_reason(entry: x509.RevokedCertificate) -> str:
     except x509.ExtensionNotFound:
         return "unspecified"
     return flag.name if flag.name in REASONS else "unspecified"
-
-
-def write_file(path: str | os.PathLike, data: bytes, *, mode: int = 0o644, force: bool = False) -> Path:
-    path = Path(path)
-    with _FileSet(force=force) as fs:
-        fs.add(path, data, mode)
-    return path
 
 
 # --------------------------------------------------------------------------- building
@@ -588,7 +376,7 @@ class PKI:
             passphrase = passphrase.encode()
         key_pem_encryption = _key_encryption(passphrase, unsafe_no_passphrase)
         if not force:
-            _refuse_existing_ca(directory)  # before the (slow) key generation; again under the lock
+            refuse_existing_ca(directory)  # before the (slow) key generation; again under the lock
         key = generate_key(key_type)
         now = _now()
         subject = x509.Name(
@@ -624,11 +412,11 @@ class PKI:
         for sub in ("private", "issued", "csr"):
             (directory / sub).mkdir(parents=True, exist_ok=True)
         os.chmod(directory / "private", 0o700)
-        with _lock(directory):
-            _finish_init(directory)  # an earlier init stopped past its point of no return
+        with pki_lock(directory):
+            finish_init(directory)  # an earlier init stopped past its point of no return
             if not force:
-                _refuse_existing_ca(directory)
-            _replace_ca(directory, files)
+                refuse_existing_ca(directory)
+            replace_ca(directory, files)
         pki = cls(directory, passphrase=passphrase)
         pki._ca_key_cache = key
         return pki
@@ -638,9 +426,9 @@ class PKI:
         """Open an existing PKI. ``passphrase`` unlocks the CA key; it is only needed
         (and checked) by the operations that sign: issue, sign_csr, write_crl."""
         directory = Path(directory)
-        if (directory / _INIT_READY).is_dir():
-            with _lock(directory):
-                _finish_init(directory)
+        if (directory / INIT_READY).is_dir():
+            with pki_lock(directory):
+                finish_init(directory)
         if not (directory / "ca.crt").is_file() or not (directory / "index.json").is_file():
             raise PKIError(f"{directory} is not a PKI directory (run 'cryptoros-certs init --dir {directory}')")
         return cls(directory, passphrase=passphrase)
@@ -686,7 +474,7 @@ class PKI:
     @contextlib.contextmanager
     def _locked(self) -> Iterator[dict]:
         """Hold an exclusive lock on the PKI while reading and changing the index."""
-        with _lock(self.directory):
+        with pki_lock(self.directory):
             yield self._read_index()
 
     def list(self) -> list[CertRecord]:
@@ -797,7 +585,7 @@ class PKI:
         encryption = _key_encryption(passphrase, unsafe_no_passphrase)
         cert_path, key_path = self.cert_path_for(name), self.key_path_for(name)
         with self._locked() as index:
-            fs = _FileSet(force=force)
+            fs = FileSet(force=force)
             fs.check(cert_path)
             fs.check(key_path)
             self._ca_key()  # wrong CA passphrase: fail before the (slow) key generation
@@ -869,7 +657,7 @@ class PKI:
             public_key = old.public_key()
             _check_public_key(public_key)
         with self._locked() as index:
-            fs = _FileSet(force=True)
+            fs = FileSet(force=True)
             cert = self._build_cert(name=name, kind=kind, public_key=public_key, sans=sans, days=days)
             self._record(index, cert, name, kind)
             write_file(self.index_path, self._index_bytes(index), force=True)  # first: as in issue
@@ -915,7 +703,7 @@ class PKI:
             san_list = [g for g in requested if isinstance(g, (x509.DNSName, x509.IPAddress))]
         cert_path = self.cert_path_for(name)
         with self._locked() as index:
-            fs = _FileSet(force=force)
+            fs = FileSet(force=force)
             fs.check(cert_path)
             cert = self._build_cert(name=name, kind=kind, public_key=public_key, sans=san_list, days=days)
             self._record(index, cert, name, kind)
@@ -1147,7 +935,7 @@ def request(
     encryption = _key_encryption(passphrase, unsafe_no_passphrase)
     out_dir = Path(out_dir)
     key_path, csr_path = out_dir / f"{name}.key", out_dir / f"{name}.csr"
-    fs = _FileSet(force=force)
+    fs = FileSet(force=force)
     fs.check(key_path)
     fs.check(csr_path)
     key = generate_key(key_type)

@@ -194,20 +194,20 @@ def test_a_renewal_stopped_before_its_files_are_in_place_leaves_the_new_serial_l
     """CLI audit: a renew killed between its file moves left a certificate the CA had
     signed in a temporary file that no index listed, so `revoke` could not name it. The
     index is now written before the files."""
-    import certs.pki as pkimod
+    from certs import files
 
     pki = PKI.init(tmp_path / "pki", unsafe_no_passphrase=True)
     pki.issue("robot_k", unsafe_no_passphrase=True)
     serials_before = {r.serial for r in pki.list()}
 
-    commit = pkimod._FileSet.commit
+    commit = files.FileSet.commit
 
     def killed(self) -> None:  # as if SIGKILL came before the key and certificate moved in
         if any(final.suffix == ".key" for _tmp, final in self.staged):
             raise KeyboardInterrupt
         commit(self)
 
-    monkeypatch.setattr(pkimod._FileSet, "commit", killed)
+    monkeypatch.setattr(files.FileSet, "commit", killed)
     with pytest.raises(KeyboardInterrupt):
         pki.renew("robot_k", unsafe_no_passphrase=True)
     monkeypatch.undo()
@@ -287,7 +287,7 @@ def test_init_force_stopped_while_moving_files_leaves_one_whole_ca(tmp_path, mon
     """Audit: a killed `init --force` left a ca.key of the new CA beside the old ca.crt
     (the old key gone). Whatever move it stops at, the next open has one whole CA,
     and the replaced one is kept as *.old."""
-    import certs.pki as pkimod
+    from certs import files
 
     d = tmp_path / "pki"
     old = PKI.init(d, unsafe_no_passphrase=True)
@@ -301,7 +301,7 @@ def test_init_force_stopped_while_moving_files_leaves_one_whole_ca(tmp_path, mon
             moves.append(dst)
         return replace(src, dst, *a, **kw)
 
-    monkeypatch.setattr(pkimod.os, "replace", killed)
+    monkeypatch.setattr(files.os, "replace", killed)
     with pytest.raises(KeyboardInterrupt):
         PKI.init(d, unsafe_no_passphrase=True, force=True)
     monkeypatch.undo()
@@ -315,12 +315,12 @@ def test_init_force_stopped_while_moving_files_leaves_one_whole_ca(tmp_path, mon
 
 
 def test_init_force_stopped_before_it_commits_keeps_the_old_ca(tmp_path, monkeypatch):
-    import certs.pki as pkimod
+    from certs import files
 
     d = tmp_path / "pki"
     old = PKI.init(d, unsafe_no_passphrase=True)
     old_crt = old.ca_cert_path.read_bytes()
-    monkeypatch.setattr(pkimod.os, "rename", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+    monkeypatch.setattr(files.os, "rename", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
     with pytest.raises(KeyboardInterrupt):
         PKI.init(d, unsafe_no_passphrase=True, force=True)
     monkeypatch.undo()
