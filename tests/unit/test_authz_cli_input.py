@@ -202,3 +202,23 @@ def test_a_certificate_out_of_its_validity_is_refused_for_a_manager(tmp_path, pk
             lines = result.stderr.strip().splitlines()
             assert result.exit_code == 2 and len(lines) == 1 and said in lines[0], (args, result.output)
     assert exported(db) == before
+
+
+@pytest.mark.parametrize("kind", ["interceptor", "manager", "master"])
+def test_a_certificate_naming_another_identity_is_not_bound_to_a_manager(tmp_path, pki, kind):
+    """CLI audit: add-manager m3 with robot m2's certificate (kind interceptor, as the
+    runbook issues every robot's) and set-cert m1 with it answered 0: m2's holder acted as
+    the other manager. Only a manager-kind certificate was checked; every client kind is."""
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    own, other = pki.issue(f"{kind}_1", kind=kind).cert_path, pki.issue(f"{kind}_2", kind=kind).cert_path
+    assert run("--db", db, "add-manager", f"{kind}_1", "--cert", str(own)).exit_code == 0
+    before = exported(db)
+    for args in (("add-manager", f"{kind}_3", "--cert", str(other)),
+                 ("set-cert", f"{kind}_1", "--cert", str(other))):
+        result = run("--db", db, *args)
+        lines = result.stderr.strip().splitlines()
+        assert result.exit_code == 2 and len(lines) == 1, (args, result.output)
+        assert f"identifies {kind} '{kind}_2', not manager '{args[1]}'" in lines[0], lines
+        assert f"cryptoros-certs issue {args[1]} --kind {kind}" in lines[0], lines
+    assert exported(db) == before
+    assert run("--db", db, "set-cert", f"{kind}_1", "--cert", str(own)).exit_code == 0
