@@ -222,3 +222,16 @@ def test_a_certificate_naming_another_identity_is_not_bound_to_a_manager(tmp_pat
         assert f"cryptoros-certs issue {args[1]} --kind {kind}" in lines[0], lines
     assert exported(db) == before
     assert run("--db", db, "set-cert", f"{kind}_1", "--cert", str(own)).exit_code == 0
+
+
+def test_a_file_that_cannot_be_written_is_one_line_exit_2(tmp_path):
+    """CLI audit: export -o into a missing directory printed a FileNotFoundError traceback."""
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    (tmp_path / "good.yaml").write_text(POLICY)
+    assert run("--db", db, "import", str(tmp_path / "good.yaml")).exit_code == 0
+    target = tmp_path / "no" / "such" / "x.yaml"
+    result = run("--db", db, "export", "-o", str(target))
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert lines[0] == f"cryptoros-authz: error: cannot write {target}: No such file or directory", lines
+    assert not target.parent.exists()
