@@ -1002,7 +1002,10 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
         raise RegistryError(f"policy: unknown key(s) {', '.join(sorted(map(str, unknown)))}")
     if doc.get("version") != POLICY_VERSION:
         raise RegistryError(f"policy: version must be {POLICY_VERSION}, got {doc.get('version')!r}")
-    managers = doc.get("managers") or []
+    # only an absent or null list is empty: '{}' (or '', 0) read as [] would remove every
+    # manager, while a non-empty mapping is refused
+    managers = doc.get("managers")
+    managers = [] if managers is None else managers
     if not isinstance(managers, list):
         raise RegistryError("policy: 'managers' must be a list")
     out: dict[str, WantedManager] = {}
@@ -1020,7 +1023,7 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
             enabled = m.get("enabled")  # absent: true, or on a merge the manager's own state
             if enabled is not None and not isinstance(enabled, bool):
                 raise RegistryError(f"'enabled' must be true or false, got {enabled!r}")
-            grants = _parse_grants(m.get("grants") or {})
+            grants = _parse_grants({} if m.get("grants") is None else m["grants"])
         except RegistryError as exc:
             raise RegistryError(f"{where}: {exc}") from None
         if name in out:

@@ -302,6 +302,9 @@ def test_a_merge_that_does_not_say_enabled_leaves_a_disabled_manager_disabled(re
         ({"version": 1, "managers": [{"name": "x", "fingerprint_sha256": FP["dave"]},
                                      {"name": "y", "fingerprint_sha256": FP["dave"]}]}, "two managers"),
         ({"version": 1, "managers": [{"name": "x", "enabled": "yes"}]}, "'enabled' must be"),
+        ({"version": 1, "managers": {}}, "'managers' must be a list"),  # was read as [], removing all
+        ({"version": 1, "managers": ""}, "'managers' must be a list"),
+        ({"version": 1, "managers": [{"name": "alice", "grants": []}]}, "'grants' must be a mapping"),
     ],
 )
 def test_bad_policy_import_changes_nothing(reg, doc, message):
