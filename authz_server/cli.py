@@ -62,9 +62,24 @@ class _Group(click.Group):
             ctx.exit(1)
         except SQLAlchemyError as exc:  # a write refused at commit (a full disk): rolled back whole
             cause = getattr(exc, "orig", None) or exc
+            if _read_only(cause):  # the operator's to fix, as a wrong --db is: status 2
+                click.echo(f"{PROG}: error: the registry database is read-only for this user "
+                           f"({' '.join(str(cause).split())[:200]}); nothing was changed: run as its owner, "
+                           "or make the file and its directory writable", err=True)
+                ctx.exit(2)
             click.echo(f"{PROG}: error: the registry database failed ({' '.join(str(cause).split())[:200]}); "
                        "nothing was changed", err=True)
             ctx.exit(1)
+
+
+def _read_only(cause: BaseException) -> bool:
+    """Whether a database error is a write refused because the registry is read-only: an
+    SQLite file the user may not write (SQLITE_READONLY and its extended codes), or a
+    PostgreSQL read-only transaction (a standby: SQLSTATE 25006)."""
+    code = getattr(cause, "sqlite_errorcode", None)
+    if code is not None:
+        return code & 0xFF == 8  # SQLITE_READONLY
+    return getattr(cause, "sqlstate", None) == "25006"
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

@@ -235,3 +235,29 @@ def test_a_file_that_cannot_be_written_is_one_line_exit_2(tmp_path):
     assert result.exit_code == 2 and len(lines) == 1, result.output
     assert lines[0] == f"cryptoros-authz: error: cannot write {target}: No such file or directory", lines
     assert not target.parent.exists()
+
+
+def test_a_read_only_registry_is_one_line_exit_2(tmp_path, monkeypatch):
+    """CLI audit: a write to a registry file the user may not write exited 1, where every
+    other registry fault the operator fixes exits 2. (Root writes any file: the connection
+    is made query-only, which SQLite refuses with the same SQLITE_READONLY.)"""
+    import authz_server.db as dbmod
+
+    db = f"sqlite:///{tmp_path / 'registry.db'}"
+    (tmp_path / "good.yaml").write_text(POLICY)
+    assert run("--db", db, "import", str(tmp_path / "good.yaml")).exit_code == 0
+    before = exported(db)
+    pragmas = dbmod._sqlite_pragmas
+
+    def read_only(dbapi_conn, record):
+        pragmas(dbapi_conn, record)
+        dbapi_conn.execute("PRAGMA query_only=ON")
+
+    monkeypatch.setattr(dbmod, "_sqlite_pragmas", read_only)
+    result = run("--db", db, "disable-manager", "robot_a")
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert lines[0].startswith("cryptoros-authz: error: the registry database is read-only"), lines
+    assert "readonly database" in lines[0] and "nothing was changed" in lines[0], lines
+    monkeypatch.undo()
+    assert exported(db) == before
