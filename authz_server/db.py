@@ -6,13 +6,18 @@ the multi-replica choice (``postgresql+psycopg://``).
 
 The schema is Alembic's: :func:`open_registry` upgrades an empty or older database to
 the newest revision, and refuses a database that is not a registry or that is newer
-than this code.
+than this code. A new SQLite registry is built whole in a file beside it and renamed
+into place, so an interrupted first upgrade leaves no file or a complete one. A path
+that is not an SQLite file (a directory, a device, a text file) is refused before
+anything touches it; only a registry is made owner-only.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import secrets
+import stat
 from pathlib import Path
 
 from typing import TYPE_CHECKING
@@ -56,29 +61,66 @@ def head_revision() -> str:
 
 
 def _sqlite_path(url: str) -> Path | None:
-    u = make_url(url)
+    """The file of an SQLite URL; None for another backend, memory, or an unreadable URL
+    (:func:`make_engine` says what is wrong with it)."""
+    try:
+        u = make_url(url)
+    except ArgumentError:
+        return None
     if u.get_backend_name() != "sqlite" or not u.database or u.database == ":memory:":
         return None
     return Path(u.database)
 
 
+#: the first 16 bytes of every SQLite database file
+SQLITE_HEADER = b"SQLite format 3\x00"
+
+
+def _check_sqlite_file(path: Path, *, create: bool) -> None:
+    """Refuse, before anything opens or changes it, a path that cannot be a registry: a
+    missing directory, a missing file (unless ``create``), a directory, a device or pipe,
+    a file that is not SQLite. (CLI audit: a --db naming a text file or a directory had
+    its mode changed before SQLite failed on it.) An empty file is an empty database."""
+    if not path.parent.is_dir():
+        raise ConfigError(f"database directory does not exist: {path.parent}")
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        if create:
+            return
+        raise ConfigError(f"database not found: {path} (create it with 'cryptoros-authz db upgrade')") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot use the database {path}: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"{path} is a directory, not a registry database file (name the file in it, "
+                          f"e.g. sqlite:///{path / 'registry.db'})")
+    if not stat.S_ISREG(st.st_mode):
+        raise ConfigError(f"{path} is not a regular file, so not a registry database; it was left unchanged")
+    if st.st_size and _header(path) != SQLITE_HEADER:
+        raise ConfigError(f"{path} is not an SQLite database, so not a registry (a wrong --db?); "
+                          "it was left unchanged")
+
+
+def _header(path: Path) -> bytes:
+    try:
+        with path.open("rb") as f:
+            return f.read(len(SQLITE_HEADER))
+    except OSError as exc:
+        raise ConfigError(f"cannot read the database {path}: {exc.strerror or exc}") from None
+
+
 def make_engine(url: str, *, create: bool = False, pool_size: int = 8) -> Engine:
-    """An engine for ``url``. A missing SQLite file is an error unless ``create``."""
+    """An engine for ``url``. A missing SQLite file is an error unless ``create``; a path
+    that is not an SQLite file is an error, and left unchanged."""
     try:
         parsed = make_url(url)
     except ArgumentError as exc:
         raise ConfigError(f"invalid database URL {url!r}: {exc}") from exc
     path = _sqlite_path(url)
     if path is not None:
-        if not path.parent.is_dir():
-            raise ConfigError(f"database directory does not exist: {path.parent}")
-        if not create and not path.exists():
-            raise ConfigError(
-                f"database not found: {path} (create it with 'cryptoros-authz db upgrade')"
-            )
+        _check_sqlite_file(path, create=create)
         if create and not path.exists():
             _create_private(path)
-        _tighten(path)
     kwargs: dict = {}
     if parsed.get_backend_name() == "sqlite":
         kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
@@ -91,6 +133,57 @@ def make_engine(url: str, *, create: bool = False, pool_size: int = 8) -> Engine
     if parsed.get_backend_name() == "sqlite":
         event.listen(engine, "connect", _sqlite_pragmas)
     return engine
+
+
+def _create_new_sqlite(url: str, path: Path) -> None:
+    """Build a new SQLite registry whole beside ``path`` and rename it into place.
+
+    SQLite's driver commits each CREATE TABLE on its own, so a first ``db upgrade``
+    killed mid-way left a file with tables and no schema revision, refused by every
+    command after (CLI audit). Built in a temporary file, an interruption leaves no
+    registry (a stray ``.NAME.*.new`` at worst), and a failure cleans up."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.new")
+    _create_private(tmp)
+    try:
+        engine = make_engine(make_url(url).set(database=str(tmp)).render_as_string(hide_password=False))
+        try:
+            upgrade(engine)
+            with engine.connect() as conn:  # all of it in the file itself: only that is renamed
+                conn.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)")
+        finally:
+            engine.dispose()
+        _fsync(tmp)
+        _install(tmp, path)
+        _fsync(path.parent)
+    except SQLAlchemyError as exc:
+        raise ConfigError(f"cannot create the registry {path}: {_first_line(exc)}") from exc
+    except OSError as exc:
+        raise ConfigError(f"cannot create the registry {path}: {exc.strerror or exc}") from None
+    finally:
+        for file in (tmp, tmp.with_name(tmp.name + "-wal"), tmp.with_name(tmp.name + "-shm")):
+            file.unlink(missing_ok=True)
+
+
+def _install(tmp: Path, path: Path) -> None:
+    """``tmp`` becomes ``path``: over an empty file (made by hand or by an older version),
+    never over a registry another tool created meanwhile (that one is kept and used)."""
+    if path.exists():
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        pass
+    except OSError:  # a file system without hard links: a rename, which a race could overwrite
+        os.replace(tmp, path)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _create_private(path: Path) -> None:
@@ -164,6 +257,11 @@ def open_registry(url: str, *, create: bool = False) -> Engine:
 
     Raises :class:`ConfigError` with a one-line reason on every failure.
     """
+    path = _sqlite_path(url)
+    if path is not None:
+        _check_sqlite_file(path, create=create)
+        if not path.exists() or path.stat().st_size == 0:
+            _create_new_sqlite(url, path)
     engine = make_engine(url, create=create)
     shown = engine.url.render_as_string(hide_password=True)
     try:
@@ -178,7 +276,9 @@ def open_registry(url: str, *, create: bool = False) -> Engine:
         raise ConfigError(f"database error on {shown}: {_first_line(exc)}") from exc
     if rev is None and tables - {"alembic_version"}:
         engine.dispose()
-        raise ConfigError(f"{shown} holds tables but is not a cryptoros-authz registry")
+        raise ConfigError(_not_a_registry(shown, path, tables))
+    if path is not None:
+        _tighten(path)
     if rev == KNOWN_HEAD:
         return engine
     from alembic.script import ScriptDirectory
@@ -199,6 +299,18 @@ def open_registry(url: str, *, create: bool = False) -> Engine:
             engine.dispose()
             raise ConfigError(f"cannot migrate {shown}: {_first_line(exc)}") from exc
     return engine
+
+
+def _not_a_registry(shown: str, path: Path | None, tables: set[str]) -> str:
+    """Why a database with tables and no schema revision is refused, and what to do.
+
+    Our tables beside an empty alembic_version are a first upgrade that was stopped (by
+    an older version, which built a new registry in place): nothing in it was ever used."""
+    if "alembic_version" in tables and "manager" in tables:
+        where = f"remove {path}" if path is not None else "empty the database"
+        return (f"{shown} holds registry tables but no schema revision: its first 'db upgrade' was "
+                f"interrupted; if it holds nothing you need, {where} and run 'cryptoros-authz db upgrade'")
+    return f"{shown} holds tables but is not a cryptoros-authz registry"
 
 
 def _first_line(exc: BaseException) -> str:

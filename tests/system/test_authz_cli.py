@@ -154,6 +154,31 @@ def test_a_new_registry_file_is_readable_by_its_owner_only(tmp_path):
     assert set(modes.values()) == {0o600}, modes
 
 
+def test_a_db_path_that_is_no_registry_is_refused_and_left_unchanged(tmp_path):
+    """CLI audit: --db naming a text file made it 600 and said so before 'file is not a
+    database'; naming a directory made it 700. Neither is touched now, nor an SQLite
+    database of another program."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("hello\n")
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    foreign = tmp_path / "other.db"
+    import sqlite3
+
+    with sqlite3.connect(foreign) as conn:
+        conn.execute("CREATE TABLE something_else (id INTEGER PRIMARY KEY)")
+    for path in (notes, shared, tmp_path, foreign):
+        path.chmod(0o755 if path.is_dir() else 0o644)
+    cases = {notes: "is not an SQLite database", shared: "is a directory", tmp_path: "is a directory",
+             foreign: "is not a cryptoros-authz registry"}
+    for path, message in cases.items():
+        for args in (("list-managers",), ("db", "upgrade")):
+            line = one_line_error(cli(*args, db=f"sqlite:///{path}"))
+            assert message in line, (path, args, line)
+        assert path.stat().st_mode & 0o777 == (0o755 if path.is_dir() else 0o644), path
+    assert notes.read_text() == "hello\n" and list(shared.iterdir()) == []
+
+
 def test_a_certificate_no_client_of_this_fleet_could_present_is_not_bound(team, tmp_path, monkeypatch):
     """CLI audit: set-cert with another CA's certificate answered 0 and revoked the
     robot's tokens; its real certificate was then refused and the robot locked out.

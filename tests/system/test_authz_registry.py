@@ -110,6 +110,50 @@ def test_a_foreign_database_is_refused(db_url):
         dbmod.open_registry(db_url)
 
 
+class _Killed(BaseException):
+    """A process killed mid-migration, as an exception nothing catches."""
+
+
+def test_an_interrupted_first_upgrade_leaves_no_registry_file(tmp_path):
+    """CLI audit: a first ``db upgrade`` killed mid-way left a file with tables and an
+    empty alembic_version, refused by every command after. The new registry is built
+    beside it and renamed into place: stopped at the fourth migration, there is none."""
+    from sqlalchemy import Engine, event
+
+    path = tmp_path / "registry.db"
+
+    def stop(conn, cursor, statement, *args):
+        if statement.lstrip().upper().startswith("CREATE TABLE REGISTRY_CHANGE"):
+            raise _Killed
+
+    event.listen(Engine, "before_cursor_execute", stop)
+    try:
+        with pytest.raises(_Killed):
+            dbmod.open_registry(f"sqlite:///{path}", create=True)
+    finally:
+        event.remove(Engine, "before_cursor_execute", stop)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    engine = dbmod.open_registry(f"sqlite:///{path}", create=True)
+    assert dbmod.current_revision(engine) == dbmod.KNOWN_HEAD
+    engine.dispose()
+    assert path.stat().st_mode & 0o777 == 0o600
+
+
+def test_a_registry_left_by_an_interrupted_first_upgrade_says_what_to_do(tmp_path):
+    """What an older version left when its first upgrade was killed: our tables beside an
+    empty alembic_version. The error says so and how to start again, not just 'not ours'."""
+    path = tmp_path / "registry.db"
+    engine = dbmod.make_engine(f"sqlite:///{path}", create=True)
+    Base.metadata.create_all(engine)
+    with engine.begin() as conn:
+        conn.execute(text("CREATE TABLE alembic_version (version_num VARCHAR(32) NOT NULL PRIMARY KEY)"))
+    engine.dispose()
+    with pytest.raises(ConfigError) as err:
+        dbmod.open_registry(f"sqlite:///{path}", create=True)
+    assert "its first 'db upgrade' was interrupted" in str(err.value), err.value
+    assert f"remove {path} and run 'cryptoros-authz db upgrade'" in str(err.value), err.value
+
+
 def test_manager_grants_are_one_to_many_rows_and_found_by_fingerprint(reg):
     reg.add_manager("alice", FP["alice"])
     assert reg.grant("alice", "publish", "/talker", "/chatter", "std_msgs/String") is True
