@@ -693,8 +693,17 @@ class Ros2Role(Role):
             raise problem
 
         def judge(grants) -> None:
-            if not grants.allows(target.action, target.node, target.name, target.type):
-                raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
+            if grants.allows(target.action, target.node, target.name, target.type):
+                return
+            # the peer's token is narrowed to what our grants need of it: our grant removed
+            # takes its grant out of its next token too, and the refusal names ours (a ROS 2
+            # audit: "/talker may not publish" was logged for robot B's removed subscribe)
+            with contextlib.suppress(TokenError):
+                own = self.gw.own_access()
+                if not manager_may(own.grants, target.peer_action, target.name, target.type):
+                    raise PolicyDenied("not_granted_here", f"this robot's manager {own.subject} may not "
+                                                           f"{target.peer_action} {target.name} [{target.type}]")
+            raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
 
         return Target(target, judge)
 
