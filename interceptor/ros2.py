@@ -581,15 +581,18 @@ class Ros2Role(Role):
             watch: StreamWatch | None = None
             pending: set[int] = set()
             try:
-                if not manager_may(peer.access.grants, target.peer_action, target.name, target.type):
-                    raise PolicyDenied(
-                        "not_granted", f"{peer.manager} may not {target.peer_action} {target.name} [{target.type}]"
-                    )
+                def judge(grants, manager=peer.manager) -> None:
+                    if not manager_may(grants, target.peer_action, target.name, target.type):
+                        raise PolicyDenied(
+                            "not_granted", f"{manager} may not {target.peer_action} {target.name} [{target.type}]")
 
                 def cut(reason: str, writer=writer) -> None:
                     writer.transport.abort()  # counted by the verifier, with its reason
 
-                watch = self.verifier.watch(peer.access, cut)
+                judge(peer.access.grants)
+                # judged again on each fresher token the peer shows: its grant removed cuts
+                # the stream here too, whatever its own interceptor does
+                watch = self.verifier.watch(peer.access, cut, judge)
                 self.metrics.allowed.labels(f"ros2_{target.kind}_out").inc()
                 self.metrics.open_streams.labels("ros2").inc()
                 for frame in out.history or ():
