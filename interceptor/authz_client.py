@@ -440,6 +440,10 @@ def _unverified_subject(token: str) -> str | None:
     return subject if isinstance(subject, str) else None
 
 
+#: seconds a peer's stream waits for our own token while a refresh is under way (for_peer)
+PEER_TOKEN_WAIT = 2.0
+
+
 class TokenKeeper:
     """This interceptor's own access token, always fresh or refused, and the tokens it
     shows each peer: bound to that peer's certificate (audience) and narrowed to the
@@ -517,8 +521,19 @@ class TokenKeeper:
         first use, again with every refresh of our own token (:meth:`refresh`) and
         whenever the cached one is within the refresh margin of expiry; one fetch per
         peer in flight. While the authorization server cannot be reached the cached one is
-        used until it expires, then TokenError (fail closed: never the full token)."""
-        self.current()  # no own token, no peer token either
+        used until it expires, then TokenError (fail closed: never the full token).
+
+        Our own token just dropped (the feed revoked it: a grant of ours changed) waits
+        for the refresh asked for at once, at most :data:`PEER_TOKEN_WAIT` seconds: a
+        peer's stream opened meanwhile was refused ``no_token`` after every grant change
+        (ROS 2 audit). No own token, no peer token either."""
+        try:
+            self.current()
+        except TokenError as exc:
+            if exc.reason != "no_token":
+                raise
+            await self.ensure(PEER_TOKEN_WAIT)
+            self.current()
         cached = self._peer_tokens.get(thumbprint)
         now = self._clock()
         if cached is not None and now < cached.expires_at - max(self.MIN_REMAINING, self.refresh_margin):

@@ -72,10 +72,12 @@ def test_a_re_added_grant_reaches_its_flow_within_10_s_every_time(network):
                     start = time.monotonic()  # the grant committed (the command's own start-up not counted)
                     _first_message_within(sub, start, 10, "re-added grant")
         # ROS 2 audit: robot B named robot A's unchanged grant ("/talker may not publish")
-        # for its own removed one
-        log = network.robots["robot_b"].logs()
-        assert "may not publish /chatter" not in log, log[-3000:]
-        assert "grant_removed: this robot's manager robot_b may not subscribe /chatter" in log, log[-3000:]
+        # for its own removed one, and refused robot A's token exchange (no_token) while
+        # its own token, revoked with the grant, was fetched again
+        log = network.robots["robot_a"].logs() + network.robots["robot_b"].logs()
+        assert "may not publish /chatter" not in log and "no_token" not in log, log[-3000:]
+        assert "grant_removed: robot_b may not subscribe /chatter" in log or \
+            "grant_removed: this robot's manager robot_b may not subscribe /chatter" in log, log[-3000:]
     finally:
         network.cli("grant", "robot_b", "subscribe", "*", "/chatter", "std_msgs/msg/String")
 

@@ -199,3 +199,32 @@ def test_a_refresh_refused_forever_is_logged_at_first_then_once_a_minute_with_a_
     assert retries.succeeded() is None
     assert retries.failed(start + 200) == ""  # a new run of failures starts over
     assert retries.succeeded() == "after 1 failed try since 21:03:20"
+
+
+async def test_a_peer_asking_while_our_token_was_just_dropped_waits_for_the_refresh():
+    """ROS 2 audit: a grant change revokes our token (the feed says so, the keeper drops
+    it and asks again at once); a peer's stream opened in between was refused ``no_token``
+    every time. It now gets its token once the refresh is in."""
+    authz = Authz("robot_a")
+    keeper = TokenKeeper(authz, refresh_margin=60, manager="robot_a")
+    runner = asyncio.create_task(keeper.run())
+    try:
+        await asyncio.wait_for(keeper.refreshed.wait(), 5)
+        keeper.invalidate()  # what the gateway does when the feed revokes our token
+        token = await asyncio.wait_for(keeper.for_peer("x" * 43), 5)
+        assert token and authz.fetches >= 3  # ours again, then the peer's
+    finally:
+        runner.cancel()
+
+
+async def test_a_peer_asking_while_no_token_can_be_had_is_refused_after_a_bounded_wait(monkeypatch):
+    monkeypatch.setattr(authz_client, "PEER_TOKEN_WAIT", 0.2)
+
+    class Down:
+        async def fetch_token(self, *, clock=time.time, resource=None):
+            raise TokenError("authz_unreachable", "down")
+
+    keeper = TokenKeeper(Down(), refresh_margin=60, manager="robot_a")
+    with pytest.raises(TokenError) as info:
+        await asyncio.wait_for(keeper.for_peer("x" * 43), 5)
+    assert info.value.reason == "no_token"
