@@ -29,7 +29,8 @@ def _sigterm(_sig: int, _frame: Any) -> None:
               help=f"Comma-separated attacks, 'all' or 'none': {', '.join(ATTACKS)} "
                    f"(ROS 2: {', '.join(ROS2_ATTACKS)}).")
 @click.option("--seconds", default=30.0, show_default=True, type=click.FloatRange(5, 3600),
-              help="Wall-clock budget of one mission (the demo runs two).")
+              help="Wall-clock budget of one mission (one per mode; a monitored mode adds a 12 s calibration "
+                   "mission first).")
 @click.option("--mode", "mode", type=click.Choice(["all", "both", "plain", "protected", "monitored"]), default="all",
               show_default=True,
               help="plain ROS, protected (cryptoros' interceptors), monitored (the interceptors with the runtime monitor, "
@@ -125,12 +126,12 @@ def demo(robots: int, ros: str, attacks: str, seconds: float, mode: str, isolate
         console.print("[yellow]interrupted: every child process was stopped[/yellow]")
         sys.exit(130)
     except (DemoError, CryptorosError) as exc:  # a clear line, never a traceback
-        raise click.ClickException(str(exc)) from None
-    finally:
-        if result is None and opts.workdir is None and not keep:
-            pass
+        hint = "" if keep or workdir else " (--keep keeps the work directory and its logs)"
+        raise click.ClickException(f"{exc}{hint}") from None
     result["wall_s"] = round(time.monotonic() - t0, 1)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if (out_dir / "report.md").exists():  # the default --out of every run: say so rather than overwrite silently
+        console.print(f"replacing the report of an earlier run in {out_dir} (--out DIR keeps each run's)")
     report_path = rep.write_report(result, out_dir)
     result["report"] = str(report_path)
     console.print(rep.table(result))

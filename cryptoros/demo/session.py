@@ -39,6 +39,7 @@ def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lam
         raise DemoError("the monitored mode runs the ROS 1 demo (the ROS 2 role's monitor: docs/monitor.md)")
     workdir = Path(opts.workdir) if opts.workdir else Path(tempfile.mkdtemp(prefix="cryptoros-demo-"))
     workdir.mkdir(parents=True, exist_ok=True)
+    ended = False  # the missions ran to their end (the caller removes a throwaway workdir then)
     children = Children()
     result: dict[str, Any] = {"config": {**asdict(opts), "attacks": list(opts.attacks), "modes": list(opts.modes)},
                               "workdir": str(workdir), "modes": {}, "attacks": {}}
@@ -72,8 +73,13 @@ def run_demo(opts: DemoOptions, progress: Callable[[dict[str, Any]], None] = lam
                     if name:
                         entry[mode] = {**entry[mode], "coverage": res["coverage"], "end_reason": res["end_reason"]}
                 result["attacks"][k] = entry
+        ended = True
     finally:
         children.kill_all()
+        if not ended and opts.workdir is None and not opts.keep:
+            # Ctrl-C or a failure: the throwaway directory goes too (it holds the demo's CA
+            # and robot keys; a newcomer audit found it left in /tmp after each Ctrl-C)
+            shutil.rmtree(workdir, ignore_errors=True)
     for res in missions:
         res.pop("_final", None)
     result["children_started"] = len(children.procs)

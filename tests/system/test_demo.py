@@ -174,16 +174,19 @@ def test_demo_monitor_stays_quiet_on_a_clean_mission(tmp_path):
 
 
 def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
+    """Ctrl-C stops every child; the throwaway work directory (the demo's PKI with its
+    private keys, the registry, the logs) goes too (newcomer audit: it stayed in /tmp)."""
     # --scale 1: the mission needs minutes of wall time, so it is surely still running when
     # interrupted (at the default scale it can reach its target before the SIGINT lands)
+    tmp = tmp_path / "tmp"  # where the demo makes its work directory (TMPDIR)
+    tmp.mkdir()
     proc = subprocess.Popen([str(venv / "bin" / "cryptoros"), "demo", "--mode", "protected", "--seconds", "60",
-                             "--scale", "1", "--workdir", str(tmp_path / "work")], cwd=tmp_path,
-                            env=_no_ros_env(venv),
+                             "--scale", "1"], cwd=tmp_path, env={**_no_ros_env(venv), "TMPDIR": str(tmp)},
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 90
         while time.monotonic() < deadline:  # interrupt once robots run behind the interceptors
-            if list((tmp_path / "work" / "protected").glob("r*.status.json")):
+            if list(tmp.glob("cryptoros-demo-*/protected/r*.status.json")):
                 break
             time.sleep(0.2)
         # its children are up (authz, master, interceptors, robots): seen, not slept for
@@ -205,6 +208,7 @@ def test_demo_ctrl_c_stops_every_child(venv, tmp_path):
     while processes_using(venv) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert processes_using(venv) == []
+    assert list(tmp.glob("cryptoros-demo-*")) == [], out[-2000:]
 
 
 def test_demo_netns_runs_the_protected_mission_on_separate_hosts(tmp_path):
