@@ -52,6 +52,8 @@ MASTER_ADDR = "127.0.0.10"
 OPS_ADDR = "127.0.0.40"
 STRANGER_ADDR = "127.0.0.66"
 ALL_ATTACKS = tuple(ATTACKS)
+#: seconds after the false map's onset that robots all stopped wait for its first claim
+FALSE_MAP_PATIENCE = 8.0
 TEAM_TYPES = {"hello": "cryptoros_sim/Hello", "lsu": "cryptoros_sim/LinkStateUpdate", "map": "cryptoros_sim/MapUpdate",
               "recruit": "cryptoros_sim/RecruitPacket", "protocol": "cryptoros_sim/ProtocolPacket"}
 
@@ -449,9 +451,14 @@ class Mission:
                     quiet_since = wall
                 # robots that all stopped (shut down, hijacked, halted, done on an insider's
                 # claim) still wait for the stranger's false map, FALSE_MAP_ONSET s after the
-                # other attacks: what it did is judged by what the robots received
+                # other attacks: what it did is judged by what the robots received. Until a
+                # robot received a claim, up to FALSE_MAP_PATIENCE s more: on a busy machine
+                # its first claims had not reached the one robot left 2 s after the onset
+                # (a newcomer audit saw "0 false map claims" in plain ROS)
+                received = any(s.get("stats", {}).get("map_from_non_team") for s in st.values())
+                map_wait = FALSE_MAP_ONSET + (2.0 if received else FALSE_MAP_PATIENCE)
                 if quiet_since is not None and wall - quiet_since >= 2.0 and \
-                        ("false-map" not in attackers or wall - fired_at >= FALSE_MAP_ONSET + 2.0):
+                        ("false-map" not in attackers or wall - fired_at >= map_wait):
                     end_reason = "robots_stopped"
                     break
                 if fired and stalled(timeline, wall - fired_at):
@@ -574,11 +581,15 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
         elif k == "cmd-flood":
             got, halted = from_publisher(stats[t], "cmd_vel", ATTACKS[k]["node"]), final[t].get("halted_s") or 0.0
             ok = halted > 0 and got["effect"] > 0  # judged by effect: it halted the base
-            ev = f"{t} received {got['n']} foreign stop commands, halted {halted} s"
+            # the base's halt counted only when this sender's stops reached it (the held
+            # flood's halted it too: a newcomer read "0 stop commands, halted 26.7 s")
+            ev = f"{t} received {got['n']} foreign stop commands" + (f", halted {halted} s" if got["effect"] else "")
         elif k == "false-map":
             c = sum(s["map_from_non_team"] for s in stats.values())
-            done = sum(1 for s in final.values() if s.get("state") == "done")
-            ok, ev = c > 0, f"robots received {c} false map claims; {done} believed the map explored"
+            # a robot done without any of the stranger's claims (the held false map, its own
+            # frontiers gone) is not counted to it
+            done = sum(1 for s in final.values() if s.get("state") == "done" and s["stats"]["map_from_non_team"])
+            ok, ev = c > 0, f"robots received {c} false map claims; {done} of them believed the map explored"
         elif k == "map-erase":
             c = sum(max(0, foreign(r, "map") - foreign(r, "map_non_team")) for r in final)
             ok, ev = c > 0, f"robots received {c} altered team map updates"

@@ -1,4 +1,4 @@
-"""The demo's mission-end rule without processes: when a mission counts as stalled."""
+"""The demo without processes: when a mission counts as stalled, and what an attack's evidence counts."""
 
 from __future__ import annotations
 
@@ -27,3 +27,22 @@ def test_slow_but_real_progress_is_no_stall():
 def test_a_short_timeline_is_no_stall():
     assert not stalled(timeline([0.1] * 10), since_attacks=60)  # 2.5 s: no row 8 s back
     assert not stalled([], since_attacks=60)
+
+
+def test_an_attacks_evidence_counts_only_what_its_own_sender_did():
+    """Newcomer audit: the stranger's blocked flood read "r0 received 0 foreign stop
+    commands, halted 26.7 s" (the held flood's halt) and the blocked false map "1 believed
+    the map explored" (a robot done for another reason)."""
+    from cryptoros.demo.run import judge
+
+    def robot(state: str, held_stops: int = 0) -> dict:
+        table = {"/teleop": {"n": held_stops, "first": 0.0, "last": 0.0, "effect": held_stops}}
+        return {"state": state, "halted_s": 26.7 if held_stops else 0.0, "received": {},
+                "stats": {"map_from_non_team": 0, "by_publisher": {"cmd_vel": table}}}
+
+    mode = {"_final": {"r0": robot("done", held_stops=40), "r1": robot("explore"), "r2": robot("explore")},
+            "attack_reports": {}}
+    judged = judge(mode, ("cmd-flood", "false-map"), 3)
+    assert judged["cmd-flood"] == {"succeeded": False, "evidence": "r0 received 0 foreign stop commands"}
+    assert judged["false-map"] == {"succeeded": False,
+                                   "evidence": "robots received 0 false map claims; 0 of them believed the map explored"}
