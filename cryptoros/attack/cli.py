@@ -16,6 +16,8 @@ from typing import Any
 import click
 import numpy as np
 
+from cryptoros.outputs import write_output
+
 
 def _master_default() -> str:
     return os.environ.get("ROS_MASTER_URI", "http://127.0.0.1:11311")
@@ -53,7 +55,7 @@ def _finish(rep: dict[str, Any], json_path: Path | None, lines: list[str]) -> No
     if rep.get("refused"):
         click.echo(f"refused: {rep['refused']}")
     if json_path is not None:
-        json_path.write_text(json.dumps(rep, indent=1, default=str))
+        write_output(json_path, json.dumps(rep, indent=1, default=str))
         click.echo(f"report: {json_path}")
 
 

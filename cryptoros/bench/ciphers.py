@@ -63,6 +63,7 @@ from pathlib import Path
 import click
 
 from cryptoros.errors import CryptorosError
+from cryptoros.outputs import write_output
 
 # ============================================================ what is measured
 
@@ -1112,7 +1113,7 @@ def ciphers(quick: bool, json_path: Path | None, plots_dir: Path | None, atom_qu
             throttle.close()
         shutil.rmtree(workdir, ignore_errors=True)
     if json_path:
-        json_path.write_text(json.dumps(report, indent=2, ensure_ascii=False))
+        write_output(json_path, json.dumps(report, indent=2, ensure_ascii=False))
     if plots_dir:
         for p in plots(report, plots_dir):
             progress(f"wrote {p}")

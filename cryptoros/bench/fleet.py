@@ -53,6 +53,7 @@ import click
 from cryptoros.lab.network import clean_env, cpu_seconds, tool
 from cryptoros.lab.policy import policy_yaml
 from cryptoros.lab.processes import NetworkError, free_port, log_tail, stop, wait_port
+from cryptoros.outputs import write_output
 
 SIGNING_PASSPHRASE = "bench-fleet-signing-passphrase"
 #: the issue's targets
@@ -864,6 +865,6 @@ def fleet(clients: int, replicas: int, baseline_seconds: float, token_seconds: f
     result["total_seconds"] = round(time.monotonic() - started, 1)
     _report(result)
     if json_path:
-        Path(json_path).write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
+        write_output(json_path, json.dumps(result, indent=2, sort_keys=True) + "\n")
         _progress(f"figures written to {json_path}")
     sys.stdout.flush()

@@ -62,6 +62,7 @@ from cryptoros.lab.capture import Capture, CaptureError, flows
 from cryptoros.lab.network import (HOSTS, UNTHROTTLED, Network, NetworkError, lab_network, free_port,
                                    stop)
 from cryptoros.lab.policy import policy_yaml
+from cryptoros.outputs import write_output
 from cryptoros.ros1.uri import host_port
 
 IMPLS = ("rospy", "ours")
@@ -944,7 +945,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
     report = build_report(results)
     report["elapsed_s"] = time.monotonic() - started
     if json_path:
-        Path(json_path).write_text(json.dumps(report, indent=2))
+        write_output(json_path, json.dumps(report, indent=2))
     render(report, markdown)
     click.echo(_legend(), err=False)
     if plots_dir:

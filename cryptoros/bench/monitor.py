@@ -29,6 +29,7 @@ from pathlib import Path
 import click
 
 from cryptoros.errors import CryptorosError
+from cryptoros.outputs import write_output
 
 #: the false-positive rate the LSTM's threshold is raised to (the issue's target)
 MATCHED_FPR = 0.005
@@ -158,7 +159,7 @@ def monitor(dataset: Path, train_seeds: str, eval_seeds: str, robot: str, val_se
             click.echo(f"{v['name']:58s} {f['parameters']:>8,} {f['epochs_run']:>7} {f['accuracy']:>6} {f['f1']:>6} "
                        f"{f['false_positive_rate']:>8} {f['recall']:>7} {f['run_accuracy']:>8} {str(f['median_delay_s']):>12s}")
     if json_path is not None:
-        json_path.write_text(json.dumps({"ours": ours, "lstm": theirs, "lstm_matched": matched, "train_seeds": train_list,
+        write_output(json_path, json.dumps({"ours": ours, "lstm": theirs, "lstm_matched": matched, "train_seeds": train_list,
                                          "lstm_train_seeds": lstm_train_list, "val_seeds": val_list,
                                          "eval_seeds": eval_list, "robot": robot, "epochs": epochs, "window": window,
                                          "lstm_history": lstm.history, "variants": variants, "lstm_by_kind": by_kind}, indent=1))

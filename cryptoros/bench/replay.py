@@ -37,6 +37,7 @@ from pathlib import Path
 import click
 
 from cryptoros.bench.replay_spec import CIPHERS, MACHINES, SENSORS
+from cryptoros.outputs import write_output
 
 SYS_PY = "/usr/bin/python3"
 NODE = Path(__file__).parent / "replay_nodes" / "crypto_node.py"
@@ -285,7 +286,7 @@ def cipher_replay(quick: bool, seconds: float, reps: int, cipher_list: str, mach
             shutil.rmtree(workdir, ignore_errors=True)
         report["derived"] = rr.derive(report)
         if json_path:
-            json_path.write_text(json.dumps(report, indent=1, ensure_ascii=False))
+            write_output(json_path, json.dumps(report, indent=1, ensure_ascii=False))
     if plots_dir:
         for p in rr.plots(report, plots_dir):
             click.echo(f"wrote {p}", err=True)

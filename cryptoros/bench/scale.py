@@ -57,6 +57,7 @@ from pathlib import Path
 import click
 
 from cryptoros.lab.network import HOSTS, Network, NetworkError, cpu_seconds, lab_network
+from cryptoros.outputs import write_output
 
 #: the counts of the interceptor curves (``--quick``: the first two)
 COUNTS = (10, 100, 1000)
@@ -687,7 +688,7 @@ def scale(quick: bool, rate: float | None, seconds: float | None, curves: str | 
         for path in write_plots(report, plots_dir):
             click.echo(f"figure: {path}")
     if json_path is not None:
-        json_path.write_text(json.dumps(report, indent=1))
+        write_output(json_path, json.dumps(report, indent=1))
 
 
 __all__ = ["curve_fits", "fit", "limits", "policy", "scale"]

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from cryptoros.errors import CryptorosError
+from cryptoros.outputs import writing
 
 _BAGS = click.argument("bags", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 
@@ -49,6 +50,7 @@ def record(ros: str, master_uri: str | None, domain: int | None, topics: tuple[s
         return await run(master_uri, list(topics), out, seconds=seconds, on_ready=ready, stop=stop)
 
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)  # as for every output file (cryptoros.outputs)
         counts = asyncio.run(main())
     except (CryptorosError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
@@ -126,7 +128,8 @@ def train(bags: tuple[Path, ...], out: Path, quantile: float, margin: float, con
         model = fit(bags, quantile=quantile, margin=margin, consecutive=consecutive, severe=severe)
     except CryptorosError as exc:
         raise click.ClickException(str(exc)) from None
-    model.save(out)
+    with writing(out):
+        model.save(out)
     click.echo(f"model: {out} (trained on {', '.join(f'{n} {k}' for k, n in model.trained_on.items())} messages)")
     for kind, limits in model.limits.items():
         click.echo(f"  {kind:6s} " + ", ".join(f"{name} <= {value:g}" for name, value in limits.items()))

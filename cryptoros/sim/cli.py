@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from cryptoros.errors import ConfigError
+from cryptoros.outputs import write_output, writing
 
 
 def _csv(value: str, cast=str) -> list:
@@ -99,15 +100,16 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
         table.add_row(k, v)
     out.print(table)
     if json_path:
-        Path(json_path).write_text(json.dumps(result, indent=1, sort_keys=True))
+        write_output(json_path, json.dumps(result, indent=1, sort_keys=True))
         out.print(f"metrics: {json_path}")
     if map_png:
         from cryptoros.sim.plots import map_png as draw
 
-        draw(mission, map_png)
+        with writing(map_png):
+            draw(mission, map_png)
         out.print(f"map: {map_png}")
     if trace:
-        with open(trace, "w") as fh:
+        with writing(trace) as path, path.open("w") as fh:
             for t, ev, src, dst, typ, size_b, why in mission.channel.trace:
                 fh.write(json.dumps({"t": round(t, 6), "event": ev, "from": src, "to": dst, "type": typ, "bytes": size_b, "reason": why}) + "\n")
         out.print(f"trace: {trace}")
