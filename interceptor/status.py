@@ -109,8 +109,17 @@ def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoro
         with urllib.request.urlopen(url, timeout=5) as resp:
             return json.loads(resp.read())
     except (urllib.error.URLError, OSError, ValueError) as exc:
-        click.echo(f"{prog}: error: cannot read {url}: {getattr(exc, 'reason', exc)}", err=True)
+        reason = getattr(exc, "reason", exc)
+        click.echo(f"{prog}: error: cannot read {url}: {reason}{_not_running_hint(reason, config_path)}", err=True)
         raise SystemExit(2) from None
+
+
+def _not_running_hint(reason: object, config_path: str | None) -> str:
+    """What to try when nothing listens at the status endpoint: the usual cause is an
+    interceptor not started yet (or stopped), not a wrong port."""
+    if not isinstance(reason, ConnectionRefusedError):
+        return ""
+    return f" (is the interceptor running? start it with cryptoros-interceptor --config {config_path or 'FILE'})"
 
 
 @click.command()
