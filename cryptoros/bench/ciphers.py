@@ -62,6 +62,7 @@ from pathlib import Path
 
 import click
 
+from cryptoros.consoles import for_logs
 from cryptoros.errors import CryptorosError
 from cryptoros.outputs import write_output
 
@@ -892,7 +893,7 @@ def render(report: dict, markdown: bool) -> None:
         from rich.console import Console
         from rich.table import Table
 
-        console = Console(width=None if sys.stdout.isatty() else 200)
+        console = for_logs(Console())
         for title, headers, rows in blocks:
             table = Table(title=title)
             for i, h in enumerate(headers):

@@ -62,6 +62,7 @@ from cryptoros.lab.capture import Capture, CaptureError, flows
 from cryptoros.lab.network import (HOSTS, UNTHROTTLED, Network, NetworkError, lab_network, free_port,
                                    stop)
 from cryptoros.lab.policy import policy_yaml
+from cryptoros.consoles import for_logs
 from cryptoros.outputs import write_output
 from cryptoros.ros1.uri import host_port
 
@@ -803,7 +804,7 @@ def render(report: dict, markdown: bool) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    console = Console(width=None if sys.stdout.isatty() else 150)
+    console = for_logs(Console())
     table = Table(title="ROS 1 through cryptoros interceptors vs stunnel4 vs plain (loopback, one run)")
     for i, h in enumerate(HEADERS):
         table.add_column(h, justify="left" if i < 2 else "right")

@@ -12,6 +12,8 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from cryptoros.consoles import for_logs
+
 MODE_LABEL = {"plain": "plain ROS", "protected": "cryptoros", "monitored": "cryptoros + monitor"}
 
 
@@ -19,7 +21,7 @@ class LiveView:
     """A live table on a terminal; a line every few seconds otherwise (logs, CI)."""
 
     def __init__(self, console: Console) -> None:
-        self.console = console
+        self.console = for_logs(console)  # and so the table printed on it after the run
         self.live: Live | None = None
         self._last_line = 0.0
         self._notes: list[str] = []
@@ -100,7 +102,7 @@ def table(result: dict[str, Any]) -> Table:
                     + (" (each attack in its own missions; coverage of that mission)" if isolated else ""))
     t.add_column("")
     for m in modes:
-        t.add_column(MODE_LABEL[m])
+        t.add_column(MODE_LABEL[m], overflow="fold")  # a narrow terminal folds a denial reason, never cuts it
     if isolated:
         for k, a in result["attacks"].items():
             t.add_row(f"{k} (seed {a['seed']})", *[_verdict(a[m], m) if m in a else "-" for m in modes])

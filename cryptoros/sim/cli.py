@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from cryptoros.consoles import for_logs
 from cryptoros.errors import ConfigError
 from cryptoros.outputs import write_output, writing
 
@@ -66,13 +67,13 @@ def run_cmd(robots, attack, security, curve, crypto_cost, plausibility, seed, si
         mission = Mission(cfg)
     except (ConfigError, ValueError) as err:
         raise click.UsageError(str(err)) from err
-    console = Console(stderr=True, quiet=quiet)
+    console = for_logs(Console(stderr=True, quiet=quiet))
     with Progress(TextColumn("sim t={task.fields[t]:>7.1f}s"), BarColumn(), TextColumn("coverage {task.fields[cov]:.1%}"), TimeElapsedColumn(),
                   console=console, transient=True, disable=quiet) as prog:
         task = prog.add_task("sim", total=max_time, t=0.0, cov=0.0)
         result = mission.run(lambda t, cov: prog.update(task, completed=t, t=t, cov=cov))
     o, p = result["outcome"], result["packets"]
-    out = Console()
+    out = for_logs(Console())
     table = Table(title=f"{cfg.robots} robots, attacks={','.join(cfg.attacks) or 'none'}, security={cfg.security.label}, seed={seed}")
     table.add_column("metric")
     table.add_column("value", justify="right")
