@@ -231,7 +231,7 @@ def write_report(result: dict[str, Any], out: Path) -> Path:
     R = result["modes"]
     isolated = "isolated" in result
     lines = ["# cryptoros demo report", "",
-             f"{result['config']['robots']} exploration robots (seed {result['config']['seed']}, "
+             f"{result['config']['robots']} exploration robots (random seed {result['config']['seed']}, "
              f"{result['config']['width']}x{result['config']['height']} cells of 0.2 m), live {ros_label(result)} on loopback, "
              f"clock x{result['config']['scale']:.0f}; attacks as separate processes.", "",
              "| | " + " | ".join(MODE_LABEL[m] for m in modes) + " |", "|---|" + "---|" * len(modes)]

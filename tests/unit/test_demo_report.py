@@ -50,3 +50,8 @@ def test_a_narrow_terminal_folds_a_reason_rather_than_cut_it(tmp_path):
     Console(file=out, width=60).print(rep.table(_result(tmp_path)))
     assert "…" not in out.getvalue()
 
+
+def test_the_report_calls_the_mission_seed_random(tmp_path):
+    text = rep.write_report(_result(tmp_path), tmp_path).read_text()
+    assert "(random seed 1, " in text
+    assert "(seed 1," not in text
