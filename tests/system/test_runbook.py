@@ -37,6 +37,8 @@ RUNBOOK = REPO / "docs" / "runbook.md"
 BLOCK = re.compile(r"^```sh\n(.*?)^```", re.S | re.M)
 ROBOTS = ("robot_a", "robot_b")
 HOSTS = ("master", *ROBOTS)
+#: what a daemon still starting makes a readiness check print: a step's waits keep it quiet
+WAIT_NOISE = ("Connection refused", "Unable to communicate with master")
 PORTS = {"PUBLIC_PORT": 7400, "AUTHZ_PORT": 8443, "ROS_PORT": 11311, "PROBE_PORT": 8081, "METRICS_PORT": 9102}
 
 
@@ -109,6 +111,8 @@ class Deployment:
                                     capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
             assert result.returncode == 0, f"runbook step {step.name} on {host} failed ({result.returncode}):\n" \
                                            f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+            noise = [line for line in result.stderr.splitlines() if any(n in line for n in WAIT_NOISE)]
+            assert not noise, f"runbook step {step.name} on {host} is not quiet while it waits:\n" + "\n".join(noise)
             outs[host] = result.stdout
         return outs
 
