@@ -797,9 +797,15 @@ def render(report: dict, markdown: bool) -> None:
         click.echo("|---|---|" + "---:|" * (len(HEADERS) - 2))
         for row in rows:
             click.echo("| " + " | ".join(row) + " |")
-        click.echo("\n| target | measured | met |\n|---|---:|---|")
-        for t in report["targets"]:
-            click.echo(f"| {t['target']} | {_target_value(t)} | {'yes' if t['met'] else 'NO'} |")
+        click.echo(f"\n{targets_title(report)}\n")
+        if report.get("quick"):
+            click.echo("| target | measured |\n|---|---:|")
+            for t in report["targets"]:
+                click.echo(f"| {t['target']} | {_target_value(t)} |")
+        else:
+            click.echo("| target | measured | met |\n|---|---:|---|")
+            for t in report["targets"]:
+                click.echo(f"| {t['target']} | {_target_value(t)} | {'yes' if t['met'] else 'NO'} |")
         return
     from rich.console import Console
     from rich.table import Table
@@ -811,13 +817,34 @@ def render(report: dict, markdown: bool) -> None:
     for row in rows:
         table.add_row(*row)
     console.print(table)
-    targets = Table(title="Targets")
+    console.print(targets_table(report))
+
+
+def targets_table(report: dict):
+    """The Targets table; after ``--quick`` without its verdict column (a verdict on a
+    run this short would be noise)."""
+    from rich.table import Table
+
+    quick = report.get("quick")
+    title = targets_title(report)
+    targets = Table(title=title, min_width=len(title))  # the heading stays one line
     targets.add_column("target")
     targets.add_column("measured", justify="right")
-    targets.add_column("met")
+    if not quick:
+        targets.add_column("met")
     for t in report["targets"]:
-        targets.add_row(t["target"], _target_value(t), "[green]yes[/]" if t["met"] else "[red]NO[/]")
-    console.print(targets)
+        verdict = [] if quick else ["[green]yes[/]" if t["met"] else "[red]NO[/]"]
+        targets.add_row(t["target"], _target_value(t), *verdict)
+    return targets
+
+
+def targets_title(report: dict) -> str:
+    """The Targets table's heading: where the targets come from and, after ``--quick``,
+    that the run was too short to judge them."""
+    source = "Targets (issues 16 and 35, docs/performance.md)"
+    if report.get("quick"):
+        return f"{source}: indicative only, a --quick run is too short to judge them"
+    return source
 
 
 def _target_value(t: dict) -> str:
@@ -945,6 +972,7 @@ def interceptor(quick: bool, messages: int | None, paper_counts: str | None, pap
             shutil.rmtree(workdir, ignore_errors=True)
     report = build_report(results)
     report["elapsed_s"] = time.monotonic() - started
+    report["quick"] = quick
     if json_path:
         write_output(json_path, json.dumps(report, indent=2))
     render(report, markdown)
