@@ -157,21 +157,24 @@ def stream_figures(received: list[tuple[float, int]], published: list[tuple[floa
                    in_flight: float = 1.0) -> dict:
     """Loss and longest gap of the watched stream over [start, end]: the messages from
     the first received after ``start`` up to the last the talker reported ``in_flight``
-    seconds before ``end``, and the longest time without a message in the window."""
+    seconds before ``end`` (``expected``; ``received`` and ``lost`` count the same span,
+    so they add up to it), and the longest time without a message in the window.
+    Messages sent after that report may still be on their way at ``end``: they are
+    counted apart (``newer``), neither received nor lost."""
     window = [(at, seq) for at, seq in received if start <= at <= end]
     times = [start] + [at for at, _ in window] + [end]
     longest, gap_at = max(((b - a, a) for a, b in zip(times, times[1:])), default=(end - start, start))
     gap = {"longest_gap_s": round(longest, 3), "longest_gap_at_s": round(gap_at - start, 1)}
     if not window:
-        return {"received": 0, "expected": None, "lost": None, "duplicates": 0, **gap}
+        return {"received": 0, "expected": None, "lost": None, "duplicates": 0, "newer": 0, **gap}
     first = window[0][1]
     upper = max((seq for at, seq in published if at <= end - in_flight), default=first)
     seqs = [seq for _, seq in window]
     got = set(seqs)
     expected = max(0, upper - first + 1)
-    lost = sum(1 for s in range(first, upper + 1) if s not in got)
     missing = [s for s in range(first, upper + 1) if s not in got]
-    return {"received": len(window), "expected": expected, "lost": lost, "duplicates": len(seqs) - len(got),
+    return {"received": sum(1 for s in got if s <= upper), "expected": expected, "lost": len(missing),
+            "duplicates": len(seqs) - len(got), "newer": sum(1 for s in got if s > upper),
             "first_lost": missing[0] if missing else None, **gap}
 
 
@@ -416,7 +419,7 @@ def soak(seconds: float, hz: float, restart: str, as_json: bool, keep: bool) -> 
                f"{e['authz_restarts']} authorization server restart")
     click.echo(f"watched stream (granted throughout, {hz:g} Hz): received {s['received']}, expected {s['expected']}, "
                f"lost {s['lost']}, duplicates {s['duplicates']}, longest gap {s['longest_gap_s']:.2f} s "
-               f"(at {s['longest_gap_at_s']:.0f} s)")
+               f"(at {s['longest_gap_at_s']:.0f} s); {s.get('newer', 0)} newer, sent in the last second, not counted")
     click.echo(f"stopped churn nodes rosmaster still lists: {result['stale_churn_registrations']}")
     click.echo("")
     click.echo(f"{'process':12} {'fds start':>9} {'fds end':>8} {'RSS start MiB':>14} {'RSS end MiB':>12} "
