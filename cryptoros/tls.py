@@ -33,6 +33,8 @@ from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from cryptography.hazmat.primitives import serialization
+
 from cryptoros.errors import ConfigError, CryptorosError, TokenError
 from cryptoros import pemfiles
 from cryptoros.files import PEM_LIMIT
@@ -105,21 +107,35 @@ def _base_context(protocol: int, cfg: TLSConfig, cls: type[ssl.SSLContext] = ssl
         ctx.load_cert_chain(str(cfg.cert_file), str(cfg.key_file),
                             password=cfg.key_passphrase or (lambda: _no_password(cfg.key_file)))
     except ssl.SSLError as exc:
-        _explain_key(cfg)
+        _explain_material(cfg)
         raise ConfigError(f"cannot load TLS material ({cfg.cert_file}, {cfg.key_file}): {exc.reason or exc}") from exc
     return ctx
 
 
-def _explain_key(cfg: TLSConfig) -> None:
-    """OpenSSL says only ``PEM lib`` when the key does not open: read it ourselves to say
-    which file and why (:mod:`cryptoros.pemfiles` names the file)."""
+def _explain_material(cfg: TLSConfig) -> None:
+    """OpenSSL says only ``PEM lib``, ``NO_CERTIFICATE_OR_CRL_FOUND`` or
+    ``KEY_VALUES_MISMATCH``: read the files ourselves to say which one and why
+    (:mod:`cryptoros.pemfiles` names the file; an operator audit could not tell which of
+    three files was empty, or that the CA's certificate had been given as the robot's)."""
     try:
-        pemfiles.load_private_key(cfg.key_file, cfg.key_passphrase)
+        pemfiles.load_certificates(cfg.ca_file)
+    except CryptorosError as exc:
+        raise ConfigError(f"TLS CA: {exc}") from None
+    try:
+        cert = pemfiles.load_certificate(cfg.cert_file)
+    except CryptorosError as exc:
+        raise ConfigError(f"TLS certificate: {exc}") from None
+    try:
+        key = pemfiles.load_private_key(cfg.key_file, cfg.key_passphrase)
     except pemfiles.WrongPassphrase:
         raise ConfigError(f"TLS key {cfg.key_file}: the passphrase given does not open it (a wrong passphrase, "
                           "or the passphrase of another key?)") from None
     except CryptorosError as exc:
         raise ConfigError(f"TLS key: {exc}") from None
+    spki = (serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
+    if key.public_key().public_bytes(*spki) != cert.public_key().public_bytes(*spki):
+        raise ConfigError(f"TLS key {cfg.key_file} does not belong to the certificate {cfg.cert_file} (the CA's "
+                          "certificate given as this host's, or another host's key?)")
 
 
 def _no_password(key_file: Path) -> bytes:
