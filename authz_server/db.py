@@ -28,6 +28,7 @@ from sqlalchemy.exc import ArgumentError, NoSuchModuleError, OperationalError, S
 from sqlalchemy.orm import Session, sessionmaker
 
 from cryptoros.errors import ConfigError
+from cryptoros.files import sync
 
 if TYPE_CHECKING:
     from alembic.config import Config
@@ -152,9 +153,9 @@ def _create_new_sqlite(url: str, path: Path) -> None:
                 conn.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)")
         finally:
             engine.dispose()
-        _fsync(tmp)
+        sync(tmp)
         _install(tmp, path)
-        _fsync(path.parent)
+        sync(path.parent)
     except SQLAlchemyError as exc:
         raise ConfigError(f"cannot create the registry {path}: {_first_line(exc)}") from exc
     except OSError as exc:
@@ -176,14 +177,6 @@ def _install(tmp: Path, path: Path) -> None:
         pass
     except OSError:  # a file system without hard links: a rename, which a race could overwrite
         os.replace(tmp, path)
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _create_private(path: Path) -> None:

@@ -27,6 +27,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from cryptoros.errors import PKIError
+from cryptoros.files import sync
 
 #: what tempfile.mkstemp makes for FileSet: ".<final name>.<8 random chars>.tmp"
 _TEMP_RE = re.compile(r"^\.[^/]+\.[a-z0-9_]{8}\.tmp$")
@@ -162,14 +163,6 @@ def pki_lock(directory: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 INIT_STAGING = ".init.new"  # a CA being written: removed by the next init
 INIT_READY = ".init.ready"  # a CA complete on disk: moved into place by the next open or init
 
@@ -190,8 +183,8 @@ def replace_ca(directory: Path, files: dict[str, tuple[bytes, int]]) -> None:
     (staging / "private").mkdir(parents=True, mode=0o700)
     for rel, (data, mode) in files.items():
         write_file(staging / rel, data, mode=mode)
-    _fsync_dir(staging / "private")
-    _fsync_dir(staging)
+    sync(staging / "private")
+    sync(staging)
     for rel in _INIT_FILES:
         live = directory / rel
         if live.is_file() and not live.is_symlink():
@@ -203,7 +196,7 @@ def replace_ca(directory: Path, files: dict[str, tuple[bytes, int]]) -> None:
             except OSError:
                 shutil.copy2(live, old)  # no hard links on this file system
     os.rename(staging, directory / INIT_READY)  # the point of no return
-    _fsync_dir(directory)
+    sync(directory)
     finish_init(directory)
 
 
@@ -216,8 +209,8 @@ def finish_init(directory: Path) -> None:
         staged = ready / rel
         if staged.exists():  # absent: moved already, by the init that stopped
             _replace(staged, directory / rel)
-    _fsync_dir(directory)
-    _fsync_dir(directory / "private")
+    sync(directory)
+    sync(directory / "private")
     shutil.rmtree(ready)
 
 

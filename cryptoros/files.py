@@ -6,7 +6,8 @@ and grow without limit (CLI audit: 9.6 GB in 8 s). :func:`read_bounded` refuses 
 not a regular file and what is larger than the caller's limit, with an :class:`OSError`
 whose ``strerror`` says which, so each caller's one-line "cannot read ..." message
 carries it. :func:`open_to_others` says when a file holding a secret (a private key,
-a passphrase) may be read by users other than its owner.
+a passphrase) may be read by users other than its owner. :func:`sync` makes a file or
+a directory's entries durable (a rename is not, until its directory is synced).
 """
 
 from __future__ import annotations
@@ -69,4 +70,13 @@ def open_to_others(named: Iterable[tuple[str, str | os.PathLike[str] | None]]) -
     return lines
 
 
-__all__ = ["CONFIG_LIMIT", "PASSPHRASE_LIMIT", "PEM_LIMIT", "POLICY_LIMIT", "open_to_others", "read_bounded"]
+def sync(path: str | os.PathLike[str]) -> None:
+    """fsync a file, or a directory (its entries: the files renamed into it)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+__all__ = ["CONFIG_LIMIT", "PASSPHRASE_LIMIT", "PEM_LIMIT", "POLICY_LIMIT", "open_to_others", "read_bounded", "sync"]
