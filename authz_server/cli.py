@@ -33,7 +33,7 @@ from authz_server import keys as keymod
 from authz_server.changes import parse_since, summary
 from authz_server.cli_context import registry as _registry
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, shown_db
-from authz_server.policy_cli import load_yaml, write_output
+from authz_server.policy_cli import load_yaml, write_or_print
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
 from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
@@ -482,7 +482,7 @@ def export(ctx: click.Context, output: str | None) -> None:
     """Write the whole policy (managers, certificates, grants) as YAML."""
     import yaml
 
-    write_output(output, yaml.safe_dump(_registry(ctx).export_policy(), sort_keys=False))
+    write_or_print(output, yaml.safe_dump(_registry(ctx).export_policy(), sort_keys=False))
 
 
 @main.command("import")

@@ -17,7 +17,7 @@ import click
 from authz_server.changes import parse_since
 from authz_server.learning import known_types, proposal_diff, proposal_yaml, propose, unused
 from authz_server.cli_context import registry as _registry
-from authz_server.policy_cli import write_output
+from authz_server.policy_cli import write_or_print
 from authz_server.registry import MAX_LEARNING_S, Registry
 from cryptoros.errors import RegistryError
 
@@ -118,7 +118,7 @@ def propose_cmd(ctx: click.Context, manager: str, since: str | None, output: str
     learning: the import YAML (each grant with its count and last use), then the diff
     against the current policy. Nothing is changed: review it, then `learn apply`."""
     info, proposal, learned = _proposal(_registry(ctx), manager, _since(since))
-    write_output(output, proposal_yaml(proposal))
+    write_or_print(output, proposal_yaml(proposal))
     err = output is not None
     click.echo(f"# {manager}: {len(learned)} requests recorded, {len(proposal.grants)} grants proposed, "
                f"{len(info.grants)} held now", err=err)

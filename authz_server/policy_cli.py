@@ -27,7 +27,7 @@ _MAP_HELP = ("PATTERN=MANAGER (repeatable, first match wins): an fnmatch pattern
              "('/robot_a/*=robot_a'; '*' matches '/' too){extra}.")
 
 
-def write_output(output: str | None, text: str) -> None:
+def write_or_print(output: str | None, text: str) -> None:
     """``text`` to the file ``output`` (a file that cannot be written is one error line,
     never a traceback), or to stdout."""
     if output:
@@ -124,7 +124,7 @@ def from_graph(master_uri: str, manager_map: tuple[str, ...], param_access: str,
     header = (f"# draft policy from the ROS 1 graph at {master_uri}: review it, then add it to the registry with\n"
               "# 'cryptoros-authz import --merge' ('--dry-run' first shows what changes). A plain 'import'\n"
               "# makes the registry equal to this draft: every manager it does not name is removed.\n")
-    write_output(output, header + _yaml(draft.doc))
+    write_or_print(output, header + _yaml(draft.doc))
     click.echo(f"{PROG}: drafted {count} grant(s) for {len(draft.doc['managers'])} manager(s) from "
                f"{len(graph.nodes)} node(s); {draft.infrastructure} left out that ROS has without a grant "
                f"(/rosout, logger services); {len(draft.warnings)} warning(s)", err=True)
@@ -236,8 +236,8 @@ def export_sros2(ctx: click.Context, manager: str, enclave: str | None, output: 
     for note in exported.notes:
         click.echo(f"{PROG}: sros2: {note}", err=True)
     if types_out:
-        write_output(types_out, _yaml(exported.types))
-    write_output(output, exported.xml)
+        write_or_print(types_out, _yaml(exported.types))
+    write_or_print(output, exported.xml)
 
 
 COMMANDS = (policy, import_sros2, export_sros2)
