@@ -43,7 +43,16 @@ from tests.interceptor_harness import (
     status_text,
 )
 from tests.ros1_flow import flow_policy, legit_flow
-from tests.support import require, running
+from tests.support import require, ros_package, running
+
+#: an unmodified rospy listener that exits once asked to shut down (roslaunch respawns it)
+SPINNING_LISTENER = """#!/usr/bin/python3
+import rospy
+from std_msgs.msg import String
+rospy.init_node("listener")
+rospy.Subscriber("/chatter", String, lambda _m: None)
+rospy.spin()
+"""
 
 pytestmark = [pytest.mark.ros1]
 
@@ -333,12 +342,16 @@ def test_a_node_respawned_exposed_is_shut_down_at_once_each_time_and_named_in_st
     with robot_network(tmp_path, netns=True) as net:
         assert net.cli("grant-tools", "robot_a", "--roslaunch").returncode == 0
         launch = tmp_path / "respawn.launch"
-        launch.write_text('<launch>\n  <node pkg="rostopic" type="rostopic" name="echo_respawn" '
-                          'args="echo /chatter __ip:=0.0.0.0" respawn="true"/>\n</launch>\n')
+        # a rospy node that runs on when refused, until asked to shut down (rostopic, through
+        # cryptoros run, ends itself at a refused registration, before it could be asked)
+        ros_package(tmp_path / "pkgs", "crguard", {"listener.py": SPINNING_LISTENER})
+        launch.write_text('<launch>\n  <node pkg="crguard" type="listener.py" name="echo_respawn" '
+                          'args="__ip:=0.0.0.0" respawn="true"/>\n</launch>\n')
         config = net.hosts["robot_a"].config
         roslaunch = net.argv("robot_a", [tool("cryptoros"), "run", "--config", str(config), "--", "roslaunch",
                                          str(launch)])
-        home = {"ROS_HOME": str(net.workdir / "ros_home"), "PYTHONUNBUFFERED": "1"}
+        home = {"ROS_HOME": str(net.workdir / "ros_home"), "PYTHONUNBUFFERED": "1",
+                "ROS_PACKAGE_PATH": str(tmp_path / "pkgs")}
         with running(roslaunch, env=clean_env(PATH="/usr/bin:/bin", **home)):  # the nodes on Debian's Python
             deadline = time.monotonic() + 60
             while net.hosts["robot_a"].logs().count("node /echo_respawn listens where other hosts reach it") < 4:
