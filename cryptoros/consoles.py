@@ -8,8 +8,6 @@ that is not a terminal wide and stops it wrapping lines: a log keeps whole lines
 
 from __future__ import annotations
 
-import os
-
 from rich.console import Console
 
 #: wide enough for every table the tools print (a table is only as wide as its cells)
@@ -18,8 +16,9 @@ LOG_WIDTH = 240
 
 def for_logs(console: Console) -> Console:
     """``console``, wide and not wrapping when it writes to no terminal; as it was on a
-    terminal, or when ``$COLUMNS`` names a width (the operator's choice wins)."""
-    if console.is_terminal or os.environ.get("COLUMNS"):
+    terminal. ``$COLUMNS`` is not asked: a terminal's width exported into a pipe's
+    environment (pytest exports 80) is no log's."""
+    if console.is_terminal:
         return console
     console.width = LOG_WIDTH
     console.soft_wrap = True
