@@ -451,12 +451,16 @@ class Mission:
                     quiet_since = wall
                 # robots that all stopped (shut down, hijacked, halted, done on an insider's
                 # claim) still wait for the stranger's false map, FALSE_MAP_ONSET s after the
-                # other attacks: what it did is judged by what the robots received. Until a
-                # robot received a claim, up to FALSE_MAP_PATIENCE s more: on a busy machine
-                # its first claims had not reached the one robot left 2 s after the onset
-                # (a newcomer audit saw "0 false map claims" in plain ROS)
+                # other attacks: what it did is judged by what the robots received. In plain
+                # ROS, where nothing refuses it, until a robot received a claim, up to
+                # FALSE_MAP_PATIENCE s more: on a busy machine its first claims had not
+                # reached the one robot left 2 s after the onset (a newcomer audit saw "0
+                # false map claims"). Behind the interceptors it is refused: no longer wait
+                # (waited there, robots done on the held false map ran 6 s more, and the
+                # refused map-erase was once judged to have altered 1 map update: fresh85)
                 received = any(s.get("stats", {}).get("map_from_non_team") for s in st.values())
-                map_wait = FALSE_MAP_ONSET + (2.0 if received else FALSE_MAP_PATIENCE)
+                patient = self.mode == "plain" and not received
+                map_wait = FALSE_MAP_ONSET + (FALSE_MAP_PATIENCE if patient else 2.0)
                 if quiet_since is not None and wall - quiet_since >= 2.0 and \
                         ("false-map" not in attackers or wall - fired_at >= map_wait):
                     end_reason = "robots_stopped"
