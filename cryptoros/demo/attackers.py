@@ -33,7 +33,7 @@ ATTACKS: dict[str, dict[str, Any]] = {
                   "target": 0, "as": "stranger", "node": "/flooder"},
     "false-map": {"seed": "000", "what": "false 'map explored' claims on /team/map", "target": None, "as": "stranger"},
     "map-erase": {"seed": "000", "what": "map updates erased in transit (read, erased, republished ahead)",
-                  "target": None, "as": "insider"},
+                  "target": None, "as": "insider", "node": "/mitm"},
     "eavesdrop": {"seed": "000", "what": "every topic read and recorded to a rosbag", "target": None, "as": "stranger"},
     "shutdown": {"seed": "-", "what": "XML-RPC shutdown of node /{t}", "target": -1, "as": "insider"},
     "hijack": {"seed": "-", "what": "node-name hijack of /{t} (register the same name)", "target": 1, "as": "insider"},
@@ -131,7 +131,7 @@ async def run(cfg: dict[str, Any], stop: asyncio.Event) -> dict[str, Any]:
                 return None
             return P.replace(msg, data=np.full(len(msg.data), -1, dtype=np.int8), goal=msg.position, seq=msg.seq + 1000,
                              timestamp=msg.timestamp + 1e-3)
-        return await lib.manipulate(m, "/team/map", P.MAP, erase, name="/mitm", **common)
+        return await lib.manipulate(m, "/team/map", P.MAP, erase, name=ATTACKS[kind]["node"], **common)
     if kind == "eavesdrop":
         positions: dict[str, list[float]] = {}
         cells: set[int] = set()

@@ -193,7 +193,7 @@ class DemoRobot:
         if pub is not None:
             self._publish_raw(pub, data)
 
-    def _on_team(self, typename: str, data: bytes) -> None:
+    def _on_team(self, typename: str, data: bytes, header: dict[str, str] | None = None) -> None:
         key = SHORT[typename]
         if self._received(key, data) is None or self.robot is None:
             return
@@ -202,6 +202,12 @@ class DemoRobot:
             m = frame.decode()
             if m is not None:
                 self.stats["map_received"] += 1
+                publisher = (header or {}).get("callerid", "")
+                if m.source in self.team and publisher and publisher != f"/{m.source}":
+                    # a team member's update sent by another node: relayed, altered or not
+                    # (seed 000's man in the middle); per sender, so a refused one counts nothing
+                    erased = len(m.data) > 0 and not np.any(np.asarray(m.data) != -1)
+                    self._foreign("map_relayed", publisher, 1.0 if erased else 0.0)
                 if m.exploration_complete and m.source != self.name:
                     self.stats["map_complete_claims"] += 1
                     by_source = self.stats.setdefault("map_complete_claims_from", {})
@@ -209,7 +215,6 @@ class DemoRobot:
                         by_source[m.source] = by_source.get(m.source, 0) + 1
                 if m.source not in self.team:
                     self.stats["map_from_non_team"] += 1
-                    self.received.setdefault("map_non_team", []).append(digest(data))
                 elif len(m.data) and not np.any(np.asarray(m.data) != -1):
                     self.stats["map_erased"] += 1
         self.robot.on_frame(frame)
@@ -455,7 +460,8 @@ class DemoRobot:
                 self.pubs[typename] = await explorer.advertise(topic, typename)
             subs = []
             for typename, topic in TEAM_TOPICS.items():
-                subs.append(await explorer.subscribe(topic, typename, lambda d, t=typename: self._on_team(t, d), raw=True))
+                subs.append(await explorer.subscribe(topic, typename, lambda d, h, t=typename: self._on_team(t, d, h),
+                                                     raw=True, with_publisher=True))
             # ready when this robot hears every team member on the team topics (bounded)
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                 await asyncio.wait_for(_all_connected(subs, len(self.team)), float(cfg.get("connect_timeout", 20)))

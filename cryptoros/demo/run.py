@@ -456,8 +456,7 @@ class Mission:
                 # FALSE_MAP_PATIENCE s more: on a busy machine its first claims had not
                 # reached the one robot left 2 s after the onset (a newcomer audit saw "0
                 # false map claims"). Behind the interceptors it is refused: no longer wait
-                # (waited there, robots done on the held false map ran 6 s more, and the
-                # refused map-erase was once judged to have altered 1 map update: fresh85)
+                # (waited there, robots done on the held false map ran 6 s more)
                 received = any(s.get("stats", {}).get("map_from_non_team") for s in st.values())
                 patient = self.mode == "plain" and not received
                 map_wait = FALSE_MAP_ONSET + (FALSE_MAP_PATIENCE if patient else 2.0)
@@ -568,9 +567,6 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
     for s in final.values():
         published.update(s.get("published", []))
 
-    def foreign(r: str, key: str) -> int:
-        return sum(1 for h in final[r].get("received", {}).get(key, []) if h not in published)
-
     out: dict[str, dict[str, Any]] = {}
     for k in attacks:
         t = target_of(k, n)
@@ -595,8 +591,11 @@ def judge(mode: dict[str, Any], attacks: tuple[str, ...], n: int) -> dict[str, d
             done = sum(1 for s in final.values() if s.get("state") == "done" and s["stats"]["map_from_non_team"])
             ok, ev = c > 0, f"robots received {c} false map claims; {done} of them believed the map explored"
         elif k == "map-erase":
-            c = sum(max(0, foreign(r, "map") - foreign(r, "map_non_team")) for r in final)
-            ok, ev = c > 0, f"robots received {c} altered team map updates"
+            # a team member's update erased and sent by the attacker's node (robot.py's
+            # "map_relayed" evidence): its own sender, so another robot's late update is not its
+            got = [from_publisher(s, "map_relayed", ATTACKS[k]["node"]) for s in stats.values()]
+            c = int(sum(g["effect"] for g in got))
+            ok, ev = c > 0, f"robots received {c} erased team map updates from {ATTACKS[k]['node']}"
         elif k == "eavesdrop":
             c = int(rep.get("messages", 0))
             read = f"{c} messages ({rep.get('bytes', 0)} B)"

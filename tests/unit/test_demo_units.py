@@ -46,3 +46,24 @@ def test_an_attacks_evidence_counts_only_what_its_own_sender_did():
     assert judged["cmd-flood"] == {"succeeded": False, "evidence": "r0 received 0 foreign stop commands"}
     assert judged["false-map"] == {"succeeded": False,
                                    "evidence": "robots received 0 false map claims; 0 of them believed the map explored"}
+
+
+def test_map_erase_is_judged_by_the_attackers_own_updates_not_by_unlisted_digests():
+    """fresh85: behind the interceptors, where the attacker's registration was refused, the
+    judge counted one team map update whose digest no robot listed as sent ("robots received
+    1 altered team map updates"). Only updates of a team member sent by the attacker's node
+    count now, and only the erased ones."""
+    from cryptoros.demo.run import judge
+
+    def robot(relayed: dict) -> dict:
+        return {"state": "done", "halted_s": 0.0, "received": {"map": ["an-unlisted-digest"]},
+                "stats": {"map_from_non_team": 0, "by_publisher": {"map_relayed": relayed}}}
+
+    refused = {"_final": {r: robot({}) for r in ("r0", "r1", "r2")}, "attack_reports": {}}
+    assert judge(refused, ("map-erase",), 3)["map-erase"] == {
+        "succeeded": False, "evidence": "robots received 0 erased team map updates from /mitm"}
+    relayed = {"/mitm": {"n": 7, "first": 0.0, "last": 0.0, "effect": 5.0},
+               "/someone_else": {"n": 3, "first": 0.0, "last": 0.0, "effect": 3.0}}
+    plain = {"_final": {"r0": robot(relayed), "r1": robot({}), "r2": robot({})}, "attack_reports": {}}
+    assert judge(plain, ("map-erase",), 3)["map-erase"] == {
+        "succeeded": True, "evidence": "robots received 5 erased team map updates from /mitm"}
