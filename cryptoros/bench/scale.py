@@ -458,6 +458,12 @@ def measure_authz(workdir: Path, replicas: tuple[int, ...], clients: int, second
         with _fleet(workdir / f"authz-{r}", clients, r, 30.0) as fl:
             async def run() -> dict:
                 cs = _clients(fl, 10.0)
+                try:
+                    return await measure(cs)
+                finally:  # each client holds an aiohttp session: unclosed, aiohttp warns on stderr
+                    await asyncio.gather(*(c.authz.close() for c in cs), return_exceptions=True)
+
+            async def measure(cs: list) -> dict:
                 _name, cert, key = fl.certs[0]
                 await _wait_healthy(fl, client_context(TLSConfig(ca_file=fl.ca, cert_file=cert, key_file=key)))
                 await asyncio.gather(*(_token_loop(c, time.monotonic() + 1.0) for c in cs))  # warm: connections

@@ -34,6 +34,7 @@ def test_bench_scale_quick(tmp_path):
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
     report = json.loads(out.read_text())
     assert "[scale]" in result.stderr  # progress lines
+    assert "Unclosed" not in result.stderr  # aiohttp's warning for a token client's session left open
     assert report["limits"]["max_connections_per_peer"] >= 100
 
     for curve in ("streams", "topics"):
