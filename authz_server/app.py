@@ -60,6 +60,8 @@ from authz_server.config import ServeConfig
 from authz_server.learning import checked_observations, granted
 from authz_server.registry import MAX_OBSERVATIONS, AuditEntry, ManagerInfo, Registry, RevocationFeed, new_jti
 from cryptoros.files import PEM_LIMIT, read_bounded
+from cryptoros.identity import identity_mismatch, named_holders
+from cryptoros.lru import remember
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros import pemfiles
@@ -443,6 +445,8 @@ class _Denied(CryptorosError):
 REGISTRY_FAILURE_SECONDS = 60.0
 #: days before its certificate expires that the server warns (start, SIGHUP, /healthz)
 CERT_WARN_DAYS = 14
+#: client certificates whose named holders are kept (parsed once per certificate)
+HOLDERS_CACHED = 4096
 
 
 class AuthzService:
@@ -460,6 +464,7 @@ class AuthzService:
         # is unchanged (manager_for); the version is read by the feed watcher
         self.heartbeats = _Heartbeats(lambda: self._latest is not None, self.metrics.feed_heartbeats.inc)
         self._managers = _Cache(float("inf"))
+        self._holders: dict[str, list[tuple[str, str]]] = {}  # fingerprint -> whom its URI SANs name
         self._managers_version: int | None = None
         self._version: tuple[int, float] | None = None  # (registry version, monotonic time its read began)
         self._feed_serial: int | None = None
@@ -577,6 +582,18 @@ class AuthzService:
         if info is not None and info.fingerprint != fingerprint and (info.previous_until or 0) <= time.time():
             return None, Grants(())  # a renewed certificate's overlap ended (no registry change marks it)
         return info, grants
+
+    def holder_mismatch(self, fingerprint: str, der: bytes, manager: str) -> str | None:
+        """Why the client certificate ``der`` may not act as ``manager``, the one its
+        fingerprint is bound to (:func:`cryptoros.identity.identity_mismatch`), or None.
+        The CLI checks this where it sees the file; a fingerprint bound without it
+        (``import``, ``set-cert --fingerprint``) to another robot's manager is refused here,
+        not served that robot's grants."""
+        holders = self._holders.get(fingerprint)
+        if holders is None:
+            holders = named_holders(x509.load_der_x509_certificate(der))
+            remember(self._holders, fingerprint, holders, HOLDERS_CACHED)
+        return identity_mismatch(holders, manager)
 
     def _fresh_version(self) -> int | None:
         if self._version is None or self.cfg.cache_seconds <= 0:
@@ -722,6 +739,9 @@ class AuthzService:
             if info is None:
                 raise _Denied(401, "invalid_client", "unknown_certificate")
             manager = info.name
+            mismatch = self.holder_mismatch(fp, der, manager)
+            if mismatch is not None:
+                raise _Denied(401, "invalid_client", f"certificate_identity {mismatch}", manager)
             client_id = form.get("client_id")
             if client_id is not None and client_id != info.name:
                 raise _Denied(401, "invalid_client", f"client_id {client_id[:64]!r} does not match the certificate",
@@ -765,8 +785,10 @@ class AuthzService:
         if not self._observe_bucket.allow(fp):
             return _oauth_error(429, "slow_down")
         info, grants = await self.manager_for(fp)
-        if info is None or not info.enabled:
-            return _oauth_error(401 if info is None else 403, "invalid_client" if info is None else "access_denied")
+        if info is None or self.holder_mismatch(fp, der, info.name) is not None:
+            return _oauth_error(401, "invalid_client")
+        if not info.enabled:
+            return _oauth_error(403, "access_denied")
         if request.content_type != "application/json":
             return _oauth_error(400, "invalid_request")
         try:

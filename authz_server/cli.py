@@ -93,8 +93,9 @@ def main(ctx: click.Context, db_url: str) -> None:
 
 
 def _fingerprint_of(cert_file: str, name: str | None = None, ca_file: str | None = None) -> str:
-    from cryptography import x509
     from cryptography.hazmat.primitives import serialization
+
+    from cryptoros.identity import identity_mismatch, named_holders
 
     try:
         cert = pemfiles.load_certificate(cert_file)
@@ -108,42 +109,11 @@ def _fingerprint_of(cert_file: str, name: str | None = None, ca_file: str | None
         raise RegistryError(f"{cert_file} is not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC "
                             f"(a clock off on the CA's machine?)")
     if name is not None:
-        try:
-            uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value \
-                .get_values_for_type(x509.UniformResourceIdentifier)
-        except x509.ExtensionNotFound:
-            uris = []
-        mismatch = identity_mismatch(uris, name)
+        mismatch = identity_mismatch(named_holders(cert), name)
         if mismatch is not None:
             raise RegistryError(f"{cert_file} {mismatch}")
     _check_client_certificate(cert, cert_file, ca_file)
     return cert_fingerprint_sha256(cert.public_bytes(serialization.Encoding.DER))
-
-
-#: The certificate kinds (cryptoros-certs issue --kind) a manager's client presents; each
-#: names its holder in the URI ``spiffe://<trust-domain>/<kind>/<name>``.
-CLIENT_KINDS = ("manager", "interceptor", "master")
-
-
-def identity_mismatch(uris: list[str], name: str) -> str | None:
-    """Why a certificate with these SAN URIs may not be bound to manager ``name``, or None.
-
-    A certificate naming another manager, robot (interceptor) or master would let that
-    holder act as ``name``, and lock ``name``'s own client out: the runbook issues every
-    robot's certificate as kind interceptor, so checking only the manager kind protected
-    no robot (CLI audit). A certificate naming no identity (made by another tool) passes."""
-    named = []
-    for uri in uris:
-        if not uri.startswith("spiffe://"):
-            continue
-        parts = uri[len("spiffe://"):].split("/")
-        if len(parts) == 3 and parts[1] in CLIENT_KINDS:
-            named.append((parts[1], parts[2]))
-    if not named or any(holder == name for _kind, holder in named):
-        return None
-    kind, holder = named[0]
-    return (f"identifies {kind} {holder!r}, not manager {name!r}: give {name}'s own certificate "
-            f"(cryptoros-certs issue {name} --kind {kind}), or bind this one to manager {holder!r}")
 
 
 def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None:

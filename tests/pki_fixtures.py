@@ -46,6 +46,16 @@ class TestPKIFactory:
             name, kind=kind, sans=sans, key_type=key_type, days=days, unsafe_no_passphrase=True, force=force
         )
 
+    def renew_keeping_old(self, name: str, old_as: str) -> tuple[Path, Issued]:
+        """A second certificate for ``name`` (its identity unchanged, as ``cryptoros-certs
+        renew`` makes one), the first pair kept under the file name ``old_as``; returns
+        the old certificate's new path and the new certificate."""
+        import shutil
+
+        shutil.copy2(self.pki.cert_path_for(name), self.pki.cert_path_for(old_as))
+        shutil.copy2(self.pki.key_path_for(name), self.pki.key_path_for(old_as))
+        return self.pki.cert_path_for(old_as), self.issue(name, force=True)
+
     def revoke(self, name: str, reason: str = "unspecified") -> Path:
         """Revoke ``name`` (or a serial) and rewrite the CRL; returns the CRL path."""
         self.pki.revoke(name, reason=reason)

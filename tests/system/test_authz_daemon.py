@@ -122,6 +122,30 @@ def test_unregistered_certificate_gets_invalid_client_and_an_audit_row(daemon):
     assert "token denied" in daemon.log() and "reason=unknown_certificate" in daemon.log()
 
 
+def test_a_certificate_bound_to_another_managers_name_gets_no_token(daemon):
+    """Policy audit: ``import`` (and ``set-cert --fingerprint``) bind a fingerprint without
+    the certificate; with robot1's and robot2's fingerprints swapped in a policy file,
+    robot2's interceptor got robot1's tokens. A certificate naming another holder than
+    the manager its fingerprint is bound to is refused at every token request."""
+    hank = daemon.team.pki.issue("hank", kind="interceptor")
+    ok(daemon.cli("add-manager", "ivy", "--fingerprint", hank.fingerprint_sha256))
+    refused = "manager=ivy fingerprint={} remote=127.0.0.1 reason=certificate_identity identifies interceptor " \
+              "'hank', not manager 'ivy'".format(hank.fingerprint_sha256[:16])
+    deadline = time.monotonic() + 10  # until the replica re-read the managers (unknown until then)
+    while refused not in daemon.log():
+        assert daemon.token("hank") == (401, {"error": "invalid_client"})
+        assert time.monotonic() < deadline, daemon.log()[-2000:]
+        time.sleep(0.1)
+    rows = [json.loads(x) for x in ok(daemon.cli("audit", "--json", "--event", "denied")).splitlines()]
+    assert any(r["manager"] == "ivy" and r["reason"].startswith("certificate_identity") for r in rows), rows
+    ok(daemon.cli("remove-manager", "ivy"))
+    ok(daemon.cli("add-manager", "hank", "--fingerprint", hank.fingerprint_sha256))
+    deadline = time.monotonic() + 10
+    while daemon.token("hank")[0] != 200:  # its own manager's name: served
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+
+
 @pytest.mark.parametrize(
     "body, status, error",
     [
@@ -324,12 +348,13 @@ def test_registry_changes_that_revoke_no_token_reach_the_next_token_request(daem
         assert status == 401 and time.monotonic() < deadline, status
         time.sleep(0.1)
 
-    erin_old, erin_new = pki.issue("erin"), pki.issue("erin_new")
+    erin_old = pki.issue("erin")
+    _, erin_new = pki.renew_keeping_old("erin", "erin_old")
     ok(daemon.cli("add-manager", "erin", "--fingerprint", erin_old.fingerprint_sha256, "--disabled"))
-    _until(daemon, "erin", (403, {"error": "access_denied"}))  # erin's old certificate, known: no token issued
+    _until(daemon, "erin_old", (403, {"error": "access_denied"}))  # erin's old certificate, known: no token issued
     ok(daemon.cli("set-cert", "erin", "--fingerprint", erin_new.fingerprint_sha256))
-    _until(daemon, "erin", (401, {"error": "invalid_client"}))  # the old certificate is nobody's now
-    assert daemon.token("erin_new") == (403, {"error": "access_denied"})  # the new one is erin's, still disabled
+    _until(daemon, "erin_old", (401, {"error": "invalid_client"}))  # the old certificate is nobody's now
+    assert daemon.token("erin") == (403, {"error": "access_denied"})  # the new one is erin's, still disabled
 
 
 def test_a_planned_renewal_with_an_overlap_serves_both_certificates_then_only_the_new(daemon):
@@ -343,29 +368,30 @@ def test_a_planned_renewal_with_an_overlap_serves_both_certificates_then_only_th
     from cryptoros.tls import cert_thumbprint_s256
 
     pki = daemon.team.pki
-    gina_old, gina_new = pki.issue("gina"), pki.issue("gina_new")
+    gina_old = pki.issue("gina")
+    old_path, gina_new = pki.renew_keeping_old("gina", "gina_old")
     ok(daemon.cli("add-manager", "gina", "--fingerprint", gina_old.fingerprint_sha256))
     deadline = time.monotonic() + 10
-    while (answer := daemon.token("gina"))[0] != 200:  # known once the replica re-read the managers
+    while (answer := daemon.token("gina_old"))[0] != 200:  # known once the replica re-read the managers
         assert time.monotonic() < deadline, answer
         time.sleep(0.1)
     first = answer[1]
     out = ok(daemon.cli("set-cert", "gina", "--fingerprint", gina_new.fingerprint_sha256, "--overlap", "4"))
     assert "accepted for 4 s more" in out, out
     deadline = time.monotonic() + 10
-    while daemon.token("gina_new")[0] != 200:  # the new one, once the replica re-read the manager
+    while daemon.token("gina")[0] != 200:  # the new one, once the replica re-read the manager
         assert time.monotonic() < deadline
         time.sleep(0.1)
-    for name, cert in (("gina", gina_old), ("gina_new", gina_new)):
+    for name, path in (("gina_old", old_path), ("gina", gina_new.cert_path)):
         status, body = daemon.token(name)
         assert status == 200, (name, body)
         claims = jwt.decode(body["access_token"], options={"verify_signature": False})
-        der = ssl.PEM_cert_to_DER_cert(cert.cert_path.read_text())
+        der = ssl.PEM_cert_to_DER_cert(path.read_text())
         assert claims["sub"] == "gina" and claims["cnf"]["x5t#S256"] == cert_thumbprint_s256(der)
     feed = daemon.get_json("/revocations")
     assert jwt.decode(first["access_token"], options={"verify_signature": False})["jti"] not in feed["revoked_jtis"]
-    _until(daemon, "gina", (401, {"error": "invalid_client"}), bound=15)  # the overlap is over
-    assert daemon.token("gina_new")[0] == 200
+    _until(daemon, "gina_old", (401, {"error": "invalid_client"}), bound=15)  # the overlap is over
+    assert daemon.token("gina")[0] == 200
 
 
 def test_certificate_revoked_while_running_is_refused_within_seconds(daemon):
