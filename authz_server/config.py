@@ -54,6 +54,14 @@ class ServeConfig:
     #: the longest this replica holds a long-poll of the feed (``/revocations?wait=``); a
     #: longer wait is held this long. Any proxy in front must allow a request this long.
     max_feed_wait: float = 600.0
+    #: connections past their TLS handshake one client certificate may hold, and all may
+    #: (a certificate holder holding thousands of unfinished requests exhausted the
+    #: daemon's descriptors and memory: every robot's token renewal timed out)
+    max_connections_per_client: int = 256
+    max_connections: int = 2048
+    #: seconds a connection may wait for its next request's head (since it opened, or
+    #: since its last answer) before it is closed; a request being answered is not idle
+    idle_timeout: float = 30.0
 
     def __post_init__(self) -> None:
         try:
@@ -84,6 +92,11 @@ class ServeConfig:
             raise ConfigError(f"invalid audit_keep_days/audit_max_rows {self.audit_keep_days!r}/"
                               f"{self.audit_max_rows!r}: expected 1..36500 days and 1000..1e9 rows")
 
+        if not (1 <= self.max_connections_per_client <= self.max_connections <= 100_000):
+            raise ConfigError(f"invalid max_connections_per_client/max_connections {self.max_connections_per_client!r}/"
+                              f"{self.max_connections!r}: expected 1 <= per client <= in all <= 100000")
+        if not (1 <= self.idle_timeout <= 3600):
+            raise ConfigError(f"invalid idle_timeout {self.idle_timeout!r}: expected 1..3600 seconds")
         if not (1 <= self.max_feed_wait <= MAX_FEED_WAIT_LIMIT):
             raise ConfigError(f"invalid max_feed_wait {self.max_feed_wait!r}: expected 1..{MAX_FEED_WAIT_LIMIT:g} seconds")
 
@@ -126,6 +139,9 @@ CONFIG_KEYS = {
     "audit_keep_days": float,
     "audit_max_rows": int,
     "max_feed_wait": float,
+    "max_connections_per_client": int,
+    "max_connections": int,
+    "idle_timeout": float,
 }
 
 

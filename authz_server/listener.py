@@ -18,6 +18,17 @@ evicted every robot in its handshake). A source a client with a verified certifi
 connected from is not counted in all (only against its own address's cap); loopback is
 not capped per source (the host's own processes: a fleet of clients on one machine).
 
+A connection past its handshake counts against its client certificate's cap
+(``per_client``) and the cap in all (``established``) until it closes: a certificate
+holder that opened 20,000 connections and left each request head unfinished held the
+daemon at its descriptor limit with 2.8 GB of memory, and every robot's token request
+timed out (insider audit). Over its certificate's cap a new connection is closed at
+once; with the cap in all reached, the oldest connection of the certificate holding
+the most is closed to make room, unless the newcomer's own certificate holds as many
+(then the newcomer is). How long a connection may sit without a request is aiohttp's
+``keepalive_timeout`` (server.py: ``idle_timeout``), counted from the connection's start
+and from each answer, an unfinished request head included.
+
 A handshake that fails (no client certificate, one the CA did not issue, bytes that are
 not TLS, a timeout) is counted, and the count said in one WARNING line at most every
 :data:`FAILED_SUMMARY_SECONDS` with the latest source and reason (logged per handshake
@@ -28,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import ipaddress
 import logging
 import socket
@@ -49,6 +61,49 @@ HANDSHAKE_TIMEOUT = 10.0
 KNOWN_SOURCES = 4096
 #: failed handshakes are summed up in one log line at most this often (seconds)
 FAILED_SUMMARY_SECONDS = 10.0
+#: connections past their handshake of one client certificate, and in all, at most
+PER_CLIENT = 256
+ESTABLISHED = 2048
+
+
+class _Counted(asyncio.Protocol):
+    """The protocol of one connection as the listener sees it: aiohttp's handler behind
+    it, started only once the connection is admitted against its certificate's cap."""
+
+    def __init__(self, inner: asyncio.Protocol, listener: TLSListener) -> None:
+        self._inner: asyncio.Protocol | None = inner
+        self._listener = listener
+        self._client: str | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._client = self._listener._admit(self, transport)
+        if self._client is None:
+            self._inner = None
+            transport.abort()
+            return
+        assert self._inner is not None
+        self._inner.connection_made(transport)
+
+    def data_received(self, data: bytes) -> None:
+        if self._inner is not None:
+            self._inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self._inner.eof_received() if self._inner is not None else None
+
+    def pause_writing(self) -> None:
+        if self._inner is not None:
+            self._inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        if self._inner is not None:
+            self._inner.resume_writing()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._client is not None:
+            self._listener._closed(self, self._client)
+        if self._inner is not None:
+            self._inner.connection_lost(exc)
 
 
 def _loopback(address: str) -> bool:
@@ -67,7 +122,8 @@ class TLSListener:
                  handshake_timeout: float = HANDSHAKE_TIMEOUT, backlog: int = 1024,
                  uncapped_source: Callable[[str], bool] = _loopback,
                  failed_summary_seconds: float = FAILED_SUMMARY_SECONDS,
-                 on_failed_handshake: Callable[[], None] = lambda: None) -> None:
+                 on_failed_handshake: Callable[[], None] = lambda: None,
+                 per_client: int = PER_CLIENT, established: int = ESTABLISHED) -> None:
         self.host, self.port, self.ssl_ctx = host, port, ssl_ctx
         self._factory = protocol_factory
         self._uncapped_source = uncapped_source
@@ -78,6 +134,11 @@ class TLSListener:
         #: handshakes not ended, oldest first: (source, counted in all, socket)
         self._live: dict[asyncio.Task, tuple[str, bool, socket.socket]] = {}
         self._evicting: dict[asyncio.Task, socket.socket] = {}  # gave their places, not ended yet
+        self.per_client, self.established = per_client, established
+        #: connections past their handshake, per client certificate fingerprint, oldest first
+        self._clients: dict[str, dict[_Counted, asyncio.BaseTransport]] = {}
+        self._established = 0
+        self.refused_clients = 0  # connections closed after their handshake, over a cap
         #: the handshakes counted in all, per source, oldest first (the ones to give a place)
         self._counted: dict[str, dict[asyncio.Task, None]] = {}
         self._sock: socket.socket | None = None
@@ -192,10 +253,56 @@ class TLSListener:
                 self._counted.setdefault(source, {})[task] = None
             task.add_done_callback(self._ended)
 
+    def open_connections(self) -> int:
+        """Connections past their handshake, open now."""
+        return self._established
+
+    def _admit(self, conn: _Counted, transport: asyncio.BaseTransport) -> str | None:
+        """A connection's handshake is done: its certificate's fingerprint if it is
+        admitted (counted until :meth:`_closed`), None if it is over a cap."""
+        ssl_object = transport.get_extra_info("ssl_object")
+        der = ssl_object.getpeercert(binary_form=True) if ssl_object is not None else None
+        if not der:
+            return None
+        client = hashlib.sha256(der).hexdigest()
+        held = self._clients.get(client, {})
+        if len(held) >= self.per_client:
+            return self._refuse(client, f"{self.per_client} connections of its certificate open already")
+        if self._established >= self.established:
+            most = max(self._clients, key=lambda c: len(self._clients[c]))
+            if len(self._clients[most]) <= len(held) + 1:
+                return self._refuse(client, f"{self.established} connections open in all, its certificate "
+                                            "holding as many as any")
+            oldest, victim = next(iter(self._clients[most].items()))
+            self._closed(oldest, most)  # counted no more; its connection_lost finds it gone
+            victim.abort()
+            if self._log_once(("evicted-client", most[:16])):
+                log.warning("%d connections open in all: the oldest of certificate %s, which holds the most, "
+                            "closed to make room (logged once a minute per certificate)", self.established, most[:16])
+        self._clients.setdefault(client, {})[conn] = transport
+        self._established += 1
+        return client
+
+    def _refuse(self, client: str, why: str) -> None:
+        self.refused_clients += 1
+        if self._log_once(("refused-client", client[:16])):
+            log.warning("connections of certificate %s closed after their handshake: %s (%d refused so far; logged "
+                        "once a minute per certificate)", client[:16], why, self.refused_clients)
+        return None
+
+    def _closed(self, conn: _Counted, client: str) -> None:
+        held = self._clients.get(client)
+        if held is None or held.pop(conn, None) is None:
+            return
+        self._established -= 1
+        if not held:
+            del self._clients[client]
+
     async def _handshake(self, conn: socket.socket, source: str) -> None:
         try:
             await asyncio.get_running_loop().connect_accepted_socket(
-                self._factory, conn, ssl=self.ssl_ctx, ssl_handshake_timeout=self.handshake_timeout)
+                lambda: _Counted(self._factory(), self), conn, ssl=self.ssl_ctx,
+                ssl_handshake_timeout=self.handshake_timeout)
             remember(self._known, source, True, KNOWN_SOURCES)  # a verified client certificate
         except (OSError, asyncio.TimeoutError) as exc:  # a failed or late handshake, a reset
             log.debug("TLS handshake from %s failed: %s", source, exc)
@@ -236,4 +343,5 @@ class TLSListener:
             conn.close()
         self._release(task)
 
-__all__ = ["FAILED_SUMMARY_SECONDS", "HANDSHAKE_TIMEOUT", "IN_ALL", "PER_SOURCE", "TLSListener"]
+__all__ = ["ESTABLISHED", "FAILED_SUMMARY_SECONDS", "HANDSHAKE_TIMEOUT", "IN_ALL", "PER_CLIENT", "PER_SOURCE",
+           "TLSListener"]

@@ -113,11 +113,16 @@ async def serve(cfg: ServeConfig, *, ready: asyncio.Event | None = None,
     loop = asyncio.get_running_loop()
     try:
         await service.start()
+        # keepalive_timeout: aiohttp closes a connection with no request under way this long
+        # after it opened or after its last answer (its default, an hour, let a held
+        # unfinished request head live that long)
         runner = web.AppRunner(make_app(service), access_log=None, handle_signals=False,
-                               shutdown_timeout=cfg.shutdown_grace, handler_cancellation=True)
+                               shutdown_timeout=cfg.shutdown_grace, handler_cancellation=True,
+                               keepalive_timeout=cfg.idle_timeout)
         await runner.setup()
         listener = TLSListener(cfg.host, cfg.port, ssl_ctx, runner.server,
-                               on_failed_handshake=service.metrics.tls_handshakes_refused.inc)
+                               on_failed_handshake=service.metrics.tls_handshakes_refused.inc,
+                               per_client=cfg.max_connections_per_client, established=cfg.max_connections)
         try:
             listener.start()
         except OSError as exc:

@@ -574,3 +574,47 @@ def test_healthz_says_unavailable_while_the_registry_fails_requests(daemon):
             db.execute("DROP TRIGGER full_disk")
     assert daemon.token("alice")[0] == 200  # a token issued again: healthy at once
     assert daemon.get_json("/healthz")["status"] == "ok"
+
+
+def test_a_certificate_holder_cannot_hold_more_than_its_connections_nor_keep_an_unfinished_request(tmp_path):
+    """Insider audit: past the TLS handshake nothing bounded a client's connections; one
+    certificate holder left 20,000 request heads unfinished and the daemon ran out of
+    descriptors (2.8 GB), every robot's token renewal timing out. Now a certificate holds
+    at most ``max_connections_per_client``; with ``max_connections`` reached, the
+    certificate holding the most gives way; an unfinished request head is closed after
+    ``idle_timeout``."""
+    import socket
+
+    from tests.authz_support import running_daemon
+
+    team = build_team(tmp_path)
+    config = tmp_path / "authz.toml"
+    config.write_text("max_connections_per_client = 3\nmax_connections = 5\nidle_timeout = 3.0\n")
+    with running_daemon(team.pki, team.db, tmp_path, extra=("--config", str(config))) as d:
+        def hold(name: str):
+            s = d.context(*d.cert_of(name)).wrap_socket(socket.create_connection(("127.0.0.1", d.port), timeout=10),
+                                                        server_hostname="127.0.0.1")
+            s.sendall(b"POST /token HTTP/1.1\r\nHost: x\r\n")  # a request head never finished
+            return s
+
+        def closed_by_server(s, within: float) -> bool:
+            s.settimeout(within)
+            try:
+                return s.recv(1) == b""
+            except TimeoutError:
+                return False
+            except OSError:  # a reset, or TLS's own error for an aborted connection
+                return True
+
+        alice = [hold("alice") for _ in range(3)]
+        fourth = hold("alice")
+        assert closed_by_server(fourth, 5), "a fourth connection of one certificate was kept"
+        assert not closed_by_server(alice[0], 0.5)
+        assert d.token("bob")[0] == 200  # another certificate is served beside them
+        bob = [hold("bob") for _ in range(2)]  # 5 open in all
+        assert d.token("carol")[0] == 200  # in all reached: alice, holding the most, gave way
+        assert closed_by_server(alice[0], 5), "the oldest connection of the certificate holding the most was kept"
+        for s in alice[1:] + bob:  # unfinished heads: closed once idle_timeout passed
+            assert closed_by_server(s, 10), "an unfinished request head was kept past idle_timeout"
+        assert "connections of certificate" in d.log() and "closed after their handshake" in d.log()
+        assert d.token("alice")[0] == 200
