@@ -2,7 +2,9 @@
 
 Each function takes a call or a response and a mapping function, and returns a new
 object with the URIs a node advertises (or is handed) replaced; nothing else
-changes. The interceptor maps local URIs to its public endpoints outbound, and
+changes but the status message of a rewritten reply, which rospy and rosmaster fill
+with the URI itself (``ready on 127.0.0.1:39223``, ``rosrpc URI: [rosrpc://...]``):
+it becomes fixed words, so no hidden endpoint leaks through it (insider audit). The interceptor maps local URIs to its public endpoints outbound, and
 remote URIs to local relay endpoints inbound. ``system.multicall`` calls are
 rewritten call by call.
 
@@ -160,14 +162,18 @@ def rewrite_register_response(response: Response | Fault, fn: UriMap) -> Respons
     return Response(value=[v[0], v[1], rewrite_publisher_list(v[2], fn)], keep_alive=response.keep_alive)
 
 
-def rewrite_uri_response(response: Response | Fault, fn: UriMap) -> Response | Fault:
+#: the status message of a rewritten reply, by method (the original repeats the URI)
+STATUS_WORDS = {"lookupNode": "node api", "lookupService": "rosrpc URI", "getUri": "URI", "requestTopic": "ready"}
+
+
+def rewrite_uri_response(response: Response | Fault, fn: UriMap, method: str = "lookupNode") -> Response | Fault:
     """``lookupNode``/``lookupService``/``getUri`` replies: ``[1, msg, uri]``."""
     v = _ros_triple(response, "lookup")
     if v is None or v[0] != 1:
         return response
     if not isinstance(v[2], str):
         raise RemoteProtocolError("lookup reply value is not a string")
-    return Response(value=[v[0], v[1], fn(v[2])], keep_alive=response.keep_alive)
+    return Response(value=[v[0], STATUS_WORDS[method], fn(v[2])], keep_alive=response.keep_alive)
 
 
 def rewrite_tcpros_reply(response: Response | Fault, fn: TcprosMap) -> Response | Fault:
@@ -187,7 +193,7 @@ def rewrite_tcpros_reply(response: Response | Fault, fn: TcprosMap) -> Response 
     ):
         raise RemoteProtocolError("requestTopic reply is not ['TCPROS', host, port]")
     host, port = fn(proto[1], proto[2])
-    return Response(value=[v[0], v[1], ["TCPROS", host, port]], keep_alive=response.keep_alive)
+    return Response(value=[v[0], STATUS_WORDS["requestTopic"], ["TCPROS", host, port]], keep_alive=response.keep_alive)
 
 
 def rewrite_response(
@@ -208,7 +214,7 @@ def rewrite_response(
     if uri is not None and call.method in ("registerSubscriber", "registerPublisher"):
         return rewrite_register_response(response, uri)
     if uri is not None and call.method in ("lookupNode", "lookupService", "getUri"):
-        return rewrite_uri_response(response, uri)
+        return rewrite_uri_response(response, uri, call.method)
     if tcpros is not None and call.method == "requestTopic":
         return rewrite_tcpros_reply(response, tcpros)
     return response

@@ -73,7 +73,9 @@ def test_publisher_lists() -> None:
 
 def test_lookup_replies_and_failures() -> None:
     look = Request(method="lookupService", params=("/c", "/add"))
-    assert rw.rewrite_response(look, Response(value=[1, "", "rosrpc://127.0.0.1:40002"]), uri=to_public).value[2].startswith("rosrpcs://")
+    reply = Response(value=[1, "rosrpc URI: [rosrpc://127.0.0.1:40002]", "rosrpc://127.0.0.1:40002"])
+    rewritten = rw.rewrite_response(look, reply, uri=to_public).value
+    assert rewritten[2].startswith("rosrpcs://") and rewritten[1] == "rosrpc URI"  # no hidden endpoint in the words
     failed = Response(value=[-1, "no provider", ""])
     assert rw.rewrite_response(look, failed, uri=to_public) is failed
     fault = Fault(code=1, string="x")
@@ -86,7 +88,8 @@ def test_tcpros_reply() -> None:
     req = Request(method="requestTopic", params=("/l", "/chatter", [["TCPROS"]]))
     resp = Response(value=[1, "ready on 127.0.0.1:40003", ["TCPROS", "127.0.0.1", 40003]])
     out = rw.rewrite_response(req, resp, tcpros=lambda h, p: ("10.0.0.5", p + 1))
-    assert out.value == [1, "ready on 127.0.0.1:40003", ["TCPROS", "10.0.0.5", 40004]]
+    # the status message repeated the hidden endpoint (insider audit): fixed words now
+    assert out.value == [1, "ready", ["TCPROS", "10.0.0.5", 40004]]
     for bad in (["UDPROS", "h", 1], ["TCPROS", "h", 0], ["TCPROS", "h", True], ["TCPROS", 5, 1], ["TCPROS", "h"]):
         with pytest.raises(RemoteProtocolError):
             rw.rewrite_tcpros_reply(Response(value=[1, "", bad]), lambda h, p: (h, p))
@@ -96,7 +99,7 @@ def test_multicall_response_rewrite() -> None:
     calls = [Request(method="lookupNode", params=("/a", "/b")), Request(method="getPid", params=("/a",))]
     resp = assemble_multicall([Response(value=[1, "", LOCAL]), Response(value=[1, "", 42])])
     out = rw.rewrite_response(make_multicall(calls), resp, uri=to_public)
-    assert [r.value for r in split_multicall_response(out)] == [[1, "", PUBLIC], [1, "", 42]]
+    assert [r.value for r in split_multicall_response(out)] == [[1, "node api", PUBLIC], [1, "", 42]]
     with pytest.raises(RemoteProtocolError):
         rw.rewrite_response(make_multicall(calls), assemble_multicall([Response(value=1)]), uri=to_public)
 
