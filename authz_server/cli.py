@@ -395,9 +395,10 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
 @click.option("--service", "services", multiple=True, metavar="NAME:TYPE",
               help="A service rosservice call may call (repeatable).")
 @click.option("--param-ns", "param_namespaces", multiple=True, metavar="NS",
-              help="Parameter namespace rosparam get/set/list/delete may use (repeatable; default /).")
-@click.option("--params-read-only", is_flag=True, help="rosparam may only read (get, list, dump) the namespaces.")
-@click.option("--no-params", is_flag=True, help="Grant rosparam nothing.")
+              help="Parameter namespace rosparam get/set/list/delete may use (repeatable; without it rosparam "
+                   "is granted nothing).")
+@click.option("--params-read-only", is_flag=True, help="rosparam may only read (get, list, dump) the --param-ns "
+              "namespaces.")
 @click.option("--clock", is_flag=True, help="rosbag play --clock may publish /clock.")
 @click.option("--roslaunch", is_flag=True, help="roslaunch may write /run_id, /roslaunch, /rosdistro, /rosversion "
               "(the launched nodes' own <param>s need nothing more).")
@@ -408,13 +409,14 @@ def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], servic
 @click.pass_context
 def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publish_topics: tuple[str, ...],
                 services: tuple[str, ...], param_namespaces: tuple[str, ...], params_read_only: bool,
-                no_params: bool, clock: bool, roslaunch: bool, launch_namespaces: tuple[str, ...],
+                clock: bool, roslaunch: bool, launch_namespaces: tuple[str, ...],
                 remove: bool) -> None:
     """Grant MANAGER's stock ROS 1 tools what they need, by the anonymous node names
     they run under: rostopic as /rostopic_* and rosbag record as /record_* (--topic;
     --publish-topic for rostopic pub and rosbag play as /play_*, --clock for its /clock),
-    rosparam as /rosparam-* (--param-ns, default /), rosservice call as /rosservice and
-    /rosservice_* (--service), roslaunch as /roslaunch (--roslaunch, --launch-param-ns).
+    rosparam as /rosparam-* (in the namespaces --param-ns names; nothing without it),
+    rosservice call as /rosservice and /rosservice_* (--service), roslaunch as
+    /roslaunch (--roslaunch, --launch-param-ns).
     rosnode list/info/ping and rostopic list/info/type only read the graph and need no
     grant; rosnode kill is always refused (docs/stock-tools.md). Idempotent: a grant
     already there is left as it is. All of it is one transaction.
@@ -422,12 +424,11 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
     \b
     Example:
       cryptoros-authz grant-tools robot_b --topic /chatter:std_msgs/String \\
-          --service /add_two_ints:rospy_tutorials/AddTwoInts --param-ns /
+          --service /add_two_ints:rospy_tutorials/AddTwoInts --param-ns /robot_b
     """
-    if no_params and param_namespaces:
-        raise RegistryError("give either --param-ns or --no-params, not both")
-    namespaces = () if no_params else (param_namespaces or ("/",))
-    rows = tool_grants(topics, publish_topics, services, namespaces, params_read_only)
+    if params_read_only and not param_namespaces:
+        raise RegistryError("--params-read-only needs the namespaces rosparam may read: give --param-ns NS")
+    rows = tool_grants(topics, publish_topics, services, param_namespaces, params_read_only)
     if clock:  # rosbag play --clock
         rows.append(("publish", TOOL_NODES["rosbag_play"], "/clock", "rosgraph_msgs/Clock"))
     if roslaunch or launch_namespaces:  # its own keys, and what its launch files set outside the nodes' own

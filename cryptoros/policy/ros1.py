@@ -577,7 +577,7 @@ def grant_hint(reason: str | None, method: str, params: tuple, manager: str | No
                 own = any(key == ns or key.startswith(ns + "/") for ns in ("/run_id", "/roslaunch", "/rosdistro",
                                                                               "/rosversion"))
                 extra = "" if own else f" --launch-param-ns {key}"  # not needed for a launched node's own
-                return f"cryptoros-authz grant-tools {manager} --no-params --roslaunch{extra}"
+                return f"cryptoros-authz grant-tools {manager} --roslaunch{extra}"
             action = "write_param" if reason == "param_write_denied" else "read_param"
             return f"{prefix} {action} {node} {key}"
         if reason == "not_granted" and method in ("registerPublisher", "registerSubscriber", "registerService"):

@@ -107,10 +107,10 @@ def test_each_change_leaves_one_row_with_who_and_what(db, tmp_path):
          {"grants": []}, {"grants": [G]}),
         (["disable-manager", "alice"], "manager alice", {"enabled": True}, {"enabled": False}),
         (["enable-manager", "alice"], "manager alice", {"enabled": False}, {"enabled": True}),
-        (["grant-tools", "alice", "--topic", "/chatter:std_msgs/String", "--no-params"], "manager alice",
+        (["grant-tools", "alice", "--topic", "/chatter:std_msgs/String"], "manager alice",
          {"grants": []}, {"grants": ["subscribe /record_* /chatter std_msgs/String",
                                      "subscribe /rostopic_* /chatter std_msgs/String"]}),
-        (["grant-tools", "alice", "--topic", "/chatter:std_msgs/String", "--no-params", "--remove"],
+        (["grant-tools", "alice", "--topic", "/chatter:std_msgs/String", "--remove"],
          "manager alice", {"grants": ["subscribe /record_* /chatter std_msgs/String",
                                       "subscribe /rostopic_* /chatter std_msgs/String"]}, {"grants": []}),
         (["revoke", "alice", "publish", "/talker", "/chatter"], "manager alice", {"grants": [G]}, {"grants": []}),
@@ -208,7 +208,7 @@ def test_a_refused_or_idle_command_leaves_no_row(sqlite_db, tmp_path):
         ["grant", "alice", "publish", "/talker", "/chatter", "std_msgs/String"],
         ["enable-manager", "alice"],
         ["set-cert", "alice", "--fingerprint", FP["a"]],
-        ["grant-tools", "bob", "--no-params", "--topic", "/x:std_msgs/String", "--remove"],
+        ["grant-tools", "bob", "--topic", "/x:std_msgs/String", "--remove"],
     ]
     for args in refused:
         r = authz(*args, db=db)

@@ -247,6 +247,22 @@ def test_operator_workflow_with_export_import_between_registries(team, tmp_path)
     assert "alice" not in ok(authz("list-managers", db=db))
 
 
+def test_grant_tools_grants_rosparam_only_the_namespaces_named(tmp_path):
+    """Policy audit: a bundle asked for one topic also granted /rosparam-* write_param /,
+    so the robot's rosparam could rewrite or delete every robot's parameters."""
+    db = f"sqlite:///{tmp_path / 'tools.db'}"
+    ok(authz("add-manager", "base", "--fingerprint", "ab" * 32, db=db))
+    out = ok(authz("grant-tools", "base", "--topic", "/map:nav_msgs/OccupancyGrid", db=db))
+    assert "rosparam" not in out and "grant-tools base: 2 grant(s) added" in out, out
+    shown = ok(authz("show-manager", "base", db=db))
+    assert "param" not in shown and "/map" in shown, shown
+    out = ok(authz("grant-tools", "base", "--param-ns", "/base", "--params-read-only", db=db))
+    assert "granted: base /rosparam-* read_param /base" in out and "grant-tools base: 1 grant(s) added" in out, out
+    line = one_line_error(authz("grant-tools", "base", "--params-read-only", db=db))
+    assert "--params-read-only needs" in line and "--param-ns" in line, line
+    assert "write_param" not in ok(authz("show-manager", "base", db=db))
+
+
 def _serve(team, *extra: str, db: str | None = None, timeout: float = 20) -> subprocess.CompletedProcess:
     server = team.pki.issue("authz", kind="server", force=True)
     (team.workdir / "signing.pass").write_text("test-signing-passphrase\n")

@@ -345,7 +345,7 @@ def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
         refused = launch_it()
         assert "denied by cryptoros: param_write_denied" in _one_error_line(refused), refused
 
-        granted = net.cli("grant-tools", "robot_b", "--no-params", "--roslaunch",
+        granted = net.cli("grant-tools", "robot_b", "--roslaunch",
                           "--publish-topic", "/chatter:std_msgs/String", "--clock")
         assert granted.returncode == 0, granted.stderr
         assert "granted: robot_b /roslaunch write_param /run_id" in granted.stdout

@@ -237,9 +237,9 @@ def test_refused_connections_from_many_sources_are_logged_within_a_budget_and_co
 
 def test_roslaunchs_refusals_point_at_its_bundle():
     assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/run_id", "x"), "robot_b") == \
-        "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
+        "cryptoros-authz grant-tools robot_b --roslaunch"
     assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/roslaunch/uris/host_1", "x"), "robot_b") == \
-        "cryptoros-authz grant-tools robot_b --no-params --roslaunch"
+        "cryptoros-authz grant-tools robot_b --roslaunch"
     assert "--launch-param-ns /global_setting" in grant_hint("param_write_denied", "setParam",
                                                              ("/roslaunch", "/global_setting", 3), "robot_b")
 
