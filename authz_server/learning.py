@@ -7,17 +7,19 @@ grants (:class:`~authz_server.registry.GrantRow`); ``cryptoros-authz learn`` and
 
 A proposal is the smallest set of grants that would have allowed what was seen:
 
-- node names exactly as seen, except the names a tool makes anew each run (rospy's
-  anonymous ``/rostopic_4711_1795...``, ``/rosparam-4711``): those become the prefix
-  pattern :func:`cryptoros.policy.ros1.node_pattern` gives (``/rostopic_*``), the only
-  wildcard a proposal holds, and only where it was needed;
+- node names exactly as seen (``/lidar_2048`` too), except the names ROS makes anew
+  each run (rospy's anonymous ``/rostopic_4711_1795...``, roscpp's ``/record_<ns>``,
+  ``/rosparam-4711``): those become the prefix pattern
+  :func:`cryptoros.policy.ros1.node_pattern` gives (``/rostopic_*``), the only wildcard a
+  proposal holds, and only where it was needed;
 - topics and services exactly, with the type seen; a request that did not tell its
   type (a service registration, a subscriber of any type) takes the one type the rest
   of the registry knows for the name (another observation, a grant), and is reported,
   not guessed, when there is none or several;
-- parameters by exact key; a key with a part that changes each run (roslaunch's
-  ``/roslaunch/uris/host_<address>__<port>``) by the namespace above it; a read of a
-  key the same node writes is covered by its ``write_param``;
+- parameters by exact key (``/fleet/zone_1234`` too); a key whose last part changes
+  each run (roslaunch's ``/roslaunch/uris/host_<address>__<port>``, an anonymous
+  node's name) by the namespace above it; a read of a key the same node writes is
+  covered by its ``write_param``;
 - what ROS does without a grant once a node is the manager's (``/rosout``, its logger
   services) is left out when the proposal names the node otherwise.
 """
@@ -33,15 +35,15 @@ from authz_server.registry import PARAM_ACTIONS, GrantRow, ObservationRow, grant
 from cryptoros.errors import RegistryError
 from cryptoros.names import PARAM_TYPE, validate_caller_id, validate_graph_name, validate_namespace, validate_type
 from cryptoros.policy.infrastructure import ros1_allows
-from cryptoros.policy.ros1 import node_pattern
+from cryptoros.policy.ros1 import anonymous_prefix, node_pattern
 from cryptoros.tokens import ACTIONS, Grants, in_namespace, node_matches
 
 #: rows one report may carry
 MAX_OBSERVATION_ROWS = 64
 #: a report's times may lie this far in the past or future of the server's clock (seconds)
 CLOCK_SLACK = 24 * 3600
-#: a key part that changes each run: roslaunch's ``host_<address>__<port>``, a pid suffix
-_RUN_PART = re.compile(r"(__\d+|[_-]\d{4,}(_\d+)?)$")
+#: roslaunch's ``/roslaunch/uris/<host>__<port>``: its XML-RPC server's port, another each run
+_LAUNCH_URI = re.compile(r"^/roslaunch/uris/[^/]+__[1-9]\d{0,4}$")
 
 
 def checked_observations(body: object, *, now: float) -> list[dict]:
@@ -150,8 +152,12 @@ def _covered(grants: Sequence[GrantRow], action: str, node: str, name: str, type
 
 
 def _param_name(key: str) -> str:
+    """The namespace to grant for a learned key: the key itself, but for a last part
+    another each run (roslaunch's server URI, an anonymous node's name), which is left off."""
+    if _LAUNCH_URI.match(key):
+        return "/roslaunch/uris"
     parts = key.split("/")
-    while len(parts) > 2 and _RUN_PART.search(parts[-1]):
+    while len(parts) > 2 and anonymous_prefix("/" + parts[-1]) is not None:
         parts.pop()
     return "/".join(parts) or "/"
 

@@ -552,14 +552,32 @@ def refusal_answer(reason: str | None, method: str, params: tuple, *, own: bool 
     return ros_error(refusal_text(reason, own=own))
 
 
-_ANONYMOUS = re.compile(r"^(.*?[_-])(\d[\d_]*)$")
+#: The tails ROS 1 (ros_comm 1.15) appends to a name it makes anew each run, and nothing
+#: else: a stable name ending in a number (``/lidar_2048``, ``/robot_1001``) stays exact.
+#: rospy's ``init_node(anonymous=True)`` (rostopic, rosservice call): ``_<pid>_<ms since
+#: epoch>``, 13 digits; roslib's ``anonymous_name`` (roslaunch's ``$(anon id)``):
+#: ``_<host>_<pid>_<random below 2**63>``, 19 digits but for one name in ten (and one in
+#: 10**6 shorter than 13); roscpp's ``AnonymousName`` (rosbag record/play):
+#: ``_<ns since epoch>``, 19 digits. A pid has at most 7 digits (pid_max is 2**22), and
+#: none of these numbers starts with 0.
+_ANONYMOUS_TAIL = re.compile(r"^(.*?_)(?:[1-9]\d{0,6}_)?[1-9]\d{12,18}$")
+#: rosparam's caller ID ``rosparam-<pid>``: the one anonymous name with a ``-``
+_ROSPARAM = re.compile(r"^(/(?:.*/)?rosparam-)[1-9]\d{0,6}$")
+
+
+def anonymous_prefix(name: str) -> str | None:
+    """What stays of an anonymous ROS 1 name from one run to the next
+    (``/rostopic_4711_1795791784006`` -> ``/rostopic_``, ``/rosparam-4711`` ->
+    ``/rosparam-``), or None for a name that is the same each run."""
+    m = _ANONYMOUS_TAIL.match(name) or _ROSPARAM.match(name)
+    return m.group(1) if m else None
 
 
 def node_pattern(node: str) -> str:
     """The node pattern to grant for an anonymous node name (``/rostopic_4711_1795...``
     -> ``/rostopic_*``, ``/rosparam-4711`` -> ``/rosparam-*``); other names as they are."""
-    m = _ANONYMOUS.match(node)
-    return m.group(1) + "*" if m and len(m.group(2)) >= 4 else node
+    prefix = anonymous_prefix(node)
+    return node if prefix is None else prefix + "*"
 
 
 def grant_hint(reason: str | None, method: str, params: tuple, manager: str | None) -> str | None:
@@ -640,6 +658,7 @@ __all__ = [
     "OWN_TOKEN_REASONS",
     "missing_grant_hint",
     "grant_hint",
+    "anonymous_prefix",
     "node_pattern",
     "refusal_answer",
     "refusal_text",

@@ -141,6 +141,38 @@ def test_a_proposal_is_the_smallest_set_of_exact_grants():
     assert len(parse_policy(yaml.safe_load(text))["robot_a"].grants) == 7  # what `import --merge` reads
 
 
+def test_a_proposal_keeps_names_that_end_in_a_number_exact():
+    """Policy audit: a stable node name ending in ``_NNNN`` or ``-NNNN`` became a pattern
+    (``/robot_1001`` -> ``/robot_*``) and a key whose last part did became its parent
+    (``/fleet/zone_1234`` -> write_param ``/fleet``). Only what ROS makes anew each run
+    (an anonymous node, roslaunch's server port) is widened."""
+    learned = [
+        obs("publish", "/robot_1001", "/robot_1001/odom", "nav_msgs/Odometry"),
+        obs("publish", "/robot1/lidar_2048", "/robot1/points", "sensor_msgs/PointCloud2"),
+        obs("subscribe", "/cam-0001", "/robot1/scan", "sensor_msgs/LaserScan"),
+        obs("read_param", "/robot1/move_base", "/robot1/move_base/planner_2024"),
+        obs("write_param", "/robot1/move_base", "/fleet/zone_1234"),
+        obs("subscribe", "/rostopic_4711_1795791784006", "/robot1/scan", "sensor_msgs/LaserScan"),
+        obs("subscribe", "/record_1795791784006123456", "/robot1/scan", "sensor_msgs/LaserScan"),
+        obs("write_param", "/rosparam-12", "/robot1/mode"),
+        obs("write_param", "/roslaunch", "/roslaunch/uris/host_robot1__38217"),
+        obs("write_param", "/conf", "/fleet/seen/rostopic_4711_1795791784006"),
+    ]
+    proposal = propose("robot_a", learned, [], known_types(learned, []))
+    assert {(p.grant.action, p.grant.node, p.grant.name) for p in proposal.grants} == {
+        ("publish", "/robot_1001", "/robot_1001/odom"),
+        ("publish", "/robot1/lidar_2048", "/robot1/points"),
+        ("subscribe", "/cam-0001", "/robot1/scan"),
+        ("read_param", "/robot1/move_base", "/robot1/move_base/planner_2024"),
+        ("write_param", "/robot1/move_base", "/fleet/zone_1234"),
+        ("subscribe", "/rostopic_*", "/robot1/scan"),
+        ("subscribe", "/record_*", "/robot1/scan"),
+        ("write_param", "/rosparam-*", "/robot1/mode"),
+        ("write_param", "/roslaunch", "/roslaunch/uris"),
+        ("write_param", "/conf", "/fleet/seen"),
+    }
+
+
 def test_unused_lists_the_grants_no_allowed_request_fell_under():
     grants = [GrantRow("publish", "/talker", "/chatter", "std_msgs/String"),
               GrantRow("subscribe", "*", "/chatter", "std_msgs/String"),

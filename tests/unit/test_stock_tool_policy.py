@@ -5,9 +5,12 @@ name, the grant hint, and denials aggregated for the log."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from cryptoros.errors import PolicyDenied
+from cryptoros.names import validate_node_name
 from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allows, ros1_topic_param
 from cryptoros.policy.ros1 import (
     OWN_TOKEN_REASONS,
@@ -26,9 +29,10 @@ from cryptoros.policy.ros1 import (
     refusal_answer,
     refusal_text,
 )
-from cryptoros.tokens import Grant, Grants
+from cryptoros.tokens import Grant, Grants, node_matches
 from interceptor.denials import DenialTable
 from interceptor.ros1.wire import header_hint
+from tests.support import require, run
 
 ROBOT = Grants([
     Grant(node="/talker", action="publish", name="/chatter", type="std_msgs/String"),
@@ -152,6 +156,53 @@ def test_the_grant_hint_names_what_to_grant_with_the_tools_node_pattern():
         "cryptoros-authz grant robot_b publish /play_* /clock rosgraph_msgs/Clock"
     assert grant_hint("shutdown_dropped", "shutdown", ("/rosnode", "x"), "robot_b") is None
     assert grant_hint("param_write_denied", "setParam", ("/n", "/x", 1), None) is None
+
+
+def _two_runs_of_roslib_anonymous_name(base: str) -> tuple[str, str]:
+    """``rosgraph.names.anonymous_name`` as roslaunch's ``$(anon ...)`` calls it, in two
+    processes of Debian's Python, where ros_comm is (two runs: another pid, another random number)."""
+    require("roslaunch")
+    code = f"import rosgraph.names; print(rosgraph.names.anonymous_name({base!r}))"
+    names = [run(["/usr/bin/python3", "-c", code], timeout=30, check=True).stdout.strip() for _ in range(2)]
+    return "/" + names[0], "/" + names[1]
+
+
+def _rospy_anonymous(base: str, pid: int, at: float) -> str:
+    return "%s_%s_%s" % (base, pid, int(at * 1000))  # rospy.client.init_node(anonymous=True)
+
+
+def _roscpp_anonymous(base: str, at_ns: int) -> str:
+    return "%s_%d" % (base, at_ns)  # roscpp this_node.cpp, AnonymousName: snprintf("_%llu", WallTime toNSec)
+
+
+@pytest.mark.parametrize("runs", [
+    (_rospy_anonymous("/rostopic", 4711, 1_795_791_784.006), _rospy_anonymous("/rostopic", 12, 1_795_791_999.5)),
+    (_rospy_anonymous("/rosservice", 4194303, 1_700_000_000.0), _rospy_anonymous("/rosservice", 7, 1_795_000_000.0)),
+    (_rospy_anonymous("/robot1/cam_1", 4711, 1_795_791_784.0), _rospy_anonymous("/robot1/cam_1", 99, 1_795_791_790.0)),
+    (_roscpp_anonymous("/record", 1_795_791_784_006_123_456), _roscpp_anonymous("/record", 1_795_791_790_000_000_001)),
+    (_roscpp_anonymous("/robot1/play", time.time_ns()), _roscpp_anonymous("/robot1/play", time.time_ns() + 10**9)),
+    ("/rosparam-4711", "/rosparam-12"),
+    ("/robot1/rosparam-4194303", "/robot1/rosparam-1"),
+    "roslib",
+])
+def test_an_anonymous_name_learned_as_a_pattern_matches_the_next_runs_name(runs):
+    first, second = _two_runs_of_roslib_anonymous_name("cam_1") if runs == "roslib" else runs
+    assert first != second
+    pattern = node_pattern(first)
+    assert pattern != first and pattern == node_pattern(second), (first, second, pattern)
+    assert node_matches(pattern, second)
+    validate_node_name(pattern)
+
+
+@pytest.mark.parametrize("node", [
+    "/robot_1001", "/lidar_2048", "/robot1/lidar_2048", "/cam-0001", "/cam-2048", "/camera_1", "/arm_1_2",
+    "/robot_1001_2002", "/sensor_20240101", "/rosparam-0042", "/rosparam-12345678", "/myrosparam-4711",
+    "/robot1/driver", "/rosnode", "/rosservice", "/roslaunch",
+])
+def test_a_name_that_is_the_same_each_run_is_kept_exactly(node):
+    """Policy audit: any name ending in a number of 4 digits or more became a pattern
+    (``/robot_1001`` -> ``/robot_*``), granting every robot_N the learned robot's rights."""
+    assert node_pattern(node) == node
 
 
 def _header_refusal(check, *args, **kwargs) -> PolicyDenied:
