@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from authz_server.registry import PARAM_ACTIONS, GrantRow, ObservationRow, grant_key
 from cryptoros.errors import RegistryError
 from cryptoros.names import PARAM_TYPE, validate_caller_id, validate_graph_name, validate_namespace, validate_type
-from cryptoros.policy.infrastructure import ros1_allows
+from cryptoros.policy.infrastructure import ROS1_ROSOUT, ros1_own_type
 from cryptoros.policy.ros1 import anonymous_prefix, node_pattern
 from cryptoros.tokens import ACTIONS, Grants, in_namespace, node_matches
 
@@ -168,11 +168,19 @@ def propose(manager: str, learned: Iterable[ObservationRow], current: Iterable[G
     current = list(current)
     proposal = Proposal(manager)
     wanted: dict[GrantRow, _Seen] = {}
+    #: grants for what ROS does on a node's behalf (/rosout, its logger services), and the others
+    ros_own: set[GrantRow] = set()
+    named: set[GrantRow] = set()
     typed = {(o.action, o.node, o.name) for o in learned if o.type}
     for o in sorted(learned, key=lambda o: (o.action, o.node, o.name, o.type or "")):
         node = node_pattern(o.node)
+        own_type = ros1_own_type(o.action, o.node, o.name)
+        is_own = o.action == "publish" and (o.name, o.type) == ROS1_ROSOUT or (
+            own_type is not None and o.type in (None, own_type))
         if o.action in PARAM_ACTIONS:
             name, type_ = _param_name(o.name), PARAM_TYPE
+        elif is_own:
+            name, type_ = o.name, o.type or own_type
         else:
             name, type_ = o.name, o.type
             if type_ is None:
@@ -188,6 +196,7 @@ def propose(manager: str, learned: Iterable[ObservationRow], current: Iterable[G
         grant = GrantRow(o.action, node, name, type_)
         if _covered(current, grant.action, o.node, o.name if o.action in PARAM_ACTIONS else name, type_):
             continue
+        (ros_own if is_own else named).add(grant)
         entry = wanted.setdefault(grant, _Seen())
         entry.count += o.count
         entry.last = max(entry.last, o.last_seen)
@@ -198,11 +207,9 @@ def propose(manager: str, learned: Iterable[ObservationRow], current: Iterable[G
         if grant.action == "read_param" and _covered([g for g in rows if g.action == "write_param"] + current,
                                                      "read_param", grant.node, grant.name, PARAM_TYPE):
             del wanted[grant]
-    for grant in list(wanted):
-        if grant.action in PARAM_ACTIONS or not ros1_allows(grant.action, grant.node, grant.name, grant.type):
-            continue
-        if any(g.node == grant.node and g != grant for g in wanted) or any(node_matches(c.node, grant.node)
-                                                                             for c in current):
+    for grant in ros_own - named:
+        if any(g.node == grant.node for g in named if g in wanted) or any(node_matches(c.node, grant.node)
+                                                                         for c in current):
             del wanted[grant]  # the node is named otherwise: ROS's own topics and services need no grant
     proposal.grants = [Proposed(g, s.count, s.last, tuple(sorted(s.covers))) for g, s in sorted(wanted.items())]
     return proposal

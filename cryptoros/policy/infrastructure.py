@@ -76,11 +76,18 @@ def ros1_allows(action: str, node: str, name: str, type_name: str | None) -> boo
     under the node's own name (:data:`ROS1_OWN_SERVICES`, :data:`ROS1_OWN_TOPICS`)."""
     if action == "publish" and (name, type_name) == ROS1_ROSOUT:
         return True
+    own = ros1_own_type(action, node, name)
+    return own is not None and type_name in (None, own)
+
+
+def ros1_own_type(action: str, node: str, name: str) -> str | None:
+    """The type of an endpoint the ROS 1 libraries serve or publish under ``node``'s own
+    name (``/cam/get_loggers`` -> ``roscpp/GetLoggers``), or None for any other name:
+    what a service registration, which tells no type, has when it is ROS's own."""
     if action in ("serve", "publish") and name.startswith(node + "/"):
-        suffix = name[len(node) + 1 :]
         table = ROS1_OWN_SERVICES if action == "serve" else ROS1_OWN_TOPICS
-        return suffix in table and type_name in (None, table[suffix])
-    return False
+        return table.get(name[len(node) + 1 :])
+    return None
 
 
 def ros1_topic_param(key: str) -> tuple[str, str] | None:
@@ -100,5 +107,5 @@ def ros2_stays_local(name: str, types: list[str] | tuple[str, ...]) -> bool:
 
 
 __all__ = ["ROS1_DEFAULT_PARAM_READS", "ROS1_LOGGER_SERVICES", "ROS1_OWN_SERVICES", "ROS1_OWN_TOPICS", "ROS1_ROSOUT",
-           "ROS1_TOPIC_PARAMS", "ROS2_LOCAL_SERVICE_TYPES", "ROS2_LOCAL_TOPICS", "ros1_allows", "ros1_topic_param",
-           "ros2_stays_local"]
+           "ROS1_TOPIC_PARAMS", "ROS2_LOCAL_SERVICE_TYPES", "ROS2_LOCAL_TOPICS", "ros1_allows", "ros1_own_type",
+           "ros1_topic_param", "ros2_stays_local"]

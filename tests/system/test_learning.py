@@ -136,6 +136,9 @@ def test_a_graph_learned_applied_and_enforced_runs_with_no_denial(tmp_path):
             grants = [line for line in text.splitlines() if line.lstrip().startswith("- {")]
             assert grants and not any("*" in line.split("#")[0] for line in grants), text
             assert "/rosout" not in text and "get_loggers" not in text, text  # ROS's own: no grant needed
+        for robot in ("robot_a", "robot_b"):  # nor is it asked for on stderr
+            notes = net.cli("learn", "propose", robot).stderr
+            assert "get_loggers" not in notes and "set_logger_level" not in notes, notes
         print(f"learned in {learned_in:.1f} s; robot A {proposal_a.count('- {')} grants, "
               f"robot B {proposal_b.count('- {')} grants")
         for robot in ("robot_a", "robot_b"):

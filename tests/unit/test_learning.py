@@ -173,6 +173,33 @@ def test_a_proposal_keeps_names_that_end_in_a_number_exact():
     }
 
 
+def test_a_proposal_never_asks_for_what_ros_does_on_a_nodes_behalf():
+    """Policy audit: every node's logger services, registered without a type, came out as
+    notes asking the operator to grant them by hand (``grant robot_a serve /lidar_2048
+    /lidar_2048/get_loggers TYPE``), though they need no grant once the node is named."""
+    learned = [
+        obs("publish", "/lidar_2048", "/robot1/points", "sensor_msgs/PointCloud2"),
+        obs("publish", "/lidar_2048", "/rosout", "rosgraph_msgs/Log"),
+        obs("serve", "/lidar_2048", "/lidar_2048/get_loggers"),  # a registration tells no type
+        obs("serve", "/lidar_2048", "/lidar_2048/set_logger_level"),
+        obs("subscribe", "/rostopic_4711_1795791784006", "/robot1/points", "sensor_msgs/PointCloud2"),
+        obs("serve", "/rostopic_4711_1795791784006", "/rostopic_4711_1795791784006/get_loggers"),
+        # a node that does nothing else keeps them, with the library's types: they name it
+        obs("serve", "/idle", "/idle/get_loggers"),
+        obs("serve", "/idle", "/idle/set_logger_level"),
+        # another service under a node's name is no library's: its type is still asked for
+        obs("serve", "/lidar_2048", "/lidar_2048/calibrate"),
+    ]
+    proposal = propose("robot_a", learned, [], known_types(learned, []))
+    assert len(proposal.notes) == 1 and "/lidar_2048/calibrate: type not seen" in proposal.notes[0], proposal.notes
+    assert {(p.grant.action, p.grant.node, p.grant.name, p.grant.type) for p in proposal.grants} == {
+        ("publish", "/lidar_2048", "/robot1/points", "sensor_msgs/PointCloud2"),
+        ("subscribe", "/rostopic_*", "/robot1/points", "sensor_msgs/PointCloud2"),
+        ("serve", "/idle", "/idle/get_loggers", "roscpp/GetLoggers"),
+        ("serve", "/idle", "/idle/set_logger_level", "roscpp/SetLoggerLevel"),
+    }
+
+
 def test_unused_lists_the_grants_no_allowed_request_fell_under():
     grants = [GrantRow("publish", "/talker", "/chatter", "std_msgs/String"),
               GrantRow("subscribe", "*", "/chatter", "std_msgs/String"),
