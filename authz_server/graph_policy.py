@@ -18,20 +18,16 @@ from __future__ import annotations
 
 import asyncio
 import fnmatch
-import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from authz_server.registry import ACTIONS, PARAM_ACTIONS, POLICY_VERSION, GrantRow, grant_key, validate_manager_name
 from cryptoros.errors import PEER_FAILURES, CryptorosError, RegistryError
 from cryptoros.policy.infrastructure import ros1_allows
-from cryptoros.policy.ros1 import DEFAULT_PARAM_READS
+from cryptoros.policy.ros1 import DEFAULT_PARAM_READS, anonymous_prefix
 
 #: the caller id the reader presents to the master and in its service probes
 CALLER_ID = "/cryptoros_authz_graph"
-#: rospy's anonymous names (``<name>_<pid>_<ms>``: rostopic, rosservice) and rosparam's
-#: ``/rosparam-<pid>``: a name another run will not have
-_ANONYMOUS = re.compile(r"(_\d+_\d+|-\d+)$")
 
 
 # ---------------------------------------------------------------------- manager map
@@ -138,7 +134,7 @@ def draft_policy(graph: Graph, managers: ManagerMap, *, param_access: str = "rea
         manager = managers.manager_for(node, _host(graph.node_uris.get(node)))
         if manager is None:
             draft.warnings.append(f"node {node} matches no --manager-map entry: granted nothing")
-        elif _ANONYMOUS.search(node):
+        elif anonymous_prefix(node) is not None:  # another run will not have this name
             draft.warnings.append(f"node {node} has an anonymous name (another each run: a stock tool or "
                                   "init_node(anonymous=True)): granted nothing; grant it by a pattern by hand "
                                   "(cryptoros-authz grant-tools for stock tools)")

@@ -82,6 +82,18 @@ def test_what_a_grant_cannot_hold_is_a_warning_never_a_grant():
     assert "service /reset: its type probe failed: serve not granted to /base" in text
 
 
+def test_a_stable_name_ending_in_numbers_is_drafted_and_an_anonymous_one_is_not():
+    """Policy audit: any name ending in ``_N_N`` or ``-N`` was taken for an anonymous one
+    and granted nothing (``/arm_1_2``); only what ROS makes anew each run is."""
+    stable = ["/arm_1_2", "/lidar_2048", "/robot_1001"]
+    anonymous = ["/rostopic_4242_1700000000000", "/rosparam-42", "/record_1795791784006123456"]
+    g = graph(publishers={"/t": stable + anonymous}, topic_types={"/t": "std_msgs/String"})
+    draft = draft_policy(g, ManagerMap.parse(["*=m"]))
+    assert {n for _a, n, _name, _t in grants_of(draft)["m"]} == set(stable)
+    text = "\n".join(draft.warnings)
+    assert all(f"node {n} has an anonymous name" in text for n in anonymous), text
+
+
 def test_a_key_belongs_to_the_node_with_the_longest_matching_name():
     g = graph(publishers={"/t": ["/a", "/a/b"]}, topic_types={"/t": "std_msgs/String"},
               param_names=["/a/b/rate", "/a/c"])
