@@ -329,8 +329,31 @@ def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, t
       cryptoros-authz grant alice read_param '*' /robot1
       cryptoros-authz grant alice write_param /planner /robot1/goals
     """
-    added = _registry(ctx).grant(manager, action, node, name, type_)
+    reg = _registry(ctx)
+    added = reg.grant(manager, action, node, name, type_)
     click.echo(f"{'granted' if added else 'already granted'}: {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
+    if added:
+        for line in node_overlaps(manager, node, reg.list_managers()):
+            click.echo(f"warning: {line}", err=True)
+
+
+#: overlaps named per grant at most (the rest are counted)
+OVERLAPS_SHOWN = 5
+
+
+def node_overlaps(manager: str, node: str, managers) -> list[str]:
+    """One line per other manager's grant node that ``node`` can name too: node names
+    go first come to whichever manager registers them (authz_server/README.md, "Node
+    names, patterns and stock tools"), so an overlap is a name two robots contend for."""
+    from cryptoros.tokens import nodes_overlap
+
+    hits = sorted({(m.name, g.node) for m in managers if m.name != manager for g in m.grants
+                   if nodes_overlap(node, g.node)})
+    lines = [f"node {node} overlaps {other}'s grants on {theirs}: the first of the two managers to register "
+             f"a name both cover holds it; give each robot node names of its own" for other, theirs in hits]
+    if len(lines) > OVERLAPS_SHOWN:
+        lines = lines[:OVERLAPS_SHOWN] + [f"... and {len(lines) - OVERLAPS_SHOWN} more overlaps of node {node}"]
+    return lines
 
 
 @main.command("revoke")

@@ -94,6 +94,20 @@ def node_matches(granted: str, node: str) -> bool:
     return granted == node
 
 
+def nodes_overlap(a: str, b: str) -> bool:
+    """Whether two grants' node names can name one node: equal names, a pattern and a
+    name it covers, or two patterns one of whose prefixes starts the other's. ``*`` (any
+    node of its own manager) overlaps nothing here: it names no node another manager
+    could register."""
+    if NODE_WILDCARD in (a, b):
+        return False
+    if is_node_pattern(a) and is_node_pattern(b):
+        return a[:-1].startswith(b[:-1]) or b[:-1].startswith(a[:-1])
+    if is_node_pattern(b):
+        a, b = b, a
+    return node_matches(a, b)
+
+
 class Grants:
     """An immutable set of grants, as carried in a token."""
 
@@ -598,6 +612,7 @@ __all__ = [
     "VerifiedTokenCache",
     "build_claims",
     "check_decoded_token",
+    "nodes_overlap",
     "decode_access_token",
     "public_jwk",
     "sign_token",

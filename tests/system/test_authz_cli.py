@@ -263,6 +263,38 @@ def test_grant_tools_grants_rosparam_only_the_namespaces_named(tmp_path):
     assert "write_param" not in ok(authz("show-manager", "base", db=db))
 
 
+def test_a_grant_naming_nodes_another_manager_names_is_warned(tmp_path):
+    """Policy audit: a grant of robot1's exact node name to robot2, and robot2's pattern
+    '/robot*' over robot1's nodes, were taken in silence (node names go first come to
+    whichever manager registers them). Each is granted and warned, one line per overlap;
+    '*' (any node of one's own) and names of one's own are not."""
+    db = f"sqlite:///{tmp_path / 'overlap.db'}"
+    ok(authz("add-manager", "robot1", "--fingerprint", "ab" * 32, db=db))
+    ok(authz("add-manager", "robot2", "--fingerprint", "cd" * 32, db=db))
+    ok(authz("grant", "robot1", "publish", "/robot1/driver", "/robot1/scan", "sensor_msgs/LaserScan", db=db))
+    same = authz("grant", "robot2", "publish", "/robot1/driver", "/robot2/scan", "sensor_msgs/LaserScan", db=db)
+    assert same.returncode == 0 and "granted: robot2 /robot1/driver" in same.stdout, same
+    assert same.stderr.strip() == ("warning: node /robot1/driver overlaps robot1's grants on /robot1/driver: the "
+                                   "first of the two managers to register a name both cover holds it; give each "
+                                   "robot node names of its own"), same.stderr
+    wide = authz("grant", "robot2", "subscribe", "/robot*", "/robot1/scan", "sensor_msgs/LaserScan", db=db)
+    assert wide.returncode == 0 and "overlaps robot1's grants on /robot1/driver" in wide.stderr, wide.stderr
+    for quiet in (("subscribe", "*", "/robot1/scan", "sensor_msgs/LaserScan"),
+                  ("publish", "/robot2/driver", "/robot2/scan", "sensor_msgs/LaserScan")):
+        r = authz("grant", "robot2", *quiet, db=db)
+        assert r.returncode == 0 and r.stderr.strip() == "", (quiet, r.stderr)
+
+
+def test_nodes_overlap_is_one_node_name_two_grants_could_both_name():
+    from cryptoros.tokens import nodes_overlap
+
+    assert nodes_overlap("/a/b", "/a/b") and not nodes_overlap("/a/b", "/a/c")
+    assert nodes_overlap("/robot*", "/robot1/driver") and nodes_overlap("/robot1/driver", "/robot*")
+    assert nodes_overlap("/robot1*", "/robot10/x") and not nodes_overlap("/robot1/*", "/robot10/x")
+    assert nodes_overlap("/robot*", "/robot1/*") and not nodes_overlap("/robot1/*", "/robot2/*")
+    assert not nodes_overlap("*", "/a") and not nodes_overlap("/a*", "*")
+
+
 def _serve(team, *extra: str, db: str | None = None, timeout: float = 20) -> subprocess.CompletedProcess:
     server = team.pki.issue("authz", kind="server", force=True)
     (team.workdir / "signing.pass").write_text("test-signing-passphrase\n")
