@@ -525,8 +525,22 @@ class Ros2Role(Role):
             grants = self.gw.own_access().grants
         except TokenError:
             return False
-        action = "publish" if out.target.kind == "topic" else "serve"
-        return any(grants.allows(action, node, out.target.name, out.target.type) for node in out.granted_writers)
+        return any(grants.allows(out.target.action, node, out.target.name, out.target.type)
+                   for node in out.granted_writers)
+
+    def _own_grant_gone(self, out: Outbound) -> PolicyDenied | None:
+        """Why ``out`` is no longer this robot's to send (its own token lets none of its
+        nodes publish or serve it), or None: it still is, or our token cannot be read now."""
+        try:
+            own = self.gw.own_access()
+        except TokenError:
+            return None
+        target = out.target
+        nodes = sorted(out.granted_writers or {target.node})
+        if any(own.grants.allows(target.action, node, target.name, target.type) for node in nodes):
+            return None
+        return PolicyDenied("not_granted_here", f"this robot's manager {own.subject} may not {target.action} "
+                                                f"{target.name} [{target.type}] as {', '.join(nodes)}")
 
     def _withdraw(self, out: Outbound, *, tell_bridge: bool = True) -> None:
         key = (out.target.kind, out.target.name, out.target.type)
@@ -557,6 +571,11 @@ class Ros2Role(Role):
                 known = await self._peer_token(endpoint, target, recheck=recheck)
                 recheck = None
                 if not may_learn(known.grants, target):
+                    # the peer's token is narrowed to names our own grants hold: our grant
+                    # removed takes the peer's out of it too; the offer's withdrawal says so
+                    if self._own_grant_gone(out) is not None:
+                        await asyncio.sleep(RECONCILE_INTERVAL)
+                        continue
                     key = ("not_offered", endpoint, target.name)
                     if key not in self._noted:
                         self._noted.add(key)
@@ -583,6 +602,11 @@ class Ros2Role(Role):
             try:
                 def judge(grants, manager=peer.manager) -> None:
                     if not manager_may(grants, target.peer_action, target.name, target.type):
+                        # the peer's token is narrowed to names our own grants hold: a
+                        # grant of ours removed is named as ours, not blamed on the peer
+                        own_gone = self._own_grant_gone(out)
+                        if own_gone is not None:
+                            raise own_gone
                         raise PolicyDenied(
                             "not_granted", f"{manager} may not {target.peer_action} {target.name} [{target.type}]")
 

@@ -5,7 +5,7 @@ through the interceptors. Each bound is measured from the operator's action to t
 first message robot B's listener receives after it, with a bounded wait:
 
 - a grant re-added to robot B reaches its flow within 10 s, every time (two rounds, at
-  two phases of robot A's peer recheck);
+  two phases of robot A's peer recheck), and so does robot A's publish grant re-added;
 - flows resume within 15 s after the authorization server returns from an outage long
   enough to make every interceptor's revocation feed stale (new streams refused);
 - flows resume within 20 s after either robot's interceptor restarts, and after robot
@@ -71,15 +71,26 @@ def test_a_re_added_grant_reaches_its_flow_within_10_s_every_time(network):
                     network.cli("grant", "robot_b", "subscribe", "*", "/chatter", "std_msgs/msg/String")
                     start = time.monotonic()  # the grant committed (the command's own start-up not counted)
                     _first_message_within(sub, start, 10, "re-added grant")
-        # ROS 2 audit: robot B named robot A's unchanged grant ("/talker may not publish")
-        # for its own removed one, and refused robot A's token exchange (no_token) while
-        # its own token, revoked with the grant, was fetched again
-        log = network.robots["robot_a"].logs() + network.robots["robot_b"].logs()
-        assert "may not publish /chatter" not in log and "no_token" not in log, log[-3000:]
-        assert "grant_removed: robot_b may not subscribe /chatter" in log or \
-            "grant_removed: this robot's manager robot_b may not subscribe /chatter" in log, log[-3000:]
+                # ROS 2 audit: robot B named robot A's unchanged grant ("/talker may not publish")
+                # for its own removed one, and refused robot A's token exchange (no_token) while
+                # its own token, revoked with the grant, was fetched again
+                log = network.robots["robot_a"].logs() + network.robots["robot_b"].logs()
+                assert "may not publish /chatter" not in log and "no_token" not in log, log[-3000:]
+                assert "grant_removed: robot_b may not subscribe /chatter" in log or \
+                    "grant_removed: this robot's manager robot_b may not subscribe /chatter" in log, log[-3000:]
+                # the publisher's grant: robot A's removed grant takes robot B's out of the
+                # token robot B shows it (narrowed to names robot A holds); robot A blamed
+                # robot B for it ("robot_b may not subscribe", a DENY counted against B)
+                seen_a = len(network.robots["robot_a"].logs())
+                network.cli("revoke", "robot_a", "publish", "/talker", "/chatter")
+                _silent(sub, 2.0, 20)
+                network.cli("grant", "robot_a", "publish", "/talker", "/chatter", "std_msgs/msg/String")
+                _first_message_within(sub, time.monotonic(), 10, "re-added publish grant")
+        log_a = network.robots["robot_a"].logs()[seen_a:]
+        assert "robot_b may not subscribe" not in log_a and "DENY ros2_topic_out" not in log_a, log_a[-3000:]
     finally:
         network.cli("grant", "robot_b", "subscribe", "*", "/chatter", "std_msgs/msg/String")
+        network.cli("grant", "robot_a", "publish", "/talker", "/chatter", "std_msgs/msg/String")
 
 
 def _health(network, name: str) -> str:
