@@ -83,7 +83,9 @@ class Health:
             "crl": None if crl is None else {"file": str(crl), "age": round(now - os.stat(crl).st_mtime, 1)
                                              if os.path.exists(crl) else None, **crl_due(self.certs.cert_check, now)},
             "peers": self.verifier.streams_by_peer(),
-            "open_streams": len(self._streams),
+            # every stream between interceptors, in and out, is watched (the stream tasks
+            # are only the inbound ones and local relays, some not past their preamble)
+            "open_streams": self.verifier.open_streams,
             "message_rate": self.cfg.limits.max_messages_per_second,
             "throttled": {manager: budget.throttled for manager, budget in sorted(self._budgets.items())
                           if budget.throttled},
@@ -111,7 +113,7 @@ class Health:
                 return web.json_response({"status": exc.reason, "detail": exc.detail}, status=503)
             last = self.verifier.last_feed_at
             learning = self.learner.health_note()
-            return web.json_response({"status": "ok", "open_streams": len(self._streams),
+            return web.json_response({"status": "ok", "open_streams": self.verifier.open_streams,
                                       "feed_age": None if last is None else round(time.time() - last, 1),
                                       **({"learning": learning} if learning else {})})
 

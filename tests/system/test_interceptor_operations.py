@@ -3,6 +3,7 @@ wire, hostile bytes on every port, SIGHUP and SIGTERM, metrics."""
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import re
@@ -195,6 +196,12 @@ def test_sighup_reload_keeps_open_streams_and_disabled_manager_is_cut_off_within
         read_lines(sub, "READY", 20)
         with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "50", "30"], env=network.ros_env("robot_a")):
             read_lines(sub, "GOT secret-20", 30)
+            for name, peer in (("robot_a", "robot_b"), ("robot_b", "robot_a")):  # the stream, on either side
+                url = f"http://127.0.0.1:{network.hosts[name].metrics_port}/status"
+                with urllib.request.urlopen(url, timeout=5) as reply:
+                    status = json.loads(reply.read())
+                assert status["peers"].get(peer, 0) >= 1, (name, status["peers"])
+                assert status["open_streams"] == sum(status["peers"].values()), (name, status)
             for name in ("robot_a", "robot_b", "master"):
                 network.hosts[name].proc.send_signal(signal.SIGHUP)
             before = len(got(read_lines(sub, None, 2.0)))

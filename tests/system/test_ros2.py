@@ -39,9 +39,21 @@ def test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network):
         sub.until("READY", 20)
         with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "20"):
             lines = collect(sub, 40, 25)
+            # the sending robot's streams are open streams too (its status said 0 while its
+            # metric said 1): both robots' status and /healthz count the /chatter stream
+            for name in ("robot_a", "robot_b"):
+                status, health = (_get_json(network, name, path) for path in ("/status", "/healthz"))
+                assert status["peers"].get("robot_b" if name == "robot_a" else "robot_a", 0) >= 1, (name, status)
+                assert status["open_streams"] == sum(status["peers"].values()) >= 1, (name, status)
+                assert health["open_streams"] >= 1, (name, health)
     seqs = got(lines)
     assert not [line for line in lines if line.startswith("BAD")]
     assert seqs == list(range(seqs[0], seqs[0] + 40)), "messages lost or reordered"
+
+
+def _get_json(network, name: str, path: str) -> dict:
+    with urllib.request.urlopen(f"http://127.0.0.1:{network.robots[name].metrics_port}{path}", timeout=5) as reply:
+        return json.loads(reply.read())
 
 
 def test_reliable_burst_arrives_without_loss_through_the_interceptors(network):
