@@ -145,6 +145,8 @@ class Ros2Role(Role):
         self._proxy_by_chan: dict[int, Proxy] = {}
         self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
+        #: (kind, name) the last graph shows but :meth:`_desired` did not offer, and why
+        self._withheld: dict[tuple[str, str], str] = {}
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
         self._partial = PartialFrames()  # each peer's unfinished frames, across its streams
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
@@ -313,6 +315,8 @@ class Ros2Role(Role):
 
     def _desired(self) -> dict[tuple[str, str, str], Offer]:
         """What this robot may offer now, decided by :func:`cryptoros.policy.ros2.local_offer`."""
+        withheld: dict[tuple[str, str], str] = {}
+        self._withheld = withheld
         try:
             grants = self.gw.own_access().grants
         except TokenError:
@@ -331,6 +335,7 @@ class Ros2Role(Role):
         for kind, entry, sources in entries:
             name, types = entry["name"], entry["types"]
             if self.cfg.ros2.is_local(name):  # [ros2] local: stays on this robot, by the operator's choice
+                withheld[(kind, name)] = "its name is local to this robot ([ros2] local)"
                 continue
             action = "publish" if kind == "topic" else "serve"
             held = sorted({s["node"] for s in sources if suspect(s["node"])}) if exposed else []
@@ -348,6 +353,7 @@ class Ros2Role(Role):
                 offer = local_offer(kind, name, types, sources, grants=grants, depth=self.cfg.ros2.depth)
             except PolicyDenied as exc:
                 self._note_deny((kind, name, tuple(types), exc.reason), f"ros2_{action}", exc, me)
+                withheld[(kind, name)] = str(exc)
                 continue
             except CryptorosError as exc:  # a name we cannot carry (hidden topics, relative names)
                 log.debug("not bridging %s %s: %s", kind, name, exc)
@@ -474,7 +480,9 @@ class Ros2Role(Role):
                    "this host's loopback answers other hosts" if exposed else
                    f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
                    if out.vanished_at is not None and key not in want and out.target.name not in on_air else
-                   "its publisher, its server or the grant that carried it is gone" if key not in want else
+                   self._withheld.get((out.target.kind, out.target.name),
+                                      "its publisher, its server or the grant that carried it is gone")
+                   if key not in want else
                    "its publisher's node or QoS changed")
             log.info("no longer offering %s %s [%s]: %s", out.target.kind, out.target.name, out.target.type, why)
             self._withdraw(out)

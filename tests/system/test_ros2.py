@@ -587,7 +587,8 @@ def test_with_the_interceptors_stopped_nothing_arrives(network):
         network.start("robot_b")
 
 
-def test_sighup_keeps_streams_and_a_disabled_manager_is_cut_off_within_5s(network):
+def test_sighup_keeps_streams_withdraws_a_topic_made_local_and_cuts_a_disabled_manager_within_5s(network):
+    robot_a = network.robots["robot_a"]
     with network.node("robot_b", "listener.py", "string", "/chatter", "60") as sub:
         sub.until("READY", 20)
         with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "50"):
@@ -595,7 +596,21 @@ def test_sighup_keeps_streams_and_a_disabled_manager_is_cut_off_within_5s(networ
             for name in ("robot_a", "robot_b"):
                 network.robots[name].proc.send_signal(signal.SIGHUP)
             assert len(got(sub.until(None, 2.0))) >= 50, "the stream stalled across SIGHUP"
-            assert "reloaded" in network.robots["robot_a"].logs()
+            assert "reloaded" in robot_a.logs()
+            # [ros2] local on SIGHUP withdraws /chatter, and the log says why (it said
+            # "its publisher, its server or the grant that carried it is gone", both there)
+            config, seen = robot_a.config.read_text(), len(robot_a.logs())
+            robot_a.config.write_text(config + 'local = ["/chatter"]\n')  # the file ends in [ros2]
+            try:
+                robot_a.proc.send_signal(signal.SIGHUP)
+                withdrawn = until(lambda: [line for line in robot_a.logs()[seen:].splitlines()
+                                           if "no longer offering topic /chatter" in line], 10,
+                                  "robot A withdrawing /chatter")[0]
+                assert withdrawn.endswith("its name is local to this robot ([ros2] local)"), withdrawn
+            finally:
+                robot_a.config.write_text(config)
+                robot_a.proc.send_signal(signal.SIGHUP)
+            collect(sub, 5, 20)  # offered again once /chatter is not local
             result = network.cli("disable-manager", "robot_a")
             assert result.returncode == 0, result.stderr
             try:

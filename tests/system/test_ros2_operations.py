@@ -88,6 +88,9 @@ def test_a_re_added_grant_reaches_its_flow_within_10_s_every_time(network):
                 _first_message_within(sub, time.monotonic(), 10, "re-added publish grant")
         log_a = network.robots["robot_a"].logs()[seen_a:]
         assert "robot_b may not subscribe" not in log_a and "DENY ros2_topic_out" not in log_a, log_a[-3000:]
+        # and its offer's withdrawal names the grant that went
+        assert "no longer offering topic /chatter [std_msgs/msg/String]: not_granted: /talker may not publish " \
+            "/chatter" in log_a, log_a[-3000:]
     finally:
         network.cli("grant", "robot_b", "subscribe", "*", "/chatter", "std_msgs/msg/String")
         network.cli("grant", "robot_a", "publish", "/talker", "/chatter", "std_msgs/msg/String")
