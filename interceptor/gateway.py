@@ -157,6 +157,9 @@ class Gateway(Admission, Outbound, Health):
         self.keeper.key_known = self._key_known
         self._own_access: AccessToken | None = None
         self._own_token: str | None = None
+        #: the certificate a reload is installing while it applies the feed it read with
+        #: it: our own serial in that feed is the new certificate's (_on_feed)
+        self._installing: CertSource | None = None
         #: Peer interceptors we opened streams to, by (manager, certificate thumbprint):
         #: where to show them our new token and fetch theirs.
         self._peer_endpoints: dict[tuple[str, str], tuple[str, int]] = {}
@@ -396,6 +399,7 @@ class Gateway(Admission, Outbound, Health):
         monitor_model = MonitorModel.load(cfg.monitor.model) if cfg.monitor is not None else None
         certs = self._load_certs(cfg)  # one certificate source: every holder reads it by reference
         probe = AuthzClient(cfg.authz, certs.authz_ctx)
+        feed_applied = False
         try:
             token = await probe.fetch_token()
             # the feed as it is now, read with the new certificate: the one held may be stale
@@ -410,12 +414,22 @@ class Gateway(Admission, Outbound, Health):
                     # read from the registry every 0.25 s, has yet to say so (seen under load)
                     await asyncio.sleep(0.5)
                 if feed is not None:
-                    self.verifier.apply(feed)
+                    self._installing = certs  # the old serial, revoked in it, is about to be replaced
+                    try:
+                        self.verifier.apply(feed)
+                    finally:
+                        self._installing = None
+                    feed_applied = True
                     self.verifier.last_feed_at = time.time()
         finally:
             await probe.close()
-        self.verifier.verify(token.token, certs.own_der)  # bound to the new certificate, not revoked
-        self.keeper.check(token)  # for our manager: the registry may bind the renewed certificate to another
+        try:
+            self.verifier.verify(token.token, certs.own_der)  # bound to the new certificate, not revoked
+            self.keeper.check(token)  # for our manager: the registry may bind the renewed certificate to another
+        except CryptorosError:
+            if feed_applied:  # the old certificate stays: that feed is judged against it after all
+                self._on_feed(self.verifier.revocations)
+            raise
         self.certs = certs  # the next handshake, in or out, uses it; the public port stays as it is
         self.drop_spares()  # made with the old certificate: a token bound to the new one fails on them
         if cfg.limits.max_new_connections_per_second != self.cfg.limits.max_new_connections_per_second:
@@ -444,7 +458,7 @@ class Gateway(Admission, Outbound, Health):
         """When the feed revokes our own token or disables our manager, drop the token
         (nothing is allowed on it any more) and ask for a new one at once."""
         own = self._own_access
-        serial = self.certs.own_serial
+        serial = (self._installing or self.certs).own_serial
         if serial in revocations.revoked_serials:
             log.error("our own certificate (serial %x) was revoked by the CA: no token is issued to it any more; "
                       "renew it (cryptoros-certs renew, set-cert, SIGHUP)", serial)

@@ -647,7 +647,8 @@ def test_a_reload_that_gets_no_token_for_the_new_certificate_keeps_the_old_one_e
 
 def test_a_renewed_certificate_is_used_everywhere_after_sighup(network):
     """Day 2: robot A's certificate is renewed (new key), the registry bound to it
-    (``set-cert``: tokens of the old one revoked) and robot A reloaded. Every holder of
+    (``set-cert``: tokens of the old one revoked), the old one revoked with the CA and
+    robot A reloaded. Every holder of
     the certificate reads the new one: the authorization server sees it (a token is
     issued), the token is bound to it, and robot B accepts robot A's new streams."""
     import json
@@ -667,9 +668,16 @@ def test_a_renewed_certificate_is_used_everywhere_after_sighup(network):
         assert time.monotonic() < deadline, "robot A's /healthz did not turn ok"
         time.sleep(0.1)
     address = network.robots["robot_a"].address
+    old_serial = int(_get_json(network, "robot_a", "/status")["certificate"]["serial"], 16)  # the one in use
     renewed = network.pki.issue("robot_a", kind="interceptor", sans=(f"IP:{address}",), force=True)
     result = network.cli("set-cert", "robot_a", "--fingerprint", renewed.fingerprint_sha256)
     assert result.returncode == 0, result.stderr
+    # the old certificate revoked, as the runbook does: robot A, still on it, says so
+    # once; the reload that installs the new one did too (ROS 2 audit), the old serial
+    # checked against the feed the reload reads
+    network.pki.revoke(old_serial)
+    until(lambda: f"our own certificate (serial {old_serial:x}) was revoked" in network.robots["robot_a"].logs(),
+          20, "robot A reporting its old certificate revoked")
     log_before = len(network.robots["robot_a"].logs())
     network.robots["robot_a"].proc.send_signal(signal.SIGHUP)
     deadline = time.monotonic() + 20
