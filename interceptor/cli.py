@@ -304,10 +304,13 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
         if ros2_profile == "-":
             click.echo(text, nl=False)
         else:
+            from cryptoros.outputs import writing
+
             try:
-                Path(ros2_profile).write_text(text, encoding="utf-8")
-            except OSError as exc:
-                _fail(f"cannot write {ros2_profile}: {exc.strerror or exc}")
+                with writing(ros2_profile) as target:  # its directories made (/etc/cryptoros/..., docs/ros2.md)
+                    target.write_text(text, encoding="utf-8")
+            except click.ClickException as exc:
+                _fail(exc.message)
             click.echo(f"wrote {ros2_profile}: start every ROS 2 node of this robot with "
                        f"{PROFILE_ENV}={Path(ros2_profile).resolve()} (and ROS_DOMAIN_ID of its [ros2] domain_id)")
         return

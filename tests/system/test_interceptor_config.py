@@ -348,15 +348,19 @@ def test_urls_is_not_a_key_of_its_own(tmp_path):
         load(cfg)
 
 
-def test_ros2_profile_into_a_missing_directory_is_one_line(tmp_path):
-    """Operator audit: ``--ros2-profile /nonexist/p.xml`` ended in a traceback."""
+def test_ros2_profile_makes_its_directory_and_an_unwritable_place_is_one_line(tmp_path):
+    """``--ros2-profile /etc/cryptoros/dds-localhost.xml`` (docs/ros2.md) makes the
+    directory as the other CLI outputs do; a place that cannot be written (a file where a
+    directory should be) is one line, not a traceback."""
     from click.testing import CliRunner
 
     from interceptor.cli import main
 
-    result = CliRunner().invoke(main, ["--ros2-profile", str(tmp_path / "nonexist" / "p.xml")])
+    written = CliRunner().invoke(main, ["--ros2-profile", str(tmp_path / "etc" / "cryptoros" / "p.xml")])
+    assert written.exit_code == 0, written.output
+    assert (tmp_path / "etc" / "cryptoros" / "p.xml").read_text().startswith("<?xml"), written.output
+    (tmp_path / "file").write_text("")
+    result = CliRunner().invoke(main, ["--ros2-profile", str(tmp_path / "file" / "p.xml")])
     assert result.exit_code == 2, result.output
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("cryptoros-interceptor: error: cannot write "), result.output
-    written = CliRunner().invoke(main, ["--ros2-profile", str(tmp_path / "p.xml")])
-    assert written.exit_code == 0 and (tmp_path / "p.xml").read_text().startswith("<?xml"), written.output
