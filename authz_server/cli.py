@@ -495,7 +495,7 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool) -> None:
         raise RegistryError(f"cannot read policy file {file}: {exc.strerror}") from exc
     except UnicodeDecodeError as exc:
         raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
-    doc = load_yaml(text, f"policy file {file}")
+    doc = load_yaml(text, "policy file", "<stdin>" if file == "-" else file)
     registry = _registry(ctx, create=True)
     named = {m.get("name") for m in doc.get("managers", []) if isinstance(m, dict)} if isinstance(doc, dict) else set()
     removed = [] if merge else sorted(m.name for m in registry.list_managers() if m.name not in named)

@@ -74,15 +74,40 @@ def _unique_key_loader() -> type:
     return UniqueKeyLoader
 
 
-def load_yaml(text: str, what: str) -> object:
-    """The document ``text`` holds (``what`` names it in the error): RegistryError, one
-    line, on a syntax error or a key given twice in one mapping."""
+def load_yaml(text: str, what: str, path: str) -> object:
+    """The document ``text`` holds: RegistryError, one line, on a syntax error or a key
+    given twice in one mapping, as ``path:line:column: what is not valid YAML: problem``
+    (``what`` names the file's role, ``path`` the file as the operator gave it)."""
     import yaml
 
     try:
         return yaml.load(text, Loader=_unique_key_loader())  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
-        raise RegistryError(f"{what} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        raise RegistryError(_yaml_problem(exc, text, what, path)) from None
+
+
+def _yaml_problem(exc: Exception, text: str, what: str, path: str) -> str:
+    import yaml
+
+    if isinstance(exc, yaml.MarkedYAMLError) and exc.problem_mark is not None:
+        mark, problem, context = exc.problem_mark, exc.problem or "", exc.context
+        if context == "while scanning an alias" and exc.context_mark is not None:
+            # the place to fix is the '*' itself, not the character after it
+            mark, context = exc.context_mark, None
+            problem = "a value starting with '*' is a YAML alias: quote it ('*', '/robot_a/*')"
+        elif "'\\t'" in problem:
+            problem += " (YAML indents with spaces, not tabs)"
+        if context and exc.context_mark is not None:
+            problem += f" ({context} started at line {exc.context_mark.line + 1}, column {exc.context_mark.column + 1})"
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}"
+    elif isinstance(exc, yaml.reader.ReaderError):
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1
+        char = chr(exc.character) if isinstance(exc.character, int) else exc.character
+        where, problem = f"{path}:{line}:{column}", f"character {char!r} is not allowed in YAML"
+    else:  # pragma: no cover - every error PyYAML raises on text is one of the two above
+        where, problem = path, " ".join(str(exc).split())
+    return f"{where}: {what} is not valid YAML: {' '.join(problem.split())}"
 
 
 # ---------------------------------------------------------------------- policy from-graph
@@ -140,7 +165,7 @@ def _types(type_values: tuple[str, ...], types_file: str | None) -> dict[str, st
             raise RegistryError(f"cannot read types file {types_file}: {exc.strerror}") from None
         except UnicodeDecodeError as exc:
             raise RegistryError(f"types file {types_file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
-        doc = load_yaml(text, f"types file {types_file}")
+        doc = load_yaml(text, "types file", types_file)
         if not isinstance(doc, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in doc.items()):
             raise RegistryError(f"types file {types_file}: expected a mapping of name to type "
                                 "(/chatter: std_msgs/msg/String)")
