@@ -497,7 +497,9 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool) -> None:
         raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     doc = load_yaml(text, "policy file", "<stdin>" if file == "-" else file)
     registry = _registry(ctx, create=True)
-    named = {m.get("name") for m in doc.get("managers", []) if isinstance(m, dict)} if isinstance(doc, dict) else set()
+    # the names only, for the line below; import_policy checks the shape of it all
+    listed = doc.get("managers") if isinstance(doc, dict) else None
+    named = {m.get("name") for m in listed if isinstance(m, dict)} if isinstance(listed, list) else set()
     removed = [] if merge else sorted(m.name for m in registry.list_managers() if m.name not in named)
     stats = registry.import_policy(doc, merge=merge, dry_run=dry_run)
     click.echo(("would import (dry run, nothing changed): " if dry_run else "imported: ")

@@ -1000,14 +1000,16 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
     unknown = set(doc) - {"version", "managers"}
     if unknown:
         raise RegistryError(f"policy: unknown key(s) {', '.join(sorted(map(str, unknown)))}")
-    if doc.get("version") != POLICY_VERSION:
-        raise RegistryError(f"policy: version must be {POLICY_VERSION}, got {doc.get('version')!r}")
-    # only an absent or null list is empty: '{}' (or '', 0) read as [] would remove every
-    # manager, while a non-empty mapping is refused
+    version = doc.get("version")
+    if type(version) is not int or version != POLICY_VERSION:  # not 1.0, nor true (== 1 in Python)
+        raise RegistryError(f"policy: version must be {POLICY_VERSION}, got {version!r}")
+    # only 'managers: []' is empty: an absent or null list (a file cut short after
+    # 'managers:') or '{}' read as [] would remove every manager
     managers = doc.get("managers")
-    managers = [] if managers is None else managers
     if not isinstance(managers, list):
-        raise RegistryError("policy: 'managers' must be a list")
+        found = _shape(managers) if "managers" in doc else "no 'managers' key"
+        raise RegistryError(f"policy: 'managers' must be a list, got {found} "
+                            "(write 'managers: []' for a policy with none)")
     out: dict[str, WantedManager] = {}
     for i, m in enumerate(managers):
         where = f"policy: managers[{i}]"
@@ -1030,6 +1032,21 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
             raise RegistryError(f"{where}: manager {name!r} listed twice")
         out[name] = WantedManager(name, fp, enabled, grants)
     return out
+
+
+def _shape(value: object) -> str:
+    """How a YAML value reads, for an error that says what was found instead."""
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, bool):
+        return f"a boolean ({value})".lower()
+    if isinstance(value, Mapping):
+        return "a mapping"
+    if isinstance(value, str):
+        return f"a string ({value!r})" if len(value) <= 40 else "a string"
+    if isinstance(value, int | float):
+        return f"a number ({value})"
+    return type(value).__name__
 
 
 def _parse_grants(grants: object) -> frozenset[GrantRow]:

@@ -1,8 +1,8 @@
 """``cryptoros-authz import`` of a hand-written policy, as an operator runs it: the CLI
 as a subprocess on a real SQLite registry.
 
-A policy that is not YAML is one error line naming the place (``file:line:column``),
-exit status 2, and the registry unchanged.
+A policy of the wrong shape or not YAML at all is one error line naming the place
+(``file:line:column``), exit status 2, and the registry unchanged.
 """
 
 from __future__ import annotations
@@ -73,6 +73,52 @@ def one_line_error(result) -> str:
     assert len(lines) == 1 and lines[0].startswith("cryptoros-authz: error: "), result.stderr
     assert "Traceback" not in result.stderr and result.stdout == ""
     return lines[0]
+
+
+SHAPES = {
+    # audit: these three raised TypeError in the CLI before the policy was checked
+    "truncated": ("version: 1\nmanagers:\n", "'managers' must be a list, got nothing (null)"),
+    "null managers": ("version: 1\nmanagers: null\n", "'managers' must be a list, got nothing (null)"),
+    "int managers": ("version: 1\nmanagers: 5\n", "'managers' must be a list, got a number (5)"),
+    # the same file cut after its first line would remove every manager
+    "no managers": ("version: 1\n", "'managers' must be a list, got no 'managers' key"),
+    "string managers": ("version: 1\nmanagers: robot1\n", "'managers' must be a list, got a string ('robot1')"),
+    "mapping managers": ("version: 1\nmanagers: {robot1: {}}\n", "'managers' must be a list, got a mapping"),
+    "empty file": ("", "policy must be a mapping"),
+    "list file": ("- version: 1\n", "policy must be a mapping"),
+    "float version": ("version: 1.0\nmanagers: []\n", "version must be 1, got 1.0"),
+    "bool version": ("version: true\nmanagers: []\n", "version must be 1, got True"),
+    "null version": ("version:\nmanagers: []\n", "version must be 1, got None"),
+    "null manager": ("version: 1\nmanagers:\n-\n", "managers[0] must be a mapping"),
+    "int name": ("version: 1\nmanagers:\n- name: 5\n", "invalid manager name 5"),
+    "list fingerprint": ("version: 1\nmanagers:\n- {name: robot1, fingerprint_sha256: [a]}\n",
+                         "invalid certificate fingerprint"),
+    "int grants": ("version: 1\nmanagers:\n- {name: robot1, grants: 5}\n", "'grants' must be a mapping"),
+    "list grants": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n  - publish: []\n",
+                    "'grants' must be a mapping"),
+    "null grant list": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n    publish:\n",
+                        "grants.publish must be a list"),
+    "mapping grant list": ("version: 1\nmanagers:\n- name: robot1\n  grants: {publish: {node: /a}}\n",
+                           "grants.publish must be a list"),
+    "null grant": ("version: 1\nmanagers:\n- name: robot1\n  grants: {publish: [null]}\n",
+                   "grants.publish[0] must have exactly the keys node, topic, type"),
+    "list node": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n    publish:\n"
+                  "    - {node: [/a], topic: /t, type: std_msgs/String}\n", "invalid node name"),
+}
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_a_policy_of_the_wrong_shape_is_one_line_and_changes_nothing(db, tmp_path, shape):
+    text, message = SHAPES[shape]
+    before = ok(authz("export", db=db))
+    policy = write(tmp_path, text)
+    # a plain import is the one that removes what the file leaves out; the three shapes
+    # the audit found raising a traceback are tried with --merge too
+    modes = ((), ("--merge",)) if shape in ("truncated", "null managers", "int managers") else ((),)
+    for mode in modes:
+        line = one_line_error(authz("import", *mode, policy, db=db))
+        assert message in line, (mode, line)
+    assert ok(authz("export", db=db)) == before
 
 
 YAML_ERRORS = {
