@@ -644,9 +644,11 @@ class Registry:
     def import_policy(self, policy: object, *, merge: bool = False, dry_run: bool = False) -> dict[str, int]:
         """Make the registry's policy equal to ``policy`` (or only add, with ``merge``).
 
-        The whole document is validated before anything is written; the change is one
-        transaction. Returns counts of what changed (``dry_run``: would change; the
-        transaction is rolled back).
+        A manager the policy names without a ``fingerprint_sha256`` key keeps its
+        certificate; an explicit null unbinds it (not on a merge). The whole document
+        is validated before anything is written; the change is one transaction.
+        Returns counts of what changed (``dry_run``: would change; the transaction is
+        rolled back).
         """
         wanted = parse_policy(policy)
         stats = {"managers_added": 0, "managers_removed": 0, "managers_changed": 0,
@@ -666,11 +668,9 @@ class Registry:
                 }
                 before = self._states(s)
                 orig_fp = {name: m.cert_fingerprint for name, m in existing.items()}
-                target_fp = {
-                    name: (w.fingerprint if (w.fingerprint is not None or not merge or name not in existing)
-                           else orig_fp[name])
-                    for name, w in wanted.items()
-                }
+                target_fp = {name: _target_fingerprint(w, orig_fp.get(name), merge=merge, known=name in existing)
+                              for name, w in wanted.items()}
+                _check_one_manager_per_certificate(wanted, target_fp)
                 if merge:
                     for name, fp in orig_fp.items():
                         if name not in wanted and fp is not None and fp in target_fp.values():
@@ -988,6 +988,30 @@ class WantedManager:
     fingerprint: str | None
     enabled: bool | None  # None: not said (true, or on a merge the manager's own state)
     grants: frozenset[GrantRow]
+    # False: the file has no fingerprint_sha256 key, and a manager the registry holds
+    # keeps its certificate (hand-written policies leave the key out)
+    fingerprint_given: bool = True
+
+
+def _target_fingerprint(w: WantedManager, current: str | None, *, merge: bool, known: bool) -> str | None:
+    """The certificate ``w`` is bound to after the import: a manager the registry holds
+    keeps its own when the file leaves the key out, or (on a merge) says null."""
+    if known and (not w.fingerprint_given or (merge and w.fingerprint is None)):
+        return current
+    return w.fingerprint
+
+
+def _check_one_manager_per_certificate(wanted: Mapping[str, WantedManager], target: Mapping[str, str | None]) -> None:
+    owner: dict[str, str] = {}
+    for name, fp in target.items():
+        if fp is None:
+            continue
+        if fp in owner:
+            kept = [n for n in (owner[fp], name) if not wanted[n].fingerprint_given]
+            raise RegistryError(
+                f"policy binds one certificate to managers {owner[fp]!r} and {name!r}"
+                + (f" ({kept[0]!r} keeps its own: the file gives it no fingerprint_sha256)" if kept else ""))
+        owner[fp] = name
 
 
 _MANAGER_KEYS = {"name", "fingerprint_sha256", "enabled", "grants"}
@@ -1022,6 +1046,7 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
             name = validate_manager_name(m.get("name"))
             fp = m.get("fingerprint_sha256")
             fp = normalize_fingerprint(fp) if fp is not None else None
+            fp_given = "fingerprint_sha256" in m
             enabled = m.get("enabled")  # absent: true, or on a merge the manager's own state
             if enabled is not None and not isinstance(enabled, bool):
                 raise RegistryError(f"'enabled' must be true or false, got {enabled!r}")
@@ -1030,7 +1055,7 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
             raise RegistryError(f"{where}: {exc}") from None
         if name in out:
             raise RegistryError(f"{where}: manager {name!r} listed twice")
-        out[name] = WantedManager(name, fp, enabled, grants)
+        out[name] = WantedManager(name, fp, enabled, grants, fp_given)
     return out
 
 

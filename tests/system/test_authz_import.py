@@ -1,7 +1,8 @@
 """``cryptoros-authz import`` of a hand-written policy, as an operator runs it: the CLI
 as a subprocess on a real SQLite registry.
 
-A policy of the wrong shape or not YAML at all is one error line naming the place
+A manager the file names without ``fingerprint_sha256`` keeps its certificate. A
+policy of the wrong shape or not YAML at all is one error line naming the place
 (``file:line:column``), exit status 2, and the registry unchanged.
 """
 
@@ -73,6 +74,27 @@ def one_line_error(result) -> str:
     assert len(lines) == 1 and lines[0].startswith("cryptoros-authz: error: "), result.stderr
     assert "Traceback" not in result.stderr and result.stdout == ""
     return lines[0]
+
+
+def test_a_hand_written_policy_keeps_every_certificate(db, tmp_path):
+    """Audit: a plain import of a policy without fingerprint_sha256 keys (as the docs
+    write them) unbound every certificate, saying only 'managers changed 2'."""
+    before = ok(authz("export", db=db))
+    out = ok(authz("import", write(tmp_path, HAND_WRITTEN), db=db))
+    assert out.splitlines() == ["imported: managers added 0, managers removed 0, managers changed 0, "
+                                "grants added 0, grants removed 0, tokens revoked 0"]
+    assert ok(authz("export", db=db)) == before
+
+
+def test_a_certificate_a_manager_keeps_cannot_be_bound_to_another(db, tmp_path):
+    before = ok(authz("export", db=db))
+    # base takes robot1's certificate, while robot1 (no key) keeps it
+    clash = write(tmp_path, HAND_WRITTEN.replace("- name: base\n", f"- name: base\n  fingerprint_sha256: {FP1}\n"))
+    for mode in ((), ("--merge",)):
+        line = one_line_error(authz("import", *mode, clash, db=db))
+        assert "binds one certificate to managers 'robot1' and 'base'" in line, line
+        assert "'robot1' keeps its own: the file gives it no fingerprint_sha256" in line, line
+    assert ok(authz("export", db=db)) == before
 
 
 SHAPES = {
