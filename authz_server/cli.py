@@ -19,6 +19,7 @@ record and ``audit --verify`` checks its hash chain.
 from __future__ import annotations
 
 import asyncio
+import difflib
 import json
 import logging
 import os
@@ -33,7 +34,7 @@ from authz_server import keys as keymod
 from authz_server.changes import parse_since, summary
 from authz_server.cli_context import registry as _registry
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, shown_db
-from authz_server.policy_cli import load_yaml, write_or_print
+from authz_server.policy_cli import import_lines, load_yaml, write_or_print
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
 from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
@@ -479,14 +480,22 @@ def export(ctx: click.Context, output: str | None) -> None:
     write_or_print(output, yaml.safe_dump(_registry(ctx).export_policy(), sort_keys=False))
 
 
+#: Grant lines an import lists before it only counts the rest (--all lists every one).
+IMPORT_GRANT_LINES = 200
+
+
 @main.command("import")
 @click.argument("file", type=str)
 @click.option("--merge", is_flag=True, help="Only add managers and grants; remove nothing.")
 @click.option("--dry-run", is_flag=True, help="Say what the import would change, and change nothing.")
+@click.option("--all", "list_all", is_flag=True,
+              help=f"List every grant added or removed (by default the first {IMPORT_GRANT_LINES}).")
 @click.pass_context
-def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool) -> None:
+def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool, list_all: bool) -> None:
     """Make the registry's policy equal to a YAML FILE ('-' for stdin), in one transaction.
-    A key given twice in one mapping (two ``subscribe:`` lists) is an error, not the last one kept."""
+    A key given twice in one mapping (two ``subscribe:`` lists) is an error, not the last one kept.
+    A manager without a ``fingerprint_sha256`` key keeps its certificate; ``null`` unbinds it
+    (not with --merge). Prints one line per manager and grant it changes, then the counts."""
     try:
         text = sys.stdin.read(POLICY_LIMIT + 1) if file == "-" else read_bounded(file, POLICY_LIMIT).decode("utf-8")
         if len(text) > POLICY_LIMIT:  # never a policy cut short: the rest would read as removed
@@ -497,13 +506,19 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool) -> None:
         raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     doc = load_yaml(text, "policy file", "<stdin>" if file == "-" else file)
     registry = _registry(ctx, create=True)
-    # the names only, for the line below; import_policy checks the shape of it all
-    listed = doc.get("managers") if isinstance(doc, dict) else None
-    named = {m.get("name") for m in listed if isinstance(m, dict)} if isinstance(listed, list) else set()
-    removed = [] if merge else sorted(m.name for m in registry.list_managers() if m.name not in named)
-    stats = registry.import_policy(doc, merge=merge, dry_run=dry_run)
+    known = [m.name for m in registry.list_managers()]
+    report = registry.import_policy_report(doc, merge=merge, dry_run=dry_run)
+    for line in import_lines(report, dry_run=dry_run, grant_lines=None if list_all else IMPORT_GRANT_LINES):
+        click.echo(line)
+    for name, fp in report.managers_added:
+        if fp is None:
+            near = difflib.get_close_matches(name, known, n=1)  # a typo, or a rename that loses the binding
+            click.echo(f"{PROG}: warning: manager {name} has no certificate: its grants reach nobody until "
+                       f"'{PROG} set-cert {name} --cert FILE'" + (f" (did you mean {near[0]}?)" if near else ""),
+                       err=True)
+    removed = sorted(report.managers_removed)
     click.echo(("would import (dry run, nothing changed): " if dry_run else "imported: ")
-               + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in stats.items())
+               + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in report.stats.items())
                + (f"; managers removed: {', '.join(removed)}" if removed else ""))
 
 

@@ -18,7 +18,7 @@ import click
 
 from authz_server.cli_context import registry as _registry
 from authz_server.graph_policy import ManagerMap, draft_policy, read_graph
-from authz_server.registry import GrantRow
+from authz_server.registry import PARAM_ACTIONS, GrantRow, PolicyImport
 from cryptoros.files import POLICY_LIMIT, read_bounded
 from cryptoros.errors import RegistryError
 
@@ -108,6 +108,42 @@ def _yaml_problem(exc: Exception, text: str, what: str, path: str) -> str:
     else:  # pragma: no cover - every error PyYAML raises on text is one of the two above
         where, problem = path, " ".join(str(exc).split())
     return f"{where}: {what} is not valid YAML: {' '.join(problem.split())}"
+
+
+_VERBS = {"add": "added", "remove": "removed", "bind": "bound", "unbind": "unbound", "change": "changed",
+          "enable": "enabled", "disable": "disabled"}
+
+
+def import_lines(report: PolicyImport, *, dry_run: bool, grant_lines: int | None) -> list[str]:
+    """One line per manager an import adds, removes or changes, then per grant it adds
+    or removes (``grant_lines`` of them at most, the rest counted), in the form
+    ``cryptoros-authz grant`` takes them. A dry run says what it would do."""
+    def said(verb: str) -> str:
+        return f"would {verb}" if dry_run else _VERBS[verb]
+
+    lines = [f"{said('add')} manager {name}" + ("" if fp else " (no certificate)")
+             for name, fp in report.managers_added]
+    lines += [f"{said('remove')} manager {name}" for name in sorted(report.managers_removed)]
+    for name, was, now in report.certificates:
+        if now is None:
+            lines.append(f"{said('unbind')} the certificate of manager {name} (was {was}): "
+                         f"it gets no token until '{PROG} set-cert'")
+        elif was is None:
+            lines.append(f"{said('bind')} manager {name} to certificate {now}")
+        else:
+            lines.append(f"{said('change')} the certificate of manager {name} from {was} to {now}")
+    lines += [f"{said('enable' if on else 'disable')} manager {name}" for name, on in report.enabled]
+    grants = [("add", m, g) for m, g in report.grants_added] + [("remove", m, g) for m, g in report.grants_removed]
+    shown = grants if grant_lines is None else grants[:grant_lines]
+    for verb, manager, g in shown:
+        lines.append(f"{said(verb)} grant {manager} {g.action} {g.node} {g.name}"
+                     + ("" if g.action in PARAM_ACTIONS else f" {g.type}"))
+    if len(shown) < len(grants):
+        rest = grants[len(shown):]
+        added = sum(1 for verb, _m, _g in rest if verb == "add")
+        lines.append(f"... and {len(rest)} more grant change(s) not listed ({added} added, {len(rest) - added} "
+                     "removed; --all lists them)")
+    return lines
 
 
 # ---------------------------------------------------------------------- policy from-graph
@@ -267,4 +303,4 @@ def export_sros2(ctx: click.Context, manager: str, enclave: str | None, output: 
 
 COMMANDS = (policy, import_sros2, export_sros2)
 
-__all__ = ["COMMANDS", "export_sros2", "import_sros2", "load_yaml", "policy"]
+__all__ = ["COMMANDS", "export_sros2", "import_lines", "import_sros2", "load_yaml", "policy"]

@@ -642,17 +642,20 @@ class Registry:
         return {"version": POLICY_VERSION, "managers": managers}
 
     def import_policy(self, policy: object, *, merge: bool = False, dry_run: bool = False) -> dict[str, int]:
+        """Counts of what :meth:`import_policy_report` changed."""
+        return self.import_policy_report(policy, merge=merge, dry_run=dry_run).stats
+
+    def import_policy_report(self, policy: object, *, merge: bool = False, dry_run: bool = False) -> PolicyImport:
         """Make the registry's policy equal to ``policy`` (or only add, with ``merge``).
 
         A manager the policy names without a ``fingerprint_sha256`` key keeps its
-        certificate; an explicit null unbinds it (not on a merge). The whole document
-        is validated before anything is written; the change is one transaction.
-        Returns counts of what changed (``dry_run``: would change; the transaction is
-        rolled back).
+        certificate; an explicit null unbinds it (not on a merge). The whole document is
+        validated before anything is written; the change is one transaction. Returns
+        what changed (``dry_run``: would change; the transaction is rolled back).
         """
         wanted = parse_policy(policy)
-        stats = {"managers_added": 0, "managers_removed": 0, "managers_changed": 0,
-                 "grants_added": 0, "grants_removed": 0, "tokens_revoked": 0}
+        report = PolicyImport()
+        stats = report.stats
         fps = [w.fingerprint for w in wanted.values() if w.fingerprint]
         if len(fps) != len(set(fps)):
             raise RegistryError("policy binds one certificate fingerprint to two managers")
@@ -681,6 +684,7 @@ class Registry:
                             stats["tokens_revoked"] += self._revoke_outstanding(s, name, "manager removed by import")
                             s.delete(m)
                             stats["managers_removed"] += 1
+                            report.managers_removed.append(name)
                 # Free changing fingerprints first so swapping certificates between managers works.
                 # A policy names one certificate per manager: a renewal's overlap ends with it.
                 for name, m in existing.items():
@@ -698,6 +702,7 @@ class Registry:
                         s.add(m)
                         s.flush()
                         stats["managers_added"] += 1
+                        report.managers_added.append((name, w.fingerprint))
                         if not enabled:
                             self._bump_serial(s)
                     else:
@@ -706,10 +711,12 @@ class Registry:
                         m.cert_fingerprint = target_fp[name]
                         if target_fp[name] != orig_fp[name]:
                             changed = shrink = True
+                            report.certificates.append((name, orig_fp[name], target_fp[name]))
                         # a merge that does not say 'enabled' leaves it: an import never
                         # re-enables a manager an operator disabled meanwhile
                         enabled = m.enabled if (w.enabled is None and merge) else w.enabled is not False
                         if m.enabled != enabled:
+                            report.enabled.append((name, enabled))
                             m.enabled = enabled
                             self._bump_serial(s)
                             changed = True
@@ -721,6 +728,7 @@ class Registry:
                                     cls.manager_id == m.id, cls.name == g.node,
                                     getattr(cls, column) == g.name, cls.data_type == g.type))
                                 stats["grants_removed"] += 1
+                                report.grants_removed.append((name, g))
                                 shrink = True
                         if shrink:
                             stats["tokens_revoked"] += self._revoke_outstanding(s, name, "policy import")
@@ -729,6 +737,7 @@ class Registry:
                     for g in sorted(w.grants - have):
                         self._add_grant(s, m, g)
                         stats["grants_added"] += 1
+                        report.grants_added.append((name, g))
                 if any(stats.values()):
                     self._managers_changed(s)
                     self._log_policy_change(s, before, stats["tokens_revoked"])
@@ -738,7 +747,7 @@ class Registry:
             pass
         except IntegrityError as exc:  # pragma: no cover - guarded by the checks above
             raise RegistryError(f"policy conflicts with the registry: {exc.orig}") from exc
-        return stats
+        return report
 
     def _log_policy_change(self, s: Session, before: dict[str, dict], tokens_revoked: int) -> None:
         """One change row for an import: per manager that changed, what changed."""
@@ -991,6 +1000,22 @@ class WantedManager:
     # False: the file has no fingerprint_sha256 key, and a manager the registry holds
     # keeps its certificate (hand-written policies leave the key out)
     fingerprint_given: bool = True
+
+
+@dataclass
+class PolicyImport:
+    """What an import changed (or, in a dry run, would change): the counts, and each
+    manager and grant it touched, in the order it touched them."""
+
+    stats: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
+        ("managers_added", "managers_removed", "managers_changed", "grants_added", "grants_removed",
+         "tokens_revoked"), 0))
+    managers_added: list[tuple[str, str | None]] = field(default_factory=list)  # (name, fingerprint)
+    managers_removed: list[str] = field(default_factory=list)
+    certificates: list[tuple[str, str | None, str | None]] = field(default_factory=list)  # (name, was, now)
+    enabled: list[tuple[str, bool]] = field(default_factory=list)  # (name, now)
+    grants_added: list[tuple[str, GrantRow]] = field(default_factory=list)
+    grants_removed: list[tuple[str, GrantRow]] = field(default_factory=list)
 
 
 def _target_fingerprint(w: WantedManager, current: str | None, *, merge: bool, known: bool) -> str | None:

@@ -1,9 +1,10 @@
 """``cryptoros-authz import`` of a hand-written policy, as an operator runs it: the CLI
 as a subprocess on a real SQLite registry.
 
-A manager the file names without ``fingerprint_sha256`` keeps its certificate. A
-policy of the wrong shape or not YAML at all is one error line naming the place
-(``file:line:column``), exit status 2, and the registry unchanged.
+A manager the file names without ``fingerprint_sha256`` keeps its certificate; every
+import and dry run names each manager and grant it changes, one line each, before the
+counts; a policy of the wrong shape or not YAML at all is one error line naming the
+place (``file:line:column``), exit status 2, and the registry unchanged.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ def one_line_error(result) -> str:
     return lines[0]
 
 
-def test_a_hand_written_policy_keeps_every_certificate(db, tmp_path):
+def test_a_hand_written_policy_keeps_every_certificate_and_null_unbinds_one_by_name(db, tmp_path):
     """Audit: a plain import of a policy without fingerprint_sha256 keys (as the docs
     write them) unbound every certificate, saying only 'managers changed 2'."""
     before = ok(authz("export", db=db))
@@ -84,6 +85,19 @@ def test_a_hand_written_policy_keeps_every_certificate(db, tmp_path):
     assert out.splitlines() == ["imported: managers added 0, managers removed 0, managers changed 0, "
                                 "grants added 0, grants removed 0, tokens revoked 0"]
     assert ok(authz("export", db=db)) == before
+
+    # an explicit null still unbinds, and says so by name, first in the dry run
+    unbind = write(tmp_path, HAND_WRITTEN.replace("- name: robot2\n", "- name: robot2\n  fingerprint_sha256: null\n"))
+    dry = ok(authz("import", "--dry-run", unbind, db=db)).splitlines()
+    assert dry[0] == (f"would unbind the certificate of manager robot2 (was {FP2}): "
+                      "it gets no token until 'cryptoros-authz set-cert'")
+    assert dry[1].startswith("would import (dry run, nothing changed): managers added 0, managers removed 0, "
+                             "managers changed 1,") and len(dry) == 2
+    assert ok(authz("export", db=db)) == before
+    done = ok(authz("import", unbind, db=db)).splitlines()
+    assert done[0] == dry[0].replace("would unbind", "unbound") and done[1].startswith("imported: ")
+    managers = {m["name"]: m["fingerprint_sha256"] for m in _exported(db)["managers"]}
+    assert managers == {"robot1": FP1, "robot2": None, "base": None}
 
 
 def test_a_certificate_a_manager_keeps_cannot_be_bound_to_another(db, tmp_path):
@@ -143,6 +157,76 @@ def test_a_policy_of_the_wrong_shape_is_one_line_and_changes_nothing(db, tmp_pat
     assert ok(authz("export", db=db)) == before
 
 
+def test_a_merge_names_the_manager_it_adds_and_warns_it_has_no_certificate(db, tmp_path):
+    """Audit: a misspelled manager in 'import --merge' became a new manager without a
+    certificate, and the output said only 'managers added 1'."""
+    typo = write(tmp_path, "version: 1\nmanagers:\n- name: robto1\n  grants:\n    publish:\n"
+                           "    - {node: /robot1/lidar2, topic: /robot1/scan2, type: sensor_msgs/LaserScan}\n")
+    result = authz("import", "--merge", typo, db=db)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == [
+        "added manager robto1 (no certificate)",
+        "added grant robto1 publish /robot1/lidar2 /robot1/scan2 sensor_msgs/LaserScan",
+        "imported: managers added 1, managers removed 0, managers changed 0, grants added 1, grants removed 0, "
+        "tokens revoked 0",
+    ]
+    assert result.stderr.splitlines() == [
+        "cryptoros-authz: warning: manager robto1 has no certificate: its grants reach nobody until "
+        "'cryptoros-authz set-cert robto1 --cert FILE' (did you mean robot1?)"]
+    # a manager added with its certificate is named, with no warning
+    bound = write(tmp_path, f"version: 1\nmanagers:\n- {{name: robot3, fingerprint_sha256: {FP3}}}\n", "bound.yaml")
+    result = authz("import", "--merge", bound, db=db)
+    assert result.stdout.splitlines()[0] == "added manager robot3" and result.stderr == ""
+
+
+def test_a_dry_run_lists_every_change_an_import_then_makes(db, tmp_path):
+    """Review before applying: each manager added, removed, rebound, disabled, and each
+    grant added or removed, one line each; the import prints the same in the past tense."""
+    before = ok(authz("export", db=db))
+    policy = write(tmp_path, f"""\
+version: 1
+managers:
+- name: robot1
+  fingerprint_sha256: {FP3}
+  enabled: false
+  grants:
+    publish:
+    - {{node: /robot1/driver, topic: /robot1/scan, type: sensor_msgs/LaserScan}}
+    - {{node: /robot1/driver, topic: /robot1/odom, type: nav_msgs/Odometry}}
+- name: base
+- name: robot4
+  fingerprint_sha256: {FP2}
+""")
+    dry = ok(authz("import", "--dry-run", policy, db=db)).splitlines()
+    assert dry == [
+        "would add manager robot4",
+        "would remove manager robot2",
+        f"would change the certificate of manager robot1 from {FP1} to {FP3}",
+        "would disable manager robot1",
+        "would add grant robot1 publish /robot1/driver /robot1/odom nav_msgs/Odometry",
+        "would remove grant robot1 read_param /robot1/driver /fleet",
+        "would remove grant base subscribe /map_server /robot1/scan sensor_msgs/LaserScan",
+        "would import (dry run, nothing changed): managers added 1, managers removed 1, managers changed 1, "
+        "grants added 1, grants removed 2, tokens revoked 0; managers removed: robot2",
+    ]
+    assert ok(authz("export", db=db)) == before
+    done = ok(authz("import", policy, db=db)).splitlines()
+    assert done[:-1] == [line.replace("would add", "added").replace("would remove", "removed")
+                         .replace("would change", "changed").replace("would disable", "disabled")
+                         for line in dry[:-1]]
+    assert done[-1].startswith("imported: managers added 1, managers removed 1, managers changed 1,")
+
+
+def test_a_large_change_lists_the_first_grants_and_counts_the_rest(db, tmp_path):
+    rows = "".join(f"    - {{node: /robot1/driver, topic: /t{i:03}, type: std_msgs/String}}\n" for i in range(205))
+    policy = write(tmp_path, f"version: 1\nmanagers:\n- name: robot1\n  grants:\n    publish:\n{rows}")
+    lines = ok(authz("import", "--merge", "--dry-run", policy, db=db)).splitlines()
+    assert len(lines) == 202 and lines[0] == "would add grant robot1 publish /robot1/driver /t000 std_msgs/String"
+    assert lines[-2] == "... and 5 more grant change(s) not listed (5 added, 0 removed; --all lists them)"
+    every = ok(authz("import", "--merge", "--dry-run", "--all", policy, db=db)).splitlines()
+    assert len(every) == 206 and every[204] == "would add grant robot1 publish /robot1/driver /t204 std_msgs/String"
+
+
 YAML_ERRORS = {
     "tab": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n\tpublish: []\n",
             "{f}:5:1: policy file is not valid YAML: found character '\\t' that cannot start any token "
@@ -168,3 +252,9 @@ def test_a_yaml_error_names_the_file_line_column_and_problem(db, tmp_path, text,
     line = one_line_error(authz("import", policy, db=db))
     assert line == "cryptoros-authz: error: " + message.format(f=policy), line
     assert ok(authz("export", db=db)) == before
+
+
+def _exported(db: str) -> dict:
+    import yaml
+
+    return yaml.safe_load(ok(authz("export", db=db)))

@@ -70,13 +70,15 @@ def test_a_dry_run_import_says_what_it_would_remove_and_changes_nothing(tmp_path
     (tmp_path / "one.yaml").write_text(POLICY)
     dry = run("--db", db, "import", "--dry-run", str(tmp_path / "one.yaml"))
     assert dry.exit_code == 0, dry.output
-    assert dry.stdout.startswith("would import (dry run, nothing changed): managers added 0, managers removed 1")
-    assert dry.stdout.rstrip().endswith("managers removed: robot_b"), dry.stdout
+    assert dry.stdout.splitlines() == [
+        "would remove manager robot_b",
+        "would import (dry run, nothing changed): managers added 0, managers removed 1, managers changed 0, "
+        "grants added 0, grants removed 0, tokens revoked 0; managers removed: robot_b"]
     assert exported(db) == before
     merged = run("--db", db, "import", "--merge", "--dry-run", str(tmp_path / "one.yaml"))
     assert "managers removed 0" in merged.stdout and "managers removed:" not in merged.stdout
     done = run("--db", db, "import", str(tmp_path / "one.yaml"))
-    assert done.stdout.startswith("imported: ") and "managers removed: robot_b" in done.stdout, done.stdout
+    assert done.stdout.startswith("removed manager robot_b\nimported: ") and "managers removed: robot_b" in done.stdout
     assert "robot_b" not in exported(db)
 
 
