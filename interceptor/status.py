@@ -17,13 +17,14 @@ import click
 from cryptoros.errors import ConfigError
 
 
-def _url_from_config(path: str) -> str:
+def _url_from_config(path: str) -> tuple[str, str]:
+    """The ``/status`` URL of the interceptor ``path`` configures, and its manager."""
     from interceptor.config import load
 
     cfg = load(path)
     if cfg.metrics is None:
         raise ConfigError(f"{path} has no [listen] metrics endpoint: status is served there")
-    return f"http://{cfg.metrics.host}:{cfg.metrics.port}/status"
+    return f"http://{cfg.metrics.host}:{cfg.metrics.port}/status", cfg.manager
 
 
 def render(status: dict) -> list[str]:
@@ -98,20 +99,30 @@ def render_denials(status: dict) -> list[str]:
 
 
 def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoros") -> dict:
+    expected = None  # the manager the configuration names: the interceptor answering must be its
     if not url:
         if not config_path:
             raise click.UsageError("give --config FILE (or --url http://127.0.0.1:PORT/status)")
         try:
-            url = _url_from_config(config_path)
+            url, expected = _url_from_config(config_path)
         except ConfigError as exc:
             raise click.ClickException(str(exc)) from None
     try:
         with urllib.request.urlopen(url, timeout=5) as resp:
-            return json.loads(resp.read())
+            body = json.loads(resp.read())
     except (urllib.error.URLError, OSError, ValueError) as exc:
         reason = getattr(exc, "reason", exc)
         click.echo(f"{prog}: error: cannot read {url}: {reason}{_not_running_hint(reason, config_path)}", err=True)
         raise SystemExit(2) from None
+    answered = body.get("manager") if isinstance(body, dict) else None
+    if expected is not None and answered != expected:
+        # another interceptor on this host answers on the port the file names: its state is
+        # not this one's (two configurations sharing one [listen] metrics port)
+        click.echo(f"{prog}: error: {url} is the interceptor of manager {answered}, not {expected} as "
+                   f"{config_path} says: is {expected}'s interceptor running, and does another use its "
+                   "[listen] metrics port?", err=True)
+        raise SystemExit(2)
+    return body
 
 
 def _not_running_hint(reason: object, config_path: str | None) -> str:

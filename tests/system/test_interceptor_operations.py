@@ -369,6 +369,18 @@ def test_cryptoros_status_shows_token_grants_feed_certificate_and_peers(network)
     assert raw["peers"].get("robot_b", 0) >= 1  # robot B's topic stream into robot A
     down = run([script("cryptoros"), "status", "--url", "http://127.0.0.1:9/status"], timeout=30)
     assert down.returncode == 2 and "cannot read" in down.stderr and "Traceback" not in down.stderr
+    # ROS 2 audit: a file whose [listen] metrics port another interceptor answers on was
+    # shown that interceptor's state as its own
+    other = host.config.with_name("robot_a_on_b_port.toml")
+    a_port, b_port = host.metrics_port, network.hosts["robot_b"].metrics_port
+    text = host.config.read_text()
+    assert f"127.0.0.1:{a_port}" in text
+    other.write_text(text.replace(f"127.0.0.1:{a_port}", f"127.0.0.1:{b_port}"))
+    wrong = run([script("cryptoros"), "status", "--config", str(other)], timeout=30)
+    assert wrong.returncode == 2 and wrong.stdout == "", wrong.stdout + wrong.stderr
+    assert wrong.stderr.strip() == (f"cryptoros status: error: http://127.0.0.1:{b_port}/status is the interceptor "
+                                    f"of manager robot_b, not robot_a as {other} says: is robot_a's interceptor "
+                                    "running, and does another use its [listen] metrics port?"), wrong.stderr
 
 
 def _healthz(network, name: str) -> int:

@@ -19,7 +19,7 @@ def _closed_port() -> int:
 def test_a_refused_status_read_asks_whether_the_interceptor_runs(tmp_path, monkeypatch):
     config = tmp_path / "robot_a.toml"  # its [listen] metrics endpoint: a port nobody listens on
     url = f"http://127.0.0.1:{_closed_port()}/status"
-    monkeypatch.setattr("interceptor.status._url_from_config", lambda path: url)
+    monkeypatch.setattr("interceptor.status._url_from_config", lambda path: (url, "robot_a"))
     r = CliRunner().invoke(status, ["--config", str(config)])
     assert r.exit_code == 2
     lines = r.stderr.strip().splitlines()
