@@ -846,8 +846,9 @@ class Registry:
             jtis = tuple(s.scalars(select(RevokedToken.jti).where(RevokedToken.expires_at > int(now))
                                    .order_by(RevokedToken.jti)))
             disabled = tuple(s.scalars(select(Manager.name).where(Manager.enabled.is_(False)).order_by(Manager.name)))
-            learning = tuple(s.execute(select(Manager.name, Manager.learning_until)
-                                       .where(Manager.learning_until > int(now)).order_by(Manager.name)).tuples())
+            learning = tuple((name, until) for name, until in s.execute(
+                select(Manager.name, Manager.learning_until)
+                .where(Manager.learning_until > int(now)).order_by(Manager.name)))
             return RevocationFeed(serial, jtis, disabled, counters.get(REGISTRY_VERSION) or 0, learning)
 
     # ------------------------------------------------------------------ learning mode
