@@ -35,7 +35,7 @@ from authz_server.changes import parse_since, summary
 from authz_server.cli_context import registry as _registry
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, shown_db
 from authz_server.policy_cli import import_lines, load_yaml, write_or_print
-from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, GrantRow, Registry, validate_manager_name
+from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, PARAM_ACTIONS, GrantRow, Registry, validate_manager_name
 from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import pemfiles
@@ -334,8 +334,33 @@ def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, t
     added = reg.grant(manager, action, node, name, type_)
     click.echo(f"{'granted' if added else 'already granted'}: {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
     if added:
-        for line in node_overlaps(manager, node, reg.list_managers()):
+        managers = reg.list_managers()
+        lines = node_overlaps(manager, node, managers)
+        if action not in PARAM_ACTIONS:
+            lines += type_conflicts(_kind(action), name, {(m.name, g) for m in managers for g in m.grants})
+        for line in lines:
             click.echo(f"warning: {line}", err=True)
+
+
+def _kind(action: str) -> str:
+    return "topic" if action in ("publish", "subscribe") else "service"
+
+
+def type_conflicts(kind: str, name: str, held) -> list[str]:
+    """A line when the topic or service ``name`` is granted with more than one type among
+    ``held`` ((manager, grant) pairs): it carries one type, so a stream of any other is
+    refused; a typo (``sensor_msgs/LaserScn``) or a ROS 1 and a ROS 2 spelling of one
+    type (``std_msgs/String``, ``std_msgs/msg/String``: cryptoros carries no stream between
+    ROS 1 and ROS 2) is usually why."""
+    types: dict[str, set[str]] = {}
+    for manager, g in held:
+        if g.name == name and g.action not in PARAM_ACTIONS and _kind(g.action) == kind and g.type != "*":
+            types.setdefault(g.type, set()).add(manager)
+    if len(types) < 2:
+        return []
+    listed = "; ".join(f"{t} ({', '.join(sorted(ms))})" for t, ms in sorted(types.items()))
+    return [f"{kind} {name} is granted with {len(types)} types: {listed}; it carries one, and a stream of "
+            "another is refused: a typo, or a ROS 1 and a ROS 2 spelling of one type?"]
 
 
 #: overlaps named per grant at most (the rest are counted)
@@ -506,10 +531,16 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool, list_all:
         raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     doc = load_yaml(text, "policy file", "<stdin>" if file == "-" else file)
     registry = _registry(ctx, create=True)
-    known = [m.name for m in registry.list_managers()]
+    before = registry.list_managers()
+    known = [m.name for m in before]
     report = registry.import_policy_report(doc, merge=merge, dry_run=dry_run)
     for line in import_lines(report, dry_run=dry_run, grant_lines=None if list_all else IMPORT_GRANT_LINES):
         click.echo(line)
+    held = {(m.name, g) for m in before for g in m.grants} - set(report.grants_removed) | set(report.grants_added)
+    touched = sorted({(_kind(g.action), g.name) for _m, g in report.grants_added if g.action not in PARAM_ACTIONS})
+    for kind, name in touched:
+        for line in type_conflicts(kind, name, held):
+            click.echo(f"{PROG}: warning: {line}", err=True)
     for name, fp in report.managers_added:
         if fp is None:
             near = difflib.get_close_matches(name, known, n=1)  # a typo, or a rename that loses the binding

@@ -285,6 +285,31 @@ def test_a_grant_naming_nodes_another_manager_names_is_warned(tmp_path):
         assert r.returncode == 0 and r.stderr.strip() == "", (quiet, r.stderr)
 
 
+def test_a_topic_granted_with_a_second_type_is_warned_by_grant_and_import(tmp_path):
+    """Policy audit: type typos (sensor_msgs/LaserScn) and a ROS 1 and a ROS 2 spelling of
+    one topic's type were taken in silence; every stream of the odd type is then refused."""
+    db = f"sqlite:///{tmp_path / 'types.db'}"
+    ok(authz("add-manager", "robot1", "--fingerprint", "ab" * 32, db=db))
+    ok(authz("add-manager", "robot2", "--fingerprint", "cd" * 32, db=db))
+    ok(authz("grant", "robot1", "publish", "/lidar", "/scan", "sensor_msgs/LaserScan", db=db))
+    same = authz("grant", "robot2", "subscribe", "/nav", "/scan", "sensor_msgs/LaserScan", db=db)
+    assert same.returncode == 0 and same.stderr.strip() == "", same.stderr
+    typo = authz("grant", "robot2", "subscribe", "/nav2", "/scan", "sensor_msgs/LaserScn", db=db)
+    assert typo.returncode == 0 and typo.stderr.strip() == (
+        "warning: topic /scan is granted with 2 types: sensor_msgs/LaserScan (robot1, robot2); sensor_msgs/LaserScn "
+        "(robot2); it carries one, and a stream of another is refused: a typo, or a ROS 1 and a ROS 2 spelling of "
+        "one type?"), typo.stderr
+    policy = tmp_path / "mixed.yaml"
+    policy.write_text("version: 1\nmanagers:\n- name: robot2\n  grants:\n    subscribe:\n"
+                      "    - {node: /ros2_nav, topic: /map, type: nav_msgs/msg/OccupancyGrid}\n"
+                      "- name: base\n  grants:\n    publish:\n"
+                      "    - {node: /map_server, topic: /map, type: nav_msgs/OccupancyGrid}\n")
+    mixed = authz("import", "--merge", "--dry-run", str(policy), db=db)
+    assert mixed.returncode == 0, mixed.stderr
+    assert ("warning: topic /map is granted with 2 types: nav_msgs/OccupancyGrid (base); "
+            "nav_msgs/msg/OccupancyGrid (robot2)") in mixed.stderr, mixed.stderr
+
+
 def test_nodes_overlap_is_one_node_name_two_grants_could_both_name():
     from cryptoros.tokens import nodes_overlap
 
