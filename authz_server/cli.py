@@ -334,52 +334,14 @@ def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, t
     added = reg.grant(manager, action, node, name, type_)
     click.echo(f"{'granted' if added else 'already granted'}: {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
     if added:
+        from authz_server.lint import kind_of, node_overlaps, type_conflicts
+
         managers = reg.list_managers()
         lines = node_overlaps(manager, node, managers)
         if action not in PARAM_ACTIONS:
-            lines += type_conflicts(_kind(action), name, {(m.name, g) for m in managers for g in m.grants})
+            lines += type_conflicts(kind_of(action), name, {(m.name, g) for m in managers for g in m.grants})
         for line in lines:
             click.echo(f"warning: {line}", err=True)
-
-
-def _kind(action: str) -> str:
-    return "topic" if action in ("publish", "subscribe") else "service"
-
-
-def type_conflicts(kind: str, name: str, held) -> list[str]:
-    """A line when the topic or service ``name`` is granted with more than one type among
-    ``held`` ((manager, grant) pairs): it carries one type, so a stream of any other is
-    refused; a typo (``sensor_msgs/LaserScn``) or a ROS 1 and a ROS 2 spelling of one
-    type (``std_msgs/String``, ``std_msgs/msg/String``: cryptoros carries no stream between
-    ROS 1 and ROS 2) is usually why."""
-    types: dict[str, set[str]] = {}
-    for manager, g in held:
-        if g.name == name and g.action not in PARAM_ACTIONS and _kind(g.action) == kind and g.type != "*":
-            types.setdefault(g.type, set()).add(manager)
-    if len(types) < 2:
-        return []
-    listed = "; ".join(f"{t} ({', '.join(sorted(ms))})" for t, ms in sorted(types.items()))
-    return [f"{kind} {name} is granted with {len(types)} types: {listed}; it carries one, and a stream of "
-            "another is refused: a typo, or a ROS 1 and a ROS 2 spelling of one type?"]
-
-
-#: overlaps named per grant at most (the rest are counted)
-OVERLAPS_SHOWN = 5
-
-
-def node_overlaps(manager: str, node: str, managers) -> list[str]:
-    """One line per other manager's grant node that ``node`` can name too: node names
-    go first come to whichever manager registers them (authz_server/README.md, "Node
-    names, patterns and stock tools"), so an overlap is a name two robots contend for."""
-    from cryptoros.tokens import nodes_overlap
-
-    hits = sorted({(m.name, g.node) for m in managers if m.name != manager for g in m.grants
-                   if nodes_overlap(node, g.node)})
-    lines = [f"node {node} overlaps {other}'s grants on {theirs}: the first of the two managers to register "
-             f"a name both cover holds it; give each robot node names of its own" for other, theirs in hits]
-    if len(lines) > OVERLAPS_SHOWN:
-        lines = lines[:OVERLAPS_SHOWN] + [f"... and {len(lines) - OVERLAPS_SHOWN} more overlaps of node {node}"]
-    return lines
 
 
 @main.command("revoke")
@@ -536,8 +498,10 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool, list_all:
     report = registry.import_policy_report(doc, merge=merge, dry_run=dry_run)
     for line in import_lines(report, dry_run=dry_run, grant_lines=None if list_all else IMPORT_GRANT_LINES):
         click.echo(line)
+    from authz_server.lint import kind_of, type_conflicts
+
     held = {(m.name, g) for m in before for g in m.grants} - set(report.grants_removed) | set(report.grants_added)
-    touched = sorted({(_kind(g.action), g.name) for _m, g in report.grants_added if g.action not in PARAM_ACTIONS})
+    touched = sorted({(kind_of(g.action), g.name) for _m, g in report.grants_added if g.action not in PARAM_ACTIONS})
     for kind, name in touched:
         for line in type_conflicts(kind, name, held):
             click.echo(f"{PROG}: warning: {line}", err=True)

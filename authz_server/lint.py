@@ -1,0 +1,53 @@
+"""Warnings about a registry that it takes but a running robot would trip on.
+
+Pure functions over managers and their grants, for ``grant`` and ``import`` to print:
+two managers naming one node (node names go first come to whichever registers them),
+and one topic or service granted with two types (it carries one; a stream of the other
+is refused). Nothing here refuses anything: each is a line for the operator.
+"""
+
+from __future__ import annotations
+
+from authz_server.registry import PARAM_ACTIONS
+from cryptoros.tokens import nodes_overlap
+
+#: overlaps named per grant at most (the rest are counted)
+OVERLAPS_SHOWN = 5
+
+
+def node_overlaps(manager: str, node: str, managers) -> list[str]:
+    """One line per other manager's grant node that ``node`` can name too: node names
+    go first come to whichever manager registers them (authz_server/README.md, "Node
+    names, patterns and stock tools"), so an overlap is a name two robots contend for."""
+    hits = sorted({(m.name, g.node) for m in managers if m.name != manager for g in m.grants
+                   if nodes_overlap(node, g.node)})
+    lines = [f"node {node} overlaps {other}'s grants on {theirs}: the first of the two managers to register "
+             f"a name both cover holds it; give each robot node names of its own" for other, theirs in hits]
+    if len(lines) > OVERLAPS_SHOWN:
+        lines = lines[:OVERLAPS_SHOWN] + [f"... and {len(lines) - OVERLAPS_SHOWN} more overlaps of node {node}"]
+    return lines
+
+
+def kind_of(action: str) -> str:
+    """``topic`` for publish and subscribe grants, ``service`` for serve and call."""
+    return "topic" if action in ("publish", "subscribe") else "service"
+
+
+def type_conflicts(kind: str, name: str, held) -> list[str]:
+    """A line when the topic or service ``name`` is granted with more than one type among
+    ``held`` ((manager, grant) pairs): it carries one type, so a stream of any other is
+    refused; a typo (``sensor_msgs/LaserScn``) or a ROS 1 and a ROS 2 spelling of one
+    type (``std_msgs/String``, ``std_msgs/msg/String``: cryptoros carries no stream between
+    ROS 1 and ROS 2) is usually why."""
+    types: dict[str, set[str]] = {}
+    for manager, g in held:
+        if g.name == name and g.action not in PARAM_ACTIONS and kind_of(g.action) == kind and g.type != "*":
+            types.setdefault(g.type, set()).add(manager)
+    if len(types) < 2:
+        return []
+    listed = "; ".join(f"{t} ({', '.join(sorted(ms))})" for t, ms in sorted(types.items()))
+    return [f"{kind} {name} is granted with {len(types)} types: {listed}; it carries one, and a stream of "
+            "another is refused: a typo, or a ROS 1 and a ROS 2 spelling of one type?"]
+
+
+__all__ = ["OVERLAPS_SHOWN", "kind_of", "node_overlaps", "type_conflicts"]
