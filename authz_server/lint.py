@@ -1,7 +1,7 @@
 """Warnings about a registry that it takes but a running robot would trip on.
 
 Pure functions over managers and their grants, for ``grant`` and ``import`` to print:
-two managers naming one node (node names go first come to whichever registers them),
+two managers naming one node (who then holds the name),
 and one topic or service granted with two types (it carries one; a stream of the other
 is refused). Nothing here refuses anything: each is a line for the operator.
 """
@@ -9,6 +9,7 @@ is refused). Nothing here refuses anything: each is a line for the operator.
 from __future__ import annotations
 
 from authz_server.registry import PARAM_ACTIONS
+from cryptoros.names import is_node_pattern
 from cryptoros.tokens import nodes_overlap
 
 #: overlaps named per grant at most (the rest are counted)
@@ -16,13 +17,25 @@ OVERLAPS_SHOWN = 5
 
 
 def node_overlaps(manager: str, node: str, managers) -> list[str]:
-    """One line per other manager's grant node that ``node`` can name too: node names
-    go first come to whichever manager registers them (authz_server/README.md, "Node
-    names, patterns and stock tools"), so an overlap is a name two robots contend for."""
+    """One line per other manager's grant node that ``node`` can name too, saying who
+    then holds the name (docs/interceptor.md, "Stock tools"): two exact names, whichever
+    manager registers it first (the other's node is refused, ``name_taken``); a pattern
+    and an exact name, always the manager whose grants name it exactly (the pattern's
+    node is dropped when that one registers). Two patterns are not named: the names
+    registered under them are anonymous ones (stock tools) no two processes share."""
     hits = sorted({(m.name, g.node) for m in managers if m.name != manager for g in m.grants
-                   if nodes_overlap(node, g.node)})
-    lines = [f"node {node} overlaps {other}'s grants on {theirs}: the first of the two managers to register "
-             f"a name both cover holds it; give each robot node names of its own" for other, theirs in hits]
+                   if nodes_overlap(node, g.node) and not (is_node_pattern(node) and is_node_pattern(g.node))})
+    lines = []
+    for other, theirs in hits:
+        if not is_node_pattern(node) and not is_node_pattern(theirs):
+            lines.append(f"node {node} is named by {other}'s grants too: whichever registers it first holds it, and "
+                         f"the other's node is refused (name_taken); give each robot node names of its own")
+        elif is_node_pattern(node):
+            lines.append(f"pattern {node} covers node {theirs}, which {other}'s grants name exactly: {other}'s node "
+                         f"always holds that name, and a node of {manager} registered under it is dropped")
+        else:
+            lines.append(f"node {node} is covered by {other}'s pattern {theirs} too: {manager}'s node always holds "
+                         f"that name, and a node of {other} registered under it is dropped")
     if len(lines) > OVERLAPS_SHOWN:
         lines = lines[:OVERLAPS_SHOWN] + [f"... and {len(lines) - OVERLAPS_SHOWN} more overlaps of node {node}"]
     return lines

@@ -265,22 +265,27 @@ def test_grant_tools_grants_rosparam_only_the_namespaces_named(tmp_path):
 
 def test_a_grant_naming_nodes_another_manager_names_is_warned(tmp_path):
     """Policy audit: a grant of robot1's exact node name to robot2, and robot2's pattern
-    '/robot*' over robot1's nodes, were taken in silence (node names go first come to
-    whichever manager registers them). Each is granted and warned, one line per overlap;
-    '*' (any node of one's own) and names of one's own are not."""
+    '/robot*' over robot1's nodes, were taken in silence. Each is granted and warned, one
+    line per overlap, saying who then holds the name; '*' (any node of one's own), names
+    of one's own and two patterns (stock tools' anonymous names) are not."""
     db = f"sqlite:///{tmp_path / 'overlap.db'}"
     ok(authz("add-manager", "robot1", "--fingerprint", "ab" * 32, db=db))
     ok(authz("add-manager", "robot2", "--fingerprint", "cd" * 32, db=db))
     ok(authz("grant", "robot1", "publish", "/robot1/driver", "/robot1/scan", "sensor_msgs/LaserScan", db=db))
     same = authz("grant", "robot2", "publish", "/robot1/driver", "/robot2/scan", "sensor_msgs/LaserScan", db=db)
     assert same.returncode == 0 and "granted: robot2 /robot1/driver" in same.stdout, same
-    assert same.stderr.strip() == ("warning: node /robot1/driver overlaps robot1's grants on /robot1/driver: the "
-                                   "first of the two managers to register a name both cover holds it; give each "
-                                   "robot node names of its own"), same.stderr
+    assert same.stderr.strip() == ("warning: node /robot1/driver is named by robot1's grants too: whichever "
+                                   "registers it first holds it, and the other's node is refused (name_taken); "
+                                   "give each robot node names of its own"), same.stderr
     wide = authz("grant", "robot2", "subscribe", "/robot*", "/robot1/scan", "sensor_msgs/LaserScan", db=db)
-    assert wide.returncode == 0 and "overlaps robot1's grants on /robot1/driver" in wide.stderr, wide.stderr
+    assert wide.returncode == 0 and wide.stderr.strip() == (
+        "warning: pattern /robot* covers node /robot1/driver, which robot1's grants name exactly: robot1's node "
+        "always holds that name, and a node of robot2 registered under it is dropped"), wide.stderr
+    # a stock tool's pattern held by two robots: the names under it are anonymous, never shared
+    ok(authz("grant-tools", "robot1", "--topic", "/robot1/scan:sensor_msgs/LaserScan", db=db))
     for quiet in (("subscribe", "*", "/robot1/scan", "sensor_msgs/LaserScan"),
-                  ("publish", "/robot2/driver", "/robot2/scan", "sensor_msgs/LaserScan")):
+                  ("publish", "/robot2/driver", "/robot2/scan", "sensor_msgs/LaserScan"),
+                  ("subscribe", "/rostopic_*", "/robot1/scan", "sensor_msgs/LaserScan")):
         r = authz("grant", "robot2", *quiet, db=db)
         assert r.returncode == 0 and r.stderr.strip() == "", (quiet, r.stderr)
 
