@@ -444,8 +444,23 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
         rows.append(("publish", TOOL_NODES["rosbag_play"], "/clock", "rosgraph_msgs/Clock"))
     if roslaunch or launch_namespaces:  # its own keys, and what its launch files set outside the nodes' own
         rows += [("write_param", TOOL_NODES["roslaunch"], ns, None) for ns in (*ROSLAUNCH_PARAMS, *launch_namespaces)]
+    if not rows:
+        raise RegistryError("nothing to grant: name what the tools may use (--topic, --publish-topic, --service, "
+                            "--param-ns, --clock, --roslaunch)")
     checked = [GrantRow.checked(*row) for row in rows]  # all validated before the one transaction
-    done = _registry(ctx).grant_many(manager, checked, remove=remove)
+    registry = _registry(ctx)
+    done = registry.grant_many(manager, checked, remove=remove)
+    if not remove:
+        if "/" in param_namespaces:
+            click.echo(f"{PROG}: warning: --param-ns / lets {manager}'s rosparam "
+                       f"{'read' if params_read_only else 'write and delete'} every parameter, other robots' "
+                       "nodes' too; name the namespace the operator needs", err=True)
+        if params_read_only:  # read granted; a write grant given before stays, and writes
+            held = {(g.node, g.name) for g in registry.get_manager(manager).grants if g.action == "write_param"}
+            for ns in param_namespaces:
+                if (TOOL_NODES["rosparam"], ns) in held:
+                    click.echo(f"{PROG}: warning: {manager}'s rosparam may still write {ns} (granted before): "
+                               f"'{PROG} grant-tools {manager} --param-ns {ns} --remove' takes that away", err=True)
     for (action, node, name, type_), changed_one in zip(rows, done, strict=True):
         what = f"{manager} {node} {action} {name}{' ' + type_ if type_ else ''}"
         if remove:

@@ -261,6 +261,15 @@ def test_grant_tools_grants_rosparam_only_the_namespaces_named(tmp_path):
     line = one_line_error(authz("grant-tools", "base", "--params-read-only", db=db))
     assert "--params-read-only needs" in line and "--param-ns" in line, line
     assert "write_param" not in ok(authz("show-manager", "base", db=db))
+    # newcomer audit: no option granted nothing with exit 0; '/' and a write left behind said nothing
+    assert "nothing to grant" in one_line_error(authz("grant-tools", "base", db=db))
+    everything = authz("grant-tools", "base", "--param-ns", "/", db=db)
+    assert everything.returncode == 0 and everything.stderr.strip() == (
+        "cryptoros-authz: warning: --param-ns / lets base's rosparam write and delete every parameter, other "
+        "robots' nodes' too; name the namespace the operator needs"), everything.stderr
+    kept = authz("grant-tools", "base", "--param-ns", "/", "--params-read-only", db=db)
+    assert kept.returncode == 0 and ("base's rosparam may still write / (granted before): 'cryptoros-authz "
+                                     "grant-tools base --param-ns / --remove' takes that away") in kept.stderr, kept.stderr
 
 
 def test_a_grant_naming_nodes_another_manager_names_is_warned(tmp_path):
