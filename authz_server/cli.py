@@ -520,9 +520,10 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool, list_all:
     for kind, name in touched:
         for line in type_conflicts(kind, name, held):
             click.echo(f"{PROG}: warning: {line}", err=True)
+    staying = [m for m in known if m not in report.managers_removed]
     for name, fp in report.managers_added:
         if fp is None:
-            near = difflib.get_close_matches(name, known, n=1)  # a typo, or a rename that loses the binding
+            near = difflib.get_close_matches(name, staying, n=1)  # a typo, or a rename that loses the binding
             click.echo(f"{PROG}: warning: manager {name} has no certificate: its grants reach nobody until "
                        f"'{PROG} set-cert {name} --cert FILE'" + (f" (did you mean {near[0]}?)" if near else ""),
                        err=True)

@@ -677,7 +677,9 @@ class Registry:
                 if merge:
                     for name, fp in orig_fp.items():
                         if name not in wanted and fp is not None and fp in target_fp.values():
-                            raise RegistryError(f"policy binds the certificate of manager {name!r} to another manager")
+                            other = next(n for n, t in target_fp.items() if t == fp)
+                            raise RegistryError(f"policy binds the certificate of manager {name!r} to manager "
+                                                f"{other!r} too: one certificate, one manager")
                 else:
                     for name, m in existing.items():
                         if name not in wanted:

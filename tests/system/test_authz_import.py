@@ -111,6 +111,24 @@ def test_a_certificate_a_manager_keeps_cannot_be_bound_to_another(db, tmp_path):
     assert ok(authz("export", db=db)) == before
 
 
+def test_a_merge_binding_a_kept_certificate_names_both_managers(db, tmp_path):
+    """Newcomer audit: the refusal said only 'to another manager'."""
+    before = ok(authz("export", db=db))
+    steal = write(tmp_path, f"version: 1\nmanagers:\n- {{name: base, fingerprint_sha256: {FP1}}}\n", "steal.yaml")
+    line = one_line_error(authz("import", "--merge", steal, db=db))
+    assert "the certificate of manager 'robot1' to manager 'base' too" in line, line
+    assert ok(authz("export", db=db)) == before
+
+
+def test_a_new_managers_did_you_mean_never_names_one_the_import_removes(db, tmp_path):
+    """Newcomer audit: a plain import that renames robot1 to robto1 suggested robot1,
+    which the same import removes."""
+    renamed = write(tmp_path, HAND_WRITTEN.replace("- name: robot1\n", "- name: robto1\n"), "renamed.yaml")
+    result = authz("import", "--dry-run", renamed, db=db)
+    assert result.returncode == 0 and "robto1 has no certificate" in result.stderr, result.stderr
+    assert "did you mean robot1" not in result.stderr, result.stderr
+
+
 SHAPES = {
     # audit: these three raised TypeError in the CLI before the policy was checked
     "truncated": ("version: 1\nmanagers:\n", "'managers' must be a list, got nothing (null)"),
