@@ -305,13 +305,18 @@ class Ros2Role(Role):
             log.error("unexpected frame kind %d from the DDS bridge", kind)
 
     # ================================================================ outbound
-    def _note_deny(self, key: tuple, kind: str, exc: PolicyDenied, who: str) -> None:
-        """Log a local denial once (the graph is re-read every half second)."""
+    def _note_deny(self, key: tuple, kind: str, exc: PolicyDenied, who: str, hint: str | None = None) -> None:
+        """Log a local denial once (the graph is re-read every half second); ``hint``: the
+        grant that would allow it (the log line and ``cryptoros denials`` show it)."""
         if key not in self._noted:
             if len(self._noted) >= MAX_NOTED:  # a process inventing names by the thousand: log again, never grow
                 self._noted.clear()
             self._noted.add(key)
-            self.gw.deny(kind, exc, who)
+            self.gw.deny(kind, exc, who, hint=hint)
+
+    def _grant_hint(self, manager: str, action: str, node: str, name: str, type_name: str) -> str:
+        """The ``cryptoros-authz grant`` that would allow ``node`` to ``action`` ``name``."""
+        return f"cryptoros-authz grant {manager} {action} {node} {name} {type_name}"
 
     def _desired(self) -> dict[tuple[str, str, str], Offer]:
         """What this robot may offer now, decided by :func:`cryptoros.policy.ros2.local_offer`."""
@@ -352,7 +357,10 @@ class Ros2Role(Role):
             try:
                 offer = local_offer(kind, name, types, sources, grants=grants, depth=self.cfg.ros2.depth)
             except PolicyDenied as exc:
-                self._note_deny((kind, name, tuple(types), exc.reason), f"ros2_{action}", exc, me)
+                hint = None
+                if exc.reason == "not_granted" and sources and len(types) == 1:
+                    hint = self._grant_hint(self.cfg.manager, action, sources[0]["node"], name, types[0])
+                self._note_deny((kind, name, tuple(types), exc.reason), f"ros2_{action}", exc, me, hint)
                 withheld[(kind, name)] = str(exc)
                 continue
             except CryptorosError as exc:  # a name we cannot carry (hidden topics, relative names)
@@ -365,7 +373,8 @@ class Ros2Role(Role):
                     or [offer.target.type]
                 exc = PolicyDenied("not_granted", f"{node} may not {action} {name} [{', '.join(types_of)}] "
                                    "(its samples are dropped; the granted publishers' still flow)")
-                self._note_deny((kind, name, node, "not_granted"), f"ros2_{action}", exc, me)
+                self._note_deny((kind, name, node, "not_granted"), f"ros2_{action}", exc, me,
+                                self._grant_hint(self.cfg.manager, action, node, name, types_of[0]))
             want[(kind, name, offer.target.type)] = offer
         self._note_local_receivers(grants)
         return want
@@ -589,7 +598,8 @@ class Ros2Role(Role):
                         self._noted.add(key)
                         self.gw.deny(f"ros2_{target.kind}_out", PolicyDenied(
                             "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
-                            f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}")
+                            f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}",
+                            hint=self._grant_hint(known.subject, target.peer_action, "NODE", target.name, target.type))
                     await asyncio.sleep(PEER_RECHECK)
                     recheck = time.monotonic()
                     continue

@@ -378,6 +378,9 @@ def test_a_rogue_publisher_under_an_ungranted_name_is_dropped_from_its_first_sam
                 while "/rogue may not publish /chatter" not in network.robots["robot_a"].denials():
                     assert time.monotonic() < deadline, "robot A's bridge never saw the rogue's samples"
                     time.sleep(0.2)
+                # newcomer audit: ROS 2 refusals named no grant, ROS 1 ones did
+                assert ("to allow: cryptoros-authz grant robot_a publish /rogue /chatter std_msgs/msg/String"
+                        in network.robots["robot_a"].denials()), network.robots["robot_a"].denials()
                 during = collect(sub, 60, 20)  # 3 s of the talker while the rogue publishes 5x faster
             after = collect(sub, 40, 20)  # and once the rogue is gone
     assert not [s for s in got(after) if s >= 500000]
