@@ -312,7 +312,8 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
             except click.ClickException as exc:
                 _fail(exc.message)
             click.echo(f"wrote {ros2_profile}: start every ROS 2 node of this robot with "
-                       f"{PROFILE_ENV}={Path(ros2_profile).resolve()} (and ROS_DOMAIN_ID of its [ros2] domain_id)")
+                       f"{PROFILE_ENV}={Path(ros2_profile).resolve()} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST "
+                       "and ROS_DOMAIN_ID of its [ros2] domain_id (cryptoros run / cryptoros env set all three)")
         return
     if not config_path:
         raise click.UsageError("--config is required")
