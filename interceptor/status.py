@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import urllib.error
 import urllib.request
+from typing import NoReturn
 
 import click
 
@@ -109,12 +110,21 @@ def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoro
             raise click.ClickException(str(exc)) from None
     try:
         with urllib.request.urlopen(url, timeout=5) as resp:
-            body = json.loads(resp.read())
+            raw = resp.read()
+    except urllib.error.HTTPError as exc:
+        _not_a_status(prog, url, f"HTTP {exc.code} {exc.reason}")
     except (urllib.error.URLError, OSError, ValueError) as exc:
         reason = getattr(exc, "reason", exc)
         click.echo(f"{prog}: error: cannot read {url}: {reason}{_not_running_hint(reason, config_path)}", err=True)
         raise SystemExit(2) from None
-    answered = body.get("manager") if isinstance(body, dict) else None
+    try:
+        body = json.loads(raw)
+    except ValueError:
+        _not_a_status(prog, url, "not JSON")
+    missing = _missing_fields(body)
+    if missing:
+        _not_a_status(prog, url, missing)
+    answered = body["manager"]
     if expected is not None and answered != expected:
         # another interceptor on this host answers on the port the file names: its state is
         # not this one's (two configurations sharing one [listen] metrics port)
@@ -123,6 +133,43 @@ def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoro
                    "[listen] metrics port?", err=True)
         raise SystemExit(2)
     return body
+
+
+#: What every interceptor's ``/status`` answer holds, and what ``render`` and
+#: ``render_denials`` read without a default: a field, its type, the fields inside it.
+_STATUS_FIELDS: dict[str, tuple[type | tuple[type, ...], tuple[str, ...]]] = {
+    "manager": (str, ()),
+    "roles": (list, ()),
+    "public": (str, ()),
+    "health": (str, ()),
+    "certificate": (dict, ("serial", "not_after", "days_left")),
+    "feed": (dict, ("age", "revoked_tokens", "disabled_managers")),
+    "open_streams": ((int, float), ()),
+    "denials": (list, ()),
+}
+_TYPE_NAMES = {str: "a string", list: "a list", dict: "an object", (int, float): "a number"}
+
+
+def _missing_fields(body: object) -> str:
+    """What ``body`` lacks of an interceptor's ``/status`` answer ("" when nothing)."""
+    if not isinstance(body, dict):
+        return "not a JSON object"
+    absent = [name for name in _STATUS_FIELDS if name not in body]
+    problems = [f"no {', '.join(absent)}"] if absent else []
+    for name, (kind, inner) in _STATUS_FIELDS.items():
+        if name not in body:
+            continue
+        if not isinstance(body[name], kind) or (kind is not str and isinstance(body[name], bool)):
+            problems.append(f"{name} is not {_TYPE_NAMES[kind]}")
+        elif inner and (lacking := [key for key in inner if key not in body[name]]):
+            problems.append(f"{name} has no {', '.join(lacking)}")
+    return "; ".join(problems)
+
+
+def _not_a_status(prog: str, url: str, what: str) -> NoReturn:
+    click.echo(f"{prog}: error: {url} did not answer as an interceptor's /status ({what}): give its "
+               "[listen] metrics endpoint's /status", err=True)
+    raise SystemExit(2)
 
 
 def _not_running_hint(reason: object, config_path: str | None) -> str:

@@ -369,6 +369,14 @@ def test_cryptoros_status_shows_token_grants_feed_certificate_and_peers(network)
     assert raw["peers"].get("robot_b", 0) >= 1  # robot B's topic stream into robot A
     down = run([script("cryptoros"), "status", "--url", "http://127.0.0.1:9/status"], timeout=30)
     assert down.returncode == 2 and "cannot read" in down.stderr and "Traceback" not in down.stderr
+    # the interceptor's own /healthz (an easy mistake for /status): one line, no false all-clear
+    healthz = f"http://127.0.0.1:{host.metrics_port}/healthz"
+    for command in ("status", "denials"):
+        probe = run([script("cryptoros"), command, "--url", healthz], timeout=30)
+        assert probe.returncode == 2 and probe.stdout == "", probe.stdout + probe.stderr
+        assert probe.stderr.strip() == (f"cryptoros {command}: error: {healthz} did not answer as an interceptor's "
+                                        "/status (no manager, roles, public, health, certificate, feed, denials): "
+                                        "give its [listen] metrics endpoint's /status"), probe.stderr
     # ROS 2 audit: a file whose [listen] metrics port another interceptor answers on was
     # shown that interceptor's state as its own
     other = host.config.with_name("robot_a_on_b_port.toml")
