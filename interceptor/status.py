@@ -19,13 +19,28 @@ from cryptoros.errors import ConfigError
 
 
 def _url_from_config(path: str) -> tuple[str, str]:
-    """The ``/status`` URL of the interceptor ``path`` configures, and its manager."""
-    from interceptor.config import load
+    """The ``/status`` URL of the interceptor ``path`` configures, and its manager.
 
-    cfg = load(path)
-    if cfg.metrics is None:
+    Only ``manager`` and ``[listen] metrics`` are read: reading a running interceptor's
+    status needs nothing else, and the rest (a ``[ros2] python`` that exists on the
+    robot, key files) need not be valid in the shell the operator asks from."""
+    from pathlib import Path
+
+    from interceptor.config import Endpoint, read_toml
+
+    raw = read_toml(Path(path).absolute())
+    manager = raw.get("manager")
+    if not isinstance(manager, str) or not manager:
+        raise ConfigError(f"{path}: manager is required: the name of the manager whose token this interceptor holds")
+    listen = raw.get("listen", {})
+    if not isinstance(listen, dict):
+        raise ConfigError(f"{path}: [listen] must be a table")
+    if "metrics" not in listen:
         raise ConfigError(f"{path} has no [listen] metrics endpoint: status is served there")
-    return f"http://{cfg.metrics.host}:{cfg.metrics.port}/status", cfg.manager
+    metrics = Endpoint.parse(listen["metrics"], "[listen] metrics")
+    if not metrics.is_loopback:
+        raise ConfigError("[listen] metrics must be a loopback address")
+    return f"http://{metrics.host}:{metrics.port}/status", manager
 
 
 def render(status: dict) -> list[str]:
@@ -107,7 +122,8 @@ def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoro
         try:
             url, expected = _url_from_config(config_path)
         except ConfigError as exc:
-            raise click.ClickException(str(exc)) from None
+            click.echo(f"{prog}: error: {exc}", err=True)
+            raise SystemExit(2) from None
     try:
         with urllib.request.urlopen(url, timeout=5) as resp:
             raw = resp.read()

@@ -1,5 +1,6 @@
 """``cryptoros status`` / ``denials`` when the status endpoint cannot be asked or answers
-as something else than an interceptor's ``/status``: one line that says what to try, exit 2."""
+as something else than an interceptor's ``/status``, or the configuration file names it
+badly: one line that says what to try, exit 2."""
 
 from __future__ import annotations
 
@@ -106,3 +107,71 @@ def test_an_answer_with_a_field_render_cannot_read_is_one_line(answering):
     assert r.stderr.strip() == (f"cryptoros status: error: {url} did not answer as an interceptor's /status "
                                 "(certificate has no not_after, days_left): give its [listen] metrics "
                                 "endpoint's /status")
+
+
+ROS2_CONFIG = """\
+manager = "robot_c"
+roles = ["ros2"]
+[tls]
+ca = "ca.pem"
+cert = "robot_c.pem"
+key = "robot_c.key"
+[authz]
+url = "https://127.0.0.1:8443"
+[listen]
+public = "127.0.0.1:11400"
+{metrics}
+[ros2]
+domain_id = 11
+python = "no-such-venv/bin/python"
+"""
+
+
+@pytest.mark.parametrize("command", [status, denials], ids=["status", "denials"])
+def test_a_ros2_configuration_without_the_bridges_python_here_still_finds_the_status(tmp_path, monkeypatch, command):
+    monkeypatch.delenv("CRYPTOROS_ROS2_PYTHON", raising=False)
+    port = _closed_port()
+    for name in ("ca.pem", "robot_c.pem", "robot_c.key"):  # present: only the bridge's Python is not
+        (tmp_path / name).write_text("")
+    config = tmp_path / "robot_c.toml"
+    config.write_text(ROS2_CONFIG.format(metrics=f'metrics = "127.0.0.1:{port}"'))
+    r = CliRunner().invoke(command, ["--config", str(config)])
+    assert r.exit_code == 2, r.output
+    url = f"http://127.0.0.1:{port}/status"
+    line = f"cryptoros {command.name}: error: cannot read {url}: [Errno 111] Connection refused"
+    assert r.stderr.startswith(line) and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+@pytest.mark.parametrize(("metrics", "message"), [
+    ("", "{config} has no [listen] metrics endpoint: status is served there"),
+    ('metrics = "127.0.0.1"', "[listen] metrics: expected host:port, got '127.0.0.1'"),
+    ('metrics = 9102', "[listen] metrics: expected host:port, got 9102"),
+    ('metrics = "10.0.0.5:9102"', "[listen] metrics must be a loopback address"),
+], ids=["none", "no-port", "not-a-string", "not-loopback"])
+def test_a_configuration_without_a_usable_metrics_endpoint_is_one_line(tmp_path, metrics, message):
+    config = tmp_path / "robot_c.toml"
+    config.write_text(ROS2_CONFIG.format(metrics=metrics))
+    r = CliRunner().invoke(status, ["--config", str(config)])
+    assert r.exit_code == 2, r.output
+    assert r.stderr.strip() == f"cryptoros status: error: {message.format(config=config)}"
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ('[listen]\nmetrics = "127.0.0.1:9102"\n', "manager is required: the name of the manager whose token "
+                                               "this interceptor holds"),
+    ('manager = "robot_c"\nlisten = 3\n', "[listen] must be a table"),
+    ("manager = \n", "invalid TOML"),
+], ids=["no-manager", "listen-not-a-table", "bad-toml"])
+def test_a_configuration_without_a_manager_or_readable_listen_is_one_line(tmp_path, text, message):
+    config = tmp_path / "robot_c.toml"
+    config.write_text(text)
+    r = CliRunner().invoke(denials, ["--config", str(config)])
+    assert r.exit_code == 2, r.output
+    assert r.stderr.startswith("cryptoros denials: error: ") and message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_a_missing_configuration_file_is_one_line(tmp_path):
+    r = CliRunner().invoke(status, ["--config", str(tmp_path / "nowhere.toml")])
+    assert r.exit_code == 2, r.output
+    assert r.stderr.strip() == f"cryptoros status: error: configuration file not found: {tmp_path / 'nowhere.toml'}"
