@@ -131,7 +131,8 @@ def _read_status(config_path: str | None, url: str | None, prog: str = "cryptoro
         _not_a_status(prog, url, f"HTTP {exc.code} {exc.reason}")
     except (urllib.error.URLError, OSError, ValueError) as exc:
         reason = getattr(exc, "reason", exc)
-        click.echo(f"{prog}: error: cannot read {url}: {reason}{_not_running_hint(reason, config_path)}", err=True)
+        click.echo(f"{prog}: error: cannot read {url}: {reason}{_not_running_hint(reason, config_path, expected)}",
+                   err=True)
         raise SystemExit(2) from None
     try:
         body = json.loads(raw)
@@ -188,12 +189,15 @@ def _not_a_status(prog: str, url: str, what: str) -> NoReturn:
     raise SystemExit(2)
 
 
-def _not_running_hint(reason: object, config_path: str | None) -> str:
+def _not_running_hint(reason: object, config_path: str | None, manager: str | None) -> str:
     """What to try when nothing listens at the status endpoint: the usual cause is an
-    interceptor not started yet (or stopped), not a wrong port."""
+    interceptor not started yet (or stopped), or a configuration of another host's
+    interceptor; not a wrong port."""
     if not isinstance(reason, ConnectionRefusedError):
         return ""
-    return f" (is the interceptor running? start it with cryptoros-interceptor --config {config_path or 'FILE'})"
+    who = f"{manager}'s interceptor" if manager else "the interceptor"
+    return (f" (is {who} running on this host? start it with cryptoros-interceptor "
+            f"--config {config_path or 'FILE'})")
 
 
 @click.command()

@@ -49,7 +49,7 @@ def answering():
         server.server_close()
 
 
-def test_a_refused_status_read_asks_whether_the_interceptor_runs(tmp_path, monkeypatch):
+def test_a_refused_status_read_asks_whether_the_interceptor_runs_on_this_host(tmp_path, monkeypatch):
     config = tmp_path / "robot_a.toml"  # its [listen] metrics endpoint: a port nobody listens on
     url = f"http://127.0.0.1:{_closed_port()}/status"
     monkeypatch.setattr("interceptor.status._url_from_config", lambda path: (url, "robot_a"))
@@ -58,13 +58,15 @@ def test_a_refused_status_read_asks_whether_the_interceptor_runs(tmp_path, monke
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1, r.stderr
     assert "Connection refused" in lines[0]
-    assert f"is the interceptor running? start it with cryptoros-interceptor --config {config}" in lines[0]
+    assert (f"(is robot_a's interceptor running on this host? start it with cryptoros-interceptor "
+            f"--config {config})") in lines[0]
 
 
 def test_without_a_config_the_hint_names_a_placeholder():
     r = CliRunner().invoke(status, ["--url", f"http://127.0.0.1:{_closed_port()}/status"])
     assert r.exit_code == 2
-    assert r.stderr.strip().endswith("(is the interceptor running? start it with cryptoros-interceptor --config FILE)")
+    assert r.stderr.strip().endswith(
+        "(is the interceptor running on this host? start it with cryptoros-interceptor --config FILE)")
 
 
 INTERCEPTOR_HEALTHZ = json.dumps({"status": "ok", "open_streams": 0, "feed_age": 0.5}).encode()
