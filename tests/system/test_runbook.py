@@ -488,7 +488,7 @@ def test_the_ros2_robots_configuration_in_the_runbook_is_one_the_interceptor_acc
     part = text[text.index("## Part 5: a fleet of ROS 2 robots"):]
     toml = re.search(r"^```toml\n(.*?)^```", part, re.S | re.M).group(1)
     values = {"ROBOT": "robot_a", "MASTER_ADDR": "10.0.0.1", "AUTHZ_PORT": "8443", "ROBOT_ADDR": "10.0.0.2",
-              "PUBLIC_PORT": "7400", "METRICS_PORT": "9102", "PEER_ADDR": "10.0.0.3"}
+              "PUBLIC_PORT": "7400", "METRICS_PORT": "9102", "PEER_ADDR": "10.0.0.3", "DOMAIN_ID": "11"}
     filled = re.sub(r"\$([A-Z_]+)", lambda m: values[m.group(1)], toml)
     for name in ("ca.crt", "robot_a.crt", "robot_a.key", "crl.pem"):
         (tmp_path / name).write_text("")
