@@ -121,9 +121,16 @@ def rogue_tls(host: str, port: int, *, ca: Path, cert: Path | None, key: Path | 
 
 def rogue_preamble(sock, token: str, purpose: str, target: str = ""):
     """Send a preamble; return the PreambleReply, or None if the peer just closed."""
-    from cryptoros.tunnel import Preamble, PreambleReader, PreambleReply, encode
+    from cryptoros.tunnel import Preamble, encode
 
     sock.sendall(encode(Preamble(token=token, purpose=purpose, target=target)))
+    return rogue_reply(sock)
+
+
+def rogue_reply(sock):
+    """The PreambleReply the peer sends, or None if it closed (or reset) first."""
+    from cryptoros.tunnel import PreambleReader, PreambleReply
+
     reader = PreambleReader(PreambleReply)
     while True:
         data = sock.recv(65536)
