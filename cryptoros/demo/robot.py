@@ -15,11 +15,13 @@ robot would run its control code and its drivers:
 The clock is scaled (``scale`` simulated seconds per wall second, shared by all robots
 through a common start time), so a mission of minutes takes tens of seconds.
 
-Victim-side evidence: the robot keeps a short hash of every message it published and
-every message it received, per topic, and what foreign messages did to it (a spoofed
-pose, a noisy scan marked into its map, a stop command that halted it, a ``shutdown``
-call it executed). It writes its status as JSON (atomically) twice a second and a
-final one with the hashes on SIGTERM; :mod:`cryptoros.demo.run` judges from those.
+Victim-side evidence: the robot keeps a short hash of every message it published (so
+an eavesdropper's haul is counted in the robots' own messages, and its own messages
+are not counted as received), and what foreign messages did to it, per sender (a
+spoofed pose, a noisy scan marked into its map, a stop command that halted it, an
+erased team map relayed by another node, a ``shutdown`` call it executed). It writes
+its status as JSON (atomically) twice a second and a final one with the hashes on
+SIGTERM; :mod:`cryptoros.demo.run` judges from those.
 """
 
 from __future__ import annotations
@@ -144,7 +146,6 @@ class DemoRobot:
         self.start_cell = start_cells(self.world, len(self.team))[self.index]
         self.observed = np.zeros(self.world.shape, dtype=bool)
         self.published: set[str] = set()
-        self.received: dict[str, list[str]] = {}
         self.stats: dict[str, Any] = {
             "tx_messages": 0, "tx_bytes": 0, "rx_messages": 0, "rx_bytes": 0,
             "pose_received": 0, "pose_foreign": 0, "pose_max_error_m": 0.0,
@@ -183,7 +184,6 @@ class DemoRobot:
             return None
         self.stats["rx_messages"] += 1
         self.stats["rx_bytes"] += len(data)
-        self.received.setdefault(key, []).append(h)
         return h
 
     # -- team radio ---------------------------------------------------------------------------
@@ -407,7 +407,6 @@ class DemoRobot:
             out["cell"] = list(r.cell)
         if final:
             out["published"] = sorted(self.published)
-            out["received"] = {k: v for k, v in self.received.items()}
         return out
 
     def write_status(self, final: bool = False) -> None:
