@@ -508,6 +508,17 @@ def default_state_dir(source: Path) -> Path:
     return source.with_name(f"{source.stem}.state")
 
 
+def metrics_endpoint(listen: dict[str, Any]) -> Endpoint | None:
+    """``[listen] metrics`` (None when absent): on loopback only, since status and metrics
+    answer without a certificate."""
+    if "metrics" not in listen:
+        return None
+    metrics = Endpoint.parse(listen["metrics"], "[listen] metrics")
+    if not metrics.is_loopback:
+        raise ConfigError("[listen] metrics must be a loopback address")
+    return metrics
+
+
 def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> InterceptorConfig:
     top = _check_keys(raw, "")
     manager = top.get("manager")
@@ -578,11 +589,9 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         raise ConfigError("[listen] public is required: the mutual-TLS endpoint other interceptors connect to")
     public = Endpoint.parse(listen["public"], "[listen] public")
     local_master = Endpoint.parse(listen["local_master"], "[listen] local_master") if "local_master" in listen else None
-    metrics = Endpoint.parse(listen["metrics"], "[listen] metrics") if "metrics" in listen else None
+    metrics = metrics_endpoint(listen)
     if local_master is not None and not local_master.is_loopback:
         raise ConfigError("[listen] local_master must be a loopback address: local nodes are trusted only there")
-    if metrics is not None and not metrics.is_loopback:
-        raise ConfigError("[listen] metrics must be a loopback address")
 
     master_raw = _check_keys(top.get("master", {}), "master")
     master = MasterSettings(
@@ -758,5 +767,5 @@ def _parse_ros2(raw: dict[str, Any], base: Path) -> Ros2Settings:
 
 __all__ = [
     "APPLY", "RELOAD", "RESTART", "AuthzSettings", "Endpoint", "InterceptorConfig", "Limits", "MasterSettings",
-    "Ros2Settings", "check_reload", "default_ros2_python", "default_state_dir", "is_loopback", "read_toml", "load", "parse", "reload_refusals",
+    "Ros2Settings", "check_reload", "default_ros2_python", "default_state_dir", "is_loopback", "metrics_endpoint", "read_toml", "load", "parse", "reload_refusals",
 ]

@@ -26,7 +26,7 @@ def _url_from_config(path: str) -> tuple[str, str]:
     robot, key files) need not be valid in the shell the operator asks from."""
     from pathlib import Path
 
-    from interceptor.config import Endpoint, read_toml
+    from interceptor.config import metrics_endpoint, read_toml
 
     raw = read_toml(Path(path).absolute())
     manager = raw.get("manager")
@@ -35,11 +35,9 @@ def _url_from_config(path: str) -> tuple[str, str]:
     listen = raw.get("listen", {})
     if not isinstance(listen, dict):
         raise ConfigError(f"{path}: [listen] must be a table")
-    if "metrics" not in listen:
+    metrics = metrics_endpoint(listen)
+    if metrics is None:
         raise ConfigError(f"{path} has no [listen] metrics endpoint: status is served there")
-    metrics = Endpoint.parse(listen["metrics"], "[listen] metrics")
-    if not metrics.is_loopback:
-        raise ConfigError("[listen] metrics must be a loopback address")
     return f"http://{metrics.host}:{metrics.port}/status", manager
 
 
