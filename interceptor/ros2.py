@@ -111,7 +111,8 @@ class Outbound:
     #: transient_local topics: the last ``depth`` frames, replayed to every stream that
     #: opens later (a latched message must reach robots that connect after it was sent)
     history: collections.deque | None = None
-    #: the local publisher nodes whose samples the bridge forwards (topics)
+    #: the granted local nodes: publishers whose samples the bridge forwards (topics),
+    #: or servers (services); what keeps an absent one's offer through VANISHED_GRACE
     granted_writers: frozenset[str] = frozenset()
     #: when (monotonic) its name left the graph (None: on the air): see VANISHED_GRACE
     vanished_at: float | None = None
@@ -124,6 +125,21 @@ class Proxy:
     chan: int
     writer: asyncio.StreamWriter
     pending: set[int] = field(default_factory=set)
+
+
+def withdrawal_reason(key: tuple[str, str, str], out: Outbound, want: dict, on_air: set[str],
+                      withheld: dict[tuple[str, str], str]) -> str:
+    """Why ``out`` (offered as ``key``: kind, name, type) is withdrawn while the bridge's
+    link is up and the host private, given this round's ``want``, the names ``on_air`` and
+    the reasons ``withheld`` by :meth:`Ros2Role._desired`."""
+    if key in want:
+        return "its publisher's node or QoS changed"
+    if out.vanished_at is not None and out.target.name not in on_air:
+        return f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
+    retyped = sorted(other[2] for other in want if other[:2] == key[:2])
+    if retyped:
+        return f"its type is now {', '.join(retyped)}"
+    return withheld.get(key[:2], "its publisher, its server or the grant that carried it is gone")
 
 
 class Ros2Role(Role):
@@ -487,21 +503,17 @@ class Ros2Role(Role):
                     continue
             why = ("the bridge's link is down" if link_down else
                    "this host's loopback answers other hosts" if exposed else
-                   f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
-                   if out.vanished_at is not None and key not in want and out.target.name not in on_air else
-                   self._withheld.get((out.target.kind, out.target.name),
-                                      "its publisher, its server or the grant that carried it is gone")
-                   if key not in want else
-                   "its publisher's node or QoS changed")
+                   withdrawal_reason(key, out, want, on_air, self._withheld))
             log.info("no longer offering %s %s [%s]: %s", out.target.kind, out.target.name, out.target.type, why)
             self._withdraw(out)
         peers = set(self.cfg.ros2.peers)
         for key, offer in want.items():
             target = offer.target
             out = self._outbound.get(key)
-            if out is not None and target.kind == "topic" and offer.writers != out.granted_writers:
+            if out is not None and offer.writers != out.granted_writers:  # a server's too: see _still_granted
                 out.granted_writers = offer.writers
-                self.bridge.link.control(op="writers", chan=out.chan, nodes=sorted(offer.writers))
+                if target.kind == "topic":
+                    self.bridge.link.control(op="writers", chan=out.chan, nodes=sorted(offer.writers))
             if out is None:
                 out = self._outbound[key] = Outbound(target=target, chan=next(self._chans), granted_writers=offer.writers)
                 if target.qos.durability == "transient_local":

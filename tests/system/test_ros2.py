@@ -283,6 +283,32 @@ def test_service_call_across_robots(network):
     assert "CALLED True" in calls or calls == []  # the server printed its calls (some may already be read)
 
 
+def test_a_service_server_that_leaves_and_returns_twice_is_given_its_grace_both_times(network):
+    """A server that leaves robot A's graph keeps its offer VANISHED_GRACE (a restart, or
+    a process that missed its lease). On its return the offer forgot which granted node
+    served it, so its second absence was withdrawn at once: ``no longer offering service
+    /set_flag``, and robot B's proxy with its callers' calls went with it."""
+    a = network.robots["robot_a"]
+    mark = len(a.logs())
+    left = "service /set_flag [std_srvs/srv/SetBool] has no named server in the graph"
+    withdrawn = "no longer offering service /set_flag"
+
+    def after(start: int, *needles: str) -> str | None:
+        text = a.logs()[start:]
+        return next((needle for needle in needles if needle in text), None)
+
+    for leaving in (1, 2):
+        with network.node("robot_a", "server.py", "/set_flag", "flag_server") as server:
+            server.until("READY", 20)
+            until(lambda start=mark: after(start, "offering service /set_flag", "/set_flag [std_srvs/srv/SetBool] "
+                                           "is back"), 20, "robot A offering /set_flag")
+            assert after(mark, withdrawn) is None, a.logs()[mark:]
+            mark = len(a.logs())
+        seen = until(lambda start=mark: after(start, withdrawn, left), 20,
+                     f"server gone from robot A's graph ({leaving})")
+        assert seen == left, f"absence {leaving}: withdrawn without its grace:\n{a.logs()[mark:]}"
+
+
 def test_a_remote_service_that_never_answers_holds_none_of_the_others(network):
     """ROS 2 audit: calls to a remote server that never answers held all of bridge B's
     service threads (8), and robot A's /set_flag waited 30 s behind them. Each remote

@@ -351,3 +351,20 @@ def test_the_ros2_role_on_a_domain_over_the_ephemeral_ports_is_refused_or_warned
     line = ros2_domain_problem(cfg(top + 1))
     assert line is not None and f"[ros2] domain_id {top + 1}" in line and f"use a domain_id from 0 to {top}" in line
     assert ros2_domain_problem(SimpleNamespace(roles=("node",), ros2=None)) is None
+
+
+def test_a_withdrawn_offer_says_what_changed():
+    """The interceptor's log line for a withdrawn offer gives its real cause (a retyped
+    topic said "its publisher, its server or the grant that carried it is gone")."""
+    from interceptor.ros2 import VANISHED_GRACE, Outbound, withdrawal_reason
+
+    out = Outbound(target=StreamTarget(kind="topic", name="/chatter", type=STRING, node="/talker"), chan=1)
+    key, int32 = ("topic", "/chatter", STRING), ("topic", "/chatter", "std_msgs/msg/Int32")
+    assert withdrawal_reason(key, out, {int32: None}, {"/chatter"}, {}) == "its type is now std_msgs/msg/Int32"
+    assert withdrawal_reason(key, out, {key: None}, {"/chatter"}, {}) == "its publisher's node or QoS changed"
+    assert withdrawal_reason(key, out, {}, {"/chatter"}, {("topic", "/chatter"): "not_granted: ..."}) \
+        == "not_granted: ..."
+    assert "is gone" in withdrawal_reason(key, out, {}, set(), {})
+    out.vanished_at = 1.0
+    assert withdrawal_reason(key, out, {}, set(), {}) == \
+        f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
