@@ -38,7 +38,7 @@ from authz_server.policy_cli import import_lines, load_yaml, write_or_print
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, PARAM_ACTIONS, GrantRow, Registry, validate_manager_name
 from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
-from cryptoros import pemfiles
+from cryptoros import logfmt, pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
 
 PROG = "cryptoros-authz"
@@ -790,8 +790,7 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
     if flags.get("unsafe_no_passphrase"):
         values["unsafe_no_passphrase"] = True
     cfg = build_config(values)
-    logging.basicConfig(level=log_level.upper(), stream=sys.stderr,
-                        format=f"%(asctime)s {PROG}[%(process)d] %(levelname)s %(message)s")
+    logfmt.configure(log_level, f"%(asctime)s {PROG}[%(process)d] %(levelname)s %(message)s", sys.stderr)
     logging.getLogger("alembic").setLevel(logging.WARNING)
     try:
         import uvloop  # type: ignore[import-not-found]

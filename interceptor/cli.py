@@ -25,6 +25,7 @@ from pathlib import Path
 
 import click
 
+from cryptoros import logfmt
 from cryptoros.errors import ConfigError, CryptorosError
 from cryptoros.fdlimit import raise_descriptor_limit
 from cryptoros.tls import PeerCertificateCheck, checking_server, client_context, server_context
@@ -317,7 +318,7 @@ def main(config_path: str | None, check: bool, ros2_profile: str | None, grace: 
         return
     if not config_path:
         raise click.UsageError("--config is required")
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logfmt.configure(log_level, "%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         cfg = load(config_path)
         server_context(cfg.tls)

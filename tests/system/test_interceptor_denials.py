@@ -29,7 +29,7 @@ from tests.interceptor_harness import (
     signing_key,
 )
 from tests.support import running, until
-from tests.interceptor_harness import token_of, got, master_state, nodes_in_state, read_lines
+from tests.interceptor_harness import denials, token_of, got, master_state, nodes_in_state, read_lines, wait_registered
 
 pytestmark = [pytest.mark.ros1]
 
@@ -55,21 +55,8 @@ def rogue(network, host, as_name, *, pki=None):
     return rogue_tls(*public(network, host), ca=network.pki.ca_cert, cert=c, key=k)
 
 
-def denials(network, host) -> str:
-    return "\n".join(line for line in network.hosts[host].logs().splitlines() if "DENY" in line)
-
-
 def talker(network, count=100000, hz=20, node="/talker_a", topic="/chatter"):
     return running([SYS_PY, NODE, "pub", node, topic, str(count), str(hz), "30"], env=network.ros_env("robot_a"))
-
-
-def wait_registered(network, node, timeout=20):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if node in nodes_in_state(master_state(network)):
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"{node} never registered")
 
 
 def test_manager_without_grant_cannot_register_its_publisher(network):
@@ -118,7 +105,10 @@ def test_header_with_wrong_type_or_md5_is_refused_by_the_publishers_interceptor(
         t_id = t_host.rsplit("/", 1)[1]
         base = {"callerid": "/listener_b", "topic": "/chatter", "type": "std_msgs/String",
                 "md5sum": "992ce8a1687cec8c8bd883ec73ca41d1", "tcp_nodelay": "1"}
-        for bad in ({"type": "std_msgs/Int32"}, {"md5sum": "0" * 32}, {"topic": "/secret"}):
+        # a peer's value is quoted in the refusal: its newline wrote a line of the insider's choosing
+        forged = "2026-11-29 05:30:00,000 cryptoros.interceptor INFO ALLOW topic from robot_c: FORGED"
+        for bad in ({"type": "std_msgs/Int32"}, {"md5sum": "0" * 32}, {"topic": "/secret"},
+                    {"topic": f"/nope\n{forged}"}, {"topic": "/nope\r\x00" + "x" * 20000}):
             with rogue(network, "robot_a", "robot_b") as s:
                 assert rogue_preamble(s, token, "topic", t_id).ok
                 answer = rogue_tcpros(s, {**base, **bad})
@@ -131,6 +121,10 @@ def test_header_with_wrong_type_or_md5_is_refused_by_the_publishers_interceptor(
     log = denials(network, "robot_a")
     assert "type_mismatch" in log or "published as" in log
     assert "md5sum" in log
+    lines = network.hosts["robot_a"].logs().splitlines()
+    assert not [line for line in lines if line.startswith(forged) or "\x00" in line], "a peer's value wrote raw"
+    assert "/nope\\n2026-11-29" in log and "/nope\\r\\x00xxx" in log, log[-3000:]
+    assert max(len(line) for line in lines) < 5000  # a peer's 20,000 characters cut
 
 
 def test_shutdown_is_dropped_for_the_master_and_for_nodes(network):
