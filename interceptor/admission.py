@@ -122,18 +122,19 @@ class Admission:
             if writer is not None:
                 writer.transport.abort()  # stop(): no preamble yet, nothing to finish
             raise
-        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
+        except (CryptorosError, OSError) as exc:  # OSError: TimeoutError, a reset, a broken TLS record
             self._free_slot(slot)
-            if isinstance(exc, CryptorosError):
-                self.deny("stream", exc, who)
-            else:
-                reason = "preamble_timeout" if isinstance(exc, asyncio.TimeoutError) else type(exc).__name__
-                self.metrics.denied.labels("stream", reason).inc()
-                log.warning("DENY stream from %s: %s", who, reason)
+            if isinstance(exc, TimeoutError):
+                exc = PolicyDenied("preamble_timeout", f"timed out (a preamble's limit: {limits.preamble_timeout:g} s)")
+            elif not isinstance(exc, CryptorosError):
+                exc = PolicyDenied(type(exc).__name__, str(exc))
+            self.deny("stream", exc, who)
+            if writer is None:
+                return
             with contextlib.suppress(Exception):
                 writer.write(gate.refuse())
                 await asyncio.wait_for(writer.drain(), 1)
-            if isinstance(exc, asyncio.TimeoutError) or isinstance(exc, PolicyDenied) and exc.reason == "pending_limit":
+            if isinstance(exc, PolicyDenied) and exc.reason in ("preamble_timeout", "pending_limit"):
                 writer.transport.abort()  # no graceful TLS close for a peer that dribbles
             else:
                 writer.close()
@@ -162,7 +163,7 @@ class Admission:
         try:
             await serve(InboundStream(reader, writer, peer, purpose, admitted.target, gate.trailing_data,
                                       admitted.resolved, watch))
-        except (CryptorosError, asyncio.TimeoutError, ConnectionError) as exc:
+        except (CryptorosError, OSError) as exc:  # OSError: TimeoutError, a reset, a broken TLS record
             if isinstance(exc, CryptorosError):
                 self.deny(purpose, exc, who)
         except asyncio.CancelledError:

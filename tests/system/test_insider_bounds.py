@@ -8,6 +8,8 @@ reaching robot C (tests/ros1_flow.py): never silent 5 s during it, back within 5
 
 from __future__ import annotations
 
+import contextlib
+import os
 import socket
 import time
 import xmlrpc.client
@@ -32,7 +34,7 @@ from tests.interceptor_harness import (
 )
 from tests.interceptor_harness import open_fds as fds
 from tests.interceptor_harness import rogue_to as rogue
-from tests.support import running
+from tests.support import running, until
 from tests.interceptor_harness import got, read_lines
 from tests.ros1_flow import flow_policy, legit_flow
 
@@ -147,6 +149,25 @@ def test_dribbled_preambles_are_cut_at_the_deadline_and_capped_per_certificate(n
     log = denials(network, "robot_a")
     assert log.count("4 unauthenticated streams from this certificate already") >= 4
     assert log.count("preamble_timeout") >= 1
+
+
+def test_a_broken_tls_record_after_the_handshake_is_a_denial_line_not_a_traceback(network, flow):
+    """Insider audit: mutual TLS completed with the insider's certificate, then a TLS
+    record the interceptor cannot decrypt: every connection logged "Task exception was
+    never retrieved" and a 17-line ssl.SSLError traceback (200 connections, 190 of them)."""
+    a = network.hosts["robot_a"]
+    before = len(a.logs())
+    with flow.held():
+        for _ in range(5):
+            with closing(rogue(network, "robot_a", "robot_b")) as s:
+                os.write(s.fileno(), b"\x17\x03\x03\x00\x20" + bytes(32))  # application data, 32 zero bytes
+                s.settimeout(5)
+                with contextlib.suppress(OSError):
+                    s.recv(100)  # until the interceptor closes
+    new = until(lambda: a.logs()[before:] if a.logs()[before:].count("SSLError") >= 5 else None, 10,
+                "a denial line for each broken record")
+    assert "Traceback" not in new and "never retrieved" not in new, new
+    assert len([line for line in new.splitlines() if "DENY stream from" in line and "SSLError" in line]) == 5, new
 
 
 def test_connections_that_never_start_tls_hold_capped_slots_not_descriptors(network, flow):
