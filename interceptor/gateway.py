@@ -37,7 +37,7 @@ from aiohttp import web
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, TokenError
 from cryptoros.lru import remember
 from cryptoros.monitor.model import MonitorModel
-from cryptoros.ratelimit import TokenBuckets
+from cryptoros.ratelimit import Shunned, TokenBuckets
 from cryptoros.tokens import AccessToken
 from interceptor.authz_client import AuthzClient, RetryLog, TokenKeeper
 from interceptor.verifier import PeerVerifier
@@ -51,7 +51,7 @@ from interceptor.monitor import Monitor, quarantine_path
 from interceptor.pump import FrameCounter, MessageBudget, splice
 from interceptor.slots import KeyedSlots
 
-from interceptor.admission import KNOWN_SOURCES, Admission
+from interceptor.admission import FAILED_HANDSHAKE_BURST, FAILED_HANDSHAKE_RATE, KNOWN_SOURCES, SHUN_SECONDS, Admission
 from interceptor.health import Health
 from interceptor.outbound import Outbound
 from interceptor.streams import (
@@ -191,6 +191,8 @@ class Gateway(Admission, Outbound, Health):
         self._pending = PendingStreams()
         #: source addresses verified peers streamed from (admission.py: KNOWN_SOURCES)
         self._known_sources: dict[str, bool] = {}
+        #: unknown sources whose handshakes failed too fast (admission.py: FAILED_HANDSHAKE_RATE)
+        self._shunned = Shunned(FAILED_HANDSHAKE_RATE, FAILED_HANDSHAKE_BURST, SHUN_SECONDS, max_keys=KNOWN_SOURCES)
         #: called when a source joins them (before it is added)
         self.source_listeners: list[Callable[[], None]] = []
         #: streams counted in all of the pending ones (unknown sources), not verified yet:

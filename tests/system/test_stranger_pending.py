@@ -5,6 +5,7 @@ source address, aggregated. Real interceptors, rosmaster and rospy nodes."""
 
 from __future__ import annotations
 
+import contextlib
 import socket
 
 import pytest
@@ -82,6 +83,49 @@ def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_p
         lines = [line for line in log.splitlines() if f"DENY tls from {stranger}:" in line]
         assert lines and all("pending_limit" in line or "unauthenticated streams" in line for line in lines), log[-2000:]
         assert len(lines) <= 2, lines  # four refusals, aggregated: one line at once, then a count per interval
+
+
+def test_a_stranger_whose_handshakes_keep_failing_is_closed_at_accept_and_robots_stream_on(tmp_path):
+    """Stranger audit: full TLS handshakes without a client certificate, 640 a second, took
+    half of robot A's interceptor (a key exchange and a signature each) and its relayed
+    messages' p50 from 0.4 to 5-10 ms. Past FAILED_HANDSHAKE_BURST failures (and their
+    rate) the stranger's address is closed at accept, before any TLS, for SHUN_SECONDS,
+    while a robot robot A knows opens new streams."""
+    from interceptor.admission import FAILED_HANDSHAKE_BURST
+
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), netns=separate_hosts()) as net:
+        a = net.hosts["robot_a"]
+        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "60"],
+                     env=net.ros_env("robot_a")) as pub, \
+                running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "60"], env=net.ros_env("robot_b")) as first:
+            read_lines(pub, "READY", 20)
+            assert got(read_lines(first, "GOT", 30)), "robot B's first subscriber got nothing"  # B is known to A now
+            outcomes = [_handshake_without_certificate(a) for _ in range(FAILED_HANDSHAKE_BURST + 5)]
+            # the first ones reach TLS and are refused there; the last are closed before a ServerHello
+            assert outcomes[0] == "refused in TLS" and outcomes[-1] == "closed at accept", outcomes
+            with running([SYS_PY, NODE, "sub", "/victim", "/chatter", "60"], env=net.ros_env("robot_b")) as second:
+                assert got(read_lines(second, "GOT", 30)), "robot B's new stream was refused with the stranger"
+        log = denials(net, "robot_a")
+        assert "handshake_failures" in log, log[-2000:]
+
+
+def _handshake_without_certificate(host) -> str:
+    """A stranger's TLS 1.3 handshake with ``host``'s public port, no client certificate:
+    "refused in TLS" (the client's part done, the server's alert after) or "closed at
+    accept" (no ServerHello: the handshake itself fails)."""
+    import ssl
+
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    ctx.check_hostname, ctx.verify_mode = False, ssl.CERT_NONE
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_3
+    with ctx.wrap_socket(_hold(host), server_hostname="robot", do_handshake_on_connect=False) as tls:
+        try:
+            tls.do_handshake()
+        except OSError:
+            return "closed at accept"
+        with contextlib.suppress(OSError):
+            tls.recv(1)  # the server's alert: certificate required
+    return "refused in TLS"
 
 
 def _hold(host) -> socket.socket:
