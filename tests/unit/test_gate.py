@@ -164,6 +164,13 @@ def test_feed_problem_fails_closed():
     assert feed_problem(refused=True, last_feed_at=100.0, now=110.0, max_age=30).reason == "authz_refused"
 
 
+def test_a_stale_feeds_refusal_reads_the_same_however_old_the_feed():
+    """Refusals are listed by their text (``cryptoros denials``): an outage is one row
+    that counts up, not a row per second of the feed's age (status shows the age)."""
+    first, later = (str(feed_problem(refused=False, last_feed_at=10.0, now=now, max_age=30)) for now in (50.0, 110.0))
+    assert first == later == "feed_stale: revocation feed older than max_feed_age (30 s)"
+
+
 def test_pending_streams_are_capped_per_key_and_released():
     pending = PendingStreams()
     pending.enter(("source", "10.0.0.1"), 2, "source")
