@@ -12,7 +12,8 @@ reads, verifies the token (which may need the authorization server's JWKS), and 
 the facts in; the gate decides, in a fixed order, and says why with a reason code.
 :class:`PendingStreams` bounds the streams whose token is not verified yet, per source
 address and per certificate; :func:`feed_problem` is the fail-closed rule for a stale
-revocation feed. Both are plain state, tested without sockets (tests/unit/test_gate.py).
+revocation feed (for the streams this interceptor opens too), :data:`FEED_HINTS` what to
+do about it. Both are plain state, tested without sockets (tests/unit/test_gate.py).
 """
 
 from __future__ import annotations
@@ -180,6 +181,13 @@ def feed_problem(*, refused: bool, last_feed_at: float | None, now: float, max_a
     return None
 
 
+#: The reasons :func:`feed_problem` refuses with: this interceptor's own state, no peer's doing
+FEED_REASONS = frozenset({"feed_stale", "authz_refused"})
+#: What to do about a refusal of :func:`feed_problem`, listed with it (``cryptoros denials``)
+FEED_HINTS = {
+    "feed_stale": "bring the authorization server back; cryptoros status shows the feed's age",
+}
+
 
 def held_feed_wait(feed_wait: float, *, request_timeout: float, max_feed_age: float,
                    heartbeat: float = 0.0) -> float:
@@ -218,4 +226,4 @@ class PendingStreams:
         return len(self._counts)
 
 
-__all__ = ["REFRESH", "Admitted", "PendingStreams", "PreambleReceived", "StreamGate", "feed_problem"]
+__all__ = ["FEED_HINTS", "FEED_REASONS", "REFRESH", "Admitted", "PendingStreams", "PreambleReceived", "StreamGate", "feed_problem"]

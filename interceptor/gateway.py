@@ -45,7 +45,7 @@ from interceptor.certsource import CertSource
 from interceptor.config import InterceptorConfig, check_reload
 from interceptor.denials import DenialTable
 from interceptor.learning import Learner
-from interceptor.gate import REFRESH, PendingStreams, TargetCheck, held_feed_wait
+from interceptor.gate import FEED_HINTS, REFRESH, PendingStreams, TargetCheck, held_feed_wait
 from interceptor.metrics import Metrics
 from interceptor.monitor import Monitor, quarantine_path
 from interceptor.pump import FrameCounter, MessageBudget, splice
@@ -540,10 +540,12 @@ class Gateway(Admission, Outbound, Health):
         """Count a refusal by reason; log it, aggregated (:mod:`interceptor.denials`: the
         first of a kind, peer, reason and target at once, then a count per interval).
         ``logged``: False for a flood the caller logs once in a while itself; ``hint``:
-        the ``cryptoros-authz grant ...`` that would allow it (``cryptoros denials``)."""
+        the ``cryptoros-authz grant ...`` that would allow it (``cryptoros denials``); a
+        stale feed's refusal says what to do (:data:`~interceptor.gate.FEED_HINTS`)."""
         reason = exc.reason
         self.metrics.denied.labels(kind, reason).inc()
-        for line in self.denials.record(kind, who, reason, str(exc), time.monotonic(), hint=hint):
+        for line in self.denials.record(kind, who, reason, str(exc), time.monotonic(),
+                                        hint=hint or FEED_HINTS.get(reason)):
             if logged:
                 log.warning("%s", line)
 

@@ -57,6 +57,7 @@ class Outbound:
         only then, so its handshake does not take the CPU from this stream's set-up on
         both interceptors (otherwise it is made at once)."""
         self.keeper.current()  # no token of our own: nothing is opened
+        self.check_feed_age()  # nor with a stale feed: the peer's token in its reply may be revoked
         whole = purpose == "master" if whole is None else whole
         endpoint = (host, port)
         if purpose != REFRESH:

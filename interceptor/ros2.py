@@ -55,7 +55,7 @@ from cryptoros.exposure import ExposureError
 from interceptor.config import Endpoint
 from interceptor.exposure import PortExposure
 from interceptor.verifier import StreamWatch
-from interceptor.gate import Target
+from interceptor.gate import FEED_REASONS, Target
 from interceptor.gateway import Gateway, Role
 from interceptor.ros2_bridge import BridgeLink, DdsBridge
 from interceptor.ros2_partial import PartialFrames
@@ -620,7 +620,9 @@ class Ros2Role(Role):
                 reader, writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
             except PEER_FAILURES as exc:
                 key = ("unreachable", endpoint, target.name)
-                if key not in self._noted:
+                if isinstance(exc, PolicyDenied) and exc.reason in FEED_REASONS:  # ours: a denial, aggregated
+                    self.gw.deny(f"ros2_{target.kind}_out", exc, str(endpoint))
+                elif key not in self._noted:
                     self._noted.add(key)
                     log.warning("cannot open the %s stream for %s to %s: %s", target.kind, target.name, endpoint, exc)
                 await asyncio.sleep(backoff)

@@ -525,11 +525,13 @@ SHOWN_REASONS = frozenset({
 
 
 #: Why this host's own token cannot be used (none held: the manager removed or disabled,
-#: the certificate revoked, the authorization server out of reach past its expiry...):
+#: the certificate revoked, the authorization server out of reach past its expiry...) or
+#: no new stream is opened (its revocation feed stale, or refused to it):
 #: shown to this host's own nodes and tools (:func:`refusal_text` with ``own=True``),
 #: never to a peer, which learns nothing of our token.
 OWN_TOKEN_REASONS = frozenset({
     "no_token", "wrong_manager", "expired", "not_yet_valid", "revoked", "certificate_revoked", "subject_disabled",
+    "feed_stale", "authz_refused",
 })
 
 

@@ -13,6 +13,7 @@ from collections.abc import Awaitable, Callable
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.memory import tune_malloc
 from cryptoros.policy.ros1 import (
+    OWN_TOKEN_REASONS,
     grant_hint,
     refusal_answer,
     refusal_text,
@@ -488,7 +489,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 unanswered = not isinstance(exc, CryptorosError) or exc.reason in UNANSWERED_REASONS
                 if unanswered:
                     log.warning("%s call from %s got no answer: %s", kind, who, exc or type(exc).__name__)
-                elif not answered:  # the answer itself was refused (too large, malformed): not the caller's doing
+                elif not answered and exc.reason not in OWN_TOKEN_REASONS:
+                    # the answer itself was refused (too large, malformed): not the caller's doing;
+                    # a refusal of our own (no token, a stale feed: no stream opened) is a denial
                     log.warning("%s call from %s: its answer was refused: %s", kind, who, exc)
                 else:
                     self.gw.deny(kind, exc, who)

@@ -5,23 +5,28 @@
   the TOML key is ``tls_key_passphrase_file``, ``key_passphrase_file`` still accepted;
 - a listener that cannot bind: one line naming it and its address;
 - SIGTERM with rospy nodes and a peer stream connected: exit 0, no traceback;
-- the revocation feed's "answers again" line within a poll of the server's return.
+- the revocation feed's "answers again" line within a poll of the server's return;
+- the authorization server down past ``max_feed_age``: a robot's own stock tool that
+  needs a new stream is told why (``feed_stale``), and ``cryptoros denials`` lists it
+  with what to do.
 """
 
 from __future__ import annotations
 
+import json
 import re
 import socket
 import subprocess
 import time
+import urllib.request
 
 import pytest
 from cryptography.hazmat.primitives import serialization
 
 from cryptoros import pemfiles
 from cryptoros.lab.network import clean_env, stop, tool, wait_port
-from tests.interceptor_harness import robot_network
-from tests.support import free_port
+from tests.interceptor_harness import SYS_PY, robot_network, run_on
+from tests.support import free_port, on_host, require, until
 from tests.stream_support import talker_a_to_listener_b
 
 pytestmark = [pytest.mark.ros1]
@@ -161,3 +166,30 @@ def test_the_feed_says_it_answers_again_within_a_poll_of_the_servers_return(tmp_
             # one poll interval (0.5 s here) and a request; 5 s of slack for a loaded machine
             assert time.monotonic() - back < 5.5, "no 'answers again' line within a poll of the server's return"
             time.sleep(0.1)
+
+
+def test_a_stale_feed_tells_an_own_tool_why_its_new_stream_is_refused(tmp_path):
+    """The authorization server down past ``max_feed_age`` (3 s here, on both ends):
+    ``rostopic echo`` on the robot, which needs a new master stream (pooled ones close
+    after 1 s unused), prints one error line naming ``feed_stale``; the robot's
+    ``cryptoros denials`` lists it with what to do."""
+    limits = "[limits]\nmax_feed_age = 3.0\ntunnel_idle_timeout = 1.0\n"
+    with robot_network(tmp_path, start=("master", "robot_b"), extra={"master": limits, "robot_b": limits}) as network:
+        host = network.hosts["robot_b"]
+
+        def status() -> dict:
+            with network.inside("robot_b"), urllib.request.urlopen(
+                    f"http://127.0.0.1:{host.metrics_port}/status", timeout=5) as reply:
+                return json.loads(reply.read())
+
+        stop(network.authz_proc, timeout=10)
+        until(lambda: (now := status())["health"].startswith("feed_stale") and now["open_streams"] == 0, 30,
+              "robot_b's feed stale and its pooled streams closed")
+        env = network.ros_env("robot_b")
+        echo = subprocess.run(on_host([SYS_PY, require("rostopic")["rostopic"], "echo", "-n1", "/chatter"], env),
+                              env=env, capture_output=True, text=True, timeout=60)
+        assert echo.returncode == 1, (echo.stdout, echo.stderr)
+        assert echo.stderr.strip().splitlines() == ["ERROR: denied by cryptoros: feed_stale"], echo.stderr
+        listed = run_on(network, "robot_b", [tool("cryptoros"), "denials", "--config", str(host.config)]).stdout
+        assert "feed_stale: revocation feed" in listed, listed
+        assert "bring the authorization server back" in listed, listed
