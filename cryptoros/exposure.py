@@ -54,10 +54,12 @@ class ExposureError(CryptorosError):
 
 @dataclass(frozen=True, kw_only=True)
 class Listener:
-    """One TCP socket in LISTEN: the address it is bound to and its port."""
+    """One TCP socket in LISTEN: the address it is bound to, its port and its inode (which
+    socket it is: another bound to the same port later has another)."""
 
     address: ipaddress.IPv4Address | ipaddress.IPv6Address
     port: int
+    inode: int = 0
 
     @property
     def exposed(self) -> bool:
@@ -98,7 +100,8 @@ def parse_proc_net_tcp(text: str, *, byteorder: str = sys.byteorder) -> list[Lis
         try:
             if not colon:
                 raise ValueError("no port")
-            listeners.append(Listener(address=proc_net_address(address_hex, byteorder), port=int(port_hex, 16)))
+            listeners.append(Listener(address=proc_net_address(address_hex, byteorder), port=int(port_hex, 16),
+                                      inode=int(fields[9]) if len(fields) > 9 else 0))
         except ValueError as exc:
             raise ExposureError(f"line {number} of the socket table does not parse ({exc}): {line.strip()[:80]}") from None
     return listeners
@@ -114,6 +117,8 @@ _NLMSG = struct.Struct("=IHHII")  # len, type, flags, seq, pid
 _REQUEST = struct.Struct("=BBBBI48x")
 #: inet_diag_msg: family, state, timer, retrans, then sockid: sport, dport (big endian), src[16]
 _DIAG_MSG = struct.Struct("=BBBB2H16s")
+#: where inet_diag_msg's idiag_inode is (after the 48-byte sockid, expires, rqueue, wqueue, uid)
+_DIAG_INODE = struct.Struct("=68xI")
 _TCP_LISTEN = 10
 #: the request's filter (attribute INET_DIAG_REQ_BYTECODE): a program of inet_diag_bc_op
 #: (code, yes, no); ``yes``/``no`` are the bytes to skip, and a socket is kept when the
@@ -158,7 +163,9 @@ def parse_sock_diag(data: bytes) -> tuple[list[Listener], bool]:
             family, state, _, _, sport, _, src = _DIAG_MSG.unpack_from(data, offset + _NLMSG.size)
             if state == _TCP_LISTEN and family in (socket.AF_INET, socket.AF_INET6):
                 raw = src[:4] if family == socket.AF_INET else src
-                listeners.append(Listener(address=ipaddress.ip_address(raw), port=socket.ntohs(sport)))
+                inode = (_DIAG_INODE.unpack_from(data, offset + _NLMSG.size)[0]
+                         if length >= _NLMSG.size + _DIAG_INODE.size else 0)
+                listeners.append(Listener(address=ipaddress.ip_address(raw), port=socket.ntohs(sport), inode=inode))
         offset += (length + 3) & ~3
     return listeners, False
 

@@ -108,6 +108,13 @@ class PortExposure:
             self._answers.pop(port, None)
         return addresses
 
+    def sockets(self, port: int) -> frozenset[int]:
+        """The exposed sockets on ``port`` now (their inodes; empty: none), read afresh:
+        whether the process served on a port still holds it. Raises
+        :class:`~cryptoros.exposure.ExposureError` when the kernel cannot be asked."""
+        self.reads += 1
+        return frozenset(one.inode for one in self._read(port) if one.port == port and one.exposed)
+
 
 def _announced(uri: object) -> tuple[str, int]:
     """(host, port) of an endpoint a node announced (a ROS URI, or an IPv6 ``http://`` one
@@ -203,8 +210,10 @@ class NodeGuard:
     """The node role's check of the endpoints its local nodes announce. An endpoint
     other hosts reach is refused (PolicyDenied ``exposed_endpoint``) unless the node
     matches a pattern of ``allow_exposed_nodes`` (the operator closed its ports with a
-    firewall, which no socket table shows): then it is served and remembered for the
-    status warning (at most :data:`MAX_NOTED` nodes). While loopback itself answers other
+    firewall, which no socket table shows): then it is served and remembered, with the
+    sockets it listens on, for the status warning (at most :data:`MAX_NOTED` nodes) for as
+    long as those sockets listen: a node that exited is forgotten, and a process that
+    binds its port later is judged as itself. While loopback itself answers other
     hosts (``route_localnet``) every call to the local master is refused, and every
     endpoint, allowed nodes' too: the fix is one sysctl, and the local master, which a
     stranger reaches as well, is no node a firewall note could cover."""
@@ -220,7 +229,8 @@ class NodeGuard:
 
     def __init__(self, exposure: PortExposure | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self.exposure = exposure or PortExposure()
-        self._served: dict[tuple[str, int], str] = {}  # (node, port) -> addresses, served exposed
+        # (node, port) -> (addresses, the exposed sockets then listening), served exposed
+        self._served: dict[tuple[str, int], tuple[str, frozenset[int]]] = {}
         self._named: dict[tuple[str, int], float] = {}  # (node, port) -> when exposed_apis last named it
         self._running: set[tuple[str, int]] = set()  # refused nodes that could not be asked to shut down
         self._repeats: dict[str, tuple[int, float]] = {}  # node name -> (times found exposed, last time)
@@ -248,11 +258,36 @@ class NodeGuard:
         name = node() if callable(node) else node
         if not any(fnmatch.fnmatchcase(name, pattern) for pattern in allow):
             raise PolicyDenied("exposed_endpoint", _node_refusal(name, what, port, addresses, config, advertised))
-        if (name, port) in self._served or len(self._served) >= self.MAX_NOTED:
+        if (name, port) in self._served and self._holds(name, port):
             return None
-        self._served[(name, port)] = ", ".join(addresses)
+        if len(self._served) >= self.MAX_NOTED:
+            self._prune_served()
+            if len(self._served) >= self.MAX_NOTED:
+                return None
+        try:
+            sockets = self.exposure.sockets(port)
+        except ExposureError:
+            sockets = frozenset()  # not kept: asked again on the node's next registration
+        if sockets:
+            self._served[(name, port)] = (", ".join(addresses), sockets)
         return (f"allow_exposed_nodes: node {name}'s {what} listens on {', '.join(addresses)} port {port}, served "
                 f"(its ports must be closed to the network by the host's firewall)")
+
+    def _holds(self, node: str, port: int) -> bool:
+        """Whether the sockets ``node`` was served on still listen on ``port`` (kept while
+        that cannot be told); forgotten when they do not."""
+        try:
+            now = self.exposure.sockets(port)
+        except ExposureError:
+            return True
+        if now & self._served[(node, port)][1]:
+            return True
+        del self._served[(node, port)]
+        return False
+
+    def _prune_served(self) -> None:
+        for node, port in list(self._served):
+            self._holds(node, port)
 
     def check_host(self) -> None:
         """PolicyDenied (``exposed_endpoint``) while this host's loopback answers other
@@ -291,13 +326,12 @@ class NodeGuard:
     def exposed_apis(self, calls: list[Request], *, allow: tuple[str, ...]) -> list[tuple[str, int, str, bool]]:
         """(node, port, announced host, repeat) of each XML-RPC API that registrations
         among ``calls`` announce and that other hosts reach, of a node not in ``allow`` and
-        on no port an allowed node was served on (a local process naming an allowed node's
-        port in its own registration gets it no shutdown): the nodes a refused registration
+        on no port an allowed node was served on and still listens on (a local process
+        naming an allowed node's port in its own registration gets it no shutdown): the nodes a refused registration
         leaves running exposed, each once within :data:`ASK_AGAIN_AFTER`. ``repeat``: the
         node name was found exposed before, within :data:`REPEAT_WINDOW`. Uses the answers
         :meth:`check_port` just read."""
         found: list[tuple[str, int, str, bool]] = []
-        allowed_ports = {port for _node, port in self._served}
         for call in calls:
             for index, what in REGISTRATION_URIS.get(call.method, ()):
                 if what != "XML-RPC API" or len(call.params) <= index or not isinstance(call.params[0], str):
@@ -308,12 +342,16 @@ class NodeGuard:
                 except (UriError, ExposureError):
                     continue
                 node = call.params[0]
-                if not exposed or port in allowed_ports or any(fnmatch.fnmatchcase(node, p) for p in allow):
+                if not exposed or any(fnmatch.fnmatchcase(node, p) for p in allow) or self._allowed_port(port):
                     continue
                 repeat = self.to_ask(node, port)
                 if repeat is not None:
                     found.append((node, port, host, repeat))
         return found
+
+    def _allowed_port(self, port: int) -> bool:
+        """Whether an allowed node served on ``port`` still listens there."""
+        return any(self._holds(node, served) for node, served in list(self._served) if served == port)
 
     def to_ask(self, node: str, port: int) -> bool | None:
         """Whether the exposed process of ``node`` on ``port`` is to be asked to shut down
@@ -361,9 +399,11 @@ class NodeGuard:
                         "(a launch file's respawn?); other hosts reach each for a moment every time: " +
                         ", ".join(f"{node} ({times} times)" for node, times in again[:8]) +
                         "; start them on loopback (cryptoros run, no __ip/ROS_IP of the network) or stop them")
+        self._prune_served()
         if not self._served:
             return host
-        named = ", ".join(f"{node} ({where} port {port})" for (node, port), where in list(self._served.items())[:8])
+        named = ", ".join(f"{node} ({where} port {port})" for (node, port), (where, _sockets)
+                          in list(self._served.items())[:8])
         more = len(self._served) - 8
         served = f"allow_exposed_nodes: served with ports other hosts reach unless a firewall closes them: {named}"
         return host + [served + (f" and {more} more" if more > 0 else "")]

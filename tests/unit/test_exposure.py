@@ -210,6 +210,47 @@ def test_the_exposed_apis_of_refused_registrations_are_named_once_each_and_allow
     assert guard.exposed_apis([deputy], allow=("/rec",)) == []
 
 
+def _exposed_listener(port: int = 0) -> socket.socket:
+    """A socket listening on every address (as roscpp's XML-RPC API does), on ``port``."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("0.0.0.0", port))
+    sock.listen()
+    return sock
+
+
+def _served_then_exited(guard: NodeGuard) -> int:
+    """``/record_1795`` (allowed) served exposed on a real socket, which then closes: its port."""
+    with _exposed_listener() as record:
+        port = record.getsockname()[1]
+        allowed = Request(method="registerPublisher", params=("/record_1795", "/chatter", "std_msgs/String",
+                                                              f"http://127.0.0.1:{port}/"))
+        assert guard.check_registrations([allowed], allow=("/record_*",), config=None)
+        assert f"/record_1795 (0.0.0.0 port {port})" in guard.warnings()[-1]
+    return port
+
+
+def test_an_allowed_exposed_node_that_exited_is_no_longer_named_in_the_status():
+    """Operator audit: ``rosbag record`` and ``play`` (allowed exposed) exited, and the
+    status named them for good (every anonymous run one more name)."""
+    guard = NodeGuard()
+    _served_then_exited(guard)
+    assert not any("/record_1795" in line for line in guard.warnings())
+
+
+def test_the_port_of_an_allowed_node_that_exited_is_judged_afresh():
+    """Operator audit: a node not allowed that took the ephemeral port of an allowed one
+    that had exited was refused but never asked to shut down. The host's real listening
+    sockets: the allowed node's, closed, then another on the same port."""
+    guard = NodeGuard()
+    port = _served_then_exited(guard)
+    with _exposed_listener(port):  # the ephemeral port taken again, by a node not allowed
+        other = Request(method="registerSubscriber", params=("/echo", "/chatter", "*", f"http://127.0.0.1:{port}/"))
+        with pytest.raises(PolicyDenied, match="exposed_endpoint"):
+            guard.check_registrations([other], allow=("/record_*",), config=None)
+        assert guard.exposed_apis([other], allow=("/record_*",)) == [("/echo", port, "127.0.0.1", False)]
+
+
 def test_a_node_respawned_exposed_is_a_repeat_named_in_the_status_until_it_stops():
     """Stranger audit: roslaunch's respawn="true" started a refused exposed node again
     each time it was shut down, and a stranger reached it half of the time, with
