@@ -225,10 +225,16 @@ class Translator:
         return len(self._exports)
 
     def resolve(self, kind: str, ident: str) -> LocalEndpoint:
-        """The local endpoint behind one of our ids; unknown ids are refused."""
+        """The local endpoint behind one of our ids; unknown ids are refused, saying
+        which endpoint an id made of one names, and why a peer may name what is not
+        exported (transient: its name came before a restart or a node's exit)."""
         endpoint = self._exports.get(ident)
         if endpoint is None or endpoint.kind != kind:
-            raise PolicyDenied("unknown_target", f"no exported {kind} endpoint {ident!r:.20}")
+            named = _endpoint_of(kind, ident)
+            where = f" ({named[0]} port {named[1]})" if named is not None else ""
+            raise PolicyDenied("unknown_target", f"no exported {kind} endpoint {ident!r:.20}{where}: named before "
+                                                 "this interceptor restarted or its node exited; the peer retries "
+                                                 "with the endpoint the master names now")
         return endpoint
 
     def relay_for(self, target: Canonical, *, port: int = 0) -> tuple[str, int]:

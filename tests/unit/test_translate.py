@@ -142,3 +142,18 @@ def test_a_requesttopic_reply_may_name_only_the_interceptor_that_answered():
             t.tcpros_to_local(made_up, 1, via=peer)
         assert elsewhere.value.reason == "endpoint_not_peer"
     assert [(o.host, o.port) for o in opened] == [peer]  # no relay was opened for the others
+
+
+def test_an_unknown_target_says_which_endpoint_it_named_and_why_it_is_not_here():
+    """Operator audit: after a restart of robot A's interceptor a peer's stream to an
+    endpoint named before it was refused as ``no exported x endpoint '210398'`` and
+    nothing more (transient: the peer retried with the endpoint the master named then)."""
+    t = _translator()
+    with pytest.raises(PolicyDenied) as made:  # an id made of an endpoint: which one it names
+        t.resolve("x", "210398")
+    text = str(made.value)
+    assert made.value.reason == "unknown_target" and "\n" not in text
+    assert "(127.0.0.1 port 39663)" in text and "restart" in text and "retries" in text, text
+    with pytest.raises(PolicyDenied) as counted:  # a counted id names no endpoint: the reasons still said
+        t.resolve("t", "7")
+    assert "restart" in str(counted.value) and " port " not in str(counted.value), str(counted.value)
