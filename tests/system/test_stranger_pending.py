@@ -39,11 +39,7 @@ def test_strangers_filling_the_pending_slots_do_not_lock_a_known_robot_out(tmp_p
     with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), extra=extra,
                        netns=separate_hosts()) as net:
         a = net.hosts["robot_a"]
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "90"],
-                     env=net.ros_env("robot_a")) as pub, \
-                running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "90"], env=net.ros_env("robot_b")) as first:
-            read_lines(pub, "READY", 20)
-            assert got(read_lines(first, "GOT", 30)), "robot B's first subscriber got nothing"  # B is known to A now
+        with _robot_b_known_to_robot_a(net, 90) as first:
             held = []
             try:
                 for _ in range(PENDING_IN_ALL + 4):  # from the test's own address: a stranger to robot A
@@ -95,11 +91,7 @@ def test_a_stranger_whose_handshakes_keep_failing_is_closed_at_accept_and_robots
 
     with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), netns=separate_hosts()) as net:
         a = net.hosts["robot_a"]
-        with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "60"],
-                     env=net.ros_env("robot_a")) as pub, \
-                running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "60"], env=net.ros_env("robot_b")) as first:
-            read_lines(pub, "READY", 20)
-            assert got(read_lines(first, "GOT", 30)), "robot B's first subscriber got nothing"  # B is known to A now
+        with _robot_b_known_to_robot_a(net, 60):
             outcomes = [_handshake_without_certificate(a) for _ in range(FAILED_HANDSHAKE_BURST + 5)]
             # the first ones reach TLS and are refused there; the last are closed before a ServerHello
             assert outcomes[0] == "refused in TLS" and outcomes[-1] == "closed at accept", outcomes
@@ -126,6 +118,19 @@ def _handshake_without_certificate(host) -> str:
         with contextlib.suppress(OSError):
             tls.recv(1)  # the server's alert: certificate required
     return "refused in TLS"
+
+
+@contextlib.contextmanager
+def _robot_b_known_to_robot_a(net, seconds: int):
+    """Robot A's talker and robot B's first subscriber, running ``seconds``, once a message
+    went through: robot B's address is a known source to robot A. Yields the subscriber."""
+    with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", str(seconds)],
+                 env=net.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", str(seconds)],
+                    env=net.ros_env("robot_b")) as first:
+        read_lines(pub, "READY", 20)
+        assert got(read_lines(first, "GOT", 30)), "robot B's first subscriber got nothing"
+        yield first
 
 
 def _hold(host) -> socket.socket:
