@@ -807,7 +807,8 @@ class AuthzService:
     async def _narrowed(self, resource: str, grants: Grants, manager: str) -> tuple[str, Grants, str]:
         """Audience, grants and audit note of a token for the peer ``resource`` names
         (``urn:cryptoros:peer:<x5t#S256>``): only the grants on topics and services the
-        peer's manager holds a grant on too, so the peer learns nothing of the others."""
+        peer's manager holds a grant on too, so the peer learns nothing of the others
+        (:meth:`~cryptoros.tokens.Grants.narrowed_to`)."""
         try:
             thumbprint = thumbprint_of_audience(resource)
         except TokenError:
@@ -815,7 +816,7 @@ class AuthzService:
         target, target_grants = await self.manager_for(fingerprint_of_thumbprint(thumbprint))
         if target is None or not target.enabled:
             raise _Denied(400, "invalid_target", "resource_unknown", manager)
-        return resource, grants.narrowed_to(target_grants.names()), f"for {target.name}"
+        return resource, grants.narrowed_to(target_grants), f"for {target.name}"
 
 
 async def _read_form(request: web.Request) -> dict[str, str]:

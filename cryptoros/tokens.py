@@ -183,11 +183,28 @@ class Grants:
         """The topics and services named by any grant (parameter namespaces excluded)."""
         return frozenset(g.name for g in self._grants if g.action not in PARAM_ACTIONS)
 
-    def narrowed_to(self, names: Iterable[str]) -> Grants:
-        """Only the topic and service grants on ``names`` (no parameter grants): what a
-        peer holding grants on ``names`` needs to judge streams with this manager."""
-        keep = frozenset(names)
-        return Grants(g for g in self._grants if g.action not in PARAM_ACTIONS and g.name in keep)
+    def narrowed_to(self, peer: Grants) -> Grants:
+        """What a peer holding ``peer`` needs to judge streams with this manager, and no
+        more (no parameter grants, nothing on a name the peer holds no grant on):
+
+        - the topic and service grants on names ``peer`` holds a grant on;
+        - the calls and subscriptions of endpoints ROS serves under a node's own name
+          (``<node>/get_loggers``, ``<node>/set_parameters`` ...: allowed to any node a
+          grant names) of nodes ``peer``'s grants name (``/cam_*`` names ``/cam_front``);
+        - for each such endpoint ``peer`` calls or subscribes of a node these grants
+          name, the serve or publish grant that node has without a grant row."""
+        from cryptoros.policy.infrastructure import ROS1_OPENED_BY, ros1_own_endpoint
+
+        keep = peer.names()
+        kept = [g for g in self._grants if g.action not in PARAM_ACTIONS and g.name in keep]
+        for mine, theirs, implied in ((self, peer, False), (peer, self, True)):
+            for g in mine._grants:
+                own = ros1_own_endpoint(g.action, g.name) if g.action in ROS1_OPENED_BY else None
+                if own is None or own[1] != g.type or not theirs.names_node(own[0]):
+                    continue
+                kept.append(Grant(node=own[0], action=ROS1_OPENED_BY[g.action], name=g.name, type=g.type)
+                            if implied else g)
+        return Grants(kept)
 
     def to_claim(self) -> dict[str, dict[str, list[list[str]]]]:
         claim: dict[str, dict[str, list[list[str]]]] = {}

@@ -80,14 +80,28 @@ def ros1_allows(action: str, node: str, name: str, type_name: str | None) -> boo
     return own is not None and type_name in (None, own)
 
 
+#: the action that opens a stream to an endpoint -> the action of the node that serves it
+ROS1_OPENED_BY = {"call": "serve", "subscribe": "publish"}
+
+
+def ros1_own_endpoint(action: str, name: str) -> tuple[str, str] | None:
+    """``(node, type)`` when ``name`` is an endpoint the ROS 1 libraries serve or publish
+    under a node's own name (``/cam/get_loggers`` -> ``("/cam", "roscpp/GetLoggers")``),
+    for ``action`` on either end of it (``serve`` or ``call`` a service, ``publish`` or
+    ``subscribe`` a topic); None for any other name or action."""
+    node, _, suffix = name.rpartition("/")
+    if not node or action not in ("serve", "call", "publish", "subscribe"):
+        return None
+    table = ROS1_OWN_SERVICES if action in ("serve", "call") else ROS1_OWN_TOPICS
+    return (node, table[suffix]) if suffix in table else None
+
+
 def ros1_own_type(action: str, node: str, name: str) -> str | None:
     """The type of an endpoint the ROS 1 libraries serve or publish under ``node``'s own
     name (``/cam/get_loggers`` -> ``roscpp/GetLoggers``), or None for any other name:
     what a service registration, which tells no type, has when it is ROS's own."""
-    if action in ("serve", "publish") and name.startswith(node + "/"):
-        table = ROS1_OWN_SERVICES if action == "serve" else ROS1_OWN_TOPICS
-        return table.get(name[len(node) + 1 :])
-    return None
+    own = ros1_own_endpoint(action, name) if action in ("serve", "publish") else None
+    return own[1] if own is not None and own[0] == node else None
 
 
 def ros1_topic_param(key: str) -> tuple[str, str] | None:
@@ -106,6 +120,6 @@ def ros2_stays_local(name: str, types: list[str] | tuple[str, ...]) -> bool:
     return name in ROS2_LOCAL_TOPICS or any(t.startswith(ROS2_LOCAL_SERVICE_TYPES) for t in types)
 
 
-__all__ = ["ROS1_DEFAULT_PARAM_READS", "ROS1_LOGGER_SERVICES", "ROS1_OWN_SERVICES", "ROS1_OWN_TOPICS", "ROS1_ROSOUT",
-           "ROS1_TOPIC_PARAMS", "ROS2_LOCAL_SERVICE_TYPES", "ROS2_LOCAL_TOPICS", "ros1_allows", "ros1_own_type",
-           "ros1_topic_param", "ros2_stays_local"]
+__all__ = ["ROS1_DEFAULT_PARAM_READS", "ROS1_LOGGER_SERVICES", "ROS1_OPENED_BY", "ROS1_OWN_SERVICES", "ROS1_OWN_TOPICS",
+           "ROS1_ROSOUT", "ROS1_TOPIC_PARAMS", "ROS2_LOCAL_SERVICE_TYPES", "ROS2_LOCAL_TOPICS", "ros1_allows",
+           "ros1_own_endpoint", "ros1_own_type", "ros1_topic_param", "ros2_stays_local"]
