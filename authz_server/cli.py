@@ -40,6 +40,7 @@ from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
 from cryptoros import logfmt, pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
+from cryptoros.policy.hints import TOOL_NODES
 
 PROG = "cryptoros-authz"
 DB_ENV = "CRYPTOROS_AUTHZ_DB"
@@ -357,16 +358,6 @@ def revoke(ctx: click.Context, manager: str, action: str, node: str, name: str, 
     click.echo(f"revoked {n} grant(s): {manager} {node} {action} {name}{' ' + type_ if type_ else ''}")
 
 
-#: The anonymous node names stock ROS 1 tools run under (ros_comm 1.15), as node patterns.
-TOOL_NODES = {
-    "rostopic": "/rostopic_*",      # rostopic echo/hz/pub: init_node('rostopic', anonymous=True)
-    "rosbag": "/record_*",          # rosbag record: the node 'record' with a number (any type: '*')
-    "rosparam": "/rosparam-*",      # rosgraph.Master('/rosparam-<pid>')
-    "rosservice_probe": "/rosservice",  # the service type probe of rosservice call/info
-    "rosservice": "/rosservice_*",  # rosservice call: init_node('rosservice', anonymous=True)
-    "rosbag_play": "/play_*",       # rosbag play: the node 'play' with a number
-    "roslaunch": "/roslaunch",      # roslaunch's parameter calls (caller id /roslaunch)
-}
 #: What roslaunch writes besides its launch file's parameters (measured: docs/stock-tools.md).
 ROSLAUNCH_PARAMS = ("/run_id", "/roslaunch", "/rosdistro", "/rosversion")
 

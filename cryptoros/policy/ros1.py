@@ -385,7 +385,8 @@ def check_node_call(
         if type_name is None:
             raise _deny("unknown_topic", f"no local publisher of {topic}")
         if not grants.allows("subscribe", caller, topic, type_name):
-            raise _deny("not_granted", f"{caller} may not subscribe {topic} [{type_name}]")
+            raise _deny("not_granted", f"{caller} may not subscribe {topic} [{type_name}]",
+                        missing=("subscribe", caller, topic, type_name))
         return
     raise _deny("method_not_allowed", f"node method {method!r} is not on the allowlist")
 
@@ -535,12 +536,21 @@ OWN_TOKEN_REASONS = frozenset({
 })
 
 
+#: Reasons a grant would take away: this host's own nodes and tools are told where the
+#: operator finds it (:data:`SEE_DENIALS`; the interceptor's denial table holds the command).
+GRANT_REASONS = frozenset({"not_granted", "param_write_denied"})
+SEE_DENIALS = "(cryptoros denials says what to grant)"
+
+
 def refusal_text(reason: str | None, *, own: bool = False) -> str:
     """``denied by cryptoros: <reason code>`` (the code only when it is one of
     :data:`SHOWN_REASONS`, or for ``own`` callers, this host's own nodes and tools, of
-    :data:`OWN_TOKEN_REASONS`): what ROS tools print as their one error line."""
+    :data:`OWN_TOKEN_REASONS`): what ROS tools print as their one error line. ``own``
+    callers refused for a grant (:data:`GRANT_REASONS`) are pointed at ``cryptoros denials``."""
     shown = reason in SHOWN_REASONS or own and reason in OWN_TOKEN_REASONS
-    return f"{REFUSED}: {reason}" if shown else REFUSED
+    if not shown:
+        return REFUSED
+    return f"{REFUSED}: {reason} {SEE_DENIALS}" if own and reason in GRANT_REASONS else f"{REFUSED}: {reason}"
 
 
 def refusal_answer(reason: str | None, method: str, params: tuple, *, own: bool = False) -> list[Any]:
@@ -582,51 +592,6 @@ def node_pattern(node: str) -> str:
     return node if prefix is None else prefix + "*"
 
 
-def grant_hint(reason: str | None, method: str, params: tuple, manager: str | None) -> str | None:
-    """The ``cryptoros-authz grant ...`` command that would allow a refused master or
-    node call of ``manager``'s node, or None when no grant would (or it cannot be told)."""
-    if not manager or not params or not isinstance(params[0], str):
-        return None
-    node = node_pattern(params[0])
-    prefix = f"cryptoros-authz grant {manager}"
-    try:
-        if reason in ("param_write_denied", "param_read_denied"):
-            index = _key_index(method)
-            key = resolve_param_key(_str_param(params, index, method, "a key"), params[0])
-            if node == "/roslaunch":  # its own keys and the launched nodes' (named by grants): one bundle
-                own = any(key == ns or key.startswith(ns + "/") for ns in ("/run_id", "/roslaunch", "/rosdistro",
-                                                                              "/rosversion"))
-                extra = "" if own else f" --launch-param-ns {key}"  # not needed for a launched node's own
-                return f"cryptoros-authz grant-tools {manager} --roslaunch{extra}"
-            action = "write_param" if reason == "param_write_denied" else "read_param"
-            return f"{prefix} {action} {node} {key}"
-        if reason == "not_granted" and method in ("registerPublisher", "registerSubscriber", "registerService"):
-            name = _str_param(params, 1, method, "a name")
-            infra_type = params[2] if method == "registerPublisher" and len(params) > 2 else None
-            if infrastructure_allows("serve" if method == "registerService" else "publish", params[0], name, infra_type):
-                return None  # /rosout, its own loggers: allowed once any grant names the node
-            if method == "registerService":
-                return f"{prefix} serve {node} {name} TYPE"
-            type_name = _str_param(params, 2, method, "a type")
-            action = "publish" if method == "registerPublisher" else "subscribe"
-            return f"{prefix} {action} {node} {name} {'TYPE' if type_name == ANY_TYPE else type_name}"
-        if reason == "not_granted" and method == "requestTopic":
-            return f"{prefix} subscribe {node} {_str_param(params, 1, method, 'a topic')} TYPE"
-    except PolicyDenied:
-        return None
-    return None
-
-
-def missing_grant_hint(exc: PolicyDenied, manager: str | None) -> str | None:
-    """The ``cryptoros-authz grant ...`` command that would allow a stream refused for a
-    grant ``manager`` lacks (``exc.missing``: a TCPROS header's check), or None."""
-    if exc.reason != "not_granted" or exc.missing is None or not manager:
-        return None
-    action, node, name, type_name = exc.missing
-    type_name = type_name if type_name and type_name != ANY_TYPE else "TYPE"
-    return f"cryptoros-authz grant {manager} {action} {node_pattern(node)} {name} {type_name}"
-
-
 __all__ = [
     "ANY_TYPE",
     "ALWAYS_DROPPED",
@@ -657,9 +622,9 @@ __all__ = [
     "ros_error",
     "REFUSED",
     "SHOWN_REASONS",
+    "GRANT_REASONS",
+    "SEE_DENIALS",
     "OWN_TOKEN_REASONS",
-    "missing_grant_hint",
-    "grant_hint",
     "anonymous_prefix",
     "node_pattern",
     "refusal_answer",

@@ -12,9 +12,9 @@ from collections.abc import Awaitable, Callable
 
 from cryptoros.errors import CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.memory import tune_malloc
+from cryptoros.policy.hints import grant_hint
 from cryptoros.policy.ros1 import (
     OWN_TOKEN_REASONS,
-    grant_hint,
     refusal_answer,
     refusal_text,
     ros_error,
@@ -456,7 +456,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 reason = exc.reason
                 flood = reason == "rate_limited"
                 self.gw.deny(kind, exc, f"{who} {call.method}", logged=not flood or self._rate_log(who),
-                             hint=grant_hint(reason, call.method, call.params, manager))
+                             hint=grant_hint(exc, call.method, call.params, manager))
                 # as rosmaster answers an error ([-1, "denied by cryptoros: <reason>", 0], never
                 # a fault, which tools print as a traceback); a probe of a parameter the caller
                 # may not read as if it were not set

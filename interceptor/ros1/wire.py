@@ -18,8 +18,8 @@ from cryptoros.policy.ros1 import (
     PARAM_WRITE,
     check_param_call,
     filter_param_reply,
-    missing_grant_hint,
 )
+from cryptoros.policy.hints import missing_grant_hint
 from cryptoros.ros1 import msgs
 from cryptoros.ros1.tcpros import ConnectionHeader, TCPROSConnection, encode_header
 from cryptoros.ros1.uri import UriError, host_port

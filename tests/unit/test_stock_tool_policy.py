@@ -1,7 +1,7 @@
 """What stock ROS 1 tools and libraries meet behind an interceptor, decided without a
 network: refusals as ROS error triples, unreadable parameters answered as unset, the
 measured default-readable parameters, the endpoints libraries serve under a node's own
-name, the grant hint, and denials aggregated for the log."""
+name, node patterns, and denials aggregated for the log."""
 
 from __future__ import annotations
 
@@ -22,7 +22,6 @@ from cryptoros.policy.ros1 import (
     check_service_server_header,
     check_subscriber_header,
     filter_param_reply,
-    grant_hint,
     may_read_param,
     may_write_param,
     node_pattern,
@@ -31,7 +30,6 @@ from cryptoros.policy.ros1 import (
 )
 from cryptoros.tokens import Grant, Grants, node_matches
 from interceptor.denials import DenialTable
-from interceptor.ros1.wire import header_hint
 from tests.support import require, run
 
 ROBOT = Grants([
@@ -144,20 +142,6 @@ def test_endpoints_libraries_serve_under_the_nodes_own_name_are_infrastructure(a
     assert not ros1_allows(action, "/cam", name, "std_msgs/String")  # only with the library's type
 
 
-# ------------------------------------------------------------------ hints
-def test_the_grant_hint_names_what_to_grant_with_the_tools_node_pattern():
-    assert node_pattern("/rosparam-4711") == "/rosparam-*"
-    assert node_pattern("/rostopic_4711_1795791784006") == "/rostopic_*"
-    assert node_pattern("/camera_1") == "/camera_1"
-    assert grant_hint("param_write_denied", "setParam", ("/rosparam-4711", "/x", 1), "robot_b") == \
-        "cryptoros-authz grant robot_b write_param /rosparam-* /x"
-    assert grant_hint("not_granted", "registerPublisher", ("/play_1795791817872", "/clock", "rosgraph_msgs/Clock",
-                                                           "http://127.0.0.1:1/"), "robot_b") == \
-        "cryptoros-authz grant robot_b publish /play_* /clock rosgraph_msgs/Clock"
-    assert grant_hint("shutdown_dropped", "shutdown", ("/rosnode", "x"), "robot_b") is None
-    assert grant_hint("param_write_denied", "setParam", ("/n", "/x", 1), None) is None
-
-
 def _two_runs_of_roslib_anonymous_name(base: str) -> tuple[str, str]:
     """``rosgraph.names.anonymous_name`` as roslaunch's ``$(anon ...)`` calls it, in two
     processes of Debian's Python, where ros_comm is (two runs: another pid, another random number)."""
@@ -205,42 +189,6 @@ def test_a_name_that_is_the_same_each_run_is_kept_exactly(node):
     assert node_pattern(node) == node
 
 
-def _header_refusal(check, *args, **kwargs) -> PolicyDenied:
-    with pytest.raises(PolicyDenied) as info:
-        check(*args, **kwargs)
-    return info.value
-
-
-def test_a_stream_refused_by_its_header_names_the_grant_of_the_side_that_lacks_it():
-    """The subscriber's or client's manager for subscribe and call, the publisher's or
-    server's for publish and serve; a type the header does not say as TYPE."""
-    nothing = Grants([])
-    probe = {"callerid": "/rosservice", "service": "/svc_a", "md5sum": "*", "probe": "1"}
-    call = _header_refusal(check_service_client_header, probe, grants=nothing)
-    assert header_hint(call, opener="robot_b", server="robot_a") == \
-        "cryptoros-authz grant robot_b call /rosservice /svc_a TYPE"
-    echo = {"callerid": "/rostopic_4711_1795791784006", "topic": "/chatter", "type": "*", "md5sum": "*"}
-    assert header_hint(_header_refusal(check_local_subscriber_header, echo, grants=nothing), opener="robot_b",
-                       server="robot_a") == "cryptoros-authz grant robot_b subscribe /rostopic_* /chatter TYPE"
-    # at the publisher's interceptor: the type is the one published
-    subscribed = _header_refusal(check_subscriber_header, echo, grants=nothing, published_type="std_msgs/String",
-                                 published_md5=None)
-    assert header_hint(subscribed, opener="robot_b", server="robot_a") == \
-        "cryptoros-authz grant robot_b subscribe /rostopic_* /chatter std_msgs/String"
-    published = _header_refusal(check_publisher_header, {"callerid": "/talker_a", "type": "std_msgs/String"},
-                                grants=nothing, topic="/chatter")
-    assert header_hint(published, opener="robot_b", server="robot_a") == \
-        "cryptoros-authz grant robot_a publish /talker_a /chatter std_msgs/String"
-    served = _header_refusal(check_service_server_header, {"callerid": "/srv", "type": "roscpp/GetLoggers"},
-                             service="/svc_a", server_grants=nothing, client_types=frozenset({"roscpp/GetLoggers"}))
-    assert header_hint(served, opener="robot_b", server="robot_a") == \
-        "cryptoros-authz grant robot_a serve /srv /svc_a roscpp/GetLoggers"
-    malformed = _header_refusal(check_service_client_header, {"callerid": "/x"}, grants=nothing)
-    assert header_hint(malformed, opener="robot_b", server="robot_a") is None
-    assert header_hint(call, opener="robot_b", server=None) == "cryptoros-authz grant robot_b call /rosservice /svc_a TYPE"
-    assert header_hint(published, opener="robot_b", server=None) is None
-
-
 # ------------------------------------------------------------------ aggregation
 def test_a_node_refused_at_5_hz_for_10_s_adds_at_most_two_lines():
     table = DenialTable(interval=10.0)
@@ -286,23 +234,6 @@ def test_refused_connections_from_many_sources_are_logged_within_a_budget_and_co
     assert all(len(table.record("master", f"robot_{n}", "not_granted", "/t", now=112.0)) == 1 for n in range(40))
 
 
-def test_roslaunchs_refusals_point_at_its_bundle():
-    assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/run_id", "x"), "robot_b") == \
-        "cryptoros-authz grant-tools robot_b --roslaunch"
-    assert grant_hint("param_write_denied", "setParam", ("/roslaunch", "/roslaunch/uris/host_1", "x"), "robot_b") == \
-        "cryptoros-authz grant-tools robot_b --roslaunch"
-    assert "--launch-param-ns /global_setting" in grant_hint("param_write_denied", "setParam",
-                                                             ("/roslaunch", "/global_setting", 3), "robot_b")
-
-
-def test_no_hint_for_what_any_grant_naming_the_node_allows():
-    node = "/rostopic_4711_1795791784"
-    assert grant_hint("not_granted", "registerPublisher", (node, "/rosout", "rosgraph_msgs/Log", "http://x:1/"),
-                      "robot_b") is None
-    assert grant_hint("not_granted", "registerService", (node, node + "/get_loggers", "rosrpc://x:1",
-                                                         "http://x:1/"), "robot_b") is None
-
-
 def test_a_launched_nodes_parameters_are_not_writable_while_another_manager_holds_its_name():
     # robot_b's grants name /talker, but robot_a registered it: roslaunch of robot_b may not write it
     with pytest.raises(PolicyDenied) as info:
@@ -311,3 +242,13 @@ def test_a_launched_nodes_parameters_are_not_writable_while_another_manager_hold
     assert info.value.reason == "name_taken"
     check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=ROBOT,
                       owners={})
+
+
+def test_our_own_tools_refused_for_a_grant_are_pointed_at_cryptoros_denials():
+    """This host's own tools print the refusal as their error line: one refused for a
+    grant says where the grant is named; a peer is told the code only."""
+    assert refusal_text("not_granted", own=True) == "denied by cryptoros: not_granted (cryptoros denials says what to grant)"
+    assert refusal_answer("param_write_denied", "setParam", ("/rosparam-1", "/x", 1), own=True) == \
+        [-1, "denied by cryptoros: param_write_denied (cryptoros denials says what to grant)", 0]
+    assert refusal_text("not_granted") == "denied by cryptoros: not_granted"
+    assert refusal_text("shutdown_dropped", own=True) == "denied by cryptoros: shutdown_dropped"  # no grant allows it
