@@ -109,8 +109,9 @@ def _narrowed_reads(network):
     assert local_b.setParam("/rospy_listener", "~rate", 5)[0] == 1
     assert local_b.getParam("/rospy_listener", "/rospy_listener/rate") == [1, "Parameter [/rospy_listener/rate]", 5]
     # writes outside the caller's namespace are refused with a ROS error, and nothing is written
+    # (robot B's own node is pointed at cryptoros denials, where the grant is named)
     assert local_b.setParam("/rospy_listener", "/robot_a/api_key", "pwned") == \
-        [-1, "denied by cryptoros: param_write_denied", 0]
+        [-1, "denied by cryptoros: param_write_denied (cryptoros denials says what to grant)", 0]
     with network.inside("master"):
         master = xmlrpc.client.ServerProxy(network.rosmaster_uri)
         assert master.getParam("/operator", "/robot_a/api_key")[2] == "A-KEY-123"
