@@ -5,7 +5,6 @@ where it is not, and every argument quoted so that the line works pasted into a 
 from __future__ import annotations
 
 import shlex
-import shutil
 import subprocess
 
 import pytest
@@ -23,6 +22,7 @@ from cryptoros.policy.ros1 import (
 )
 from cryptoros.tokens import Grants
 from interceptor.ros1.wire import header_hint
+from tests.support import require
 
 NOTHING = Grants([])
 ROSTOPIC = "/rostopic_4711_1795791784006"
@@ -148,8 +148,7 @@ def test_a_hint_with_a_pattern_pastes_into_a_shell_as_one_argument_each(shell):
     """A node pattern is quoted: bash with failglob and zsh (a glob matching nothing is
     an error in both) pass ``/play_*`` and ``/record_*`` on as they are; a note after
     ``#`` is a comment."""
-    if shutil.which(shell[0]) is None:
-        pytest.skip(f"{shell[0]} is not installed")
+    require(shell[0])
     hints = [missing_grant_hint(PolicyDenied("not_granted", "x", missing=("call", "/play_1795791817872", "/s", None)),
                                 "robot_b"),
              missing_grant_hint(PolicyDenied("not_granted", "x", missing=("publish", "/record_1795791817872", "/x",
