@@ -142,7 +142,14 @@ class Bridge:
         # batches, from raw subscriptions of a third node that no executor spins.
         self.data_node = rclpy.create_node(f"{name}_data", start_parameter_services=False, enable_rosout=False)
         self.taker = RawTaker(self.data_node.context)
-        self.own_names = {self.own, self.srv_node.get_fully_qualified_name(), self.data_node.get_fully_qualified_name()}
+        # The peers' samples are published by writers the link thread makes and destroys as
+        # streams open and close, on a fourth node no executor spins: made on ``self.node``,
+        # a writer destroyed while the executor built its wait set (the writer's QoS event
+        # handlers are in it) raised InvalidHandle there and aborted the bridge (an insider
+        # opening and closing 200 streams at a time: 4 aborts in 90 s; ROS 2 audit).
+        self.pub_node = rclpy.create_node(f"{name}_pub", start_parameter_services=False, enable_rosout=False)
+        self.own_names = {node.get_fully_qualified_name()
+                          for node in (self.node, self.srv_node, self.data_node, self.pub_node)}
         self.commands: queue.SimpleQueue = queue.SimpleQueue()
         self.guard = self.node.create_guard_condition(self._drain)
         self.send_lock = threading.Lock()
@@ -338,9 +345,9 @@ class Bridge:
         stopped taking fills the new writer too, and its topic is then dropped and probed
         (a new writer again once REMAKE_INTERVAL has passed)."""
         publisher, topic, _, cls, qos = self.pubs[chan]
-        self.node.destroy_publisher(publisher)
+        self.pub_node.destroy_publisher(publisher)
         try:
-            fresh = self.node.create_publisher(cls, topic, qos)
+            fresh = self.pub_node.create_publisher(cls, topic, qos)
         except Exception as exc:
             del self.pubs[chan]
             self.error(f"cannot advertise {topic} again: {exc}", chan=chan)
@@ -374,7 +381,7 @@ class Bridge:
                     # paced by the local readers like a direct KEEP_ALL publisher (the interceptor,
                     # then the sending robot, are held back) instead of overwriting unsent messages
                     qos.history = HistoryPolicy.KEEP_ALL
-                publisher = self.node.create_publisher(cls, cmd["topic"], qos)
+                publisher = self.pub_node.create_publisher(cls, cmd["topic"], qos)
             except Exception as exc:
                 self.error(f"cannot advertise {cmd.get('topic')}: {exc}", chan=chan)
                 return
@@ -383,7 +390,7 @@ class Bridge:
             entry = self.pubs.pop(chan, None)
             self.stalled.pop(chan, None)
             if entry is not None:
-                self.node.destroy_publisher(entry[0])
+                self.pub_node.destroy_publisher(entry[0])
 
     def _drain(self) -> None:
         """Guard-condition callback: run queued commands in the executor's thread."""
