@@ -12,109 +12,33 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import re
-import signal
-import socket
-import ssl
 import subprocess
-import threading
 import time
-import urllib.request
 import xmlrpc.client
-from dataclasses import dataclass
-from pathlib import Path
 
+import jwt
 import pytest
 
-from cryptoros.lab.network import clean_env
 from tests.interceptor_harness import NODE, SYS_PY, got, read_lines
-from tests.support import REPO, VENV_BIN, require, running
+from tests.runbook_support import (HOSTS, MASTER_CHECKS, PORTS, ROBOTS, ROS2_PREFIX, RUNBOOK, Hosts, Step,
+                                   listed_ports, stop_pid_files, stranger_scan, steps)
+from tests.support import REPO, VENV_BIN, require, running, until
 
 pytestmark = [pytest.mark.ros1]
 
-RUNBOOK = REPO / "docs" / "runbook.md"
-BLOCK = re.compile(r"^```sh\n(.*?)^```", re.S | re.M)
-ROBOTS = ("robot_a", "robot_b")
-HOSTS = ("master", *ROBOTS)
-#: what a daemon still starting makes a readiness check print: a step's waits keep it quiet
-WAIT_NOISE = ("Connection refused", "Unable to communicate with master")
-PORTS = {"PUBLIC_PORT": 7400, "AUTHZ_PORT": 8443, "ROS_PORT": 11311, "PROBE_PORT": 8081, "METRICS_PORT": 9102}
+
+def ros1_steps() -> list[Step]:
+    """Parts 1 to 4: every block but Part 5's (a ROS 2 fleet, tests/system/test_runbook_ros2.py)."""
+    return [step for step in steps() if not step.name.startswith(ROS2_PREFIX)]
 
 
-@dataclass(frozen=True)
-class Step:
-    name: str
-    hosts: tuple[str, ...]
-    script: str
-
-
-def steps() -> list[Step]:
-    """Every ``sh`` block, in order: its step name, the hosts it runs on, its text."""
-    out = []
-    for script in BLOCK.findall(RUNBOOK.read_text()):
-        lines = script.splitlines()
-        assert lines[0].startswith("# step: "), f"a runbook block without '# step: NAME': {lines[0]!r}"
-        assert len(lines) > 1 and lines[1].startswith("# on: "), f"a runbook block without '# on: HOST': {lines[:2]}"
-        on = lines[1][len("# on: "):].strip()
-        hosts = {"each robot": ROBOTS, "each host": HOSTS}.get(on, (on,))
-        assert set(hosts) <= set(HOSTS), f"unknown host in {lines[1]!r}"
-        out.append(Step(lines[0][len("# step: "):].strip(), hosts, script))
-    return out
-
-
-def stop_pid(pid: int, timeout: float = 15) -> None:
-    """Stop a daemon the runbook started (by its pid file), bounded."""
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGKILL)
-
-
-def until(check, within: float, what: str):
-    deadline = time.monotonic() + within
-    while True:
-        value = check()
-        if value:
-            return value
-        assert time.monotonic() < deadline, what
-        time.sleep(0.2)
-
-
-class Deployment:
+class Deployment(Hosts):
     """The hosts, the working directory every block starts in, and what the checks need."""
 
-    def __init__(self, lab, work: Path) -> None:
-        self.lab = lab
-        self.work = work
-        self.hosts = {name: lab.add_host(name) for name in (*HOSTS, "robot_c", "stranger")}
-        addr = {name: h.address for name, h in self.hosts.items()}
-        self.env = clean_env(
-            PATH=f"{VENV_BIN}:{os.environ.get('PATH', '/usr/bin:/bin')}",
-            MASTER_ADDR=addr["master"], ROBOT_A_ADDR=addr["robot_a"], ROBOT_B_ADDR=addr["robot_b"],
-            ROBOT_C_ADDR=addr["robot_c"], CRYPTOROS_AUTHZ_DB=f"sqlite:///{work}/registry.db",
-            CRYPTOROS_PKI_DIR=str(work / "pki"), ROS_HOME=str(work / "ros_home"),
-            **{k: str(v) for k, v in PORTS.items()})
+    def __init__(self, lab, work) -> None:
+        super().__init__(lab, work, (*HOSTS, "robot_c"), ROS_HOME=str(work / "ros_home"))
         self.listener: subprocess.Popen | None = None
-
-    def run(self, step: Step, timeout: float = 180) -> dict[str, str]:
-        """The step on each of its hosts; their outputs by host."""
-        outs = {}
-        for host in step.hosts:
-            env = dict(self.env)
-            if host in ROBOTS:
-                env.update(ROBOT=host, ROBOT_ADDR=self.hosts[host].address)
-            result = subprocess.run(self.hosts[host].argv(["bash", "-e", "-c", step.script]), cwd=self.work, env=env,
-                                    capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
-            assert result.returncode == 0, f"runbook step {step.name} on {host} failed ({result.returncode}):\n" \
-                                           f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
-            noise = [line for line in result.stderr.splitlines() if any(n in line for n in WAIT_NOISE)]
-            assert not noise, f"runbook step {step.name} on {host} is not quiet while it waits:\n" + "\n".join(noise)
-            outs[host] = result.stdout
-        return outs
 
     def ros_env(self, host: str) -> dict[str, str]:
         """A node's environment on ``host`` (as the runbook's nodes have it)."""
@@ -136,40 +60,14 @@ class Deployment:
 
     def grants(self, manager: str) -> str:
         """What the registry on the master host says of ``manager`` (its grants)."""
-        result = subprocess.run([str(VENV_BIN / "cryptoros-authz"), "show-manager", manager], capture_output=True,
-                                text=True, timeout=60, env=self.env)
-        assert result.returncode == 0, result.stderr
-        return result.stdout
+        return self.cli("show-manager", manager)
 
     def master_nodes(self) -> set[str]:
         with self.hosts["master"].inside():
             state = self.local_master("master").getSystemState("/test")[2]
         return {n for section in state for _name, nodes in section for n in nodes}
 
-    def token_reply(self, manager: str) -> tuple[int, dict]:
-        """(HTTP status, body) of a token request with ``manager``'s certificate
-        (0: the handshake itself was refused)."""
-        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-        ctx.check_hostname = False
-        ctx.load_verify_locations(cafile=str(self.work / "pki" / "ca.crt"))
-        ctx.load_cert_chain(str(self.work / "pki" / "issued" / f"{manager}.crt"),
-                            str(self.work / "pki" / "private" / f"{manager}.key"))
-        url = f"https://{self.hosts['master'].address}:{PORTS['AUTHZ_PORT']}/token"
-        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=ctx))
-        try:
-            with opener.open(urllib.request.Request(url, data=b"grant_type=client_credentials"), timeout=10) as reply:
-                return reply.status, json.loads(reply.read())
-        except urllib.error.HTTPError as exc:
-            return exc.code, {}
-        except OSError:
-            return 0, {}
-
-    def token(self, manager: str) -> int:
-        return self.token_reply(manager)[0]
-
     def token_kid(self, manager: str) -> str | None:
-        import jwt
-
         status, body = self.token_reply(manager)
         return jwt.get_unverified_header(body["access_token"])["kid"] if status == 200 else None
 
@@ -180,32 +78,13 @@ class Deployment:
         lines = read_lines(self.listener, "GOT", within)
         assert "hello from robot A" in got(lines), f"the listener on robot B stopped receiving: {lines[-5:]}"
 
-    def pids(self) -> list[int]:
-        files = ["authz.pid", "rosmaster.pid", "interceptor.pid", "robot_a/talker.pid",
-                 *(f"{r}/interceptor.pid" for r in ROBOTS)]
-        return [int((self.work / f).read_text().split()[0]) for f in files if (self.work / f).exists()]
+
+#: what the walkthrough starts, by pid file (stopped after it)
+PID_FILES = ["authz.pid", "rosmaster.pid", "interceptor.pid", "robot_a/talker.pid",
+             *(f"{r}/interceptor.pid" for r in ROBOTS)]
 
 
 # ------------------------------------------------------------------ the checks, one per step
-
-def check_master_pki(d: Deployment, outs):
-    assert all((d.work / "pki" / p).exists() for p in ("ca.crt", "crl.pem", "issued/authz.crt",
-                                                          "issued/master.crt", "private/master.key"))
-
-
-def check_master_registry(d: Deployment, outs):
-    listed = subprocess.run([str(VENV_BIN / "cryptoros-authz"), "list-keys"], capture_output=True, text=True,
-                            timeout=60, env=d.env).stdout
-    assert len(listed.splitlines()) == 1, listed
-    assert (d.work / "signing.pass").stat().st_mode & 0o777 == 0o600
-
-
-def check_master_authz(d: Deployment, outs):
-    with d.hosts["master"].inside(), \
-            urllib.request.urlopen(f"http://127.0.0.1:{PORTS['PROBE_PORT']}/healthz", timeout=5) as reply:
-        assert reply.status == 200
-    assert "chmod 600" not in (d.work / "authz.log").read_text()  # no secret file open to others
-
 
 def check_master_rosmaster(d: Deployment, outs):
     with d.hosts["master"].inside():
@@ -366,17 +245,14 @@ def check_crl_refresh_robot(d: Deployment, outs):
 def check_exposure(d: Deployment, outs):
     """What the stranger reaches: every listed port is a TLS port refusing a client without
     a certificate; rosmaster's API answers the stranger on no host at no port."""
-    listed = {host: {int(line.rsplit(":", 1)[1]) for line in out.split()} for host, out in outs.items()}
+    listed = listed_ports(outs)
     assert listed["master"] == {PORTS["AUTHZ_PORT"], PORTS["PUBLIC_PORT"]}, listed
     assert all(listed[r] == {PORTS["PUBLIC_PORT"]} for r in ROBOTS), listed
     # the scan, from the stranger's host: nothing else answers, each listed port wants a certificate
+    stranger_scan(d, listed)
     stranger = d.hosts["stranger"]
     for host, ports in listed.items():
         address = d.hosts[host].address
-        scanned = _open_ports(stranger, address)
-        assert scanned == ports, f"{host}: the stranger reaches ports {sorted(scanned)}, the host lists {sorted(ports)}"
-        for port in ports:
-            _refuses_without_certificate(stranger, address, port)
         for port in sorted(ports | {PORTS["ROS_PORT"]}):
             uri = f"http://{address}:{port}/"
             env = {**d.env, "ROS_MASTER_URI": uri, "CRYPTOROS_NETNS": stranger.ns}
@@ -390,50 +266,12 @@ def check_exposure(d: Deployment, outs):
     d.receives()
 
 
-def _open_ports(stranger, address: str) -> set[int]:
-    """Every TCP port of ``address`` that accepts a connection from the stranger's host
-    (all 65,535: what a scan would find, not what the runbook meant to open)."""
-    found: set[int] = set()
-
-    def scan(ports: range) -> None:
-        with stranger.inside():
-            for port in ports:
-                with socket.socket() as s:
-                    s.settimeout(1.0)
-                    if s.connect_ex((address, port)) == 0:
-                        found.add(port)
-
-    # refused connects on a bridge answer in microseconds; four threads keep a full scan short
-    chunks = [range(start, min(start + 16384, 65536)) for start in range(1, 65536, 16384)]
-    threads = [threading.Thread(target=scan, args=(chunk,)) for chunk in chunks]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=300)
-    assert not any(t.is_alive() for t in threads), f"the scan of {address} did not finish"
-    return found
-
-
-def _refuses_without_certificate(stranger, address: str, port: int) -> None:
-    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    ctx.check_hostname = False
-    ctx.verify_mode = ssl.CERT_NONE
-    with stranger.inside(), socket.create_connection((address, port), timeout=10) as raw:
-        raw.settimeout(10)
-        with pytest.raises((ssl.SSLError, ConnectionError)):
-            with ctx.wrap_socket(raw) as tls:
-                # TLS 1.3: the server's refusal of a missing certificate arrives after the
-                # client's handshake returns, on the first read
-                tls.sendall(b"GET / HTTP/1.0\r\n\r\n")
-                if not tls.recv(1):
-                    raise ConnectionError("closed without an answer")
-
-
-CHECKS = {name[len("check_"):].replace("_", "-"): fn for name, fn in globals().items() if name.startswith("check_")}
+CHECKS = {**MASTER_CHECKS, **{name[len("check_"):].replace("_", "-"): fn for name, fn in globals().items()
+                            if name.startswith("check_")}}
 
 
 def test_runbook_has_every_step_a_check_and_a_host():
-    names = [step.name for step in steps()]
+    names = [step.name for step in ros1_steps()]
     assert names[:6] == ["master-pki", "master-registry", "master-authz", "master-rosmaster", "master-interceptor",
                          "master-processes"]
     assert names[-1] == "exposure"
@@ -470,13 +308,12 @@ def test_runbook_on_separate_hosts(tmp_path):
         d = Deployment(lab, work)
         d.stack = stack
         try:
-            for step in steps():
+            for step in ros1_steps():
                 outs = d.run(step)
                 CHECKS[step.name](d, outs)
         finally:
             stack.close()
-            for pid in d.pids():
-                stop_pid(pid)
+            stop_pid_files(work, PID_FILES)
 
 
 def test_the_ros2_robots_configuration_in_the_runbook_is_one_the_interceptor_accepts(tmp_path):
