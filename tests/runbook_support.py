@@ -62,23 +62,23 @@ def steps() -> list[Step]:
     return out
 
 
-def stop_pid(pid: int, timeout: float = 15) -> None:
-    """Stop a daemon the runbook started (by its pid file), bounded."""
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGTERM)
+def stop_pid(*pids: int, timeout: float = 15) -> None:
+    """Stop daemons the runbook started (by their pid files): all signalled at once, each
+    killed if it has not ended ``timeout`` seconds later."""
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
-    while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+    while any(Path(f"/proc/{pid}").exists() for pid in pids) and time.monotonic() < deadline:
         time.sleep(0.1)
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGKILL)
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
 
 
 def stop_pid_files(work: Path, files: list[str]) -> None:
     """Stop every process whose pid file (relative to ``work``) the walkthrough wrote."""
-    for name in files:
-        path = work / name
-        if path.exists():
-            stop_pid(int(path.read_text().split()[0]))
+    stop_pid(*(int((work / name).read_text().split()[0]) for name in files if (work / name).exists()))
 
 
 class Hosts:

@@ -314,21 +314,3 @@ def test_runbook_on_separate_hosts(tmp_path):
         finally:
             stack.close()
             stop_pid_files(work, PID_FILES)
-
-
-def test_the_ros2_robots_configuration_in_the_runbook_is_one_the_interceptor_accepts(tmp_path):
-    """Part 5's configuration, its variables filled in as a robot's shell would, parses
-    as a ros2-role interceptor's (the same loader as --check and the daemon)."""
-    from interceptor.config import parse, read_toml
-
-    text = RUNBOOK.read_text()
-    part = text[text.index("## Part 5: a fleet of ROS 2 robots"):]
-    toml = re.search(r"^```toml\n(.*?)^```", part, re.S | re.M).group(1)
-    values = {"ROBOT": "robot_a", "MASTER_ADDR": "10.0.0.1", "AUTHZ_PORT": "8443", "ROBOT_ADDR": "10.0.0.2",
-              "PUBLIC_PORT": "7400", "METRICS_PORT": "9102", "PEER_ADDR": "10.0.0.3", "DOMAIN_ID": "11"}
-    filled = re.sub(r"\$([A-Z_]+)", lambda m: values[m.group(1)], toml)
-    for name in ("ca.crt", "robot_a.crt", "robot_a.key", "crl.pem"):
-        (tmp_path / name).write_text("")
-    (tmp_path / "robot.toml").write_text(filled)
-    cfg = parse(read_toml(tmp_path / "robot.toml"), base=tmp_path, source=tmp_path / "robot.toml")
-    assert cfg.roles == ("ros2",) and cfg.ros2.domain_id == 11 and len(cfg.ros2.peers) == 1
