@@ -91,16 +91,17 @@ class Fleet(Hosts):
         assert Path(f"/proc/{pid}").exists(), f"robot A's talker ended: {(self.work / 'robot_a' / 'talker.log').read_text()[-500:]}"
         assert "DONE" not in (self.work / "robot_a" / "talker.log").read_text()
 
-    def probe(self, host: str, domain: int, *, stranger: bool, seconds: float) -> subprocess.Popen:
-        """A fresh rclpy participant on ``host`` and ``domain`` that prints each publisher of
-        /chatter it discovers (tests/ros2_nodes/publishers.py). A stranger's is configured
-        as a stranger would: no profile, the robot named as its DDS static peer."""
-        env = ros2_env(domain, localhost_profile=not stranger)
+    def probe(self, robot: str, *, stranger: bool, seconds: float) -> subprocess.Popen:
+        """A fresh rclpy participant on ``robot``'s domain that prints each publisher of
+        /chatter it discovers (tests/ros2_nodes/publishers.py): on the robot itself, with
+        the robot's localhost-only profile, or on the stranger's host as a stranger would
+        start it (no profile, the robot's address as its DDS static peer)."""
+        env = ros2_env(self.domains[robot], localhost_profile=not stranger)
         if stranger:
-            env["ROS_STATIC_PEERS"] = self.hosts[{self.domains[r]: r for r in ROBOTS}[domain]].address
-        return subprocess.Popen(self.hosts[host].argv([str(self.python), str(NODES / "publishers.py"), "/chatter",
-                                                       str(seconds)]),
-                                env=env, cwd=str(NODES), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            env["ROS_STATIC_PEERS"] = self.hosts[robot].address
+        argv = [str(self.python), str(NODES / "publishers.py"), "/chatter", str(seconds)]
+        return subprocess.Popen(self.hosts["stranger" if stranger else robot].argv(argv), env=env, cwd=str(NODES),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 # ------------------------------------------------------------------ the checks, one per step
@@ -162,8 +163,8 @@ def check_ros2_exposure(d: Fleet, outs):
     assert listed["master"] == {PORTS["AUTHZ_PORT"]}, listed
     assert all(listed[r] == {PORTS["PUBLIC_PORT"]} for r in ROBOTS), listed
     seconds = 5.0
-    probes = {(who, r): d.probe(r if who == "robot" else "stranger", d.domains[r], stranger=who == "stranger",
-                                seconds=seconds) for who in ("robot", "stranger") for r in ROBOTS}
+    probes = {(who, r): d.probe(r, stranger=who == "stranger", seconds=seconds)
+              for who in ("robot", "stranger") for r in ROBOTS}
     try:
         stranger_scan(d, listed)  # meanwhile
         seen = {key: p.communicate(timeout=seconds + 60)[0] for key, p in probes.items()}
