@@ -8,8 +8,8 @@ step is checked: messages flow from robot A's talker to robot B's listener throu
 interceptors, stop when robot B's grant is removed and resume when it is given back,
 resume after robot B's interceptor restarts, and stop when robot A's certificate is
 revoked. The stranger finds no TCP port but the authorization server's and the robots'
-public ports, each refusing a client without a certificate, and no DDS participant of
-either robot.
+public ports, each refusing a client without a certificate, and its rclpy participant
+discovers no publisher on either robot's DDS domain.
 """
 
 from __future__ import annotations
@@ -78,7 +78,9 @@ class Fleet(Hosts):
             return time.monotonic() - seen["since"] >= QUIET
 
         until(quiet, within, what)
-        self.talker_publishes()
+        self.running("robot_a", "talker")
+        self.running("robot_b", "listener")
+        assert "DONE" not in (self.work / "robot_a" / "talker.log").read_text(), "robot A's talker has published all"
 
     def logged(self, robot: str, *parts: str, within: float = 10) -> None:
         """A line of ``robot``'s interceptor log holds every one of ``parts`` (the line the page quotes)."""
@@ -86,10 +88,11 @@ class Fleet(Hosts):
         until(lambda: any(all(p in line for p in parts) for line in log.read_text().splitlines()), within,
               f"{robot}'s interceptor logs {' ... '.join(parts)!r}")
 
-    def talker_publishes(self) -> None:
-        pid = int((self.work / "robot_a" / "talker.pid").read_text())
-        assert Path(f"/proc/{pid}").exists(), f"robot A's talker ended: {(self.work / 'robot_a' / 'talker.log').read_text()[-500:]}"
-        assert "DONE" not in (self.work / "robot_a" / "talker.log").read_text()
+    def running(self, robot: str, node: str) -> None:
+        """The node the page started on ``robot`` (its pid file ``ROBOT/NODE.pid``) still runs."""
+        pid = int((self.work / robot / f"{node}.pid").read_text())
+        log = self.work / robot / f"{node}.log"
+        assert Path(f"/proc/{pid}").exists(), f"{robot}'s {node} ended: {log.read_text()[-500:]}"
 
     def probe(self, robot: str, *, stranger: bool, seconds: float) -> subprocess.Popen:
         """A fresh rclpy participant on ``robot``'s domain that prints each publisher of
