@@ -84,9 +84,12 @@ class Fleet(Hosts):
 
     def logged(self, robot: str, *parts: str, within: float = 10) -> None:
         """A line of ``robot``'s interceptor log holds every one of ``parts`` (the line the page quotes)."""
-        log = self.work / robot / "interceptor.log"
-        until(lambda: any(all(p in line for p in parts) for line in log.read_text().splitlines()), within,
-              f"{robot}'s interceptor logs {' ... '.join(parts)!r}")
+        until(lambda: self.logged_any(robot, parts), within, f"{robot}'s interceptor logs {' ... '.join(parts)!r}")
+
+    def logged_any(self, robot: str, *lines: tuple[str, ...]) -> bool:
+        """Whether a line of ``robot``'s interceptor log holds every part of one of ``lines``."""
+        log = (self.work / robot / "interceptor.log").read_text().splitlines()
+        return any(all(p in line for p in parts) for parts in lines for line in log)
 
     def running(self, robot: str, node: str) -> None:
         """The node the page started on ``robot`` (its pid file ``ROBOT/NODE.pid``) still runs."""
@@ -186,7 +189,9 @@ def check_ros2_revoke_cert(d: Fleet, outs):
     assert "revoked" in outs["master"], outs["master"]
     until(lambda: d.token("robot_a") != 200, 5, "robot A still gets tokens 5 s after its revocation")
     d.stops(what="robot B's listener stops receiving once robot A is revoked")
-    d.logged("robot_b", "cutting off stream of manager=robot_a", "certificate_revoked")
+    cut = "cutting off stream of manager=robot_a"
+    until(lambda: d.logged_any("robot_b", (cut, "certificate_revoked"), (cut, "subject_disabled")), 10,
+          "robot B cutting robot A's streams, its certificate revoked or its manager disabled")
     d.logged("robot_a", "our own certificate (serial", "was revoked by the CA")
 
 
