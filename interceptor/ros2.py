@@ -745,6 +745,10 @@ class Ros2Role(Role):
         the peer's grant for the node, name and type it names, run before the reply and
         again on each fresher token the peer shows."""
         target = StreamTarget.decode(preamble.target)
+        if ros2_stays_local(target.name, (target.type,)) or self.cfg.ros2.is_local(target.name):
+            # what this robot never offers is never taken either, whatever a grant says
+            raise PolicyDenied("local_name", f"{target.name} [{target.type}] stays on each robot (ROS 2's own, or "
+                                             "[ros2] local here): not carried between robots")
         if not self.bridge.ready:
             raise PolicyDenied("bridge_down", "the DDS bridge is not running")
         problem = self.problem()

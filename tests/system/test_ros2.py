@@ -437,19 +437,25 @@ def test_forged_expired_foreign_and_revoked_tokens_are_refused(network):
 
 
 def test_malformed_targets_and_frames_are_refused_and_the_interceptor_keeps_serving(network):
-    status, body = network.daemon.token("robot_a")
-    token = body["access_token"]
-    for target in ("", "{", '{"kind":"topic"}', '{"kind":"topic","name":"chatter","type":"x","node":"/t"}',
-                   CHATTER.replace("/talker", "/intruder")):
-        with _rogue(network, "robot_b", "robot_a") as s:
-            reply = rogue_preamble(s, token, "ros2", target)
-            if reply is not None and reply.ok:  # the target parsed: the grant check closes the stream
-                s.settimeout(5)
-                assert s.recv(100) == b""
-            else:
-                assert reply is None or reply.ok is False
+    # ROS 2's own /rosout is never carried, whatever a grant says (robot A granted it here)
+    rosout = ("robot_a", "publish", "/talker", "/rosout", "rcl_interfaces/msg/Log")
+    network.cli("grant", *rosout)
+    try:
+        token = network.daemon.token("robot_a")[1]["access_token"]
+        for target in ("", "{", '{"kind":"topic"}', '{"kind":"topic","name":"chatter","type":"x","node":"/t"}',
+                       CHATTER.replace("/talker", "/intruder"),
+                       CHATTER.replace("/chatter", "/rosout").replace("std_msgs/msg/String", "rcl_interfaces/msg/Log")):
+            with _rogue(network, "robot_b", "robot_a") as s:
+                reply = rogue_preamble(s, token, "ros2", target)
+                if reply is not None and reply.ok:  # the target parsed: the grant check closes the stream
+                    s.settimeout(5)
+                    assert s.recv(100) == b""
+                else:
+                    assert reply is None or reply.ok is False
+    finally:
+        network.cli("revoke", *rosout[:4])  # which revokes the token that held it
     with _rogue(network, "robot_b", "robot_a") as s:  # a frame declaring 4 GB
-        reply = rogue_preamble(s, token, "ros2", CHATTER)
+        reply = rogue_preamble(s, network.daemon.token("robot_a")[1]["access_token"], "ros2", CHATTER)
         assert reply.ok
         s.sendall(struct.pack("<IBI", 0xFFFFFFF0, 16, 0) + b"x" * 100)
         s.settimeout(5)
@@ -458,6 +464,7 @@ def test_malformed_targets_and_frames_are_refused_and_the_interceptor_keeps_serv
     log = network.robots["robot_b"].denials()
     assert "bad_target" in log or "ros2 target" in log
     assert "/intruder may not publish /chatter" in log
+    assert "/rosout [rcl_interfaces/msg/Log] stays on each robot" in log, log
     assert "outside 0.." in log
     test_talker_on_a_reaches_listener_on_b_through_the_interceptors(network)  # still serving
 
