@@ -917,6 +917,9 @@ class Ros2Role(Role):
                              first: bytes = b"") -> None:
         if target.name in self._proxies:
             raise PolicyDenied("already_offered", f"{target.name} is already offered by another robot")
+        if any(s["name"] == target.name and s.get("servers") for s in self._graph.get("services", [])):
+            raise PolicyDenied("served_here", f"{target.name} has a server on this robot's domain: a second one "
+                                              "would race its answers")
         proxy = Proxy(chan=next(self._chans), writer=writer)
         self._proxies[target.name] = proxy
         self._proxy_by_chan[proxy.chan] = proxy

@@ -309,6 +309,32 @@ def test_a_service_server_that_leaves_and_returns_twice_is_given_its_grace_both_
         assert seen == left, f"absence {leaving}: withdrawn without its grace:\n{a.logs()[mark:]}"
 
 
+def test_a_peer_offering_a_service_this_robot_serves_itself_is_refused(network):
+    """ROS 2 audit: a peer's service was proxied on robot A's domain while a local server
+    served the same name: two servers, and a caller took whichever answered first."""
+    grants = [("robot_c", "serve", "/flag_server", "/set_flag", SET_BOOL), ("robot_a", "call", "*", "/set_flag", SET_BOOL)]
+    for grant in grants:
+        network.cli("grant", *grant)
+    a = network.robots["robot_a"]
+    mark, logged = len(a.denials()), len(a.logs())
+    target = StreamTarget(kind="service", name="/set_flag", type=SET_BOOL, node="/flag_server").encode()
+    try:
+        with network.node("robot_a", "server.py", "/set_flag", "flag_server") as server:
+            server.until("READY", 20)
+            until(lambda: re.search(r"offering service /set_flag|/set_flag \S+ is back", a.logs()[logged:]), 20,
+                  "robot A offering its own /set_flag server (its graph has it)")
+            with _rogue(network, "robot_a", "robot_c") as s:
+                reply = rogue_preamble(s, network.daemon.token("robot_c")[1]["access_token"], "ros2", target)
+                if reply is not None and reply.ok:
+                    s.settimeout(10)
+                    with contextlib.suppress(ConnectionError, ssl.SSLError):
+                        assert s.recv(100) == b""
+    finally:
+        for grant in grants:
+            network.cli("revoke", *grant[:4])
+    assert "/set_flag has a server on this robot's domain" in network.robots["robot_a"].denials()[mark:]
+
+
 def test_a_remote_service_that_never_answers_holds_none_of_the_others(network):
     """ROS 2 audit: calls to a remote server that never answers held all of bridge B's
     service threads (8), and robot A's /set_flag waited 30 s behind them. Each remote
