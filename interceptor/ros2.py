@@ -47,6 +47,7 @@ from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
 from cryptoros.policy.infrastructure import ros2_stays_local
+from cryptoros.policy.hints import PROG, command
 from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager_may, may_learn
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tokens import AccessToken
@@ -330,9 +331,13 @@ class Ros2Role(Role):
             self._noted.add(key)
             self.gw.deny(kind, exc, who, hint=hint)
 
-    def _grant_hint(self, manager: str, action: str, node: str, name: str, type_name: str) -> str:
-        """The ``cryptoros-authz grant`` that would allow ``node`` to ``action`` ``name``."""
-        return f"cryptoros-authz grant {manager} {action} {node} {name} {type_name}"
+    @staticmethod
+    def _grant_hint(manager: str, action: str, node: str | None, name: str, type_name: str) -> str:
+        """The ``cryptoros-authz grant`` that would allow ``node`` (None: a node of
+        ``manager``'s robot this one cannot name) to ``action`` ``name``, shell-quoted."""
+        note = None if node else (f"NODE: the node of {manager}'s robot that would {action} it (ros2 node list "
+                                  "there), or '*' for any of them")
+        return command(PROG, "grant", manager, action, node or "NODE", name, type_name, note=note)
 
     def _desired(self) -> dict[tuple[str, str, str], Offer]:
         """What this robot may offer now, decided by :func:`cryptoros.policy.ros2.local_offer`."""
@@ -611,7 +616,7 @@ class Ros2Role(Role):
                         self.gw.deny(f"ros2_{target.kind}_out", PolicyDenied(
                             "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
                             f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}",
-                            hint=self._grant_hint(known.subject, target.peer_action, "NODE", target.name, target.type))
+                            hint=self._grant_hint(known.subject, target.peer_action, None, target.name, target.type))
                     await asyncio.sleep(PEER_RECHECK)
                     recheck = time.monotonic()
                     continue

@@ -413,8 +413,10 @@ def test_a_peer_without_the_grant_learns_no_name_of_what_robot_a_offers(network)
             assert got(collect(sub, 10, 25)), "robot B did not receive /twist"
     assert ros2_streams_in("robot_c") == before, "robot C was offered a stream it may not receive"
     assert "/twist" not in network.robots["robot_c"].logs()
-    assert "robot_c may not subscribe /twist [geometry_msgs/msg/Twist]: not offered to it" in \
-        network.robots["robot_a"].denials()
+    denials = network.robots["robot_a"].denials()
+    assert "robot_c may not subscribe /twist [geometry_msgs/msg/Twist]: not offered to it" in denials
+    # the hint names the node it cannot know as a placeholder, and says what to put there
+    assert "to allow: cryptoros-authz grant robot_c subscribe NODE /twist geometry_msgs/msg/Twist  # NODE: " in denials
 
 
 def test_the_token_a_robot_shows_a_peer_is_narrowed_to_that_peer(network):
