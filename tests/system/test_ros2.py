@@ -24,7 +24,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptoros.ros2.target import StreamTarget
 from cryptoros.tokens import Grants, build_claims, sign_token
 from tests.interceptor_harness import rogue_preamble, rogue_tls, signing_key
-from tests.ros2_support import SET_BOOL, collect, got, ros2_network
+from tests.ros2_support import SET_BOOL, collect, collect_through, got, ros2_network
 from tests.support import Capture, until
 
 
@@ -66,8 +66,7 @@ def test_reliable_burst_arrives_without_loss_through_the_interceptors(network):
                           "--burst-on-signal") as talker:
             lines = collect(sub, 1, 60)  # the path is up: now the burst
             talker.proc.send_signal(signal.SIGUSR1)
-            while got(lines)[-1] < 2099:
-                lines += collect(sub, 1, 60)
+            lines += collect_through(sub, 2099, 60)
     seqs = got(lines)
     assert not [line for line in lines if line.startswith("BAD")]
     assert seqs == list(range(seqs[0], 2100)), f"{2100 - seqs[0] - len(seqs)} message(s) lost or reordered"
@@ -149,15 +148,12 @@ def test_a_subscriber_on_robot_b_killed_mid_stream_costs_the_others_no_message(n
             lines = collect(sub, 1, 60)  # the path is up: now the burst
             collect(doomed, 1, 60)
             talker.proc.send_signal(signal.SIGUSR1)
-            while got(lines)[-1] < 1000:
-                lines += collect(sub, 1, 60)
+            lines += collect_through(sub, 1000, 60)
             doomed.proc.kill()
-            while got(lines)[-1] < 12099:
-                try:
-                    lines += collect(sub, 1, 30)
-                except AssertionError:
-                    raise AssertionError(f"robot B's live listener stopped at message {got(lines)[-1]} of 12,099 "
-                                         "after the other listener was killed") from None
+            try:
+                lines += collect_through(sub, 12099, 30)
+            except AssertionError as exc:
+                raise AssertionError(f"robot B's live listener stopped after the other listener was killed: {exc}") from None
     seqs = got(lines)
     assert not [line for line in lines if line.startswith("BAD")]
     assert seqs == list(range(seqs[0], 12100)), f"{12100 - seqs[0] - len(seqs)} message(s) lost or reordered"
