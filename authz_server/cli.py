@@ -34,20 +34,19 @@ from authz_server import keys as keymod
 from authz_server.changes import parse_since, summary
 from authz_server.cli_context import registry as _registry
 from authz_server.db import DEFAULT_DB_URL, current_revision, head_revision, make_engine, shown_db
-from authz_server.policy_cli import import_lines, load_yaml, write_or_print
 from authz_server.registry import ACTIONS, MAX_CERT_OVERLAP_S, PARAM_ACTIONS, GrantRow, Registry, validate_manager_name
 from cryptoros.files import PEM_LIMIT, POLICY_LIMIT, read_bounded
 from cryptoros.errors import ConfigError, CryptorosError, PKIError, RegistryError, TokenError
-from cryptoros import logfmt, pemfiles
-from cryptoros.pemfiles import cert_fingerprint_sha256
-from cryptoros.policy.hints import TOOL_NODES
+from cryptoros import logfmt
+from cryptoros.lazy import LazyGroup
 
 PROG = "cryptoros-authz"
 DB_ENV = "CRYPTOROS_AUTHZ_DB"
 
 
-class _Group(click.Group):
-    """Turns our errors into one line on stderr: exit 2 for bad input, 1 otherwise."""
+class _Group(LazyGroup):
+    """Turns our errors into one line on stderr: exit 2 for bad input, 1 otherwise. The
+    verbs of policy authoring and learning are imported when named (:data:`_LAZY`)."""
 
     def invoke(self, ctx: click.Context):
         try:
@@ -84,7 +83,18 @@ def _read_only(cause: BaseException) -> bool:
     return getattr(cause, "sqlstate", None) == "25006"
 
 
-@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+#: verbs imported only when named: they pull in the policy and token code (jwt,
+#: cryptography), about a tenth of the CPU of every other verb's call
+_LAZY = {
+    "policy": "authz_server.policy_cli:policy",
+    "import-sros2": "authz_server.policy_cli:import_sros2",
+    "export-sros2": "authz_server.policy_cli:export_sros2",
+    "learn": "authz_server.learn_cli:learn",
+    "unused": "authz_server.learn_cli:unused_cmd",
+}
+
+
+@click.group(cls=_Group, subcommands=_LAZY, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--db", "db_url", envvar=DB_ENV, default=DEFAULT_DB_URL, show_default=True,
               help=f"Registry database URL (SQLAlchemy; or ${DB_ENV}).")
 @click.version_option(package_name="cryptoros")
@@ -97,6 +107,7 @@ def main(ctx: click.Context, db_url: str) -> None:
 def _fingerprint_of(cert_file: str, name: str | None = None, ca_file: str | None = None) -> str:
     from cryptography.hazmat.primitives import serialization
 
+    from cryptoros import pemfiles
     from cryptoros.identity import identity_mismatch, named_holders
 
     try:
@@ -115,7 +126,7 @@ def _fingerprint_of(cert_file: str, name: str | None = None, ca_file: str | None
         if mismatch is not None:
             raise RegistryError(f"{cert_file} {mismatch}")
     _check_client_certificate(cert, cert_file, ca_file)
-    return cert_fingerprint_sha256(cert.public_bytes(serialization.Encoding.DER))
+    return pemfiles.cert_fingerprint_sha256(cert.public_bytes(serialization.Encoding.DER))
 
 
 def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None:
@@ -127,6 +138,8 @@ def _check_client_certificate(cert, cert_file: str, ca_file: str | None) -> None
     and the robot locked out: every TLS handshake with its real one failed.)"""
     from cryptography import x509
     from cryptography.x509.oid import NameOID
+
+    from cryptoros import pemfiles
 
     try:
         if cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca:
@@ -372,6 +385,8 @@ def _name_type(value: str, option: str) -> tuple[str, str]:
 def tool_grants(topics: tuple[str, ...], publish_topics: tuple[str, ...], services: tuple[str, ...],
                 param_namespaces: tuple[str, ...], params_read_only: bool) -> list[tuple[str, str, str, str | None]]:
     """The (action, node, name, type) rows ``grant-tools`` grants."""
+    from cryptoros.policy.hints import TOOL_NODES
+
     rows: list[tuple[str, str, str, str | None]] = []
     for value in topics:
         rows.append(("subscribe", TOOL_NODES["rostopic"], *_name_type(value, "--topic")))
@@ -428,6 +443,8 @@ def grant_tools(ctx: click.Context, manager: str, topics: tuple[str, ...], publi
       cryptoros-authz grant-tools robot_b --topic /chatter:std_msgs/String \\
           --service /add_two_ints:rospy_tutorials/AddTwoInts --param-ns /robot_b
     """
+    from cryptoros.policy.hints import TOOL_NODES
+
     if params_read_only and not param_namespaces:
         raise RegistryError("--params-read-only needs the namespaces rosparam may read: give --param-ns NS")
     rows = tool_grants(topics, publish_topics, services, param_namespaces, params_read_only)
@@ -470,6 +487,8 @@ def export(ctx: click.Context, output: str | None) -> None:
     """Write the whole policy (managers, certificates, grants) as YAML."""
     import yaml
 
+    from authz_server.policy_cli import write_or_print
+
     write_or_print(output, yaml.safe_dump(_registry(ctx).export_policy(), sort_keys=False))
 
 
@@ -497,6 +516,8 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool, list_all:
         raise RegistryError(f"cannot read policy file {file}: {exc.strerror}") from exc
     except UnicodeDecodeError as exc:
         raise RegistryError(f"policy file {file} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    from authz_server.policy_cli import import_lines, load_yaml
+
     doc = load_yaml(text, "policy file", "<stdin>" if file == "-" else file)
     registry = _registry(ctx, create=True)
     before = registry.list_managers()
@@ -671,6 +692,7 @@ def verify_token(jwks_file: str, cert_file: str, token_file: str, issuer: str, a
     """Verify an access token offline, as an interceptor does; print its claims."""
     from cryptography.hazmat.primitives import serialization
 
+    from cryptoros import pemfiles
     from cryptoros.tokens import KeySet, Revocations, verify_access_token
 
     try:
@@ -793,14 +815,6 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
         runner(run_server(cfg))
     except KeyboardInterrupt:  # pragma: no cover - SIGINT before the handler is installed
         pass
-
-
-# ---------------------------------------------------------------------- policy authoring
-from authz_server.learn_cli import COMMANDS as _LEARN_COMMANDS  # noqa: E402
-from authz_server.policy_cli import COMMANDS as _POLICY_COMMANDS  # noqa: E402
-
-for _command in (*_POLICY_COMMANDS, *_LEARN_COMMANDS):  # policy from-graph, import-sros2, export-sros2; learn, unused
-    main.add_command(_command)
 
 
 if __name__ == "__main__":  # pragma: no cover

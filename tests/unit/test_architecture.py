@@ -24,7 +24,8 @@ ALLOWED = {
     CORE: set(),
     NODE_CLIENT: {CORE},
     "certs": {CORE},
-    "authz_server": {CORE, NODE_CLIENT},  # policy from-graph asks a live master
+    # policy from-graph asks a live master; the CLI's authoring verbs are imported on use
+    "authz_server": {CORE, NODE_CLIENT, "cryptoros.lazy"},
     "interceptor": {CORE},  # a proxy, never a ROS node itself
     "cryptoros.sim": {CORE},
     "cryptoros.attack": {CORE, NODE_CLIENT, "cryptoros.sim"},
