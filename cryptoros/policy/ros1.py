@@ -76,6 +76,13 @@ NAME_BINDING = MASTER_REGISTER | frozenset({"subscribeParam"})
 #: ``<param>``, a nodelet manager reads its nodelets'); everything else needs a
 #: ``read_param`` or ``write_param`` grant on a namespace holding the key.
 DEFAULT_PARAM_READS = ROS1_DEFAULT_PARAM_READS
+#: Caller ids stock tools use on every robot without registering a node: roslaunch's
+#: parameter calls and rosservice's type probe (ros_comm 1.15). Every robot's tool
+#: bundle names them, so they are no one manager's: no node may register under them (it
+#: would hold the name against every other robot's roslaunch), and their namespaces are
+#: not private to anyone (``/roslaunch/uris/*`` holds each robot's launch server): only
+#: a ``write_param``/``read_param`` grant opens them.
+SHARED_TOOL_NAMES = frozenset({"/roslaunch", "/rosservice"})
 #: Node-API methods that only read.
 NODE_READ_ONLY = frozenset(
     {"getBusInfo", "getBusStats", "getPid", "getName", "getMasterUri", "getSubscriptions", "getPublications"}
@@ -136,10 +143,16 @@ def _own_private(grants: Grants, caller: str, key: str) -> bool:
     so the caller's own name says nothing (a grant naming it, or a prefix pattern, does)."""
     if not grants.names_node(caller):
         return False
-    if (key == caller or key.startswith(caller + "/")) and grants.names_node_beyond_wildcard(caller):
+    if (key == caller or key.startswith(caller + "/")) and _has_private(grants, caller):
         return True
     parts = key.split("/")[1:]
-    return any(grants.names_node_exactly("/" + "/".join(parts[:n])) for n in range(1, len(parts) + 1))
+    return any(grants.names_node_exactly(node) and node not in SHARED_TOOL_NAMES
+               for node in ("/" + "/".join(parts[:n]) for n in range(1, len(parts) + 1)))
+
+
+def _has_private(grants: Grants, caller: str) -> bool:
+    """Whether ``caller`` has a private namespace of its own (:func:`_own_private`)."""
+    return caller not in SHARED_TOOL_NAMES and grants.names_node_beyond_wildcard(caller)
 
 
 def _topic_param(grants: Grants, caller: str, key: str) -> bool:
@@ -166,7 +179,7 @@ def _may_read_below(grants: Grants, caller: str, key: str) -> bool:
     from cryptoros.tokens import in_namespace
 
     readable = set(DEFAULT_PARAM_READS) | grants.param_namespaces(caller)
-    if grants.names_node_beyond_wildcard(caller):  # its private namespace (see _own_private)
+    if _has_private(grants, caller):  # its private namespace (see _own_private)
         readable.add(caller)
     return any(in_namespace(ns, key) for ns in readable)
 
@@ -318,6 +331,8 @@ def check_master_call(
     if method in MASTER_READ_ONLY:
         return
     caller = _caller(params, method)
+    if method in NAME_BINDING and caller in SHARED_TOOL_NAMES:
+        raise _deny("name_taken", f"node {caller} is the name a stock tool uses on every robot: no node may register it")
     # a parameter call names its caller too: its private namespace (and what it may read
     # there) is the node's that holds the name, not an impersonator's
     if method in NAME_BINDING or method in PARAM_WRITE or method in PARAM_READ or method == "getParamNames":
@@ -621,6 +636,7 @@ __all__ = [
     "infrastructure_allows",
     "ros_error",
     "REFUSED",
+    "SHARED_TOOL_NAMES",
     "SHOWN_REASONS",
     "GRANT_REASONS",
     "SEE_DENIALS",

@@ -352,7 +352,7 @@ def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
         assert "denied by cryptoros: param_write_denied" in _one_error_line(refused), refused
 
         granted = net.cli("grant-tools", "robot_b", "--roslaunch",
-                          "--publish-topic", "/chatter:std_msgs/String", "--clock")
+                          "--publish-topic", "/chatter:std_msgs/String", "--clock", "--param-ns", "/robot_b")
         assert granted.returncode == 0, granted.stderr
         assert "granted: robot_b /roslaunch write_param /run_id" in granted.stdout
         assert "granted: robot_b /play_* publish /clock rosgraph_msgs/Clock" in granted.stdout
@@ -365,6 +365,20 @@ def test_roslaunch_and_rosbag_play_with_their_bundles(tmp_path):
             time.sleep(1)
         assert "PARAM None [] /chatter_other" in launched.stdout, launched.stdout
         assert "Traceback" not in launched.stdout + launched.stderr
+        # /roslaunch is every robot's roslaunch: the bundle opens its namespace to roslaunch
+        # alone (not to rosparam, which may write /robot_b now), and a node registering under
+        # the name is refused (it would hold the name against every other robot's roslaunch)
+        assert tool(net, "rosparam", "set", "/robot_b/x", "1").returncode == 0
+        written = tool(net, "rosparam", "set", "/roslaunch/uris/host_evil__1", "http://evil:1/")
+        assert written.returncode != 0 and "param_write_denied" in written.stderr.strip().splitlines()[-1], written
+        squatter = run([SYS_PY, "-c", "import rospy; from std_msgs.msg import String\n"
+                        "rospy.init_node('roslaunch'); rospy.Subscriber('/chatter', String); rospy.sleep(1.0)"],
+                       env=env, timeout=30)
+        assert "Traceback" not in squatter.stdout + squatter.stderr, squatter.stderr
+        assert "unable to register publication [/rosout] with master: denied by cryptoros: name_taken" in \
+            squatter.stderr, squatter.stderr
+        refused = [line for line in denials(net, "robot_b").splitlines() if "name_taken" in line]
+        assert refused and "no node may register it" in refused[0], denials(net, "robot_b")
 
         played = tool(net, "rosbag", "play", "--clock", "-q", str(bag), timeout=60)
         assert played.returncode == 0, played.stdout + played.stderr

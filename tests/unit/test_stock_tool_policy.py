@@ -12,8 +12,10 @@ import pytest
 from cryptoros.errors import PolicyDenied
 from cryptoros.names import validate_node_name
 from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allows, ros1_topic_param
+from cryptoros.policy.hints import TOOL_NODES
 from cryptoros.policy.ros1 import (
     OWN_TOKEN_REASONS,
+    SHARED_TOOL_NAMES,
     SHOWN_REASONS,
     check_local_subscriber_header,
     check_master_call,
@@ -125,6 +127,39 @@ def test_the_private_namespace_of_a_node_the_manager_names_exactly_is_its_own():
     # not a node of another manager, and not for a caller the manager's grants do not name
     assert not may_write_param(ROBOT, "/roslaunch", "/other_robots_node/rate")
     assert not may_write_param(ROBOT, "/stranger", "/talker/rate")
+
+
+def test_the_names_every_robots_tools_use_have_no_private_namespace_and_cannot_be_registered():
+    """/roslaunch and /rosservice are in every robot's tool bundle: naming them exactly
+    gives no node their namespace (robot A's /roslaunch/uris/* were written by any node
+    of robot B), and no node may register under them (robot B's /roslaunch locked every
+    other robot's roslaunch out of the master)."""
+    bundle = Grants([*ROBOT, Grant(node="/rosservice", action="call", name="/add", type="srv/Add"),
+                     Grant(node="/rosparam-*", action="read_param", name="/robot_b", type="param")])
+    for node in ("/talker", "/camera", "/rosparam-42", "/roslaunch", "/rosservice"):
+        for key in ("/roslaunch/uris/host_10_0_0_1__41000", "/rosservice/x"):
+            assert not may_write_param(bundle, node, key), (node, key)
+            assert not may_read_param(bundle, node, key), (node, key)
+    # the write_param grant of grant-tools --roslaunch opens /roslaunch to roslaunch
+    launch = Grants([*bundle, Grant(node="/roslaunch", action="write_param", name="/roslaunch", type="param")])
+    assert may_write_param(launch, "/roslaunch", "/roslaunch/uris/host_10_0_0_1__41000")
+    assert not may_write_param(launch, "/talker", "/roslaunch/uris/host_10_0_0_1__41000")
+    for method, params in (("registerSubscriber", ("/roslaunch", "/chatter", "std_msgs/String", "http://h:1/")),
+                           ("registerPublisher", ("/rosservice", "/chatter", "std_msgs/String", "http://h:1/")),
+                           ("registerService", ("/roslaunch", "/add", "rosrpc://h:2", "http://h:1/")),
+                           ("subscribeParam", ("/roslaunch", "http://h:1/", "/run_id"))):
+        with pytest.raises(PolicyDenied) as info:
+            check_master_call(method, params, manager="robot_b", grants=launch, owners={})
+        assert info.value.reason == "name_taken" and "every robot" in info.value.detail, method
+    # roslaunch's own calls go on
+    check_master_call("getParam", ("/roslaunch", "/run_id"), manager="robot_b", grants=launch, owners={})
+    check_master_call("setParam", ("/roslaunch", "/roslaunch/uris/host_a__1", "http://a:1/"), manager="robot_b",
+                      grants=launch, owners={})
+    check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=launch, owners={})
+
+
+def test_the_shared_tool_names_are_the_exact_names_of_the_tool_bundles():
+    assert {n for n in TOOL_NODES.values() if "*" not in n} == SHARED_TOOL_NAMES
 
 
 # ------------------------------------------------------------------ own-name endpoints
