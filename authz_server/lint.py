@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from authz_server.registry import PARAM_ACTIONS
 from cryptoros.names import is_node_pattern
+from cryptoros.policy.ros1 import SHARED_TOOL_NAMES
 from cryptoros.tokens import nodes_overlap
 
 #: overlaps named per grant at most (the rest are counted)
@@ -22,9 +23,14 @@ def node_overlaps(manager: str, node: str, managers) -> list[str]:
     manager registers it first (the other's node is refused, ``name_taken``); a pattern
     and an exact name, always the manager whose grants name it exactly (the pattern's
     node is dropped when that one registers). Two patterns are not named: the names
-    registered under them are anonymous ones (stock tools) no two processes share."""
+    registered under them are anonymous ones (stock tools) no two processes share. Nor
+    are the names every robot's tools use (:data:`~cryptoros.policy.ros1.SHARED_TOOL_NAMES`,
+    ``/roslaunch``): no node registers them, so no one holds them."""
+    if node in SHARED_TOOL_NAMES:
+        return []
     hits = sorted({(m.name, g.node) for m in managers if m.name != manager for g in m.grants
-                   if nodes_overlap(node, g.node) and not (is_node_pattern(node) and is_node_pattern(g.node))})
+                   if nodes_overlap(node, g.node) and not (is_node_pattern(node) and is_node_pattern(g.node))
+                   and g.node not in SHARED_TOOL_NAMES})
     lines = []
     for other, theirs in hits:
         if not is_node_pattern(node) and not is_node_pattern(theirs):

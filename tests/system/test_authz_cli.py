@@ -290,11 +290,13 @@ def test_a_grant_naming_nodes_another_manager_names_is_warned(tmp_path):
     assert wide.returncode == 0 and wide.stderr.strip() == (
         "warning: pattern /robot* covers node /robot1/driver, which robot1's grants name exactly: robot1's node "
         "always holds that name, and a node of robot2 registered under it is dropped"), wide.stderr
-    # a stock tool's pattern held by two robots: the names under it are anonymous, never shared
-    ok(authz("grant-tools", "robot1", "--topic", "/robot1/scan:sensor_msgs/LaserScan", db=db))
+    # a stock tool's pattern held by two robots: the names under it are anonymous, never
+    # shared; /roslaunch is in every robot's bundle, and no node may register it
+    ok(authz("grant-tools", "robot1", "--topic", "/robot1/scan:sensor_msgs/LaserScan", "--roslaunch", db=db))
     for quiet in (("subscribe", "*", "/robot1/scan", "sensor_msgs/LaserScan"),
                   ("publish", "/robot2/driver", "/robot2/scan", "sensor_msgs/LaserScan"),
-                  ("subscribe", "/rostopic_*", "/robot1/scan", "sensor_msgs/LaserScan")):
+                  ("subscribe", "/rostopic_*", "/robot1/scan", "sensor_msgs/LaserScan"),
+                  ("write_param", "/roslaunch", "/robot2")):
         r = authz("grant", "robot2", *quiet, db=db)
         assert r.returncode == 0 and r.stderr.strip() == "", (quiet, r.stderr)
 
