@@ -532,12 +532,14 @@ def import_(ctx: click.Context, file: str, merge: bool, dry_run: bool, list_all:
     for kind, name in touched:
         for line in type_conflicts(kind, name, held):
             click.echo(f"{PROG}: warning: {line}", err=True)
-    staying = [m for m in known if m not in report.managers_removed]
     for name, fp in report.managers_added:
         if fp is None:
-            near = difflib.get_close_matches(name, staying, n=1)  # a typo, or a rename that loses the binding
+            # a typo, or a rename that loses the binding: the nearest name, removed or not
+            near = difflib.get_close_matches(name, known, n=1)
+            removed = f", which this {'dry run would remove' if dry_run else 'import removes'} with its certificate" \
+                if near and near[0] in report.managers_removed else ""
             click.echo(f"{PROG}: warning: manager {name} has no certificate: its grants reach nobody until "
-                       f"'{PROG} set-cert {name} --cert FILE'" + (f" (did you mean {near[0]}?)" if near else ""),
+                       f"'{PROG} set-cert {name} --cert FILE'" + (f" (did you mean {near[0]}{removed}?)" if near else ""),
                        err=True)
     removed = sorted(report.managers_removed)
     click.echo(("would import (dry run, nothing changed): " if dry_run else "imported: ")

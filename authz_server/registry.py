@@ -1065,6 +1065,8 @@ def parse_policy(doc: object) -> dict[str, WantedManager]:
     out: dict[str, WantedManager] = {}
     for i, m in enumerate(managers):
         where = f"policy: managers[{i}]"
+        if isinstance(m, Mapping) and isinstance(m.get("name"), str) and len(m["name"]) <= 64:
+            where += f" ({m['name']})"  # the index counts from 0: the name says which one
         if not isinstance(m, Mapping):
             raise RegistryError(f"{where} must be a mapping")
         unknown = set(m) - _MANAGER_KEYS
@@ -1102,6 +1104,17 @@ def _shape(value: object) -> str:
     return type(value).__name__
 
 
+def _key_problem(item: object, keys: set[str]) -> str:
+    """What is wrong with a grant's keys, said plainly: the missing and the unknown ones."""
+    if not isinstance(item, Mapping):
+        return f"is {_shape(item)}, not a mapping"
+    missing = sorted(keys - set(item))
+    unknown = sorted(map(str, set(item) - keys))
+    said = ([f"lacks {', '.join(repr(k) for k in missing)}"] if missing else []) + \
+        ([f"has the unknown key(s) {', '.join(repr(k) for k in unknown)}"] if unknown else [])
+    return " and ".join(said)
+
+
 def _parse_grants(grants: object) -> frozenset[GrantRow]:
     if not isinstance(grants, Mapping):
         raise RegistryError("'grants' must be a mapping of action to a list")
@@ -1113,7 +1126,12 @@ def _parse_grants(grants: object) -> frozenset[GrantRow]:
         if not isinstance(items, list):
             raise RegistryError(f"grants.{action} must be a list")
         for j, item in enumerate(items):
+            where = f"grants.{action}[{j}]"
             if not isinstance(item, Mapping) or set(item) != keys:
-                raise RegistryError(f"grants.{action}[{j}] must have exactly the keys {', '.join(sorted(keys))}")
-            rows.add(GrantRow.checked(action, item["node"], item[key], item.get("type")))
+                raise RegistryError(f"{where} {_key_problem(item, keys)} (a {action} grant has exactly the keys "
+                                    f"{', '.join(sorted(keys))})")
+            try:
+                rows.add(GrantRow.checked(action, item["node"], item[key], item.get("type")))
+            except RegistryError as exc:
+                raise RegistryError(f"{where}: {exc}") from None
     return frozenset(rows)

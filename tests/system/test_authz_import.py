@@ -120,13 +120,18 @@ def test_a_merge_binding_a_kept_certificate_names_both_managers(db, tmp_path):
     assert ok(authz("export", db=db)) == before
 
 
-def test_a_new_managers_did_you_mean_never_names_one_the_import_removes(db, tmp_path):
-    """Newcomer audit: a plain import that renames robot1 to robto1 suggested robot1,
-    which the same import removes."""
+def test_a_new_managers_did_you_mean_says_the_import_removes_the_one_it_names(db, tmp_path):
+    """Newcomer audit: a plain import that renames robot1 to robto1 suggested robot1
+    as if it stayed; a policy audit: renaming robot2 to robot22 suggested robot1, not the
+    robot2 one letter away, which the import removes."""
     renamed = write(tmp_path, HAND_WRITTEN.replace("- name: robot1\n", "- name: robto1\n"), "renamed.yaml")
     result = authz("import", "--dry-run", renamed, db=db)
     assert result.returncode == 0 and "robto1 has no certificate" in result.stderr, result.stderr
-    assert "did you mean robot1" not in result.stderr, result.stderr
+    assert "(did you mean robot1, which this dry run would remove with its certificate?)" in result.stderr, \
+        result.stderr
+    renamed = write(tmp_path, HAND_WRITTEN.replace("- name: robot2\n", "- name: robot22\n"), "renamed2.yaml")
+    result = authz("import", "--dry-run", renamed, db=db)
+    assert "(did you mean robot2, which this dry run would remove" in result.stderr, result.stderr
 
 
 SHAPES = {
@@ -155,9 +160,19 @@ SHAPES = {
     "mapping grant list": ("version: 1\nmanagers:\n- name: robot1\n  grants: {publish: {node: /a}}\n",
                            "grants.publish must be a list"),
     "null grant": ("version: 1\nmanagers:\n- name: robot1\n  grants: {publish: [null]}\n",
-                   "grants.publish[0] must have exactly the keys node, topic, type"),
+                   "managers[0] (robot1): grants.publish[0] is nothing (null), not a mapping (a publish grant has "
+                   "exactly the keys node, topic, type)"),
+    # policy audit: a missing type, a typo and an extra key all read the same, naming none
+    "missing type": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n    publish:\n"
+                     "    - {node: /a, topic: /t}\n", "grants.publish[0] lacks 'type' (a publish grant"),
+    "key typo": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n    subscribe:\n"
+                 "    - {node: /a, topc: /t, type: std_msgs/String}\n",
+                 "grants.subscribe[0] lacks 'topic' and has the unknown key(s) 'topc'"),
     "list node": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n    publish:\n"
                   "    - {node: [/a], topic: /t, type: std_msgs/String}\n", "invalid node name"),
+    "relative topic": ("version: 1\nmanagers:\n- name: robot1\n  grants:\n    publish:\n"
+                       "    - {node: /a, topic: cmd_vel, type: std_msgs/String}\n",
+                       "managers[0] (robot1): grants.publish[0]: invalid topic"),
 }
 
 
