@@ -568,6 +568,16 @@ def refusal_text(reason: str | None, *, own: bool = False) -> str:
     return f"{REFUSED}: {reason} {SEE_DENIALS}" if own and reason in GRANT_REASONS else f"{REFUSED}: {reason}"
 
 
+def refused_reason(value: Any) -> str | None:
+    """The reason code of a ROS answer that is a refusal by an interceptor
+    (``[-1, "denied by cryptoros: <reason>", ...]``, :func:`refusal_text`), else None."""
+    if not (isinstance(value, list) and len(value) == 3 and value[0] == -1 and isinstance(value[1], str)):
+        return None
+    head, _, rest = value[1].partition(": ")
+    reason = rest.split(" ", 1)[0]
+    return reason if head == REFUSED and reason in SHOWN_REASONS else None
+
+
 def refusal_answer(reason: str | None, method: str, params: tuple, *, own: bool = False) -> list[Any]:
     """The XML-RPC value a refused master or node call is answered with, as rosmaster
     and nodes answer an error: ``[-1, "denied by cryptoros: <reason>", 0]``; a probe of
@@ -645,5 +655,6 @@ __all__ = [
     "node_pattern",
     "refusal_answer",
     "refusal_text",
+    "refused_reason",
     "unset_answer",
 ]

@@ -18,6 +18,7 @@ from cryptoros.policy.ros1 import (
     check_service_client_header,
     check_service_server_header,
     check_subscriber_header,
+    refused_reason,
     ros_error,
 )
 from cryptoros.ros1.rewrite import (
@@ -280,6 +281,13 @@ class NodeSide:
         return rewrite_param_api(call, name)
 
     def _local_after(self, call: Request, response: Response | Fault) -> Response | Fault:
+        reason = refused_reason(getattr(response, "value", None))
+        if reason is not None and "master" not in self.cfg.roles and call.params and isinstance(call.params[0], str):
+            # refused by the master's interceptor (a name another manager holds, its quotas):
+            # counted here too, so that this robot's operator finds it in cryptoros denials
+            self.gw.deny("local-master", PolicyDenied(reason, f"the master's interceptor refused {call.method} of "
+                                                        f"{call.params[0][:200]} (its log has the detail)"),
+                         "local node")
         if call.method in RELEASING_CALLS and not self.translator.exported(released_uri(call.method, call.params)):
             # from a process that is gone (its endpoint released): the node's name now
             # belongs to its new process, whose registrations this must not forget

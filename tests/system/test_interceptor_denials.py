@@ -189,6 +189,10 @@ def test_existing_node_name_from_another_manager_is_refused(network):
             time.sleep(2)
         assert pub.poll() is None, "the hijack shut the real talker down"
     assert "name_taken" in network.hosts["master"].logs()
+    # robot B's operator finds the master's refusal in robot B's own log and denials too
+    told = [line for line in denials(network, "robot_b").splitlines()
+            if "name_taken" in line and "the master's interceptor refused" in line and "/talker_a" in line]
+    assert told, denials(network, "robot_b")
 
 
 def test_a_name_squatted_through_a_wildcard_goes_to_the_manager_whose_grants_name_it(network):

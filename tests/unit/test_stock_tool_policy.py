@@ -15,6 +15,7 @@ from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allow
 from cryptoros.policy.hints import TOOL_NODES
 from cryptoros.policy.ros1 import (
     OWN_TOKEN_REASONS,
+    SEE_DENIALS,
     SHARED_TOOL_NAMES,
     SHOWN_REASONS,
     check_local_subscriber_header,
@@ -29,6 +30,7 @@ from cryptoros.policy.ros1 import (
     node_pattern,
     refusal_answer,
     refusal_text,
+    refused_reason,
 )
 from cryptoros.tokens import Grant, Grants, node_matches
 from interceptor.denials import DenialTable
@@ -156,6 +158,14 @@ def test_the_names_every_robots_tools_use_have_no_private_namespace_and_cannot_b
     check_master_call("setParam", ("/roslaunch", "/roslaunch/uris/host_a__1", "http://a:1/"), manager="robot_b",
                       grants=launch, owners={})
     check_master_call("setParam", ("/roslaunch", "/talker/rate", 5), manager="robot_b", grants=launch, owners={})
+
+
+def test_a_refusal_is_told_from_any_other_ros_error():
+    assert refused_reason([-1, "denied by cryptoros: name_taken", 0]) == "name_taken"
+    assert refused_reason([-1, f"denied by cryptoros: not_granted {SEE_DENIALS}", 0]) == "not_granted"
+    for other in ([-1, "denied by cryptoros", 0], [-1, "denied by cryptoros: made_up", 0], [1, "ok", 0],
+                  [-1, "node is not registered", 0], "denied by cryptoros: name_taken", None, [0, 5, 0]):
+        assert refused_reason(other) is None, other
 
 
 def test_the_shared_tool_names_are_the_exact_names_of_the_tool_bundles():
