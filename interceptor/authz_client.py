@@ -516,6 +516,13 @@ class TokenKeeper:
     def expires_at(self) -> float | None:
         return self._token.expires_at if self._token else None
 
+    def expired_within(self, grace: float) -> bool:
+        """Whether the token held expired (as :meth:`current` counts it) less than
+        ``grace`` seconds ago: it ran out with the authorization server out of reach,
+        not refused (none is held then)."""
+        token = self._token
+        return token is not None and self._clock() < token.expires_at + grace
+
     async def for_peer(self, thumbprint: str) -> str:
         """The token to show the peer whose certificate has ``thumbprint``: fetched on
         first use, again with every refresh of our own token (:meth:`refresh`) and

@@ -526,6 +526,19 @@ class Gateway(Admission, Outbound, Health):
             self._own_token = token
         return self._own_access
 
+    def own_access_in_grace(self) -> AccessToken:
+        """:meth:`own_access`; once our token ran out with the authorization server out of
+        reach, the last one for ``[authz] token_grace`` more: what a peer gives a stream
+        of ours past its token's expiry, so that what we send and take ends when the
+        peers' cut says, not before. A refused token (none held) raises at once."""
+        try:
+            return self.own_access()
+        except TokenError as exc:
+            if exc.reason != "no_token" or self._own_access is None or \
+                    not self.keeper.expired_within(self.cfg.authz.token_grace):
+                raise
+            return self._own_access
+
     def peer_token(self, host: str, port: int) -> AccessToken | None:
         """The last token the peer interceptor at ``host:port`` showed us, if any."""
         return self._peer_tokens.get((host, port))

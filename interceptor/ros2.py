@@ -164,6 +164,8 @@ class Ros2Role(Role):
         self._noted: set[tuple] = set()
         #: (kind, name) the last graph shows but :meth:`_desired` did not offer, and why
         self._withheld: dict[tuple[str, str], str] = {}
+        #: why this robot has nothing to offer: its own token gone (past its grace), or None
+        self._no_token: TokenError | None = None
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
         self._partial = PartialFrames()  # each peer's unfinished frames, across its streams
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
@@ -344,9 +346,11 @@ class Ros2Role(Role):
         withheld: dict[tuple[str, str], str] = {}
         self._withheld = withheld
         try:
-            grants = self.gw.own_access().grants
-        except TokenError:
+            grants = self.gw.own_access_in_grace().grants
+        except TokenError as exc:
+            self._no_token = exc
             return {}
+        self._no_token = None
         me = f"local domain {self.cfg.ros2.domain_id}"
         want: dict[tuple[str, str, str], Offer] = {}
         entries = [("topic", t, t.get("publishers", [])) for t in self._graph.get("topics", [])]
@@ -508,6 +512,7 @@ class Ros2Role(Role):
                     continue
             why = ("the bridge's link is down" if link_down else
                    "this host's loopback answers other hosts" if exposed else
+                   f"this robot holds no access token now ({self._no_token})" if self._no_token is not None else
                    withdrawal_reason(key, out, want, on_air, self._withheld))
             log.info("no longer offering %s %s [%s]: %s", out.target.kind, out.target.name, out.target.type, why)
             self._withdraw(out)
@@ -536,9 +541,9 @@ class Ros2Role(Role):
                 out.tasks.pop(endpoint).cancel()
         if self._inbound:
             try:
-                self.gw.own_access()
+                self.gw.own_access_in_grace()
                 stop_inbound = exposed
-            except TokenError:  # our own token is gone: nothing comes in either
+            except TokenError:  # our own token is gone (past its grace): nothing comes in either
                 stop_inbound = True
             if stop_inbound:
                 for writer in list(self._inbound):
@@ -556,7 +561,7 @@ class Ros2Role(Role):
         """Whether this robot's own token still lets one of ``out``'s nodes publish or
         serve it (an offer kept through its publisher's absence never outlives its grant)."""
         try:
-            grants = self.gw.own_access().grants
+            grants = self.gw.own_access_in_grace().grants
         except TokenError:
             return False
         return any(grants.allows(out.target.action, node, out.target.name, out.target.type)

@@ -9,7 +9,9 @@ first message robot B's listener receives after it, with a bounded wait:
 - flows resume within 15 s after the authorization server returns from an outage long
   enough to make every interceptor's revocation feed stale (new streams refused);
 - flows resume within 20 s after either robot's interceptor restarts, and after robot
-  B's DDS bridge is killed (the dead bridge's shared memory removed).
+  B's DDS bridge is killed (the dead bridge's shared memory removed);
+- with the authorization server down past the tokens' lifetime, a flow ends at the
+  peers' cut, ``token_grace`` past the expiry, not at the expiry itself.
 """
 
 from __future__ import annotations
@@ -239,3 +241,35 @@ def _assert_bridge_profile(pid: int) -> None:
     assert profile.name == "bridge_profile.xml", profile
     assert environment_problem(environ) is None
     assert profile.read_text().count(f"<max_samples>{BRIDGE_MAX_SAMPLES}</max_samples>") == 2
+
+
+def test_a_flow_outlives_its_tokens_expiry_by_the_grace_while_the_authorization_server_is_down(tmp_path):
+    """ROS 2 audit: with the authorization server down past the tokens' lifetime, robot A
+    withdrew its offers at its own token's expiry, 30 s before the cut the docs promise
+    (``token_grace`` past it), and said "its publisher, its server or the grant that
+    carried it is gone". Tokens of 10 s, a grace of 15 s: the flow goes on past every
+    expiry, ends by the cut, and robot A says it holds no token."""
+    lifetime, grace = 10, 15.0
+    with ros2_network(tmp_path, start=()) as net:
+        net.daemon.stop()
+        net.daemon.extra = ("--token-lifetime", str(lifetime))
+        net.daemon.start()
+        for name in ("robot_a", "robot_b"):
+            config = net.robots[name].config
+            config.write_text(config.read_text().replace("[authz]\n", f"[authz]\ntoken_grace = {grace}\n", 1))
+            net.start(name)
+        with net.node("robot_b", "listener.py", "string", "/chatter", "120") as sub:
+            sub.until("READY", 20)
+            with net.node("robot_a", "talker.py", "string", "/chatter", "1000000", "20"):
+                collect(sub, 5, 40)
+                net.daemon.stop()
+                stopped = last = time.monotonic()
+                while time.monotonic() - last < 3.0:  # until 3 s without a message
+                    assert time.monotonic() - stopped < lifetime + grace + 15, "the flow was never cut"
+                    if any(line.startswith("GOT") for line in sub.until(None, 0.2)):
+                        last = time.monotonic()
+    ended = last - stopped
+    print(f"the flow ended {ended:.1f} s after the authorization server stopped")
+    # every token held then expired within the lifetime: the flow outlived that by most of the grace
+    assert lifetime + 2.5 < ended < lifetime + grace + 5, ended
+    assert "holds no access token now (no_token" in net.robots["robot_a"].logs()
