@@ -204,6 +204,9 @@ class Ros2Role(Role):
         self._stopping = True
         for out in list(self._outbound.values()):
             self._withdraw(out)
+        for proxy in list(self._proxies.values()):
+            if not proxy.pending:  # a peer's service offered here, no call under way: nothing to wait for
+                proxy.writer.transport.abort()  # (a stop gave each such stream its 5 s grace: a restart's gap)
 
     async def stopped(self) -> None:
         await self.bridge.stop()

@@ -295,11 +295,11 @@ class Ros2Network:
         finally:
             stop(proc, timeout=5)
 
-    def start(self, name: str) -> Robot:
+    def start(self, name: str, *options: str) -> Robot:
         robot = self.robots[name]
         robot.log = self.workdir / f"interceptor-{name}.log"
         robot.proc = subprocess.Popen(
-            [script("cryptoros-interceptor"), "--config", str(robot.config), "--log-level", "debug"],
+            [script("cryptoros-interceptor"), "--config", str(robot.config), "--log-level", "debug", *options],
             stdout=robot.log.open("a"), stderr=subprocess.STDOUT,
         )
         wait_for_port(robot.address, robot.public_port, timeout=40, proc=robot.proc)

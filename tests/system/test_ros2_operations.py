@@ -149,6 +149,28 @@ def test_flows_resume_within_20_s_after_a_robots_interceptor_restarts(network, r
             collect(sub, 20, 10)
 
 
+def test_a_stop_does_not_wait_out_its_grace_for_a_peers_service_with_no_call_under_way(network):
+    """ROS 2 audit: a restart of robot B cost 13 s of traffic; its stop alone waited out the
+    5 s grace for robot A's offered service, idle. With --grace 60 it stops at once all the
+    same (a call under way would still be waited for)."""
+    b = network.robots["robot_b"]
+    network.stop("robot_b")
+    network.start("robot_b", "--grace", "60")
+    try:
+        with network.node("robot_a", "server.py", "/set_flag"):
+            log_before = len(b.logs())
+            deadline = time.monotonic() + 30
+            while "offering remote service /set_flag" not in b.logs()[log_before:]:
+                assert time.monotonic() < deadline, "robot A's service was never offered on robot B"
+                time.sleep(0.2)
+            b.proc.send_signal(signal.SIGTERM)
+            b.proc.wait(timeout=20)  # TimeoutExpired: it waited out the grace for the idle service stream
+            assert b.proc.returncode == 0
+    finally:
+        network.stop("robot_b")
+        network.start("robot_b")
+
+
 def test_a_participant_reachable_from_the_network_is_reported_and_its_topics_not_carried(network):
     """A talker under robot A's granted name, started without the localhost DDS settings
     (its RTPS sockets on every interface): robot A reports it in its log, ``/status``
