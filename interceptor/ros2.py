@@ -340,8 +340,8 @@ class Ros2Role(Role):
     def _grant_hint(manager: str, action: str, node: str | None, name: str, type_name: str) -> str:
         """The ``cryptoros-authz grant`` that would allow ``node`` (None: a node of
         ``manager``'s robot this one cannot name) to ``action`` ``name``, shell-quoted."""
-        note = None if node else (f"NODE: the node of {manager}'s robot that would {action} it (ros2 node list "
-                                  "there), or '*' for any of them")
+        note = None if node else (f"NODE: the node of {manager}'s robot that would {action} it (its rclpy "
+                                  "create_node name, with its namespace), or '*' for any of them")
         return command(PROG, "grant", manager, action, node or "NODE", name, type_name, note=note)
 
     def _desired(self) -> dict[tuple[str, str, str], Offer]:
