@@ -351,7 +351,7 @@ def grant(ctx: click.Context, manager: str, action: str, node: str, name: str, t
         from authz_server.lint import kind_of, node_overlaps, type_conflicts
 
         managers = reg.list_managers()
-        lines = node_overlaps(manager, node, managers)
+        lines = node_overlaps(manager, node, managers, type_)
         if action not in PARAM_ACTIONS:
             lines += type_conflicts(kind_of(action), name, {(m.name, g) for m in managers for g in m.grants})
         for line in lines:

@@ -17,7 +17,12 @@ from cryptoros.tokens import nodes_overlap
 OVERLAPS_SHOWN = 5
 
 
-def node_overlaps(manager: str, node: str, managers) -> list[str]:
+def _ros2(type_name: str | None) -> bool:
+    """A ROS 2 type (``pkg/msg/Name``): ROS 2 has no master, so no node name is held."""
+    return isinstance(type_name, str) and type_name.count("/") == 2
+
+
+def node_overlaps(manager: str, node: str, managers, type_name: str | None = None) -> list[str]:
     """One line per other manager's grant node that ``node`` can name too, saying who
     then holds the name (docs/interceptor.md, "Stock tools"): two exact names, whichever
     manager registers it first (the other's node is refused, ``name_taken``); a pattern
@@ -25,12 +30,13 @@ def node_overlaps(manager: str, node: str, managers) -> list[str]:
     node is dropped when that one registers). Two patterns are not named: the names
     registered under them are anonymous ones (stock tools) no two processes share. Nor
     are the names every robot's tools use (:data:`~cryptoros.policy.ros1.SHARED_TOOL_NAMES`,
-    ``/roslaunch``): no node registers them, so no one holds them."""
-    if node in SHARED_TOOL_NAMES:
+    ``/roslaunch``): no node registers them, so no one holds them. Nor a grant of a ROS 2
+    type (``type_name``), on either side: two robots' ``/listener`` both run."""
+    if node in SHARED_TOOL_NAMES or _ros2(type_name):
         return []
     hits = sorted({(m.name, g.node) for m in managers if m.name != manager for g in m.grants
                    if nodes_overlap(node, g.node) and not (is_node_pattern(node) and is_node_pattern(g.node))
-                   and g.node not in SHARED_TOOL_NAMES})
+                   and g.node not in SHARED_TOOL_NAMES and not _ros2(g.type)})
     lines = []
     for other, theirs in hits:
         if not is_node_pattern(node) and not is_node_pattern(theirs):

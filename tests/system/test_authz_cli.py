@@ -293,10 +293,13 @@ def test_a_grant_naming_nodes_another_manager_names_is_warned(tmp_path):
     # a stock tool's pattern held by two robots: the names under it are anonymous, never
     # shared; /roslaunch is in every robot's bundle, and no node may register it
     ok(authz("grant-tools", "robot1", "--topic", "/robot1/scan:sensor_msgs/LaserScan", "--roslaunch", db=db))
+    ok(authz("grant", "robot1", "subscribe", "/robot1/listener", "/chatter", "std_msgs/msg/String", db=db))
     for quiet in (("subscribe", "*", "/robot1/scan", "sensor_msgs/LaserScan"),
                   ("publish", "/robot2/driver", "/robot2/scan", "sensor_msgs/LaserScan"),
                   ("subscribe", "/rostopic_*", "/robot1/scan", "sensor_msgs/LaserScan"),
-                  ("write_param", "/roslaunch", "/robot2")):
+                  ("write_param", "/roslaunch", "/robot2"),
+                  # ROS 2 has no master: two robots' /listener nodes both run (a ROS 2 audit)
+                  ("subscribe", "/robot1/listener", "/chatter", "std_msgs/msg/String")):
         r = authz("grant", "robot2", *quiet, db=db)
         assert r.returncode == 0 and r.stderr.strip() == "", (quiet, r.stderr)
 
