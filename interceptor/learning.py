@@ -61,6 +61,7 @@ class Learner:
                             "1 while this interceptor's manager is in learning mode", registry=registry)
         self._filter = LearningLogFilter(self.state)
         self._was_learning = False
+        self._unreported = False  # a report failed (the authorization server out of reach): said once
         self.reported = 0
         self.refused = 0
 
@@ -122,8 +123,13 @@ class Learner:
                 continue
             except TokenError as exc:
                 self.state.table.unreport([row for rest in (batch, *batches) for row in rest])
-                log.info("observations not reported yet (%s): kept for the next report", exc.detail)
+                if not self._unreported:  # once per outage, not every REPORT_INTERVAL
+                    log.info("observations not reported yet (%s): kept for the next report", exc.detail)
+                self._unreported = True
                 return
+            if self._unreported:
+                log.info("observations reported again")
+                self._unreported = False
             self.reported += int(answer.get("accepted", 0))
             self.refused += int(answer.get("refused", 0))
 

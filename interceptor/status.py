@@ -49,7 +49,8 @@ def render(status: dict) -> list[str]:
     learning = status.get("learning")
     if learning:
         lines.append(f"LEARNING  {learning['left']} s left: {learning['learned']} requests no grant covers let "
-                     f"through and recorded (cryptoros-authz learn propose {status['manager']})")
+                     f"through here and recorded, each still refused by a peer that is not learning "
+                     f"(cryptoros-authz learn propose {status['manager']})")
     if token:
         lines.append(f"token     subject {token['subject']}, expires in {token['expires_in']} s, jti {token['jti']}")
         lines.append(f"grants    {len(token['grants'])}")
