@@ -363,6 +363,14 @@ class NodeSide:
         if regs is None:
             return
         regs.discard((kind, name))
+        if regs and kind != "param" and all(k == "param" for k, _ in regs):
+            # Only parameter subscriptions left: the node shut down (a live one keeps its
+            # /rosout), and rospy never withdraws them (ros_comm 1.15: a node that logged
+            # once subscribed /rosout_disable_topics_generation). Withdrawn for it, the last
+            # answer releases its exports here, and its name and relay at the master's host;
+            # kept, each such node held them for good (a script run every minute: the
+            # export limit within days).
+            self._withdraw_param_subscriptions(node, sorted(n for _, n in regs))
         if regs:
             return
         del self._node_registrations[node]
@@ -370,6 +378,26 @@ class NodeSide:
         if api_id is not None:
             self._release_node_exports(api_id, why="unregistered everything")
             self._save_state_soon()
+
+    def _withdraw_param_subscriptions(self, node: str, keys: list[str]) -> None:
+        """``unsubscribeParam`` of each of ``keys`` to the master, on behalf of ``node``
+        (through :meth:`_local_master_request`: judged and counted as the node's own)."""
+        api_id = self._node_apis.get(node)
+        if api_id is None:
+            return
+        try:
+            uri = self.translator.resolve(KIND_XMLRPC, api_id).uri
+        except PolicyDenied:
+            return
+        log.info("%s unregistered all but %d parameter subscription(s), which rospy never withdraws: withdrawn "
+                 "for it", node, len(keys))
+
+        async def withdraw() -> None:
+            for key in keys:
+                with contextlib.suppress(*PEER_FAILURES, CryptorosError):
+                    await self._local_master_request(Request(method="unsubscribeParam", params=(node, uri, key)))
+
+        self.gw.spawn(withdraw(), "param-withdraw")
 
     def _note_export_child(self, api_id: str, child: str) -> None:
         children = self._export_children.setdefault(api_id, set())

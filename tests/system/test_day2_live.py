@@ -239,7 +239,9 @@ def test_nodes_that_shut_down_cleanly_under_new_names_release_their_exports(tmp_
     """Nodes that come and go under names never used again (rostopic, rosbag record and
     scripts run anonymous nodes) unregister everything when they shut down cleanly: robot
     A's interceptor then releases their exports, so the count returns to where it was
-    (else a cron job running rostopic every minute would use up export_limit in days)."""
+    (else a cron job running rostopic every minute would use up export_limit in days).
+    A rospy node that logged keeps a parameter subscription rospy never withdraws: the
+    interceptor withdraws it for the node, and the master's host releases its relay."""
     state = tmp_path / "state"
     with robot_network(tmp_path, start=("master", "robot_a", "robot_b"),
                        extra={"robot_a": f'state_dir = "{state}"'}) as net, \
@@ -251,6 +253,7 @@ def test_nodes_that_shut_down_cleanly_under_new_names_release_their_exports(tmp_
             return len(json.loads(files[0].read_text())["translator"]["exports"]) if files else 0
 
         baseline = exports()
+        relays_released = net.hosts["master"].logs().count("released (no registration behind it)")
         for name in ("/talker_a", "/rospy_talker", "/roscpp_talker"):  # three names, each used once
             with running([SYS_PY, NODE, "pub", name, "/chatter", "3", "20", "0.2"], env=net.ros_env("robot_a")) as pub:
                 read_lines(pub, "SENT 3", 20)
@@ -260,6 +263,33 @@ def test_nodes_that_shut_down_cleanly_under_new_names_release_their_exports(tmp_
                 assert time.monotonic() < deadline, f"{name}: {exports()} exports, {baseline} before it ran"
                 time.sleep(0.1)
         assert net.hosts["robot_a"].logs().count("of a node that unregistered everything") == 3
+        # a rospy node that logs subscribes a parameter, and rospy never withdraws that
+        # subscription: the interceptor does it for the node, so that its exports here and
+        # its relay at the master's host go too (ROS 1 policy audit: two per node, for good)
+        logged = run([SYS_PY, "-c", LOGGING_NODE, "rospy_talker"], env=net.ros_env("robot_a"), timeout=30)
+        assert logged.returncode == 0 and "hello from /rospy_talker" in logged.stderr + logged.stdout, logged
+        deadline = time.monotonic() + 10
+        while exports() != baseline:
+            assert time.monotonic() < deadline, f"logging /rospy_talker: {exports()} exports, {baseline} before it ran"
+            time.sleep(0.1)
+        assert "/rospy_talker unregistered all but 1 parameter subscription(s)" in net.hosts["robot_a"].logs()
+        deadline = time.monotonic() + 10
+        while net.hosts["master"].logs().count("released (no registration behind it)") < relays_released + 4:
+            assert time.monotonic() < deadline, net.hosts["master"].logs()[-3000:]
+            time.sleep(0.1)
+
+
+#: a rospy node as people write them: it logs (rospy then subscribes a parameter) and publishes
+LOGGING_NODE = """
+import sys, rospy
+from std_msgs.msg import String
+rospy.init_node(sys.argv[1])
+pub = rospy.Publisher('/chatter', String, queue_size=10, latch=True)
+rospy.loginfo('hello from %s', rospy.get_name())
+rospy.sleep(0.5)
+pub.publish(String(data='x'))
+rospy.sleep(0.5)
+"""
 
 
 #: A subscriber node of our own node client with two subscriptions; on a line on stdin it
