@@ -352,3 +352,30 @@ def test_parameter_owners_are_those_of_the_key_what_lies_below_it_and_a_value_ab
     assert quota.owners("/") == {"robot_a", "robot_b"}
     assert quota.owners("/fleet/speed") == {"robot_b"}  # inside a value robot B set
     assert quota.owners("/nothing/here") == frozenset()
+
+
+async def test_an_outage_is_logged_once_not_at_every_report(caplog):
+    """ROS 2 audit: "observations not reported yet" was logged every 5 s through an
+    authorization server outage. Once when reports start failing, once when they work again."""
+    from cryptoros.errors import TokenError
+
+    class Down:
+        fail = 3
+
+        async def post_observations(self, batch):
+            if self.fail:
+                self.fail -= 1
+                raise TokenError("no_token", "this interceptor holds no valid access token")
+            return {"accepted": len(batch)}
+
+    learner = Learner("robot_a", serves_everyone=False, authz=Down(), registry=CollectorRegistry())
+    now = time.time()
+    learner.state.table.record(Seen(True, "publish", "/talker", "/chatter", "std_msgs/String"), now)
+    caplog.set_level(logging.INFO, logger="interceptor.learning")
+    for _ in range(4):
+        learner.state.table.record(Seen(True, "publish", "/talker", "/chatter", "std_msgs/String"), now + 3600)
+        await learner.report()
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("observations not reported yet" in m for m in said) == 1, said
+    assert sum("observations reported again" in m for m in said) == 1, said
+    assert learner.reported >= 1

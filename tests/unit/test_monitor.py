@@ -1001,3 +1001,16 @@ def test_a_file_that_is_no_bag_is_one_line_naming_it(tmp_path, content):
     with pytest.raises(ConfigError, match=f"cannot read bag {bag}: not a readable ROS 1 bag") as info:
         train([bag])
     assert "\n" not in str(info.value)
+
+
+def test_status_while_learning_says_a_peer_that_is_not_learning_still_refuses():
+    """ROS 2 audit: robot C's status said a call was let through while robot A, not
+    learning, refused it."""
+    from interceptor.status import render
+
+    lines = render({"manager": "robot_c", "roles": ["ros2"], "public": "127.0.0.4:1", "health": "ok", "token": None,
+                    "certificate": {"serial": "1", "not_after": "2030-01-01T00:00:00", "days_left": 1.0},
+                    "feed": {"age": 0.1, "revoked_tokens": 0, "disabled_managers": []}, "crl": None, "peers": {},
+                    "open_streams": 0, "learning": {"left": 563, "learned": 1}})
+    assert lines[1].startswith("LEARNING  563 s left: 1 requests no grant covers let through here and recorded, "
+                               "each still refused by a peer that is not learning"), lines

@@ -368,3 +368,13 @@ def test_a_withdrawn_offer_says_what_changed():
     out.vanished_at = 1.0
     assert withdrawal_reason(key, out, {}, set(), {}) == \
         f"no named publisher or server in the graph for {VANISHED_GRACE:g} s"
+
+
+def test_a_hint_for_a_node_it_cannot_name_says_where_the_name_comes_from():
+    """ROS 2 audit: the NODE placeholder pointed at `ros2 node list`, which the rclpy
+    wheels do not have."""
+    from interceptor.ros2 import Ros2Role
+
+    hint = Ros2Role._grant_hint("robot_b", "subscribe", None, "/status", "std_msgs/msg/Int32")
+    assert hint.startswith("cryptoros-authz grant robot_b subscribe NODE /status std_msgs/msg/Int32  # NODE: ")
+    assert "ros2 node list" not in hint and "create_node name" in hint
