@@ -33,6 +33,7 @@ import socket
 import sys
 import threading
 import time
+from typing import NoReturn
 
 try:
     from cryptoros.ros2 import framing as fr
@@ -184,8 +185,13 @@ class Bridge:
 
     # ------------------------------------------------------------ to the interceptor
     def send(self, data: bytes) -> None:
-        with self.send_lock:
-            self.sock.sendall(data)
+        """Write to the interceptor; a link that failed ends the bridge, as in :meth:`read_loop`
+        (a topics thread that raised here printed half a traceback as the interceptor stopped)."""
+        try:
+            with self.send_lock:
+                self.sock.sendall(data)
+        except OSError as exc:
+            _link_lost(exc)
 
     def error(self, detail: str, **extra) -> None:
         self.send(fr.encode_control({"op": "error", "detail": detail, **extra}))
@@ -294,8 +300,8 @@ class Bridge:
                         self.commands.put((kind, chan, payload))
                         self.guard.trigger()
         except (OSError, fr.FrameError) as exc:
-            sys.stderr.write(f"cryptoros bridge: link to the interceptor failed: {exc}\n")
-        os._exit(0)  # the interceptor is gone: so is its bridge
+            _link_lost(exc)
+        _link_lost(None)
 
     def _publish(self, chan: int, payload: bytes) -> None:
         entry = self.pubs.get(chan)
@@ -603,6 +609,15 @@ class Bridge:
             self.send(fr.encode(fr.RESULT, chan, fr.ID.pack(rid) + body))
 
         future.add_done_callback(done)
+
+
+def _link_lost(exc: Exception | None) -> NoReturn:
+    """The interceptor is gone (``exc`` None: it closed the link): so is its bridge, at
+    once, from whichever thread saw it."""
+    if exc is not None:
+        sys.stderr.write(f"cryptoros bridge: link to the interceptor failed: {exc}\n")
+        sys.stderr.flush()
+    os._exit(0)
 
 
 def main() -> None:

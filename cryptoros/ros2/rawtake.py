@@ -143,6 +143,16 @@ class RawTaker:
                 self._gc.trigger_guard_condition()
 
     def run(self, on_batch: Callable[[list[tuple[object, bytes, bytes]]], None]) -> None:
+        """Take until :meth:`stop` or the context's shutdown; what the shutdown makes a
+        wait or take raise ends the loop quietly, anything else is raised."""
+        try:
+            self._run(on_batch)
+        except Exception:
+            if self._stop or not self._context.ok():
+                return
+            raise
+
+    def _run(self, on_batch: Callable[[list[tuple[object, bytes, bytes]]], None]) -> None:
         take = SerializedTake().take
         while not self._stop and self._context.ok():
             with self._lock:
