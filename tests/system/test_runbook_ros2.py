@@ -144,7 +144,14 @@ def check_ros2_remove_grant(d: Fleet, outs):
 
 def check_ros2_remove_grant_live(d: Fleet, outs):
     d.stops(what="robot B's listener stops receiving once its grant is removed")
-    d.logged("robot_a", "cutting off stream of manager=robot_b", "grant_removed")
+    # each interceptor judges the stream again on the other's next token, which the grant
+    # removed changed on both sides (a token is narrowed to its peer's names): whichever
+    # is shown the other's first cuts it (robot B's cut first in a CI run)
+    until(lambda: d.logged_any("robot_a", ("cutting off stream of manager=robot_b", "grant_removed: robot_b may not "
+                                                                                   "subscribe /chatter"))
+          or d.logged_any("robot_b", ("cutting off stream of manager=robot_a", "grant_removed: this robot's manager "
+                                                                             "robot_b may not subscribe /chatter")),
+          10, "robot A's or robot B's interceptor logs the cut: grant_removed")
     d.logged("robot_a", "DENY ros2_topic_out from robot_b@", "not offered to it")
 
 
