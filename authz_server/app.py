@@ -67,10 +67,9 @@ from cryptoros.ratelimit import OncePer, TokenBuckets
 from cryptoros import pemfiles
 from cryptoros.pemfiles import cert_fingerprint_sha256
 from cryptoros.tls import peer_cert_der
+from cryptoros.grants import Grant, Grants
 from cryptoros.tokens import (
     FEED_STREAM_HEADER,
-    Grant,
-    Grants,
     build_claims,
     fingerprint_of_thumbprint,
     public_jwk,
@@ -808,7 +807,7 @@ class AuthzService:
         """Audience, grants and audit note of a token for the peer ``resource`` names
         (``urn:cryptoros:peer:<x5t#S256>``): only the grants on topics and services the
         peer's manager holds a grant on too, so the peer learns nothing of the others
-        (:meth:`~cryptoros.tokens.Grants.narrowed_to`)."""
+        (:meth:`~cryptoros.grants.Grants.narrowed_to`)."""
         try:
             thumbprint = thumbprint_of_audience(resource)
         except TokenError:

@@ -18,7 +18,6 @@ record and ``audit --verify`` checks its hash chain.
 
 from __future__ import annotations
 
-import asyncio
 import difflib
 import json
 import logging
@@ -812,6 +811,8 @@ def serve(ctx: click.Context, config_file: str | None, log_level: str, **flags) 
 
         runner = uvloop.run
     except ImportError:  # pragma: no cover
+        import asyncio
+
         runner = asyncio.run
     try:
         runner(run_server(cfg))

@@ -36,7 +36,7 @@ from cryptoros.errors import RegistryError
 from cryptoros.names import PARAM_TYPE, validate_caller_id, validate_graph_name, validate_namespace, validate_type
 from cryptoros.policy.infrastructure import ROS1_ROSOUT, ros1_own_type
 from cryptoros.policy.ros1 import anonymous_prefix, node_pattern
-from cryptoros.tokens import ACTIONS, Grants, in_namespace, node_matches
+from cryptoros.grants import ACTIONS, Grants, in_namespace, node_matches
 
 #: rows one report may carry
 MAX_OBSERVATION_ROWS = 64

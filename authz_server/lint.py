@@ -11,7 +11,7 @@ from __future__ import annotations
 from authz_server.registry import PARAM_ACTIONS
 from cryptoros.names import is_node_pattern
 from cryptoros.policy.ros1 import SHARED_TOOL_NAMES
-from cryptoros.tokens import nodes_overlap
+from cryptoros.grants import nodes_overlap
 
 #: overlaps named per grant at most (the rest are counted)
 OVERLAPS_SHOWN = 5

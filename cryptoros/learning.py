@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 
 Clock = Callable[[], float]
 

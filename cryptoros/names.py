@@ -6,7 +6,7 @@ A node name in a grant may also be the explicit wildcard ``*`` ("any node of thi
 manager") or a prefix pattern ending in ``*`` (``/rostopic_*``, ``/rosparam-*``,
 ``/robot1/*``): the anonymous names stock tools run under (``/rostopic_<pid>_<ms>``,
 ``/rosparam-<pid>``). Only a trailing ``*`` is a wildcard; whether a node matches a
-granted name is decided by :func:`cryptoros.tokens.node_matches` alone.
+granted name is decided by :func:`cryptoros.grants.node_matches` alone.
 """
 
 from __future__ import annotations

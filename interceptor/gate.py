@@ -23,7 +23,8 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 
 from cryptoros.errors import LocalProtocolError, PolicyDenied
-from cryptoros.tokens import AccessToken, Grants
+from cryptoros.grants import Grants
+from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 
 #: The purpose with which two interceptors only show each other their tokens.

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from cryptoros.errors import PolicyDenied
 from cryptoros.policy.ros1 import check_master_call
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 
 #: the master calls a node registers with, and the kind each makes
 REGISTER = {"registerPublisher": "pub", "registerSubscriber": "sub", "registerService": "srv"}

@@ -41,7 +41,8 @@ from cryptoros import pemfiles
 from cryptoros.errors import PKIError, PolicyDenied, TokenError
 from cryptoros.learning import LearningState
 from cryptoros.lru import remember
-from cryptoros.tokens import (AccessToken, Grants, KeySet, Revocations, VerifiedTokenCache)
+from cryptoros.grants import Grants
+from cryptoros.tokens import AccessToken, KeySet, Revocations, VerifiedTokenCache
 
 from interceptor.authz_client import AuthzClient, AuthzRefused
 

@@ -34,7 +34,7 @@ import re
 from cryptoros.errors import PolicyDenied
 from cryptoros.policy.infrastructure import ROS1_DEFAULT_PARAM_READS, ros1_allows, ros1_topic_param
 from cryptoros.names import validate_caller_id
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 
 #: Master-API methods that only read the graph.
 MASTER_READ_ONLY = frozenset(
@@ -176,7 +176,7 @@ def may_write_param(grants: Grants, caller: str, key: str) -> bool:
 
 def _may_read_below(grants: Grants, caller: str, key: str) -> bool:
     """Whether some readable key lies at or below the namespace ``key``."""
-    from cryptoros.tokens import in_namespace
+    from cryptoros.grants import in_namespace
 
     readable = set(DEFAULT_PARAM_READS) | grants.param_namespaces(caller)
     if _has_private(grants, caller):  # its private namespace (see _own_private)

@@ -25,7 +25,7 @@ from cryptoros.errors import PolicyDenied
 from cryptoros.names import validate_graph_name
 from cryptoros.policy.infrastructure import ros2_stays_local
 from cryptoros.ros2.target import QoS, StreamTarget
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 
 #: a node name the graph reports before discovery has told it the real one
 UNKNOWN_NODE_MARK = "_UNKNOWN_"

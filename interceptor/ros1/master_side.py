@@ -20,7 +20,7 @@ from cryptoros.ros1.xmlrpc import (
     Request,
     Response,
 )
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 from cryptoros.exposure import ExposureError, read_listeners
 from cryptoros.ros1.uri import UriError
 from interceptor.exposure import is_this_host, lenient_host_port, master_problem, run_hint

@@ -34,7 +34,7 @@ from cryptoros.ros1.xmlrpc import (
     make_multicall,
     split_multicall_response,
 )
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 from cryptoros.tunnel import Preamble
 from interceptor.exposure import NodeGuard, PortExposure
 from interceptor.gate import Target

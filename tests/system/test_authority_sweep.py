@@ -14,7 +14,8 @@ import time
 
 from cryptography.hazmat.primitives.asymmetric import rsa
 
-from cryptoros.tokens import Grant, Grants, KeySet, build_claims, public_jwk, sign_token
+from cryptoros.grants import Grant, Grants
+from cryptoros.tokens import KeySet, build_claims, public_jwk, sign_token
 from interceptor.authz_client import AuthzClient
 from interceptor.verifier import PeerVerifier
 from interceptor.config import AuthzSettings

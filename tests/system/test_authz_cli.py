@@ -330,7 +330,7 @@ def test_a_topic_granted_with_a_second_type_is_warned_by_grant_and_import(tmp_pa
 
 
 def test_nodes_overlap_is_one_node_name_two_grants_could_both_name():
-    from cryptoros.tokens import nodes_overlap
+    from cryptoros.grants import nodes_overlap
 
     assert nodes_overlap("/a/b", "/a/b") and not nodes_overlap("/a/b", "/a/c")
     assert nodes_overlap("/robot*", "/robot1/driver") and nodes_overlap("/robot1/driver", "/robot*")

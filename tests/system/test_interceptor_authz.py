@@ -293,7 +293,9 @@ def test_of_two_tokens_issued_in_one_second_the_one_shown_last_judges_the_peer()
     are whole seconds) and refused the granted call for 15 s."""
     from cryptography.hazmat.primitives.asymmetric import rsa
 
-    from cryptoros.tokens import PARAM_TYPE, Grant, Grants, KeySet, build_claims, public_jwk, sign_token
+    from cryptoros.grants import Grant, Grants
+    from cryptoros.names import PARAM_TYPE
+    from cryptoros.tokens import KeySet, build_claims, public_jwk, sign_token
 
     key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
     der, now = b"robot B's certificate", 1_800_000_000

@@ -16,7 +16,8 @@ import pytest
 
 from cryptoros.ros1.xmlrpc import Response
 from cryptoros.tls import cert_thumbprint_s256
-from cryptoros.tokens import Grants, build_claims, sign_token
+from cryptoros.grants import Grants
+from cryptoros.tokens import build_claims, sign_token
 from tests.interceptor_harness import (
     NODE,
     separate_hosts,

@@ -22,7 +22,8 @@ import pytest
 from cryptography.hazmat.primitives.asymmetric import rsa
 
 from cryptoros.ros2.target import StreamTarget
-from cryptoros.tokens import Grants, build_claims, sign_token
+from cryptoros.grants import Grants
+from cryptoros.tokens import build_claims, sign_token
 from tests.interceptor_harness import rogue_preamble, rogue_tls, signing_key
 from tests.ros2_support import SET_BOOL, collect, collect_through, got, ros2_network
 from tests.support import Capture, until

@@ -7,7 +7,8 @@ import pytest
 
 from cryptoros.errors import LocalProtocolError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros1 import check_local_subscriber_header
-from cryptoros.tokens import AccessToken, Grant, Grants
+from cryptoros.grants import Grant, Grants
+from cryptoros.tokens import AccessToken
 from cryptoros.tunnel import NEED_DATA, Preamble, PreambleReader, PreambleReply, encode
 from interceptor.gate import REFRESH, PendingStreams, PreambleReceived, StreamGate, Target, feed_problem
 

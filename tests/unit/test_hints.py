@@ -20,7 +20,7 @@ from cryptoros.policy.ros1 import (
     check_subscriber_header,
     node_pattern,
 )
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 from interceptor.ros1.wire import header_hint
 from tests.support import require
 

@@ -18,7 +18,7 @@ from authz_server.registry import GrantRow, ObservationRow
 from cryptoros.errors import RegistryError
 from cryptoros.learning import ANY_TYPES, LearningState, ObservationTable, Seen
 from cryptoros.policy.ros1 import check_master_call, check_service_client_header
-from cryptoros.tokens import Grant, Grants
+from cryptoros.grants import Grant, Grants
 from interceptor.authz_client import AuthzClient, AuthzUnavailable
 from interceptor.config import AuthzSettings
 from interceptor.learning import Learner

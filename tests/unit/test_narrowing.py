@@ -1,4 +1,4 @@
-"""The token a robot shows one peer (:meth:`cryptoros.tokens.Grants.narrowed_to`): its
+"""The token a robot shows one peer (:meth:`cryptoros.grants.Grants.narrowed_to`): its
 grants on names the peer holds a grant on, plus what a call or subscription of the
 endpoints ROS serves under a node's own name (loggers, dynamic_reconfigure) needs at
 either end; nothing about other names."""
@@ -6,7 +6,7 @@ either end; nothing about other names."""
 from __future__ import annotations
 
 from cryptoros.policy.ros1 import check_service_client_header, check_service_server_header
-from cryptoros.tokens import Grant, Grants
+from cryptoros.grants import Grant, Grants
 
 LOGGERS = "roscpp/GetLoggers"
 

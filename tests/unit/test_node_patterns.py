@@ -1,5 +1,5 @@
 """Node-name patterns in grants (``/rostopic_*``): validated in cryptoros/names.py,
-matched by the one function :func:`cryptoros.tokens.node_matches` that every
+matched by the one function :func:`cryptoros.grants.node_matches` that every
 :class:`Grants` method uses, so every interceptor decides a pattern the same way."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from cryptoros.errors import PolicyDenied, RegistryError, TokenError
 from cryptoros.names import validate_node_name
 from cryptoros.policy.ros1 import check_master_call, check_subscriber_header
-from cryptoros.tokens import Grant, Grants, node_matches
+from cryptoros.grants import Grant, Grants, node_matches
 
 STRING = "std_msgs/String"
 MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"

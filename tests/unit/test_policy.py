@@ -13,7 +13,7 @@ from cryptoros.policy.ros1 import (
     check_service_server_header,
     check_subscriber_header,
 )
-from cryptoros.tokens import Grant, Grants
+from cryptoros.grants import Grant, Grants
 
 STRING = "std_msgs/String"
 MD5 = "992ce8a1687cec8c8bd883ec73ca41d1"

@@ -3,7 +3,7 @@ when our grants change, and its bounds."""
 
 from __future__ import annotations
 
-from cryptoros.tokens import Grant, Grants
+from cryptoros.grants import Grant, Grants
 from interceptor.registrations import LocalRegistrations, covers
 
 STRING = "std_msgs/String"

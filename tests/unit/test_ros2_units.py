@@ -10,7 +10,7 @@ from cryptoros.errors import ConfigError, PolicyDenied, RemoteProtocolError
 from cryptoros.policy.ros2 import local_offer, manager_may, may_learn
 from cryptoros.ros2 import framing as fr
 from cryptoros.ros2.target import QoS, StreamTarget
-from cryptoros.tokens import Grants
+from cryptoros.grants import Grants
 from interceptor.config import parse
 
 

@@ -32,7 +32,7 @@ from cryptoros.policy.ros1 import (
     refusal_text,
     refused_reason,
 )
-from cryptoros.tokens import Grant, Grants, node_matches
+from cryptoros.grants import Grant, Grants, node_matches
 from interceptor.denials import DenialTable
 from tests.support import require, run
 

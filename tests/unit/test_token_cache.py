@@ -15,9 +15,8 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 
 from cryptoros.errors import TokenError
 from cryptoros.pemfiles import cert_serial
+from cryptoros.grants import Grant, Grants
 from cryptoros.tokens import (
-    Grant,
-    Grants,
     KeySet,
     Revocations,
     VerifiedTokenCache,

@@ -17,16 +17,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cryptoros.errors import TokenError
-from cryptoros.tokens import (
-    Grant,
-    Grants,
-    KeySet,
-    Revocations,
-    build_claims,
-    public_jwk,
-    sign_token,
-    verify_access_token,
-)
+from cryptoros.grants import Grant, Grants
+from cryptoros.tokens import KeySet, Revocations, build_claims, public_jwk, sign_token, verify_access_token
 
 NOW = 1_800_000_000
 ISS, AUD = "cryptoros-authz", "cryptoros"
