@@ -70,6 +70,10 @@ from interceptor.streams import READ_SIZE, InboundStream
 from interceptor.translate import KIND_XMLRPC, MASTER
 
 
+#: seconds a node left with only parameter subscriptions has to stop answering before they
+#: are taken for a live node's and kept (a rospy node that exits stops at once)
+NODE_EXIT_PATIENCE = 5.0
+
 class NodeSide:
     """The node role of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
 
@@ -389,15 +393,34 @@ class NodeSide:
             uri = self.translator.resolve(KIND_XMLRPC, api_id).uri
         except PolicyDenied:
             return
-        log.info("%s unregistered all but %d parameter subscription(s), which rospy never withdraws: withdrawn "
-                 "for it", node, len(keys))
 
         async def withdraw() -> None:
+            # It shut down only once its API stops answering (a clean rospy exit: at once);
+            # a node that answers on was only left with them (a client of its own making)
+            deadline = time.monotonic() + NODE_EXIT_PATIENCE
+            while await self._answers(uri):
+                if time.monotonic() >= deadline:
+                    log.info("%s unregistered all but %d parameter subscription(s) and its API still answers: "
+                             "kept for it", node, len(keys))
+                    return
+                await asyncio.sleep(0.1)
+            regs = self._node_registrations.get(node)
+            if not regs or any(kind != "param" for kind, _ in regs):
+                return  # it registered again meanwhile (a node restarted under the name)
+            log.info("%s unregistered all but %d parameter subscription(s), which rospy never withdraws, and "
+                     "its API no longer answers: withdrawn for it", node, len(keys))
             for key in keys:
                 with contextlib.suppress(*PEER_FAILURES, CryptorosError):
                     await self._local_master_request(Request(method="unsubscribeParam", params=(node, uri, key)))
 
         self.gw.spawn(withdraw(), "param-withdraw")
+
+    async def _answers(self, uri: str) -> bool:
+        """Whether the node API at ``uri`` (on this host) answers ``getPid``."""
+        try:
+            return ros_ok(await self._call_plain(uri, Request(method="getPid", params=("/cryptoros",))))
+        except (*PEER_FAILURES, CryptorosError):
+            return False
 
     def _note_export_child(self, api_id: str, child: str) -> None:
         children = self._export_children.setdefault(api_id, set())

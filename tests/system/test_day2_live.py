@@ -292,6 +292,45 @@ rospy.sleep(0.5)
 """
 
 
+#: A node of its own making (plain XML-RPC, as some clients are): it publishes and
+#: subscribes a parameter, then unregisters its publication and lives on, printing each
+#: parameter update the master sends it.
+PARAM_ONLY_NODE = """
+import os, sys, threading, xmlrpc.client
+from xmlrpc.server import SimpleXMLRPCServer
+server = SimpleXMLRPCServer(("127.0.0.1", 0), logRequests=False, allow_none=True)
+uri = "http://127.0.0.1:%d/" % server.server_address[1]
+server.register_function(lambda caller: [1, "", os.getpid()], "getPid")
+def param_update(caller, key, value):
+    print("UPDATE", key, value, flush=True)
+    return [1, "", 0]
+server.register_function(param_update, "paramUpdate")
+threading.Thread(target=server.serve_forever, daemon=True).start()
+master = xmlrpc.client.ServerProxy(os.environ["ROS_MASTER_URI"])
+print(master.registerPublisher("/talker_a", "/chatter", "std_msgs/String", uri)[:2], flush=True)
+print(master.subscribeParam("/talker_a", uri, "/talker_a/gain")[:2], flush=True)
+print(master.unregisterPublisher("/talker_a", "/chatter", uri)[:2], flush=True)
+print("READY", flush=True)
+sys.stdin.readline()
+"""
+
+
+def test_a_live_node_left_with_only_parameter_subscriptions_keeps_them(tmp_path):
+    """A node that unregisters all but its parameter subscriptions and keeps running
+    (its API answers) keeps them: the master's updates still reach it. Only a node whose
+    API no longer answers is taken to have exited, and they are withdrawn for it."""
+    with robot_network(tmp_path, start=("master", "robot_a")) as net, \
+            running([SYS_PY, "-c", PARAM_ONLY_NODE], env=net.ros_env("robot_a"), stdin=subprocess.PIPE) as node:
+        lines = read_lines(node, "READY", 20)
+        assert all(line.startswith("[1,") for line in lines[:3]), lines
+        until(lambda: "and its API still answers: kept for it" in net.hosts["robot_a"].logs(), 20,
+              "robot A's interceptor keeps the live node's parameter subscription")
+        setter = xmlrpc.client.ServerProxy(net.hosts["robot_a"].master_uri)
+        assert setter.setParam("/rospy_talker", "/talker_a/gain", 7)[0] == 1  # a node robot A's grants name
+        assert any("UPDATE /talker_a/gain/ 7" in line for line in read_lines(node, "UPDATE", 20))
+        assert "withdrawn for it" not in net.hosts["robot_a"].logs()
+
+
 #: A subscriber node of our own node client with two subscriptions; on a line on stdin it
 #: drops the second (one of the two registrations behind its relay at the master host).
 TWO_SUBSCRIPTIONS = """
