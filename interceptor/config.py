@@ -54,6 +54,7 @@ Example::
     max_relays_per_peer = 512         # relay listeners toward one peer interceptor
     tls_session_lifetime = 300.0      # TLS 1.3 resumption between interceptors (0: off)
     name_hold_seconds = 120.0         # master role: a released node name stays its owner's (0: off)
+    dead_node_check = 10.0            # node role: a local node that died unregistered is cleaned up (0: off)
     max_master_calls_per_second = 200.0  # master role: per peer manager, after master_call_burst = 4000
     max_param_keys_per_peer = 10000   # master role: what a peer may store through setParam (keys...
     max_param_bytes_per_peer = 16777216  # ... and bytes); deleteParam frees it
@@ -248,6 +249,10 @@ class Limits:
     #: (master role): a node restarting cannot have its name taken in between by another
     #: manager whose grant names nodes by a pattern. 0: a released name is free at once.
     name_hold_seconds: float = 120.0
+    #: Every this many seconds (node role) this host's nodes are checked: one whose API
+    #: port refuses connections died without unregistering (SIGKILL, a crash), and its
+    #: registrations are withdrawn for it, as ``rosnode cleanup`` would. 0: never.
+    dead_node_check: float = 10.0
     #: New streams are refused (and /healthz answers 503) while the revocation feed is
     #: older than this many seconds: a revoked peer could be let in.
     max_feed_age: float = 60.0
@@ -634,6 +639,9 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
     hold = limits_raw.pop("name_hold_seconds", Limits.name_hold_seconds)
     if isinstance(hold, bool) or not isinstance(hold, (int, float)) or not 0 <= hold <= 86400:
         raise ConfigError(f"[limits] name_hold_seconds must be seconds from 0 (off) to 86400, got {hold!r}")
+    check = limits_raw.pop("dead_node_check", Limits.dead_node_check)
+    if isinstance(check, bool) or not isinstance(check, (int, float)) or not (check == 0 or 1 <= check <= 3600):
+        raise ConfigError(f"[limits] dead_node_check must be seconds from 1 to 3600, or 0 (off), got {check!r}")
     rate = limits_raw.pop("max_messages_per_second", Limits.max_messages_per_second)
     if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate >= 0):
         raise ConfigError(f"[limits] max_messages_per_second must be messages a second, 0 (no limit) or more, "
@@ -650,6 +658,7 @@ def parse(raw: dict[str, Any], *, base: Path, source: Path | None = None) -> Int
         message_size=tuple(sizes),
         tls_session_lifetime=float(lifetime),
         name_hold_seconds=float(hold),
+        dead_node_check=float(check),
         tunnel_idle_timeout=float(idle),
         max_messages_per_second=float(rate) if rate else None,
         spare_connections=spare,

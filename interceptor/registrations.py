@@ -98,6 +98,10 @@ class LocalRegistrations:
         self._put(method, params, refused=True)
         return key is not None and key in self._refused
 
+    def of_node(self, node: str) -> list[Registration]:
+        """Every registration of ``node``, made or refused."""
+        return [reg for (_, owner, _), reg in self._entries.items() if owner == node]
+
     def refused_items(self) -> list[tuple[str, tuple]]:
         """The refused registrations, oldest first (kept across a restart in the state file)."""
         return [(self._entries[key].method, self._entries[key].params) for key in self._refused]

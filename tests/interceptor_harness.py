@@ -82,14 +82,14 @@ def separate_hosts() -> bool:
 @contextlib.contextmanager
 def robot_network(workdir: Path, *, policy: str = DEFAULT_POLICY, start: tuple[str, ...] = ("master", "robot_a", "robot_b"),
                   extra: dict[str, str] | None = None, roles: dict[str, list[str]] | None = None,
-                  netns: bool = False) -> Iterator[Network]:
+                  netns: bool = False, limits: dict[str, float | bool] | None = None) -> Iterator[Network]:
     """PKI, registry, authz daemon, rosmaster and the interceptors named in ``start``
     (the others can be started with ``network.start(name)``). ``netns=True`` puts each
     host in its own network namespace (:func:`separate_hosts` decides whether it can)."""
     require("rosmaster")
     with lab_network(
         workdir, policy, hosts=HOSTS, master="rosmaster", metrics=True, log_level="debug", poll_interval=0.5,
-        start=start, extra=extra, roles=roles, netns=netns,
+        start=start, extra=extra, roles=roles, netns=netns, limits=limits,
     ) as net:
         pki = TestPKIFactory(net.pki.directory, pki=net.pki)
         host, port = net.authz_url[len("https://"):].rsplit(":", 1)

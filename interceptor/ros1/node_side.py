@@ -74,6 +74,7 @@ from interceptor.translate import KIND_XMLRPC, MASTER
 #: are taken for a live node's and kept (a rospy node that exits stops at once)
 NODE_EXIT_PATIENCE = 5.0
 
+
 class NodeSide:
     """The node role of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
 
@@ -415,6 +416,49 @@ class NodeSide:
 
         self.gw.spawn(withdraw(), "param-withdraw")
 
+    async def _sweep_dead_nodes(self) -> None:
+        """Forever: withdraw the registrations of this host's nodes that died without
+        unregistering (SIGKILL, a crash), as ``rosnode cleanup`` would, so that their
+        exports here, and their relays and names at the master's host, are released.
+        Dead means its API's port refuses connections: a node that is slow to answer, or
+        whose port another process took, is left alone."""
+        while True:
+            every = self.cfg.limits.dead_node_check  # read again after a reload
+            await asyncio.sleep(every or 10.0)
+            if not every:
+                continue
+            for node, api_id in list(self._node_apis.items()):
+                if node not in self._node_registrations and not self._ledger.of_node(node):
+                    continue
+                try:
+                    uri = self.translator.resolve(KIND_XMLRPC, api_id).uri
+                    if await _refuses_connections(uri) and self._node_apis.get(node) == api_id:
+                        await self._withdraw_dead(node, uri)
+                except PolicyDenied:
+                    continue
+                except Exception:  # a sweep that stopped for good would leave every dead node's hold
+                    log.exception("checking whether %s died failed", node)
+
+    async def _withdraw_dead(self, node: str, uri: str) -> None:
+        calls = []
+        for reg in self._ledger.of_node(node):
+            if reg.refused:
+                self._ledger.released(reg.method, reg.params)
+            elif reg.method == "registerService":
+                calls.append(Request(method="unregisterService", params=(node, reg.params[1], reg.params[2])))
+            else:
+                calls.append(Request(method="un" + reg.method, params=(node, reg.params[1], reg.params[3])))
+        calls += [Request(method="unsubscribeParam", params=(node, uri, key))
+                  for kind, key in sorted(self._node_registrations.get(node, ())) if kind == "param"]
+        if not calls:
+            return
+        log.warning("%s died without unregistering (its API %s refuses connections): its %d registration(s) "
+                    "withdrawn for it, as rosnode cleanup would", node, uri, len(calls))
+        for call in calls:
+            with contextlib.suppress(*PEER_FAILURES, CryptorosError):
+                await self._local_master_request(call)
+        self._save_state_soon()
+
     async def _answers(self, uri: str) -> bool:
         """Whether the node API at ``uri`` (on this host) answers ``getPid``."""
         try:
@@ -675,3 +719,18 @@ class NodeSide:
                 uris.append(self.translator.to_local(reply.value[2]))
         return uris
 
+
+async def _refuses_connections(uri: str) -> bool:
+    """Whether the ``http://host:port/`` of a local node API refuses a TCP connection
+    (nothing listens: its process is gone)."""
+    endpoint = local_endpoint(uri)
+    if endpoint is None:
+        return False
+    try:
+        _, writer = await asyncio.wait_for(asyncio.open_connection(*endpoint), 2.0)
+    except ConnectionRefusedError:
+        return True
+    except (OSError, asyncio.TimeoutError):
+        return False
+    writer.close()
+    return False

@@ -257,6 +257,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
                 self._own_token_changed()
             if not self.translator.export_count:
                 self.gw.spawn(self._adopt_local_graph(), "adopt-graph")  # no state: ask rosmaster
+            self.gw.spawn(self._sweep_dead_nodes(), "dead-node-sweep")
         for topic in list(self._local_subscribers):  # restarted: local subscribers lost their streams
             self._resubscribe_soon(topic, delay=0.5)
         if "master" in self.cfg.roles and self.cfg.master.upstream:

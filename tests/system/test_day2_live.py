@@ -292,6 +292,33 @@ rospy.sleep(0.5)
 """
 
 
+def test_a_node_killed_without_unregistering_is_cleaned_up_as_rosnode_cleanup_would(tmp_path):
+    """A node that dies without unregistering (SIGKILL, a crash) left rosmaster listing it,
+    and its exports, relay and name held for good. Its robot's interceptor finds its API
+    port closed and withdraws its registrations for it: rosmaster lists it no more and the
+    master's host releases its relay."""
+    import os
+    import signal
+
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b")) as net, \
+            running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "120"], env=net.ros_env("robot_b")) as sub:
+        read_lines(sub, "READY", 20)
+        wait_registered(net, "/rospy_listener")
+        released = net.hosts["master"].logs().count("released (no registration behind it)")
+        os.kill(sub.pid, signal.SIGKILL)
+        sub.wait(timeout=10)
+
+        def listed() -> bool:
+            with net.inside("master"):
+                state = xmlrpc.client.ServerProxy(net.rosmaster_uri).getSystemState("/test")[2]
+            return "/rospy_listener" in {n for section in state for _name, nodes in section for n in nodes}
+
+        until(lambda: not listed(), 40, "rosmaster no longer lists the killed /rospy_listener")
+        assert "/rospy_listener died without unregistering" in net.hosts["robot_b"].logs()
+        until(lambda: net.hosts["master"].logs().count("released (no registration behind it)") > released, 20,
+              "the master's interceptor releases the killed node's relay")
+
+
 #: A node of its own making (plain XML-RPC, as some clients are): it publishes and
 #: subscribes a parameter, then unregisters its publication and lives on, printing each
 #: parameter update the master sends it.

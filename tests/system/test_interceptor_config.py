@@ -100,6 +100,8 @@ def test_relative_paths_are_relative_to_the_file(material, tmp_path):
          "unknown key 'allow_exposed_nodes' in \\[limits\\] \\(it belongs at the top level"),
         ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 600"}, "tunnel_idle_timeout must be seconds"),
         ({"max_connections_per_peer = 8": "tunnel_idle_timeout = 0"}, "tunnel_idle_timeout must be seconds"),
+        ({"max_connections_per_peer = 8": "dead_node_check = 0.5"}, "dead_node_check must be seconds"),
+        ({"max_connections_per_peer = 8": "dead_node_check = true"}, "dead_node_check must be seconds"),
         ({"max_connections_per_peer = 8": "max_messages_per_second = -5"}, "max_messages_per_second must be messages"),
         ({"max_connections_per_peer = 8": "max_messages_per_second = true"}, "max_messages_per_second must be messages"),
         ({"max_connections_per_peer = 8": 'max_messages_per_second = "off"'}, "max_messages_per_second must be messages"),
