@@ -327,7 +327,9 @@ def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence], threshold:
         runs += 1
         runs_right += attacked == bool(flags.any())
         if attacked:
-            hits = np.nonzero(flags & (seq.at >= (seq.onset or 0.0)))[0]
+            # detected once an attack message is flagged, as ours is counted (a clean pose or
+            # scan flagged after the onset is a false positive, not a detection)
+            hits = np.nonzero(flags & seq.attack)[0]
             delays[seq.name] = float(seq.at[hits[0]] - seq.onset) if len(hits) and seq.onset is not None else None
     return {**figures(tp, fp, fn, tn, right_runs=runs_right, runs=runs, delays=delays),
             "cpu_us_per_message": round(1e6 * (sum(cpu) / len(cpu)), 1) if cpu else None,

@@ -71,3 +71,29 @@ def test_without_validation_runs_it_trains_the_given_epochs_and_the_window_mode_
     assert model.epochs_run == 3 and model.best_epoch == 3 and [v for _, _, v in model.history] == [None] * 3
     out, _ = model.outputs(runs[1])
     assert (out[:29] == 0).all() and out.shape == (120,)  # no full window before the 30th message
+
+
+class _Fixed:
+    """A stand-in network output (the scoring of outputs is what is tested here)."""
+
+    train_seconds, mode, inputs, hidden, epochs_run, best_epoch = 0.0, "message", "paper", 0, 0, 0
+
+    def parameters(self) -> int:
+        return 0
+
+
+def test_a_run_counts_as_detected_only_once_an_attack_message_is_flagged():
+    """Flags on clean messages after the onset are false positives, not a detection: the
+    delay runs to the first attack message flagged (as the monitor's own are counted)."""
+    rng = np.random.default_rng(5)
+    run = _run(rng, 120, True, "spoof")
+    clean_after = (~run.attack) & (run.at >= run.onset)
+    only_clean = np.where(clean_after, 0.9, 0.1).astype(np.float32)
+    figures = evaluate_lstm(_Fixed(), [run], outputs=[(only_clean, 1e-6)])
+    assert figures["attack_streams_detected"] == "0 of 1" and figures["median_delay_s"] is None, figures
+    later = only_clean.copy()
+    third = np.nonzero(run.attack)[0][2]
+    later[third] = 0.9
+    figures = evaluate_lstm(_Fixed(), [run], outputs=[(later, 1e-6)])
+    assert figures["attack_streams_detected"] == "1 of 1"
+    assert figures["median_delay_s"] == round(float(run.at[third] - run.onset), 3), figures
