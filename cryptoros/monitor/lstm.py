@@ -154,7 +154,7 @@ class LstmBaseline:
     batch: int = 64
     hidden: int = 160
     seed: int = 1
-    mode: str = "message"  # or "window" (the paper's proof of concept)
+    mode: str = "message"  # or "window" (the paper's proof of concept), or "bag" (one label per run)
     inputs: str = "paper"  # or "paper+dt"
     patience: int = 15  # epochs without a better validation loss before stopping
     balance: bool = True  # weight the positive class by negatives / positives
@@ -164,6 +164,7 @@ class LstmBaseline:
     history: list = field(default_factory=list, repr=False)  # (epoch, train loss, validation loss)
     _net: object = field(default=None, repr=False)
     _scale: np.ndarray | None = field(default=None, repr=False)
+    _length: int | None = field(default=None, repr=False)  # ``bag`` mode: the rows of a run as trained
 
     @property
     def row(self) -> int:
@@ -194,7 +195,22 @@ class LstmBaseline:
         net = self._net if self._net is not None else self._build()
         return sum(p.numel() for p in net.parameters() if p.requires_grad)
 
+    def _bag_rows(self, sequences: Iterable[Sequence], length: int | None = None) -> np.ndarray:
+        """Whole runs, each padded with zero rows in front to ``length`` (default: the
+        longest): the network's output after a run's last message is its verdict."""
+        runs = [seq.inputs(self.inputs) for seq in sequences]
+        length = length or max((len(r) for r in runs), default=0)
+        x = np.zeros((len(runs), length, self.row), np.float32)
+        for i, rows in enumerate(runs):
+            rows = rows[-length:]
+            x[i, length - len(rows):] = rows
+        return x
+
     def _data(self, sequences: Iterable[Sequence]) -> tuple[np.ndarray, np.ndarray]:
+        if self.mode == "bag":
+            sequences = [seq for seq in sequences if len(seq.rows)]
+            return (self._bag_rows(sequences, self._length),
+                    np.asarray([float(seq.attack.any()) for seq in sequences], np.float32))
         per_message = self.mode == "message"
         # windows: half-overlapping (the paper's one label each); per message: side by side
         # (every message has its own label either way)
@@ -214,7 +230,10 @@ class LstmBaseline:
             progress=None) -> LstmBaseline:
         torch = _torch()
         torch.set_num_threads(1)
+        self._length = None
         x, y = self._data(sequences)
+        if self.mode == "bag":
+            self._length = x.shape[1]  # every run is read at this length, padded or cut in front
         if len(x) == 0 or len(set(np.unique(y).tolist())) < 2:
             raise ConfigError("the LSTM needs windows of both labels: clean and attacked runs with enough messages")
         self._scale = np.maximum(np.abs(x).reshape(-1, self.row).max(axis=0), 1e-6)  # the paper feeds raw values; scaled
@@ -268,6 +287,15 @@ class LstmBaseline:
         self.train_seconds = time.process_time() - start
         self._net = net
         return self
+
+    def run_output(self, seq: Sequence) -> float:
+        """``bag`` mode: the network's output (a probability) after the run's last message."""
+        torch = _torch()
+        if self._net is None or len(seq.rows) == 0:
+            return 0.0
+        with torch.no_grad():
+            logits = self._net(torch.from_numpy(self._bag_rows([seq], self._length) / self._scale))
+        return float(torch.sigmoid(logits)[0])
 
     def flag_messages(self, seq: Sequence, threshold: float = 0.5) -> tuple[np.ndarray, float]:
         """Per message: attacked or not (``window`` mode: the first ``window - 1``
@@ -338,6 +366,23 @@ def evaluate_lstm(model: LstmBaseline, sequences: Iterable[Sequence], threshold:
             "epochs_run": model.epochs_run, "best_epoch": model.best_epoch}
 
 
+def evaluate_runs(model: LstmBaseline, sequences: Iterable[Sequence], threshold: float = 0.5) -> dict:
+    """A ``bag``-mode network's verdicts, one per run (seed 001's experiment: one output at
+    the end of each bag): how many runs it judged right, beside a judge that calls every
+    run attacked (the share of attacked runs: what the accuracy must beat)."""
+    sequences = [seq for seq in sequences if len(seq.rows)]
+    verdicts = [(bool(seq.attack.any()), model.run_output(seq) > threshold) for seq in sequences]
+    attacked = sum(truth for truth, _ in verdicts)
+    n = len(verdicts)
+    return {"runs": n, "run_accuracy": round(sum(t == v for t, v in verdicts) / n, 4) if n else None,
+            "attacked_runs_flagged": f"{sum(t and v for t, v in verdicts)} of {attacked}",
+            "clean_runs_flagged": f"{sum(v and not t for t, v in verdicts)} of {n - attacked}",
+            "every_run_attacked_accuracy": round(attacked / n, 4) if n else None,
+            "train_cpu_s": round(model.train_seconds, 1), "mode": model.mode, "inputs": model.inputs,
+            "hidden": model.hidden, "parameters": model.parameters(), "epochs_run": model.epochs_run,
+            "best_epoch": model.best_epoch}
+
+
 def threshold_for(sequences: list[Sequence], outputs: list[tuple[np.ndarray, float]], max_fpr: float) -> float:
     """The lowest output threshold at which the network flags at most ``max_fpr`` of the
     clean messages (to compare detectors at the same false-positive rate)."""
@@ -364,5 +409,5 @@ def lstm_roc_points(model: LstmBaseline, sequences: list[Sequence],
     return points
 
 
-__all__ = ["INPUTS", "PAPER_PARAMETERS", "LstmBaseline", "Sequence", "evaluate_lstm", "lstm_roc_points", "paper_rows",
+__all__ = ["INPUTS", "PAPER_PARAMETERS", "LstmBaseline", "Sequence", "evaluate_lstm", "evaluate_runs", "lstm_roc_points", "paper_rows",
            "param_count", "threshold_for", "windows"]
