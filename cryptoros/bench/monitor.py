@@ -67,17 +67,17 @@ def _seeds(text: str, option: str) -> list[int]:
 @click.option("--val-seeds", default="", help="Seeds whose runs stop the LSTM's training (early stopping); none: "
               "the last train seed's runs when there are two or more, else the full --epochs.")
 @click.option("--epochs", default=250, show_default=True, type=click.IntRange(1, 10000),
-              help="LSTM epochs at most (paper: 250).")
+              help="LSTM epochs at most (the paper's public code: 250).")
 @click.option("--patience", default=15, show_default=True, type=click.IntRange(1, 1000),
               help="Epochs without a better validation loss before the LSTM stops.")
 @click.option("--window", default=200, show_default=True, type=click.IntRange(10, 2000),
-              help="LSTM sequence length in messages for training (paper: 2,000 rows of a 20 s bag).")
+              help="LSTM sequence length in messages for training (the paper fed whole 20 s bags: --ablation runs that too).")
 @click.option("--hidden", default=160, show_default=True, type=click.IntRange(1, 4096),
               help="LSTM cells (the paper's text: 160; its parameter count fits 150).")
 @click.option("--mode", type=click.Choice(["message", "window"]), default="message", show_default=True,
               help="message: one output per message, each message's own label; window: the paper's one label per sequence.")
 @click.option("--inputs", type=click.Choice(["paper", "paper+dt"]), default="paper", show_default=True,
-              help="The paper's 367-float row, or with the time since the previous message.")
+              help="The 367-float row of the paper's public code, or with the time since the previous message.")
 @click.option("--ablation", is_flag=True, help="Also train and score the LSTM's variants (where it loses).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the figures as JSON.")
@@ -198,7 +198,7 @@ def _ablation(train_seqs: list, val_seqs: list, sequences: list, window: int, ep
 
     half = [s for i, s in enumerate(train_seqs) if i % 2 == 0]
     plans = [
-        ("paper's proof of concept: window labels, no weights, 250 epochs",
+        ("window labels (one per 200-message window), no weights, 250 epochs",
          dict(mode="window", balance=False, epochs=epochs), train_seqs, []),
         ("window labels, class weights, early stopping", dict(mode="window"), train_seqs, val_seqs),
         ("each message's label, no weights, no early stopping", dict(balance=False, epochs=min(epochs, 60)),

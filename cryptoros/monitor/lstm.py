@@ -11,9 +11,14 @@ cells on 367 inputs (the code's LSTM(150)); 160 cells make 338,081. :func:`param
 gives both; the network here counts as Keras does (PyTorch's second LSTM bias is held
 at zero and not trained, so the trainable count is Keras's).
 
-Two ways to train and score, ``mode``:
+Three ways to train and score, ``mode``:
 
-* ``"window"``: the paper's proof of concept. A sequence is a window of ``window`` rows
+* ``"bag"``: the paper's own experiment (its proof of concept): "data was fed one entire
+  bag at a time ... a single classification out at the end". A run is one sequence,
+  labelled 1 when it holds an attack message; the output after its last row is the
+  verdict, scored per run (:func:`evaluate_runs`). Runs are read at the length of the
+  longest trained on (zero rows in front, or the first rows cut).
+* ``"window"``: its one label per sequence on shorter sequences. A sequence is a window of ``window`` rows
   (the demo's runs hold a few hundred messages of the robot, not 2,000), labelled 1 when
   it holds an attack message; a message is flagged when the window ending with it is.
   Every clean message of an attacked window is then flagged too.
@@ -23,7 +28,7 @@ Two ways to train and score, ``mode``:
   windows of ``window`` rows side by side, and run over a recording the same way (each
   message's output sees the rows before it in its window).
 
-Both: the positive class weighted by negatives over positives (``pos_weight``), Adam,
+All: the positive class weighted by negatives over positives (``pos_weight``), Adam,
 mini-batches of 64, and, when validation sequences are given, early stopping on the
 validation loss (``patience`` epochs without improvement; the best epoch's weights are
 kept). ``inputs="paper+dt"`` adds two columns to the paper's row: the log of the time
