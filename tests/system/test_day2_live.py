@@ -300,7 +300,7 @@ def test_a_node_killed_without_unregistering_is_cleaned_up_as_rosnode_cleanup_wo
     import os
     import signal
 
-    with robot_network(tmp_path, start=("master", "robot_a", "robot_b")) as net, \
+    with robot_network(tmp_path, start=("master", "robot_a", "robot_b"), limits={"dead_node_check": 1}) as net, \
             running([SYS_PY, NODE, "sub", "/rospy_listener", "/chatter", "120"], env=net.ros_env("robot_b")) as sub:
         read_lines(sub, "READY", 20)
         wait_registered(net, "/rospy_listener")
@@ -313,7 +313,7 @@ def test_a_node_killed_without_unregistering_is_cleaned_up_as_rosnode_cleanup_wo
                 state = xmlrpc.client.ServerProxy(net.rosmaster_uri).getSystemState("/test")[2]
             return "/rospy_listener" in {n for section in state for _name, nodes in section for n in nodes}
 
-        until(lambda: not listed(), 40, "rosmaster no longer lists the killed /rospy_listener")
+        until(lambda: not listed(), 20, "rosmaster no longer lists the killed /rospy_listener")
         assert "/rospy_listener died without unregistering" in net.hosts["robot_b"].logs()
         until(lambda: net.hosts["master"].logs().count("released (no registration behind it)") > released, 20,
               "the master's interceptor releases the killed node's relay")

@@ -110,14 +110,14 @@ def test_the_bag_mode_gives_one_verdict_per_run_beside_calling_every_run_attacke
         seq.rows[seq.attack, 0] = rng.uniform(10, 20, seq.attack.sum())
         return seq
 
-    train = [run(90 + 7 * i, i % 2 == 1, f"t{i}") for i in range(12)]
-    test = [run(95 + 20 * i, i % 2 == 1, f"e{i}") for i in range(4)]  # the last two longer than any trained
-    model = LstmBaseline(mode="bag", epochs=200, hidden=16, batch=4, seed=2).fit(train)  # all 200 epochs
+    train = [run(40 + 4 * i, i % 2 == 1, f"t{i}") for i in range(8)]
+    test = [run(45 + 15 * i, i % 2 == 1, f"e{i}") for i in range(4)]  # the last two longer than any trained
+    model = LstmBaseline(mode="bag", epochs=150, hidden=16, batch=2, seed=2).fit(train)  # all 150 epochs
     # the runs it learnt, each judged by its one output (labels, padding and the readout
     # line up: a network that fits them judges every one right)
     fitted = evaluate_runs(model, train)
-    assert fitted["run_accuracy"] == 1.0 and fitted["attacked_runs_flagged"] == "6 of 6", fitted
-    assert fitted["clean_runs_flagged"] == "0 of 6" and fitted["every_run_attacked_accuracy"] == 0.5
+    assert fitted["run_accuracy"] == 1.0 and fitted["attacked_runs_flagged"] == "4 of 4", fitted
+    assert fitted["clean_runs_flagged"] == "0 of 4" and fitted["every_run_attacked_accuracy"] == 0.5
     figures = evaluate_runs(model, test)  # unseen runs, two longer than any it learnt: read at its length
     assert figures["runs"] == 4 and figures["every_run_attacked_accuracy"] == 0.5 and figures["mode"] == "bag"
     assert figures["attacked_runs_flagged"] == "2 of 2", figures
