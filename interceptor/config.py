@@ -250,7 +250,7 @@ class Limits:
     #: manager whose grant names nodes by a pattern. 0: a released name is free at once.
     name_hold_seconds: float = 120.0
     #: Every this many seconds (node role) this host's nodes are checked: one whose API
-    #: port refuses connections died without unregistering (SIGKILL, a crash), and its
+    #: port nothing listens on died without unregistering (SIGKILL, a crash), and its
     #: registrations are withdrawn for it, as ``rosnode cleanup`` would. 0: never.
     dead_node_check: float = 10.0
     #: New streams are refused (and /healthz answers 503) while the revocation feed is

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
+from cryptoros.exposure import ExposureError, read_listeners
 from cryptoros.policy.ros1 import (
     check_master_call,
     check_node_call,
@@ -420,24 +421,36 @@ class NodeSide:
         """Forever: withdraw the registrations of this host's nodes that died without
         unregistering (SIGKILL, a crash), as ``rosnode cleanup`` would, so that their
         exports here, and their relays and names at the master's host, are released.
-        Dead means its API's port refuses connections: a node that is slow to answer, or
-        whose port another process took, is left alone."""
+        Dead means nothing listens on its API's port any more (this host's listening
+        sockets, read once a round: no node is connected to); a node that is slow to
+        answer, or whose port another process took, is left alone."""
         while True:
             every = self.cfg.limits.dead_node_check  # read again after a reload
             await asyncio.sleep(every or 10.0)
             if not every:
                 continue
-            for node, api_id in list(self._node_apis.items()):
-                if node not in self._node_registrations and not self._ledger.of_node(node):
-                    continue
+            # the nodes first: each one's API listened before it registered, so before this read
+            nodes = [(node, api_id) for node, api_id in self._node_apis.items()
+                     if node in self._node_registrations or self._ledger.of_node(node)]
+            if not nodes:
+                continue
+            try:
+                listening = {one.port for one in read_listeners()}
+            except ExposureError as exc:
+                log.debug("this host's listening sockets cannot be read (%s): no dead-node check this round", exc)
+                continue
+            for node, api_id in nodes:
                 try:
                     uri = self.translator.resolve(KIND_XMLRPC, api_id).uri
-                    if await _refuses_connections(uri) and self._node_apis.get(node) == api_id:
-                        await self._withdraw_dead(node, uri)
                 except PolicyDenied:
                     continue
+                endpoint = local_endpoint(uri)
+                if endpoint is None or endpoint[1] in listening or self._node_apis.get(node) != api_id:
+                    continue
+                try:
+                    await self._withdraw_dead(node, uri)
                 except Exception:  # a sweep that stopped for good would leave every dead node's hold
-                    log.exception("checking whether %s died failed", node)
+                    log.exception("withdrawing the registrations of %s, which died, failed", node)
 
     async def _withdraw_dead(self, node: str, uri: str) -> None:
         calls = []
@@ -452,7 +465,7 @@ class NodeSide:
                   for kind, key in sorted(self._node_registrations.get(node, ())) if kind == "param"]
         if not calls:
             return
-        log.warning("%s died without unregistering (its API %s refuses connections): its %d registration(s) "
+        log.warning("%s died without unregistering (nothing listens on its API %s): its %d registration(s) "
                     "withdrawn for it, as rosnode cleanup would", node, uri, len(calls))
         for call in calls:
             with contextlib.suppress(*PEER_FAILURES, CryptorosError):
@@ -718,19 +731,3 @@ class NodeSide:
             if ros_ok(reply) and isinstance(reply.value[2], str):
                 uris.append(self.translator.to_local(reply.value[2]))
         return uris
-
-
-async def _refuses_connections(uri: str) -> bool:
-    """Whether the ``http://host:port/`` of a local node API refuses a TCP connection
-    (nothing listens: its process is gone)."""
-    endpoint = local_endpoint(uri)
-    if endpoint is None:
-        return False
-    try:
-        _, writer = await asyncio.wait_for(asyncio.open_connection(*endpoint), 2.0)
-    except ConnectionRefusedError:
-        return True
-    except (OSError, asyncio.TimeoutError):
-        return False
-    writer.close()
-    return False
