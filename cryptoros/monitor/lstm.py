@@ -18,9 +18,9 @@ Three ways to train and score, ``mode``:
   labelled 1 when it holds an attack message; the output after its last row is the
   verdict, scored per run (:func:`evaluate_runs`). Runs are read at the length of the
   longest trained on (zero rows in front, or the first rows cut).
-* ``"window"``: its one label per sequence on shorter sequences. A sequence is a window of ``window`` rows
-  (the demo's runs hold a few hundred messages of the robot, not 2,000), labelled 1 when
-  it holds an attack message; a message is flagged when the window ending with it is.
+* ``"window"``: its one label per sequence, on shorter sequences: a window of ``window``
+  rows (the demo's runs hold a few hundred messages of the robot, not 2,000), labelled 1
+  when it holds an attack message; a message is flagged when the window ending with it is.
   Every clean message of an attacked window is then flagged too.
 * ``"message"``: what the paper names as the better approach ("a classification for
   each message individually ... a single flag to be set": Keras's
@@ -159,7 +159,7 @@ class LstmBaseline:
     batch: int = 64
     hidden: int = 160
     seed: int = 1
-    mode: str = "message"  # or "window" (the paper's proof of concept), or "bag" (one label per run)
+    mode: str = "message"  # or "window" (a label per window), or "bag" (the paper's: a label per run)
     inputs: str = "paper"  # or "paper+dt"
     patience: int = 15  # epochs without a better validation loss before stopping
     balance: bool = True  # weight the positive class by negatives / positives
