@@ -13,6 +13,8 @@ import json
 import os
 import ssl
 import subprocess
+import sys
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -30,6 +32,42 @@ def authz(*args: str, db: str, timeout: float = 60, input: str | None = None) ->
     """Run the admin CLI as a subprocess against ``db``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("CRYPTOROS_AUTHZ")}
     return run([script("cryptoros-authz"), "--db", db, *args], timeout=timeout, env=env, input=input)
+
+
+#: verbs that :func:`authz_here` runs as a subprocess all the same: the daemon, and the
+#: policy verbs that read a live graph over the network (an event loop of their own)
+SUBPROCESS_VERBS = frozenset({"serve", "policy"})
+_HERE = threading.Lock()
+
+
+def authz_here(*args: str, db: str, input: str | None = None) -> subprocess.CompletedProcess:
+    """The admin CLI's verb run in this process (click's runner), as the operator types it
+    (``sys.argv`` as its command line: the registry records it), against the real
+    ``db``: for the grants a test makes on a running network. The CLI as a program (its
+    exit status, its one-line errors, no traceback) is tested by test_authz_cli.py and its
+    neighbours, with :func:`authz`; here a process start (0.6 s of CPU, about 500 calls
+    a run) is saved. An exception that escapes the CLI is a returncode of 1 with its
+    traceback on stderr, as Python prints it."""
+    if not args or args[0] in SUBPROCESS_VERBS:
+        return authz(*args, db=db, input=input)
+    import traceback
+
+    from click.testing import CliRunner
+
+    from authz_server.cli import main
+
+    argv = ["cryptoros-authz", "--db", db, *args]
+    env = {k: None for k in os.environ if k.startswith("CRYPTOROS_AUTHZ")}
+    with _HERE:
+        saved, sys.argv = sys.argv, argv
+        try:
+            result = CliRunner().invoke(main, argv[1:], input=input, env=env, prog_name="cryptoros-authz")
+        finally:
+            sys.argv = saved
+    stderr = result.stderr
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        stderr += "".join(traceback.format_exception(result.exception))
+    return subprocess.CompletedProcess(argv, result.exit_code, result.stdout, stderr)
 
 
 def ok(result: subprocess.CompletedProcess) -> str:
@@ -151,7 +189,7 @@ class AuthzDaemon:
         return self.pki.pki.cert_path_for(name), self.pki.pki.key_path_for(name)
 
     def cli(self, *args: str) -> subprocess.CompletedProcess:
-        return authz(*args, db=self.db)
+        return authz_here(*args, db=self.db)
 
 
 @contextlib.contextmanager

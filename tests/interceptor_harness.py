@@ -22,7 +22,7 @@ from pathlib import Path
 from cryptoros.lab.network import Network as BenchNetwork
 from cryptoros.lab.network import lab_network
 from cryptoros.lab.policy import policy_yaml
-from tests.authz_support import AuthzDaemon, authz
+from tests.authz_support import AuthzDaemon, authz_here
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import missing, require
 
@@ -64,7 +64,7 @@ class Network:
         return getattr(self.net, name)
 
     def cli(self, *args: str):
-        return authz(*args, db=self.daemon.db)
+        return authz_here(*args, db=self.daemon.db)
 
 
 def separate_hosts() -> bool:

