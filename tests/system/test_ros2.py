@@ -531,7 +531,8 @@ def _b_may_call(network, names: list[str]) -> bool:
     """Whether robot B's own token (its /status) grants calls to every one of ``names``."""
     with urllib.request.urlopen(f"http://127.0.0.1:{network.robots['robot_b'].metrics_port}/status",
                                 timeout=5) as reply:
-        return set(names) <= {g[2] for g in json.load(reply)["token"]["grants"] if g[1] == "call"}
+        token = json.load(reply)["token"]  # None while robot B fetches its next one (a grant changed)
+    return token is not None and set(names) <= {g[2] for g in token["grants"] if g[1] == "call"}
 
 
 @contextlib.contextmanager
