@@ -482,6 +482,10 @@ class TokenKeeper:
         #: while the token held still verifies (an expired server certificate, replicas down)
         self.failing: tuple[float, str] | None = None
         self._failures = RetryLog()
+        #: when (our clock) :meth:`invalidate` dropped the token held, until the next
+        #: refresh attempt ends (None: no successor awaited)
+        self._dropped_at: float | None = None
+        self._taken_at = float("-inf")  # when (our clock) the token held was taken
 
     def current(self) -> str:
         token = self._token
@@ -511,6 +515,22 @@ class TokenKeeper:
         self._refusal = refusal
         log.error("access token refused, none held: %s (fix the certificate's manager in the registry, or "
                   "manager in this interceptor's configuration)", refusal.detail)
+
+    def replacing(self, within: float) -> bool:
+        """Whether the token held was dropped (revoked by the feed: a grant of ours
+        changed) less than ``within`` seconds ago and its successor's first request is
+        still under way. What was decided on the old token may stand that long instead
+        of being torn down and set up again a moment later: a ROS 2 robot withdrew every
+        offer and closed every inbound stream in the 40-100 ms of each refresh that one
+        of its periodic checks fell into (a CI run). A refusal or a failed attempt ends
+        it at once."""
+        dropped = self._dropped_at
+        return dropped is not None and self._clock() - dropped < within
+
+    def taken_within(self, seconds: float) -> bool:
+        """Whether the token held was taken (refreshed or installed) less than ``seconds``
+        ago: a peer's token narrowed to the grants we held before may predate it."""
+        return self._clock() - self._taken_at < seconds
 
     @property
     def expires_at(self) -> float | None:
@@ -575,7 +595,7 @@ class TokenKeeper:
                 self._clock() < held.expires_at - max(self.MIN_REMAINING, self.refresh_margin / 2) and \
                 not await self.key_known(token.token):
             raise TokenError("unknown_kid", "the new token's signing key is not published yet: keeping the one held")
-        self._token, self._refusal = token, None
+        self._token, self._refusal, self._taken_at = token, None, self._clock()
         # Grants may have changed: the peers' tokens are fetched anew (kept if that fails).
         for thumbprint in list(self._peer_tokens):
             try:
@@ -592,7 +612,7 @@ class TokenKeeper:
         the peers' tokens, bound to the old one, are fetched anew on next use. A token
         for another manager raises TokenError (:meth:`check`) and changes nothing."""
         self.check(token)
-        self._token, self._refusal = token, None
+        self._token, self._refusal, self._taken_at = token, None, self._clock()
         self._peer_tokens.clear()
         self.refreshed.set()
         log.info("access token installed, valid for %.0f s", token.expires_at - self._clock())
@@ -627,6 +647,7 @@ class TokenKeeper:
         """Our token was revoked (or our manager disabled): drop it and ask again now."""
         self._token = None
         self._peer_tokens.clear()
+        self._dropped_at = self._clock()
         self._wake.set()
 
     async def run(self) -> None:
@@ -653,6 +674,7 @@ class TokenKeeper:
                                 max(0, remaining), f"; {note}" if note else "")
                 delay = backoff
                 backoff = min(backoff * 2, 8.0)
+            self._dropped_at = None  # succeeded or failed: no successor is on its way any more
             self._attempted.set()
             self._attempted = asyncio.Event()
             try:

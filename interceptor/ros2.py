@@ -57,6 +57,7 @@ from interceptor.config import Endpoint
 from interceptor.exposure import PortExposure
 from interceptor.verifier import StreamWatch
 from interceptor.gate import FEED_REASONS, Target
+from interceptor.authz_client import PEER_TOKEN_WAIT
 from interceptor.gateway import Gateway, Role
 from interceptor.ros2_bridge import BridgeLink, DdsBridge
 from interceptor.ros2_partial import PartialFrames
@@ -79,6 +80,14 @@ VANISHED_GRACE = 6.0
 #: + the peer's own token refresh + one stream opening (tested: under 10 s)
 PEER_RECHECK = 5.0
 RECHECK_MARGIN = 1.0
+#: a peer whose token does not let it receive a stream, seen within PEER_SETTLE seconds of
+#: our own token's change, is asked again every SETTLE_POLL seconds meanwhile, and not
+#: denied: its token is narrowed to the grants ours held, and its successor (fetched when
+#: the peer's feed tells it of the change) may still be on its way. A grant of ours given
+#: back blamed the peer ("robot_b may not subscribe") and waited out PEER_RECHECK (a CI
+#: run: the flow back after 5.2 s).
+PEER_SETTLE = 3.0
+SETTLE_POLL = 0.3
 #: denials remembered (to log each once) before the memory starts over
 MAX_NOTED = 10_000
 #: Flow control of outbound topics: while a peer stream's send buffer is above
@@ -490,6 +499,8 @@ class Ros2Role(Role):
     def _reconcile(self) -> None:
         if self._stopping or self.bridge.link is None or not self.bridge.ready:
             return
+        if self.gw.keeper.replacing(PEER_TOKEN_WAIT):  # decided again on its successor, due in a moment
+            return
         link_down = self.bridge.link.transport is None or self.bridge.link.transport.is_closing()
         exposed = self._check_loopback() is not None
         want = {} if link_down or exposed else self._desired()
@@ -545,10 +556,11 @@ class Ros2Role(Role):
         if self._inbound:
             try:
                 self.gw.own_access_in_grace()
-                stop_inbound = exposed
-            except TokenError:  # our own token is gone (past its grace): nothing comes in either
-                stop_inbound = True
-            if stop_inbound:
+                why = "this host's loopback answers other hosts" if exposed else None
+            except TokenError as exc:  # our own token is gone (past its grace): nothing comes in either
+                why = f"this robot holds no access token now ({exc.detail})"
+            if why is not None:
+                log.warning("closing %d inbound stream(s): %s", len(self._inbound), why)
                 for writer in list(self._inbound):
                     writer.transport.abort()
 
@@ -617,6 +629,10 @@ class Ros2Role(Role):
                     # removed takes the peer's out of it too; the offer's withdrawal says so
                     if self._own_grant_gone(out) is not None:
                         await asyncio.sleep(RECONCILE_INTERVAL)
+                        continue
+                    if self.gw.keeper.taken_within(PEER_SETTLE):
+                        await asyncio.sleep(SETTLE_POLL)
+                        recheck = time.monotonic() + RECHECK_MARGIN  # a token learnt from now on
                         continue
                     key = ("not_offered", endpoint, target.name)
                     if key not in self._noted:

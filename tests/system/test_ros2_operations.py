@@ -98,6 +98,36 @@ def test_a_re_added_grant_reaches_its_flow_within_10_s_every_time(network):
         network.cli("grant", "robot_a", "publish", "/talker", "/chatter", "std_msgs/msg/String")
 
 
+def test_grant_changes_that_leave_a_flows_grants_alone_leave_the_flow_alone(network):
+    """Each grant change revokes the tokens of the managers it touches, and each robot
+    fetches its next one at once: a CI run's robot B closed its inbound streams (and
+    withdrew its offers) when its once-a-second check fell into those 40-100 ms. 24
+    grant changes on other names for both robots: robot B's listener misses nothing
+    and neither robot cuts, withdraws or denies anything."""
+    from tests.ros2_support import got
+
+    with network.node("robot_b", "listener.py", "string", "/chatter", "300") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "1000000", "50"):
+            collect(sub, 10, 40)
+            seen = {name: len(network.robots[name].logs()) for name in ("robot_a", "robot_b")}
+            lines = []
+            for n in range(6):
+                for verb in ("grant", "revoke"):
+                    extra = ("std_msgs/msg/String",) if verb == "grant" else ()
+                    for robot, action, node in (("robot_b", "subscribe", "*"), ("robot_a", "publish", "/talker")):
+                        network.cli(verb, robot, action, node, f"/other{n}", *extra)
+                        lines += sub.until(None, 0.3)  # as an operator's commands come: apart
+            lines += collect(sub, 25, 20)  # half a second past the last change
+    for name in ("robot_a", "robot_b"):
+        log = network.robots[name].logs()[seen[name]:]
+        said = [line for line in log.splitlines() if any(
+            what in line for what in ("no longer offering", "inbound stream", "cutting off", "DENY"))]
+        assert not said, f"{name}: {said}"
+    seqs = got(lines)
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"messages missed or reordered: {seqs}"
+
+
 def _health(network, name: str) -> str:
     """``status`` of the robot's /healthz: ok, or why not (503: feed_stale, ...)."""
     url = f"http://127.0.0.1:{network.robots[name].metrics_port}/healthz"

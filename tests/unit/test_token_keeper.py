@@ -228,3 +228,66 @@ async def test_a_peer_asking_while_no_token_can_be_had_is_refused_after_a_bounde
     with pytest.raises(TokenError) as info:
         await asyncio.wait_for(keeper.for_peer("x" * 43), 5)
     assert info.value.reason == "no_token"
+
+
+class Gated(Authz):
+    """``fetch_token`` that waits for ``go`` from the second fetch on (a refresh under
+    way for as long as the test holds it), or fails once ``down``."""
+
+    def __init__(self, *subjects: str) -> None:
+        super().__init__(*subjects)
+        self.go = asyncio.Event()
+        self.down = False
+
+    async def fetch_token(self, *, clock=time.time, resource=None):
+        if self.fetches >= 1:
+            await self.go.wait()
+            if self.down:
+                self.fetches += 1
+                raise TokenError("authz_unreachable", "down")
+        return await super().fetch_token(clock=clock, resource=resource)
+
+
+async def _until(condition, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "not within the bound"
+        await asyncio.sleep(0.01)
+
+
+@pytest.mark.parametrize("outcome", ["taken", "failed"])
+async def test_a_dropped_token_is_being_replaced_until_its_successors_request_ends_or_the_bound(outcome):
+    """What a ROS 2 robot decided on its token stands while the feed's revocation (a grant
+    changed) is answered by the next one: a CI run withdrew every offer and closed every
+    inbound stream of a robot in the 40-100 ms of such a refresh. Nothing stands past
+    the bound, nor once the attempt failed (no token then: fail closed)."""
+    now = [1000.0]
+    authz = Gated("robot_a")
+    keeper = TokenKeeper(authz, refresh_margin=60, manager="robot_a", clock=lambda: now[0])
+    assert not keeper.replacing(2.0)
+    runner = asyncio.create_task(keeper.run())
+    try:
+        await asyncio.wait_for(keeper.refreshed.wait(), 5)
+        assert keeper.taken_within(0.5) and not keeper.replacing(2.0)
+        now[0] += 10
+        assert not keeper.taken_within(3.0)
+        keeper.invalidate()  # what the gateway does when the feed revokes our token
+        with pytest.raises(TokenError):
+            keeper.current()
+        assert keeper.replacing(2.0)
+        now[0] += 1.5
+        assert keeper.replacing(2.0) and not keeper.replacing(1.0)
+        now[0] += 1.0
+        assert not keeper.replacing(2.0)  # past the bound, whatever the request does
+        now[0] -= 1.0
+        authz.down = outcome == "failed"
+        authz.go.set()
+        await _until(lambda: not keeper.replacing(2.0))
+        if outcome == "taken":
+            assert keeper.current() and keeper.taken_within(0.5)
+        else:
+            with pytest.raises(TokenError):
+                keeper.current()
+            assert not keeper.taken_within(3.0)
+    finally:
+        runner.cancel()
