@@ -802,6 +802,7 @@ class Ros2Role(Role):
     async def _serve_ros2_stream(self, stream: InboundStream) -> None:
         reader, writer, peer = stream.reader, stream.writer, stream.peer
         target: StreamTarget = stream.resolved  # decoded and judged by the gate (_check_ros2_target)
+        await self.gw.keeper.ensure(PEER_TOKEN_WAIT)  # our token revoked by a grant change: its successor
         own = self.gw.own_access()
         if not manager_may(own.grants, target.peer_action, target.name, target.type):
             raise PolicyDenied(

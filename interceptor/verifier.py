@@ -154,6 +154,8 @@ class PeerVerifier:
         self.stale_listeners: list[Callable[[AccessToken], None]] = []
         #: Called with the reason label of every stream cut (``token_expired``, ``revoked``...).
         self.cut_listeners: list[Callable[[str], None]] = []
+        #: called with each fresher token a peer shows (after its streams are judged again on it)
+        self.fresh_listeners: list[Callable[[AccessToken], None]] = []
         #: When this interceptor's own token expires (None: it holds none): once that is
         #: ``grace`` ago, every open stream is cut, whatever the peers' tokens say.
         self.own_expiry: Callable[[], float | None] = lambda: None
@@ -256,6 +258,8 @@ class PeerVerifier:
             return current
         self._freshest[key] = access
         self._rejudge(key, access)
+        for listener in self.fresh_listeners:
+            listener(access)
         return access
 
     def freshest(self, access: AccessToken) -> AccessToken:

@@ -12,6 +12,7 @@ from collections.abc import Callable
 
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.exposure import ExposureError, read_listeners
+from cryptoros.lru import remember
 from cryptoros.policy.ros1 import (
     check_master_call,
     check_node_call,
@@ -37,6 +38,7 @@ from cryptoros.ros1.xmlrpc import (
     assemble_multicall,
     expand_multicall,
 )
+from cryptoros.tokens import AccessToken
 from interceptor.exposure import is_this_host
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
@@ -74,6 +76,17 @@ from interceptor.translate import KIND_XMLRPC, MASTER
 #: seconds a node left with only parameter subscriptions has to stop answering before they
 #: are taken for a live node's and kept (a rospy node that exits stops at once)
 NODE_EXIT_PATIENCE = 5.0
+#: rospy, refused a topic stream, asks the publisher ``getPublications`` a second later
+#: and, if the topic is not listed then, drops that publisher for good while the master
+#: lists its URI (it never takes a URI it holds out of its list, and ignores one it
+#: holds). A publisher's next token (a grant back) tells the topic's local subscribers
+#: the publishers again, at least this long after the refusal: a grant given back within
+#: a second of its removal left a listener deaf (a day-2 test, every run).
+REFUSED_RECHECK = 1.5
+#: a refusal older than this is not acted on when the publisher's next token comes
+REFUSED_MEMORY = 60.0
+#: managers, and topics per manager, whose refused streams are remembered
+MAX_REFUSED = 256
 
 
 class NodeSide:
@@ -159,6 +172,7 @@ class NodeSide:
                 await pass_refusal(writer, reply_fields["error"])
                 local_writer.close()
                 return
+            await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)  # our token revoked by a grant change: its successor
             own = self.gw.own_access()
             if purpose == "topic":
                 check_publisher_header(reply_fields, grants=own.grants, topic=fields["topic"])
@@ -671,6 +685,30 @@ class NodeSide:
                 del self._local_subscribers[topic]
         if subscribers.get(node) != before:  # a repeat changes nothing, and writes nothing
             self._save_state_soon()
+
+    def _note_refused_stream(self, manager: str, topic: str) -> None:
+        """A topic stream from ``manager``'s side to a local subscriber was refused."""
+        refused = self._refused_streams.get(manager)
+        if refused is None:
+            refused = {}
+            remember(self._refused_streams, manager, refused, MAX_REFUSED)
+        remember(refused, topic, time.monotonic(), MAX_REFUSED)
+
+    def _peer_token_fresher(self, access: AccessToken) -> None:
+        """A peer showed a fresher token (its grants may have changed): the topics whose
+        streams its side refused lately are told their publishers again, once rospy's
+        own check after each refusal is over (:data:`REFUSED_RECHECK`)."""
+        refused = self._refused_streams.pop(access.subject, None)
+        if not refused:
+            return
+        now = time.monotonic()
+        for topic, at in refused.items():
+            if now - at < REFUSED_MEMORY:
+                self.gw.spawn(self._resubscribe_after(topic, at + REFUSED_RECHECK - now))
+
+    async def _resubscribe_after(self, topic: str, delay: float) -> None:
+        await asyncio.sleep(max(0.0, delay))
+        self._resubscribe_soon(topic, delay=0.0)
 
     def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
         """A topic stream into this host ended: tell the topic's local subscribers the

@@ -30,6 +30,7 @@ from interceptor.pump import FrameCounter
 from interceptor.ros1.notices import NOTICES
 from interceptor.ros1.wire import (
     CALL_TIMEOUT,
+    LOCAL_TOKEN_WAIT,
     OPAQUE,
     UNANSWERED,
     header_hint,
@@ -173,11 +174,13 @@ class Relays:
         tunnel_writer = None
         tunnel: Tunnel | None = None
         watch: StreamWatch | None = None  # until the peer's stream is watched
+        fields: dict[str, str] = {}
         try:
             header, rest = await read_tcpros_header(
                 reader, limits.handshake_timeout, limits.max_header_size, limits.max_header_fields
             )
             fields = header.as_dict()
+            await self.gw.keeper.ensure(LOCAL_TOKEN_WAIT)  # our token revoked by a grant change: its successor
             own = self.gw.own_access()
             if "topic" in fields:
                 purpose = "topic"
@@ -198,6 +201,8 @@ class Relays:
             )
             reply_fields = reply.as_dict()
             if "error" in reply_fields:  # the far side refused the stream: nothing is pumped
+                if purpose == "topic":
+                    self._note_refused_stream(peer.manager, fields["topic"])
                 await pass_refusal(writer, reply_fields["error"])
                 tunnel_writer.close()
                 writer.close()
@@ -272,6 +277,8 @@ class Relays:
             if isinstance(exc, CryptorosError):
                 self.gw.deny("relay", exc, str(target), hint=header_hint(
                     exc, opener=self.cfg.manager, server=tunnel.peer.manager if tunnel is not None else None))
+                if tunnel is not None and isinstance(exc, PolicyDenied) and "topic" in fields:
+                    self._note_refused_stream(tunnel.peer.manager, fields["topic"])
                 with contextlib.suppress(Exception):
                     writer.write(encode_header({"error": OPAQUE}))
             if tunnel_writer is not None:

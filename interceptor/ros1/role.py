@@ -197,6 +197,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: master role: rosmaster's notifications to remote nodes, answered at once (notices.py)
         self._notices = Notices(self._deliver_notice, gateway.track) if "master" in cfg.roles else None
         self._resubscribing: set[str] = set()
+        #: node role: topic streams refused to this host's subscribers, by the manager whose
+        #: side refused or would have sent them: {manager: {topic: when (monotonic)}}
+        self._refused_streams: dict[str, dict[str, float]] = {}
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
         #: service servers) that came from it: released when the node registers again
@@ -253,6 +256,7 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
             with contextlib.suppress(CryptorosError):
                 self._grants_seen = self.gw.own_access().grants
             self.gw.keeper.listeners.append(self._own_token_changed)
+            self.verifier.fresh_listeners.append(self._peer_token_fresher)
             if self._ledger.refused_count:  # kept from before our restart: our token may cover them now
                 self._own_token_changed()
             if not self.translator.export_count:
