@@ -12,7 +12,8 @@ prints ``killed`` whatever it was: when ``rosnode`` is imported, its ``kill_node
 wrapped so that a node whose ``shutdown`` cryptoros refused is reported as not killed
 (``ERROR: Failed to kill``, exit status 1) after the refusal's line, and its cleanup goes
 on past a node whose unregistration cryptoros refuses (another robot's node: one line
-each). rospy logs a refused registration as ``[FATAL]`` and carries on, which a node may
+each). ``rosservice`` reads a refused probe of a service as a service of
+no type: it says the refusal instead (one line). rospy logs a refused registration as ``[FATAL]`` and carries on, which a node may
 want but leaves ``rostopic`` echoing nothing or saying it published (exit status 0): in
 ``rostopic`` such a refusal is one ``ERROR:`` line, and the tool ends (exit status 1). It
 then runs the installation's own ``sitecustomize`` (Debian ships one), which this file
@@ -106,8 +107,26 @@ def _patch_registration(module):
     module.logfatal = refusal_ends_the_tool
 
 
+def _patch_rosservice(module):
+    """``rosservice call/type/info`` learn a service's type from a probe of it; a probe
+    cryptoros refuses answers an error header, which rosservice reads as a service of no
+    type (``Unable to determine type of service``, ``Unknown service``): it is reported as
+    the refusal instead, one ``ERROR:`` line (rosservice's own for its errors)."""
+    probe = module.get_service_headers
+
+    def get_service_headers(service_name, service_uri):
+        header = probe(service_name, service_uri)
+        error = header.get("error", "")
+        if _REFUSED in error:
+            hint = "" if "cryptoros denials" in error else " (cryptoros denials says what to grant)"
+            raise module.ROSServiceException(f"service [{service_name}]: {error}{hint}")
+        return header
+
+    module.get_service_headers = get_service_headers
+
+
 #: module -> what wraps it once loaded
-_PATCHES = {"rosnode": _patch_rosnode}
+_PATCHES = {"rosnode": _patch_rosnode, "rosservice": _patch_rosservice}
 if os.path.basename(sys.argv[0] if sys.argv else "") == "rostopic":
     _PATCHES["rospy.impl.registration"] = _patch_registration
 

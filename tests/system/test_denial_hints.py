@@ -78,6 +78,11 @@ def test_another_robots_nodes_logger_service_is_called_once_the_hint_is_pasted(t
     with talker_network(tmp_path) as net:
         refused = through_run(net, "rosservice", "call", "/talker_a/get_loggers")
         assert refused.returncode != 0 and "rospy" not in refused.stdout, refused
+        # its probe refused, said as such (rosservice alone: "Unable to determine type")
+        assert refused.stderr.splitlines() == ["ERROR: service [/talker_a/get_loggers]: denied by cryptoros "
+                                               "(cryptoros denials says what to grant)"], refused
+        typed = through_run(net, "rosservice", "type", "/talker_a/get_loggers")
+        assert typed.returncode != 0 and typed.stderr.splitlines() == refused.stderr.splitlines(), typed
         loggers = "cryptoros-authz grant-tools robot_b --service /talker_a/get_loggers:roscpp/GetLoggers"
         assert loggers in hints(net), hints(net)
         pasted = paste(net, loggers)
