@@ -74,10 +74,10 @@ RECONCILE_INTERVAL = 1.0
 #: lost what the bridge had taken of a reliable burst. A grant taken away, an exposed
 #: participant, a changed node or QoS and a link down still withdraw at once.
 VANISHED_GRACE = 6.0
-#: a peer that may not receive a stream is asked for a fresh token (a new grant) this often;
-#: a token learnt within RECHECK_MARGIN before a recheck is fresh enough for it. A grant
-#: re-added to the peer therefore reaches its stream within PEER_RECHECK + RECHECK_MARGIN
-#: + the peer's own token refresh + one stream opening (tested: under 10 s)
+#: a peer that may not receive a stream is looked at again when it shows a fresher token
+#: (its grants changed: 0.2-0.3 s from a grant re-added to the flow), and asked for one
+#: this often in any case; a token learnt within RECHECK_MARGIN before a recheck is fresh
+#: enough for it
 PEER_RECHECK = 5.0
 RECHECK_MARGIN = 1.0
 #: a peer whose token does not let it receive a stream, seen within PEER_SETTLE seconds of
@@ -179,6 +179,9 @@ class Ros2Role(Role):
         self._partial = PartialFrames()  # each peer's unfinished frames, across its streams
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
         self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
+        #: set when a peer manager shows a fresher token (a grant of its changed): the streams
+        #: waiting out PEER_RECHECK for it look again at once
+        self._peer_changed: dict[str, asyncio.Event] = {}
         self._stopping = False
         self._started = False  # start() ran: the bridge is supervised from then on
         self.dropped = 0
@@ -206,6 +209,7 @@ class Ros2Role(Role):
         self._started = True
         self.gw.spawn(self.bridge.supervise(self._reset_local_state, lambda: self._stopping), "ros2-bridge")
         self.gw.spawn(self._reconcile_loop(), "ros2-reconcile")
+        self.verifier.fresh_listeners.append(self._peer_token_fresher)
         log.info("ros2 role up: domain %d, peers %s", self.cfg.ros2.domain_id,
                  ", ".join(map(str, self.cfg.ros2.peers)) or "none")
 
@@ -641,7 +645,7 @@ class Ros2Role(Role):
                             "not_granted", f"{known.subject} may not {target.peer_action} {target.name} "
                             f"[{target.type}]: not offered to it"), f"{known.subject}@{endpoint}",
                             hint=self._grant_hint(known.subject, target.peer_action, None, target.name, target.type))
-                    await asyncio.sleep(PEER_RECHECK)
+                    await self._peer_change(known.subject, PEER_RECHECK)
                     recheck = time.monotonic()
                     continue
                 self._noted.discard(("not_offered", endpoint, target.name))
@@ -659,6 +663,7 @@ class Ros2Role(Role):
                 continue
             self._noted.discard(("unreachable", endpoint, target.name))
             watch: StreamWatch | None = None
+            refused_by: str | None = None
             pending: set[int] = set()
             try:
                 def judge(grants, manager=peer.manager) -> None:
@@ -700,6 +705,7 @@ class Ros2Role(Role):
             except PolicyDenied as exc:
                 self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
                 backoff = 5.0
+                refused_by = peer.manager
             except PEER_FAILURES as exc:
                 if isinstance(exc, CryptorosError):
                     self.gw.deny(f"ros2_{target.kind}_out", exc, f"{peer.manager}@{endpoint}")
@@ -709,7 +715,25 @@ class Ros2Role(Role):
                 writer.close()
                 for bid in pending:
                     self._calls.pop(bid, None)
-            await asyncio.sleep(backoff)
+            if refused_by is not None:  # a fresher token of the peer's may allow it: looked at then
+                await self._peer_change(refused_by, backoff)
+            else:
+                await asyncio.sleep(backoff)
+
+    def _peer_token_fresher(self, access: AccessToken) -> None:
+        event = self._peer_changed.pop(access.subject, None)
+        if event is not None:
+            event.set()
+
+    async def _peer_change(self, manager: str, timeout: float) -> None:
+        """Until ``manager`` shows a fresher token (its grants may have changed: a grant
+        given back to it is carried in well under a second, not after the recheck's wait),
+        at most ``timeout`` seconds."""
+        event = self._peer_changed.get(manager)
+        if event is None:
+            event = self._peer_changed[manager] = asyncio.Event()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(event.wait(), timeout)
 
     async def _peer_token(self, endpoint: Endpoint, target: StreamTarget, *,
                           recheck: float | None = None) -> AccessToken:
