@@ -118,7 +118,10 @@ class Admission:
                 for listener in self.source_listeners:  # kept across a restart (the ROS 1 role's state)
                     listener()
             remember(self._known_sources, source, True, KNOWN_SOURCES)
-            who = f"{access.subject}@{who}"
+            # a verified peer's refusals are grouped by its manager and address, not by
+            # connection (its source port): a disabled manager's robot retrying logged 11
+            # lines in 8 s (a day-2 audit), and an insider's broken streams a line each
+            who = f"{access.subject}@{source}"
             admitted = gate.admit(
                 access, feed=self.feed_problem(), allow_new_stream=self._new_stream_limiter.allow,
                 open_streams=self._open_per_peer.get(access.subject, 0), max_streams=limits.max_connections_per_peer,

@@ -371,7 +371,11 @@ def check_master_call(
         if owner is not None and owner != manager:
             raise _deny("name_taken", f"node {caller} is registered (or held) by manager {owner}")
         if owner is None and not grants.names_node(caller):
-            raise _deny("not_granted", f"{manager}: {caller} is not one of its nodes")
+            # another robot's node (rosnode cleanup of a dead one): no grant of this robot's
+            # should allow it, so the refusal points at none (a day-2 audit: "not_granted ...
+            # says what to grant" for a purge)
+            raise _deny("not_its_node", f"{manager}: {caller} is not one of its nodes: the robot whose node it is "
+                                        "purges it")
         return
     raise _deny("method_not_allowed", f"master method {method!r} is not on the allowlist")
 
@@ -536,7 +540,7 @@ REFUSED = "denied by cryptoros"
 SHOWN_REASONS = frozenset({
     "not_granted", "param_write_denied", "param_read_denied", "shutdown_dropped", "not_from_master",
     "method_not_allowed", "name_taken", "node_limit", "param_quota", "rate_limited", "malformed", "unknown_topic",
-    "unknown_endpoint", "endpoint_not_peer", "answer_too_large",
+    "unknown_endpoint", "endpoint_not_peer", "answer_too_large", "not_its_node",
 })
 
 

@@ -98,13 +98,18 @@ class NodeSide:
         endpoint = stream.resolved  # resolved once, by the gate's target check
 
         def decide(call: Request) -> Request:
-            check_node_call(
-                call.method,
-                call.params,
-                grants=self.verifier.freshest(peer.access).grants,
-                peer_is_master=peer.manager == self.cfg.master.manager,
-                topic_types=self.topic_types,
-            )
+            try:
+                check_node_call(
+                    call.method,
+                    call.params,
+                    grants=self.verifier.freshest(peer.access).grants,
+                    peer_is_master=peer.manager == self.cfg.master.manager,
+                    topic_types=self.topic_types,
+                )
+            except PolicyDenied as exc:
+                if exc.reason == "not_granted" and call.method == "requestTopic":
+                    raise self._own_publish_gone(str(call.params[1])) or exc from None
+                raise
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
         def tcpros_to_canonical(host: str, port: int) -> tuple[str, int]:
@@ -126,6 +131,22 @@ class NodeSide:
 
         await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
+    def _own_publish_gone(self, topic: str) -> PolicyDenied | None:
+        """Why a peer's subscription of ``topic`` is refused on this robot's side: no node
+        of our manager may publish it now, and the peer's token, narrowed to the names our
+        grants hold, lost its subscription with our grant (a day-2 audit: a publish grant
+        removed was logged as the subscriber's, with a grant to add that it already held);
+        None when our grant stands (or our token cannot be read now)."""
+        try:
+            own = self.gw.own_access()
+        except CryptorosError:
+            return None
+        type_name = self.topic_types.get(topic)
+        if type_name is None or own.grants.any_node_allows("publish", topic, type_name):
+            return None
+        return PolicyDenied("not_granted_here", f"this robot's manager {own.subject} may not publish {topic} "
+                                                f"[{type_name}]")
+
     async def _serve_tcpros_stream(self, stream: InboundStream) -> None:
         reader, writer, peer, purpose = stream.reader, stream.writer, stream.peer, stream.purpose
         endpoint = stream.resolved  # resolved once, by the gate's target check
@@ -142,9 +163,14 @@ class NodeSide:
                 if "topic" not in fields:
                     raise PolicyDenied("malformed", "topic stream without a topic header")
                 published = self.topic_types.get(fields["topic"])
-                check_subscriber_header(
-                    fields, grants=grants, published_type=published, published_md5=md5_or_none(published)
-                )
+                try:
+                    check_subscriber_header(
+                        fields, grants=grants, published_type=published, published_md5=md5_or_none(published)
+                    )
+                except PolicyDenied as exc:
+                    if exc.reason == "not_granted":
+                        raise self._own_publish_gone(fields["topic"]) or exc from None
+                    raise
                 return None
             if "service" not in fields:
                 raise PolicyDenied("malformed", "service stream without a service header")

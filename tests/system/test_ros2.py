@@ -679,6 +679,34 @@ def test_sighup_keeps_streams_withdraws_a_topic_made_local_and_cuts_a_disabled_m
                      network.metrics("robot_b"), re.M), "the cut is not counted with its reason"
 
 
+def test_a_disabled_robots_refusals_of_a_peers_retries_are_one_line_and_its_flow_resumes_when_enabled(network):
+    """Robot B disabled while robot A's talker streams to it: robot A retries its stream
+    and robot B, holding no token, refuses each. A day-2 audit saw a line per connection
+    (11 in 8 s: its source port in the key); a verified peer's refusals are grouped by
+    its manager and address. Enabled again, the flow resumes."""
+    robot_b = network.robots["robot_b"]
+    with network.node("robot_b", "listener.py", "string", "/chatter", "60") as sub:
+        sub.until("READY", 20)
+        with network.node("robot_a", "talker.py", "string", "/chatter", "100000", "50"):
+            collect(sub, 10, 25)
+            seen_b = len(robot_b.logs())
+            assert network.cli("disable-manager", "robot_b").returncode == 0
+            try:
+                deadline = time.monotonic() + 20
+                while "DENY stream from robot_a@" not in robot_b.logs()[seen_b:]:  # robot B refuses
+                    assert time.monotonic() < deadline, robot_b.logs()[seen_b:][-3000:]
+                    time.sleep(0.2)
+                sub.until(None, 6.0)  # robot A retries meanwhile
+                refused = [line for line in robot_b.logs()[seen_b:].splitlines()
+                           if "DENY stream from robot_a@" in line and "no_token" in line]
+            finally:
+                assert network.cli("enable-manager", "robot_b").returncode == 0
+            assert len(refused) == 1, refused
+            start = time.monotonic()
+            collect(sub, 5, 30)
+            print(f"a disabled robot enabled again: its flow back after {time.monotonic() - start:.1f} s")
+
+
 def test_a_reload_that_gets_no_token_for_the_new_certificate_keeps_the_old_one_everywhere(network):
     """Day 2: the operator renews robot A's certificate files but forgets ``set-cert``
     and sends SIGHUP. The authorization server refuses the new certificate, so the
