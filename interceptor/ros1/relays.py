@@ -196,9 +196,24 @@ class Relays:
             )
             tunnel_reader, tunnel_writer, peer = tunnel.reader, tunnel.writer, tunnel.peer
             watch = self.verifier.watch(peer.access, lambda _r: tunnel_writer.transport.abort())
-            reply, reply_rest = await read_tcpros_header(
-                tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields, pending=tunnel.pending
-            )
+            try:
+                reply, reply_rest = await read_tcpros_header(
+                    tunnel_reader, CALL_TIMEOUT, limits.max_header_size, limits.max_header_fields,
+                    pending=tunnel.pending,
+                )
+            except RemoteProtocolError as exc:
+                if not str(exc).startswith("connection closed"):
+                    raise
+                # cut before its answer, by either side (a grant change: each logs its own
+                # cut or refusal); no refusal of ours to count (a day-2 audit: a DENY relay
+                # line about the legitimate peer after each grant given back)
+                log.info("the %s stream to %s closed before its answer: %s", purpose, target, exc)
+                if purpose == "topic":
+                    self._note_refused_stream(peer.manager, fields["topic"])
+                await pass_refusal(writer, OPAQUE)
+                tunnel_writer.close()
+                writer.close()
+                return
             reply_fields = reply.as_dict()
             if "error" in reply_fields:  # the far side refused the stream: nothing is pumped
                 if purpose == "topic":
