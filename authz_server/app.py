@@ -760,8 +760,10 @@ class AuthzService:
                                               claims["exp"]))
         except _Denied as d:
             self.metrics.denied.labels(d.reason.split(" ")[0]).inc()
-            log.warning("token denied: manager=%s fingerprint=%s remote=%s reason=%s",
-                        d.manager or "-", fp[:16], remote, d.reason)
+            # a robot asking for a token for a peer the operator disabled is expected: info
+            log.log(logging.INFO if d.reason.startswith("peer_disabled") else logging.WARNING,
+                    "token denied: manager=%s fingerprint=%s remote=%s reason=%s", d.manager or "-", fp[:16], remote,
+                    d.reason)
             try:
                 await self.audit.write(AuditEntry("denied", d.manager, fp, remote, d.reason))
             except Exception:
@@ -813,8 +815,12 @@ class AuthzService:
         except TokenError:
             raise _Denied(400, "invalid_target", "resource_malformed", manager) from None
         target, target_grants = await self.manager_for(fingerprint_of_thumbprint(thumbprint))
-        if target is None or not target.enabled:
+        if target is None:
             raise _Denied(400, "invalid_target", "resource_unknown", manager)
+        if not target.enabled:  # what the manager's own robot asks for a disabled peer (a day-2 audit
+            # read "manager=robot_a ... resource_unknown" as robot A refused): named as the peer's
+            raise _Denied(400, "invalid_target", f"peer_disabled (a token for {target.name}, which is disabled)",
+                          manager)
         return resource, grants.narrowed_to(target_grants), f"for {target.name}"
 
 

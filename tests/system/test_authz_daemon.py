@@ -19,6 +19,7 @@ import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
 from tests.authz_support import authz, build_team, ok, read_pem_der
+from tests.support import until
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
 
@@ -94,6 +95,17 @@ def test_a_token_for_one_peer_is_bound_to_it_and_carries_only_what_it_shares(dae
     assert any(r["event"] == "issued" and r["jti"] == tok.jti and "for bob" in json.dumps(r) for r in rows)
     for resource in (peer_audience(thumb["stranger"]), "urn:cryptoros:peer:short", "https://bob.example/"):
         assert for_peer("alice", resource) == (400, {"error": "invalid_target"})
+    # bob disabled: refused too, and the audit (and log) say it is the peer that is disabled,
+    # not alice that was refused for an unknown resource (a day-2 audit)
+    ok(daemon.cli("disable-manager", "bob"))
+    try:
+        until(lambda: for_peer("alice", peer_audience(thumb["bob"]))[0] == 400, 15, "bob's peer token refused")
+        rows = [json.loads(line) for line in ok(daemon.cli("audit", "--json", "--manager", "alice")).splitlines()]
+        assert any(r["event"] == "denied" and "peer_disabled (a token for bob, which is disabled)" in json.dumps(r)
+                   for r in rows), rows[-3:]
+    finally:
+        ok(daemon.cli("enable-manager", "bob"))
+        until(lambda: daemon.token("bob")[0] == 200, 15, "bob's tokens issued again")  # the server's cache
 
 
 def test_the_start_up_line_names_the_registry_it_serves(daemon):
