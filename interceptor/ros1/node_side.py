@@ -620,6 +620,9 @@ class NodeSide:
     def _own_token_changed(self) -> None:
         """Our token changed (keeper listener): the grants it carries may cover
         registrations of running nodes they did not cover before."""
+        news, self._token_news = self._token_news, None
+        if news is not None:
+            news.set()
         if self.gw.started:
             self._regrant_wanted = True
             if not self._regranting:
@@ -769,7 +772,9 @@ class NodeSide:
 
     async def _wait_reachable(self, endpoint: tuple[str, int], wanted: Callable[[], bool]) -> None:
         """Until a token exchange with a peer interceptor succeeds, while ``wanted()``
-        (the last failure is raised once it is not)."""
+        (the last failure is raised once it is not). The back-off is cut short when our own
+        token changes: a robot whose manager was disabled and enabled again waited out its
+        8 s back-off with its token back (a day-2 audit: its flows back 7.9 s after)."""
         backoff = 0.25
         while True:
             try:
@@ -778,7 +783,10 @@ class NodeSide:
             except PEER_FAILURES:
                 if not wanted():
                     raise
-                await asyncio.sleep(backoff)
+                if self._token_news is None:
+                    self._token_news = asyncio.Event()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._token_news.wait(), backoff)
                 backoff = min(backoff * 2, 8.0)
 
     async def _publishers_of(self, topic: str) -> list[str]:

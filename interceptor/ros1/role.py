@@ -197,6 +197,8 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: master role: rosmaster's notifications to remote nodes, answered at once (notices.py)
         self._notices = Notices(self._deliver_notice, gateway.track) if "master" in cfg.roles else None
         self._resubscribing: set[str] = set()
+        #: set (and replaced) when our own token changes: waits for a peer cut short (_wait_reachable)
+        self._token_news: asyncio.Event | None = None
         #: node role: topic streams refused to this host's subscribers, by the manager whose
         #: side refused or would have sent them: {manager: {topic: when (monotonic)}}
         self._refused_streams: dict[str, dict[str, float]] = {}

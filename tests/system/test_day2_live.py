@@ -474,3 +474,25 @@ def test_a_robot_disabled_and_revoked_then_readmitted_takes_its_new_certificate_
               "robot B's reload outcome")
         assert "reloaded certificates" in b.logs()[before:], b.logs()[before:][-2000:]
         assert got(read_lines(sub, "GOT", 30)), "robot B's listener receives nothing after its re-admission"
+
+
+def test_a_robot_disabled_for_a_while_then_enabled_receives_again_within_5_s(tmp_path):
+    """Robot B's manager disabled for 9 s (its streams cut, its token refused), then
+    enabled: its running listener receives again within 5 s of the enable. A day-2 audit
+    measured 7.9 s: the subscriber's interceptor waited out its 8 s back-off between
+    token exchanges with robot A, its own token back meanwhile; the back-off now ends
+    when its own token changes."""
+    with talker_a_to_listener_b(tmp_path, seconds=120) as (net, sub, _pub):
+        assert net.cli("disable-manager", "robot_b").returncode == 0
+        try:
+            deadline = time.monotonic() + 20
+            while got(read_lines(sub, None, 1.0)):  # the cut
+                assert time.monotonic() < deadline, "robot B still receives with its manager disabled"
+            read_lines(sub, None, 8.0)  # its interceptor's exchanges with robot A back off meanwhile
+        finally:
+            assert net.cli("enable-manager", "robot_b").returncode == 0
+        enabled = time.monotonic()
+        assert got(read_lines(sub, "GOT", 15)), "robot B's listener receives nothing after the enable"
+        took = time.monotonic() - enabled
+        print(f"robot B disabled 9 s, then enabled: its listener receives again after {took:.1f} s")
+        assert took < 5.0, f"the listener received again only {took:.1f} s after the enable"
