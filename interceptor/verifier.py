@@ -31,9 +31,10 @@ The feed and the JWKS come through :class:`~interceptor.authz_client.AuthzClient
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 import dataclasses
 from dataclasses import dataclass
 
@@ -85,6 +86,12 @@ class StreamWatch:
     def reason(self) -> str | None:
         """Why the verifier cut the stream (``revoked``, ``grant_removed: ...``), or None."""
         return self._entry.reason
+
+
+def _log_cut(key: tuple[str, str, str], streams: int) -> None:
+    manager, jti, reason = key
+    log.warning("cutting off stream of manager=%s jti=%s: %s%s", manager, jti, reason,
+                f" ({streams} streams)" if streams > 1 else "")
 
 
 def _peer_key(access: AccessToken) -> tuple[str, str, str]:
@@ -154,6 +161,8 @@ class PeerVerifier:
         self.stale_listeners: list[Callable[[AccessToken], None]] = []
         #: Called with the reason label of every stream cut (``token_expired``, ``revoked``...).
         self.cut_listeners: list[Callable[[str], None]] = []
+        #: cuts made together (a feed, a sweep, a fresher token), logged at its end: (manager, jti, reason) -> streams
+        self._cut_batch: dict[tuple[str, str, str], int] | None = None
         #: called with each fresher token a peer shows (after its streams are judged again on it)
         self.fresh_listeners: list[Callable[[AccessToken], None]] = []
         #: When this interceptor's own token expires (None: it holds none): once that is
@@ -272,7 +281,11 @@ class PeerVerifier:
     def _cut(self, entry: _Watch, reason: str) -> None:
         self._watches.discard(entry)
         entry.reason = reason
-        log.warning("cutting off stream of manager=%s jti=%s: %s", entry.access.subject, entry.access.jti, reason)
+        key = (entry.access.subject, entry.access.jti, reason)
+        if self._cut_batch is not None:
+            self._cut_batch[key] = self._cut_batch.get(key, 0) + 1
+        else:
+            _log_cut(key, 1)
         for listener in self.cut_listeners:
             listener(reason.split(":", 1)[0])
         try:
@@ -280,7 +293,26 @@ class PeerVerifier:
         except Exception:  # a broken stream must not stop the others from being cut
             log.exception("closing a stream failed")
 
+    @contextlib.contextmanager
+    def _cuts_together(self) -> Iterator[None]:
+        """The cuts made inside are logged once per manager, token and reason, with how
+        many streams (a disabled robot's 50 streams were 50 lines)."""
+        if self._cut_batch is not None:
+            yield
+            return
+        self._cut_batch = {}
+        try:
+            yield
+        finally:
+            batch, self._cut_batch = self._cut_batch, None
+            for key, streams in batch.items():
+                _log_cut(key, streams)
+
     def _rejudge(self, key: tuple[str, str], access: AccessToken) -> None:
+        with self._cuts_together():
+            self._rejudge_cutting(key, access)
+
+    def _rejudge_cutting(self, key: tuple[str, str], access: AccessToken) -> None:
         for entry in list(self._watches):
             if _peer_key(entry.access) != key:
                 continue
@@ -298,6 +330,10 @@ class PeerVerifier:
         whose revoked token was not replaced within ``revocation_grace``, and every
         stream once our own token expired more than ``grace`` ago (both ends' authority
         must hold); forget tokens no stream needs. Returns how many streams were cut."""
+        with self._cuts_together():
+            return self._sweep()
+
+    def _sweep(self) -> int:
         now = self._clock()
         own = self.own_expiry()
         cut = self._rejudge_learning()
@@ -365,6 +401,10 @@ class PeerVerifier:
         certificate the CA revoked (its serial in the feed's CRL list); a stream
         whose token is revoked gets ``revocation_grace`` seconds for its peer to show a
         fresh one (see the module docstring). Returns how many were cut now."""
+        with self._cuts_together():
+            return self._apply(revocations)
+
+    def _apply(self, revocations: Revocations) -> int:
         self.revocations = revocations
         if self.learning is not None:
             self.learning.windows = dict(revocations.learning)
