@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -86,6 +87,16 @@ class StreamWatch:
     def reason(self) -> str | None:
         """Why the verifier cut the stream (``revoked``, ``grant_removed: ...``), or None."""
         return self._entry.reason
+
+
+def _cuts_logged_together(method: Callable) -> Callable:
+    """A :class:`PeerVerifier` method whose cuts are logged together at its end
+    (:meth:`PeerVerifier._cuts_together`)."""
+    @functools.wraps(method)
+    def logged_together(self, *args, **kwargs):
+        with self._cuts_together():
+            return method(self, *args, **kwargs)
+    return logged_together
 
 
 def _log_cut(key: tuple[str, str, str], streams: int) -> None:
@@ -308,11 +319,8 @@ class PeerVerifier:
             for key, streams in batch.items():
                 _log_cut(key, streams)
 
+    @_cuts_logged_together
     def _rejudge(self, key: tuple[str, str], access: AccessToken) -> None:
-        with self._cuts_together():
-            self._rejudge_cutting(key, access)
-
-    def _rejudge_cutting(self, key: tuple[str, str], access: AccessToken) -> None:
         for entry in list(self._watches):
             if _peer_key(entry.access) != key:
                 continue
@@ -325,15 +333,12 @@ class PeerVerifier:
             entry.access = access
             entry.revoked_deadline = None
 
+    @_cuts_logged_together
     def sweep(self) -> int:
         """Cut streams whose peer's freshest token expired more than ``grace`` ago, or
         whose revoked token was not replaced within ``revocation_grace``, and every
         stream once our own token expired more than ``grace`` ago (both ends' authority
         must hold); forget tokens no stream needs. Returns how many streams were cut."""
-        with self._cuts_together():
-            return self._sweep()
-
-    def _sweep(self) -> int:
         now = self._clock()
         own = self.own_expiry()
         cut = self._rejudge_learning()
@@ -396,15 +401,12 @@ class PeerVerifier:
         except TokenError as exc:
             log.warning("cannot refresh JWKS (%s); keeping %d known keys", exc.detail, len(self.keys))
 
+    @_cuts_logged_together
     def apply(self, revocations: Revocations) -> int:
         """Adopt a new feed: cut every watched stream of a disabled manager or over a
         certificate the CA revoked (its serial in the feed's CRL list); a stream
         whose token is revoked gets ``revocation_grace`` seconds for its peer to show a
         fresh one (see the module docstring). Returns how many were cut now."""
-        with self._cuts_together():
-            return self._apply(revocations)
-
-    def _apply(self, revocations: Revocations) -> int:
         self.revocations = revocations
         if self.learning is not None:
             self.learning.windows = dict(revocations.learning)
