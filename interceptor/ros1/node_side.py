@@ -107,8 +107,8 @@ class NodeSide:
                     topic_types=self.topic_types,
                 )
             except PolicyDenied as exc:
-                if exc.reason == "not_granted" and call.method == "requestTopic":
-                    raise self._own_publish_gone(str(call.params[1])) or exc from None
+                if call.method == "requestTopic":
+                    raise self._subscription_refused(exc, str(call.params[1])) from None
                 raise
             return tcpros_only(rewrite_call(call, publisher_uri=self.translator.to_local))
 
@@ -131,19 +131,21 @@ class NodeSide:
 
         await self._serve_xmlrpc(stream.reader, stream.writer, handle, stream.pending)
 
-    def _own_publish_gone(self, topic: str) -> PolicyDenied | None:
-        """Why a peer's subscription of ``topic`` is refused on this robot's side: no node
-        of our manager may publish it now, and the peer's token, narrowed to the names our
-        grants hold, lost its subscription with our grant (a day-2 audit: a publish grant
-        removed was logged as the subscriber's, with a grant to add that it already held);
-        None when our grant stands (or our token cannot be read now)."""
+    def _subscription_refused(self, exc: PolicyDenied, topic: str) -> PolicyDenied:
+        """The refusal of a peer's subscription of ``topic``: ``exc``, or, for a grant
+        missing when no node of our manager may publish the topic now, ours: the peer's
+        token, narrowed to the names our grants hold, lost its subscription with our grant
+        (a day-2 audit: a publish grant removed was logged as the subscriber's, with a
+        grant to add that it already held)."""
+        if exc.reason != "not_granted":
+            return exc
         try:
             own = self.gw.own_access()
-        except CryptorosError:
-            return None
+        except CryptorosError:  # our token cannot be read now: the peer's refusal stands
+            return exc
         type_name = self.topic_types.get(topic)
         if type_name is None or own.grants.any_node_allows("publish", topic, type_name):
-            return None
+            return exc
         return PolicyDenied("not_granted_here", f"this robot's manager {own.subject} may not publish {topic} "
                                                 f"[{type_name}]")
 
@@ -168,9 +170,7 @@ class NodeSide:
                         fields, grants=grants, published_type=published, published_md5=md5_or_none(published)
                     )
                 except PolicyDenied as exc:
-                    if exc.reason == "not_granted":
-                        raise self._own_publish_gone(fields["topic"]) or exc from None
-                    raise
+                    raise self._subscription_refused(exc, fields["topic"]) from None
                 return None
             if "service" not in fields:
                 raise PolicyDenied("malformed", "service stream without a service header")
