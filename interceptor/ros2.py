@@ -1,68 +1,58 @@
 """The interceptor's ``ros2`` role: the asyncio edge between a robot's DDS domain and
 the other robots' interceptors.
 
-Why one module of nearly 800 lines: the outbound and inbound streams of the role share
-the bridge link, its channels and the calls in flight; split, each half would reach into
-the other's state (the ROS 1 role's parts are apart because they share only the role's
-tables). The bridge child's life (start, restart, stop) is
-:class:`~interceptor.ros2_bridge.DdsBridge`'s.
-
 The :class:`~interceptor.gateway.Gateway` owns everything a role shares: the
 mutual-TLS public listener, the preamble, token verification bound to the
 certificate, the revocation feed that cuts watched streams, reload, limits and
 metrics. :class:`Ros2Role`, composed with it, serves one stream purpose (``ros2``)
-and talks to a DDS bridge child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2 venv's python) over a local
-socket.
+and talks to a DDS bridge child (:mod:`cryptoros.ros2.bridge_node`, run by the ROS 2
+venv's python) over a local socket; the child's life (start, restart, stop) is
+:class:`~interceptor.ros2_bridge.DdsBridge`'s.
 
-Outbound (this robot's publishers and servers): the bridge reports the local graph;
-every topic whose local publishers may all publish it (this interceptor's own grants,
-per node) gets a raw subscription and one stream per configured peer; a stream is
-used only once the peer's token (from the preamble reply) shows its manager may
-subscribe. Services alike (``serve`` here, ``call`` there). An offer whose publishers
-all left the graph is kept :data:`VANISHED_GRACE` first (a process that stalled past its
-DDS lease comes back with the same writer); anything decided against it ends it at once.
+This module is the role and its outbound half (this robot's publishers and servers):
+the bridge reports the local graph; every topic whose local publishers may all publish
+it (this interceptor's own grants, per node) gets a raw subscription and one stream per
+configured peer; a stream is used only once the peer's token (from the preamble reply)
+shows its manager may subscribe. Services alike (``serve`` here, ``call`` there). An
+offer whose publishers all left the graph is kept :data:`VANISHED_GRACE` first (a
+process that stalled past its DDS lease comes back with the same writer); anything
+decided against it ends it at once.
 
-Inbound: a ``ros2`` stream's target (:class:`~cryptoros.ros2.target.StreamTarget`)
-is checked against the sender's grants for the node it names and against this robot's
-own manager's grants, then its messages are republished (or a proxy service is
-offered) on this robot's domain with the QoS the sender saw.
+The inbound half (streams other robots open here, republished on this robot's domain or
+offered as proxy services) is :class:`~interceptor.ros2_inbound.Ros2Inbound`, handed
+the bridge, the channel numbers and the graph by the role.
 """
-
 from __future__ import annotations
 
 import asyncio
 import collections
 import contextlib
-import functools
 import itertools
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from cryptoros.memory import tune_malloc
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.ros2 import framing as fr
-from cryptoros.ros2.cdr import CdrError, checker_for
 from cryptoros.ros2.exposure import Exposed, ExposureScan, gid_pid16
 from cryptoros.policy.infrastructure import ros2_stays_local
 from cryptoros.policy.hints import PROG, command
 from cryptoros.policy.ros2 import UNKNOWN_NODE_MARK, Offer, local_offer, manager_may, may_learn
-from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
+from cryptoros.ros2.target import StreamTarget
 from cryptoros.tokens import AccessToken
-from cryptoros.tunnel import Preamble
 from cryptoros.exposure import ExposureError
 from interceptor.config import Endpoint
 from interceptor.exposure import PortExposure
 from interceptor.verifier import StreamWatch
-from interceptor.gate import FEED_REASONS, Target
+from interceptor.gate import FEED_REASONS
 from interceptor.authz_client import PEER_TOKEN_WAIT
 from interceptor.gateway import Gateway, Role
 from interceptor.ros2_bridge import BridgeLink, DdsBridge
+from interceptor.ros2_inbound import BACKLOG_HIGH, BACKLOG_LOW, BACKLOG_STALL, MAX_PENDING_CALLS, Ros2Inbound
 from interceptor.ros2_partial import PartialFrames
-from interceptor.streams import READ_SIZE, InboundStream, Peer, read_chunks, widen_reader
-from interceptor.monitor import WatchedStream
+from interceptor.streams import READ_SIZE, Peer, read_chunks
 
 log = logging.getLogger("cryptoros.interceptor.ros2")
 
@@ -90,24 +80,19 @@ PEER_SETTLE = 3.0
 SETTLE_POLL = 0.3
 #: denials remembered (to log each once) before the memory starts over
 MAX_NOTED = 10_000
-#: Flow control of outbound topics: while a peer stream's send buffer is above
-#: BACKLOG_HIGH, the interceptor stops reading from its bridge (which then stops taking
-#: from DDS: the bridge's history depth decides what is kept, as on a direct DDS path);
-#: reading resumes once every stream is under BACKLOG_LOW, or after BACKLOG_STALL
-#: seconds (a stuck peer must not stall the others). A stream that stays above
+#: Flow control of outbound topics (BACKLOG_* in :mod:`interceptor.ros2_inbound`): while a
+#: peer stream's send buffer is above BACKLOG_HIGH, the interceptor stops reading from its
+#: bridge (which then stops taking from DDS: the bridge's history depth decides what is
+#: kept, as on a direct DDS path); reading resumes once every stream is under
+#: BACKLOG_LOW, or after BACKLOG_STALL seconds (a stuck peer must not stall the others). A stream that stays above
 #: BACKLOG_LOW for STUCK_AFTER seconds is stuck: its new messages are dropped (counted,
 #: logged once) until it drains under BACKLOG_LOW, and it pauses nothing meanwhile (a
 #: peer that stopped reading held every other peer's flows, a pause and a second's
 #: stall on every batch: 66 s of silence in a run). STUCK_AFTER is over what a live
 #: receiver may hold a stream (its bridge's two PUBLISH_PATIENCE waits, 6 s). A stream
 #: above MAX_STREAM_BACKLOG drops new messages (counted).
-BACKLOG_HIGH = 8 * 1024 * 1024
-BACKLOG_LOW = 4 * 1024 * 1024
-BACKLOG_STALL = 1.0
 STUCK_AFTER = 10.0
 MAX_STREAM_BACKLOG = 32 * 1024 * 1024
-MAX_PENDING_CALLS = 64
-TOPIC_READ_SIZE = 1024 * 1024
 
 
 @dataclass(eq=False)
@@ -126,15 +111,6 @@ class Outbound:
     granted_writers: frozenset[str] = frozenset()
     #: when (monotonic) its name left the graph (None: on the air): see VANISHED_GRACE
     vanished_at: float | None = None
-
-
-@dataclass(eq=False)
-class Proxy:
-    """A remote service offered on this domain: requests go down one inbound stream."""
-
-    chan: int
-    writer: asyncio.StreamWriter
-    pending: set[int] = field(default_factory=set)
 
 
 def withdrawal_reason(key: tuple[str, str, str], out: Outbound, want: dict, on_air: set[str],
@@ -167,16 +143,12 @@ class Ros2Role(Role):
         self._outbound: dict[tuple[str, str, str], Outbound] = {}  # (kind, name, type)
         self._out_by_chan: dict[int, Outbound] = {}
         self._calls: dict[int, tuple[asyncio.StreamWriter, int, set[int]]] = {}
-        self._proxies: dict[str, Proxy] = {}
-        self._proxy_by_chan: dict[int, Proxy] = {}
-        self._inbound: set[asyncio.StreamWriter] = set()
         self._noted: set[tuple] = set()
         #: (kind, name) the last graph shows but :meth:`_desired` did not offer, and why
         self._withheld: dict[tuple[str, str], str] = {}
         #: why this robot has nothing to offer: its own token gone (past its grace), or None
         self._no_token: TokenError | None = None
-        self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
-        self._partial = PartialFrames()  # each peer's unfinished frames, across its streams
+        self._partial = PartialFrames()  # each peer's unfinished frames, across its streams both ways
         self._peer_learnt: dict[Endpoint, float] = {}  # when (monotonic) a peer's token was last asked for
         self._peer_lookups: dict[Endpoint, tuple[float, asyncio.Future]] = {}  # (started, exchange)
         #: set when a peer manager shows a fresher token (a grant of its changed): the streams
@@ -196,7 +168,9 @@ class Ros2Role(Role):
         #: samples injected as its nodes'), and nothing is carried, either way
         self._ports = PortExposure()
         self._loopback: str | None = None
-        gateway.serve("ros2", self._check_ros2_target, self._serve_ros2_stream)
+        self.inbound = Ros2Inbound(gateway, self.bridge, next_chan=lambda: next(self._chans),
+                                   graph=lambda: self._graph, problem=self.problem, partial=self._partial)
+        gateway.serve("ros2", self.inbound.check_target, self.inbound.serve)
 
     # ================================================================ life cycle
     async def prepare(self) -> None:
@@ -217,9 +191,7 @@ class Ros2Role(Role):
         self._stopping = True
         for out in list(self._outbound.values()):
             self._withdraw(out)
-        for proxy in list(self._proxies.values()):
-            if not proxy.pending:  # a peer's service offered here, no call under way: nothing to wait for
-                proxy.writer.transport.abort()  # (a stop gave each such stream its 5 s grace: a restart's gap)
+        self.inbound.abort_idle_proxies()
 
     async def stopped(self) -> None:
         await self.bridge.stop()
@@ -231,8 +203,7 @@ class Ros2Role(Role):
     def _reset_local_state(self) -> None:
         for out in list(self._outbound.values()):
             self._withdraw(out, tell_bridge=False)
-        for writer in list(self._inbound):
-            writer.transport.abort()
+        self.inbound.close_all()
         self._graph = {"topics": [], "services": []}
 
     # ================================================================ bridge frames
@@ -301,14 +272,7 @@ class Ros2Role(Role):
         if kind == fr.MESSAGE:
             self._on_bridge_messages(chan, 1, bytearray(fr.encode(fr.MESSAGE, chan, payload)))
         elif kind == fr.REQUEST:  # a local client called a proxy of a remote service
-            rid, cdr = fr.ID.unpack_from(payload)[0], payload[4:]
-            proxy = self._proxy_by_chan.get(chan)
-            if proxy is None or len(proxy.pending) >= MAX_PENDING_CALLS:
-                self.bridge.link.send(fr.encode(fr.REPLY, chan, fr.ID.pack(rid) + b"\x00"))
-                return
-            proxy.pending.add(rid)
-            log.debug("request %d for proxy channel %d goes to the serving robot", rid, chan)
-            proxy.writer.write(fr.encode(fr.SRV_REQUEST, rid, cdr))
+            self.inbound.request(chan, payload)
         elif kind == fr.RESULT:  # the local server answered a remote caller
             bid = fr.ID.unpack_from(payload)[0]
             entry = self._calls.pop(bid, None)
@@ -557,16 +521,15 @@ class Ros2Role(Role):
                 out.tasks[endpoint] = asyncio.create_task(self._forward(out, endpoint))
             for endpoint in set(out.tasks) - peers:
                 out.tasks.pop(endpoint).cancel()
-        if self._inbound:
+        if self.inbound.writers:
             try:
                 self.gw.own_access_in_grace()
                 why = "this host's loopback answers other hosts" if exposed else None
             except TokenError as exc:  # our own token is gone (past its grace): nothing comes in either
                 why = f"this robot holds no access token now ({exc.detail})"
             if why is not None:
-                log.warning("closing %d inbound stream(s): %s", len(self._inbound), why)
-                for writer in list(self._inbound):
-                    writer.transport.abort()
+                log.warning("closing %d inbound stream(s): %s", len(self.inbound.writers), why)
+                self.inbound.close_all()
 
     def _on_air(self) -> set[str]:
         """The topics with a publisher and the services with a server that the graph names
@@ -792,221 +755,6 @@ class Ros2Role(Role):
             self._calls[bid] = (writer, rid, pending)
             self.bridge.link.send(fr.encode(fr.CALL, out.chan, fr.ID.pack(bid) + cdr))
 
-    # ================================================================ inbound
-    def _check_ros2_target(self, preamble: Preamble) -> Target:
-        """The stream's target (malformed ones refused before the reply) and its judge:
-        the peer's grant for the node, name and type it names, run before the reply and
-        again on each fresher token the peer shows."""
-        target = StreamTarget.decode(preamble.target)
-        if ros2_stays_local(target.name, (target.type,)) or self.cfg.ros2.is_local(target.name):
-            # what this robot never offers is never taken either, whatever a grant says
-            raise PolicyDenied("local_name", f"{target.name} [{target.type}] stays on each robot (ROS 2's own, or "
-                                             "[ros2] local here): not carried between robots")
-        if not self.bridge.ready:
-            raise PolicyDenied("bridge_down", "the DDS bridge is not running")
-        problem = self.problem()
-        if problem is not None:
-            raise problem
-
-        def judge(grants) -> None:
-            if grants.allows(target.action, target.node, target.name, target.type):
-                return
-            # the peer's token is narrowed to what our grants need of it: our grant removed
-            # takes its grant out of its next token too, and the refusal names ours (a ROS 2
-            # audit: "/talker may not publish" was logged for robot B's removed subscribe)
-            with contextlib.suppress(TokenError):
-                own = self.gw.own_access()
-                if not manager_may(own.grants, target.peer_action, target.name, target.type):
-                    raise PolicyDenied("not_granted_here", f"this robot's manager {own.subject} may not "
-                                                           f"{target.peer_action} {target.name} [{target.type}]")
-            raise PolicyDenied("not_granted", f"{target.node} may not {target.action} {target.name} [{target.type}]")
-
-        return Target(target, judge)
-
-    async def _serve_ros2_stream(self, stream: InboundStream) -> None:
-        reader, writer, peer = stream.reader, stream.writer, stream.peer
-        target: StreamTarget = stream.resolved  # decoded and judged by the gate (_check_ros2_target)
-        await self.gw.keeper.ensure(PEER_TOKEN_WAIT)  # our token revoked by a grant change: its successor
-        own = self.gw.own_access()
-        if not manager_may(own.grants, target.peer_action, target.name, target.type):
-            raise PolicyDenied(
-                "not_granted_here", f"this robot's manager {own.subject} may not {target.peer_action} {target.name}"
-            )
-        link = self.bridge.link
-        if link is None or not self.bridge.ready:
-            raise PolicyDenied("bridge_down", "the DDS bridge is not running")
-        monitor, watched, unregister = self.gw.monitor, None, None
-        if monitor is not None and target.kind == "topic":
-            monitor.check_admission(peer.manager, target.node)
-            unregister = monitor.register(peer.manager, target.node, writer.transport.abort)
-            watched = monitor.watch(manager=peer.manager, publisher=target.node, topic=target.name,
-                                    typename=target.type, cut=writer.transport.abort, codec="cdr")
-            if watched is None and monitor.settings.gates(target.name):  # never unscored
-                unregister()
-                raise PolicyDenied("monitor_busy", f"{target.name} is gated by the monitor, which watches as "
-                                                   "many streams as it may")
-        self.metrics.allowed.labels(f"ros2_{target.kind}").inc()
-        self._inbound.add(writer)
-        try:
-            if target.kind == "topic":
-                with self.gw.cuttable():  # a topic stream never ends by itself: a stop cuts it at once
-                    await self._republish(reader, peer, target, link, writer, stream.pending, watched)
-            else:
-                await self._offer_service(reader, writer, peer, target, link, stream.pending)
-        finally:
-            self._inbound.discard(writer)
-            if watched is not None:
-                watched.close()
-            if unregister is not None:
-                unregister()
-
-    async def _republish(self, reader, peer: Peer, target: StreamTarget, link: BridgeLink, writer,
-                         first: bytes = b"", watched: WatchedStream | None = None) -> None:
-        qos = self._receiver_qos(target)
-        kept_depth = qos.depth if qos.durability == "transient_local" else 0
-        kept = 0  # what this stream makes this robot keep for late joiners: depth x largest sample
-        kept_limit = self.cfg.ros2.max_kept_bytes_per_peer
-        log.info("republishing %s [%s] from %s (%s)", target.name, target.type, peer.manager, target.node)
-        decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.DATA}))
-        try:
-            check = checker_for(target.type)
-        except CdrError as exc:
-            raise PolicyDenied("type_not_checkable", f"{target.type}: {exc}") from None
-        refused = 0
-        # a gated topic: each sample is scored before it is republished, a suspicious one dropped
-        gate = watched.gate if watched is not None and self.gw.monitor.settings.gates(target.name) else None
-        budget = self.gw.budget(peer)
-        rx = self.metrics.bytes.labels("rx")
-        # The shared public listener's readers pause the TLS transport at 2 x 64 KiB:
-        # an 80 KB image would cost a pause/resume per message. Topic streams read big.
-        widen_reader(reader, TOPIC_READ_SIZE)
-        # Each inbound stream has a DDS publisher of its own on this robot's domain, never
-        # one shared by every peer sending the topic: what one peer's stream does to its
-        # writer (a flood that wedges it and its readers: docs/ros2.md, samples kept for
-        # late joiners) is its own, and ends with the stream (its publisher is destroyed).
-        chan = next(self._chans)
-        link.control(op="advertise", chan=chan, topic=target.name, type=target.type, qos=qos.to_dict())
-        partial = contextlib.ExitStack()
-        charge = partial.enter_context(self._partial.charge(peer.manager, self.cfg.ros2.max_message_size))
-        try:
-            async for data in read_chunks(reader, TOPIC_READ_SIZE, first):
-                rx.inc(len(data))
-                try:
-                    decoder.feed(data)
-                    runs = decoder.runs()  # DATA frames, checked and kept whole: relabelled in place
-                except fr.FrameError as exc:
-                    raise RemoteProtocolError(str(exc)) from None
-                charge(decoder.buffered)
-                runs, bad = _checked_runs(runs, check)
-                if gate is not None and runs:
-                    runs, _dropped = _checked_runs(runs, functools.partial(_gated_sample, gate))
-                if bad:
-                    if not refused:
-                        log.warning("DENY ros2 sample from %s on %s [%s]: %s (dropped; logged once per stream)",
-                                    peer.manager, target.name, target.type, bad[0])
-                    refused += len(bad)
-                    self.metrics.denied.labels("ros2_sample", "malformed_sample").inc(len(bad))
-                if writer.transport.is_closing():
-                    break  # cut (revoked, reloaded away): what is still buffered is not republished
-                if runs and kept_depth:
-                    largest = max(len(p) for run in runs for p in fr.payloads(run[3]))
-                    if largest * kept_depth > kept:
-                        held = self._kept.get(peer.manager, 0) - kept + largest * kept_depth
-                        if held > kept_limit:
-                            raise PolicyDenied("kept_budget", (
-                                f"{peer.manager}'s samples kept for late joiners would take {held} bytes here "
-                                f"({kept_depth} x {largest} B on {target.name}); the limit is {kept_limit} "
-                                "([ros2] max_kept_bytes_per_peer)"))
-                        self._kept[peer.manager] = held
-                        kept = largest * kept_depth
-                if runs and watched is not None and gate is None:  # the monitor queues them; it scores later
-                    watched.feed_messages([bytes(p) for run in runs for p in fr.payloads(run[3])])
-                if not runs:
-                    continue
-                blocks = [fr.retag(frames, fr.PUBLISH, chan) for _, _, _, frames in runs]
-                whole = blocks[0] if len(blocks) == 1 else bytearray(b"".join(blocks))
-                n = sum(run[2] for run in runs)
-                # throttled, never stalled: a read of a flood holds thousands of messages, and
-                # handing them to the domain at once is a flood of the local readers in itself
-                # (a reliable reader overrun by one writer stops delivering every writer's
-                # samples: docs/ros2.md). So a read goes on in pieces of at most the bucket,
-                # each when the peer's budget lets it; the rate holds within every second.
-                for count, piece in fr.pieces(whole, n, max(1, int(budget.burst)) if budget else n):
-                    if budget is not None:
-                        while (wait := budget.delay(count)) > 0:
-                            budget.throttled += 1
-                            await asyncio.sleep(wait)
-                    if writer.transport.is_closing():
-                        break  # cut while it waited: the rest is not republished
-                    link.send(piece)
-                    # flow control: while the bridge is behind, stop reading this stream (TLS and
-                    # TCP then hold the sender back) instead of buffering without bound
-                    transport = link.transport
-                    if transport is not None and transport.get_write_buffer_size() > BACKLOG_HIGH:
-                        until = asyncio.get_running_loop().time() + BACKLOG_STALL
-                        while (transport.get_write_buffer_size() > BACKLOG_LOW and not transport.is_closing()
-                               and asyncio.get_running_loop().time() < until):
-                            await asyncio.sleep(0.002)
-        except PolicyDenied:
-            raise
-        finally:
-            partial.close()
-            # its publisher goes with it, and with it every sample it kept for late joiners
-            link.control(op="unadvertise", chan=chan)
-            if kept:
-                left = self._kept.get(peer.manager, 0) - kept
-                if left > 0:
-                    self._kept[peer.manager] = left
-                else:
-                    self._kept.pop(peer.manager, None)
-
-    def _receiver_qos(self, target: StreamTarget) -> QoS:
-        """The sender's QoS is a request: this robot caps the depth at its own ``depth``
-        and keeps samples for late joiners only on its ``transient_local`` topics."""
-        settings = self.cfg.ros2
-        return receiver_qos(target.qos, depth=settings.depth,
-                            keep_for_late_joiners=settings.keeps_for_late_joiners(target.name))
-
-    async def _offer_service(self, reader, writer, peer: Peer, target: StreamTarget, link: BridgeLink,
-                             first: bytes = b"") -> None:
-        if target.name in self._proxies:
-            raise PolicyDenied("already_offered", f"{target.name} is already offered by another robot")
-        if any(s["name"] == target.name and s.get("servers") for s in self._graph.get("services", [])):
-            raise PolicyDenied("served_here", f"{target.name} has a server on this robot's domain: a second one "
-                                              "would race its answers")
-        proxy = Proxy(chan=next(self._chans), writer=writer)
-        self._proxies[target.name] = proxy
-        self._proxy_by_chan[proxy.chan] = proxy
-        link.control(op="serve", chan=proxy.chan, service=target.name, type=target.type, peer=peer.manager)
-        log.info("offering remote service %s [%s] on the local domain", target.name, target.type)
-        decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_RESPONSE}))
-        try:
-            with self._partial.charge(peer.manager, self.cfg.ros2.max_message_size) as charge:
-                async for data in read_chunks(reader, READ_SIZE, first):
-                    self._proxy_replies(proxy, decoder, data, link)
-                    charge(decoder.buffered)
-        finally:
-            del self._proxies[target.name]
-            del self._proxy_by_chan[proxy.chan]
-            link.control(op="unserve", chan=proxy.chan)
-            for rid in proxy.pending:
-                link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
-
-    @staticmethod
-    def _proxy_replies(proxy: Proxy, decoder: fr.FrameDecoder, data: bytes, link: BridgeLink) -> None:
-        """The answers a remote server sent for the proxy's calls, handed to the bridge."""
-        try:
-            decoder.feed(data)
-            frames = decoder.frames()
-            for _, rid, body in frames:
-                fr.split_status(body)
-                if rid not in proxy.pending:
-                    raise RemoteProtocolError(f"response to request {rid}, which was never sent")
-                proxy.pending.discard(rid)
-                link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + body))
-        except fr.FrameError as exc:
-            raise RemoteProtocolError(str(exc)) from None
-
 
 def reusable(learnt_at: float | None, *, now: float, recheck: float | None) -> bool:
     """Whether a peer token learnt at ``learnt_at`` (monotonic) may answer "may it receive
@@ -1019,43 +767,6 @@ def reusable(learnt_at: float | None, *, now: float, recheck: float | None) -> b
     if recheck is not None:
         return learnt_at >= recheck - RECHECK_MARGIN
     return now - learnt_at < PEER_RECHECK
-
-
-class _Gated(CdrError):
-    """A sample the monitor's gate dropped (counted by the monitor, not as malformed)."""
-
-
-def _gated_sample(gate: Callable[[bytes], bool], sample: memoryview) -> None:
-    if not gate(bytes(sample)):
-        raise _Gated("suspicious: dropped by the monitor's gate")
-
-
-def _checked_runs(runs: list, check) -> tuple[list, list[str]]:
-    """Runs of DATA frames with every sample whose CDR does not check out removed;
-    the reasons of the removed ones."""
-    bad: list[str] = []
-    out = []
-    head = fr.HEAD.size
-    for kind, chan, count, frames in runs:
-        pos, keep, kept, dropped = 0, [], 0, False
-        view = memoryview(frames)
-        while pos < len(frames):
-            (length,) = fr.ID.unpack_from(frames, pos)  # u32 LE length, as the frame head starts
-            stop = pos + 4 + length
-            try:
-                check(view[pos + head : stop])
-                keep.append((pos, stop))
-                kept += 1
-            except CdrError as exc:
-                bad.append(str(exc))
-                dropped = True
-            pos = stop
-        view.release()
-        if not dropped:
-            out.append((kind, chan, count, frames))
-        elif kept:
-            out.append((kind, chan, kept, bytearray(b"".join(frames[a:b] for a, b in keep))))
-    return out, bad
 
 
 __all__ = ["Ros2Role", "reusable"]
