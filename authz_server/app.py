@@ -85,6 +85,9 @@ MAX_BODY = 16 * 1024
 OBSERVE_RATE, OBSERVE_BURST = 2.0, 30
 #: how often each replica reads the feed from the registry (long-polls wake on a change)
 FEED_WATCH_INTERVAL = 0.25
+#: a token whose grants changed in the registry while it was issued is built again, at
+#: most this many times in all (then 503: the client retries)
+ISSUE_ATTEMPTS = 3
 #: the longest ``?wait=`` a client may ask for; it is held at most ``max_feed_wait`` (config)
 MAX_FEED_WAIT = 3600.0
 #: a streamed long-poll's heartbeat interval bounds (``?heartbeat=``, seconds)
@@ -258,7 +261,9 @@ class _Heartbeats:
 
 
 class _AuditWriter:
-    """Group commit of audit rows: ``await write(entry)`` returns once it is stored."""
+    """Group commit of audit rows: ``await write(entry)`` returns once it is stored (True),
+    or once the registry refused it (False: an issued token whose grants changed since
+    they were read, :meth:`~authz_server.registry.Registry.record`)."""
 
     def __init__(self, service: AuthzService) -> None:
         self.service = service
@@ -270,13 +275,13 @@ class _AuditWriter:
     def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name="audit-writer")
 
-    async def write(self, entry: AuditEntry) -> None:
+    async def write(self, entry: AuditEntry) -> bool:
         if self._closing:
             raise ConfigError("shutting down")
         fut = asyncio.get_running_loop().create_future()
         self._pending.append((entry, fut))
         self._wake.set()
-        await fut
+        return await fut
 
     async def _run(self) -> None:
         while True:
@@ -288,16 +293,16 @@ class _AuditWriter:
                     return
                 continue
             try:
-                await self.service.db(self.service.registry.record, [e for e, _ in batch])
+                stored = await self.service.db(self.service.registry.record, [e for e, _ in batch])
             except Exception as exc:  # the DB is down: every waiter fails closed
                 log.error("audit write failed for %d rows: %s", len(batch), exc)
                 for _e, fut in batch:
                     if not fut.done():
                         fut.set_exception(exc)
             else:
-                for _e, fut in batch:
+                for (_e, fut), ok in zip(batch, stored):
                     if not fut.done():
-                        fut.set_result(None)
+                        fut.set_result(ok)
             if self._closing and not self._pending:
                 return
 
@@ -734,30 +739,42 @@ class AuthzService:
                     log.warning("token requests from certificate %s (%s) over %.0f/s: answered 429 (logged once a "
                                 "minute)", fp[:16], remote, self.cfg.token_rate)
                 return _oauth_error(429, "slow_down")
-            info, grants = await self.manager_for(fp)
-            if info is None:
-                raise _Denied(401, "invalid_client", "unknown_certificate")
-            manager = info.name
-            mismatch = self.holder_mismatch(fp, der, manager)
-            if mismatch is not None:
-                raise _Denied(401, "invalid_client", f"certificate_identity {mismatch}", manager)
-            client_id = form.get("client_id")
-            if client_id is not None and client_id != info.name:
-                raise _Denied(401, "invalid_client", f"client_id {client_id[:64]!r} does not match the certificate",
-                              manager)
-            if not info.enabled:
-                raise _Denied(403, "access_denied", "manager_disabled", manager)
-            audience, note = self.cfg.audience, ""
-            resource = form.get("resource")
-            if resource is not None:  # RFC 8707: a token for one peer interceptor only
-                audience, grants, note = await self._narrowed(resource, grants, manager)
-            signer = await self.signer()
-            claims = build_claims(issuer=self.cfg.issuer, audience=audience, subject=info.name,
-                                  grants=grants, cert_der=der, now=int(time.time()),
-                                  lifetime=self.cfg.token_lifetime, jti=new_jti())
-            token = sign_token(claims, signer.private_key, signer.kid)
-            await self.audit.write(AuditEntry("issued", info.name, fp, remote, note, claims["jti"], signer.kid,
-                                              claims["exp"]))
+            for _attempt in range(ISSUE_ATTEMPTS):
+                info, grants = await self.manager_for(fp)
+                if info is None:
+                    raise _Denied(401, "invalid_client", "unknown_certificate")
+                manager = info.name
+                mismatch = self.holder_mismatch(fp, der, manager)
+                if mismatch is not None:
+                    raise _Denied(401, "invalid_client", f"certificate_identity {mismatch}", manager)
+                client_id = form.get("client_id")
+                if client_id is not None and client_id != info.name:
+                    raise _Denied(401, "invalid_client", f"client_id {client_id[:64]!r} does not match the certificate",
+                                  manager)
+                if not info.enabled:
+                    raise _Denied(403, "access_denied", "manager_disabled", manager)
+                audience, note, version = self.cfg.audience, "", info.version or 0
+                resource = form.get("resource")
+                if resource is not None:  # RFC 8707: a token for one peer interceptor only
+                    audience, grants, note, peer_version = await self._narrowed(resource, grants, manager)
+                    version = min(version, peer_version)
+                signer = await self.signer()
+                claims = build_claims(issuer=self.cfg.issuer, audience=audience, subject=info.name,
+                                      grants=grants, cert_der=der, now=int(time.time()),
+                                      lifetime=self.cfg.token_lifetime, jti=new_jti())
+                token = sign_token(claims, signer.private_key, signer.kid)
+                if await self.audit.write(AuditEntry("issued", info.name, fp, remote, note, claims["jti"], signer.kid,
+                                                     claims["exp"], version=version)):
+                    break
+                # the registry changed since these grants were read (this replica's cache is
+                # up to FEED_WATCH_INTERVAL behind): the token is dropped, never handed out,
+                # and built again from the registry as it is now
+                log.debug("grants of %s changed while its token was issued: issued again", manager)
+                self._managers.clear()
+            else:
+                log.warning("token for %s not issued: the registry changed under each of %d attempts (answered 503)",
+                            manager, ISSUE_ATTEMPTS)
+                return _oauth_error(503, "temporarily_unavailable")
         except _Denied as d:
             self.metrics.denied.labels(d.reason.split(" ")[0]).inc()
             # a robot asking for a token for a peer the operator disabled is expected: info
@@ -805,8 +822,9 @@ class AuthzService:
                      MAX_OBSERVATIONS)
         return web.json_response({"accepted": accepted, "refused": refused})
 
-    async def _narrowed(self, resource: str, grants: Grants, manager: str) -> tuple[str, Grants, str]:
-        """Audience, grants and audit note of a token for the peer ``resource`` names
+    async def _narrowed(self, resource: str, grants: Grants, manager: str) -> tuple[str, Grants, str, int]:
+        """Audience, grants, audit note and registry version (the peer's grants were read at)
+        of a token for the peer ``resource`` names
         (``urn:cryptoros:peer:<x5t#S256>``): only the grants on topics and services the
         peer's manager holds a grant on too, so the peer learns nothing of the others
         (:meth:`~cryptoros.grants.Grants.narrowed_to`)."""
@@ -821,7 +839,7 @@ class AuthzService:
             # read "manager=robot_a ... resource_unknown" as robot A refused): named as the peer's
             raise _Denied(400, "invalid_target", f"peer_disabled (a token for {target.name}, which is disabled)",
                           manager)
-        return resource, grants.narrowed_to(target_grants), f"for {target.name}"
+        return resource, grants.narrowed_to(target_grants), f"for {target.name}", target.version or 0
 
 
 async def _read_form(request: web.Request) -> dict[str, str]:

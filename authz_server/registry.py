@@ -34,7 +34,7 @@ import sys
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -150,6 +150,9 @@ class ManagerInfo:
     #: a renewed certificate's predecessor, accepted until ``previous_until`` (Unix seconds)
     previous_fingerprint: str | None = None
     previous_until: int | None = None
+    #: the registry's version read just before this (:meth:`Registry.lookup_fingerprint`):
+    #: what a token built from it is checked against when its row is stored
+    version: int | None = None
 
 
 @dataclass(frozen=True)
@@ -207,6 +210,9 @@ class AuditEntry:
     kid: str | None = None
     expires_at: int | None = None
     at: datetime = field(default_factory=_now)
+    #: an issued token: the registry version its grants were read at; :meth:`Registry.record`
+    #: stores the row only if no change committed since (else the token must not be handed out)
+    version: int | None = None
 
 
 @dataclass(frozen=True)
@@ -292,6 +298,26 @@ class Registry:
             else:  # pragma: no cover - the registry runs on SQLite or PostgreSQL
                 s.get(RegistryState, CHANGE_CHAIN, with_for_update=True)
             yield s
+
+    @contextmanager
+    def _issuing(self) -> Iterator[Session]:
+        """A transaction that stores issued tokens: it holds the change lock shared (many
+        at once, never during a change), so the registry's version it reads stays the
+        version until it commits (:meth:`record`)."""
+        with self._session.begin() as s:
+            backend = self.engine.dialect.name
+            if backend == "sqlite":  # one writer at a time: the lock a change takes at its start
+                s.connection().exec_driver_sql("BEGIN IMMEDIATE")
+            elif backend == "postgresql":
+                s.execute(select(func.pg_advisory_xact_lock_shared(_CHAIN_LOCK_KEY)))
+            else:  # pragma: no cover - the registry runs on SQLite or PostgreSQL
+                s.get(RegistryState, CHANGE_CHAIN, with_for_update={"read": True})
+            yield s
+
+    @staticmethod
+    def _version(s: Session) -> int:
+        row = s.get(RegistryState, REGISTRY_VERSION)
+        return row.value if row is not None else 0
 
     def _log_change(self, s: Session, target: str, before: object, after: object) -> None:
         """Append one change row (in ``s``, inside :meth:`_changing`)."""
@@ -531,12 +557,13 @@ class Registry:
         its certificate, or the one it renewed while the overlap lasts."""
         now = time.time() if now is None else now
         with self._session() as s:
+            version = self._version(s)  # read first: the grants below are at least this recent
             m = s.scalars(
                 select(Manager)
                 .where(_bound_to(fingerprint, now))
                 .options(*(selectinload(getattr(Manager, rel)) for _c, _col, rel in GRANT_TABLES.values()))
             ).one_or_none()
-            return None if m is None else _info(m)
+            return None if m is None else replace(_info(m), version=version)
 
     # ------------------------------------------------------------------ grants
     def grant(self, manager: str, action: str, node: str, name: str, type_: str | None) -> bool:
@@ -934,17 +961,33 @@ class Registry:
                                                          Observation.name))]
 
     # ------------------------------------------------------------------ audit
-    def record(self, entries: Iterable[AuditEntry]) -> None:
+    def record(self, entries: Iterable[AuditEntry]) -> list[bool]:
         """Store audit rows in one transaction (one INSERT of many rows: no ORM objects,
-        this is the daemon's per-token write)."""
-        rows = [
-            {"at": e.at, "event": e.event, "manager": e.manager, "cert_fingerprint": e.cert_fingerprint,
-             "remote": e.remote, "reason": e.reason[:256], "jti": e.jti, "kid": e.kid, "expires_at": e.expires_at}
-            for e in entries
-        ]
-        if rows:
-            with self._session.begin() as s:
+        this is the daemon's per-token write); for each entry, whether it was stored.
+
+        An issued token's row (``version`` set) is stored only if the registry's version is
+        still the one its grants were read at. The check and the insert hold the change
+        lock shared (:meth:`_changing` holds it alone), so a change either committed
+        before, and the row is refused (the caller must not hand the token out: it may
+        carry a grant just taken away), or comes after, and revokes the stored token with
+        the manager's others (:meth:`_revoke_outstanding` reads these rows). Without
+        this, a token issued from a replica's cached grants in the moments after a revoke
+        carried the removed grant, unrevoked, for its whole lifetime (security audit)."""
+        entries = list(entries)
+        if not entries:
+            return []
+        checked = any(e.version is not None for e in entries)
+        with (self._issuing() if checked else self._session.begin()) as s:
+            current = self._version(s) if checked else None
+            stored = [e.version is None or e.version == current for e in entries]
+            rows = [
+                {"at": e.at, "event": e.event, "manager": e.manager, "cert_fingerprint": e.cert_fingerprint,
+                 "remote": e.remote, "reason": e.reason[:256], "jti": e.jti, "kid": e.kid, "expires_at": e.expires_at}
+                for e, ok in zip(entries, stored) if ok
+            ]
+            if rows:
                 s.execute(insert(AuditLog), rows)
+        return stored
 
     def prune_audit(self, *, keep_days: float, max_rows: int, now: float | None = None) -> int:
         """Bound the audit log: delete rows older than ``keep_days`` and, beyond

@@ -7,6 +7,7 @@ certificates (``http.client`` + our own TLS client context).
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import http.client
 import json
@@ -23,7 +24,7 @@ from pathlib import Path
 from cryptoros.lab.policy import policy_yaml
 from cryptoros.tls import TLSConfig, client_context
 from tests.pki_fixtures import TestPKIFactory
-from tests.support import free_port, run, script, stop, wait_for_port
+from tests.support import free_port, run, script, stop, until, wait_for_port
 
 PASSPHRASE = "test-signing-passphrase"
 
@@ -236,3 +237,48 @@ def build_team(workdir: Path, db: str | None = None) -> Team:
     policy.write_text(TEAM_POLICY.format(**fps))
     ok(authz("import", str(policy), db=db))
     return Team(pki, other, db, workdir)
+
+
+def stale_tokens_after_revokes(asked: AuthzDaemon, changed: AuthzDaemon, manager: str, rounds: int = 3,
+                               topic: str = "/race_check") -> list[str]:
+    """The jti of every token of ``manager`` asked for from ``asked`` after a ``revoke`` (run
+    with ``changed``'s registry) returned, that still carries the revoked grant: ``rounds``
+    times a grant given, tokens asked for back to back until they carry it, the grant
+    revoked, ten more tokens asked for."""
+    tokens: list[tuple[float, str]] = []  # (when its request started, the token)
+    stop = threading.Event()
+
+    def ask() -> None:
+        while not stop.is_set():
+            started = time.monotonic()
+            status, body = asked.token(manager)
+            if status == 200:
+                tokens.append((started, body["access_token"]))
+
+    def claims(token: str) -> dict:
+        payload = token.split(".")[1]
+        return json.loads(base64.urlsafe_b64decode(payload + "=" * (-len(payload) % 4)))
+
+    def carries(token: str) -> bool:
+        return topic in json.dumps(claims(token)["grants"])
+
+    stale: list[str] = []
+    for _round in range(rounds):
+        ok(changed.cli("grant", manager, "subscribe", "*", topic, "std_msgs/String"))
+        tokens.clear()
+        stop.clear()
+        asker = threading.Thread(target=ask)
+        asker.start()
+        try:
+            # the grant reached the daemon's memory: tokens are served from it
+            until(lambda: sum(map(carries, (t for _, t in tokens))) >= 3, 10, "tokens carrying the new grant",
+                  every=0.02)
+            ok(changed.cli("revoke", manager, "subscribe", "*", topic))
+            revoked_at = time.monotonic()
+            until(lambda: sum(1 for started, _ in tokens if started >= revoked_at) >= 10, 20,
+                  "ten tokens asked for after the revoke", every=0.02)
+        finally:
+            stop.set()
+            asker.join(timeout=30)
+        stale += [claims(t)["jti"] for started, t in tokens if started >= revoked_at and carries(t)]
+    return stale

@@ -18,7 +18,7 @@ import aiohttp
 import pytest
 
 from cryptoros.tokens import KeySet, verify_access_token
-from tests.authz_support import authz, build_team, ok, read_pem_der
+from tests.authz_support import authz, build_team, ok, read_pem_der, stale_tokens_after_revokes
 from tests.support import until
 
 ISS, AUD = "cryptoros-authz", "cryptoros"
@@ -367,6 +367,17 @@ def test_registry_changes_that_revoke_no_token_reach_the_next_token_request(daem
     ok(daemon.cli("set-cert", "erin", "--fingerprint", erin_new.fingerprint_sha256))
     _until(daemon, "erin_old", (401, {"error": "invalid_client"}))  # the old certificate is nobody's now
     assert daemon.token("erin") == (403, {"error": "access_denied"})  # the new one is erin's, still disabled
+
+
+def test_a_token_asked_for_just_after_a_grant_is_revoked_never_carries_it(daemon):
+    """Security audit (HIGH): the daemon serves a manager's grants from memory until its
+    feed watcher reads the registry's new version (up to FEED_WATCH_INTERVAL later), and
+    a revoke revokes the tokens issued before it. A token asked for in between carried
+    the removed grant, unrevoked, for its whole lifetime: an insider asking for tokens
+    continuously kept a subscription the operator took away. Now the token's audit row
+    is stored only if the registry is still at the version its grants were read at (else
+    it is built again): no token asked for after the revoke returned carries the grant."""
+    assert stale_tokens_after_revokes(daemon, daemon, "carol") == []
 
 
 def test_a_planned_renewal_with_an_overlap_serves_both_certificates_then_only_the_new(daemon):

@@ -361,6 +361,20 @@ async def test_replicas_on_postgresql_and_the_client_fails_over_when_one_dies(tm
             await client.close()
 
 
+def test_replicas_on_postgresql_issue_no_token_carrying_a_grant_just_revoked(tmp_path, postgres_url):
+    """Security audit (HIGH), on PostgreSQL with two replicas: a grant revoked through the
+    registry while a robot asks the other replica for tokens back to back. Each replica
+    serves grants from memory until its feed watcher reads the registry's new version;
+    a token's audit row is stored only if the registry is still at the version its
+    grants were read at (the change lock held shared), so none asked for after the
+    revoke returned carries the grant."""
+    from tests.authz_support import stale_tokens_after_revokes
+
+    team = build_team(tmp_path, db=postgres_url)
+    with running_daemon(team.pki, postgres_url, tmp_path) as first, running_daemon(team.pki, postgres_url, tmp_path) as second:
+        assert stale_tokens_after_revokes(second, first, "carol") == []
+
+
 async def test_a_replica_that_answers_5xx_hands_the_request_to_the_next(tmp_path, postgres_url):
     """A replica that cannot read its registry answers 503 (it is alive: no connection
     error to fail over on); the client takes that as "not now" and asks the next url,
