@@ -12,7 +12,6 @@ from collections.abc import Callable
 
 from cryptoros.errors import PEER_FAILURES, CryptorosError, PolicyDenied, RemoteProtocolError
 from cryptoros.exposure import ExposureError, read_listeners
-from cryptoros.lru import remember
 from cryptoros.policy.ros1 import (
     check_master_call,
     check_node_call,
@@ -76,19 +75,6 @@ from interceptor.translate import KIND_XMLRPC, MASTER
 #: seconds a node left with only parameter subscriptions has to stop answering before they
 #: are taken for a live node's and kept (a rospy node that exits stops at once)
 NODE_EXIT_PATIENCE = 5.0
-#: rospy, refused a topic stream, asks the publisher ``getPublications`` a second later
-#: and, if the topic is not listed then, drops that publisher for good while the master
-#: lists its URI (it never takes a URI it holds out of its list, and ignores one it
-#: holds). A publisher's next token (a grant back) tells the topic's local subscribers
-#: the publishers again, at least this long after the refusal: a grant given back within
-#: a second of its removal left a listener deaf (a day-2 test, every run).
-REFUSED_RECHECK = 1.5
-#: a refusal older than this is not acted on when the publisher's next token comes
-REFUSED_MEMORY = 60.0
-#: managers, and topics per manager, whose refused streams are remembered
-MAX_REFUSED = 256
-
-
 class NodeSide:
     """The node role of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
 
@@ -715,25 +701,30 @@ class NodeSide:
         if subscribers.get(node) != before:  # a repeat changes nothing, and writes nothing
             self._save_state_soon()
 
-    def _note_refused_stream(self, manager: str, topic: str) -> None:
-        """A topic stream from ``manager``'s side to a local subscriber was refused."""
-        refused = self._refused_streams.get(manager)
-        if refused is None:
-            refused = {}
-            remember(self._refused_streams, manager, refused, MAX_REFUSED)
-        remember(refused, topic, time.monotonic(), MAX_REFUSED)
+    def _note_refused_stream(self, manager: str, topic: str, why: str | None = None) -> None:
+        """A topic stream from ``manager``'s side to a local subscriber was refused (or
+        closed before its answer): remembered; ``why`` its side's refusal, logged once a
+        minute per manager and topic (None: refused here, a DENY logged already)."""
+        self._refused_streams.refused(manager, topic)
+        if why is not None and self._refusal_log((manager, topic)):
+            log.info("the %s stream from %s to a subscriber here was refused by its side: %s (said once a minute "
+                     "per topic)", topic, manager, why)
 
     def _peer_token_fresher(self, access: AccessToken) -> None:
         """A peer showed a fresher token (its grants may have changed): the topics whose
         streams its side refused lately are told their publishers again, once rospy's
-        own check after each refusal is over (:data:`REFUSED_RECHECK`)."""
-        refused = self._refused_streams.pop(access.subject, None)
-        if not refused:
+        own check after each refusal is over, and later each time the same topic's
+        streams are refused again (:mod:`interceptor.ros1.refusals`)."""
+        due = self._refused_streams.due(access.subject)
+        if not due:
             return
-        now = time.monotonic()
-        for topic, at in refused.items():
-            if now - at < REFUSED_MEMORY:
-                self.gw.spawn(self._resubscribe_after(topic, at + REFUSED_RECHECK - now))
+        if self._refusal_log(access.subject):
+            waits = [wait for _topic, wait in due]
+            log.info("%s showed a fresher token: the subscribers of %d topic(s) its side refused are told their "
+                     "publishers again in %.1f to %.1f s (said once a minute)", access.subject, len(due), min(waits),
+                     max(waits))
+        for topic, wait in due:
+            self.gw.spawn(self._resubscribe_after(topic, wait))
 
     async def _resubscribe_after(self, topic: str, delay: float) -> None:
         await asyncio.sleep(max(0.0, delay))

@@ -209,7 +209,7 @@ class Relays:
                 # line about the legitimate peer after each grant given back)
                 log.info("the %s stream to %s closed before its answer: %s", purpose, target, exc)
                 if purpose == "topic":
-                    self._note_refused_stream(peer.manager, fields["topic"])
+                    self._note_refused_stream(peer.manager, fields["topic"], "closed before its answer")
                 await pass_refusal(writer, OPAQUE)
                 tunnel_writer.close()
                 writer.close()
@@ -217,7 +217,7 @@ class Relays:
             reply_fields = reply.as_dict()
             if "error" in reply_fields:  # the far side refused the stream: nothing is pumped
                 if purpose == "topic":
-                    self._note_refused_stream(peer.manager, fields["topic"])
+                    self._note_refused_stream(peer.manager, fields["topic"], str(reply_fields["error"])[:200])
                 await pass_refusal(writer, reply_fields["error"])
                 tunnel_writer.close()
                 writer.close()
@@ -225,6 +225,7 @@ class Relays:
 
             if purpose == "topic":  # a subscriber of any type: what it gets
                 check_subscribed_type(fields, reply_fields.get("type", ""), grants=own.grants)
+                self._refused_streams.accepted(peer.manager, fields["topic"])
 
             def judge(grants) -> None:
                 """The publisher's (server's) side against its grants, again on each fresher
@@ -293,7 +294,7 @@ class Relays:
                 self.gw.deny("relay", exc, str(target), hint=header_hint(
                     exc, opener=self.cfg.manager, server=tunnel.peer.manager if tunnel is not None else None))
                 if tunnel is not None and isinstance(exc, PolicyDenied) and "topic" in fields:
-                    self._note_refused_stream(tunnel.peer.manager, fields["topic"])
+                    self._note_refused_stream(tunnel.peer.manager, fields["topic"])  # our DENY, logged
                 with contextlib.suppress(Exception):
                     writer.write(encode_header({"error": OPAQUE}))
             if tunnel_writer is not None:

@@ -47,6 +47,7 @@ from interceptor.ros1.answers import TopicAnswers
 from interceptor.ros1.ledger import MasterLedger
 from interceptor.ros1.master_side import MasterSide
 from interceptor.ros1.notices import Notices
+from interceptor.ros1.refusals import REFUSED_MEMORY, RefusedStreams
 from interceptor.ros1.localcalls import LocalCalls
 from interceptor.ros1.node_side import NodeSide
 from interceptor.ros1.relays import Relays
@@ -200,8 +201,9 @@ class Ros1Role(MasterSide, NodeSide, Relays, PersistedState, GatewayRole):
         #: set (and replaced) when our own token changes: waits for a peer cut short (_wait_reachable)
         self._token_news: asyncio.Event | None = None
         #: node role: topic streams refused to this host's subscribers, by the manager whose
-        #: side refused or would have sent them: {manager: {topic: when (monotonic)}}
-        self._refused_streams: dict[str, dict[str, float]] = {}
+        #: side refused or would have sent them, and when to tell their subscribers again
+        self._refused_streams = RefusedStreams()
+        self._refusal_log = OncePer(REFUSED_MEMORY, max_keys=1024)
         self._master_pid: int | None = None
         #: node role: each local node's API export, and the exports (TCPROS servers,
         #: service servers) that came from it: released when the node registers again
