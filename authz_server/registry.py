@@ -970,9 +970,9 @@ class Registry:
         lock shared (:meth:`_changing` holds it alone), so a change either committed
         before, and the row is refused (the caller must not hand the token out: it may
         carry a grant just taken away), or comes after, and revokes the stored token with
-        the manager's others (:meth:`_revoke_outstanding` reads these rows). Without
-        this, a token issued from a replica's cached grants in the moments after a revoke
-        carried the removed grant, unrevoked, for its whole lifetime (security audit)."""
+        the manager's others (:meth:`_revoke_outstanding` reads these rows). Without the
+        check, a token built from a replica's kept grants in the moments after a revoke
+        would carry the removed grant, unrevoked, for its whole lifetime."""
         entries = list(entries)
         if not entries:
             return []

@@ -75,6 +75,8 @@ from interceptor.translate import KIND_XMLRPC, MASTER
 #: seconds a node left with only parameter subscriptions has to stop answering before they
 #: are taken for a live node's and kept (a rospy node that exits stops at once)
 NODE_EXIT_PATIENCE = 5.0
+
+
 class NodeSide:
     """The node role of :class:`~interceptor.ros1.role.Ros1Role` (a part of it)."""
 
