@@ -6,21 +6,14 @@ from __future__ import annotations
 import pytest
 
 from interceptor.ros1.refusals import MAX_REFUSED, REFUSED_MEMORY, REFUSED_RECHECK, RefusedStreams
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.support import Clock
 
 
 def test_a_grant_given_back_tells_the_subscribers_once_rospys_own_check_is_over():
     clock = Clock()
     refused = RefusedStreams(clock)
     refused.refused("robot_a", "/chatter")
-    clock.now += 0.2  # robot A's next token (its grant back) arrives
+    clock.t += 0.2  # robot A's next token (its grant back) arrives
     assert refused.due("robot_a") == [("/chatter", pytest.approx(REFUSED_RECHECK - 0.2))]
     assert refused.due("robot_a") == []  # told once; nothing until refused again
     assert refused.due("robot_b") == []
@@ -34,10 +27,10 @@ def test_streams_refused_again_and_again_are_told_again_ever_later_until_one_is_
     waits = []
     for _ in range(8):
         refused.refused("mallory", "/scan")
-        clock.now += 0.01
+        clock.t += 0.01
         ((topic, wait),) = refused.due("mallory")
         waits.append(round(wait + 0.01, 6))
-        clock.now += wait  # told; the subscriber connects again and is refused again
+        clock.t += wait  # told; the subscriber connects again and is refused again
     assert waits == [1.5, 3.0, 6.0, 12.0, 24.0, 48.0, REFUSED_MEMORY, REFUSED_MEMORY]
     refused.accepted("mallory", "/scan")  # a stream went through: the back-off starts over
     refused.refused("mallory", "/scan")
@@ -51,7 +44,7 @@ def test_an_old_refusal_is_not_acted_on_and_the_memory_is_bounded():
     clock = Clock()
     refused = RefusedStreams(clock)
     refused.refused("robot_a", "/old")
-    clock.now += REFUSED_MEMORY
+    clock.t += REFUSED_MEMORY
     assert refused.due("robot_a") == []
     for m in range(MAX_REFUSED + 10):
         for t in range(3):
