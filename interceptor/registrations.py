@@ -106,6 +106,12 @@ class LocalRegistrations:
         """The refused registrations, oldest first (kept across a restart in the state file)."""
         return [(self._entries[key].method, self._entries[key].params) for key in self._refused]
 
+    def made_items(self) -> list[tuple[str, tuple]]:
+        """The registrations rosmaster holds (kept across a restart in the state file: a
+        grant removed and given back makes them again, a node dead meanwhile has them
+        withdrawn, whether or not this interceptor restarted in between)."""
+        return [(reg.method, reg.params) for reg in self._entries.values() if not reg.refused]
+
     def released(self, method: str, params: tuple) -> None:
         """The node unregistered it (an ``unregister*`` call), or it is gone."""
         key = _key(method, params)

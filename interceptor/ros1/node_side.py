@@ -562,9 +562,11 @@ class NodeSide:
             for service, nodes in services:
                 mine = [n for n in nodes if n in own]
                 uri = await ask("lookupService", service) if mine else None
-                if isinstance(uri, str) and self.translator.adopt(uri) is not None:
-                    for node in mine:
+                endpoint = self.translator.adopt(uri) if isinstance(uri, str) else None
+                if endpoint is not None:
+                    for node in mine:  # (kept as made: a node dead meanwhile has it withdrawn)
                         self._node_registrations.setdefault(node, set()).add(("srv", service))
+                        self._ledger.made("registerService", (node, service, endpoint.uri, own[node]))
             for kind, section in (("pub", publishers), ("sub", subscribers)):
                 for topic, nodes in section:
                     for node in (n for n in nodes if n in own):
@@ -591,17 +593,19 @@ class NodeSide:
         """Keep a local node's registration (as the node sent it) made or refused by the
         master, and forget one it released (:mod:`interceptor.registrations`)."""
         if call.method in RELEASE:
-            self._ledger.released(call.method, call.params)
+            if self._ledger.get(call.method, call.params) is not None:
+                self._ledger.released(call.method, call.params)
+                self._save_state_soon()
         elif call.method in REGISTER:
             try:
                 local = rewrite_call(call, caller_api=self.translator.to_local, service_api=self.translator.to_local)
             except CryptorosError:
                 return
             if ros_ok(response):
-                waiting = self._ledger.get(local.method, local.params)
+                known = self._ledger.get(local.method, local.params)
                 self._ledger.made(local.method, local.params)
-                if waiting is not None and waiting.refused:
-                    self._save_state_soon()
+                if known is None or known.refused or known.params != tuple(local.params):
+                    self._save_state_soon()  # a repeat changes nothing, and writes nothing
             elif self._ledger.refused(local.method, local.params):
                 self._save_state_soon()
 
@@ -664,6 +668,7 @@ class NodeSide:
         except PEER_FAILURES:
             log.info("%s %s of %s not made again: the node does not answer", reg.method, reg.params[1], reg.params[0])
             self._ledger.released(reg.method, reg.params)
+            self._save_state_soon()
             return False
         response = await self._local_master_request(Request(method=reg.method, params=reg.params))
         if not ros_ok(response):

@@ -1,6 +1,6 @@
 """What the ROS 1 role keeps across its own restarts (``state_dir``): exports, relays,
-owners, the registrations kept for rosmaster, local subscribers, refused registrations,
-the source addresses verified peers streamed from."""
+owners, the registrations kept for rosmaster, local subscribers, this host's nodes'
+registrations (made and refused), the source addresses verified peers streamed from."""
 
 from __future__ import annotations
 
@@ -25,13 +25,18 @@ class PersistedState:
         return None if self.cfg.state_dir is None else self.cfg.state_dir / f"{self.cfg.manager}.state.json"
 
     def _state_data(self) -> dict:
-        return {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
-                **self._master_ledger.snapshot(),
+        data = {"version": 1, "translator": self.translator.snapshot(), "topic_types": self.topic_types,
                 "local_subscribers": self._local_subscribers,
                 "node_apis": self._node_apis,
                 "export_children": {api: sorted(ids) for api, ids in self._export_children.items()},
                 "waiting": [[method, list(params)] for method, params in self._ledger.refused_items()],
+                # this host's nodes' registrations; the master role's ("registrations") are its ledger's
+                "local_registrations": [[method, list(params)] for method, params in self._ledger.made_items()],
                 "known_sources": self.gw.known_sources()}
+        master = self._master_ledger.snapshot()
+        if master.keys() & data.keys():  # one file for both roles: a shared key would lose one table
+            raise RuntimeError(f"state keys of both roles: {sorted(master.keys() & data.keys())}")
+        return {**data, **master}
 
     def _save_state(self) -> None:
         """Keep the tables a restart would otherwise lose (written atomically), now, on
@@ -102,6 +107,8 @@ class PersistedState:
             problems = self.translator.restore(data["translator"])
             self.topic_types.update({str(k): str(v) for k, v in data.get("topic_types", {}).items()})
             self._master_ledger.restore(data)
+            for method, params in data.get("local_registrations", [])[:self._ledger.max_entries]:
+                self._ledger.made(str(method), tuple(str(p) for p in params))
             for method, params in data.get("waiting", [])[:self._ledger.max_refused]:
                 self._ledger.refused(str(method), tuple(str(p) for p in params))
             for topic, subscribers in data.get("local_subscribers", {}).items():

@@ -223,6 +223,55 @@ def test_a_registration_waiting_for_its_grant_is_kept_across_its_interceptors_re
         assert sub.poll() is None
 
 
+@pytest.mark.parametrize("state", ["kept", "lost"])
+def test_after_its_interceptors_restart_a_grant_given_back_reaches_a_running_subscriber_and_a_node_dead_meanwhile_is_cleaned_up(
+        tmp_path, state):
+    """A README deployment audit (day-2): robot B's interceptor restarted (the runbook's
+    step) while its listener ran, and another listener was killed while it was down.
+    Then the running listener's subscribe grant is removed and given back once its
+    stream was cut: it receives again within 10 s (it stayed silent for minutes: the
+    restarted interceptor had forgotten the registrations its nodes made before, so the
+    grant given back made none of them again); and the node that died meanwhile has its
+    registrations withdrawn by the dead-node check, as if it had died with the
+    interceptor up (it stayed in rosnode list for good). With its state directory
+    ``kept`` (the default one, beside the configuration) or ``lost`` (removed while it
+    was down: what it knows is taken back from rosmaster)."""
+    import shutil
+
+    from interceptor.config import default_state_dir
+
+    with robot_network(tmp_path, limits={"dead_node_check": 1}) as net, \
+            running([SYS_PY, NODE, "pub", "/talker_a", "/secret", "100000", "20", "120"],
+                    env=net.ros_env("robot_a")) as pub, \
+            running([SYS_PY, NODE, "sub", "/listener_back", "/secret", "120"], env=net.ros_env("robot_b")) as sub, \
+            running([SYS_PY, NODE, "sub", "/listener_dies", "/secret", "120"], env=net.ros_env("robot_b")) as dies:
+        net.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
+        net.cli("grant", "robot_b", "subscribe", "/listener_dies", "/secret", "std_msgs/String")
+        for proc in (pub, sub, dies):
+            read_lines(proc, "READY", 20)
+        first_message_within(sub, 20)
+        net.stop("robot_b")
+        dies.kill()
+        dies.wait(10)
+        if state == "lost":
+            shutil.rmtree(default_state_dir(net.hosts["robot_b"].config))
+        net.start("robot_b")
+        first_message_within(sub, 15)
+        wait_logged(net, "robot_b", "/listener_dies died without unregistering", timeout=20)
+        cuts = net.hosts["robot_a"].logs().count("grant_removed")
+        net.cli("revoke", "robot_b", "subscribe", "/listener_back", "/secret")
+        pause_before_the_grant(net, "after_the_cut", "robot_a", cuts, sub)
+        assert not got(read_lines(sub, None, 1.0)), "still receiving after the grant was removed"
+        granted = time.monotonic()
+        net.cli("grant", "robot_b", "subscribe", "/listener_back", "/secret", "std_msgs/String")
+        took = first_message_within(sub, 10, since=granted)
+        print(f"after a restart ({state}), a grant given back: first message {took:.2f} s after `grant`")
+        env = {**net.ros_env("robot_b"), "PATH": "/usr/bin:/bin"}
+        nodes = subprocess.run(on_host(["rosnode", "list"], env), env=env, capture_output=True, text=True, timeout=60)
+        assert "/listener_back" in nodes.stdout and "/listener_dies" not in nodes.stdout, nodes
+        assert sub.poll() is None and pub.poll() is None
+
+
 def call_service(net, host: str) -> str:
     """A rospy service client on ``host`` calls robot A's /rospy_loggers: its LOGGERS line."""
     with running([SYS_PY, str(NODES / "services.py"), "call", "/rospy_loggers"], env=net.ros_env(host)) as client:
