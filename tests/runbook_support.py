@@ -91,7 +91,9 @@ class Hosts:
         self.hosts = {name: lab.add_host(name) for name in (*names, "stranger")}
         addr = {name: h.address for name, h in self.hosts.items()}
         self.env = clean_env(
-            PATH=f"{VENV_BIN}:{os.environ.get('PATH', '/usr/bin:/bin')}",
+            # the venv last, as the runbook says: ROS's own `#!/usr/bin/env python3` scripts
+            # need Debian's python first
+            PATH=f"{os.environ.get('PATH', '/usr/bin:/bin')}:{VENV_BIN}",
             CRYPTOROS_AUTHZ_DB=f"sqlite:///{work}/registry.db", CRYPTOROS_PKI_DIR=str(work / "pki"),
             **{f"{name.upper()}_ADDR": address for name, address in addr.items() if name != "stranger"},
             **{k: str(v) for k, v in PORTS.items()}, **extra)
