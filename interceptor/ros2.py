@@ -731,8 +731,13 @@ class Ros2Role(Role):
 
     async def _serve_calls(self, reader, writer, out: Outbound, pending: set[int], peer: Peer,
                            first: bytes = b"") -> None:
-        """Requests from the calling robot to a local server (through the bridge's client);
+        """Requests from the calling robot to a local server (through the bridge's client),
+        each checked against the service's request type (CdrError ends the stream) and
+        paced by the peer's message budget, as its topic samples are (a peer pipelining
+        requests had 4.3 million refused in 15 s, 12.7 s of this interceptor's CPU);
         ``first``: bytes the peer sent behind its preamble reply."""
+        check_request, _response = self.inbound.service_checks(out.target.type)
+        budget = self.gw.budget(peer)
         decoder = fr.FrameDecoder(max_size=self.cfg.ros2.max_message_size, kinds=frozenset({fr.SRV_REQUEST}))
         with self._partial.charge(peer.manager, self.cfg.ros2.max_message_size) as charge:
             async for data in read_chunks(reader, READ_SIZE, first):
@@ -742,12 +747,24 @@ class Ros2Role(Role):
                 except fr.FrameError as exc:
                     raise RemoteProtocolError(str(exc)) from None
                 charge(decoder.buffered)
-                self._call_local(frames, writer, out, pending)
+                for _kind, _rid, cdr in frames:
+                    check_request(cdr)
+                if budget is not None and frames:
+                    while (wait := budget.delay(len(frames))) > 0:
+                        budget.throttled += 1
+                        await asyncio.sleep(wait)
+                self._call_local(frames, writer, out, pending, peer)
 
-    def _call_local(self, frames: list[tuple[int, int, bytes]], writer, out: Outbound, pending: set[int]) -> None:
+    def _call_local(self, frames: list[tuple[int, int, bytes]], writer, out: Outbound, pending: set[int],
+                    peer: Peer) -> None:
         for _, rid, cdr in frames:
             if len(pending) >= MAX_PENDING_CALLS:
                 writer.write(fr.encode(fr.SRV_RESPONSE, rid, b"\x00"))
+                key = ("calls_over", peer.manager, out.target.name)
+                if key not in self._noted:
+                    self._noted.add(key)
+                    log.warning("%s calls %s with %d calls under way: further calls are answered failed at once "
+                                "(logged once)", peer.manager, out.target.name, MAX_PENDING_CALLS)
                 continue
             bid = next(self._call_ids)
             log.debug("call %d (request %d) to the local server of %s", bid, rid, out.target.name)

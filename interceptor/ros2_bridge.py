@@ -49,7 +49,7 @@ class BridgeLink(asyncio.Protocol):
                  on_messages: Callable[[int, int, bytearray], None] | None = None) -> None:
         self._on_frame = on_frame
         self._on_messages = on_messages
-        self._decoder = fr.FrameDecoder(max_size=max_size + 64)
+        self._decoder = fr.FrameDecoder(max_size=max_size + fr.LINK_SLACK)
         self.transport: asyncio.Transport | None = None
         self.closed = asyncio.get_running_loop().create_future()
 

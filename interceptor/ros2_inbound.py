@@ -22,15 +22,18 @@ import asyncio
 import contextlib
 import functools
 import logging
+import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from cryptoros.errors import PolicyDenied, RemoteProtocolError, TokenError
 from cryptoros.policy.infrastructure import ros2_stays_local
 from cryptoros.policy.ros2 import manager_may
 from cryptoros.ros2 import framing as fr
-from cryptoros.ros2.cdr import CdrError, checker_for
+from cryptoros.ros2.cdr import CdrError, checker_for, service_checkers
 from cryptoros.ros2.target import QoS, StreamTarget, receiver_qos
 from cryptoros.tunnel import Preamble
 from interceptor.authz_client import PEER_TOKEN_WAIT
@@ -82,6 +85,17 @@ class Ros2Inbound:
         self._proxy_by_chan: dict[int, Proxy] = {}
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
         self._partial = partial  # each peer's unfinished frames, across its streams both ways (the role's)
+        self._prefixes = install_prefixes(self.cfg.ros2.python)
+
+    def service_checks(self, type_name: str) -> tuple[Callable[[bytes], None], Callable[[bytes], None]]:
+        """Checks of ``type_name``'s requests and responses (:func:`cryptoros.ros2.cdr.service_checkers`,
+        from the ``.srv`` file of the ROS 2 install the bridge runs on); PolicyDenied
+        (``type_not_checkable``) when there is none or it cannot be read: a service whose
+        bodies cannot be checked is not carried either way."""
+        try:
+            return service_checkers(type_name, service_definition(type_name, self._prefixes))
+        except CdrError as exc:
+            raise PolicyDenied("type_not_checkable", str(exc)) from None
 
     def close_all(self) -> None:
         """Cut every stream (the robot may receive nothing now, or the bridge restarted)."""
@@ -288,6 +302,7 @@ class Ros2Inbound:
         if any(s["name"] == target.name and s.get("servers") for s in self._graph().get("services", [])):
             raise PolicyDenied("served_here", f"{target.name} has a server on this robot's domain: a second one "
                                               "would race its answers")
+        _request, check_response = self.service_checks(target.type)
         proxy = Proxy(chan=self._next_chan(), writer=writer)
         self._proxies[target.name] = proxy
         self._proxy_by_chan[proxy.chan] = proxy
@@ -297,7 +312,7 @@ class Ros2Inbound:
         try:
             with self._partial.charge(peer.manager, self.cfg.ros2.max_message_size) as charge:
                 async for data in read_chunks(reader, READ_SIZE, first):
-                    self._proxy_replies(proxy, decoder, data, link)
+                    self._proxy_replies(proxy, decoder, data, link, check_response)
                     charge(decoder.buffered)
         finally:
             del self._proxies[target.name]
@@ -307,19 +322,49 @@ class Ros2Inbound:
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + b"\x00"))
 
     @staticmethod
-    def _proxy_replies(proxy: Proxy, decoder: fr.FrameDecoder, data: bytes, link: BridgeLink) -> None:
-        """The answers a remote server sent for the proxy's calls, handed to the bridge."""
+    def _proxy_replies(proxy: Proxy, decoder: fr.FrameDecoder, data: bytes, link: BridgeLink,
+                       check: Callable[[bytes], None]) -> None:
+        """The answers a remote server sent for the proxy's calls, each checked against the
+        service's response type (CdrError ends the stream), handed to the bridge."""
         try:
             decoder.feed(data)
             frames = decoder.frames()
             for _, rid, body in frames:
-                fr.split_status(body)
+                ok, cdr = fr.split_status(body)
+                if ok:
+                    check(cdr)
                 if rid not in proxy.pending:
                     raise RemoteProtocolError(f"response to request {rid}, which was never sent")
                 proxy.pending.discard(rid)
                 link.send(fr.encode(fr.REPLY, proxy.chan, fr.ID.pack(rid) + body))
         except fr.FrameError as exc:
             raise RemoteProtocolError(str(exc)) from None
+
+
+_SERVICE_TYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/srv/[A-Za-z][A-Za-z0-9_]*")
+
+
+def install_prefixes(python: Path | str) -> tuple[Path, ...]:
+    """Where the ROS 2 install the bridge runs on keeps its interface files: the venv of
+    ``python`` (``<venv>/share/<pkg>/srv``, the PyPI wheels' layout) and every prefix of
+    ``AMENT_PREFIX_PATH`` (a sourced ROS 2 install)."""
+    venv = Path(python).parent.parent  # the venv's bin/python, not the interpreter it links to
+    ament = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(":") if p]
+    return tuple(dict.fromkeys([venv, *ament]))
+
+
+@functools.lru_cache(maxsize=256)
+def service_definition(type_name: str, prefixes: tuple[Path, ...]) -> str:
+    """The ``.srv`` text of ``pkg/srv/Name`` under one of ``prefixes``; CdrError if none."""
+    if not _SERVICE_TYPE.fullmatch(type_name):
+        raise CdrError(f"{type_name!r} is not a service type (pkg/srv/Name)")
+    pkg, _srv, name = type_name.split("/")
+    for prefix in prefixes:
+        path = prefix / "share" / pkg / "srv" / f"{name}.srv"
+        with contextlib.suppress(OSError, UnicodeDecodeError):
+            return path.read_text(encoding="utf-8")
+    raise CdrError(f"{type_name}: no share/{pkg}/srv/{name}.srv in the ROS 2 install "
+                   f"({', '.join(map(str, prefixes))}): its bodies cannot be checked")
 
 
 class _Gated(CdrError):

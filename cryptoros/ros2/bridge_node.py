@@ -278,7 +278,7 @@ class Bridge:
 
     # ------------------------------------------------------------ from the interceptor
     def read_loop(self) -> None:
-        decoder = fr.FrameDecoder(max_size=self.max_size)
+        decoder = fr.FrameDecoder(max_size=self.max_size + fr.LINK_SLACK)  # (ids before service bodies)
         try:
             while True:
                 data = self.sock.recv(READ_SIZE)

@@ -17,6 +17,7 @@ definitions rosbags ships (:func:`checker_for`); no message object is built.
 from __future__ import annotations
 
 import functools
+import re
 import struct
 from collections.abc import Callable
 
@@ -86,7 +87,7 @@ def _repeat(steps: list[Step], count: int) -> Step:
     return step
 
 
-def _sequence(element: tuple, bound: int, typestore) -> Step:
+def _sequence(element: tuple, bound: int, typestore, budget: list[int] | None) -> Step:
     kind, detail = element
     if kind == 1 and detail[0] in _PRIMITIVE_SIZES:
         size = _PRIMITIVE_SIZES[detail[0]]
@@ -104,7 +105,7 @@ def _sequence(element: tuple, bound: int, typestore) -> Step:
             return off
 
         return step
-    inner = _steps_of_field(element, typestore)
+    inner = _steps_of_field(element, typestore, budget)
 
     def step(data: memoryview, off: int, u32: Callable) -> int:
         off = _align(off, 4)
@@ -114,6 +115,10 @@ def _sequence(element: tuple, bound: int, typestore) -> Step:
         off += 4
         if (bound and count > bound) or count > len(data) - off:  # every element takes a byte at least
             raise CdrError(f"sequence of {count} elements outside the sample or its bound")
+        if budget is not None:  # strings and messages: an object each where the message is built
+            budget[0] -= count
+            if budget[0] < 0:
+                raise CdrError(f"more than {MAX_SERVICE_ELEMENTS} strings and messages in sequences")
         for _ in range(count):
             for s in inner:
                 off = s(data, off, u32)
@@ -122,7 +127,7 @@ def _sequence(element: tuple, bound: int, typestore) -> Step:
     return step
 
 
-def _steps_of_field(field: tuple, typestore) -> list[Step]:
+def _steps_of_field(field: tuple, typestore, budget: list[int] | None = None) -> list[Step]:
     kind, detail = field
     if kind == 1:  # BASE: a primitive or a (bounded) string
         name, bound = detail
@@ -132,28 +137,62 @@ def _steps_of_field(field: tuple, typestore) -> list[Step]:
             return [_string(bound)]
         raise CdrError(f"cannot check fields of type {name}")
     if kind == 2:  # NAME: a nested message
-        return _steps_of_type(detail, typestore)
+        return _steps_of_type(detail, typestore, budget)
     if kind == 3:  # ARRAY: fixed count
         element, count = detail
         ekind, edetail = element
         if ekind == 1 and edetail[0] in _PRIMITIVE_SIZES:
             return [_primitive(_PRIMITIVE_SIZES[edetail[0]], count)]
-        return [_repeat(_steps_of_field(element, typestore), count)]
+        return [_repeat(_steps_of_field(element, typestore, budget), count)]
     if kind == 4:  # SEQUENCE: u32 count
         element, bound = detail
-        return [_sequence(element, bound, typestore)]
+        return [_sequence(element, bound, typestore, budget)]
     raise CdrError(f"unknown field kind {kind}")
 
 
-def _steps_of_type(type_name: str, typestore) -> list[Step]:
+def _steps_of_type(type_name: str, typestore, budget: list[int] | None = None) -> list[Step]:
     try:
         _consts, fields = typestore.fielddefs[type_name]
     except KeyError:
         raise CdrError(f"no definition of {type_name}") from None
     steps: list[Step] = []
     for _name, field in fields:
-        steps += _steps_of_field(field, typestore)
+        steps += _steps_of_field(field, typestore, budget)
     return steps
+
+
+#: strings and messages in the sequences of one service request or response, all
+#: together. A service's body is built into a message (rclpy's ``deserialize_message``, in
+#: the bridge and in the server or client): each such element an object of a hundred bytes
+#: or more, from a few bytes of CDR. An insider's answer of 12 MiB claiming that many
+#: empty elements took the bridge to 2.5 GB before it failed (a ROS 2 audit). Sequences
+#: of numbers are one array each and do not count.
+MAX_SERVICE_ELEMENTS = 65_536
+
+
+@functools.lru_cache(maxsize=256)
+def service_checkers(type_name: str, definition: str) -> tuple[Callable, Callable]:
+    """Checks of ``pkg/srv/Name`` requests and responses, from its ``.srv`` text (the
+    request's fields, ``---``, the response's), each bounded by
+    :data:`MAX_SERVICE_ELEMENTS`; CdrError for a definition it cannot read or a field
+    type it cannot check (refuse the service: fail closed)."""
+    from rosbags.typesys import get_types_from_msg
+
+    parts = re.split(r"^---[ \t]*$", definition, maxsplit=1, flags=re.MULTILINE)
+    if len(parts) != 2 or type_name.count("/") != 2 or type_name.split("/")[1] != "srv":
+        raise CdrError(f"{type_name}: not a service definition (request, ---, response)")
+    typestore = _typestore()
+    # as rosbags names message types (pkg/msg/Name): the definition's relative field types
+    # (TransitionDescription) are then the package's messages, as in ROS
+    pkg, _srv, base = type_name.split("/")
+    names = (f"{pkg}/msg/{base}_Request", f"{pkg}/msg/{base}_Response")
+    try:
+        for name, text in zip(names, parts):
+            if name not in typestore.fielddefs:
+                typestore.register(get_types_from_msg(text, name))
+    except Exception as exc:  # rosbags raises several kinds on a definition it cannot read
+        raise CdrError(f"{type_name}: its definition cannot be read ({exc})") from None
+    return tuple(checker_for(name, max_elements=MAX_SERVICE_ELEMENTS) for name in names)  # type: ignore[return-value]
 
 
 @functools.lru_cache(maxsize=1)
@@ -164,13 +203,18 @@ def _typestore():
 
 
 @functools.lru_cache(maxsize=512)
-def checker_for(type_name: str) -> Callable[[bytes | bytearray | memoryview], None]:
+def checker_for(type_name: str, *, max_elements: int | None = None) -> Callable[[bytes | bytearray | memoryview], None]:
     """A check of serialized ``type_name`` samples (``pkg/msg/Name``); raises
-    CdrError for a type it cannot check (refuse such streams: fail closed)."""
-    steps = _steps_of_type(type_name, _typestore())
+    CdrError for a type it cannot check (refuse such streams: fail closed).
+    ``max_elements``: at most this many strings and messages in its sequences, all
+    together (what a receiver that builds the message makes an object of each)."""
+    budget = None if max_elements is None else [max_elements]
+    steps = _steps_of_type(type_name, _typestore(), budget)
     unpackers = {">": struct.Struct(">I").unpack_from, "<": struct.Struct("<I").unpack_from}
 
     def check(sample: bytes | bytearray | memoryview) -> None:
+        if budget is not None:
+            budget[0] = max_elements
         view = memoryview(sample)
         if len(view) < 4:
             raise CdrError(f"sample of {len(view)} bytes has no encapsulation header")

@@ -25,6 +25,13 @@ _LENGTH: Final = struct.Struct("<I")
 #: length counts kind + channel + payload
 _MIN_LENGTH: Final = HEAD.size - 4
 DEFAULT_MAX_SIZE: Final = 16 * 1024 * 1024
+#: bytes a frame of the local link between an interceptor and its bridge may carry beyond
+#: ``max_message_size``: the call or request id before a service body (4) and a status
+#: byte, with room to spare. Both ends allow it: a peer's service frame of exactly
+#: max_message_size, given its id here, was 4 bytes over the bridge's limit, and the
+#: bridge took that for a broken link and exited (a ROS 2 audit: every flow of the robot
+#: down 2 s, again each time the peer sent one)
+LINK_SLACK: Final = 64
 
 # ---- kinds, local link (interceptor <-> bridge)
 CONTROL: Final = 1  # JSON object, either direction
@@ -215,7 +222,7 @@ def payloads(frames: bytes | bytearray) -> list[bytes]:
 
 
 __all__ = [
-    "CALL", "CONTROL", "DATA", "DEFAULT_MAX_SIZE", "FrameDecoder", "FrameError", "HEAD", "ID", "KINDS", "MESSAGE",
+    "CALL", "CONTROL", "DATA", "DEFAULT_MAX_SIZE", "LINK_SLACK", "FrameDecoder", "FrameError", "HEAD", "ID", "KINDS", "MESSAGE",
     "PUBLISH", "REPLY", "REQUEST", "RESULT", "SRV_REQUEST", "SRV_RESPONSE", "decode_control", "encode",
     "encode_control", "payloads", "pieces", "retag", "split_status",
 ]

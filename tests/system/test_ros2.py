@@ -555,7 +555,9 @@ def test_a_malformed_answer_from_a_remote_server_costs_only_its_own_call(network
     """ROS 2 audit: an insider serving a service robot B may call answered one call with
     an empty response; bridge B's thread serving every remote service died on it, and
     robot A's /set_flag went unanswered from then on (``cryptoros status`` said ok). The
-    malformed answer is now no answer (logged), and the other services go on."""
+    malformed answer is now no answer: robot B's interceptor checks it against the
+    service's response type before the bridge sees it, and ends that stream with a DENY
+    naming the peer; the other services go on."""
     from cryptoros.ros2 import framing as fr
 
     with _services_for_b(network, "robot_a", "/bad_server", ["/bad_answer"]):
@@ -580,8 +582,9 @@ def test_a_malformed_answer_from_a_remote_server_costs_only_its_own_call(network
             with network.node("robot_b", "client.py", "/set_flag", "2", "30") as client:
                 client.until("RESULT True flag set to True by flag_server", 35)
                 client.until("RESULT True flag set to False by flag_server", 10)
-        until(lambda: "is not a SetBool response" in network.robots["robot_b"].logs(), 10,
-              "robot B logging the malformed answer")
+        until(lambda: any("DENY ros2 from robot_a@" in line and "no encapsulation header" in line
+                          for line in network.robots["robot_b"].logs().splitlines()), 10,
+              "robot B logging the malformed answer, naming robot A")
 
 
 def test_the_unfinished_frames_of_a_peers_service_streams_count_against_its_budget(network):

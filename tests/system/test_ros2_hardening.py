@@ -92,6 +92,75 @@ def test_random_and_mutated_payloads_raise_cdr_errors_and_nothing_else(type_name
             checker_for(type_name)(bytes(raw))
 
 
+# ---------------------------------------------------------------- service bodies
+
+PROBE_SRV = """string name
+builtin_interfaces/Time[] stamps
+---
+bool ok
+string[] labels
+uint8[] blob
+"""
+
+
+def test_service_requests_and_responses_are_checked_against_their_srv_and_bounded_in_elements():
+    """ROS 2 audit (HIGH): service bodies went to the bridge unchecked, where rclpy builds
+    the message: a 12 MiB answer claiming as many empty elements took the bridge to
+    2.5 GB. Requests and responses are now checked like topic samples, against the
+    service's .srv, with at most MAX_SERVICE_ELEMENTS strings and messages in their
+    sequences (numbers in arrays do not count: one array each)."""
+    from cryptoros.ros2.cdr import MAX_SERVICE_ELEMENTS, service_checkers
+
+    check_request, check_response = service_checkers("cryptoros_test/srv/Probe", PROBE_SRV)
+    ts = _typestore_with_probe()
+    T = ts.types["builtin_interfaces/msg/Time"]
+    Req, Resp = ts.types["cryptoros_test/msg/Probe_Request"], ts.types["cryptoros_test/msg/Probe_Response"]
+    request = bytes(ts.serialize_cdr(Req(name="x", stamps=[T(sec=1, nanosec=2)] * 3), Req.__msgtype__))
+    check_request(request)
+    blob = np.zeros(1 << 20, dtype=np.uint8)
+    fine = bytes(ts.serialize_cdr(Resp(ok=True, labels=["a"] * 10, blob=blob), Resp.__msgtype__))
+    check_response(fine)
+    many = bytes(ts.serialize_cdr(Resp(ok=True, labels=["a"] * (MAX_SERVICE_ELEMENTS + 1),
+                                       blob=np.zeros(0, dtype=np.uint8)), Resp.__msgtype__))
+    for _ in range(2):  # refused each time, and the budget starts over for the next body
+        with pytest.raises(CdrError, match="strings and messages"):
+            check_response(many)
+        check_response(fine)
+    with pytest.raises(CdrError):  # a request is no response
+        check_response(request)
+    claimed = b"\x00\x01\x00\x00\x01\x00\x00\x00" + struct.pack("<I", 4_000_000) + b"\x00" * 4_000_000
+    with pytest.raises(CdrError):
+        check_response(claimed)
+    with pytest.raises(CdrError):
+        check_request(request + b"\x00" * 8)
+    with pytest.raises(CdrError, match="not a service definition"):
+        service_checkers("cryptoros_test/srv/NoSeparator", "string name\n")
+
+
+def _typestore_with_probe():
+    from cryptoros.ros2.cdr import _typestore
+
+    return _typestore()  # service_checkers registered the probe's request and response in it
+
+
+def test_a_service_frame_of_max_message_size_with_its_id_fits_the_bridge_link():
+    """ROS 2 audit (HIGH): a peer's service frame of exactly max_message_size, given its
+    call id by the interceptor, was 4 bytes over the bridge's limit; the bridge took it
+    for a broken link and exited (every flow of the robot down 2 s, as often as the peer
+    liked). Both ends of the link allow LINK_SLACK bytes beyond it."""
+    size = 4096
+    frame = fr.encode(fr.CALL, 7, fr.ID.pack(1) + b"\x00" * size)
+    decoder = fr.FrameDecoder(max_size=size + fr.LINK_SLACK)
+    decoder.feed(frame)
+    assert [(kind, chan, len(body)) for kind, chan, body in decoder.frames()] == [(fr.CALL, 7, size + 4)]
+    from pathlib import Path
+
+    import cryptoros.ros2
+
+    bridge = (Path(cryptoros.ros2.__file__).parent / "bridge_node.py").read_text()
+    assert "FrameDecoder(max_size=self.max_size + fr.LINK_SLACK)" in bridge
+
+
 # ---------------------------------------------------------------- the limiter
 
 
