@@ -132,13 +132,16 @@ def test_the_masters_interceptor_refuses_a_rosmaster_other_hosts_reach(tmp_path)
             read_lines(pub, "READY", 20)
             _wait_rosmaster_holds(net, "/talker_a")
 
+            with net.inside("robot_b"):  # a tunnel to the master's interceptor, kept for the next call
+                assert xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).getSystemState("/probe")[0] == 1
             # rosmaster restarted exposed while everything runs
             stop(private)
             exposed = _rosmaster(net, port, through_cryptoros_run=False)
             _wait_log(net, "master", "master streams refused (exposed_master)")
             with net.inside("robot_b"):
                 code, message, _ = xmlrpc.client.ServerProxy(net.hosts["robot_b"].master_uri).getSystemState("/probe")
-            assert code != 1, message
+            # robot B's own tools read why (a README deployment audit: only "denied by cryptoros")
+            assert code != 1 and message == "denied by cryptoros: exposed_master", message
             assert "exposed_master" in net.hosts["master"].logs().split("master streams refused", 1)[1]
             status = status_text(net, "master")
             assert "warning   master streams refused (exposed_master)" in status, status
