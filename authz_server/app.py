@@ -907,6 +907,10 @@ def make_app(service: AuthzService, *, probe: bool = False) -> web.Application:
             return _oauth_error(401, "invalid_client")
         except web.HTTPException:
             raise
+        except ConnectionError as exc:  # the client left while its answer was written (a stop, a cut)
+            log.info("%s %s: the client left before its answer (%s)", request.method, request.path,
+                     type(exc).__name__)
+            raise
         except (CryptorosError, SQLAlchemyError) as exc:  # the registry cannot be read: try another replica
             why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             log.error("%s %s failed: %s", request.method, request.path, why)
