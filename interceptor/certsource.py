@@ -28,6 +28,7 @@ from cryptoros.tls import (
 )
 from cryptoros.tokens import peer_audience
 from interceptor.config import InterceptorConfig
+from interceptor.health import CRL_DUE_WARNING
 
 log = logging.getLogger("cryptoros.interceptor")
 
@@ -69,6 +70,10 @@ class CertSource:
                         "and the revocation feed carries newer ones; re-sign it (cryptoros-certs crl), copy it here "
                         "and SIGHUP", cfg.tls.crl_file,
                         time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(cert_check.next_update)))
+        elif cert_check.next_update is not None and cert_check.next_update - time.time() < CRL_DUE_WARNING:
+            log.warning("the CRL %s is due for re-signing by %s: re-sign it (cryptoros-certs crl), copy it here and "
+                        "SIGHUP", cfg.tls.crl_file, time.strftime("%Y-%m-%d %H:%M UTC",
+                                                                  time.gmtime(cert_check.next_update)))
         return cls(server_ctx=server_ctx, client_ctx=client_ctx, sessions=SessionCache(client_ctx, lifetime=lifetime),
                    # the authorization server's certificate checked as every peer's (CRL, feed)
                    authz_ctx=checking_server(client_context(cfg.tls, check_hostname=True), cert_check.check),

@@ -61,9 +61,10 @@ class TestPKIFactory:
         self.pki.revoke(name, reason=reason)
         return self.pki.write_crl()
 
-    def expired_crl(self, path: Path, *serials: int) -> Path:
+    def expired_crl(self, path: Path, *serials: int, due_days: float = -3) -> Path:
         """Write a CRL of this CA listing ``serials``, issued ten days ago and due for
-        re-signing three days ago (older than any ``revoke`` wrote, and out of date)."""
+        re-signing ``due_days`` from now (by default three days ago: older than any
+        ``revoke`` wrote, and out of date)."""
         import datetime as dt
 
         from cryptography import x509
@@ -74,7 +75,7 @@ class TestPKIFactory:
         ca, key = load_certificate(self.ca_cert), load_private_key(self.pki.ca_key_path, None)
         now = dt.datetime.now(dt.timezone.utc)
         builder = (x509.CertificateRevocationListBuilder().issuer_name(ca.subject)
-                   .last_update(now - dt.timedelta(days=10)).next_update(now - dt.timedelta(days=3)))
+                   .last_update(now - dt.timedelta(days=10)).next_update(now + dt.timedelta(days=due_days)))
         for serial in serials:
             builder = builder.add_revoked_certificate(x509.RevokedCertificateBuilder().serial_number(serial)
                                                       .revocation_date(now - dt.timedelta(days=9)).build())

@@ -115,3 +115,13 @@ def test_an_out_of_date_crl_stops_no_valid_peer_and_an_older_crl_unrevokes_nothi
             assert time.monotonic() < deadline, authz_log.read_text()[-2000:]
             time.sleep(0.2)
         assert feed_serials() == [format(valid.serial, "x")]
+        # a CRL due within three days is logged on SIGHUP too, as the runbook says
+        # (a README deployment audit: only `cryptoros status` said it)
+        network.pki.expired_crl(network.pki.crl, revoked.serial, due_days=1)
+        reloads = host.logs().count("reloaded")
+        host.proc.send_signal(signal.SIGHUP)
+        deadline = time.monotonic() + 15
+        while host.logs().count("reloaded") == reloads:
+            assert time.monotonic() < deadline, host.logs()[-2000:]
+            time.sleep(0.1)
+        assert "is due for re-signing by" in host.logs()
