@@ -22,6 +22,7 @@ The inbound half (streams other robots open here, republished on this robot's do
 offered as proxy services) is :class:`~interceptor.ros2_inbound.Ros2Inbound`, handed
 the bridge, the channel numbers and the graph by the role.
 """
+
 from __future__ import annotations
 
 import asyncio

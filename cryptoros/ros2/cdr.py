@@ -203,7 +203,8 @@ def _typestore():
 
 
 @functools.lru_cache(maxsize=512)
-def checker_for(type_name: str, *, max_elements: int | None = None) -> Callable[[bytes | bytearray | memoryview], None]:
+def checker_for(type_name: str, *,
+                max_elements: int | None = None) -> Callable[[bytes | bytearray | memoryview], None]:
     """A check of serialized ``type_name`` samples (``pkg/msg/Name``); raises
     CdrError for a type it cannot check (refuse such streams: fail closed).
     ``max_elements``: at most this many strings and messages in its sequences, all
