@@ -8,12 +8,15 @@ again on each fresher token the sender shows); then every sample's CDR is checke
 against its type, the monitor scores or gates it, the sender's rate budget paces it,
 and it is handed to the DDS bridge, on a publisher of the stream's own, with the QoS
 the sender saw capped by this robot's. A remote service is offered on the domain as a
-proxy: local calls go down the serving robot's stream, answers come back up it.
+proxy: local calls go down the serving robot's stream, answers come back up it, each
+checked against the service's ``.srv`` (:meth:`Ros2Inbound.service_checks`, which the
+role's outbound half uses for the requests peers send to this robot's servers).
 
 :class:`Ros2Inbound` owns what the peers' streams hold here: the open streams, the
 proxies and the bytes kept for late joiners. The role (:class:`~interceptor.ros2.Ros2Role`)
 owns the bridge, the channel numbers, the graph and each peer's unfinished frames (its
-calls to this robot's services count too), and hands them in; it closes the streams when the robot may receive nothing.
+calls to this robot's services count too), and hands them in; it closes the streams
+when the robot may receive nothing.
 """
 
 from __future__ import annotations
@@ -74,8 +77,6 @@ class Ros2Inbound:
                  graph: Callable[[], dict[str, Any]], problem: Callable[[], PolicyDenied | None],
                  partial: PartialFrames) -> None:
         self.gw = gateway
-        self.cfg = gateway.cfg
-        self.metrics = gateway.metrics
         self.bridge = bridge
         self._next_chan = next_chan
         self._graph = graph  # the local graph the bridge last reported
@@ -86,6 +87,14 @@ class Ros2Inbound:
         self._kept: dict[str, int] = {}  # peer manager -> bytes its streams make this robot keep
         self._partial = partial  # each peer's unfinished frames, across its streams both ways (the role's)
         self._prefixes = install_prefixes(self.cfg.ros2.python)
+
+    @property
+    def cfg(self):
+        return self.gw.cfg  # the configuration in force (a reload replaces it)
+
+    @property
+    def metrics(self):
+        return self.gw.metrics
 
     def service_checks(self, type_name: str) -> tuple[Callable[[bytes], None], Callable[[bytes], None]]:
         """Checks of ``type_name``'s requests and responses (:func:`cryptoros.ros2.cdr.service_checkers`,

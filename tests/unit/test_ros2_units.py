@@ -378,3 +378,20 @@ def test_a_hint_for_a_node_it_cannot_name_says_where_the_name_comes_from():
     hint = Ros2Role._grant_hint("robot_b", "subscribe", None, "/status", "std_msgs/msg/Int32")
     assert hint.startswith("cryptoros-authz grant robot_b subscribe NODE /status std_msgs/msg/Int32  # NODE: ")
     assert "ros2 node list" not in hint and "create_node name" in hint
+
+
+def test_the_inbound_half_reads_the_configuration_in_force():
+    """A SIGHUP replaces the gateway's configuration, and ``[ros2] local``, ``depth``,
+    ``transient_local`` and ``max_kept_bytes_per_peer`` apply to new streams: the inbound
+    half reads the configuration in force, never a copy taken when it started."""
+    from types import SimpleNamespace
+
+    from interceptor.ros2_inbound import Ros2Inbound
+    from interceptor.ros2_partial import PartialFrames
+
+    before = SimpleNamespace(ros2=SimpleNamespace(python="/venv/bin/python", max_kept_bytes_per_peer=1))
+    gw = SimpleNamespace(cfg=before, metrics=object())
+    inbound = Ros2Inbound(gw, bridge=None, next_chan=lambda: 1, graph=dict, problem=lambda: None,
+                          partial=PartialFrames())
+    gw.cfg = SimpleNamespace(ros2=SimpleNamespace(python="/venv/bin/python", max_kept_bytes_per_peer=2))
+    assert inbound.cfg.ros2.max_kept_bytes_per_peer == 2 and inbound.metrics is gw.metrics
