@@ -541,6 +541,11 @@ SHOWN_REASONS = frozenset({
     "not_granted", "param_write_denied", "param_read_denied", "shutdown_dropped", "not_from_master",
     "method_not_allowed", "name_taken", "node_limit", "param_quota", "rate_limited", "malformed", "unknown_topic",
     "unknown_endpoint", "endpoint_not_peer", "answer_too_large", "not_its_node",
+    # the master host's rosmaster reachable from the network: every robot's tools say why
+    # nothing answers, over a tunnel opened before it too (a README deployment audit and a
+    # fresh-clone run: `rosnode list` said only "denied by cryptoros"); a stranger's port
+    # scan finds that rosmaster anyway
+    "exposed_master",
 })
 
 
