@@ -41,6 +41,7 @@ from cryptoros.tokens import AccessToken
 from interceptor.exposure import is_this_host
 from interceptor.gate import REFRESH
 from interceptor.pump import FrameCounter
+from interceptor.ros1.refusals import TELLINGS_PER_SECOND
 from interceptor.ros1.localcalls import (
     EXPOSED_SHUTDOWN_DELAY,
     REPEAT_SHUTDOWN_DELAY,
@@ -731,13 +732,24 @@ class NodeSide:
                      "publishers again in %.1f to %.1f s (said once a minute)", access.subject, len(due), min(waits),
                      max(waits))
         for topic, wait in due:
-            self.gw.spawn(self._resubscribe_after(topic, wait))
+            self.gw.spawn(self._resubscribe_after(topic, wait + self._paced(access.subject)))
 
     async def _resubscribe_after(self, topic: str, delay: float) -> None:
         await asyncio.sleep(max(0.0, delay))
         self._resubscribe_soon(topic, delay=0.0)
 
-    def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None) -> None:
+    def _paced(self, manager: str) -> float:
+        """The turn of one more telling of ``manager``'s topics (:meth:`RefusedStreams.paced`);
+        a manager whose tellings wait is logged once a minute."""
+        wait = self._refused_streams.paced(manager)
+        if wait > 0 and self._refusal_log(("paced", manager)):
+            log.warning("%s's topic streams to subscribers here end or are refused faster than %g a second: their "
+                        "subscribers are told the publishers again at that pace (said once a minute)", manager,
+                        TELLINGS_PER_SECOND)
+        return wait
+
+    def _resubscribe_soon(self, topic: str, delay: float = 0.5, via: tuple[str, int] | None = None,
+                          paced_by: str | None = None) -> None:
         """A topic stream into this host ended: tell the topic's local subscribers the
         current publishers (``publisherUpdate``, as the master would), so rospy and
         roscpp connect again once the publisher's side is back (they retry a failed
@@ -749,6 +761,8 @@ class NodeSide:
         if topic not in self._local_subscribers or topic in self._resubscribing or not self.gw.started:
             return
         self._resubscribing.add(topic)
+        if paced_by is not None:  # after a stream of that manager's ended
+            delay += self._paced(paced_by)
 
         async def nudge() -> None:
             try:

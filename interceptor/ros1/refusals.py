@@ -16,6 +16,12 @@ answering every subscriber with an error header). So the wait doubles with each 
 topic was told again while its streams from that manager kept being refused (1.5, 3, 6
 ... s, up to :data:`REFUSED_MEMORY`), and a stream of that manager's on the topic
 accepted starts it over.
+
+Every telling after a stream of a manager's side ended or was refused also waits its
+turn in that manager's bucket (:meth:`RefusedStreams.paced`): an insider whose node
+accepted each subscriber's stream and closed it at once had the victim's subscribers
+told again, and reconnecting, 330 times in 15 s over 30 topics (a re-audit), nothing
+refused and so no back-off above.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import time
 from collections.abc import Callable
 
 from cryptoros.lru import remember
+from interceptor.pump import MessageBudget
 
 #: the least wait from a refusal to the subscribers told again (rospy's own check is
 #: one second after the refusal): a grant given back within a second of its removal
@@ -35,6 +42,10 @@ REFUSED_MEMORY = 60.0
 MAX_REFUSED = 256
 #: (manager, topic) pairs whose back-off is remembered
 MAX_BACKOFFS = 4096
+#: tellings after a manager's streams ended or were refused: this many a second per
+#: manager after a burst that covers a robot's topics all cut at once (its host restarted)
+TELLINGS_PER_SECOND = 2.0
+TELLING_BURST = 64
 
 
 class RefusedStreams:
@@ -44,6 +55,7 @@ class RefusedStreams:
         self._clock = clock
         self._refused: dict[str, dict[str, float]] = {}  # manager -> topic -> when refused
         self._told: dict[tuple[str, str], int] = {}  # (manager, topic) -> times told since an accepted stream
+        self._budgets: dict[str, MessageBudget] = {}  # manager -> its tellings' bucket
 
     def refused(self, manager: str, topic: str) -> None:
         """A topic stream from ``manager``'s side to a local subscriber was refused (or
@@ -57,6 +69,18 @@ class RefusedStreams:
     def accepted(self, manager: str, topic: str) -> None:
         """A stream of ``manager``'s on ``topic`` went through: its back-off starts over."""
         self._told.pop((manager, topic), None)
+
+    def paced(self, manager: str) -> float:
+        """Seconds one more telling of ``manager``'s topics waits for its turn (0: now);
+        each call takes a turn, so the ones after it wait behind it."""
+        budget = self._budgets.get(manager)
+        if budget is None:
+            budget = MessageBudget(TELLINGS_PER_SECOND, burst=TELLING_BURST, clock=self._clock)
+        remember(self._budgets, manager, budget, MAX_REFUSED)
+        wait = budget.delay(1)
+        if wait > 0:
+            budget.spend(1)  # queued: the next one waits behind this one
+        return wait
 
     def due(self, manager: str) -> list[tuple[str, float]]:
         """``manager`` showed a fresher token: each topic its side refused lately, with the
@@ -77,4 +101,5 @@ class RefusedStreams:
         return out
 
 
-__all__ = ["MAX_REFUSED", "REFUSED_MEMORY", "REFUSED_RECHECK", "RefusedStreams"]
+__all__ = ["MAX_REFUSED", "REFUSED_MEMORY", "REFUSED_RECHECK", "RefusedStreams", "TELLINGS_PER_SECOND",
+           "TELLING_BURST"]

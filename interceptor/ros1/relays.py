@@ -288,7 +288,7 @@ class Relays:
                 watch.close()
                 self.metrics.open_streams.labels(purpose).dec()
                 if purpose == "topic":
-                    self._resubscribe_soon(fields["topic"], via=(target.host, target.port))
+                    self._resubscribe_soon(fields["topic"], via=(target.host, target.port), paced_by=peer.manager)
         except (CryptorosError, asyncio.TimeoutError, ConnectionError, OSError) as exc:
             if isinstance(exc, CryptorosError):
                 self.gw.deny("relay", exc, str(target), hint=header_hint(

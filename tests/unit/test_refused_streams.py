@@ -54,3 +54,21 @@ def test_an_old_refusal_is_not_acted_on_and_the_memory_is_bounded():
     assert refused.due("m0") == []  # the oldest managers forgotten
     assert len(refused.due(f"m{MAX_REFUSED + 9}")) == 3
     assert len(refused.due("busy")) == MAX_REFUSED
+
+
+def test_tellings_after_a_managers_streams_end_are_paced_per_manager_after_a_burst():
+    """Re-audit (MEDIUM): an insider's node that accepted each subscriber's stream and
+    closed it at once (nothing refused, so no back-off) had the victim's subscribers
+    told again 330 times in 15 s over 30 topics. Every telling now takes a turn in its
+    manager's bucket: a burst covers a robot's topics all cut at once, then
+    TELLINGS_PER_SECOND; another manager's turns are its own."""
+    from interceptor.ros1.refusals import TELLING_BURST, TELLINGS_PER_SECOND
+
+    clock = Clock()
+    refused = RefusedStreams(clock)
+    assert [refused.paced("mallory") for _ in range(TELLING_BURST)] == [0.0] * TELLING_BURST
+    waits = [refused.paced("mallory") for _ in range(4)]  # queued one behind the other
+    assert waits == pytest.approx([n / TELLINGS_PER_SECOND for n in range(1, 5)])
+    assert refused.paced("robot_a") == 0.0
+    clock.t += 60  # the bucket fills again
+    assert refused.paced("mallory") == 0.0
