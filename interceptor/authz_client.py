@@ -602,8 +602,11 @@ class TokenKeeper:
                 await self._fetch_for_peer(thumbprint)
             except TokenError as exc:
                 log.info("cannot refresh a peer's token (%s); keeping the cached one", exc.detail)
+        if self._token is not token:  # revoked meanwhile (the feed, a grant changed again): run() asks again
+            log.info("access token refreshed and revoked again while the peers' tokens were fetched: asking again")
+            return
         self.refreshed.set()
-        log.info("access token refreshed, valid for %.0f s", self._token.expires_at - self._clock())
+        log.info("access token refreshed, valid for %.0f s", token.expires_at - self._clock())
         for listener in self.listeners:
             listener()
 
@@ -664,7 +667,8 @@ class TokenKeeper:
                 again = self._failures.succeeded()
                 if again is not None:
                     log.info("access token held again, %s", again)
-                delay = refresh_delay(self._token.expires_at - self._clock(), self.refresh_margin)
+                held = self._token
+                delay = 0.0 if held is None else refresh_delay(held.expires_at - self._clock(), self.refresh_margin)
             except TokenError as exc:
                 self.failing = (self.failing[0] if self.failing else self._clock(), exc.detail)
                 remaining = (self._token.expires_at - self._clock()) if self._token else 0
@@ -672,6 +676,10 @@ class TokenKeeper:
                 if exc.reason != "wrong_manager" and note is not None:  # wrong_manager: an error where it is found
                     log.warning("cannot refresh access token (%s); cached token valid %.0f s more%s", exc.detail,
                                 max(0, remaining), f"; {note}" if note else "")
+                delay = backoff
+                backoff = min(backoff * 2, 8.0)
+            except Exception:  # a bug here must not end the keeper: the robot would hold no token, silently
+                log.exception("refreshing the access token failed")
                 delay = backoff
                 backoff = min(backoff * 2, 8.0)
             self._dropped_at = None  # succeeded or failed: no successor is on its way any more

@@ -291,3 +291,41 @@ async def test_a_dropped_token_is_being_replaced_until_its_successors_request_en
             assert not keeper.taken_within(3.0)
     finally:
         runner.cancel()
+
+
+async def test_a_token_revoked_while_its_refresh_fetches_the_peers_tokens_is_fetched_again():
+    """A fresh-clone run: a grant change revoked our new token while the refresh was still
+    fetching the peers' tokens; the refresh then read the token it had just dropped
+    (``None``), the keeper's task died of it, silently, and the robot held no token until
+    it was restarted (a minute of ``no_token`` in the test). The keeper now fetches again."""
+    class RevokedMidway(Authz):
+        armed = False
+
+        async def fetch_token(self, *, clock=time.time, resource=None):
+            token = await super().fetch_token(clock=clock, resource=resource)
+            if self.armed and resource is None:  # a peer's token came in meanwhile (a stream asked)
+                keeper._peer_tokens["x" * 43] = token
+            elif self.armed:  # the refresh fetches it again: the feed revokes our new token meanwhile
+                self.armed = False
+                keeper.invalidate()
+            return token
+
+    authz = RevokedMidway("robot_a")
+    keeper = TokenKeeper(authz, refresh_margin=60, manager="robot_a")
+    runner = asyncio.create_task(keeper.run())
+    try:
+        await asyncio.wait_for(keeper.refreshed.wait(), 5)
+        authz.armed = True
+        keeper.invalidate()  # a grant change: ours again, then the peer's (revoking ours midway)
+        deadline = time.monotonic() + 5
+        while True:
+            try:
+                keeper.current()
+                break
+            except TokenError:
+                assert not runner.done(), runner.exception()
+                assert time.monotonic() < deadline, "no token held 5 s after the revocation"
+                await asyncio.sleep(0.01)
+        assert authz.fetches >= 4 and not runner.done()
+    finally:
+        runner.cancel()
