@@ -289,14 +289,7 @@ class Registry:
         """A transaction that may change the registry: it holds the change chain's lock
         from its start, so its reads of the state before are not stale and its change
         row follows the last one committed."""
-        with self._session.begin() as s:
-            backend = self.engine.dialect.name
-            if backend == "sqlite":  # the write lock now, not at the first write
-                s.connection().exec_driver_sql("BEGIN IMMEDIATE")
-            elif backend == "postgresql":
-                s.execute(select(func.pg_advisory_xact_lock(_CHAIN_LOCK_KEY)))
-            else:  # pragma: no cover - the registry runs on SQLite or PostgreSQL
-                s.get(RegistryState, CHANGE_CHAIN, with_for_update=True)
+        with self._locked(shared=False) as s:
             yield s
 
     @contextmanager
@@ -304,14 +297,23 @@ class Registry:
         """A transaction that stores issued tokens: it holds the change lock shared (many
         at once, never during a change), so the registry's version it reads stays the
         version until it commits (:meth:`record`)."""
+        with self._locked(shared=True) as s:
+            yield s
+
+    @contextmanager
+    def _locked(self, *, shared: bool) -> Iterator[Session]:
+        """A transaction holding the change lock from its start: alone, or ``shared`` with
+        other shared holders (SQLite has one writer at a time either way: the write lock
+        now, not at the first write)."""
         with self._session.begin() as s:
             backend = self.engine.dialect.name
-            if backend == "sqlite":  # one writer at a time: the lock a change takes at its start
+            if backend == "sqlite":
                 s.connection().exec_driver_sql("BEGIN IMMEDIATE")
             elif backend == "postgresql":
-                s.execute(select(func.pg_advisory_xact_lock_shared(_CHAIN_LOCK_KEY)))
+                lock = func.pg_advisory_xact_lock_shared if shared else func.pg_advisory_xact_lock
+                s.execute(select(lock(_CHAIN_LOCK_KEY)))
             else:  # pragma: no cover - the registry runs on SQLite or PostgreSQL
-                s.get(RegistryState, CHANGE_CHAIN, with_for_update={"read": True})
+                s.get(RegistryState, CHANGE_CHAIN, with_for_update={"read": True} if shared else True)
             yield s
 
     @staticmethod
