@@ -193,8 +193,13 @@ def test_a_node_restarting_on_new_ports_releases_its_old_exports(tmp_path):
         sizes, previous = [], {}
 
         def released_and_new() -> dict | None:
+            """The new process's exports once the state file holds still (a fresh-clone run
+            read it between two of the talker's registrations: [2, 2, 3])."""
             exports = saved_exports(state)
-            return exports if len(exports) >= 2 and exports.keys().isdisjoint(previous) else None
+            if len(exports) < 2 or not exports.keys().isdisjoint(previous):
+                return None
+            time.sleep(0.3)
+            return exports if saved_exports(state) == exports else None
 
         for _ in range(3):
             with running([SYS_PY, NODE, "pub", "/talker_a", "/chatter", "100000", "20", "30"],
